@@ -1,0 +1,21 @@
+from glob import glob
+
+from setuptools import setup
+
+PACKAGE_NAME = 'curve_recon_node'
+
+setup(
+    name=PACKAGE_NAME,
+    version='0.1.0',
+    packages=[PACKAGE_NAME],
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE_NAME]),
+        ('share/' + PACKAGE_NAME, ['package.xml']),
+        ('share/' + PACKAGE_NAME + '/params', glob('params/*')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    description='Reconstructs a 3D curve from its images in two or three views by intersecting cones of fitted algebraic curves.',
+    license='Apache-2.0',
+    entry_points={'console_scripts': []},
+)

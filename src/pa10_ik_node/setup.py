@@ -1,0 +1,21 @@
+from glob import glob
+
+from setuptools import setup
+
+PACKAGE_NAME = 'pa10_ik_node'
+
+setup(
+    name=PACKAGE_NAME,
+    version='0.1.0',
+    packages=[PACKAGE_NAME],
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE_NAME]),
+        ('share/' + PACKAGE_NAME, ['package.xml']),
+        ('share/' + PACKAGE_NAME + '/params', glob('params/*')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    description='Follows curve waypoints with force feedback; redundant inverse kinematics of the PA-10 (primal-dual network, KKT, damped least squares).',
+    license='Apache-2.0',
+    entry_points={'console_scripts': []},
+)

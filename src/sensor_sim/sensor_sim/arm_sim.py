@@ -1,0 +1,198 @@
+"""A simulated position-controlled arm that follows joint trajectories.
+
+The command follows the ros2_control joint_trajectory_controller convention: a
+trajectory names its joints in any order, its points have ``time_from_start`` relative to
+a start time, and a new trajectory replaces the old one. The arm moves toward the
+interpolated set point as fast as its joint velocity limits allow and never leaves its
+position limits; there are no dynamics beyond that.
+"""
+import numpy as np
+
+from vgm_common.errors import InvalidInput
+
+
+class SimulatedArm:
+    """Joint positions [rad] and velocities [rad/s] of an arm driven by trajectories.
+
+    Args:
+        joint_names: the n joint names; state vectors are in this order.
+        lower_limits, upper_limits: (n,) position limits [rad].
+        velocity_limits: (n,) positive speed limits [rad/s].
+        q0: (n,) initial positions [rad], within the limits. The arm holds them.
+
+    Raises:
+        InvalidInput: inconsistent or non-finite limits, or ``q0`` outside them.
+    """
+
+    def __init__(self, joint_names, lower_limits, upper_limits, velocity_limits, q0):
+        self.joint_names = tuple(joint_names)
+        n = len(self.joint_names)
+        if len(set(self.joint_names)) != n:
+            raise InvalidInput(f'duplicate joint names {self.joint_names}',
+                               'joint_names', self.joint_names)
+        self._lower = _read_only(_vector(lower_limits, n, 'lower_limits'))
+        self._upper = _read_only(_vector(upper_limits, n, 'upper_limits'))
+        self._qdot_max = _read_only(_vector(velocity_limits, n, 'velocity_limits'))
+        if np.any(self._lower > self._upper) or np.any(self._qdot_max <= 0):
+            raise InvalidInput('need lower <= upper and velocity limits > 0')
+        q0 = _vector(q0, n, 'q0')
+        if np.any(q0 < self._lower) or np.any(q0 > self._upper):
+            raise InvalidInput(f'q0 {q0} is outside the joint limits', 'q0', q0)
+        self._q = q0
+        self._qdot = np.zeros(n)
+        self.hold()
+
+    @classmethod
+    def from_robot_model(cls, robot, q0):
+        """An arm with the joints and limits of a ``vgm_common.robot_model.RobotModel``."""
+        return cls(robot.joint_names, robot.lower_limits, robot.upper_limits,
+                   robot.velocity_limits, q0)
+
+    @property
+    def q(self):
+        """(n,) current positions [rad] (a copy)."""
+        return self._q.copy()
+
+    @property
+    def qdot(self):
+        """(n,) velocities [rad/s] over the last step (a copy)."""
+        return self._qdot.copy()
+
+    def hold(self):
+        """Replace the command by holding the current position."""
+        self._set_command(np.zeros(1), self._q[np.newaxis], None, start_time=-np.inf)
+
+    def set_trajectory(self, joint_names, times_from_start, positions, velocities=None,
+                       start_time=0.0):
+        """Replace the command by a trajectory.
+
+        Args:
+            joint_names: the arm's n joint names, in any order, each once.
+            times_from_start: (N,) strictly increasing times >= 0 [s] after ``start_time``.
+            positions: (N, n) positions [rad], columns in the order of ``joint_names``.
+            velocities: (N, n) velocities [rad/s] for cubic Hermite interpolation, or
+                None / empty for linear interpolation.
+            start_time: [s] simulation time at which ``times_from_start`` counts from 0.
+
+        The arm holds its current position until ``start_time``; if the first point is
+        later than 0 s, the trajectory starts from the current state; after the last point
+        the arm holds that point.
+        A single point at 0 s means "go there now", as fast as the limits allow.
+
+        Raises:
+            InvalidInput: unknown, missing or duplicate joint names, wrong shapes,
+                non-finite values or times not strictly increasing. The previous command
+                stays in force.
+        """
+        order = self._column_order(joint_names)
+        times = _array(times_from_start, 'times_from_start')
+        n_points, n = len(times), len(order)
+        if times.shape != (n_points,) or n_points == 0:
+            raise InvalidInput(f'times_from_start must be a non-empty 1-D list, got shape '
+                               f'{times.shape}', 'times_from_start', times_from_start)
+        if times[0] < 0 or np.any(np.diff(times) <= 0):
+            raise InvalidInput(f'times_from_start must be >= 0 and strictly increasing, got '
+                               f'{times}', 'times_from_start', times_from_start)
+        positions = _array(positions, 'positions')
+        if positions.shape != (n_points, n):
+            raise InvalidInput(f'positions must have shape ({n_points}, {n}), got '
+                               f'{positions.shape}', 'positions', positions)
+        if velocities is not None and np.size(velocities) == 0:
+            velocities = None
+        if velocities is not None:
+            velocities = _array(velocities, 'velocities')
+            if velocities.shape != (n_points, n):
+                raise InvalidInput(f'velocities must have shape ({n_points}, {n}), got '
+                                   f'{velocities.shape}', 'velocities', velocities)
+            velocities = velocities[:, order]
+        start_time = _array(start_time, 'start_time')
+        if start_time.shape != ():
+            raise InvalidInput(f'start_time must be a number, got {start_time}',
+                               'start_time', start_time)
+        self._set_command(times, positions[:, order], velocities, start_time)
+
+    def step(self, t, dt):
+        """Advance the arm by ``dt`` [s] toward the set point at time ``t`` [s].
+
+        Each joint moves at most ``velocity_limit * dt`` and stops at its position limits.
+
+        Returns:
+            (q, qdot): (n,) new positions [rad] and the velocities over the step [rad/s].
+        """
+        if not (np.isfinite(t) and np.isfinite(dt) and dt > 0):
+            raise InvalidInput(f'need finite t and dt > 0, got t={t}, dt={dt}', 'dt', dt)
+        max_step = self._qdot_max * dt
+        q_new = self._q + np.clip(self.desired(t) - self._q, -max_step, max_step)
+        q_new = np.clip(q_new, self._lower, self._upper)
+        self._qdot = (q_new - self._q) / dt
+        self._q = q_new
+        return self.q, self.qdot
+
+    def desired(self, t):
+        """(n,) set point [rad] of the current command at time ``t`` [s]."""
+        times, positions, velocities = self._times, self._positions, self._velocities
+        tau = t - self._start_time
+        if tau < 0:
+            return self._q_at_command.copy()
+        if tau <= times[0]:
+            return positions[0].copy()
+        if tau >= times[-1]:
+            return positions[-1].copy()
+        i = np.searchsorted(times, tau, side='right') - 1
+        h = times[i + 1] - times[i]
+        s = (tau - times[i]) / h
+        if velocities is None:
+            return positions[i] + s * (positions[i + 1] - positions[i])
+        # Cubic Hermite basis on [0, 1]; velocities scale by the segment length h.
+        h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+        h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+        return (h00 * positions[i] + h10 * h * velocities[i]
+                + h01 * positions[i + 1] + h11 * h * velocities[i + 1])
+
+    def _set_command(self, times, positions, velocities, start_time):
+        if times[0] > 0:
+            # As joint_trajectory_controller does: start from where the arm is.
+            times = np.concatenate([[0.0], times])
+            positions = np.vstack([self._q, positions])
+            if velocities is not None:
+                velocities = np.vstack([self._qdot, velocities])
+        self._times, self._positions, self._velocities = times, positions, velocities
+        self._start_time = float(start_time)
+        self._q_at_command = self._q.copy()  # held until start_time
+
+    def _column_order(self, joint_names):
+        """Indices that put columns given in ``joint_names`` order into the arm's order."""
+        names = [joint_names] if isinstance(joint_names, str) else list(joint_names)
+        unknown = sorted(set(names) - set(self.joint_names))
+        if unknown:
+            raise InvalidInput(f'unknown joint names {unknown}', 'joint_names', unknown)
+        duplicates = sorted({name for name in names if names.count(name) > 1})
+        if duplicates:
+            raise InvalidInput(f'duplicate joint names {duplicates}', 'joint_names', duplicates)
+        missing = [name for name in self.joint_names if name not in names]
+        if missing:
+            raise InvalidInput(f'missing joint names {missing}', 'joint_names', missing)
+        return np.array([names.index(name) for name in self.joint_names])
+
+
+def _array(value, key):
+    """``value`` as a new finite float array; raises ``InvalidInput`` otherwise."""
+    try:
+        array = np.array(value, dtype=float)
+    except (TypeError, ValueError) as err:  # ragged lists, strings
+        raise InvalidInput(f'{key} must be numbers, got {value!r}', key, value) from err
+    if not np.all(np.isfinite(array)):
+        raise InvalidInput(f'{key} must be finite, got {array}', key, value)
+    return array
+
+
+def _vector(value, n, key):
+    array = _array(value, key)
+    if array.shape != (n,):
+        raise InvalidInput(f'{key} must have shape ({n},), got {array.shape}', key, value)
+    return array
+
+
+def _read_only(array):
+    array.flags.writeable = False
+    return array

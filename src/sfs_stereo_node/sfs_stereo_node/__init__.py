@@ -1,0 +1,1 @@
+"""Fuses sparse SSD stereo depth with shape-from-shading depth into dense depth images."""

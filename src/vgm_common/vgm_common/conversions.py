@@ -1,0 +1,184 @@
+"""Message <-> numpy conversion, written once for every node (no cv_bridge here).
+
+Every ``*_to_numpy`` / ``*_from_msg`` function validates its message and raises
+``InvalidInput`` naming the problem; every ``*_to_msg`` function copies the caller's
+data (messages never alias numpy arrays the caller may change).
+"""
+import numpy as np
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Pose, PoseStamped
+from nav_msgs.msg import Path
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from std_msgs.msg import Header
+
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.errors import InvalidInput
+from vgm_common.geometry import is_rotation, make_transform, matrix_to_quaternion, quaternion_to_matrix
+
+# encoding -> (numpy dtype, channels), REP 118 and sensor_msgs/image_encodings.
+IMAGE_ENCODINGS = {
+    'mono8': (np.uint8, 1), 'mono16': (np.uint16, 1),
+    'rgb8': (np.uint8, 3), 'bgr8': (np.uint8, 3), 'rgba8': (np.uint8, 4), 'bgra8': (np.uint8, 4),
+    '8UC1': (np.uint8, 1), '8UC3': (np.uint8, 3), '16UC1': (np.uint16, 1),
+    '32FC1': (np.float32, 1), '64FC1': (np.float64, 1),
+}
+
+
+def stamp_to_ns(stamp):
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def ns_to_stamp(ns):
+    return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
+
+
+def make_header(stamp_ns, frame_id):
+    return Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
+
+
+# --- sensor_msgs/Image -------------------------------------------------------------
+
+def image_to_numpy(msg):
+    """Image -> array of shape (H, W) or (H, W, C), a copy, in the message's dtype."""
+    if msg.encoding not in IMAGE_ENCODINGS:
+        raise InvalidInput(f'unsupported image encoding {msg.encoding!r}', key='encoding',
+                           value=msg.encoding)
+    dtype, channels = IMAGE_ENCODINGS[msg.encoding]
+    dtype = np.dtype(dtype).newbyteorder('>' if msg.is_bigendian else '<')
+    row_bytes = msg.width * channels * dtype.itemsize
+    if msg.width == 0 or msg.height == 0:
+        raise InvalidInput('empty image (width or height is 0)', key='size')
+    if msg.step < row_bytes:
+        raise InvalidInput(f'image step {msg.step} is smaller than width * pixel size '
+                           f'{row_bytes}', key='step', value=msg.step)
+    if len(msg.data) != msg.step * msg.height:
+        raise InvalidInput(f'image data has {len(msg.data)} bytes, expected step * height '
+                           f'= {msg.step * msg.height}', key='data', value=len(msg.data))
+    rows = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)
+    pixels = rows[:, :row_bytes].copy().view(dtype).astype(dtype.newbyteorder('='))
+    return pixels.reshape(msg.height, msg.width, channels) if channels > 1 else \
+        pixels.reshape(msg.height, msg.width)
+
+
+def numpy_to_image(array, encoding, stamp_ns, frame_id):
+    """(H, W) or (H, W, C) array -> Image (little-endian, no row padding)."""
+    if encoding not in IMAGE_ENCODINGS:
+        raise InvalidInput(f'unsupported image encoding {encoding!r}', key='encoding')
+    dtype, channels = IMAGE_ENCODINGS[encoding]
+    array = np.ascontiguousarray(array, dtype=dtype)
+    if array.ndim != (2 if channels == 1 else 3) or (channels > 1 and array.shape[2] != channels):
+        raise InvalidInput(f'array of shape {array.shape} does not fit encoding {encoding}')
+    msg = Image(header=make_header(stamp_ns, frame_id), height=array.shape[0],
+                width=array.shape[1], encoding=encoding, is_bigendian=0,
+                step=array.shape[1] * channels * array.itemsize)
+    msg.data = array.tobytes()
+    return msg
+
+
+# --- sensor_msgs/CameraInfo ----------------------------------------------------------
+
+def camera_info_to_camera(msg, T_base_camera=None):
+    """CameraInfo -> PinholeCamera (raw, unrectified intrinsics K and plumb_bob D)."""
+    K = np.array(msg.k, dtype=float).reshape(3, 3)
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
+        raise InvalidInput(f'camera_info K is not a valid intrinsic matrix: {K.tolist()}',
+                           key='k')
+    if msg.distortion_model not in ('plumb_bob', ''):
+        raise InvalidInput(f'unsupported distortion model {msg.distortion_model!r}',
+                           key='distortion_model')
+    D = np.zeros(5)
+    D[:len(msg.d)] = np.asarray(msg.d, dtype=float)[:5]
+    if not np.all(np.isfinite(D)):
+        raise InvalidInput('camera_info D contains non-finite values', key='d')
+    if msg.width == 0 or msg.height == 0:
+        raise InvalidInput('camera_info has zero image size', key='size')
+    T = np.eye(4) if T_base_camera is None else T_base_camera
+    return PinholeCamera(int(msg.width), int(msg.height), K, D, T)
+
+
+def camera_to_camera_info(camera, stamp_ns, frame_id, R=None, P=None):
+    """PinholeCamera -> CameraInfo. R (3x3) and P (3x4) default to the unrectified
+    identity and [K | 0]."""
+    R = np.eye(3) if R is None else np.asarray(R, dtype=float)
+    P = np.hstack([camera.K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=float)
+    return CameraInfo(header=make_header(stamp_ns, frame_id), height=camera.height,
+                      width=camera.width, distortion_model='plumb_bob',
+                      d=[float(x) for x in camera.D], k=camera.K.flatten().tolist(),
+                      r=R.flatten().tolist(), p=P.flatten().tolist())
+
+
+# --- geometry_msgs/Pose, nav_msgs/Path -------------------------------------------------
+
+def pose_to_matrix(pose):
+    """geometry_msgs/Pose -> 4x4; rejects non-finite values and non-unit quaternions."""
+    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z,
+                  pose.orientation.w])
+    t = np.array([pose.position.x, pose.position.y, pose.position.z])
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
+        raise InvalidInput('pose has non-finite values', key='pose')
+    if abs(np.linalg.norm(q) - 1.0) > 1e-3:
+        raise InvalidInput(f'pose orientation is not a unit quaternion (norm '
+                           f'{np.linalg.norm(q):.4g})', key='orientation')
+    return make_transform(quaternion_to_matrix(q), t)
+
+
+def matrix_to_pose(T):
+    if not is_rotation(T[:3, :3]):
+        raise InvalidInput('transform rotation is not orthonormal', key='rotation')
+    x, y, z, w = matrix_to_quaternion(T[:3, :3])
+    pose = Pose()
+    pose.position.x, pose.position.y, pose.position.z = (float(v) for v in T[:3, 3])
+    pose.orientation.x, pose.orientation.y = float(x), float(y)
+    pose.orientation.z, pose.orientation.w = float(z), float(w)
+    return pose
+
+
+def matrix_to_pose_stamped(T, stamp_ns, frame_id):
+    return PoseStamped(header=make_header(stamp_ns, frame_id), pose=matrix_to_pose(T))
+
+
+def path_to_matrices(msg):
+    """nav_msgs/Path -> (N, 4, 4) poses in the path's frame; rejects empty paths."""
+    if not msg.poses:
+        raise InvalidInput('path is empty', key='poses')
+    return np.stack([pose_to_matrix(p.pose) for p in msg.poses])
+
+
+def matrices_to_path(T_frame_poses, stamp_ns, frame_id):
+    header = make_header(stamp_ns, frame_id)
+    return Path(header=header, poses=[PoseStamped(header=header, pose=matrix_to_pose(T))
+                                      for T in T_frame_poses])
+
+
+# --- sensor_msgs/PointCloud2 (x, y, z float32) ---------------------------------------
+
+_XYZ_FIELDS = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+               for i, n in enumerate('xyz')]
+
+
+def points_to_pointcloud2(points, stamp_ns, frame_id):
+    """(N, 3) points [m] -> unorganised PointCloud2 with float32 x, y, z."""
+    points = np.ascontiguousarray(points, dtype='<f4').reshape(-1, 3)
+    msg = PointCloud2(header=make_header(stamp_ns, frame_id), height=1, width=len(points),
+                      fields=list(_XYZ_FIELDS), is_bigendian=False, point_step=12,
+                      row_step=12 * len(points), is_dense=bool(np.all(np.isfinite(points))))
+    msg.data = points.tobytes()
+    return msg
+
+
+def pointcloud2_to_points(msg):
+    """PointCloud2 with float32 x, y, z fields (any layout) -> (N, 3) float32 array."""
+    offsets = {f.name: f for f in msg.fields}
+    for name in 'xyz':
+        field = offsets.get(name)
+        if field is None or field.datatype != PointField.FLOAT32:
+            raise InvalidInput(f'point cloud lacks a float32 {name!r} field', key='fields')
+    count = msg.width * msg.height
+    if len(msg.data) < count * msg.point_step:
+        raise InvalidInput('point cloud data is shorter than width * height * point_step',
+                           key='data')
+    dtype = np.dtype({'names': list('xyz'), 'formats': ['>f4' if msg.is_bigendian else '<f4'] * 3,
+                      'offsets': [offsets[n].offset for n in 'xyz'],
+                      'itemsize': msg.point_step})
+    records = np.frombuffer(bytes(msg.data), dtype=dtype, count=count)
+    return np.column_stack([records[n] for n in 'xyz']).astype(np.float32)

@@ -1,0 +1,97 @@
+"""Rigid transforms as plain numpy arrays.
+
+Conventions: a pose ``T_a_b`` is a 4x4 homogeneous matrix mapping coordinates in frame
+``b`` to frame ``a`` (``p_a = T_a_b @ p_b``). Roll-pitch-yaw are fixed-axis angles as in
+ROS (REP 103): ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``. Quaternions are ``(x, y, z, w)``
+as in geometry_msgs.
+"""
+import numpy as np
+
+
+def rot_x(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle):
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rpy_to_matrix(roll, pitch, yaw):
+    """3x3 rotation of fixed-axis roll, pitch, yaw [rad]."""
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def quaternion_to_matrix(q_xyzw):
+    """3x3 rotation of a quaternion (x, y, z, w); it is normalised first."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=float) / np.linalg.norm(q_xyzw)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quaternion(R):
+    """Quaternion (x, y, z, w) with w >= 0 of a 3x3 rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=float)
+    trace = np.trace(R)
+    if trace > 0:
+        s = 2.0 * np.sqrt(trace + 1.0)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
+        q[i] = s / 4
+        q[j] = (R[j, i] + R[i, j]) / s
+        q[k] = (R[k, i] + R[i, k]) / s
+    q = np.array(q)
+    return q if q[3] >= 0 else -q
+
+
+def look_at_rotation(position, target, up=(0.0, 0.0, 1.0)):
+    """Rotation of a camera optical frame (z forward, x right, y down) at ``position``
+    looking at ``target``, with image 'up' as close to ``up`` as possible."""
+    z = np.asarray(target, dtype=float) - np.asarray(position, dtype=float)
+    z /= np.linalg.norm(z)
+    up = np.asarray(up, dtype=float)
+    if np.linalg.norm(np.cross(up, z)) < 1e-6:  # looking along 'up': any image x will do
+        up = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.column_stack([x, y, z])
+
+
+def make_transform(R, t):
+    """4x4 homogeneous transform from a 3x3 rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def invert_transform(T):
+    R, t = T[:3, :3], T[:3, 3]
+    return make_transform(R.T, -R.T @ t)
+
+
+def transform_points(T, points):
+    """Apply a 4x4 transform to (N, 3) points."""
+    points = np.asarray(points, dtype=float)
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def is_rotation(R, tol=1e-6):
+    """True if R is a finite proper orthonormal 3x3 matrix."""
+    R = np.asarray(R, dtype=float)
+    return (R.shape == (3, 3) and bool(np.all(np.isfinite(R)))
+            and np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol)

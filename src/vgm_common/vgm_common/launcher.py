@@ -1,0 +1,172 @@
+"""vgm_launch: start a set of nodes as separate processes from one params file.
+
+The params file is an ordinary ROS 2 params file; each top-level key names a node, and
+node names equal executable names, so ``sensor_sim: {ros__parameters: {...}}`` starts
+``sensor_sim`` with ``--ros-args --params-file <file>``. The executable is looked up in
+the install prefixes of AMENT_PREFIX_PATH (``<prefix>/lib/<package>/<node>``), the same
+file ``ros2 run`` resolves. Every line a node prints is prefixed with its name. Ctrl-C
+(or SIGTERM) stops all nodes; so does the failure of one. The exit status is non-zero
+if any node failed.
+
+    vgm_launch graph.yaml [--nodes sensor_sim recorder] [--duration 30]
+               [--set sensor_sim:scenario:=S1.yaml]
+"""
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import yaml
+
+# Exit statuses that mean "stopped because we asked it to".
+_CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT,
+               128 + signal.SIGTERM}
+
+
+class LaunchError(Exception):
+    pass
+
+
+def find_executable(name, prefixes=None):
+    """``<prefix>/lib/<package>/<name>`` from AMENT_PREFIX_PATH (first match)."""
+    if prefixes is None:
+        prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    for prefix in prefixes:
+        for candidate in sorted(Path(prefix, 'lib').glob(f'*/{name}')):
+            if candidate.is_file() and os.access(candidate, os.X_OK):
+                return candidate
+    raise LaunchError(f'no executable {name!r} under lib/<package>/ in AMENT_PREFIX_PATH '
+                      '(did you source ros2_ws/install/setup.bash?)')
+
+
+def node_names(params_file):
+    data = yaml.safe_load(Path(params_file).read_text()) or {}
+    if not isinstance(data, dict):
+        raise LaunchError(f'{params_file}: expected node names as top-level keys')
+    return [name.lstrip('/') for name in data if name != '/**']
+
+
+class Launch:
+    """Runs nodes as process groups; ``run()`` returns 0 if none failed."""
+
+    def __init__(self, params_file, nodes=None, overrides=(), out=sys.stdout):
+        self.params_file = Path(params_file).resolve()
+        available = node_names(self.params_file)
+        self.nodes = list(nodes) if nodes else available
+        unknown = [n for n in self.nodes if n not in available]
+        if unknown:
+            raise LaunchError(f'{params_file} has no section for {", ".join(unknown)}')
+        self.overrides = {n: [] for n in self.nodes}
+        for item in overrides:
+            node, sep, assignment = item.partition(':')
+            if not sep or ':=' not in assignment or node not in self.overrides:
+                raise LaunchError(f'--set {item!r}: expected NODE:PARAM:=VALUE for a launched node')
+            self.overrides[node] += ['-p', assignment]
+        self.out = out
+        self.processes = {}
+        self._lock = threading.Lock()
+        self._stopping = False
+        self._width = max(len(n) for n in self.nodes)
+
+    def _print(self, name, line):
+        with self._lock:
+            self.out.write(f'[{name.ljust(self._width)}] {line}')
+            self.out.flush()
+
+    def _pump(self, name, stream):
+        for line in iter(stream.readline, ''):
+            self._print(name, line)
+
+    def start(self):
+        for name in self.nodes:
+            argv = [str(find_executable(name)), '--ros-args', '-r', f'__node:={name}',
+                    '--params-file', str(self.params_file), *self.overrides[name]]
+            process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                       stdin=subprocess.DEVNULL, text=True, bufsize=1,
+                                       start_new_session=True,
+                                       env=dict(os.environ, PYTHONUNBUFFERED='1'))
+            threading.Thread(target=self._pump, args=(name, process.stdout), daemon=True).start()
+            self.processes[name] = process
+
+    def stop(self, timeout=10.0):
+        """SIGINT every node's process group, escalate to SIGKILL after ``timeout`` [s]."""
+        self._stopping = True
+        for process in self.processes.values():
+            _signal_group(process, signal.SIGINT)
+        deadline = time.monotonic() + timeout
+        for name, process in self.processes.items():
+            try:
+                process.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._print('launch', f'{name} did not stop in {timeout:g} s: killing it\n')
+                _signal_group(process, signal.SIGKILL)
+                process.wait()
+
+    def failed(self):
+        """Names of nodes that exited with an error (not because we stopped them)."""
+        return [name for name, p in self.processes.items()
+                if p.returncode is not None and p.returncode != 0
+                and not (self._stopping and p.returncode in _CLEAN_STOP)]
+
+    def run(self, duration=None, until=None):
+        """Start, wait until Ctrl-C, ``duration`` [s], ``until()`` is true, a node
+        failing, or all nodes exiting; then stop everything."""
+        self.start()
+        started = time.monotonic()
+        try:
+            while True:
+                codes = [p.poll() for p in self.processes.values()]
+                if self.failed() or all(c is not None for c in codes):
+                    break
+                if duration is not None and time.monotonic() - started >= duration:
+                    break
+                if until is not None and until():
+                    break
+                time.sleep(0.05)
+        except KeyboardInterrupt:
+            self._print('launch', 'Ctrl-C: stopping all nodes\n')
+        finally:
+            failed_before_stop = self.failed()
+            self.stop()
+        for name in failed_before_stop:
+            self._print('launch', f'{name} failed with exit status '
+                        f'{self.processes[name].returncode}\n')
+        return 1 if failed_before_stop or self.failed() else 0
+
+
+def _signal_group(process, sig):
+    try:
+        os.killpg(process.pid, sig)
+    except ProcessLookupError:
+        pass
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog='vgm_launch', description=__doc__.split('\n\n')[0])
+    parser.add_argument('params_file', help='ROS 2 params file; top-level keys = nodes')
+    parser.add_argument('--nodes', nargs='+', help='start only these nodes')
+    parser.add_argument('--duration', type=float, help='stop everything after this [s]')
+    parser.add_argument('--set', action='append', default=[], metavar='NODE:PARAM:=VALUE',
+                        help='override one parameter of one node')
+    args = parser.parse_args(argv)
+    # SIGTERM stops the nodes as cleanly as Ctrl-C.
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    try:
+        launch = Launch(args.params_file, args.nodes, args.set)
+    except (LaunchError, OSError, yaml.YAMLError) as error:
+        print(f'vgm_launch: {error}', file=sys.stderr)
+        return 2
+    try:
+        return launch.run(duration=args.duration)
+    except LaunchError as error:
+        launch.stop()
+        print(f'vgm_launch: {error}', file=sys.stderr)
+        return 2
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,55 @@
+"""Exact-time synchronisation of several topics (what message_filters'
+TimeSynchronizer does), without rclpy: the node feeds messages in, complete sets
+come out.
+
+A set is complete when every key has a message with the same stamp. Incomplete sets
+are dropped once they are older than ``max_wait`` [s] (by the caller's clock) or when
+more than ``queue_size`` stamps are pending, and counted in ``dropped``.
+"""
+from collections import OrderedDict
+
+
+class ExactTimeSync:
+    """Pair messages of ``keys`` by identical stamp (int nanoseconds)."""
+
+    def __init__(self, keys, callback, queue_size=10, max_wait=1.0):
+        self.keys = tuple(keys)
+        self._callback = callback
+        self._queue_size = queue_size
+        self._max_wait = max_wait
+        self._pending = OrderedDict()  # stamp_ns -> (arrival time [s], {key: msg})
+        self.matched = 0
+        self.dropped = 0  # messages discarded without a complete set
+
+    def add(self, key, stamp_ns, msg, now):
+        """Offer one message; calls ``callback(stamp_ns, {key: msg})`` when its set
+        completes. ``now`` [s] is the caller's monotonic clock."""
+        if key not in self.keys:
+            raise KeyError(f'unknown sync key {key!r}; expected one of {self.keys}')
+        arrived, messages = self._pending.setdefault(stamp_ns, (now, {}))
+        if key in messages:
+            self.dropped += 1  # a duplicate stamp on one topic: keep the newest
+        messages[key] = msg
+        if len(messages) == len(self.keys):
+            del self._pending[stamp_ns]
+            self._drop_older_than(stamp_ns)
+            self.matched += 1
+            self._callback(stamp_ns, messages)
+        self._expire(now)
+
+    def _drop_older_than(self, stamp_ns):
+        # Stamps are monotonic per topic, so an older incomplete set can never complete.
+        for stale in [s for s in self._pending if s < stamp_ns]:
+            self.dropped += len(self._pending.pop(stale)[1])
+
+    def _expire(self, now):
+        while self._pending:
+            stamp, (arrived, messages) = next(iter(self._pending.items()))
+            if now - arrived <= self._max_wait and len(self._pending) <= self._queue_size:
+                break
+            del self._pending[stamp]
+            self.dropped += len(messages)
+
+    @property
+    def pending(self):
+        return len(self._pending)

@@ -1,0 +1,149 @@
+"""The simulated arm: velocity- and position-limited tracking of joint trajectories."""
+import time
+
+import numpy as np
+import pytest
+
+from sensor_sim.arm_sim import SimulatedArm
+from vgm_common.errors import InvalidInput
+
+NAMES = tuple(f'pa10_joint{i}' for i in range(1, 8))
+UPPER = np.deg2rad([177, 94, 174, 137, 255, 165, 255])
+QDOT_MAX = np.array([1.0, 1.0, 2.0, 2.0, 2 * np.pi, 2 * np.pi, 2 * np.pi])  # [rad/s]
+DT = 0.01  # [s]
+
+
+def make_arm(q0=(0.0,) * 7):
+    return SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, q0)
+
+
+def run(arm, t0, t1):
+    """Step from t0 to t1 [s]; returns the times and the (steps, 7) positions."""
+    times = np.arange(t0, t1, DT) + DT
+    return times, np.array([arm.step(t, DT)[0] for t in times])
+
+
+def test_go_there_now_takes_the_slowest_joints_time():
+    arm = make_arm()
+    target = np.array([0.5, -0.3, 1.0, 0.2, 3.0, -1.0, 0.1])
+    arm.set_trajectory(NAMES, [0.0], [target], start_time=0.0)
+    times, qs = run(arm, 0.0, 2.0)
+    expected_s = np.max(np.abs(target) / QDOT_MAX)  # joint 1: 0.5 rad at 1 rad/s
+    arrived = times[np.argmax(np.all(np.abs(qs - target) < 1e-12, axis=1))]
+    assert arrived == pytest.approx(expected_s, abs=DT + 1e-9)
+    speeds = np.abs(np.diff(qs, axis=0)) / DT
+    assert np.all(speeds <= QDOT_MAX + 1e-9)
+    np.testing.assert_allclose(arm.q, target)
+    np.testing.assert_allclose(arm.qdot, 0.0)
+
+
+def test_command_beyond_the_limit_clamps():
+    arm = make_arm()
+    beyond = UPPER + 1.0
+    arm.set_trajectory(NAMES, [0.0], [beyond])
+    _, qs = run(arm, 0.0, 5.0)
+    assert np.all(qs <= UPPER) and np.all(qs >= -UPPER)
+    np.testing.assert_allclose(arm.q, UPPER)
+
+
+def test_shuffled_joint_names_are_mapped():
+    arm = make_arm()
+    order = np.random.default_rng(0).permutation(7)
+    target = np.linspace(0.1, 0.7, 7)  # in model order
+    arm.set_trajectory([NAMES[i] for i in order], [0.0], [target[order]])
+    run(arm, 0.0, 1.0)
+    np.testing.assert_allclose(arm.q, target)
+
+
+def test_linear_interpolation_mid_trajectory():
+    arm = make_arm()
+    q_a, q_b = np.full(7, 0.1), np.full(7, 0.3)
+    arm.set_trajectory(NAMES, [1.0, 2.0], [q_a, q_b], start_time=10.0)
+    np.testing.assert_allclose(arm.desired(5.0), 0.0)  # before start: hold
+    np.testing.assert_allclose(arm.desired(10.5), 0.05)  # from the current state
+    np.testing.assert_allclose(arm.desired(11.25), 0.15)
+    np.testing.assert_allclose(arm.desired(99.0), q_b)  # after the end: hold the last
+
+
+def test_hermite_interpolation_reproduces_a_cubic():
+    arm = make_arm()
+    t = np.array([0.0, 0.4, 1.0])
+    cubic = lambda s: 0.2 * s**3 - 0.3 * s**2 + 0.1 * s  # noqa: E731
+    d_cubic = lambda s: 0.6 * s**2 - 0.6 * s + 0.1  # noqa: E731
+    arm.set_trajectory(NAMES, t, np.tile(cubic(t)[:, None], 7),
+                       np.tile(d_cubic(t)[:, None], 7), start_time=0.0)
+    for s in [0.1, 0.4, 0.7, 0.95]:
+        np.testing.assert_allclose(arm.desired(s), cubic(s), atol=1e-15)
+
+
+def test_follows_a_feasible_trajectory_exactly():
+    arm = make_arm()
+    times = np.linspace(0.0, 2.0, 21)
+    positions = 0.3 * np.sin(times)[:, None] * np.ones(7)  # <= 0.3 rad/s
+    arm.set_trajectory(NAMES, times, positions, start_time=0.0)
+    ts, qs = run(arm, 0.0, 2.0)
+    np.testing.assert_allclose(qs, [arm.desired(t) for t in ts], atol=1e-12)
+
+
+GOOD_POINT = np.full(7, 0.5)
+
+
+@pytest.mark.parametrize('names, times, positions, velocities', [
+    (NAMES[:6] + ('elbow',), [0.0], [GOOD_POINT], None),  # unknown name
+    (NAMES[:6], [0.0], [GOOD_POINT[:6]], None),  # missing joint
+    (NAMES[:6] + (NAMES[0],), [0.0], [GOOD_POINT], None),  # duplicate
+    (NAMES, [0.0], [GOOD_POINT[:6]], None),  # short point
+    (NAMES, [0.0, 1.0], [GOOD_POINT], None),  # fewer points than times
+    (NAMES, [0.0], [[0, 0, np.nan, 0, 0, 0, 0]], None),
+    (NAMES, [0.0, np.inf], [GOOD_POINT, GOOD_POINT], None),
+    (NAMES, [1.0, 1.0], [GOOD_POINT, GOOD_POINT], None),  # not increasing
+    (NAMES, [2.0, 1.0], [GOOD_POINT, GOOD_POINT], None),
+    (NAMES, [-1.0], [GOOD_POINT], None),
+    (NAMES, [], np.empty((0, 7)), None),
+    (NAMES, [0.0], [GOOD_POINT], [GOOD_POINT[:5]]),
+    (NAMES, [0.0, 1.0], [[0.1] * 7, [0.1] * 6], None),  # ragged
+])
+def test_bad_trajectory_is_rejected_and_the_arm_keeps_holding(names, times, positions,
+                                                              velocities):
+    q0 = np.full(7, 0.2)
+    arm = make_arm(q0)
+    with pytest.raises(InvalidInput):
+        arm.set_trajectory(names, times, positions, velocities, start_time=0.0)
+    run(arm, 0.0, 1.0)
+    np.testing.assert_array_equal(arm.q, q0)
+
+
+def test_rejected_trajectory_keeps_the_previous_command():
+    arm = make_arm()
+    arm.set_trajectory(NAMES, [0.0], [GOOD_POINT])
+    with pytest.raises(InvalidInput, match='unknown joint names'):
+        arm.set_trajectory(['nope'] * 7, [0.0], [np.zeros(7)])
+    run(arm, 0.0, 1.0)
+    np.testing.assert_allclose(arm.q, GOOD_POINT)
+
+
+def test_hold_stops_where_the_arm_is():
+    arm = make_arm()
+    arm.set_trajectory(NAMES, [0.0], [GOOD_POINT])
+    run(arm, 0.0, 0.2)
+    arm.hold()
+    q_held = arm.q
+    run(arm, 0.2, 1.0)
+    np.testing.assert_array_equal(arm.q, q_held)
+    np.testing.assert_array_equal(arm.qdot, 0.0)
+
+
+def test_initial_position_outside_limits_is_rejected():
+    with pytest.raises(InvalidInput):
+        make_arm(UPPER + 0.1)
+
+
+def test_step_is_fast():
+    arm = make_arm()
+    arm.set_trajectory(NAMES, np.linspace(0, 10, 101), np.zeros((101, 7)),
+                       np.zeros((101, 7)))
+    n = 2000
+    start = time.perf_counter()
+    for i in range(n):
+        arm.step(i * 1e-3, 1e-3)
+    assert (time.perf_counter() - start) / n < 2e-4  # [s]; the sim needs << 1 ms

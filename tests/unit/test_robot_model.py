@@ -1,0 +1,135 @@
+"""PA-10 kinematics on Pinocchio against an independent Denavit-Hartenberg model."""
+import importlib.metadata
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from vgm_common.errors import InvalidInput
+from vgm_common.robot_model import (
+    JOINT_NAMES, PA10_LOWER_LIMITS_RAD, PA10_UPPER_LIMITS_RAD, PA10_VELOCITY_LIMITS_RAD_S,
+    PARAMETER_SETS, load_robot, pa10_urdf)
+
+URDF_DIR = Path(__file__).resolve().parents[2] / 'src' / 'vgm_common' / 'urdf'
+CASES = [(name, tool_m) for name in PARAMETER_SETS for tool_m in (0.0, 0.15)]
+
+
+def dh_transform(theta, d, a, alpha):
+    """Standard DH link transform Rz(theta) Tz(d) Tx(a) Rx(alpha)."""
+    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
+    return np.array([[ct, -st * ca, st * sa, a * ct],
+                     [st, ct * ca, -ct * sa, a * st],
+                     [0.0, sa, ca, d],
+                     [0.0, 0.0, 0.0, 1.0]])
+
+
+def pa10_dh_fk(q, params, tool_m):
+    """T_base_tool of the PA-10 from its standard DH table (a = 0 for every link)."""
+    d = [params.d1, 0.0, params.d3, 0.0, params.d5, 0.0, params.d7 + tool_m]
+    alpha = [-np.pi / 2, np.pi / 2] * 3 + [0.0]
+    T = np.eye(4)
+    for i in range(7):
+        T = T @ dh_transform(q[i], d[i], 0.0, alpha[i])
+    return T
+
+
+def random_configurations(count, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(PA10_LOWER_LIMITS_RAD, PA10_UPPER_LIMITS_RAD, size=(count, 7))
+
+
+@pytest.mark.parametrize('name, tool_m', CASES)
+def test_zero_pose_points_straight_up(name, tool_m):
+    p = PARAMETER_SETS[name]
+    T_base_tool = load_robot(name, tool_m).forward_kinematics(np.zeros(7))
+    np.testing.assert_allclose(T_base_tool[:3, :3], np.eye(3), atol=1e-15)
+    np.testing.assert_allclose(T_base_tool[:3, 3], [0, 0, p.d1 + p.d3 + p.d5 + p.d7 + tool_m],
+                               atol=1e-15)
+
+
+@pytest.mark.parametrize('name, tool_m', CASES)
+def test_forward_kinematics_matches_dh_table(name, tool_m):
+    robot = load_robot(name, tool_m)
+    for q in [np.zeros(7), *random_configurations(50)]:
+        np.testing.assert_allclose(robot.forward_kinematics(q),
+                                   pa10_dh_fk(q, PARAMETER_SETS[name], tool_m), atol=1e-12)
+
+
+@pytest.mark.parametrize('name, tool_m', CASES)
+def test_jacobian_matches_finite_differences(name, tool_m):
+    robot = load_robot(name, tool_m)
+    h = 1e-6  # [rad]
+    for q in random_configurations(10, seed=1):
+        J_fd = np.empty((6, 7))
+        for i in range(7):
+            T_plus = robot.forward_kinematics(q + h * np.eye(7)[i])
+            T_minus = robot.forward_kinematics(q - h * np.eye(7)[i])
+            J_fd[:3, i] = (T_plus[:3, 3] - T_minus[:3, 3]) / (2 * h)
+            # R+ R-^T = exp(2h [w]x) with w in base axes: the angular rows' convention.
+            J_fd[3:, i] = pin.log3(T_plus[:3, :3] @ T_minus[:3, :3].T) / (2 * h)
+        np.testing.assert_allclose(robot.jacobian(q), J_fd, atol=1e-6)
+
+
+@pytest.mark.parametrize('name', PARAMETER_SETS)
+def test_committed_urdf_is_generated_text(name):
+    assert (URDF_DIR / f'{name}.urdf').read_text() == pa10_urdf(name), \
+        'regenerate with `python -m vgm_common.robot_model`'
+
+
+@pytest.mark.parametrize('name', PARAMETER_SETS)
+def test_limits_and_names_match_parameter_set(name):
+    robot = load_robot(name)
+    assert robot.joint_names == JOINT_NAMES
+    np.testing.assert_array_equal(robot.lower_limits, PA10_LOWER_LIMITS_RAD)
+    np.testing.assert_array_equal(robot.upper_limits, PA10_UPPER_LIMITS_RAD)
+    np.testing.assert_array_equal(robot.velocity_limits, PA10_VELOCITY_LIMITS_RAD_S)
+    np.testing.assert_allclose(np.rad2deg(robot.upper_limits),
+                               [177, 94, 174, 137, 255, 165, 255])
+    assert not robot.upper_limits.flags.writeable
+
+
+def test_urdf_file_loads_like_named_model(tmp_path):
+    path = tmp_path / 'pa10.urdf'
+    path.write_text(pa10_urdf('pa10'))
+    q = random_configurations(1)[0]
+    np.testing.assert_allclose(load_robot(str(path), 0.2).forward_kinematics(q),
+                               load_robot('pa10', 0.2).forward_kinematics(q), atol=1e-15)
+
+
+def test_panda_from_example_robot_data_goes_through_same_code_path():
+    # example-robot-data ships as a data-only cmeel wheel: locate its URDF, not a module.
+    try:
+        urdf = importlib.metadata.distribution('example-robot-data').locate_file(
+            'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf')
+    except importlib.metadata.PackageNotFoundError:
+        pytest.skip('example-robot-data is not installed')
+    robot = load_robot(str(urdf), tip_frame='panda_hand_tcp')
+    # The two finger joints do not move the tip, so they are locked away.
+    assert robot.joint_names == tuple(f'panda_joint{i}' for i in range(1, 8))
+    full = pin.buildModelFromUrdf(str(urdf))
+    full_data = full.createData()
+    for q in np.random.default_rng(2).uniform(robot.lower_limits, robot.upper_limits, (5, 7)):
+        pin.framesForwardKinematics(full, full_data, np.concatenate([q, [0.0, 0.0]]))
+        expected = full_data.oMf[full.getFrameId('panda_hand_tcp')].homogeneous
+        np.testing.assert_allclose(robot.forward_kinematics(q), expected, atol=1e-12)
+        assert robot.jacobian(q).shape == (6, 7)
+
+
+@pytest.mark.parametrize('q', [np.zeros(6), np.zeros((7, 1)), [0, 0, 0, np.nan, 0, 0, 0],
+                               ['a'] * 7, None])
+def test_bad_joint_vector_is_rejected(q):
+    robot = load_robot('pa10')
+    with pytest.raises(InvalidInput):
+        robot.forward_kinematics(q)
+    with pytest.raises(InvalidInput):
+        robot.jacobian(q)
+
+
+@pytest.mark.parametrize('robot, kwargs', [
+    ('pa11', {}), ('/no/such/file.urdf', {}), (None, {}),
+    ('pa10', {'tool_length': float('nan')}), ('pa10', {'tip_frame': 'flange'}),
+])
+def test_bad_model_request_is_rejected(robot, kwargs):
+    with pytest.raises(InvalidInput):
+        load_robot(robot, **kwargs)
