@@ -1,5 +1,3 @@
-from glob import glob
-
 from setuptools import setup
 
 PACKAGE_NAME = 'bag_tools'
@@ -14,7 +12,6 @@ setup(
     ],
     install_requires=['setuptools'],
     zip_safe=True,
-    description='Records every topic to a rosbag2 MCAP directory and replays it with the recorded timing.',
     license='Apache-2.0',
     entry_points={'console_scripts': [
         'recorder = bag_tools.recorder_node:main',

@@ -15,7 +15,6 @@ setup(
     ],
     install_requires=['setuptools'],
     zip_safe=True,
-    description='Stereo + aux camera calibration from a chart (LX-PM genetic algorithm, neural refinement, Levenberg-Marquardt).',
     license='Apache-2.0',
     entry_points={'console_scripts': []},
 )

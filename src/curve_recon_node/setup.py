@@ -15,7 +15,6 @@ setup(
     ],
     install_requires=['setuptools'],
     zip_safe=True,
-    description='Reconstructs a 3D curve from its images in two or three views by intersecting cones of fitted algebraic curves.',
     license='Apache-2.0',
     entry_points={'console_scripts': []},
 )

@@ -15,7 +15,6 @@ setup(
     ],
     install_requires=['setuptools'],
     zip_safe=True,
-    description='Follows curve waypoints with force feedback; redundant inverse kinematics of the PA-10 (primal-dual network, KKT, damped least squares).',
     license='Apache-2.0',
     entry_points={'console_scripts': []},
 )

@@ -16,7 +16,6 @@ setup(
     ],
     install_requires=['setuptools'],
     zip_safe=True,
-    description='Synthetic stereo + aux cameras, pressure sensor and simulated PA-10 arm driven by a scenario file.',
     license='Apache-2.0',
     entry_points={'console_scripts': [
         'sensor_sim = sensor_sim.sensor_sim_node:main',

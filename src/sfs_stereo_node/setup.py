@@ -15,7 +15,6 @@ setup(
     ],
     install_requires=['setuptools'],
     zip_safe=True,
-    description='Fuses sparse SSD stereo depth with shape-from-shading depth into dense depth images.',
     license='Apache-2.0',
     entry_points={'console_scripts': []},
 )

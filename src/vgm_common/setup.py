@@ -16,7 +16,6 @@ setup(
     ],
     install_requires=['setuptools'],
     zip_safe=True,
-    description='Shared pieces of the vision-guided manipulation graph: message/numpy conversion, exact-time sync, QoS profiles, scenario loading, camera and PA-10 models, diagnostics, the process launcher.',
     license='Apache-2.0',
     entry_points={'console_scripts': [
         'vgm_launch = vgm_common.launcher:main',

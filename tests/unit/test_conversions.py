@@ -4,11 +4,19 @@ import pytest
 from sensor_msgs.msg import Image
 
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.conversions import (camera_info_to_camera, camera_to_camera_info,
-                                    image_to_numpy, matrices_to_path, numpy_to_image,
-                                    path_to_matrices, pointcloud2_to_points,
-                                    points_to_pointcloud2, pose_to_matrix, stamp_to_ns,
-                                    ns_to_stamp)
+from vgm_common.conversions import (
+    camera_info_to_camera,
+    camera_to_camera_info,
+    image_to_numpy,
+    matrices_to_path,
+    ns_to_stamp,
+    numpy_to_image,
+    path_to_matrices,
+    pointcloud2_to_points,
+    points_to_pointcloud2,
+    pose_to_matrix,
+    stamp_to_ns,
+)
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import make_transform, rpy_to_matrix
 

@@ -8,8 +8,14 @@ import pytest
 
 from vgm_common.errors import InvalidInput
 from vgm_common.robot_model import (
-    JOINT_NAMES, PA10_LOWER_LIMITS_RAD, PA10_UPPER_LIMITS_RAD, PA10_VELOCITY_LIMITS_RAD_S,
-    PARAMETER_SETS, load_robot, pa10_urdf)
+    JOINT_NAMES,
+    PA10_LOWER_LIMITS_RAD,
+    PA10_UPPER_LIMITS_RAD,
+    PA10_VELOCITY_LIMITS_RAD_S,
+    PARAMETER_SETS,
+    load_robot,
+    pa10_urdf,
+)
 
 URDF_DIR = Path(__file__).resolve().parents[2] / 'src' / 'vgm_common' / 'urdf'
 CASES = [(name, tool_m) for name in PARAMETER_SETS for tool_m in (0.0, 0.15)]

@@ -1,1 +1,2 @@
-"""Stereo + aux camera calibration from a chart (LX-PM genetic algorithm, neural refinement, Levenberg-Marquardt)."""
+"""Stereo + aux camera calibration from a chart (LX-PM genetic algorithm, neural refinement,
+Levenberg-Marquardt)."""

@@ -1,1 +1,2 @@
-"""Reconstructs a 3D curve from its images in two or three views by intersecting cones of fitted algebraic curves."""
+"""Reconstructs a 3D curve from its images in two or three views by intersecting cones of fitted
+algebraic curves."""

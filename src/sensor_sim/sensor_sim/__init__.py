@@ -1,1 +1,2 @@
-"""Synthetic stereo + aux cameras, pressure sensor and simulated PA-10 arm driven by a scenario file."""
+"""Synthetic stereo + aux cameras, pressure sensor and simulated PA-10 arm driven by a scenario
+file."""

@@ -1,16 +1,29 @@
 """Pinhole camera with plumb_bob distortion (the model of sensor_msgs/CameraInfo and of
-cv2.projectPoints), as plain numpy.
+cv2.projectPoints) or the thesis's one-coefficient division distortion, as plain numpy.
 
 Frames: ``T_base_camera`` maps camera optical-frame coordinates (z forward, x right,
 y down) to ``base_link``. Pixels are (u, v) = (column, row) with the centre of the
 top-left pixel at (0, 0), as in OpenCV and CameraInfo.
+
+Distortion models (``PinholeCamera.distortion_model``), on normalised coordinates
+x = (X/Z, Y/Z):
+
+- ``plumb_bob``: D = (k1, k2, p1, p2, k3), OpenCV's forward polynomial.
+- ``division``: D = (kappa,), the thesis's (4.2.3) in normalised form (ALGORITHMS.md
+  §3.2): x_d = x_u / (1 + kappa |x_d|^2), with the radius of the *distorted* point, so
+  projecting solves a cubic and undistorting is explicit, x_u = x_d (1 + kappa |x_d|^2).
+  The thesis's k (focal-plane units) gives kappa = k f^2.
 """
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from vgm_common.errors import InvalidInput
 from vgm_common.geometry import invert_transform, transform_points
+
+DISTORTION_MODELS = ('plumb_bob', 'division')
+DISTORTION_SIZES = {'plumb_bob': 5, 'division': 1}  # len(D) each model takes
 
 
 def distort_normalized(xy, D):
@@ -27,21 +40,62 @@ def distort_normalized(xy, D):
     return np.column_stack([x_d, y_d])
 
 
+def division_distorted_radius(r_u, kappa):
+    """Distorted radius r >= 0 of the division model: the root of kappa r^3 + r = r_u.
+
+    ``r_u`` (N,) undistorted radii, ``kappa`` the normalised coefficient. For kappa > 0
+    the root is unique (closed form with sinh); for kappa < 0 it is the smallest
+    positive root, the branch through r = r_u at kappa = 0, and NaN past the fold
+    r_u > 2 / (3 sqrt(-3 kappa)) where the model has no real solution.
+    """
+    r_u = np.asarray(r_u, dtype=float)
+    if kappa == 0:
+        return r_u.copy()
+    s = np.sqrt(3 * abs(kappa))
+    with np.errstate(invalid='ignore'):
+        if kappa > 0:
+            r = 2 / s * np.sinh(np.arcsinh(1.5 * s * r_u) / 3)
+        else:
+            r = 2 / s * np.cos(np.arccos(-1.5 * s * r_u) / 3 - 2 * np.pi / 3)
+    # One Newton step removes the cancellation of the cos form near r = 0 and leaves
+    # both forms at rounding error, so project and undistort_pixels invert each other.
+    return r - (kappa * r ** 3 + r - r_u) / (3 * kappa * r ** 2 + 1)
+
+
+def distort_division(xy, kappa):
+    """Apply the division model to (N, 2) undistorted normalised points."""
+    xy = np.asarray(xy, dtype=float)
+    r_d = division_distorted_radius(np.hypot(xy[:, 0], xy[:, 1]), kappa)
+    return xy / (1 + kappa * r_d ** 2)[:, None]
+
+
 @dataclass(frozen=True)
 class PinholeCamera:
-    """A calibrated camera: image size [px], intrinsics K (3x3), plumb_bob D (5,), pose."""
+    """A calibrated camera: image size [px], intrinsics K (3x3), distortion D, pose.
+
+    D is (k1, k2, p1, p2, k3) for ``distortion_model='plumb_bob'`` (shorter vectors are
+    zero-padded, as OpenCV does) and (kappa,) for ``'division'``.
+    """
 
     width: int
     height: int
     K: np.ndarray
     D: np.ndarray
     T_base_camera: np.ndarray
+    distortion_model: str = 'plumb_bob'
 
     def __post_init__(self):
         for name in ('K', 'D', 'T_base_camera'):
             array = np.array(getattr(self, name), dtype=float)
             array.setflags(write=False)
             object.__setattr__(self, name, array)
+        if self.distortion_model not in DISTORTION_MODELS:
+            raise InvalidInput(f'distortion_model: expected one of '
+                               f'{", ".join(DISTORTION_MODELS)}, got {self.distortion_model!r}',
+                               key='distortion_model', value=self.distortion_model)
+        if self.distortion_model == 'division' and self.D.shape != (1,):
+            raise InvalidInput(f'D: the division model takes D = (kappa,), got {self.D}',
+                               key='D', value=self.D)
 
     @property
     def T_camera_base(self):
@@ -60,14 +114,15 @@ class PinholeCamera:
         """Project (N, 3) base_link points.
 
         Returns (pixels (N, 2) [px], depth (N,) [m] along the optical axis). Points with
-        depth <= 0 get NaN pixels.
+        depth <= 0, and past the fold of a division model with kappa < 0, get NaN pixels.
         """
         points_camera = self.to_camera(np.atleast_2d(points_base))
         depth = points_camera[:, 2]
         with np.errstate(divide='ignore', invalid='ignore'):
             xy = points_camera[:, :2] / depth[:, None]
         xy[depth <= 0] = np.nan
-        xy_d = distort_normalized(xy, self.D)
+        xy_d = (distort_division(xy, self.D[0]) if self.distortion_model == 'division'
+                else distort_normalized(xy, self.D))
         K = self.K
         pixels = np.column_stack([K[0, 0] * xy_d[:, 0] + K[0, 1] * xy_d[:, 1] + K[0, 2],
                                   K[1, 1] * xy_d[:, 1] + K[1, 2]])
@@ -75,9 +130,19 @@ class PinholeCamera:
 
     def undistort_pixels(self, pixels):
         """(N, 2) pixels -> (N, 2) normalised undistorted coordinates (x/z, y/z)."""
+        if self.distortion_model == 'division':  # explicit in this direction: exact
+            pixels = np.asarray(pixels, dtype=float).reshape(-1, 2)
+            K = self.K
+            y_d = (pixels[:, 1] - K[1, 2]) / K[1, 1]
+            x_d = (pixels[:, 0] - K[0, 2] - K[0, 1] * y_d) / K[0, 0]
+            radial = 1 + self.D[0] * (x_d * x_d + y_d * y_d)
+            return np.column_stack([x_d * radial, y_d * radial])
         pts = np.ascontiguousarray(np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2))
+        # OpenCV 5 folded undistortPointsIter into undistortPoints: with these criteria the
+        # iteration runs to ~1e-15 instead of its default 5 fixed steps (~1e-5 at k1 = -0.3).
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        return cv2.undistortPointsIter(pts, self.K, self.D, None, None, criteria).reshape(-1, 2)
+        return cv2.undistortPoints(pts, self.K, self.D, None, None, None,
+                                   criteria).reshape(-1, 2)
 
     def pixel_rays_base(self, pixels):
         """Unit ray directions in base_link (N, 3) through the given (N, 2) pixels."""

@@ -13,7 +13,12 @@ from std_msgs.msg import Header
 
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
-from vgm_common.geometry import is_rotation, make_transform, matrix_to_quaternion, quaternion_to_matrix
+from vgm_common.geometry import (
+    is_rotation,
+    make_transform,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+)
 
 # encoding -> (numpy dtype, channels), REP 118 and sensor_msgs/image_encodings.
 IMAGE_ENCODINGS = {

@@ -5,8 +5,8 @@ node names equal executable names, so ``sensor_sim: {ros__parameters: {...}}`` s
 ``sensor_sim`` with ``--ros-args --params-file <file>``. The executable is looked up in
 the install prefixes of AMENT_PREFIX_PATH (``<prefix>/lib/<package>/<node>``), the same
 file ``ros2 run`` resolves. Every line a node prints is prefixed with its name. Ctrl-C
-(or SIGTERM) stops all nodes; so does the failure of one. The exit status is non-zero
-if any node failed.
+(or SIGTERM) stops all nodes, in reverse start order; so does the failure of one. The
+exit status is non-zero if any node failed.
 
     vgm_launch graph.yaml [--nodes sensor_sim recorder] [--duration 30]
                [--set sensor_sim:scenario:=S1.yaml]
@@ -64,7 +64,8 @@ class Launch:
         for item in overrides:
             node, sep, assignment = item.partition(':')
             if not sep or ':=' not in assignment or node not in self.overrides:
-                raise LaunchError(f'--set {item!r}: expected NODE:PARAM:=VALUE for a launched node')
+                raise LaunchError(f'--set {item!r}: expected NODE:PARAM:=VALUE '
+                                  'for a launched node')
             self.overrides[node] += ['-p', assignment]
         self.out = out
         self.processes = {}
@@ -93,14 +94,14 @@ class Launch:
             self.processes[name] = process
 
     def stop(self, timeout=10.0):
-        """SIGINT every node's process group, escalate to SIGKILL after ``timeout`` [s]."""
+        """Stop the nodes in reverse start order, so a recorder started first records
+        everything the others published: SIGINT to each process group, SIGKILL after
+        ``timeout`` [s]."""
         self._stopping = True
-        for process in self.processes.values():
+        for name, process in reversed(self.processes.items()):
             _signal_group(process, signal.SIGINT)
-        deadline = time.monotonic() + timeout
-        for name, process in self.processes.items():
             try:
-                process.wait(max(0.1, deadline - time.monotonic()))
+                process.wait(timeout)
             except subprocess.TimeoutExpired:
                 self._print('launch', f'{name} did not stop in {timeout:g} s: killing it\n')
                 _signal_group(process, signal.SIGKILL)

@@ -13,6 +13,7 @@ from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersR
 from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 
 from vgm_common.errors import VgmError
 from vgm_common.qos import DEFAULT_QOS
@@ -135,8 +136,9 @@ class Diagnostics:
         self.rejected = {}  # reason key -> count
 
     def publish(self, name, level, message, values=None):
-        status = DiagnosticStatus(level=self.LEVELS[level], name=f'{self._node.get_name()}: {name}',
-                                  message=message, hardware_id=self._hardware_id,
+        status = DiagnosticStatus(level=self.LEVELS[level],
+                                  name=f'{self._node.get_name()}: {name}', message=message,
+                                  hardware_id=self._hardware_id,
                                   values=[KeyValue(key=str(k), value=str(v))
                                           for k, v in (values or {}).items()])
         array = DiagnosticArray(status=[status])
@@ -159,13 +161,17 @@ class Diagnostics:
 def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
     """Construct and spin ``node_class`` until Ctrl-C, SIGTERM or external shutdown.
 
-    A VgmError during construction (bad parameter, bad scenario) is reported in one
-    line and exits with status 2, never as a traceback.
+    Ctrl-C and SIGTERM both raise KeyboardInterrupt in the spinning thread (rclpy's own
+    signal handler would invalidate the context first), so the node's ``close()`` can
+    still log and publish before it is destroyed. A VgmError during construction (bad
+    parameter, bad scenario) is reported in one line with exit status 2, never as a
+    traceback.
     """
-    rclpy.init(args=args)
-    # SIGTERM (from a launcher or `kill`) shuts down as cleanly as Ctrl-C.
-    signal.signal(signal.SIGTERM, lambda *_: rclpy.try_shutdown())
-    node = None
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    node = executor = None
+    status = 0
     try:
         node = node_class()
         executor = executor_class()
@@ -174,14 +180,21 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
     except VgmError as error:
         name = node_class.__name__ if node is None else node.get_name()
         print(f'[{name}] error: {error}', file=sys.stderr, flush=True)
-        return 2
+        status = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut this short
+        if executor is not None:
+            executor.shutdown()
         if node is not None:
             close = getattr(node, 'close', None)
             if close:
                 close()
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return status
+
+
+def _raise_keyboard_interrupt(signum, frame):
+    raise KeyboardInterrupt

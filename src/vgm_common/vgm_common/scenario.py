@@ -3,8 +3,8 @@
 ``load_scenario(path)`` reads a YAML file, checks every key and returns a frozen
 ``Scenario``. Any problem raises ``ScenarioError`` whose message names the key, e.g.
 ``cameras.left.fx: expected a positive number, got -3``. The full format is documented
-in the README ("Scenario file"); units are SI (metres, radians, newtons, seconds)
-unless a key says otherwise.
+in docs/SCENARIO.md; units are SI (metres, radians, newtons, seconds) unless a key says
+otherwise.
 """
 import math
 from dataclasses import dataclass, field
@@ -14,10 +14,14 @@ from typing import Optional
 import numpy as np
 import yaml
 
-from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_model import DISTORTION_MODELS, DISTORTION_SIZES, PinholeCamera
 from vgm_common.errors import ScenarioError
-from vgm_common.geometry import (look_at_rotation, make_transform, quaternion_to_matrix,
-                                 rpy_to_matrix)
+from vgm_common.geometry import (
+    look_at_rotation,
+    make_transform,
+    quaternion_to_matrix,
+    rpy_to_matrix,
+)
 
 SURFACE_TYPES = ('plane', 'S1', 'S2', 'S3', 'vase', 'sphere', 'heightmap')
 CURVE_TYPES = ('parabola', 'ellipse', 'circle', 'line_pair', 'cubic', 'surface_loop',
@@ -47,7 +51,7 @@ class Surface:
 
 @dataclass(frozen=True)
 class Curve:
-    """The dark curve drawn in the scene. Geometry per ``kind``; see the README."""
+    """The dark curve drawn in the scene. Geometry per ``kind``; see docs/SCENARIO.md."""
 
     kind: str
     line_width_px: float
@@ -150,6 +154,13 @@ class _Section:
             raise ScenarioError(f'{key}: expected an integer, got {value!r}', key=key)
         if minimum is not None and value < minimum:
             raise ScenarioError(f'{key}: must be >= {minimum}, got {value!r}', key=key)
+        return value
+
+    def boolean(self, name, default=...):
+        value = self.raw(name, default)
+        if not isinstance(value, bool):
+            key = self.path(name)
+            raise ScenarioError(f'{key}: expected true or false, got {value!r}', key=key)
         return value
 
     def string(self, name, default=..., choices=None):
@@ -263,8 +274,7 @@ def _parse_surface(section, base_dir):
         file_key = section.path('file')
         file = base_dir / section.string('file')
         try:
-            heights = (np.load(file) if file.suffix == '.npy'
-                       else np.loadtxt(file, delimiter=',', ndmin=2))
+            heights = np.load(file) if file.suffix == '.npy' else _read_csv(file)
         except (OSError, ValueError) as error:
             raise ScenarioError(f'{file_key}: cannot read height map {file}: {error}',
                                 key=file_key) from None
@@ -300,6 +310,9 @@ def _parse_curve(section, base_dir):
     elif kind == 'circle':
         params = {'center': section.vector('center', 3), 'normal': section.vector('normal', 3),
                   'radius': section.number('radius', positive=True)}
+        if np.linalg.norm(params['normal']) < 1e-9:
+            raise ScenarioError(f'{section.path("normal")}: must not be zero',
+                                key=section.path('normal'))
     elif kind == 'line_pair':
         params = {'segments': section.vector('segments', shape=(2, 2, 3))}
     elif kind == 'surface_loop':
@@ -312,19 +325,40 @@ def _parse_curve(section, base_dir):
         file_key = section.path('file')
         file = base_dir / section.string('file')
         try:
-            points = np.loadtxt(file, delimiter=',', ndmin=2)
+            points = _read_csv(file)
         except (OSError, ValueError) as error:
             raise ScenarioError(f'{file_key}: cannot read curve points {file}: {error}',
                                 key=file_key) from None
         if points.shape[1] != 3 or len(points) < 2 or not np.all(np.isfinite(points)):
             raise ScenarioError(f'{file_key}: expected finite x,y,z rows (at least 2)',
                                 key=file_key)
-        params = {'points': points, 'closed': bool(section.raw('closed', False))}
+        params = {'points': points, 'closed': section.boolean('closed', default=False)}
     return Curve(kind=kind,
                  line_width_px=section.number('line_width_px', default=3.0, positive=True),
                  contrast=section.number('contrast', default=0.7, minimum=0.0, maximum=1.0),
                  samples=section.integer('samples', default=2000, minimum=2),
                  params=params)
+
+
+def _read_csv(file):
+    """Comma-separated numbers as an (N, M) array; '#' comments and one leading header
+    line of column names (e.g. ``x,y,z``) are skipped. Raises OSError / ValueError."""
+    lines = [line.split('#')[0].strip() for line in Path(file).read_text().splitlines()]
+    lines = [line for line in lines if line]
+    # A header has no number in it; a row with some numbers is data, even if malformed.
+    if lines and not any(_is_number(cell) for cell in lines[0].split(',')):
+        lines = lines[1:]
+    if not lines:
+        raise ValueError('no numeric rows')
+    return np.loadtxt(lines, delimiter=',', ndmin=2)
+
+
+def _is_number(text):
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _parse_camera(section):
@@ -334,8 +368,11 @@ def _parse_camera(section):
     fy = section.number('fy', positive=True)
     K = np.array([[fx, 0.0, section.number('cx')], [0.0, fy, section.number('cy')],
                   [0.0, 0.0, 1.0]])
-    D = section.vector('distortion', 5, default=[0.0] * 5)
-    return PinholeCamera(width, height, K, D, section.pose('pose'))
+    # plumb_bob: D = (k1, k2, p1, p2, k3); division (the thesis's chapter 4): D = (kappa,)
+    model = section.string('distortion_model', default='plumb_bob', choices=DISTORTION_MODELS)
+    size = DISTORTION_SIZES[model]
+    D = section.vector('distortion', size, default=[0.0] * size)
+    return PinholeCamera(width, height, K, D, section.pose('pose'), model)
 
 
 def _parse_calibration(section):
@@ -384,8 +421,7 @@ def resolve_scenario_path(name_or_path):
     path = Path(name_or_path).expanduser()
     if path.suffix in ('.yaml', '.yml') or path.exists():
         return path
-    from ament_index_python.packages import (PackageNotFoundError,
-                                             get_package_share_directory)
+    from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
     try:
         share = Path(get_package_share_directory('sensor_sim'))
     except PackageNotFoundError:

@@ -1,0 +1,222 @@
+"""sensor_sim: the synthetic rig. Three cameras (left, right, aux), the calibration
+stage, the pressure sensor at the tool tip and a simulated PA-10, from a scenario file.
+
+Timeline: with ``calibration_phase`` true the chart is shown at every stage pose of the
+scenario (``captures_per_pose`` captures each, ``/calibration/target_pose`` stamped like
+the images), then the scene with the curve is captured until shutdown. The arm runs
+throughout at ``joint_state_rate``.
+"""
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import Image, JointState
+from trajectory_msgs.msg import JointTrajectory
+
+from sensor_sim.arm_sim import SimulatedArm
+from sensor_sim.contact import contact_force
+from sensor_sim.curves import curve_polylines
+from sensor_sim.render import SceneRenderer, add_noise
+from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
+from vgm_common.errors import InvalidInput
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.qos import DEFAULT_QOS
+from vgm_common.robot_model import load_robot
+from vgm_common.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
+
+IMAGE_TOPICS = {'left': '/stereo/left/image_raw', 'right': '/stereo/right/image_raw',
+                'aux': '/aux/image_raw'}
+TARGET_POSE_TOPIC = '/calibration/target_pose'
+OPTICAL_FRAMES = {'left': 'stereo_left_optical_frame', 'right': 'stereo_right_optical_frame',
+                  'aux': 'aux_optical_frame'}
+
+
+class SensorSim(Node):
+
+    def __init__(self):
+        super().__init__('sensor_sim')
+        self.params = NodeParameters(self, [
+            Param('scenario', 'default', 'Scenario file, or the name of a shipped one.',
+                  read_only=True),
+            Param('calibration_phase', True, 'Show the chart at every stage pose first.',
+                  read_only=True),
+            Param('rate', 0.0, 'Camera frame rate [Hz]; 0 takes the scenario rate.',
+                  range=(0.0, 200.0), read_only=True),
+            Param('joint_state_rate', 200.0, 'Arm simulation, /joint_states and '
+                  '/tool/pressure rate [Hz].', range=(100.0, 1000.0), read_only=True),
+            Param('ground_truth_dir', '', 'Where the true cameras, curve and depth maps are '
+                  'written for tests and benchmarks; empty: not written.', read_only=True),
+        ])
+        self.scenario = load_scenario(resolve_scenario_path(self.params.scenario))
+        self.get_logger().info(f'scenario {self.scenario.name} ({self.scenario.path})')
+        # Publishers first: subscribers (a recorder) discover and match them while the
+        # scene renders, so not even the first capture is lost.
+        self.image_publishers = {name: self.create_publisher(Image, IMAGE_TOPICS[name],
+                                                             DEFAULT_QOS)
+                                 for name in CAMERA_NAMES}
+        self.target_pose_publisher = self.create_publisher(
+            PoseStamped, TARGET_POSE_TOPIC, DEFAULT_QOS)
+        self.joint_state_publisher = self.create_publisher(JointState, '/joint_states',
+                                                           DEFAULT_QOS)
+        self.pressure_publisher = self.create_publisher(WrenchStamped, '/tool/pressure',
+                                                        DEFAULT_QOS)
+        started = time.monotonic()
+        self.renderer = SceneRenderer(self.scenario)
+        self.calibration_phase = self.params.calibration_phase and \
+            self.scenario.calibration is not None
+        self._render_everything()
+        self.get_logger().info(f'rendered the scene in {time.monotonic() - started:.2f} s')
+
+        robot = self.scenario.robot
+        self.robot = load_robot(robot.model, robot.tool_length)
+        self.arm = SimulatedArm.from_robot_model(self.robot, robot.initial_joints)
+        self.diagnostics = Diagnostics(self)
+        if self.params.ground_truth_dir:
+            self._write_ground_truth(Path(self.params.ground_truth_dir))
+
+        calibration = self.scenario.calibration
+        self.chart_frames = 0
+        if self.calibration_phase:
+            self.chart_frames = len(calibration.T_base_chart) * calibration.captures_per_pose
+        self.frame_index = 0
+        self.published = {topic: 0 for topic in (*IMAGE_TOPICS.values(), TARGET_POSE_TOPIC,
+                                                 '/joint_states', '/tool/pressure')}
+        self.rng_pressure = np.random.default_rng([self.scenario.seed, 1_000_003])
+
+        arm_group = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(JointTrajectory, '/pa10_controller/joint_trajectory',
+                                 self._on_joint_trajectory, DEFAULT_QOS,
+                                 callback_group=arm_group)
+        self.arm_period = 1.0 / self.params.joint_state_rate
+        self.last_arm_time = None
+        self.create_timer(self.arm_period, self._step_arm, callback_group=arm_group)
+        self.create_timer(1.0, self._publish_diagnostics)
+        frame_rate = self.params.rate or self.scenario.rate
+        self.create_timer(1.0 / frame_rate, self._capture,
+                          callback_group=MutuallyExclusiveCallbackGroup())
+        self.get_logger().info(
+            f'publishing 3 cameras at {frame_rate:g} Hz ({self.chart_frames} calibration '
+            f'captures first), joint states at {self.params.joint_state_rate:g} Hz')
+
+    # --- cameras ---------------------------------------------------------------------
+
+    def _render_everything(self):
+        """Render every clean image now, so captures keep their rate from the first."""
+        for name in CAMERA_NAMES:
+            self.renderer.scene_image(name)
+            if self.calibration_phase:
+                for pose_index in range(len(self.scenario.calibration.T_base_chart)):
+                    self.renderer.chart_image(name, pose_index)
+
+    def _capture(self):
+        """One capture: the three images (and the chart pose) with one stamp."""
+        stamp_ns = self.get_clock().now().nanoseconds
+        k = self.frame_index
+        self.frame_index += 1
+        pose_index = None
+        if k < self.chart_frames:
+            calibration = self.scenario.calibration
+            pose_index = k // calibration.captures_per_pose
+            self.target_pose_publisher.publish(matrix_to_pose_stamped(
+                calibration.T_base_chart[pose_index], stamp_ns, 'base_link'))
+            self.published[TARGET_POSE_TOPIC] += 1
+            if k + 1 == self.chart_frames:
+                self.get_logger().info('calibration phase done: showing the scene')
+        for camera_index, name in enumerate(CAMERA_NAMES):
+            clean = (self.renderer.scene_image(name) if pose_index is None
+                     else self.renderer.chart_image(name, pose_index))
+            # Same scenario, seed and frame: the same noise, bit for bit.
+            rng = np.random.default_rng([self.scenario.seed, k, camera_index])
+            pixels = add_noise(clean, self.scenario.noise.image_sigma, rng)
+            self.image_publishers[name].publish(
+                numpy_to_image(pixels, 'mono8', stamp_ns, OPTICAL_FRAMES[name]))
+            self.published[IMAGE_TOPICS[name]] += 1
+
+    # --- arm and pressure sensor ---------------------------------------------------
+
+    def _on_joint_trajectory(self, msg):
+        try:
+            times = np.array([p.time_from_start.sec + p.time_from_start.nanosec * 1e-9
+                              for p in msg.points])
+            positions = [list(p.positions) for p in msg.points]
+            velocities = [list(p.velocities) for p in msg.points]
+            if any(len(v) != len(p) for v, p in zip(velocities, positions) if v):
+                raise InvalidInput('velocities and positions differ in length')
+            has_velocities = bool(msg.points) and all(velocities)
+            start = stamp_to_ns(msg.header.stamp) * 1e-9 or self._now()
+            self.arm.set_trajectory(list(msg.joint_names), times,
+                                    np.array(positions, dtype=float),
+                                    np.array(velocities, dtype=float) if has_velocities
+                                    else None, start)
+        except (InvalidInput, ValueError) as error:
+            self.arm.hold()
+            self.diagnostics.reject('/pa10_controller/joint_trajectory', error)
+
+    def _now(self):
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _step_arm(self):
+        now = self._now()
+        dt = self.arm_period if self.last_arm_time is None else now - self.last_arm_time
+        self.last_arm_time = now
+        q, qdot = self.arm.step(now, max(dt, 0.0))
+        stamp_ns = int(now * 1e9)
+        self.joint_state_publisher.publish(JointState(
+            header=make_header(stamp_ns, 'base_link'), name=list(self.robot.joint_names),
+            position=q.tolist(), velocity=qdot.tolist()))
+        self.published['/joint_states'] += 1
+
+        T_base_tool = self.robot.forward_kinematics(q)
+        contact = contact_force(T_base_tool[:3, 3], self.scenario.surface,
+                                self.scenario.contact_stiffness)
+        force = contact.force
+        if force > 0:
+            force = max(0.0, force + self.rng_pressure.normal(
+                0.0, self.scenario.noise.pressure_sigma))
+        wrench = WrenchStamped(header=make_header(stamp_ns, 'tool0'))
+        wrench.wrench.force.z = float(force)
+        self.pressure_publisher.publish(wrench)
+        self.published['/tool/pressure'] += 1
+
+    def _publish_diagnostics(self):
+        phase = 'calibration' if self.frame_index < self.chart_frames else 'scene'
+        self.diagnostics.publish('simulation', 'ok', f'{phase} phase',
+                                 {**self.published, 'phase': phase,
+                                  **{f'rejected {k}': v
+                                     for k, v in self.diagnostics.rejected.items()}})
+
+    def close(self):
+        """Final counts, so a recording can be checked for lost messages."""
+        counts = ' '.join(f'{topic}={n}' for topic, n in self.published.items())
+        self.get_logger().info(f'published: {counts}')
+
+    # --- ground truth (files only: no pipeline node reads them) ------------------
+
+    def _write_ground_truth(self, directory):
+        directory.mkdir(parents=True, exist_ok=True)
+        cameras = {name: {'width': cam.width, 'height': cam.height, 'K': cam.K.tolist(),
+                          'distortion_model': cam.distortion_model, 'D': cam.D.tolist(),
+                          'T_base_camera': cam.T_base_camera.tolist()}
+                   for name, cam in self.scenario.cameras.items()}
+        (directory / 'cameras.yaml').write_text(yaml.safe_dump(cameras))
+        pieces = curve_polylines(self.scenario.curve, self.scenario.surface)
+        np.savez(directory / 'curve_base.npz', *pieces)
+        for name in CAMERA_NAMES:
+            np.save(directory / f'depth_{name}.npy', self.renderer.depth(name))
+        calibration = self.scenario.calibration
+        if calibration is not None:
+            np.save(directory / 'T_base_chart.npy', np.stack(calibration.T_base_chart))
+        self.get_logger().info(f'ground truth written to {directory}')
+
+
+def main(args=None):
+    return run_node(SensorSim, args, executor_class=lambda: MultiThreadedExecutor(2))
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

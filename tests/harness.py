@@ -1,0 +1,66 @@
+"""Test harness: installed executables, node processes that are always torn down, and
+bounded waits on conditions (never fixed sleeps). Fixtures are in conftest.py."""
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+INSTALL_DIR = REPO_ROOT / 'ros2_ws' / 'install'
+SCENARIO_DIR = REPO_ROOT / 'src' / 'sensor_sim' / 'scenarios'
+
+
+
+def executable(package, name=None):
+    """Path of an installed executable, the file `ros2 run <package> <name>` resolves."""
+    path = INSTALL_DIR / package / 'lib' / package / (name or package)
+    if not path.exists():
+        raise FileNotFoundError(f'{path} is not installed: run `make build`')
+    return path
+
+
+def wait_for(condition, timeout, interval=0.05, what='condition'):
+    """Poll ``condition()`` until it returns a truthy value or ``timeout`` [s] passes."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = condition()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise TimeoutError(f'timed out after {timeout:.0f} s waiting for {what}')
+        time.sleep(interval)
+
+
+class NodeProcess:
+    """A node started as its own process group, its output captured to a log file."""
+
+    def __init__(self, argv, env, log_path):
+        self.argv = [str(a) for a in argv]
+        self.log_path = Path(log_path)
+        self._log = open(self.log_path, 'wb')
+        self.proc = subprocess.Popen(
+            self.argv, env=env, stdout=self._log, stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL, start_new_session=True)
+
+    def output(self):
+        if not self._log.closed:
+            self._log.flush()
+        return self.log_path.read_text(errors='replace')
+
+    def alive(self):
+        return self.proc.poll() is None
+
+    def stop(self, sig=signal.SIGINT, timeout=10.0):
+        """Signal the whole process group; escalate to SIGKILL after ``timeout`` [s]."""
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, sig)
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+            except ProcessLookupError:
+                pass
+        self._log.close()
+        return self.proc.returncode
