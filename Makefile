@@ -1,7 +1,7 @@
 # The project's commands. From a fresh clone, `make test` and `make demo` set up what
 # they need: a .venv at the repo root from requirements.txt, then the colcon build.
 SHELL := /bin/bash
-.SHELLFLAGS := -eu -o pipefail -c
+.SHELLFLAGS := -e -o pipefail -c
 PYTHON ?= python3
 VENV := .venv
 VENV_STAMP := $(VENV)/.installed

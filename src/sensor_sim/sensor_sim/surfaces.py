@@ -36,8 +36,8 @@ _VASE_PROFILE_DERIVATIVE = _VASE_PROFILE.deriv()
 # that measures them (a multiple of the tiles, plus one), the smallest march step as a
 # fraction of the surface's size (features thinner than this along a ray may be skipped),
 # and iteration caps.
-_BOUND_TILES = 16
-_BOUND_GRID_SAMPLES = _BOUND_TILES * 32 + 1
+_BOUND_TILES = 64
+_BOUND_GRID_SAMPLES = _BOUND_TILES * 8 + 1
 _MIN_STEP_FRACTION = 1.0 / 4000
 _MAX_MARCH_STEPS = 20000
 _MAX_REFINE_STEPS = 100
@@ -96,34 +96,54 @@ def height_and_gradient(surface, xy_units):
     inside = in_domain(surface, xy)
     h = np.full(len(xy), np.nan)
     grad = np.full((len(xy), 2), np.nan)
-    h[inside], grad[inside] = _height_field(surface, xy[inside, 0], xy[inside, 1])
+    x, y = xy[inside, 0], xy[inside, 1]
+    h[inside] = _heights(surface, x, y)
+    grad[inside] = _gradients(surface, x, y, h[inside])
     return h, grad
 
 
-def _height_field(surface, x, y):
-    """h and gradient (N, 2) of ``surface.kind`` at points known to be in the domain."""
+def _heights(surface, x, y):
+    """h (N,) of ``surface.kind`` at points known to be in the domain."""
     kind = surface.kind
     if kind == 'plane':
-        return np.zeros_like(x), np.zeros((len(x), 2))
+        return np.zeros_like(x)
     if kind == 'S1':
-        return -(x + y ** 3), np.column_stack([-np.ones_like(x), -3 * y ** 2])
+        return -(x + y ** 3)
     if kind == 'S2':
-        s, c = np.sin(x / 3), np.cos(x / 3)
-        h = x * x * y * s + np.cos(y * y)
-        return h, np.column_stack([2 * x * y * s + x * x * y * c / 3,
-                                   x * x * s - 2 * y * np.sin(y * y)])
+        return x * x * y * np.sin(x / 3) + np.cos(y * y)
     if kind == 'S3':
-        return x * y + 0.5 * x - 0.6, np.column_stack([y + 0.5, x])
+        return x * y + 0.5 * x - 0.6
     if kind == 'sphere':
-        h = np.sqrt(np.maximum(surface.radius ** 2 - x * x - y * y, 0.0))
-        return h, _divide_or_zero(np.column_stack([-x, -y]), h)
+        return np.sqrt(np.maximum(surface.radius ** 2 - x * x - y * y, 0.0))
     if kind == 'vase':
         f = _VASE_PROFILE(y)
-        h = np.sqrt(np.maximum(f * f - x * x, 0.0))
-        # Where the vase is clamped to the base plane the surface is flat.
-        return h, _divide_or_zero(np.column_stack([-x, f * _VASE_PROFILE_DERIVATIVE(y)]), h)
+        return np.sqrt(np.maximum(f * f - x * x, 0.0))
     if kind == 'heightmap':
-        return _bilinear(surface, x, y)
+        return _bilinear(surface, x, y)[0]
+    raise InvalidInput(f'unknown surface kind {kind!r}', key='surface.type', value=kind)
+
+
+def _gradients(surface, x, y, h):
+    """(dh/dx, dh/dy) (N, 2) of ``surface.kind`` at points in the domain, heights h."""
+    kind = surface.kind
+    if kind == 'plane':
+        return np.zeros((len(x), 2))
+    if kind == 'S1':
+        return np.column_stack([-np.ones_like(x), -3 * y ** 2])
+    if kind == 'S2':
+        s, c = np.sin(x / 3), np.cos(x / 3)
+        return np.column_stack([2 * x * y * s + x * x * y * c / 3,
+                                x * x * s - 2 * y * np.sin(y * y)])
+    if kind == 'S3':
+        return np.column_stack([y + 0.5, x])
+    if kind == 'sphere':
+        return _divide_or_zero(np.column_stack([-x, -y]), h)
+    if kind == 'vase':
+        # Where the vase is clamped to the base plane (h = 0) the surface is flat.
+        f = _VASE_PROFILE(y)
+        return _divide_or_zero(np.column_stack([-x, f * _VASE_PROFILE_DERIVATIVE(y)]), h)
+    if kind == 'heightmap':
+        return _bilinear(surface, x, y)[1]
     raise InvalidInput(f'unknown surface kind {kind!r}', key='surface.type', value=kind)
 
 
@@ -206,7 +226,7 @@ def intersect_rays(surface, origin_base, directions_base):
 
     Plane and sphere are solved in closed form. Other kinds are ray-marched, all rays at
     once, with steps that cannot jump over the surface: |z - h| divided by the fastest
-    rate at which z - h can change along the ray, given bounds on grad h over 16 x 16
+    rate at which z - h can change along the ray, given bounds on grad h over 64 x 64
     tiles of the domain (measured on a fine grid, with a safety factor), never past the
     tile and never shorter than 1/4000 of the surface's size; a sign change of z - h is
     then refined by the Illinois method to ~1e-13 relative.
@@ -329,30 +349,41 @@ def _march(surface, o, d):
         t_enter, t_exit = np.maximum(t_enter, t_in), np.minimum(t_exit, t_out)
     min_step = _MIN_STEP_FRACTION * max(x1 - x0, y1 - y0, z_hi - z_lo)
 
-    def safe_step(t, g, index):
-        """Longest step from t along rays ``index`` that cannot jump over the surface.
+    def closing_rate(direction, g, range_x, range_y):
+        """Fastest rate (N,) at which the gap g = z - h can close along unit rays.
 
-        Along a unit ray the gap g = z - h changes at d_z - h_x d_x - h_y d_y; over the
-        tile's slope ranges this bounds how fast the gap can close from above (g > 0) or
-        below (g < 0), so |g| / rate is safe as long as the ray stays in the tile.
+        Along a ray z - h changes at d_z - h_x d_x - h_y d_y; over slope ranges (N, 2)
+        this bounds the closing from above (g > 0) or below (g < 0).
         """
-        direction = d[index]
-        i, exit_x = _tile_and_exit(o[0] + t * direction[:, 0] - x0, direction[:, 0], tile_w)
-        j, exit_y = _tile_and_exit(o[1] + t * direction[:, 1] - y0, direction[:, 1], tile_h)
-        reach_x = direction[:, :1] * slope_x[j, i]
-        reach_y = direction[:, 1:2] * slope_y[j, i]
+        reach_x, reach_y = direction[:, :1] * range_x, direction[:, 1:2] * range_y
         rate = np.where(g > 0,
                         -direction[:, 2] + reach_x.max(axis=1) + reach_y.max(axis=1),
                         direction[:, 2] - reach_x.min(axis=1) - reach_y.min(axis=1))
-        return np.minimum(np.abs(g) / np.maximum(rate, 1e-12), np.minimum(exit_x, exit_y))
+        return np.maximum(rate, 1e-12)
+
+    whole_x = np.array([slope_x[..., 0].min(), slope_x[..., 1].max()])
+    whole_y = np.array([slope_y[..., 0].min(), slope_y[..., 1].max()])
+
+    def safe_step(t, g, index):
+        """Longest step from t along rays ``index`` that cannot jump over the surface:
+        the larger of the step safe under the whole domain's slope bounds and the step
+        safe under the current tile's, which must stay in the tile."""
+        direction = d[index]
+        i, exit_x = _tile_and_exit(o[0] + t * direction[:, 0] - x0, direction[:, 0], tile_w)
+        j, exit_y = _tile_and_exit(o[1] + t * direction[:, 1] - y0, direction[:, 1], tile_h)
+        in_tile = np.minimum(np.abs(g) / closing_rate(direction, g, slope_x[j, i],
+                                                      slope_y[j, i]),
+                             np.minimum(exit_x, exit_y))
+        anywhere = np.abs(g) / closing_rate(direction, g, whole_x[None], whole_y[None])
+        return np.maximum(in_tile, anywhere)
 
     def gap(t, index):
         """z - h along rays ``index`` at parameters t."""
         point = o + t[:, None] * d[index]
-        # Clipping to the box only undoes rounding at the box's faces, which would
-        # otherwise give NaN heights.
-        xy = np.column_stack([np.clip(point[:, 0], x0, x1), np.clip(point[:, 1], y0, y1)])
-        return point[:, 2] - height(surface, xy)
+        # The marched kinds' domain is the whole box; clipping only undoes rounding at its
+        # faces.
+        return point[:, 2] - _heights(surface, np.clip(point[:, 0], x0, x1),
+                                      np.clip(point[:, 1], y0, y1))
 
     result = np.full(len(d), np.nan)
     active = np.flatnonzero(t_enter < t_exit)

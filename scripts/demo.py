@@ -1,0 +1,209 @@
+#!/usr/bin/env python3
+"""make demo: run the graph on a scenario, record every topic, check the bag with two
+independent readers, and write a report (markdown + PNG) beside the bag.
+
+So far the graph is the simulator and the recorder (the pipeline nodes come with their
+own issues): the chart is shown at every calibration stage pose, then the scene with the
+curve; the arm holds its initial pose.
+"""
+import argparse
+import shutil
+import sys
+import time
+from collections import Counter, defaultdict
+from datetime import datetime
+from pathlib import Path
+
+import matplotlib
+import numpy as np
+
+matplotlib.use('Agg')
+import matplotlib.pyplot as plt  # noqa: E402
+import rclpy  # noqa: E402
+from ament_index_python.packages import get_package_share_directory  # noqa: E402
+from mcap.reader import make_reader  # noqa: E402
+from mcap_ros2.decoder import DecoderFactory  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rosbags.highlevel import AnyReader  # noqa: E402
+from sensor_msgs.msg import Image  # noqa: E402
+
+from vgm_common.launcher import Launch  # noqa: E402
+from vgm_common.qos import DEFAULT_QOS  # noqa: E402
+from vgm_common.scenario import load_scenario, resolve_scenario_path  # noqa: E402
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+IMAGE_TOPICS = ('/stereo/left/image_raw', '/stereo/right/image_raw', '/aux/image_raw')
+EXPECTED_TOPICS = (*IMAGE_TOPICS, '/calibration/target_pose', '/joint_states',
+                   '/tool/pressure', '/diagnostics')
+
+
+def stage(number, total, text):
+    print(f'\n== [{number}/{total}] {text}', flush=True)
+
+
+class Progress:
+    """Counts captures as they are published, to show how far the demo has got."""
+
+    def __init__(self):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node('demo_progress', context=self.context)
+        self.stamps = Counter()
+        self.node.create_subscription(Image, IMAGE_TOPICS[0], self._on_image, DEFAULT_QOS)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.last_print = 0.0
+
+    def _on_image(self, msg):
+        self.stamps['captures'] += 1
+
+    def spin(self, total_captures):
+        self.executor.spin_once(timeout_sec=0.05)
+        if time.monotonic() - self.last_print > 2.0:
+            self.last_print = time.monotonic()
+            print(f'   ... {self.stamps["captures"]}/{total_captures} captures', flush=True)
+        return self.stamps['captures'] >= total_captures
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+def read_with_mcap(bag_dir):
+    """Decode every message with mcap's reader + mcap_ros2 (independent of our code)."""
+    messages = defaultdict(list)
+    for path in sorted(bag_dir.glob('*.mcap')):
+        with open(path, 'rb') as stream:
+            reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+            for _, channel, message, decoded in reader.iter_decoded_messages():
+                messages[channel.topic].append((message.log_time, decoded))
+    return messages
+
+
+def count_with_rosbags(bag_dir):
+    with AnyReader([bag_dir]) as reader:
+        return Counter(connection.topic for connection, _, _ in reader.messages())
+
+
+def image_array(msg):
+    return np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.step)[:, :msg.width]
+
+
+def write_report(bag_dir, scenario, messages, counts_rosbags, seconds):
+    report_dir = bag_dir / 'report'
+    report_dir.mkdir(exist_ok=True)
+    figures = []
+
+    # The three views: first calibration capture and last scene capture.
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7))
+    for column, topic in enumerate(IMAGE_TOPICS):
+        images = messages.get(topic, [])
+        for row, (label, index) in enumerate((('first capture', 0), ('last capture', -1))):
+            ax = axes[row, column]
+            ax.axis('off')
+            if images:
+                ax.imshow(image_array(images[index][1]), cmap='gray', vmin=0, vmax=255)
+                ax.set_title(f'{topic}\n{label}', fontsize=9)
+    fig.tight_layout()
+    fig.savefig(report_dir / 'views.png', dpi=80)
+    plt.close(fig)
+    figures.append(('The three views', 'views.png'))
+
+    joint_states = messages.get('/joint_states', [])
+    pressure = messages.get('/tool/pressure', [])
+    if joint_states:
+        fig, (ax_q, ax_f) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        t0 = joint_states[0][0]
+        t = np.array([log_time - t0 for log_time, _ in joint_states]) * 1e-9
+        q = np.array([m.position for _, m in joint_states])
+        for j in range(q.shape[1]):
+            ax_q.plot(t, q[:, j], label=joint_states[0][1].name[j])
+        ax_q.set_ylabel('joint position [rad]')
+        ax_q.legend(fontsize=7, ncol=4)
+        if pressure:
+            tp = np.array([log_time - t0 for log_time, _ in pressure]) * 1e-9
+            ax_f.plot(tp, [m.wrench.force.z for _, m in pressure])
+        ax_f.set_ylabel('contact force [N]')
+        ax_f.set_xlabel('time [s]')
+        fig.tight_layout()
+        fig.savefig(report_dir / 'arm.png', dpi=80)
+        plt.close(fig)
+        figures.append(('Joint positions and contact force', 'arm.png'))
+
+    rows = []
+    for topic in sorted(set(messages) | set(counts_rosbags)):
+        stamps = [log_time for log_time, _ in messages.get(topic, [])]
+        rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9) if len(stamps) > 2 else 0
+        rows.append((topic, len(stamps), counts_rosbags.get(topic, 0), rate))
+    table = ['| topic | messages (mcap reader) | messages (rosbags) | rate [Hz] |',
+             '|---|---|---|---|']
+    table += [f'| `{t}` | {n} | {m} | {r:.1f} |' for t, n, m, r in rows]
+    text = [f'# Demo report: {bag_dir.name}', '',
+            f'Scenario `{scenario.name}` ({scenario.path}), seed {scenario.seed}; '
+            f'recorded for {seconds:.1f} s.', '', '## Messages in the bag', '', *table, '']
+    for title, file in figures:
+        text += [f'## {title}', '', f'![{title}]({file})', '']
+    (report_dir / 'report.md').write_text('\n'.join(text))
+    return rows, report_dir
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    parser.add_argument('--scenario', default='default', help='shipped name or file')
+    parser.add_argument('--seconds', type=float, default=20.0,
+                        help='scene time recorded after the calibration phase [s]')
+    parser.add_argument('--bags', type=Path, default=REPO_ROOT / 'bags')
+    args = parser.parse_args()
+
+    scenario_path = resolve_scenario_path(args.scenario).resolve()
+    scenario = load_scenario(scenario_path)
+    name = f'demo-{datetime.now():%Y%m%d-%H%M%S}'
+    bag_dir = args.bags / name
+    truth_dir = args.bags / f'.{name}-ground-truth'
+    chart_captures = (len(scenario.calibration.T_base_chart) *
+                      scenario.calibration.captures_per_pose if scenario.calibration else 0)
+    total_captures = chart_captures + int(args.seconds * scenario.rate)
+    total = 3
+
+    stage(1, total, f'simulating scenario {scenario.name} and recording to {bag_dir}')
+    graph = Path(get_package_share_directory('vgm_common')) / 'params' / 'graph.yaml'
+    launch = Launch(graph, nodes=['recorder', 'sensor_sim'], overrides=[
+        f'recorder:output_dir:={args.bags}', f'recorder:bag_name:={name}',
+        f'sensor_sim:scenario:={scenario_path}', f'sensor_sim:ground_truth_dir:={truth_dir}'])
+    progress = Progress()
+    started = time.monotonic()
+    try:
+        status = launch.run(duration=total_captures / scenario.rate + 60.0,
+                            until=lambda: progress.spin(total_captures))
+    finally:
+        progress.close()
+    seconds = time.monotonic() - started
+    if status != 0:
+        print('a node failed: see its log lines above', file=sys.stderr)
+        return 1
+    if truth_dir.exists():
+        shutil.move(str(truth_dir), str(bag_dir / 'ground_truth'))
+
+    stage(2, total, 'reading the bag with mcap + mcap_ros2 and with rosbags')
+    messages = read_with_mcap(bag_dir)
+    counts_rosbags = count_with_rosbags(bag_dir)
+
+    stage(3, total, 'writing the report')
+    rows, report_dir = write_report(bag_dir, scenario, messages, counts_rosbags, seconds)
+    print(f'\n{"topic":36} {"mcap":>7} {"rosbags":>8} {"rate Hz":>8}')
+    for topic, n_mcap, n_rosbags, rate in rows:
+        print(f'{topic:36} {n_mcap:7d} {n_rosbags:8d} {rate:8.1f}')
+    missing = [t for t in EXPECTED_TOPICS if not messages.get(t)]
+    disagree = [t for t, n, m, _ in rows if n != m]
+    print(f'\nbag:    {bag_dir}\nreport: {report_dir / "report.md"}')
+    if missing or disagree:
+        print(f'FAILED: topics missing from the bag: {missing}; reader counts differ: '
+              f'{disagree}', file=sys.stderr)
+        return 1
+    print('OK: every expected topic recorded; both readers agree')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,133 @@
+"""Topic level, real processes: sensor_sim's arm and pressure sensor over topics, and
+its handling of bad input (malformed scenario, bad parameter, bad joint commands)."""
+import numpy as np
+import pytest
+import yaml
+from builtin_interfaces.msg import Duration
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import WrenchStamped
+from sensor_msgs.msg import JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from harness import SCENARIO_DIR, executable
+from sensor_sim.contact import contact_force
+from vgm_common.qos import DEFAULT_QOS
+from vgm_common.robot_model import JOINT_NAMES, load_robot
+from vgm_common.scenario import load_scenario
+
+SCENARIO = SCENARIO_DIR / 'default.yaml'
+
+
+def trajectory(names, q, seconds=0.0):
+    point = JointTrajectoryPoint(positions=[float(x) for x in q],
+                                 time_from_start=Duration(sec=int(seconds),
+                                                          nanosec=int(seconds % 1 * 1e9)))
+    return JointTrajectory(joint_names=list(names), points=[point])
+
+
+def pressing_configuration(scenario, penetration):
+    """A joint vector whose tool tip is ``penetration`` [m] below the surface: bisect on
+    the straight joint-space line from the initial pose toward a lowered arm."""
+    robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
+    q_start = scenario.robot.initial_joints
+    q_low = q_start + np.array([0.0, 0.25, 0.0, 0.25, 0.0, 0.15, 0.0])
+
+    def depth(s):
+        tip = robot.forward_kinematics(q_start + s * (q_low - q_start))[:3, 3]
+        return contact_force(tip, scenario.surface, 1.0).penetration
+
+    assert depth(0.0) == 0.0 and depth(1.0) > penetration, 'the search line misses the surface'
+    low, high = 0.0, 1.0
+    for _ in range(60):
+        mid = (low + high) / 2
+        low, high = (mid, high) if depth(mid) < penetration else (low, mid)
+    return q_start + high * (q_low - q_start)
+
+
+@pytest.fixture
+def sim(spawn, rclpy_node):
+    process = spawn([executable('sensor_sim'), '--ros-args', '-p', f'scenario:={SCENARIO}',
+                     '-p', 'calibration_phase:=false', '-p', 'rate:=2'])
+    states, wrenches, diagnostics = [], [], []
+    rclpy_node.create_subscription(JointState, '/joint_states', states.append, DEFAULT_QOS)
+    rclpy_node.create_subscription(WrenchStamped, '/tool/pressure', wrenches.append,
+                                   DEFAULT_QOS)
+    rclpy_node.create_subscription(DiagnosticArray, '/diagnostics', diagnostics.append,
+                                   DEFAULT_QOS)
+    publisher = rclpy_node.create_publisher(JointTrajectory,
+                                            '/pa10_controller/joint_trajectory', DEFAULT_QOS)
+    rclpy_node.spin_until(lambda: len(states) > 10 and publisher.get_subscription_count(),
+                          60, 'sensor_sim joint states')
+    return process, publisher, states, wrenches, diagnostics
+
+
+def test_arm_moves_to_a_pressing_pose_and_the_sensor_reads_the_force(sim, rclpy_node):
+    process, publisher, states, wrenches, _ = sim
+    scenario = load_scenario(SCENARIO)
+    penetration = 0.004  # [m]
+    q_goal = pressing_configuration(scenario, penetration)
+    assert wrenches[-1].wrench.force.z == 0.0  # not in contact at the start
+    # Joint order shuffled: the sim maps names, as joint_trajectory_controller does.
+    order = [6, 2, 0, 4, 1, 5, 3]
+    publisher.publish(trajectory([JOINT_NAMES[i] for i in order], q_goal[order], 1.0))
+    rclpy_node.spin_until(
+        lambda: np.allclose(states[-1].position, q_goal, atol=1e-9), 30, 'the arm to arrive')
+    settled = len(wrenches)
+    rclpy_node.spin_until(lambda: len(wrenches) > settled + 200, 30, '200 pressure readings')
+    forces = np.array([w.wrench.force.z for w in wrenches[settled:]])
+    sigma = scenario.noise.pressure_sigma
+    expected = scenario.contact_stiffness * penetration  # [N]
+    assert forces.mean() == pytest.approx(expected, abs=4 * sigma / np.sqrt(len(forces)) + 1e-3)
+    assert forces.std() == pytest.approx(sigma, rel=0.25)
+
+
+@pytest.mark.parametrize('problem, names, q', [
+    ('unknown names', [f'joint_{i}' for i in range(7)], np.zeros(7)),
+    ('wrong length', list(JOINT_NAMES), np.zeros(6)),
+    ('NaN', list(JOINT_NAMES), np.array([0, 0, np.nan, 0, 0, 0, 0.0])),
+])
+def test_bad_joint_commands_are_rejected_and_the_arm_holds(sim, rclpy_node, problem, names, q):
+    process, publisher, states, _, diagnostics = sim
+    before = np.array(states[-1].position)
+    publisher.publish(trajectory(names, q, 0.5))
+    rclpy_node.spin_until(lambda: any('rejected /pa10_controller/joint_trajectory' in s.name
+                                      for d in diagnostics for s in d.status),
+                          20, f'a diagnostic rejecting the {problem} command')
+    seen = len(states)
+    rclpy_node.spin_until(lambda: len(states) > seen + 100, 20, 'more joint states')
+    np.testing.assert_array_equal(states[-1].position, before)
+    assert process.alive()
+    assert 'Traceback' not in process.output()
+
+
+def run_to_exit(spawn, argv, timeout=60):
+    process = spawn(argv)
+    process.proc.wait(timeout)
+    return process.proc.returncode, process.output()
+
+
+@pytest.mark.parametrize('edit, key', [
+    (lambda d: d['cameras']['left'].update(fx='abc'), 'cameras.left.fx'),
+    (lambda d: d['contact'].pop('stiffness'), 'contact.stiffness'),
+    (lambda d: d['surface'].update(type='torus'), 'surface.type'),
+    (lambda d: d['lighting'].update(intensity=float('nan')), 'lighting.intensity'),
+    (lambda d: d['cameras']['aux']['pose'].update(look_at=[0.4, 0.45, 2.0]), 'cameras.aux.pose'),
+])
+def test_malformed_scenario_fails_at_start_with_one_line_naming_the_key(spawn, tmp_path,
+                                                                        edit, key):
+    data = yaml.safe_load(SCENARIO.read_text())
+    edit(data)
+    path = tmp_path / 'bad.yaml'
+    path.write_text(yaml.safe_dump(data))
+    status, output = run_to_exit(spawn, [executable('sensor_sim'), '--ros-args',
+                                         '-p', f'scenario:={path}'])
+    assert status == 2
+    errors = [line for line in output.splitlines() if 'error' in line]
+    assert len(errors) == 1 and key in errors[0], output
+    assert 'Traceback' not in output
+
+
+def test_parameter_of_the_wrong_kind_is_reported_in_one_line(spawn):
+    status, output = run_to_exit(spawn, [executable('sensor_sim'), '--ros-args',
+                                         '-p', 'rate:=fast'])
+    assert status == 2 and "'rate'" in output and 'Traceback' not in output

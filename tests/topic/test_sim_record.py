@@ -1,0 +1,118 @@
+"""Topic level, real processes: sensor_sim + recorder on a private domain.
+
+Checks topics, types, stamps and rates as a subscriber sees them, then that the bag
+holds exactly what sensor_sim says it published, readable by two independent readers,
+with images byte-identical to the published ones.
+"""
+import re
+from collections import defaultdict
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.highlevel import AnyReader
+from sensor_msgs.msg import Image, JointState
+
+from harness import SCENARIO_DIR, executable
+from vgm_common.conversions import stamp_to_ns
+from vgm_common.qos import DEFAULT_QOS
+from vgm_common.scenario import load_scenario
+
+IMAGE_TOPICS = {'/stereo/left/image_raw': 'stereo_left_optical_frame',
+                '/stereo/right/image_raw': 'stereo_right_optical_frame',
+                '/aux/image_raw': 'aux_optical_frame'}
+RATE_HZ = 10.0
+
+
+def published_counts(log_text):
+    """sensor_sim's final 'published: /topic=N ...' line, as {topic: N}."""
+    match = re.search(r'published: (.*)', log_text)
+    assert match, f'sensor_sim did not report its counts:\n{log_text[-2000:]}'
+    return {topic: int(n) for topic, n in re.findall(r'(\S+)=(\d+)', match.group(1))}
+
+
+def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
+    scenario = load_scenario(SCENARIO_DIR / 'default.yaml')
+    chart_captures = len(scenario.calibration.T_base_chart) * \
+        scenario.calibration.captures_per_pose
+    received = defaultdict(list)
+    for topic, kind in [*[(t, Image) for t in IMAGE_TOPICS],
+                        ('/calibration/target_pose', PoseStamped),
+                        ('/joint_states', JointState), ('/tool/pressure', WrenchStamped)]:
+        rclpy_node.create_subscription(kind, topic, lambda m, t=topic: received[t].append(m),
+                                       DEFAULT_QOS)
+
+    recorder = spawn([executable('bag_tools', 'recorder'), '--ros-args',
+                      '-p', f'output_dir:={tmp_path}', '-p', 'bag_name:=sim'])
+    rclpy_node.spin_until(lambda: 'recorder' in rclpy_node.get_node_names(), 30,
+                          'the recorder to join the graph')
+    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default',
+                 '-p', f'rate:={RATE_HZ}', '-p', f'ground_truth_dir:={tmp_path / "truth"}'])
+    wanted = chart_captures + 10
+    rclpy_node.spin_until(lambda: len(received['/aux/image_raw']) >= wanted, 90,
+                          f'{wanted} captures')
+
+    # One stamp per capture: the three images share it.
+    stamps = {t: [stamp_to_ns(m.header.stamp) for m in received[t]] for t in IMAGE_TOPICS}
+    common = set.intersection(*map(set, stamps.values()))
+    assert len(common) >= wanted - 2  # the last capture may be in flight on one topic
+    for topic, frame_id in IMAGE_TOPICS.items():
+        for msg in received[topic][:3]:
+            assert (msg.encoding, msg.width, msg.height) == ('mono8', 640, 480)
+            assert msg.header.frame_id == frame_id and msg.step == 640
+    # The chart pose is stamped like the images it appears in, for the chart captures only.
+    pose_stamps = [stamp_to_ns(m.header.stamp) for m in received['/calibration/target_pose']]
+    assert pose_stamps == sorted(common)[:chart_captures]
+    assert all(m.header.frame_id == 'base_link' for m in received['/calibration/target_pose'])
+    # Camera rate, measured on the stamps.
+    capture_times = np.array(sorted(common)) * 1e-9
+    assert np.median(np.diff(capture_times)) == pytest.approx(1 / RATE_HZ, rel=0.1)
+    # Joint states at >= 100 Hz with the contract's names; pressure in tool0.
+    joint_stamps = np.array([stamp_to_ns(m.header.stamp) for m in received['/joint_states']])
+    window = joint_stamps[-1] - joint_stamps[0]
+    assert (len(joint_stamps) - 1) / (window * 1e-9) >= 100.0
+    assert list(received['/joint_states'][-1].name) == [f'pa10_joint{i}' for i in range(1, 8)]
+    np.testing.assert_allclose(received['/joint_states'][-1].position,
+                               scenario.robot.initial_joints, atol=1e-12)
+    assert received['/tool/pressure'][-1].header.frame_id == 'tool0'
+
+    assert sim.stop() == 0
+    counts = published_counts(sim.output())
+    assert recorder.stop() == 0
+    bag_dir = tmp_path / 'sim'
+    assert (bag_dir / 'metadata.yaml').exists() and (bag_dir / 'sim_0.mcap').exists()
+
+    expected = counts
+    assert set(expected) == {*IMAGE_TOPICS, '/calibration/target_pose', '/joint_states',
+                             '/tool/pressure'}
+    assert expected['/calibration/target_pose'] == chart_captures
+    with AnyReader([bag_dir]) as reader:
+        in_bag = defaultdict(int)
+        for connection, _, _ in reader.messages():
+            in_bag[connection.topic] += 1
+        assert reader.topics['/stereo/left/image_raw'].msgtype == 'sensor_msgs/msg/Image'
+    assert {t: in_bag[t] for t in expected} == expected
+
+    published_left = {stamp_to_ns(m.header.stamp): bytes(m.data)
+                      for m in received['/stereo/left/image_raw']}
+    decoded_counts = defaultdict(int)
+    compared = 0
+    with open(bag_dir / 'sim_0.mcap', 'rb') as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        assert reader.get_header().profile == 'ros2'
+        for schema, channel, _, decoded in reader.iter_decoded_messages():
+            decoded_counts[channel.topic] += 1
+            if channel.topic == '/stereo/left/image_raw':
+                assert schema.encoding == 'ros2msg' and channel.message_encoding == 'cdr'
+                stamp = decoded.header.stamp.sec * 1_000_000_000 + decoded.header.stamp.nanosec
+                if stamp in published_left:
+                    assert bytes(decoded.data) == published_left[stamp]
+                    compared += 1
+    assert {t: decoded_counts[t] for t in expected} == expected
+    assert compared >= wanted - 2
+
+    # Ground truth went to files, not topics.
+    for name in ('cameras.yaml', 'curve_base.npz', 'depth_left.npy'):
+        assert (tmp_path / 'truth' / name).exists()
