@@ -6,10 +6,7 @@ published vs frames in the bag, achieved camera rate, CPU of each process.
 Writes bench/results/sim_recording.md and .json.
 """
 import argparse
-import io
 import json
-import re
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -22,17 +19,12 @@ from mcap.reader import make_reader
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import Image
 
+from sensor_sim.sensor_sim_node import parse_published_counts
 from vgm_common.launcher import Launch
 from vgm_common.qos import DEFAULT_QOS
 
 RESULTS = Path(__file__).resolve().parent / 'results'
 IMAGE_TOPICS = ('/stereo/left/image_raw', '/stereo/right/image_raw', '/aux/image_raw')
-
-
-class Tee(io.StringIO):
-    def write(self, text):
-        sys.stdout.write(text)
-        return super().write(text)
 
 
 def wait_for_first_image(timeout):
@@ -68,8 +60,7 @@ def main():
     args = parser.parse_args()
     graph = Path(get_package_share_directory('vgm_common')) / 'params' / 'graph.yaml'
     with tempfile.TemporaryDirectory() as tmp:
-        log = Tee()
-        launch = Launch(graph, nodes=['recorder', 'sensor_sim'], out=log, overrides=[
+        launch = Launch(graph, nodes=['recorder', 'sensor_sim'], overrides=[
             f'recorder:output_dir:={tmp}', 'recorder:bag_name:=bench',
             'sensor_sim:calibration_phase:=false', f'sensor_sim:rate:={args.rate}'])
         launch.start()
@@ -84,8 +75,7 @@ def main():
                    for name, pid in pids.items()}
         finally:
             launch.stop()
-        counts = re.search(r'published: (.*)', log.getvalue())
-        published = {t: int(n) for t, n in re.findall(r'(\S+)=(\d+)', counts.group(1))}
+        published = parse_published_counts(launch.log_text('sensor_sim'))
         in_bag = {}
         stamps = []
         with open(Path(tmp) / 'bench' / 'bench_0.mcap', 'rb') as stream:

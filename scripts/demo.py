@@ -27,6 +27,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 
+from sensor_sim.sensor_sim_node import parse_published_counts  # noqa: E402
 from vgm_common.launcher import Launch  # noqa: E402
 from vgm_common.qos import DEFAULT_QOS  # noqa: E402
 from vgm_common.scenario import load_scenario, resolve_scenario_path  # noqa: E402
@@ -90,7 +91,7 @@ def image_array(msg):
     return np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.step)[:, :msg.width]
 
 
-def write_report(bag_dir, scenario, messages, counts_rosbags, seconds):
+def write_report(bag_dir, scenario, messages, counts_rosbags, published, seconds):
     report_dir = bag_dir / 'report'
     report_dir.mkdir(exist_ok=True)
     figures = []
@@ -135,10 +136,14 @@ def write_report(bag_dir, scenario, messages, counts_rosbags, seconds):
     for topic in sorted(set(messages) | set(counts_rosbags)):
         stamps = [log_time for log_time, _ in messages.get(topic, [])]
         rate = (len(stamps) - 1) / ((stamps[-1] - stamps[0]) * 1e-9) if len(stamps) > 2 else 0
-        rows.append((topic, len(stamps), counts_rosbags.get(topic, 0), rate))
-    table = ['| topic | messages (mcap reader) | messages (rosbags) | rate [Hz] |',
-             '|---|---|---|---|']
-    table += [f'| `{t}` | {n} | {m} | {r:.1f} |' for t, n, m, r in rows]
+        sent = published.get(topic)
+        lost = '' if sent is None else sent - len(stamps)
+        rows.append((topic, '' if sent is None else sent, len(stamps),
+                     counts_rosbags.get(topic, 0), lost, rate))
+    table = ['| topic | published | in bag (mcap reader) | in bag (rosbags) | lost | rate [Hz] |',
+             '|---|---|---|---|---|---|']
+    table += [f'| `{t}` | {p} | {n} | {m} | {lost} | {r:.1f} |'
+              for t, p, n, m, lost, r in rows]
     text = [f'# Demo report: {bag_dir.name}', '',
             f'Scenario `{scenario.name}` ({scenario.path}), seed {scenario.seed}; '
             f'recorded for {seconds:.1f} s.', '', '## Messages in the bag', '', *table, '']
@@ -179,6 +184,7 @@ def main():
     finally:
         progress.close()
     seconds = time.monotonic() - started
+    published = parse_published_counts(launch.log_text('sensor_sim'))
     if status != 0:
         print('a node failed: see its log lines above', file=sys.stderr)
         return 1
@@ -190,18 +196,21 @@ def main():
     counts_rosbags = count_with_rosbags(bag_dir)
 
     stage(3, total, 'writing the report')
-    rows, report_dir = write_report(bag_dir, scenario, messages, counts_rosbags, seconds)
-    print(f'\n{"topic":36} {"mcap":>7} {"rosbags":>8} {"rate Hz":>8}')
-    for topic, n_mcap, n_rosbags, rate in rows:
-        print(f'{topic:36} {n_mcap:7d} {n_rosbags:8d} {rate:8.1f}')
+    rows, report_dir = write_report(bag_dir, scenario, messages, counts_rosbags, published,
+                                    seconds)
+    print(f'\n{"topic":32} {"published":>9} {"mcap":>7} {"rosbags":>8} {"lost":>5} '
+          f'{"rate Hz":>8}')
+    for topic, sent, n_mcap, n_rosbags, lost, rate in rows:
+        print(f'{topic:32} {sent:>9} {n_mcap:7d} {n_rosbags:8d} {lost:>5} {rate:8.1f}')
     missing = [t for t in EXPECTED_TOPICS if not messages.get(t)]
-    disagree = [t for t, n, m, _ in rows if n != m]
+    disagree = [row[0] for row in rows if row[2] != row[3]]
+    lost = [row[0] for row in rows if row[4] not in ('', 0)]
     print(f'\nbag:    {bag_dir}\nreport: {report_dir / "report.md"}')
-    if missing or disagree:
+    if missing or disagree or lost:
         print(f'FAILED: topics missing from the bag: {missing}; reader counts differ: '
-              f'{disagree}', file=sys.stderr)
+              f'{disagree}; messages lost: {lost}', file=sys.stderr)
         return 1
-    print('OK: every expected topic recorded; both readers agree')
+    print('OK: every expected topic recorded, nothing lost, both readers agree')
     return 0
 
 

@@ -13,6 +13,7 @@ setup(
         ('share/' + PACKAGE_NAME, ['package.xml']),
         ('share/' + PACKAGE_NAME + '/urdf', glob('urdf/*')),
         ('share/' + PACKAGE_NAME + '/params', glob('params/*')),
+        ('share/' + PACKAGE_NAME + '/config', glob('config/*')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,

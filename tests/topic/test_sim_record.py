@@ -4,7 +4,6 @@ Checks topics, types, stamps and rates as a subscriber sees them, then that the 
 holds exactly what sensor_sim says it published, readable by two independent readers,
 with images byte-identical to the published ones.
 """
-import re
 from collections import defaultdict
 
 import numpy as np
@@ -16,6 +15,7 @@ from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import Image, JointState
 
 from harness import SCENARIO_DIR, executable
+from sensor_sim.sensor_sim_node import parse_published_counts
 from vgm_common.conversions import stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.scenario import load_scenario
@@ -24,13 +24,6 @@ IMAGE_TOPICS = {'/stereo/left/image_raw': 'stereo_left_optical_frame',
                 '/stereo/right/image_raw': 'stereo_right_optical_frame',
                 '/aux/image_raw': 'aux_optical_frame'}
 RATE_HZ = 10.0
-
-
-def published_counts(log_text):
-    """sensor_sim's final 'published: /topic=N ...' line, as {topic: N}."""
-    match = re.search(r'published: (.*)', log_text)
-    assert match, f'sensor_sim did not report its counts:\n{log_text[-2000:]}'
-    return {topic: int(n) for topic, n in re.findall(r'(\S+)=(\d+)', match.group(1))}
 
 
 def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
@@ -79,7 +72,7 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
     assert received['/tool/pressure'][-1].header.frame_id == 'tool0'
 
     assert sim.stop() == 0
-    counts = published_counts(sim.output())
+    counts = parse_published_counts(sim.output())
     assert recorder.stop() == 0
     bag_dir = tmp_path / 'sim'
     assert (bag_dir / 'metadata.yaml').exists() and (bag_dir / 'sim_0.mcap').exists()

@@ -9,7 +9,7 @@ import pytest
 
 from sensor_sim import chart, curves, surfaces
 from sensor_sim.render import SceneRenderer, add_noise
-from vgm_common.geometry import make_transform, rot_y, transform_points
+from vgm_common.geometry import make_transform, rot_y, rpy_to_matrix, transform_points
 from vgm_common.scenario import Curve, load_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / 'src' / 'sensor_sim' / 'scenarios'
@@ -225,6 +225,35 @@ def test_black_square_is_outside_corner_zero(default, left_renderer):
     cols_px, rows_px = np.rint(pixels).astype(int).T
     black, white, opposite = image[rows_px, cols_px]
     assert black < 0.2 * white and opposite > 5 * black
+
+
+def test_chart_supersampling_skips_only_uniform_pixels(small):
+    """The chart image equals the mean of supersample^2 rays in every pixel, including a
+    chart seen nearly edge-on (slivers thinner than a pixel) and one cut by the surface."""
+    from sensor_sim.render import _chart_pixel_box, _chart_sampler, _interpolate_normalized
+    poses = (small.calibration.T_base_chart[3],
+             make_transform(rpy_to_matrix(np.pi / 2, 0.0, 0.4), [0.6, 0.0, 0.4]),
+             make_transform(rpy_to_matrix(np.pi + 0.2, 0.1, 0.2), [0.45, -0.1, 0.18]))
+    scenario = replace(small, calibration=replace(small.calibration, T_base_chart=poses))
+    renderer = SceneRenderer(scenario, supersample=4)
+    calibration, camera = scenario.calibration, scenario.cameras['left']
+    offsets = (np.arange(4) + 0.5) / 4 - 0.5
+    for index, T_base_chart in enumerate(poses):
+        (u0, u1), (v0, v1) = _chart_pixel_box(camera, T_base_chart, calibration.rows,
+                                              calibration.cols, calibration.spacing)
+        rows, cols = np.mgrid[v0:v1, u0:u1]
+        du, dv = np.meshgrid(offsets, offsets)
+        u = cols.reshape(-1, 1) + du.ravel()
+        v = rows.reshape(-1, 1) + dv.ravel()
+        x, y = _interpolate_normalized(renderer._view('left').normalized, u.ravel(),
+                                       v.ravel())
+        grey, depth = _chart_sampler(scenario, camera, T_base_chart)(x.reshape(u.shape),
+                                                                     y.reshape(u.shape))
+        scene_depth = renderer.depth('left')[v0:v1, u0:u1].reshape(-1, 1).astype(float)
+        scene = renderer.scene_image('left')[v0:v1, u0:u1].reshape(-1, 1)
+        expected = np.where(depth < np.nan_to_num(scene_depth, nan=np.inf), grey, scene)
+        np.testing.assert_array_equal(renderer.chart_image('left', index)[v0:v1, u0:u1],
+                                      expected.mean(axis=1).reshape(rows.shape))
 
 
 def test_chart_frame_layout():

@@ -35,11 +35,11 @@ from rclpy.exceptions import ParameterException, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.signals import SignalHandlerOptions
 
 from bag_tools.bag_writer import BagError, BagReader
 from bag_tools.message_definitions import DefinitionNotFoundError, type_hash
 from bag_tools.recorder_node import import_message_type
+from vgm_common.node_tools import init_rclpy
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 
 NODE_NAME = 'player'
@@ -299,7 +299,7 @@ class PlayerNode(Node):
 def main(args=None):
     """Play the bag; returns the exit status: 0 = played (or stopped by SIGINT/SIGTERM),
     1 = the bag failed while reading, 2 = unusable bag or parameter at start-up."""
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    init_rclpy(args)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda _signum, _frame: stop.set())

@@ -43,10 +43,10 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 
 from bag_tools.bag_writer import BagError, BagWriter, header_stamp_ns, qos_profile
 from bag_tools.message_definitions import DefinitionNotFoundError, definition
+from vgm_common.node_tools import init_rclpy
 
 NODE_NAME = 'recorder'
 SUBSCRIPTION_DEPTH = 100  # keep-last depth of every recording subscription
@@ -391,7 +391,7 @@ def main(args=None):
     location at start-up (one log line)."""
     # Our own handlers, not rclpy's: rclpy's shut the context down at once, after which the
     # bag could still be closed but nothing could be logged to /rosout any more.
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    init_rclpy(args)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda _signum, _frame: stop.set())

@@ -42,7 +42,8 @@ def chart_albedo(xy_chart, rows, cols, spacing):
     x, y = xy[:, 0], xy[:, 1]
     i, j = np.floor(x / spacing), np.floor(y / spacing)
     on_squares = (i >= -1) & (i <= cols - 1) & (j >= -1) & (j <= rows - 1)
-    black = on_squares & ((i + j) % 2 == 0)
-    albedo = np.where(black, BLACK_ALBEDO, WHITE_ALBEDO)
+    with np.errstate(invalid='ignore'):  # NaN points are off the squares anyway
+        even = ((i + j).astype(np.int64) & 1) == 0
+    albedo = np.where(on_squares & even, BLACK_ALBEDO, WHITE_ALBEDO)
     albedo[~((x >= x0) & (x <= x1) & (y >= y0) & (y <= y1))] = np.nan
     return albedo

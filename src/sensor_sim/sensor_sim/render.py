@@ -32,7 +32,6 @@ from the generator the caller passes.
 """
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from sensor_sim import chart, curves, surfaces
@@ -173,7 +172,8 @@ class SceneRenderer:
 
         The pose is ``scenario.calibration.T_base_chart[pose_index]`` (the chart frame of
         ``sensor_sim.chart`` in base_link). The plate is drawn where its ray hit is nearer
-        than the surface, each pixel the mean of supersample^2 rays. Printed face: chart
+        than the surface, each pixel the mean of supersample^2 rays (cast only where the
+        pixel can be mixed; elsewhere all of them would agree). Printed face: chart
         albedo times (intensity * max(0, n . light) + ambient); the unprinted back:
         ``CHART_BACK_ALBEDO`` likewise. ``depth(name)`` stays the surface's.
 
@@ -354,43 +354,116 @@ def _point_segment_distance(cols, rows, starts, ends):
 
 
 def _render_chart(scenario, camera, view, T_base_chart, supersample):
-    """Chart-over-scene image; see ``SceneRenderer.chart_image``."""
-    calibration, lighting = scenario.calibration, scenario.lighting
+    """Chart-over-scene image; see ``SceneRenderer.chart_image``.
+
+    Only pixels that can be mixed are supersampled: a pixel that no edge of the print
+    crosses and whose four corners see the same thing (the same print colour in front of
+    the surface, or no chart) is uniform.
+    """
+    calibration = scenario.calibration
     rows, cols, spacing = calibration.rows, calibration.cols, calibration.spacing
     image = view.image.copy()
     box = _chart_pixel_box(camera, T_base_chart, rows, cols, spacing)
     if box is None:
         return image
     (u0, u1), (v0, v1) = box
+    sample = _chart_sampler(scenario, camera, T_base_chart)
+    scene_depth = view.depth[v0:v1, u0:u1].astype(float)
+    scene_depth = np.where(np.isfinite(scene_depth), scene_depth, np.inf)
+    scene_grey = image[v0:v1, u0:u1]
+
+    # Pixel corners: midpoints of four pixel centres of the undistortion map (from -1).
+    centres = view.normalized[v0:v1 + 2, u0:u1 + 2]
+    corners = 0.25 * (centres[:-1, :-1] + centres[1:, :-1] + centres[:-1, 1:] + centres[1:, 1:])
+    corner_grey, corner_depth = sample(corners[..., 0], corners[..., 1])
+    height, width = scene_grey.shape
+    shifts = [(slice(dr, dr + height), slice(dc, dc + width)) for dr in (0, 1) for dc in (0, 1)]
+    covered = [corner_depth[shift] < scene_depth for shift in shifts]
+    greys = [corner_grey[shift] for shift in shifts]
+    all_covered = covered[0] & covered[1] & covered[2] & covered[3]
+    none_covered = ~(covered[0] | covered[1] | covered[2] | covered[3])
+    same_grey = (greys[0] == greys[1]) & (greys[0] == greys[2]) & (greys[0] == greys[3])
+    mixed = ~((all_covered & same_grey) | none_covered)
+    mixed |= _pixels_on_print_edges(camera, T_base_chart, rows, cols, spacing, box)
+
+    block = np.where(all_covered, greys[0], scene_grey)
+    r, c = np.nonzero(mixed)
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    du, dv = np.meshgrid(offsets, offsets)
+    u = (u0 + c)[:, None] + du.ravel()
+    v = (v0 + r)[:, None] + dv.ravel()
+    x, y = _interpolate_normalized(view.normalized, u.ravel(), v.ravel())
+    grey, depth = sample(x.reshape(u.shape), y.reshape(u.shape))
+    in_front = depth < scene_depth[r, c][:, None]
+    block[r, c] = np.where(in_front, grey, scene_grey[r, c][:, None]).mean(axis=1)
+    image[v0:v1, u0:u1] = block
+    return image
+
+
+def _chart_sampler(scenario, camera, T_base_chart):
+    """A function (x, y) -> (grey, depth) for rays (x, y, 1) of ``camera``'s optical
+    frame: the chart's grey level where the ray meets the plate, and the hit's depth [m]
+    (+inf off the plate or behind the camera)."""
+    calibration, lighting = scenario.calibration, scenario.lighting
+    rows, cols, spacing = calibration.rows, calibration.cols, calibration.spacing
     T_camera_chart = camera.T_camera_base @ T_base_chart
     R, origin = T_camera_chart[:3, :3], T_camera_chart[:3, 3]
-    x, y = _supersample_normalized(view.normalized, box, supersample)
-    # Plate plane n . p = n . origin; with rays (x, y, 1) the ray parameter is the depth.
     normal = R[:, 2]
-    with np.errstate(divide='ignore', invalid='ignore'):
-        chart_depth = (normal @ origin) / (normal[0] * x + normal[1] * y + normal[2])
-    # Chart-frame coordinates of the hit: R^T (depth * ray - origin).
-    chart_x = chart_depth * (R[0, 0] * x + R[1, 0] * y + R[2, 0]) - R[:, 0] @ origin
-    chart_y = chart_depth * (R[0, 1] * x + R[1, 1] * y + R[2, 1]) - R[:, 1] @ origin
-    albedo = chart.chart_albedo(np.column_stack([chart_x.ravel(), chart_y.ravel()]),
-                                rows, cols, spacing).reshape(x.shape)
     printed = normal @ origin > 0  # the camera is on the chart's -z side
     face_normal_base = T_base_chart[:3, 2] * (-1.0 if printed else 1.0)
     irradiance = (lighting.intensity * max(0.0, face_normal_base @ lighting.direction_base)
                   + lighting.ambient)
-    if not printed:
-        albedo = np.where(np.isfinite(albedo), CHART_BACK_ALBEDO, np.nan)
-    chart_grey = np.clip(255.0 * albedo * irradiance, 0.0, 255.0)
-    # Per pixel of the box, the scene's depth and grey level, repeated for its samples.
-    scene_depth = view.depth[v0:v1, u0:u1].astype(float)
-    scene_depth = np.where(np.isfinite(scene_depth), scene_depth, np.inf)
-    scene_depth = np.repeat(np.repeat(scene_depth, supersample, 0), supersample, 1)
-    scene_grey = np.repeat(np.repeat(image[v0:v1, u0:u1], supersample, 0), supersample, 1)
-    on_chart = np.isfinite(albedo) & (chart_depth > 0) & (chart_depth < scene_depth)
-    samples = np.where(on_chart, chart_grey, scene_grey)
-    image[v0:v1, u0:u1] = samples.reshape(v1 - v0, supersample, u1 - u0,
-                                          supersample).mean(axis=(1, 3))
-    return image
+
+    def sample(x, y):
+        # Plate plane n . p = n . origin; with rays (x, y, 1) the ray parameter is depth.
+        with np.errstate(divide='ignore', invalid='ignore'):
+            depth = (normal @ origin) / (normal[0] * x + normal[1] * y + normal[2])
+        # Chart-frame coordinates of the hit: R^T (depth * ray - origin).
+        chart_x = depth * (R[0, 0] * x + R[1, 0] * y + R[2, 0]) - R[:, 0] @ origin
+        chart_y = depth * (R[0, 1] * x + R[1, 1] * y + R[2, 1]) - R[:, 1] @ origin
+        albedo = chart.chart_albedo(np.column_stack([chart_x.ravel(), chart_y.ravel()]),
+                                    rows, cols, spacing).reshape(x.shape)
+        on_plate = np.isfinite(albedo) & (depth > 0)
+        if not printed:
+            albedo = np.full(x.shape, CHART_BACK_ALBEDO)
+        grey = np.where(on_plate, np.clip(255.0 * albedo * irradiance, 0.0, 255.0), 0.0)
+        return grey, np.where(on_plate, depth, np.inf)
+
+    return sample
+
+
+def _pixels_on_print_edges(camera, T_base_chart, rows, cols, spacing, box):
+    """Boolean mask of ``box``: pixels within one pixel of the projection of an edge of the
+    print (square sides, plate outline), sampled every half pixel."""
+    (u0, u1), (v0, v1) = box
+    (x0, x1), (y0, y1) = chart.chart_plate_extent(rows, cols, spacing)
+    lines = ([((i * spacing, y0), (i * spacing, y1)) for i in range(-1, cols + 1)]
+             + [((x0, j * spacing), (x1, j * spacing)) for j in range(-1, rows + 1)]
+             + [((x0, y0), (x1, y0)), ((x0, y1), (x1, y1)), ((x0, y0), (x0, y1)),
+                ((x1, y0), (x1, y1))])
+    mask = np.zeros((v1 - v0, u1 - u0), bool)
+    for start, end in lines:
+        ends_base = _chart_to_base(T_base_chart, np.array([start, end]))
+        ends_px, _ = camera.project(ends_base)
+        length = np.linalg.norm(ends_px[1] - ends_px[0])
+        # A line reaching behind the camera has no finite length: sample it finely.
+        count = int(np.ceil(length / 0.5)) + 2 if np.isfinite(length) else 4000
+        s = np.linspace(0.0, 1.0, min(count, 20000))[:, None]
+        pixels, depth = camera.project(_chart_to_base(
+            T_base_chart, (1 - s) * np.array(start) + s * np.array(end)))
+        pixels = pixels[depth > 0]
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                col = np.rint(pixels[:, 0]).astype(int) + dc - u0
+                row = np.rint(pixels[:, 1]).astype(int) + dr - v0
+                inside = (col >= 0) & (col < u1 - u0) & (row >= 0) & (row < v1 - v0)
+                mask[row[inside], col[inside]] = True
+    return mask
+
+
+def _chart_to_base(T_base_chart, xy_chart):
+    """(N, 2) points of the chart plane [m] -> (N, 3) base_link points."""
+    return xy_chart @ T_base_chart[:3, :2].T + T_base_chart[:3, 3]
 
 
 def _chart_pixel_box(camera, T_base_chart, rows, cols, spacing):
@@ -403,9 +476,7 @@ def _chart_pixel_box(camera, T_base_chart, rows, cols, spacing):
         np.column_stack([x0 + s * (x1 - x0), np.full_like(s, y1)]),
         np.column_stack([np.full_like(s, x0), y0 + s * (y1 - y0)]),
         np.column_stack([np.full_like(s, x1), y0 + s * (y1 - y0)])])
-    outline_base = (np.column_stack([outline, np.zeros(len(outline))])
-                    @ T_base_chart[:3, :3].T + T_base_chart[:3, 3])
-    pixels, depth = camera.project(outline_base)
+    pixels, depth = camera.project(_chart_to_base(T_base_chart, outline))
     if np.all(depth <= 0):
         return None
     if np.any(depth <= 0):
@@ -421,18 +492,24 @@ def _chart_pixel_box(camera, T_base_chart, rows, cols, spacing):
     return (u0, u1), (v0, v1)
 
 
-def _supersample_normalized(normalized, box, supersample):
-    """Undistorted coordinates (x, y), each (S * rows, S * cols), of S x S rays per pixel
-    of ``box``, at offsets (k + 0.5) / S - 0.5 from each pixel centre.
+def _interpolate_normalized(normalized, u, v):
+    """Undistorted coordinates (x (N,), y (N,)) at pixel positions (u, v) (N,), by
+    bilinear interpolation of the map of pixel centres -1..W, -1..H.
 
-    Bilinear interpolation of the pixel-centre map (cv2.resize samples exactly those
-    offsets). The map is smooth, so the error is about 0.1 * |k1| * r / fx pixels (~1e-4 px
-    for modest distortion), far below what the chart's antialiasing resolves.
+    The map is smooth, so the error is about 0.1 * |k1| * r / fx pixels (~1e-4 px for
+    modest distortion), far below what the chart's antialiasing resolves.
     """
-    (u0, u1), (v0, v1) = box
-    # The map starts at pixel -1; take one pixel of border on each side, then crop it.
-    region = normalized[v0:v1 + 2, u0:u1 + 2]
-    size = (region.shape[1] * supersample, region.shape[0] * supersample)
-    fine = cv2.resize(region, size, interpolation=cv2.INTER_LINEAR)
-    fine = fine[supersample:-supersample, supersample:-supersample]
-    return fine[..., 0], fine[..., 1]
+    gu, gv = u + 1.0, v + 1.0
+    rows, cols = normalized.shape[:2]
+    i = np.clip(np.floor(gu).astype(int), 0, cols - 2)
+    j = np.clip(np.floor(gv).astype(int), 0, rows - 2)
+    fu, fv = gu - i, gv - j
+    flat = j * cols + i
+
+    def interpolate(channel):
+        values = np.ascontiguousarray(normalized[..., channel]).ravel()
+        top = values.take(flat) * (1 - fu) + values.take(flat + 1) * fu
+        bottom = values.take(flat + cols) * (1 - fu) + values.take(flat + cols + 1) * fu
+        return top * (1 - fv) + bottom * fv
+
+    return interpolate(0), interpolate(1)

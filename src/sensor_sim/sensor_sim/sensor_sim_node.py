@@ -6,6 +6,8 @@ scenario (``captures_per_pose`` captures each, ``/calibration/target_pose`` stam
 the images), then the scene with the curve is captured until shutdown. The arm runs
 throughout at ``joint_state_rate``.
 """
+import re
+import threading
 import time
 from pathlib import Path
 
@@ -84,6 +86,8 @@ class SensorSim(Node):
         if self.calibration_phase:
             self.chart_frames = len(calibration.T_base_chart) * calibration.captures_per_pose
         self.frame_index = 0
+        self.capture_lock, self.arm_lock = threading.Lock(), threading.Lock()
+        self.closed = False
         self.published = {topic: 0 for topic in (*IMAGE_TOPICS.values(), TARGET_POSE_TOPIC,
                                                  '/joint_states', '/tool/pressure')}
         self.rng_pressure = np.random.default_rng([self.scenario.seed, 1_000_003])
@@ -115,6 +119,11 @@ class SensorSim(Node):
 
     def _capture(self):
         """One capture: the three images (and the chart pose) with one stamp."""
+        with self.capture_lock:
+            if not self.closed:
+                self._publish_capture()
+
+    def _publish_capture(self):
         stamp_ns = self.get_clock().now().nanoseconds
         k = self.frame_index
         self.frame_index += 1
@@ -161,6 +170,11 @@ class SensorSim(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _step_arm(self):
+        with self.arm_lock:
+            if not self.closed:
+                self._step_arm_and_publish()
+
+    def _step_arm_and_publish(self):
         now = self._now()
         dt = self.arm_period if self.last_arm_time is None else now - self.last_arm_time
         self.last_arm_time = now
@@ -191,7 +205,12 @@ class SensorSim(Node):
                                      for k, v in self.diagnostics.rejected.items()}})
 
     def close(self):
-        """Final counts, so a recording can be checked for lost messages."""
+        """Final counts, so a recording can be checked for lost messages
+        (``parse_published_counts`` reads them back)."""
+        # rclpy's executor shutdown does not wait for running callbacks: these locks do,
+        # so the counts are final.
+        with self.capture_lock, self.arm_lock:
+            self.closed = True
         counts = ' '.join(f'{topic}={n}' for topic, n in self.published.items())
         self.get_logger().info(f'published: {counts}')
 
@@ -212,6 +231,14 @@ class SensorSim(Node):
         if calibration is not None:
             np.save(directory / 'T_base_chart.npy', np.stack(calibration.T_base_chart))
         self.get_logger().info(f'ground truth written to {directory}')
+
+
+def parse_published_counts(log_text):
+    """{topic: messages published} from sensor_sim's last 'published: ...' log line."""
+    lines = re.findall(r'published: (.*)', log_text)
+    if not lines:
+        raise ValueError('no "published:" line in the sensor_sim log')
+    return {topic: int(n) for topic, n in re.findall(r'(\S+)=(\d+)', lines[-1])}
 
 
 def main(args=None):

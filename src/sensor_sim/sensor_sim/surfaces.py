@@ -226,10 +226,11 @@ def intersect_rays(surface, origin_base, directions_base):
 
     Plane and sphere are solved in closed form. Other kinds are ray-marched, all rays at
     once, with steps that cannot jump over the surface: |z - h| divided by the fastest
-    rate at which z - h can change along the ray, given bounds on grad h over 64 x 64
-    tiles of the domain (measured on a fine grid, with a safety factor), never past the
-    tile and never shorter than 1/4000 of the surface's size; a sign change of z - h is
-    then refined by the Illinois method to ~1e-13 relative.
+    rate at which z - h can change along the ray, given bounds on grad h (measured on a
+    fine grid, with a safety factor) over the whole domain, or over the current one of
+    64 x 64 tiles if that allows a longer step within the tile; never shorter than 1/4000
+    of the surface's size. A sign change of z - h is then refined by the Illinois method
+    to ~1e-13 relative.
     """
     origin = np.asarray(origin_base, dtype=float).reshape(3)
     directions = np.asarray(directions_base, dtype=float).reshape(-1, 3)
@@ -355,10 +356,11 @@ def _march(surface, o, d):
         Along a ray z - h changes at d_z - h_x d_x - h_y d_y; over slope ranges (N, 2)
         this bounds the closing from above (g > 0) or below (g < 0).
         """
-        reach_x, reach_y = direction[:, :1] * range_x, direction[:, 1:2] * range_y
+        x_a, x_b = direction[:, 0] * range_x[:, 0], direction[:, 0] * range_x[:, 1]
+        y_a, y_b = direction[:, 1] * range_y[:, 0], direction[:, 1] * range_y[:, 1]
         rate = np.where(g > 0,
-                        -direction[:, 2] + reach_x.max(axis=1) + reach_y.max(axis=1),
-                        direction[:, 2] - reach_x.min(axis=1) - reach_y.min(axis=1))
+                        -direction[:, 2] + np.maximum(x_a, x_b) + np.maximum(y_a, y_b),
+                        direction[:, 2] - np.minimum(x_a, x_b) - np.minimum(y_a, y_b))
         return np.maximum(rate, 1e-12)
 
     whole_x = np.array([slope_x[..., 0].min(), slope_x[..., 1].max()])
@@ -389,7 +391,9 @@ def _march(surface, o, d):
     active = np.flatnonzero(t_enter < t_exit)
     t = t_enter[active]
     g = gap(t, active)
-    lo, hi, g_lo, g_hi, bracketed = [], [], [], [], []
+    empty = np.zeros(0)
+    lo, hi, g_lo, g_hi = [empty], [empty], [empty], [empty]
+    bracketed = [np.zeros(0, dtype=int)]
     for _ in range(_MAX_MARCH_STEPS):
         if not len(active):
             break

@@ -69,8 +69,10 @@ class Launch:
             self.overrides[node] += ['-p', assignment]
         self.out = out
         self.processes = {}
+        self.logs = {name: [] for name in self.nodes}  # every line each node printed
         self._lock = threading.Lock()
         self._stopping = False
+        self._pumps = []
         self._width = max(len(n) for n in self.nodes)
 
     def _print(self, name, line):
@@ -80,6 +82,7 @@ class Launch:
 
     def _pump(self, name, stream):
         for line in iter(stream.readline, ''):
+            self.logs[name].append(line)
             self._print(name, line)
 
     def start(self):
@@ -90,8 +93,13 @@ class Launch:
                                        stdin=subprocess.DEVNULL, text=True, bufsize=1,
                                        start_new_session=True,
                                        env=dict(os.environ, PYTHONUNBUFFERED='1'))
-            threading.Thread(target=self._pump, args=(name, process.stdout), daemon=True).start()
+            pump = threading.Thread(target=self._pump, args=(name, process.stdout), daemon=True)
+            pump.start()
+            self._pumps.append(pump)
             self.processes[name] = process
+
+    def log_text(self, name):
+        return ''.join(self.logs[name])
 
     def stop(self, timeout=10.0):
         """Stop the nodes in reverse start order, so a recorder started first records
@@ -106,6 +114,8 @@ class Launch:
                 self._print('launch', f'{name} did not stop in {timeout:g} s: killing it\n')
                 _signal_group(process, signal.SIGKILL)
                 process.wait()
+        for thread in self._pumps:
+            thread.join(timeout=1.0)  # the last lines a node printed are in self.logs
 
     def failed(self):
         """Names of nodes that exited with an error (not because we stopped them)."""

@@ -1,15 +1,18 @@
 """What every node does at its edges: typed parameters with descriptors and validation,
 diagnostics on /diagnostics, throttled rejection of bad input, and a clean ``main``."""
 import math
+import os
 import signal
 import sys
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
@@ -158,6 +161,28 @@ class Diagnostics:
                      {'count': self.rejected[what]})
 
 
+def init_rclpy(args=None):
+    """``rclpy.init`` as every node of the graph does it: with our Fast DDS profile (a
+    shared-memory segment large enough for image bursts; see config/fastdds.xml) unless
+    the user set one, and without rclpy's signal handlers (the caller installs its own,
+    so shutdown code still has a valid context)."""
+    if not any(os.environ.get(k) for k in _FASTDDS_PROFILE_VARIABLES):
+        profile = Path(__file__).resolve().parent.parent / 'config' / 'fastdds.xml'
+        try:
+            from ament_index_python.packages import get_package_share_directory
+            profile = Path(get_package_share_directory('vgm_common')) / 'config' / 'fastdds.xml'
+        except (ImportError, LookupError):
+            pass  # running from the source tree
+        if profile.exists():
+            for variable in _FASTDDS_PROFILE_VARIABLES:
+                os.environ[variable] = str(profile)
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+
+
+# Fast DDS 2.x reads the first, 3.x the second.
+_FASTDDS_PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+
+
 def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
     """Construct and spin ``node_class`` until Ctrl-C, SIGTERM or external shutdown.
 
@@ -167,7 +192,7 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
     parameter, bad scenario) is reported in one line with exit status 2, never as a
     traceback.
     """
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    init_rclpy(args)
     signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
     signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     node = executor = None
@@ -191,9 +216,24 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
             close = getattr(node, 'close', None)
             if close:
                 close()
+            wait_for_delivery(node)
             node.destroy_node()
         rclpy.try_shutdown()
     return status
+
+
+def wait_for_delivery(node, timeout=2.0):
+    """Wait (at most ``timeout`` [s] in all) until every reliable subscriber has
+    acknowledged what ``node`` published: destroying a publisher drops samples still in
+    flight, and a recorder would miss the last few messages before shutdown."""
+    deadline = time.monotonic() + timeout
+    for publisher in node.publishers:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return False
+        if not publisher.wait_for_all_acked(Duration(nanoseconds=int(remaining * 1e9))):
+            return False
+    return True
 
 
 def _raise_keyboard_interrupt(signum, frame):
