@@ -33,6 +33,7 @@ from the generator the caller passes.
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import ndtri
 
 from sensor_sim import chart, curves, surfaces
 from vgm_common.errors import InvalidInput
@@ -89,6 +90,12 @@ def oren_nayar(normals, light, views, roughness, variant='oren_nayar'):
     return np.where(lit, factor, 0.0)
 
 
+# Standard normal quantiles at 65536 equiprobable levels: indexing it with uniform 16-bit
+# integers draws Gaussian noise ~4x faster than rng.normal, which keeps three 640x480
+# cameras at 30 Hz within one core. Its std is 1 to 1e-5; tails stop at 4.3 sigma.
+_NORMAL_QUANTILES = ndtri((np.arange(65536) + 0.5) / 65536).astype(np.float32)
+
+
 def add_noise(clean, sigma, rng):
     """Camera image from a clean render: clean + N(0, sigma^2), rounded, clipped.
 
@@ -100,8 +107,12 @@ def add_noise(clean, sigma, rng):
     Returns:
         (H, W) uint8.
     """
-    noisy = np.asarray(clean, dtype=float) + rng.normal(0.0, sigma, np.shape(clean))
-    return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+    noisy = _NORMAL_QUANTILES[rng.integers(0, 65536, size=np.shape(clean), dtype=np.uint16)]
+    noisy *= sigma
+    noisy += clean
+    np.rint(noisy, out=noisy)
+    np.clip(noisy, 0, 255, out=noisy)
+    return noisy.astype(np.uint8)
 
 
 @dataclass(frozen=True)
