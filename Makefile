@@ -10,7 +10,7 @@ SOURCES := $(shell find src -type f -not -path '*/__pycache__/*' -not -name '*.p
 # Node processes in tests and the demo talk only on this machine.
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 SCENARIO ?= default
-DEMO_SECONDS ?= 20
+DEMO_SECONDS ?= 12
 PYTEST_ARGS ?=
 
 .PHONY: setup build test demo bench clean distclean

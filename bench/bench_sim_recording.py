@@ -77,15 +77,16 @@ def main():
             launch.stop()
         published = parse_published_counts(launch.log_text('sensor_sim'))
         in_bag = {}
-        stamps = []
+        stamps = {IMAGE_TOPICS[0]: [], '/joint_states': []}
         with open(Path(tmp) / 'bench' / 'bench_0.mcap', 'rb') as stream:
             reader = make_reader(stream)
-            for _, _, message in reader.iter_messages(topics=[IMAGE_TOPICS[0]]):
-                stamps.append(message.publish_time)
+            for _, channel, message in reader.iter_messages(topics=list(stamps)):
+                stamps[channel.topic].append(message.publish_time)
             summary = reader.get_summary()
             for channel_id, count in summary.statistics.channel_message_counts.items():
                 in_bag[summary.channels[channel_id].topic] = count
-    periods = np.diff(np.array(stamps) * 1e-9)
+    periods = np.diff(np.array(stamps[IMAGE_TOPICS[0]]) * 1e-9)
+    joint_periods = np.diff(np.array(stamps['/joint_states']) * 1e-9)
     result = {
         'requested_rate_hz': args.rate, 'window_s': round(wall, 2),
         'frames_published': {t: published[t] for t in IMAGE_TOPICS},
@@ -95,6 +96,7 @@ def main():
         'joint_states_in_bag': in_bag.get('/joint_states', 0),
         'achieved_rate_hz': round(1 / float(np.mean(periods)), 2),
         'period_p95_ms': round(float(np.percentile(periods, 95)) * 1e3, 1),
+        'joint_state_rate_hz': round(1 / float(np.mean(joint_periods)), 1),
         'cpu_percent': {k: round(v, 1) for k, v in cpu.items()},
         'cores': psutil.cpu_count(),
     }

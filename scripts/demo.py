@@ -4,7 +4,8 @@ independent readers, and write a report (markdown + PNG) beside the bag.
 
 So far the graph is the simulator and the recorder (the pipeline nodes come with their
 own issues): the chart is shown at every calibration stage pose, then the scene with the
-curve; the arm holds its initial pose.
+curve. Meanwhile the demo moves the arm by a scripted joint trajectory: down until the
+tool presses 5 mm into the surface, hold, and back, so the contact force shows.
 """
 import argparse
 import shutil
@@ -21,15 +22,19 @@ matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import rclpy  # noqa: E402
 from ament_index_python.packages import get_package_share_directory  # noqa: E402
+from builtin_interfaces.msg import Duration  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: E402
 
+from sensor_sim.contact import joint_vector_pressing  # noqa: E402
 from sensor_sim.sensor_sim_node import parse_published_counts  # noqa: E402
 from vgm_common.launcher import Launch  # noqa: E402
 from vgm_common.qos import DEFAULT_QOS  # noqa: E402
+from vgm_common.robot_model import load_robot  # noqa: E402
 from vgm_common.scenario import load_scenario, resolve_scenario_path  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -42,15 +47,40 @@ def stage(number, total, text):
     print(f'\n== [{number}/{total}] {text}', flush=True)
 
 
-class Progress:
-    """Counts captures as they are published, to show how far the demo has got."""
+# Lowering the shoulder, elbow and wrist pitch joints brings a tool pointing down to the
+# surface in the shipped rig scenarios; the touch is skipped where it does not.
+LOWERING_JOINT_STEP = np.array([0.0, 0.25, 0.0, 0.25, 0.0, 0.15, 0.0])  # [rad]
+TOUCH_PENETRATION = 0.005  # [m]
 
-    def __init__(self):
+
+def touch_trajectory(scenario):
+    """Joint trajectory: initial pose -> pressing pose (3 s) -> hold (2 s) -> back (3 s)."""
+    robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
+    q0 = scenario.robot.initial_joints
+    try:
+        q_press = joint_vector_pressing(robot, scenario.surface, q0, q0 + LOWERING_JOINT_STEP,
+                                        TOUCH_PENETRATION)
+    except ValueError as error:
+        print(f'   (no touch in this scenario: {error})')
+        return None
+    points = [JointTrajectoryPoint(positions=q.tolist(), time_from_start=Duration(sec=t))
+              for q, t in ((q_press, 3), (q_press, 5), (q0, 8))]
+    return JointTrajectory(joint_names=list(robot.joint_names), points=points)
+
+
+class Progress:
+    """Counts captures as they are published, to show how far the demo has got, and
+    sends the touch trajectory once the calibration phase is over."""
+
+    def __init__(self, chart_captures, touch):
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('demo_progress', context=self.context)
         self.stamps = Counter()
         self.node.create_subscription(Image, IMAGE_TOPICS[0], self._on_image, DEFAULT_QOS)
+        self.trajectory_publisher = self.node.create_publisher(
+            JointTrajectory, '/pa10_controller/joint_trajectory', DEFAULT_QOS)
+        self.chart_captures, self.touch = chart_captures, touch
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.last_print = 0.0
@@ -60,6 +90,10 @@ class Progress:
 
     def spin(self, total_captures):
         self.executor.spin_once(timeout_sec=0.05)
+        if self.touch is not None and self.stamps['captures'] >= self.chart_captures:
+            print('   ... calibration phase over: pressing the tool on the surface', flush=True)
+            self.trajectory_publisher.publish(self.touch)
+            self.touch = None
         if time.monotonic() - self.last_print > 2.0:
             self.last_print = time.monotonic()
             print(f'   ... {self.stamps["captures"]}/{total_captures} captures', flush=True)
@@ -156,7 +190,7 @@ def write_report(bag_dir, scenario, messages, counts_rosbags, published, seconds
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--scenario', default='default', help='shipped name or file')
-    parser.add_argument('--seconds', type=float, default=20.0,
+    parser.add_argument('--seconds', type=float, default=12.0,
                         help='scene time recorded after the calibration phase [s]')
     parser.add_argument('--bags', type=Path, default=REPO_ROOT / 'bags')
     args = parser.parse_args()
@@ -176,7 +210,7 @@ def main():
     launch = Launch(graph, nodes=['recorder', 'sensor_sim'], overrides=[
         f'recorder:output_dir:={args.bags}', f'recorder:bag_name:={name}',
         f'sensor_sim:scenario:={scenario_path}', f'sensor_sim:ground_truth_dir:={truth_dir}'])
-    progress = Progress()
+    progress = Progress(chart_captures, touch_trajectory(scenario))
     started = time.monotonic()
     try:
         status = launch.run(duration=total_captures / scenario.rate + 60.0,

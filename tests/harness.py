@@ -20,7 +20,7 @@ def executable(package, name=None):
     return path
 
 
-def wait_for(condition, timeout, interval=0.05, what='condition'):
+def wait_for(condition, timeout, what='condition', interval=0.05):
     """Poll ``condition()`` until it returns a truthy value or ``timeout`` [s] passes."""
     deadline = time.monotonic() + timeout
     while True:

@@ -10,12 +10,15 @@ from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from harness import SCENARIO_DIR, executable
-from sensor_sim.contact import contact_force
+from sensor_sim.contact import joint_vector_pressing
+from vgm_common.conversions import stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.robot_model import JOINT_NAMES, load_robot
 from vgm_common.scenario import load_scenario
 
 SCENARIO = SCENARIO_DIR / 'default.yaml'
+# From the default scenario's initial pose, this joint step lowers the tool into the surface.
+LOWERING_JOINT_STEP = np.array([0.0, 0.25, 0.0, 0.25, 0.0, 0.15, 0.0])  # [rad]
 
 
 def trajectory(names, q, seconds=0.0):
@@ -26,22 +29,11 @@ def trajectory(names, q, seconds=0.0):
 
 
 def pressing_configuration(scenario, penetration):
-    """A joint vector whose tool tip is ``penetration`` [m] below the surface: bisect on
-    the straight joint-space line from the initial pose toward a lowered arm."""
+    """A joint vector whose tool tip is ``penetration`` [m] below the surface."""
     robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
     q_start = scenario.robot.initial_joints
-    q_low = q_start + np.array([0.0, 0.25, 0.0, 0.25, 0.0, 0.15, 0.0])
-
-    def depth(s):
-        tip = robot.forward_kinematics(q_start + s * (q_low - q_start))[:3, 3]
-        return contact_force(tip, scenario.surface, 1.0).penetration
-
-    assert depth(0.0) == 0.0 and depth(1.0) > penetration, 'the search line misses the surface'
-    low, high = 0.0, 1.0
-    for _ in range(60):
-        mid = (low + high) / 2
-        low, high = (mid, high) if depth(mid) < penetration else (low, mid)
-    return q_start + high * (q_low - q_start)
+    return joint_vector_pressing(robot, scenario.surface, q_start,
+                                 q_start + LOWERING_JOINT_STEP, penetration)
 
 
 @pytest.fixture
@@ -72,9 +64,11 @@ def test_arm_moves_to_a_pressing_pose_and_the_sensor_reads_the_force(sim, rclpy_
     publisher.publish(trajectory([JOINT_NAMES[i] for i in order], q_goal[order], 1.0))
     rclpy_node.spin_until(
         lambda: np.allclose(states[-1].position, q_goal, atol=1e-9), 30, 'the arm to arrive')
-    settled = len(wrenches)
-    rclpy_node.spin_until(lambda: len(wrenches) > settled + 200, 30, '200 pressure readings')
-    forces = np.array([w.wrench.force.z for w in wrenches[settled:]])
+    arrived_ns = stamp_to_ns(states[-1].header.stamp)
+    rclpy_node.spin_until(lambda: len(wrenches) > 200 and stamp_to_ns(
+        wrenches[-200].header.stamp) > arrived_ns, 30, '200 pressure readings in place')
+    forces = np.array([w.wrench.force.z for w in wrenches
+                       if stamp_to_ns(w.header.stamp) > arrived_ns])
     sigma = scenario.noise.pressure_sigma
     expected = scenario.contact_stiffness * penetration  # [N]
     assert forces.mean() == pytest.approx(expected, abs=4 * sigma / np.sqrt(len(forces)) + 1e-3)

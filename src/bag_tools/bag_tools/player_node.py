@@ -16,53 +16,42 @@ subscriber missed while it is still in the publisher's history (the last 10 mess
 At the end the player waits (bounded) until the subscribers acknowledged everything, so
 exiting does not cut off the last messages.
 
-By default ``/rosout`` and ``/parameter_events`` are recorded but not replayed (parameter
-``exclude``): old log lines and parameter changes are not inputs of any node, and would
-reappear on the live graph as if they were happening now.
+By default ``/rosout``, ``/parameter_events`` and ``/diagnostics`` are recorded but not
+replayed (parameter ``exclude``): old log lines, parameter changes and health reports are not
+inputs of any node, and would reappear on the live graph as if they were happening now.
 
 A missing or invalid bag or parameter is reported in one log line and the process exits with
 status 2 (the project's status for unusable start-up input, as ``vgm_common.node_tools``).
+
+/diagnostics, every ``DIAGNOSTICS_PERIOD`` and when playback ends: state, messages played /
+messages of the played topics in the bag, bag time; WARN if a requested topic cannot be
+played or a parameter change was refused, ERROR if reading the bag failed.
 """
-import signal
 import sys
 import threading
 import time
 
-import rclpy
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
-from rclpy.duration import Duration
-from rclpy.exceptions import ParameterException, ParameterUninitializedException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 
 from bag_tools.bag_writer import BagError, BagReader
 from bag_tools.message_definitions import DefinitionNotFoundError, type_hash
 from bag_tools.recorder_node import import_message_type
-from vgm_common.node_tools import init_rclpy
+from vgm_common.errors import VgmError
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 
-NODE_NAME = 'player'
-ACK_TIMEOUT = 2.0  # [s] at most this long waiting for subscribers to acknowledge at the end
 _MAX_SLEEP = 0.05  # [s] sleep slices, so a rate change or a stop takes effect promptly
 MATCH_SETTLE = 0.2  # [s] after every publisher has matched a subscriber, before playing
-
-
-class PlayerStartupError(Exception):
-    """The bag or a parameter is unusable; the message says which and why."""
-
-
+DIAGNOSTICS_PERIOD = 1.0  # [s]
 MIN_RATE, MAX_RATE = 1e-3, 1e3  # playback speed factors accepted
 
 
-def rate_value(value):
-    """``(rate, '')`` if ``value`` is a usable playback rate (ints accepted), else
-    ``(None, reason)``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None, f'parameter rate must be a number, got {value!r}'
-    if not MIN_RATE <= value <= MAX_RATE:
-        return None, f'parameter rate must be in [{MIN_RATE:g}, {MAX_RATE:g}], got {value}'
-    return float(value), ''
+class PlayerStartupError(VgmError):
+    """The bag is unusable or holds nothing to play; the message says which and why."""
+
+
+def _required(value):
+    return None if value else 'is required: the bag directory to play'
 
 
 def is_latched(topic_info):
@@ -75,99 +64,69 @@ class PlayerNode(Node):
     """Publishes the messages of one bag with the recorded timing.
 
     ``finished`` is set once playback ended (or failed); ``published`` counts per topic.
+    For ``vgm_common.node_tools.run_node``: ``exit_requested`` is set once playback ended if
+    ``exit_when_done``; ``close()``; ``exit_status`` (1 if reading the bag failed).
 
     Raises:
-        PlayerStartupError: no/invalid bag, invalid parameter, or nothing to play.
+        ParameterError: invalid parameter value.
+        PlayerStartupError: no/invalid bag, or nothing to play.
     """
 
+    node_name = 'player'
+
     def __init__(self, **kwargs):
-        super().__init__(NODE_NAME, **kwargs)
-        self._declare_parameters()
-        settings = self._read_settings()
-        self.exit_when_done = settings['exit_when_done']
-        self._loop = settings['loop']
-        self._wait_for_subscribers = settings['wait_for_subscribers']
+        super().__init__(self.node_name, **kwargs)
+        self.diagnostics = Diagnostics(self)
+        self.params = NodeParameters(self, [
+            Param('bag', '', 'Path of the bag directory (the one holding metadata.yaml).',
+                  check=_required, read_only=True),
+            Param('rate', 1.0, 'Playback speed factor (2 = twice as fast); may be changed '
+                  'while playing.', range=(MIN_RATE, MAX_RATE), on_change=self._set_rate),
+            Param('loop', False, 'Play the bag again and again.', read_only=True),
+            Param('topics', [], 'Topics to play (exact names); empty = every recorded topic.',
+                  read_only=True),
+            Param('exclude', ['/rosout', '/parameter_events', '/diagnostics'],
+                  'Recorded topics not to play (exact names); [] = none.', read_only=True),
+            Param('exit_when_done', True, 'Exit once the bag was played; false keeps latched '
+                  'topics available.', read_only=True),
+            Param('wait_for_subscribers', 5.0, '[s] Before playing, wait at most this long '
+                  'for every topic to have a subscriber, so the first messages are not lost '
+                  'to discovery; 0 = do not wait.', range=(0.0, 3600.0), read_only=True),
+        ], diagnostics=self.diagnostics)
+        self.exit_when_done = self.params.exit_when_done
+        self._loop = self.params.loop
+        self._wait_for_subscribers = self.params.wait_for_subscribers
         try:
-            self._reader = BagReader(settings['bag'])
+            self._reader = BagReader(self.params.bag)
         except BagError as error:
-            raise PlayerStartupError(f'cannot play {settings["bag"]!r}: {error}') from None
-        self._topic_publishers = self._create_publishers(settings['topics'], settings['exclude'])
+            raise PlayerStartupError(f'cannot play {self.params.bag!r}: {error}') from None
+        self._not_played = {}  # requested topic -> why it is not played
+        self._topic_publishers = self._create_publishers(self.params.topics,
+                                                         self.params.exclude)
         self.published = {name: 0 for name in self._topic_publishers}
+        self._total = sum(t.message_count for t in self._reader.topics
+                          if t.name in self._topic_publishers)  # one pass
+        # [ns] bag time 0 (the first message played if the metadata does not say) and length
+        self._bag_start, self._bag_duration = _bag_span(self._reader)
+        self._bag_time = None  # [ns] log time of the last message played
+        self._passes = 0
+        self._state = 'waiting for subscribers'
         self.finished = threading.Event()
         self.error = None
+        self.exit_requested = threading.Event()
         self._stop = threading.Event()
         # Playback clock: bag time _anchor_bag [ns] is played at monotonic _anchor_wall [s].
         self._clock_lock = threading.Lock()
-        self._rate = settings['rate']
+        self._rate = self.params.rate
         self._anchor_wall = None
         self._anchor_bag = None
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.create_timer(DIAGNOSTICS_PERIOD, self._publish_progress)
         self._thread = threading.Thread(target=self._run, name='playback', daemon=True)
         self._thread.start()
 
-    # -- parameters --------------------------------------------------------------------
-
-    def _declare_parameters(self):
-        def describe(text, read_only=True, **extra):
-            return ParameterDescriptor(description=text, read_only=read_only, **extra)
-
-        self.declare_parameter('bag', '', describe(
-            'Path of the bag directory (the one holding metadata.yaml).'))
-        self.declare_parameter('rate', 1.0, describe(
-            'Playback speed factor (2 = twice as fast); may be changed while playing.',
-            read_only=False, dynamic_typing=True,
-            floating_point_range=[FloatingPointRange(from_value=MIN_RATE, to_value=MAX_RATE)]))
-        self.declare_parameter('loop', False, describe('Play the bag again and again.'))
-        self.declare_parameter('topics', Parameter.Type.STRING_ARRAY, describe(
-            'Topics to play (exact names); empty = every recorded topic.'))
-        self.declare_parameter('exclude', ['/rosout', '/parameter_events'], describe(
-            'Recorded topics not to play (exact names); [] = none.'))
-        self.declare_parameter('exit_when_done', True, describe(
-            'Exit once the bag was played; false keeps latched topics available.'))
-        self.declare_parameter('wait_for_subscribers', 5.0, describe(
-            '[s] Before playing, wait at most this long for every topic to have a '
-            'subscriber, so the first messages are not lost to discovery; 0 = do not wait.',
-            dynamic_typing=True,
-            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=3600.0)]))
-
-    def _value(self, name):
-        """A parameter's value; None while unset (an empty list given on the command line)."""
-        try:
-            return self.get_parameter(name).value
-        except ParameterUninitializedException:
-            return None
-
-    def _read_settings(self):
-        bag = self.get_parameter('bag').value
-        if not bag:
-            raise PlayerStartupError('parameter bag is required: the bag directory to play')
-        rate, reason = rate_value(self.get_parameter('rate').value)
-        if rate is None:
-            raise PlayerStartupError(reason)
-        wait = self.get_parameter('wait_for_subscribers').value
-        if isinstance(wait, bool) or not isinstance(wait, (int, float)) or wait < 0:
-            raise PlayerStartupError(
-                f'parameter wait_for_subscribers must be a number >= 0, got {wait!r}')
-        return {
-            'bag': bag,
-            'rate': rate,
-            'loop': self.get_parameter('loop').value,
-            'topics': self._value('topics') or [],  # `topics:=[]` arrives unset
-            'exclude': self._value('exclude') or [],
-            'exit_when_done': self.get_parameter('exit_when_done').value,
-            'wait_for_subscribers': float(wait),
-        }
-
-    def _on_set_parameters(self, parameters):
-        for parameter in parameters:
-            if parameter.name == 'rate':
-                rate, reason = rate_value(parameter.value)
-                if rate is None:
-                    return SetParametersResult(successful=False, reason=reason)
-        for parameter in parameters:
-            if parameter.name == 'rate':
-                self._set_rate(float(parameter.value))
-        return SetParametersResult(successful=True)
+    @property
+    def exit_status(self):
+        return 0 if self.error is None else 1
 
     # -- publishers --------------------------------------------------------------------
 
@@ -175,6 +134,7 @@ class PlayerNode(Node):
         recorded = {t.name: t for t in self._reader.topics}
         for name in wanted:
             if name not in recorded:
+                self._not_played[name] = 'not in the bag'
                 self.get_logger().warning(f'topic {name} is not in the bag')
         names = [n for n in recorded
                  if (not wanted or n in wanted) and n not in excluded]
@@ -184,6 +144,7 @@ class PlayerNode(Node):
             try:
                 message_type = import_message_type(info.type)
             except (ImportError, AttributeError, ValueError) as error:
+                self._not_played[name] = f'type {info.type} is not installed'
                 self.get_logger().warning(
                     f'not playing {name}: type {info.type} is not installed ({error})')
                 continue
@@ -257,76 +218,90 @@ class PlayerNode(Node):
                 with self._clock_lock:
                     self._anchor_wall = time.monotonic()
                     self._anchor_bag = message.log_time
+                if self._bag_start is None:
+                    self._bag_start = message.log_time
                 first = False
             if not self._sleep_until(message.log_time):
                 return False
             self._topic_publishers[message.topic].publish(bytes(message.data))
             self.published[message.topic] += 1
+            self._bag_time = message.log_time
         return not first
 
     def _run(self):
         try:
             self._await_subscribers()
             started = time.monotonic()
+            self._state = 'playing'
             while not self._stop.is_set():
+                self._passes += 1
                 if not self._play_once() or not self._loop:
                     break
+            self._state = 'stopped' if self._stop.is_set() else 'done'
             self.get_logger().info(
                 f'played {sum(self.published.values())} messages in '
                 f'{time.monotonic() - started:.2f} s')
         except (BagError, OSError, ValueError) as error:
             self.error = error
+            self._state = 'failed'
             self.get_logger().error(f'playing {self._reader.path} failed: {error}')
         finally:
             self.finished.set()
+            if self.exit_when_done:
+                self.exit_requested.set()  # run_node's close() joins this thread first
+            if self.context.ok():
+                self._publish_progress()
+
+    # -- diagnostics -------------------------------------------------------------------------
+
+    def _publish_progress(self):
+        played = sum(self.published.values())
+        values = {'messages played': played, 'messages in bag': self._total,
+                  'rate': self._rate}
+        if self._loop:
+            values['pass'] = self._passes
+        if self._bag_time is not None:
+            values['bag time [s]'] = f'{(self._bag_time - self._bag_start) / 1e9:.3f}'
+        if self._bag_duration is not None:
+            values['bag duration [s]'] = f'{self._bag_duration / 1e9:.3f}'
+        for name, reason in sorted(self._not_played.items()):
+            values[f'not played {name}'] = reason
+        rejected = dict(self.diagnostics.rejected)  # updated by the executor thread
+        for what, count in rejected.items():
+            values[f'rejected {what}'] = count
+        if self.error is not None:
+            level, message = 'error', f'failed: {self.error}'
+        else:
+            level = 'warn' if self._not_played or rejected else 'ok'
+            message = f'{self._state}: {played} / {self._total} messages'
+        self.diagnostics.publish('playback', level, message, values)
 
     # -- shutdown ------------------------------------------------------------------------
-
-    def wait_for_acknowledgements(self, timeout=ACK_TIMEOUT):
-        """Wait (at most ``timeout`` [s] overall) until subscribers acknowledged every
-        published message, so exiting does not cut the last ones off."""
-        deadline = time.monotonic() + timeout
-        for publisher in self._topic_publishers.values():
-            remaining = max(0.0, deadline - time.monotonic())
-            publisher.wait_for_all_acked(Duration(seconds=remaining))
 
     def stop(self):
         """Stop playback and wait for the playback thread. Idempotent."""
         self._stop.set()
         self._thread.join()
 
+    def close(self):
+        """For run_node: stop playback before the node is destroyed."""
+        self.stop()
+
+
+def _bag_span(reader):
+    """(start [ns since epoch], duration [ns]) of the bag from its metadata; (None, None)
+    for a bag recovered without metadata."""
+    try:
+        return (int(reader.metadata['starting_time']['nanoseconds_since_epoch']),
+                int(reader.metadata['duration']['nanoseconds']))
+    except (KeyError, TypeError, ValueError):
+        return None, None
+
 
 def main(args=None):
     """Play the bag; returns the exit status: 0 = played (or stopped by SIGINT/SIGTERM),
     1 = the bag failed while reading, 2 = unusable bag or parameter at start-up."""
-    init_rclpy(args)
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda _signum, _frame: stop.set())
-    node = None
-    status = 0
-    try:
-        node = PlayerNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok() and \
-                not (node.exit_when_done and node.finished.is_set()):
-            executor.spin_once(timeout_sec=0.1)
-        if node.error is not None:
-            status = 1
-        elif node.finished.is_set() and not stop.is_set():
-            node.wait_for_acknowledgements()
-    except (PlayerStartupError, ParameterException) as error:
-        rclpy.logging.get_logger(NODE_NAME).error(str(error))
-        status = 2
-    except ExternalShutdownException:
-        pass
-    finally:
-        if node is not None:
-            node.stop()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return status
+    return run_node(PlayerNode, args)
 
 
 if __name__ == '__main__':

@@ -27,35 +27,34 @@ The subscription callbacks only time-stamp and enqueue; a writer thread drains t
 into the bag, and flushes the chunk being filled every ``flush_period`` so a crash loses at
 most that long of data. The queue holds at most ``max_cache_size`` bytes; beyond that the
 oldest messages are dropped and counted.
+
+/diagnostics, every ``DIAGNOSTICS_PERIOD`` and once more when the bag is closed: topics
+recorded, messages written per topic, messages dropped, bytes written; WARN once a message
+was dropped or a topic could not be recorded, ERROR once writing failed.
 """
 import collections
 import importlib
 import os
-import signal
 import sys
 import threading
 import time
 
-import rclpy
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import ParameterException, ParameterUninitializedException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from bag_tools.bag_writer import BagError, BagWriter, header_stamp_ns, qos_profile
 from bag_tools.message_definitions import DefinitionNotFoundError, definition
-from vgm_common.node_tools import init_rclpy
+from vgm_common.errors import VgmError
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 
-NODE_NAME = 'recorder'
 SUBSCRIPTION_DEPTH = 100  # keep-last depth of every recording subscription
 DRAIN_PERIOD = 0.25  # [s] after a stop request, keep taking already delivered messages
+DIAGNOSTICS_PERIOD = 2.0  # [s]
 HEADER_TYPE = 'std_msgs/Header'
 
 
-class RecorderStartupError(Exception):
-    """A parameter or the output location is unusable; the message says which and why."""
+class RecorderStartupError(VgmError):
+    """The output location is unusable; the message says which and why."""
 
 
 def default_bag_name(now=None):
@@ -72,6 +71,19 @@ def import_message_type(type_name):
 def topic_is_hidden(name):
     """rclpy's rule (and rosbag2's): any name token starting with ``_``."""
     return any(token.startswith('_') for token in name.split('/'))
+
+
+def _absolute_names(names):
+    """A reason if a topic list holds a name that is not absolute, else None."""
+    relative = [name for name in names if not name.startswith('/')]
+    return f'must hold absolute topic names, got {relative}' if relative else None
+
+
+def _plain_directory_name(name):
+    """A reason if ``name`` is not usable as one directory name, else None."""
+    if '/' in name or name in ('.', '..'):
+        return f'must be a plain directory name, got {name!r}'
+    return None
 
 
 def _duration_dict(duration):
@@ -156,34 +168,67 @@ class _MessageQueue:
 class RecorderNode(Node):
     """Discovers topics, subscribes to them raw and writes them to a bag.
 
+    For ``vgm_common.node_tools.run_node``: ``exit_requested`` is set when writing fails,
+    ``drain()``, ``close()`` and ``exit_status`` (1 once writing failed).
+
     Raises:
-        RecorderStartupError: invalid parameter value or the bag cannot be created.
+        ParameterError: invalid parameter value.
+        RecorderStartupError: the bag cannot be created.
     """
 
+    node_name = 'recorder'
+
     def __init__(self, **kwargs):
-        super().__init__(NODE_NAME, **kwargs)
-        self._declare_parameters()
-        settings = self._read_settings()
-        self._topics_wanted = set(settings['topics'])
-        self._excluded = set(settings['exclude'])
-        self._include_hidden = settings['include_hidden_topics']
-        self._flush_period = settings['flush_period']  # [s]
+        super().__init__(self.node_name, **kwargs)
+        # None can change while recording.
+        self.params = NodeParameters(self, [
+            Param('bag_name', '', 'Bag directory name; empty = rosbag2_YYYY_MM_DD-HH_MM_SS '
+                  '(local time). Must not exist yet.', check=_plain_directory_name,
+                  read_only=True),
+            Param('output_dir', 'bags', 'Directory the bag directory is created in (relative '
+                  'to the working directory).', read_only=True),
+            Param('topics', [], 'Topics to record (exact names); empty = every published topic.',
+                  check=_absolute_names, read_only=True),
+            Param('exclude', [], 'Topics never recorded (exact names), e.g. [/rosout].',
+                  check=_absolute_names, read_only=True),
+            Param('include_hidden_topics', False, 'Also record hidden topics (a name token '
+                  'starting with _).', read_only=True),
+            Param('discovery_period', 0.1, '[s] How often the graph is polled for new topics.',
+                  range=(0.01, 60.0), read_only=True),
+            Param('flush_period', 1.0, '[s] The chunk being filled is written at least this '
+                  'often (bounds what a crash loses); 0 = only when full (768 KiB).',
+                  range=(0.0, 3600.0), read_only=True),
+            Param('max_file_size', 0, '[bytes] Split to <bag_name>_<n+1>.mcap once a file '
+                  'reaches this size; 0 = never.', range=(0, 2**62), read_only=True),
+            Param('max_cache_size', 100 * 1024 * 1024, '[bytes] Messages waiting to be written; '
+                  'beyond this the oldest are dropped (counted). 0 = unbounded.',
+                  range=(0, 2**62), read_only=True),
+        ])
+        self._topics_wanted = set(self.params.topics)
+        self._excluded = set(self.params.exclude)
+        self._include_hidden = self.params.include_hidden_topics
+        self._flush_period = self.params.flush_period  # [s]
         self._use_sim_time = self.get_parameter('use_sim_time').value
-        self.bag_path = os.path.join(settings['output_dir'], settings['bag_name'])
+        self.bag_path = os.path.join(self.params.output_dir or '.',
+                                     self.params.bag_name or default_bag_name())
         try:
-            self._bag = BagWriter(self.bag_path, max_file_size=settings['max_file_size'])
+            self._bag = BagWriter(self.bag_path, max_file_size=self.params.max_file_size)
         except BagError as error:
             raise RecorderStartupError(str(error)) from None
         self._bag_lock = threading.Lock()  # BagWriter is used by the executor and writer threads
-        self._queue = _MessageQueue(settings['max_cache_size'])
+        self._queue = _MessageQueue(self.params.max_cache_size)
         self._recorded = {}  # topic -> subscription
         self._skipped = set()  # topics warned about once and not recorded
+        self._bytes_written = 0  # serialized message bytes handed to the bag (writer thread)
         self.write_error = None
+        self.exit_requested = threading.Event()
+        self.diagnostics = Diagnostics(self)
         self._writer_thread = threading.Thread(
             target=self._write_loop, name='bag_writer', daemon=True)
         self._writer_thread.start()
         self._closed = False
-        self._discovery_timer = self.create_timer(settings['discovery_period'], self._discover)
+        self._discovery_timer = self.create_timer(self.params.discovery_period, self._discover)
+        self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD, self._publish_status)
         scope = ('topics ' + ', '.join(sorted(self._topics_wanted)) if self._topics_wanted
                  else 'all topics')
         if self._excluded:
@@ -191,79 +236,9 @@ class RecorderNode(Node):
         self.get_logger().info(f'recording to {self.bag_path} ({scope})')
         self._discover()
 
-    # -- parameters --------------------------------------------------------------------
-
-    def _declare_parameters(self):
-        def describe(text, **extra):
-            return ParameterDescriptor(description=text, read_only=True, **extra)
-
-        self.declare_parameter('bag_name', '', describe(
-            'Bag directory name; empty = rosbag2_YYYY_MM_DD-HH_MM_SS (local time). '
-            'Must not exist yet.'))
-        self.declare_parameter('output_dir', 'bags', describe(
-            'Directory the bag directory is created in (relative to the working directory).'))
-        self.declare_parameter('topics', Parameter.Type.STRING_ARRAY, describe(
-            'Topics to record (exact names); empty = every published topic.'))
-        self.declare_parameter('exclude', Parameter.Type.STRING_ARRAY, describe(
-            'Topics never recorded (exact names), e.g. [/rosout].'))
-        self.declare_parameter('include_hidden_topics', False, describe(
-            'Also record hidden topics (a name token starting with _).'))
-        self.declare_parameter('discovery_period', 0.1, describe(
-            '[s] How often the graph is polled for new topics.', dynamic_typing=True,
-            floating_point_range=[FloatingPointRange(from_value=0.01, to_value=60.0)]))
-        self.declare_parameter('flush_period', 1.0, describe(
-            '[s] The chunk being filled is written at least this often (bounds what a crash '
-            'loses); 0 = only when full (768 KiB).', dynamic_typing=True,
-            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=3600.0)]))
-        self.declare_parameter('max_file_size', 0, describe(
-            '[bytes] Split to <bag_name>_<n+1>.mcap once a file reaches this size; 0 = never.',
-            integer_range=[IntegerRange(from_value=0, to_value=2**62)]))
-        self.declare_parameter('max_cache_size', 100 * 1024 * 1024, describe(
-            '[bytes] Messages waiting to be written; beyond this the oldest are dropped '
-            '(counted). 0 = unbounded.',
-            integer_range=[IntegerRange(from_value=0, to_value=2**62)]))
-
-    def _value(self, name):
-        """A parameter's value; None while unset (an empty list given on the command line)."""
-        try:
-            return self.get_parameter(name).value
-        except ParameterUninitializedException:
-            return None
-
-    def _read_settings(self):
-        def number(name, minimum, maximum):
-            value = self.get_parameter(name).value
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise RecorderStartupError(
-                    f'parameter {name} must be a number, got {value!r}')
-            if not minimum <= value <= maximum:
-                raise RecorderStartupError(
-                    f'parameter {name} must be in [{minimum}, {maximum}], got {value}')
-            return float(value)
-
-        def names(name):
-            value = self._value(name) or []  # `topics:=[]` arrives unset
-            bad = [n for n in value if not n.startswith('/')]
-            if bad:
-                raise RecorderStartupError(
-                    f'parameter {name} must hold absolute topic names, got {bad}')
-            return value
-
-        bag_name = self.get_parameter('bag_name').value or default_bag_name()
-        if '/' in bag_name or bag_name in ('.', '..'):
-            raise RecorderStartupError(
-                f'parameter bag_name must be a plain directory name, got {bag_name!r}')
-        return {
-            'bag_name': bag_name,
-            'output_dir': self.get_parameter('output_dir').value or '.',
-            'topics': names('topics'),
-            'exclude': names('exclude'),
-            'include_hidden_topics': self.get_parameter('include_hidden_topics').value,
-            'discovery_period': number('discovery_period', 0.01, 60.0),
-            'flush_period': number('flush_period', 0.0, 3600.0),
-            'max_file_size': self.get_parameter('max_file_size').value,
-            'max_cache_size': self.get_parameter('max_cache_size').value,
-        }
+    @property
+    def exit_status(self):
+        return 0 if self.write_error is None else 1
 
     # -- discovery (executor thread) -----------------------------------------------------
 
@@ -336,22 +311,53 @@ class RecorderNode(Node):
                 with self._bag_lock:
                     for topic, data, log_time_ns, publish_time_ns in items:
                         self._bag.write(topic, data, log_time_ns, publish_time_ns)
+                        self._bytes_written += len(data)
                     if self._flush_period > 0 and \
                             time.monotonic() - last_flush >= self._flush_period:
                         self._bag.flush()
                         last_flush = time.monotonic()
             except (OSError, BagError) as error:
-                # Disk full or similar: stop recording, keep what is on disk, and tell main.
-                self.write_error = error  # main stops spinning and closes
+                # Disk full or similar: stop recording, keep what is on disk, and exit.
+                self.write_error = error
                 self.get_logger().error(f'writing {self.bag_path} failed: {error}')
                 self._queue.close()
+                self.exit_requested.set()
                 return
+
+    # -- diagnostics (executor thread, and close) ------------------------------------------
+
+    def _publish_status(self):
+        # The counts are ints the writer thread updates: read without the bag lock, which
+        # it holds while writing a whole batch.
+        topics = self._bag.topics
+        dropped = self._queue.dropped
+        if self.write_error is not None:
+            level, message = 'error', f'writing failed: {self.write_error}'
+        else:
+            level = 'warn' if sum(dropped.values()) or self._skipped else 'ok'
+            message = 'closed' if self._closed else 'recording'
+        values = {'bag': self.bag_path, 'topics recorded': len(topics),
+                  'messages': sum(t.message_count for t in topics),
+                  'dropped': sum(dropped.values()), 'bytes written': self._bytes_written}
+        for topic in topics:
+            values[topic.name] = f'{topic.message_count}' + (
+                f' ({dropped[topic.name]} dropped)' if dropped.get(topic.name) else '')
+        if self._skipped:
+            values['not recorded'] = ', '.join(sorted(self._skipped))
+        self.diagnostics.publish('bag', level, message, values)
 
     # -- shutdown ------------------------------------------------------------------------
 
     def stop_discovery(self):
         """Subscribe to no further topics."""
         self._discovery_timer.cancel()
+
+    def drain(self):
+        """Called by run_node once stopping: subscribe to no further topics, but go on
+        taking the messages the middleware delivered before the signal for a while.
+        Returns that while [s]."""
+        self.stop_discovery()
+        return DRAIN_PERIOD
 
     def close(self):
         """Stop recording, write what is queued, close the bag and log the counts.
@@ -360,17 +366,23 @@ class RecorderNode(Node):
             return
         self._closed = True
         self.stop_discovery()
+        self._diagnostics_timer.cancel()
         for subscription in self._recorded.values():
             self.destroy_subscription(subscription)
         self._queue.close()
         self._writer_thread.join()
+        closed = False
         with self._bag_lock:
             try:
                 self._bag.close()
+                closed = True
             except (OSError, BagError) as error:
                 self.write_error = self.write_error or error
                 self.get_logger().error(f'closing {self.bag_path} failed: {error}')
-                return
+        if self.context.ok():
+            self._publish_status()
+        if not closed:
+            return
         topics = self._bag.topics
         self.get_logger().info(
             f'closed {self.bag_path}: {self._bag.message_count} messages on '
@@ -389,39 +401,7 @@ def main(args=None):
     """Run the recorder until SIGINT/SIGTERM; returns the exit status: 0 = bag closed,
     1 = writing failed (what reached the disk is kept), 2 = unusable parameter or output
     location at start-up (one log line)."""
-    # Our own handlers, not rclpy's: rclpy's shut the context down at once, after which the
-    # bag could still be closed but nothing could be logged to /rosout any more.
-    init_rclpy(args)
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda _signum, _frame: stop.set())
-    node = None
-    status = 0
-    try:
-        node = RecorderNode()
-        executor = SingleThreadedExecutor()
-        executor.add_node(node)
-        while not stop.is_set() and node.write_error is None and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
-        # Messages the middleware delivered before the signal are still waiting to be taken:
-        # record them too (no new topics meanwhile).
-        node.stop_discovery()
-        drain_until = time.monotonic() + DRAIN_PERIOD
-        while node.write_error is None and rclpy.ok() and time.monotonic() < drain_until:
-            executor.spin_once(timeout_sec=0.02)
-    except (RecorderStartupError, ParameterException) as error:
-        rclpy.logging.get_logger(NODE_NAME).error(str(error))
-        status = 2
-    except ExternalShutdownException:
-        pass
-    finally:
-        if node is not None:
-            node.close()
-            if node.write_error is not None:
-                status = 1
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return status
+    return run_node(RecorderNode, args)
 
 
 if __name__ == '__main__':

@@ -38,3 +38,25 @@ def contact_force(tip_base, surface, stiffness):
     penetration = max(0.0, -signed_height) if np.isfinite(signed_height) else 0.0
     return ContactState(force=float(stiffness * penetration), penetration=float(penetration),
                         normal_base=normal)
+
+
+def joint_vector_pressing(robot, surface, q_start, q_end, penetration, iterations=60):
+    """The joint vector on the straight joint-space line ``q_start -> q_end`` whose tool tip
+    is ``penetration`` [m] below the surface (bisection; for demos and tests that need a
+    known contact without an IK solver).
+
+    Raises ValueError if ``q_start`` already touches or ``q_end`` does not press that deep.
+    """
+    q_start, q_end = np.asarray(q_start, dtype=float), np.asarray(q_end, dtype=float)
+
+    def depth(s):
+        tip = robot.forward_kinematics(q_start + s * (q_end - q_start))[:3, 3]
+        return contact_force(tip, surface, 1.0).penetration
+
+    if depth(0.0) > 0.0 or depth(1.0) < penetration:
+        raise ValueError('the joint-space line does not reach that penetration from above')
+    low, high = 0.0, 1.0
+    for _ in range(iterations):
+        middle = (low + high) / 2
+        low, high = (middle, high) if depth(middle) < penetration else (low, middle)
+    return q_start + high * (q_end - q_start)

@@ -3,7 +3,7 @@ diagnostics on /diagnostics, throttled rejection of bad input, and a clean ``mai
 import math
 import os
 import signal
-import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -13,7 +13,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.duration import Duration
-from rclpy.exceptions import InvalidParameterTypeException
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
@@ -28,7 +28,8 @@ class ParameterError(VgmError):
 
 @dataclass
 class Param:
-    """One declared parameter: ``default`` fixes its kind (bool, int, float, str, list)."""
+    """One declared parameter: ``default`` fixes its kind (bool, int, float, str, list; a
+    list's elements are of the kind of the default's first element, if it has one)."""
 
     name: str
     default: Any
@@ -37,37 +38,45 @@ class Param:
     choices: Optional[Sequence[str]] = None
     check: Optional[Callable[[Any], Optional[str]]] = None  # returns a reason if bad
     read_only: bool = False
+    on_change: Optional[Callable[[Any], None]] = None  # called with the new value once set
     kind: type = field(init=False)
 
     def __post_init__(self):
         self.kind = type(self.default)
 
+    def _error(self, reason, value):
+        return ParameterError(f'parameter {self.name!r}: {reason}', key=self.name, value=value)
+
     def coerce(self, value):
         """The value in this parameter's kind, or ParameterError with a reason."""
-        if self.kind is float and isinstance(value, int) and not isinstance(value, bool):
+        if self.kind is float and _is_kind(value, int):
             value = float(value)  # `rate:=100` for a float parameter is what users type
         if self.kind is list:
-            ok = isinstance(value, (list, tuple))
-            value = list(value) if ok else value
-            if ok and self.default and isinstance(self.default[0], float):
-                value = [float(v) if isinstance(v, int) else v for v in value]
-        elif not isinstance(value, self.kind) or (self.kind is int and isinstance(value, bool)):
-            raise ParameterError(f'parameter {self.name!r}: expected {self.kind.__name__}, '
-                                 f'got {value!r}', key=self.name, value=value)
+            value = self._coerce_list(value)
+        elif not _is_kind(value, self.kind):
+            raise self._error(f'expected {self.kind.__name__}, got {value!r}', value)
         if self.kind is float and not math.isfinite(value):
-            raise ParameterError(f'parameter {self.name!r}: must be finite, got {value}',
-                                 key=self.name, value=value)
+            raise self._error(f'must be finite, got {value}', value)
         if self.range and not self.range[0] <= value <= self.range[1]:
-            raise ParameterError(f'parameter {self.name!r}: {value} is outside '
-                                 f'[{self.range[0]}, {self.range[1]}]', key=self.name,
-                                 value=value)
+            raise self._error(f'{value} is outside [{self.range[0]}, {self.range[1]}]', value)
         if self.choices and value not in self.choices:
-            raise ParameterError(f'parameter {self.name!r}: {value!r} is not one of '
-                                 f'{", ".join(self.choices)}', key=self.name, value=value)
+            raise self._error(f'{value!r} is not one of {", ".join(self.choices)}', value)
         reason = self.check(value) if self.check else None
         if reason:
-            raise ParameterError(f'parameter {self.name!r}: {reason}', key=self.name,
-                                 value=value)
+            raise self._error(reason, value)
+        return value
+
+    def _coerce_list(self, value):
+        if not isinstance(value, (list, tuple)):
+            raise self._error(f'expected a list, got {value!r}', value)
+        value = list(value)
+        if self.default:
+            element = type(self.default[0])
+            if element is float:
+                value = [float(v) if _is_kind(v, int) else v for v in value]
+            if not all(_is_kind(v, element) for v in value):
+                raise self._error(f'expected a list of {element.__name__}, got {value!r}',
+                                  value)
         return value
 
     def descriptor(self):
@@ -84,23 +93,28 @@ class Param:
 
 class NodeParameters:
     """Declares ``params`` on ``node``, validates start-up values (raising
-    ParameterError naming the parameter) and later changes (refused with a reason).
-    Current values are attributes: ``self.params.rate``."""
+    ParameterError naming the parameter) and later changes (refused with a reason, and
+    reported as rejected input to ``diagnostics`` if given). Current values are
+    attributes: ``self.params.rate``; a Param's ``on_change`` is called once a change is
+    set."""
 
-    def __init__(self, node, params):
+    def __init__(self, node, params, diagnostics=None):
         self._node = node
         self._params = {p.name: p for p in params}
+        self._diagnostics = diagnostics
         values = {}
         for p in params:
             # rclpy cannot infer an array type from an empty default.
             default = Parameter.Type.STRING_ARRAY if p.default == [] else p.default
             try:
                 value = node.declare_parameter(p.name, default, p.descriptor()).value
-            except InvalidParameterTypeException as error:
+            except (InvalidParameterTypeException, InvalidParameterValueException) as error:
+                # A value of the wrong type, or outside a range the descriptor states.
                 raise ParameterError(f'parameter {p.name!r}: {error}', key=p.name) from None
-            values[p.name] = p.coerce([] if value is None else value)
+            values[p.name] = _coerce(p, value)
         self._values = values
         node.add_on_set_parameters_callback(self._on_set)
+        node.add_post_set_parameters_callback(self._on_changed)
 
     def __getattr__(self, name):
         try:
@@ -109,7 +123,6 @@ class NodeParameters:
             raise AttributeError(name) from None
 
     def _on_set(self, parameters):
-        updates = {}
         for parameter in parameters:
             spec = self._params.get(parameter.name)
             if spec is None:
@@ -118,11 +131,32 @@ class NodeParameters:
                 return SetParametersResult(successful=False,
                                            reason=f'{spec.name} is read-only')
             try:
-                updates[spec.name] = spec.coerce(parameter.value)
+                _coerce(spec, parameter.value)
             except ParameterError as error:
+                if self._diagnostics is not None:
+                    self._diagnostics.reject('parameter change', error)
                 return SetParametersResult(successful=False, reason=str(error))
-        self._values.update(updates)
         return SetParametersResult(successful=True)
+
+    def _on_changed(self, parameters):
+        # After every set-parameters callback accepted the change: only now is it real.
+        for parameter in parameters:
+            spec = self._params.get(parameter.name)
+            if spec is None:
+                continue
+            value = self._values[spec.name] = _coerce(spec, parameter.value)
+            if spec.on_change is not None:
+                spec.on_change(value)
+
+
+def _coerce(spec, value):
+    # An empty list given on the command line (`topics:=[]`) arrives unset.
+    return spec.coerce([] if value is None and spec.kind is list else value)
+
+
+def _is_kind(value, kind):
+    """``isinstance``, except that a bool is no int (ROS keeps them apart)."""
+    return isinstance(value, kind) and not (kind is int and isinstance(value, bool))
 
 
 class Diagnostics:
@@ -183,43 +217,87 @@ def init_rclpy(args=None):
 _FASTDDS_PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
 
+POLL_PERIOD = 0.1  # [s] how often spinning checks a node's exit request
+
+
 def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
-    """Construct and spin ``node_class`` until Ctrl-C, SIGTERM or external shutdown.
+    """Construct and spin ``node_class`` until Ctrl-C, SIGTERM, external shutdown or the
+    node's own exit request; returns the process exit status.
 
     Ctrl-C and SIGTERM both raise KeyboardInterrupt in the spinning thread (rclpy's own
-    signal handler would invalidate the context first), so the node's ``close()`` can
-    still log and publish before it is destroyed. A VgmError during construction (bad
-    parameter, bad scenario) is reported in one line with exit status 2, never as a
-    traceback.
+    signal handler would invalidate the context first), so the node can still log and
+    publish while it stops; further signals are ignored until it has stopped. A VgmError
+    during construction (bad parameter, bad scenario) is logged in one line with exit
+    status 2, never as a traceback. The node may define, all optional:
+
+    - ``exit_requested``: a ``threading.Event``; setting it, from any thread, ends spinning
+      (within ``POLL_PERIOD``) as a signal does: playback done, the disk full.
+    - ``drain()``: called once spinning ended; returns how long [s] to go on spinning,
+      so messages the middleware delivered before the signal are still taken (a
+      recorder). An exit request ends it early.
+    - ``close()``: called once the executor stopped, before ``wait_for_delivery`` and
+      ``destroy_node``, so its last log lines and diagnostics still go out.
+    - ``exit_status``: read after ``close()``; e.g. 1 when the node failed while running.
+    - ``node_name``: a class attribute, names the error line when construction fails.
     """
     init_rclpy(args)
-    signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    previous_handlers = _set_stop_signal_handler(_raise_keyboard_interrupt)
     node = executor = None
     status = 0
     try:
         node = node_class()
         executor = executor_class()
         executor.add_node(node)
-        executor.spin()
+        exit_requested = getattr(node, 'exit_requested', None) or threading.Event()
+        try:
+            _spin_until(executor, exit_requested.is_set)
+        except KeyboardInterrupt:
+            pass
+        _set_stop_signal_handler(signal.SIG_IGN)
+        drain = getattr(node, 'drain', None)
+        if drain is not None:
+            _spin_until(executor, exit_requested.is_set, timeout=drain())
     except VgmError as error:
-        name = node_class.__name__ if node is None else node.get_name()
-        print(f'[{name}] error: {error}', file=sys.stderr, flush=True)
+        if node is None:
+            name = getattr(node_class, 'node_name', node_class.__name__)
+            rclpy.logging.get_logger(name).error(f'start-up error: {error}')
+        else:
+            node.get_logger().error(f'stopped on error: {error}')
         status = 2
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not cut this short
+        _set_stop_signal_handler(signal.SIG_IGN)  # a second Ctrl-C must not cut this short
         if executor is not None:
             executor.shutdown()
         if node is not None:
             close = getattr(node, 'close', None)
             if close:
                 close()
+            status = status or getattr(node, 'exit_status', 0)
             wait_for_delivery(node)
             node.destroy_node()
         rclpy.try_shutdown()
+        for signum, handler in previous_handlers.items():
+            signal.signal(signum, handler)
     return status
+
+
+def _spin_until(executor, done, timeout=None):
+    """Spin ``executor`` until ``done()`` is true, its context is shut down, or ``timeout``
+    [s] passed (None: no limit)."""
+    deadline = math.inf if timeout is None else time.monotonic() + timeout
+    while not done() and executor.context.ok():
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return
+        executor.spin_once(timeout_sec=min(remaining, POLL_PERIOD))
+
+
+def _set_stop_signal_handler(handler):
+    """Handle SIGINT and SIGTERM with ``handler``; returns the previous handlers."""
+    return {signum: signal.signal(signum, handler)
+            for signum in (signal.SIGINT, signal.SIGTERM)}
 
 
 def wait_for_delivery(node, timeout=2.0):

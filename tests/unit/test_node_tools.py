@@ -1,0 +1,205 @@
+"""vgm_common.node_tools with real rclpy nodes in this process: NodeParameters (kinds,
+ranges, lists, refusals with a reason, the on_change hook) and run_node (exit request,
+drain after a signal, exit status, one-line start-up error)."""
+import os
+import signal
+import threading
+
+import pytest
+import rclpy
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from vgm_common.node_tools import (
+    _FASTDDS_PROFILE_VARIABLES,
+    Diagnostics,
+    NodeParameters,
+    Param,
+    ParameterError,
+    run_node,
+)
+
+
+@pytest.fixture
+def private_domain(ros_env, monkeypatch):
+    """This process on the test's private domain; init_rclpy's profile variables undone."""
+    for key in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE'):
+        monkeypatch.setenv(key, ros_env[key])
+    for key in _FASTDDS_PROFILE_VARIABLES:
+        monkeypatch.delenv(key, raising=False)
+
+
+@pytest.fixture
+def make_node(private_domain):
+    """``make_node(**overrides)``: a node in its own context with parameter overrides."""
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    nodes = []
+
+    def _make(**overrides):
+        node = Node(f'probe_{len(nodes)}', context=context, parameter_overrides=[
+            Parameter(name, value=value) for name, value in overrides.items()])
+        nodes.append(node)
+        return node
+
+    yield _make
+    for node in nodes:
+        node.destroy_node()
+    rclpy.shutdown(context=context)
+
+
+def probe_params(changes=None):
+    """Parameters of every kind; ``changes`` collects (name, value) from on_change."""
+    def record(name):
+        return None if changes is None else lambda value: changes.append((name, value))
+
+    return [
+        Param('rate', 30.0, '[Hz]', range=(0.0, 200.0), on_change=record('rate')),
+        Param('count', 3, 'How many.', range=(1, 10)),
+        Param('mode', 'fast', 'How.', choices=('fast', 'exact')),
+        Param('names', ['/a'], 'Topic names.',
+              check=lambda names: None if all(n.startswith('/') for n in names)
+              else 'must be absolute'),
+        Param('weights', [1.0, 2.0], 'Diagonal of W.'),
+        Param('frozen', 'x', 'Fixed at start-up.', read_only=True),
+    ]
+
+
+def refusal(node, name, value):
+    """The reason a change is refused; '' if it was accepted."""
+    result = node.set_parameters([Parameter(name, value=value)])[0]
+    return '' if result.successful else result.reason
+
+
+def test_start_up_values_take_the_declared_kind(make_node):
+    params = NodeParameters(make_node(rate=100, weights=[3, 4], names=[]), probe_params())
+    assert params.rate == 100.0 and isinstance(params.rate, float)  # `rate:=100`
+    assert params.weights == [3.0, 4.0] and all(isinstance(w, float) for w in params.weights)
+    assert params.names == [] and params.count == 3 and params.mode == 'fast'
+
+
+@pytest.mark.parametrize('overrides, reason', [
+    ({'rate': 'fast'}, 'expected float'),
+    ({'rate': 500.0}, 'outside [0.0, 200.0]'),
+    ({'rate': float('nan')}, 'finite'),
+    ({'count': 2.5}, 'count'),
+    ({'count': 11}, 'out of range'),  # refused by rclpy itself: the descriptor's range
+    ({'mode': 'slow'}, 'not one of fast, exact'),
+    ({'names': 'a'}, 'expected a list'),
+    ({'names': ['a']}, 'must be absolute'),
+    ({'weights': [True, False]}, 'expected a list of float'),
+])
+def test_a_bad_start_up_value_is_one_line_naming_the_parameter(make_node, overrides, reason):
+    (name, value), = overrides.items()
+    with pytest.raises(ParameterError) as raised:
+        NodeParameters(make_node(**overrides), probe_params())
+    message = str(raised.value)
+    assert message.startswith(f'parameter {name!r}: ') and reason in message
+    assert '\n' not in message and raised.value.key == name
+
+
+def test_changes_are_checked_then_applied_and_reported(make_node):
+    node = make_node()
+    changes = []
+    vetoed = False  # a callback added before ours, so it runs after ours (rclpy's order)
+    node.add_on_set_parameters_callback(
+        lambda parameters: SetParametersResult(successful=not vetoed, reason='veto'))
+    diagnostics = Diagnostics(node)
+    params = NodeParameters(node, probe_params(changes), diagnostics=diagnostics)
+
+    assert refusal(node, 'rate', 50) == ''  # an int for a float
+    assert params.rate == 50.0 and changes == [('rate', 50.0)]
+
+    assert "parameter 'rate'" in refusal(node, 'rate', 500.0)
+    assert "parameter 'rate'" in refusal(node, 'rate', 'fast')  # dynamic typing: ours to refuse
+    assert "parameter 'mode'" in refusal(node, 'mode', 'slow')
+    assert refusal(node, 'frozen', 'y')  # read-only
+    assert params.rate == 50.0 and params.mode == 'fast' and params.frozen == 'x'
+    assert changes == [('rate', 50.0)]
+    assert diagnostics.rejected == {'parameter change': 3}
+
+    # Another callback vetoes after ours accepted: the change never happened, so nothing
+    # is applied.
+    vetoed = True
+    assert refusal(node, 'rate', 60.0) == 'veto'
+    assert params.rate == 50.0 and changes == [('rate', 50.0)]
+
+
+class _Ticker(Node):
+    """Counts timer ticks; what run_node calls is recorded in ``log`` (a class attribute,
+    as run_node constructs the node itself)."""
+
+    node_name = 'ticker'
+    period = 0.01  # [s]
+    log = []
+
+    def __init__(self):
+        super().__init__(self.node_name)
+        self.ticks = 0
+        self.exit_requested = threading.Event()
+        self.exit_status = 0
+        self.create_timer(self.period, self._tick)
+
+    def _tick(self):
+        self.ticks += 1
+        self.on_tick()
+
+    def on_tick(self):
+        pass
+
+    def close(self):
+        self.log.append(('close', self.ticks))
+
+
+def test_run_node_ends_on_the_node_s_exit_request_with_its_status(private_domain):
+    class Finisher(_Ticker):
+        log = []
+
+        def on_tick(self):
+            if self.ticks == 3:  # done, with a failure to report
+                self.exit_status = 1
+                self.exit_requested.set()
+
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    assert run_node(Finisher, args=[]) == 1
+    assert Finisher.log == [('close', 3)]
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers
+
+
+def test_run_node_drains_after_a_signal_then_closes(private_domain):
+    drain_period = 0.3  # [s]
+
+    class Drained(_Ticker):
+        log = []
+
+        def on_tick(self):
+            if self.ticks == 3:
+                os.kill(os.getpid(), signal.SIGTERM)  # raises KeyboardInterrupt here
+
+        def drain(self):
+            self.log.append(('drain', self.ticks))
+            return drain_period
+
+    assert run_node(Drained, args=[]) == 0
+    (what, at_signal), (closed, at_close) = Drained.log
+    assert (what, at_signal, closed) == ('drain', 3, 'close')
+    # The timer kept running while draining (bounded: no more than the period allows).
+    assert 5 <= at_close - at_signal <= drain_period / _Ticker.period + 3
+
+
+def test_run_node_reports_a_bad_parameter_in_one_line(private_domain, capfd):
+    class Configured(_Ticker):
+        log = []
+
+        def __init__(self):
+            super().__init__()
+            self.params = NodeParameters(self, probe_params())
+
+    status = run_node(Configured, args=['probe', '--ros-args', '-p', 'rate:=fast'])
+    captured = capfd.readouterr()
+    output = captured.out + captured.err
+    errors = [line for line in output.splitlines() if '[ERROR]' in line]
+    assert status == 2 and Configured.log == []
+    assert len(errors) == 1 and 'Traceback' not in output, output
+    assert "[ticker]: start-up error: parameter 'rate': expected float" in errors[0]
