@@ -2,6 +2,7 @@
 lines prefixed, all stopped on Ctrl-C or when one fails, non-zero exit on failure."""
 import signal
 
+import psutil
 import yaml
 
 from harness import SCENARIO_DIR, executable, wait_for
@@ -50,3 +51,13 @@ def test_unknown_node_in_the_command_line_is_refused(spawn, tmp_path):
                     params_file(tmp_path, SCENARIO_DIR / 'default.yaml'), '--nodes', 'nope'])
     launch.proc.wait(30)
     assert launch.proc.returncode == 2 and 'no section for nope' in launch.output()
+
+
+def test_no_node_outlives_a_killed_launcher(spawn, tmp_path):
+    launch = spawn([executable('vgm_common', 'vgm_launch'),
+                    params_file(tmp_path, SCENARIO_DIR / 'default.yaml')])
+    nodes = wait_for(lambda: len(psutil.Process(launch.proc.pid).children()) == 2 and
+                     psutil.Process(launch.proc.pid).children(), 30, 'two node processes')
+    launch.stop(signal.SIGKILL)
+    wait_for(lambda: not any(node.is_running() and node.status() != psutil.STATUS_ZOMBIE
+                             for node in nodes), 30, 'the nodes to exit with the launcher')

@@ -12,6 +12,7 @@ exit status is non-zero if any node failed.
                [--set sensor_sim:scenario:=S1.yaml]
 """
 import argparse
+import ctypes
 import os
 import signal
 import subprocess
@@ -89,14 +90,15 @@ class Launch:
         for name in self.nodes:
             argv = [str(find_executable(name)), '--ros-args', '-r', f'__node:={name}',
                     '--params-file', str(self.params_file), *self.overrides[name]]
-            process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                       stdin=subprocess.DEVNULL, text=True, bufsize=1,
-                                       start_new_session=True,
-                                       env=dict(os.environ, PYTHONUNBUFFERED='1'))
+            self.processes[name] = subprocess.Popen(
+                argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL, text=True, bufsize=1,
+                preexec_fn=_own_group_die_with_parent, env=dict(os.environ, PYTHONUNBUFFERED='1'))
+        # Threads only after every fork: preexec_fn is unsafe while other threads run.
+        for name, process in self.processes.items():
             pump = threading.Thread(target=self._pump, args=(name, process.stdout), daemon=True)
             pump.start()
             self._pumps.append(pump)
-            self.processes[name] = process
 
     def log_text(self, name):
         return ''.join(self.logs[name])
@@ -147,6 +149,18 @@ class Launch:
             self._print('launch', f'{name} failed with exit status '
                         f'{self.processes[name].returncode}\n')
         return 1 if failed_before_stop or self.failed() else 0
+
+
+def _own_group_die_with_parent():
+    """In the child before exec: its own process group, so a terminal's Ctrl-C reaches
+    only the launcher, which stops the nodes in order; and SIGTERM when the launcher dies,
+    even by SIGKILL, so no node outlives it (Linux prctl PR_SET_PDEATHSIG)."""
+    os.setpgid(0, 0)
+    _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+_PR_SET_PDEATHSIG = 1
+_LIBC = ctypes.CDLL(None, use_errno=True)
 
 
 def _signal_group(process, sig):
