@@ -62,10 +62,8 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
     # Camera rate, measured on the stamps.
     capture_times = np.array(sorted(common)) * 1e-9
     assert np.median(np.diff(capture_times)) == pytest.approx(1 / RATE_HZ, rel=0.1)
-    # Joint states at >= 100 Hz with the contract's names; pressure in tool0.
-    joint_stamps = np.array([stamp_to_ns(m.header.stamp) for m in received['/joint_states']])
-    window = joint_stamps[-1] - joint_stamps[0]
-    assert (len(joint_stamps) - 1) / (window * 1e-9) >= 100.0
+    # The contract's joint names; pressure in tool0. (Rates are checked on the bag: this
+    # probe's keep-last-10 reader may drop messages when the machine is busy.)
     assert list(received['/joint_states'][-1].name) == [f'pa10_joint{i}' for i in range(1, 8)]
     np.testing.assert_allclose(received['/joint_states'][-1].position,
                                scenario.robot.initial_joints, atol=1e-12)
@@ -83,10 +81,18 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
     assert expected['/calibration/target_pose'] == chart_captures
     with AnyReader([bag_dir]) as reader:
         in_bag = defaultdict(int)
-        for connection, _, _ in reader.messages():
+        joint_stamps = []
+        for connection, _, rawdata in reader.messages():
             in_bag[connection.topic] += 1
+            if connection.topic == '/joint_states':
+                joint_stamps.append(int.from_bytes(rawdata[4:8], 'little') * 10**9 +
+                                    int.from_bytes(rawdata[8:12], 'little'))
         assert reader.topics['/stereo/left/image_raw'].msgtype == 'sensor_msgs/msg/Image'
     assert {t: in_bag[t] for t in expected} == expected
+    # Joint states at >= 100 Hz, from their header stamps (CDR: 4-byte encapsulation
+    # header, then stamp sec, nanosec).
+    joint_seconds = np.array(sorted(joint_stamps)) * 1e-9
+    assert (len(joint_seconds) - 1) / (joint_seconds[-1] - joint_seconds[0]) >= 100.0
 
     published_left = {stamp_to_ns(m.header.stamp): bytes(m.data)
                       for m in received['/stereo/left/image_raw']}
