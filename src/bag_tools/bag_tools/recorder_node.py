@@ -48,7 +48,11 @@ from vgm_common.errors import VgmError
 from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 
 SUBSCRIPTION_DEPTH = 100  # keep-last depth of every recording subscription
-DRAIN_PERIOD = 0.25  # [s] after a stop request, keep taking already delivered messages
+# After a stop request, keep taking the messages the middleware already holds until none
+# came for QUIET_PERIOD (a recorder behind the publishers must not lose its backlog), at
+# most MAX_DRAIN_PERIOD.
+QUIET_PERIOD = 0.25  # [s]
+MAX_DRAIN_PERIOD = 10.0  # [s]
 DIAGNOSTICS_PERIOD = 2.0  # [s]
 HEADER_TYPE = 'std_msgs/Header'
 
@@ -227,6 +231,7 @@ class RecorderNode(Node):
             target=self._write_loop, name='bag_writer', daemon=True)
         self._writer_thread.start()
         self._closed = False
+        self._last_message_time = time.monotonic()  # [s] for drained()
         self._discovery_timer = self.create_timer(self.params.discovery_period, self._discover)
         self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD, self._publish_status)
         scope = ('topics ' + ', '.join(sorted(self._topics_wanted)) if self._topics_wanted
@@ -290,6 +295,7 @@ class RecorderNode(Node):
             f'{qos.durability.name.lower()})')
 
     def _on_message(self, topic, stamped, data, info):
+        self._last_message_time = time.monotonic()
         if self._use_sim_time or not info.get('received_timestamp'):
             log_time_ns = self.get_clock().now().nanoseconds
         else:
@@ -354,10 +360,15 @@ class RecorderNode(Node):
 
     def drain(self):
         """Called by run_node once stopping: subscribe to no further topics, but go on
-        taking the messages the middleware delivered before the signal for a while.
-        Returns that while [s]."""
+        taking the messages the middleware delivered (see ``drained``), at most the
+        returned time [s]."""
         self.stop_discovery()
-        return DRAIN_PERIOD
+        self._last_message_time = time.monotonic()
+        return MAX_DRAIN_PERIOD
+
+    def drained(self):
+        """True once no message arrived for QUIET_PERIOD: the backlog is recorded."""
+        return time.monotonic() - self._last_message_time > QUIET_PERIOD
 
     def close(self):
         """Stop recording, write what is queued, close the bag and log the counts.

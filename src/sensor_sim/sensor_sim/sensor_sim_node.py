@@ -39,9 +39,10 @@ OPTICAL_FRAMES = {'left': 'stereo_left_optical_frame', 'right': 'stereo_right_op
 
 
 class SensorSim(Node):
+    node_name = 'sensor_sim'
 
     def __init__(self):
-        super().__init__('sensor_sim')
+        super().__init__(self.node_name)
         self.params = NodeParameters(self, [
             Param('scenario', 'default', 'Scenario file, or the name of a shipped one.',
                   read_only=True),
@@ -92,13 +93,15 @@ class SensorSim(Node):
                                                  '/joint_states', '/tool/pressure')}
         self.rng_pressure = np.random.default_rng([self.scenario.seed, 1_000_003])
 
-        arm_group = MutuallyExclusiveCallbackGroup()
         self.create_subscription(JointTrajectory, '/pa10_controller/joint_trajectory',
                                  self._on_joint_trajectory, DEFAULT_QOS,
-                                 callback_group=arm_group)
+                                 callback_group=MutuallyExclusiveCallbackGroup())
         self.arm_period = 1.0 / self.params.joint_state_rate
         self.last_arm_time = None
-        self.create_timer(self.arm_period, self._step_arm, callback_group=arm_group)
+        # The arm runs in its own thread on an absolute schedule: an executor timer at
+        # 200 Hz is starved by the captures (measured: 77-160 Hz instead of 200).
+        self.arm_thread = threading.Thread(target=self._run_arm, name='arm', daemon=True)
+        self.arm_thread.start()
         self.create_timer(1.0, self._publish_diagnostics)
         frame_rate = self.params.rate or self.scenario.rate
         self.create_timer(1.0 / frame_rate, self._capture,
@@ -158,21 +161,32 @@ class SensorSim(Node):
                 raise InvalidInput('velocities and positions differ in length')
             has_velocities = bool(msg.points) and all(velocities)
             start = stamp_to_ns(msg.header.stamp) * 1e-9 or self._now()
-            self.arm.set_trajectory(list(msg.joint_names), times,
-                                    np.array(positions, dtype=float),
-                                    np.array(velocities, dtype=float) if has_velocities
-                                    else None, start)
+            with self.arm_lock:
+                self.arm.set_trajectory(list(msg.joint_names), times,
+                                        np.array(positions, dtype=float),
+                                        np.array(velocities, dtype=float) if has_velocities
+                                        else None, start)
         except (InvalidInput, ValueError) as error:
-            self.arm.hold()
+            with self.arm_lock:
+                self.arm.hold()
             self.diagnostics.reject('/pa10_controller/joint_trajectory', error)
 
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
 
-    def _step_arm(self):
-        with self.arm_lock:
-            if not self.closed:
+    def _run_arm(self):
+        next_tick = time.monotonic()
+        while True:
+            with self.arm_lock:
+                if self.closed:
+                    return
                 self._step_arm_and_publish()
+            next_tick += self.arm_period
+            delay = next_tick - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            else:
+                next_tick = time.monotonic()  # running late: no burst to catch up
 
     def _step_arm_and_publish(self):
         now = self._now()

@@ -232,9 +232,9 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
 
     - ``exit_requested``: a ``threading.Event``; setting it, from any thread, ends spinning
       (within ``POLL_PERIOD``) as a signal does: playback done, the disk full.
-    - ``drain()``: called once spinning ended; returns how long [s] to go on spinning,
-      so messages the middleware delivered before the signal are still taken (a
-      recorder). An exit request ends it early.
+    - ``drain()``: called once spinning ended; returns how long [s] at most to go on
+      spinning, so messages the middleware delivered before the signal are still taken
+      (a recorder). An exit request, or ``drained()`` returning true, ends it early.
     - ``close()``: called once the executor stopped, before ``wait_for_delivery`` and
       ``destroy_node``, so its last log lines and diagnostics still go out.
     - ``exit_status``: read after ``close()``; e.g. 1 when the node failed while running.
@@ -256,7 +256,9 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
         _set_stop_signal_handler(signal.SIG_IGN)
         drain = getattr(node, 'drain', None)
         if drain is not None:
-            _spin_until(executor, exit_requested.is_set, timeout=drain())
+            drained = getattr(node, 'drained', lambda: False)
+            _spin_until(executor, lambda: exit_requested.is_set() or drained(),
+                        timeout=drain())
     except VgmError as error:
         if node is None:
             name = getattr(node_class, 'node_name', node_class.__name__)
