@@ -61,7 +61,8 @@ def measure(rate, seconds):
     with tempfile.TemporaryDirectory() as tmp:
         launch = Launch(graph, nodes=['recorder', 'sensor_sim'], overrides=[
             f'recorder:output_dir:={tmp}', 'recorder:bag_name:=bench',
-            'sensor_sim:calibration_phase:=false', f'sensor_sim:rate:={rate}'])
+            'sensor_sim:calibration_phase:=false', f'sensor_sim:rate:={rate}',
+            'sensor_sim:min_subscribers:=2'])  # the recorder and the first-image probe
         launch.start()
         try:
             wait_for_first_image(60.0)

@@ -209,7 +209,9 @@ def main():
     graph = Path(get_package_share_directory('vgm_common')) / 'params' / 'graph.yaml'
     launch = Launch(graph, nodes=['recorder', 'sensor_sim'], overrides=[
         f'recorder:output_dir:={args.bags}', f'recorder:bag_name:={name}',
-        f'sensor_sim:scenario:={scenario_path}', f'sensor_sim:ground_truth_dir:={truth_dir}'])
+        f'sensor_sim:scenario:={scenario_path}', f'sensor_sim:ground_truth_dir:={truth_dir}',
+        # the recorder and this script's progress probe: nothing is lost to discovery
+        'sensor_sim:min_subscribers:=2'])
     progress = Progress(chart_captures, touch_trajectory(scenario))
     started = time.monotonic()
     try:

@@ -54,6 +54,12 @@ class SensorSim(Node):
                   '/tool/pressure rate [Hz].', range=(100.0, 1000.0), read_only=True),
             Param('ground_truth_dir', '', 'Where the true cameras, curve and depth maps are '
                   'written for tests and benchmarks; empty: not written.', read_only=True),
+            Param('min_subscribers', 0, 'Publish only once every camera topic has this many '
+                  'matched subscribers (a recorder, the pipeline), at most '
+                  'subscriber_timeout: a reliable publisher drops what it sends before '
+                  'discovery. 0 = start at once.', range=(0, 100), read_only=True),
+            Param('subscriber_timeout', 30.0, '[s] Longest wait for min_subscribers.',
+                  range=(0.0, 3600.0), read_only=True),
         ])
         self.scenario = load_scenario(resolve_scenario_path(self.params.scenario))
         self.get_logger().info(f'scenario {self.scenario.name} ({self.scenario.path})')
@@ -88,6 +94,8 @@ class SensorSim(Node):
             self.chart_frames = len(calibration.T_base_chart) * calibration.captures_per_pose
         self.frame_index = 0
         self.capture_lock, self.arm_lock = threading.Lock(), threading.Lock()
+        self.started = threading.Event()  # set once min_subscribers matched
+        self.created = time.monotonic()
         self.closed = False
         self.published = {topic: 0 for topic in (*IMAGE_TOPICS.values(), TARGET_POSE_TOPIC,
                                                  '/joint_states', '/tool/pressure')}
@@ -122,9 +130,22 @@ class SensorSim(Node):
 
     def _capture(self):
         """One capture: the three images (and the chart pose) with one stamp."""
+        if not self.started.is_set() and not self._subscribers_ready():
+            return
         with self.capture_lock:
             if not self.closed:
                 self._publish_capture()
+
+    def _subscribers_ready(self):
+        """True (and the arm starts publishing too) once ``min_subscribers`` match, or
+        ``subscriber_timeout`` passed."""
+        matched = min(p.get_subscription_count() for p in self.image_publishers.values())
+        waited = time.monotonic() - self.created
+        if matched >= self.params.min_subscribers or waited > self.params.subscriber_timeout:
+            if self.params.min_subscribers:
+                self.get_logger().info(f'{matched} subscribers matched after {waited:.1f} s')
+            self.started.set()
+        return self.started.is_set()
 
     def _publish_capture(self):
         stamp_ns = self.get_clock().now().nanoseconds
@@ -175,6 +196,7 @@ class SensorSim(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _run_arm(self):
+        self.started.wait()
         next_tick = time.monotonic()
         while True:
             with self.arm_lock:
@@ -225,6 +247,7 @@ class SensorSim(Node):
         # so the counts are final.
         with self.capture_lock, self.arm_lock:
             self.closed = True
+        self.started.set()  # releases an arm thread still waiting for subscribers
         counts = ' '.join(f'{topic}={n}' for topic, n in self.published.items())
         self.get_logger().info(f'published: {counts}')
 
