@@ -33,7 +33,8 @@ def wait_for_first_image(timeout):
     rclpy.init(context=context)
     node = rclpy.create_node('bench_probe', context=context)
     seen = []
-    node.create_subscription(Image, IMAGE_TOPICS[0], seen.append, DEFAULT_QOS)
+    for topic in IMAGE_TOPICS:  # all three: sensor_sim waits for 2 subscribers on each
+        node.create_subscription(Image, topic, seen.append, DEFAULT_QOS)
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     deadline = time.monotonic() + timeout

@@ -77,7 +77,11 @@ class Progress:
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('demo_progress', context=self.context)
         self.stamps = Counter()
+        # Subscribed to every camera, so sensor_sim's min_subscribers (recorder + this
+        # probe) holds on each; captures are counted on the first.
         self.node.create_subscription(Image, IMAGE_TOPICS[0], self._on_image, DEFAULT_QOS)
+        for topic in IMAGE_TOPICS[1:]:
+            self.node.create_subscription(Image, topic, lambda msg: None, DEFAULT_QOS)
         self.trajectory_publisher = self.node.create_publisher(
             JointTrajectory, '/pa10_controller/joint_trajectory', DEFAULT_QOS)
         self.chart_captures, self.touch = chart_captures, touch
