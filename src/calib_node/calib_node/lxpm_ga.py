@@ -1,0 +1,173 @@
+"""The thesis's real-coded LX-PM genetic algorithm (ALGORITHMS.md §3.4, A4.4-A4.6) and the
+stereo calibration objective (4.3.2) it minimises.
+
+The whole population is evaluated in one call of the objective, (P, D) -> (P,); only the
+generations are a Python loop. Every random draw comes from the caller's
+``numpy.random.Generator``, so a seed fixes the result.
+"""
+from typing import NamedTuple
+
+import numpy as np
+
+from calib_node.seed_camera import project_with_depth
+
+LX_VARIANTS = ('printed', 'symmetric')
+
+
+class GAResult(NamedTuple):
+    best: np.ndarray  # (D,) best individual found
+    best_cost: float
+    history: np.ndarray  # (generations,) best cost after each generation, non-increasing
+
+
+def laplace_phi(u, a=0.0, b=0.15, variant='printed'):
+    """Laplace crossover spread phi for uniform draws u in (0, 1) (4.4.1, A4.5).
+
+    ``'printed'``: a - b ln u for u <= 1/2, else a + b ln u (half the draws >= a + b ln 2,
+    the rest in (a - b ln 2, a]). ``'symmetric'``: the Laplace quantile a + b ln 2u for
+    u <= 1/2, else a - b ln(2 - 2u).
+    """
+    u = np.maximum(np.asarray(u, dtype=float), np.finfo(float).tiny)  # never ln 0
+    low = u <= 0.5
+    if variant == 'printed':
+        return np.where(low, a - b * np.log(u), a + b * np.log(u))
+    if variant == 'symmetric':
+        with np.errstate(divide='ignore'):
+            return np.where(low, a + b * np.log(2 * u), a - b * np.log(2 - 2 * u))
+    raise ValueError(f'lx_variant: expected one of {LX_VARIANTS}, got {variant!r}')
+
+
+def laplace_crossover(x1, x2, rng, probability=0.9, a=0.0, b=0.15, variant='printed'):
+    """Children of the (M, D) parent pairs: y_i = x_i + phi |x1 - x2|, one phi per gene.
+
+    Each pair crosses with ``probability``, otherwise its children are copies.
+    Returns (y1, y2), each (M, D), not clipped.
+    """
+    cross = rng.random(x1.shape[0]) < probability
+    phi = laplace_phi(rng.random(x1.shape), a, b, variant)
+    spread = np.where(cross[:, None], phi * np.abs(x1 - x2), 0.0)
+    return x1 + spread, x2 + spread
+
+
+def power_mutation(x, lower, upper, rng, probability=0.005, index=0.25):
+    """Power mutation of each gene of (M, D) ``x`` with ``probability`` (A4.4).
+
+    s = s1^(1/index), t = (x - xl) / (xu - xl), r ~ U[0, 1]: y = x - s (x - xl) if t < r,
+    else y = x + s (xu - x). For x in [xl, xu] the result stays in [xl, xu].
+    """
+    mutate = rng.random(x.shape) < probability
+    s = rng.random(x.shape) ** (1.0 / index)
+    r = rng.random(x.shape)
+    width = upper - lower
+    t = (x - lower) / np.where(width > 0, width, 1.0)
+    y = np.where(t < r, x - s * (x - lower), x + s * (upper - x))
+    return np.where(mutate, y, x)
+
+
+def tournament_select(cost, count, rng, size=3):
+    """Indices (count,) of the winners of ``count`` tournaments of ``size`` (lowest cost)."""
+    entrants = rng.integers(0, cost.shape[0], size=(count, size))
+    return entrants[np.arange(count), np.argmin(cost[entrants], axis=1)]
+
+
+def _evaluate(objective, population):
+    cost = np.asarray(objective(population), dtype=float)
+    if cost.shape != (population.shape[0],):
+        raise ValueError(f'objective: expected shape ({population.shape[0]},), '
+                         f'got {cost.shape}')
+    return np.where(np.isnan(cost), np.inf, cost)
+
+
+def lxpm_ga(objective, lower, upper, rng, population=240, generations=200,
+            crossover_probability=0.9, mutation_probability=0.005, laplace_a=0.0,
+            laplace_b=0.15, pm_index=0.25, lx_variant='printed', tournament=3, elitism=1,
+            progress=None):
+    """Minimise ``objective`` over the box [lower, upper] with the LX-PM GA (§3.4).
+
+    Uniform initialisation in the box; each generation: ``tournament`` selection, Laplace
+    crossover of consecutive winners, clipping to the box, power mutation, then the
+    ``elitism`` best of the previous generation replace the worst children.
+
+    Args:
+        objective: (P, D) -> (P,) costs; NaN counts as +inf.
+        lower, upper: (D,) bounds, lower <= upper.
+        rng: ``numpy.random.Generator``, the only source of randomness.
+        progress: optional ``progress(generation, best_cost)``, called with generation 0
+            after the initial evaluation and after each generation 1..generations.
+
+    Returns:
+        GAResult(best (D,), best_cost, history (generations,)).
+
+    Raises:
+        ValueError: on bad bounds, sizes or ``lx_variant``.
+    """
+    lower = np.array(lower, dtype=float)
+    upper = np.array(upper, dtype=float)
+    if lower.ndim != 1 or lower.shape != upper.shape or np.any(lower > upper):
+        raise ValueError(f'lower, upper: expected equal (D,) shapes with lower <= upper, '
+                         f'got {lower.shape} and {upper.shape}')
+    if lx_variant not in LX_VARIANTS:
+        raise ValueError(f'lx_variant: expected one of {LX_VARIANTS}, got {lx_variant!r}')
+    if population < 2 or not 0 <= elitism < population or tournament < 1:
+        raise ValueError(f'need population >= 2, 0 <= elitism < population and '
+                         f'tournament >= 1, got {population}, {elitism}, {tournament}')
+    pairs = (population + 1) // 2
+
+    x = lower + rng.random((population, lower.size)) * (upper - lower)
+    cost = _evaluate(objective, x)
+    if progress is not None:
+        progress(0, float(cost.min()))
+    history = np.empty(generations)
+    for generation in range(generations):
+        elite = np.argsort(cost, kind='stable')[:elitism]
+        parents = x[tournament_select(cost, 2 * pairs, rng, tournament)]
+        y1, y2 = laplace_crossover(parents[0::2], parents[1::2], rng, crossover_probability,
+                                   laplace_a, laplace_b, lx_variant)
+        children = np.clip(np.concatenate([y1, y2])[:population], lower, upper)
+        children = power_mutation(children, lower, upper, rng, mutation_probability,
+                                  pm_index)
+        child_cost = _evaluate(objective, children)
+        worst = np.argsort(child_cost, kind='stable')[population - elitism:]
+        children[worst], child_cost[worst] = x[elite], cost[elite]
+        x, cost = children, child_cost
+        history[generation] = cost.min()
+        if progress is not None:
+            progress(generation + 1, float(history[generation]))
+    best = int(np.argmin(cost))
+    return GAResult(best=x[best].copy(), best_cost=float(cost[best]), history=history)
+
+
+def stereo_objective(points_world, pixels_left, pixels_right, distortion='implicit'):
+    """The calibration cost (4.3.2) with the full §3.2 model (A4.3): (P, 24) -> (P,).
+
+    Columns 0..11 are the left camera, 12..23 the right, each in ``PARAM_NAMES`` order.
+    The cost is the sum over the N points of the squared pixel residuals in both images
+    [px^2]; an individual that puts any point at Z <= 0 in either camera costs +inf.
+
+    Args:
+        points_world: (N, 3) control points [unit].
+        pixels_left, pixels_right: (N, 2) observed pixels (u, v).
+    """
+    points_world = np.array(points_world, dtype=float)
+    observed = [np.array(pixels_left, dtype=float), np.array(pixels_right, dtype=float)]
+    if points_world.ndim != 2 or points_world.shape[1] != 3:
+        raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')
+    for name, pixels in zip(('pixels_left', 'pixels_right'), observed):
+        if pixels.shape != (points_world.shape[0], 2):
+            raise ValueError(f'{name}: expected shape ({points_world.shape[0]}, 2), '
+                             f'got {pixels.shape}')
+
+    def cost(q):
+        q = np.asarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 24:
+            raise ValueError(f'q: expected shape (P, 24), got {q.shape}')
+        total = np.zeros(q.shape[0])
+        in_front = np.ones(q.shape[0], dtype=bool)
+        for params, pixels in zip((q[:, :12], q[:, 12:]), observed):
+            uv, Z = project_with_depth(params, points_world, distortion)
+            in_front &= np.all(Z > 0, axis=1)
+            with np.errstate(invalid='ignore', over='ignore'):
+                total += np.sum((uv - pixels) ** 2, axis=(1, 2))
+        return np.where(in_front, total, np.inf)
+
+    return cost

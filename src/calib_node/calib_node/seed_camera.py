@@ -1,0 +1,148 @@
+"""The thesis's chapter 4 camera model (ALGORITHMS.md §3.2), vectorised over a population
+of parameter vectors, with the ground truth and bounds of Tables 4.1 / 4.2 and the
+synthetic control points of §3.6.
+
+A camera is 12 parameters in the thesis's order (4.3.1):
+``(u0, v0, Nx, Ny, f, k, alpha, beta, gamma, Tx, Ty, Tz)``: principal point [px], pixels
+per unit length [px/unit], focal length [unit], division distortion k [1/unit^2],
+yaw, pitch, roll [rad] with R = Rz(alpha) Ry(beta) Rx(gamma) [C], and the translation T
+[unit], where R, T map world to camera: X = R x + T. Units are the thesis's (1 unit = 1 mm
+in the ch4_calibration scenario). Images are non-inverted: Xu = f X / Z.
+"""
+from typing import NamedTuple
+
+import numpy as np
+
+PARAM_NAMES = ('u0', 'v0', 'Nx', 'Ny', 'f', 'k', 'alpha', 'beta', 'gamma', 'Tx', 'Ty', 'Tz')
+DISTORTIONS = ('implicit', 'explicit')
+
+# Tables 4.1 / 4.2 [T]. Right gamma = k = 0.15152 looks like a copy error; used as
+# printed (A4.8).
+LEFT_TRUTH = np.array([20.0, 19.0, 200.0, 200.0, 10.0, 0.15152, 0.0, 0.0, 0.0,
+                       60.0, 35.0, 1210.0])
+RIGHT_TRUTH = np.array([256.0, 192.0, 144.0, 144.0, 25.0, 0.15152, -1.90, 0.20916, 0.15152,
+                        -38.0, 35.0, 1210.0])
+# (12, 2) rows of [lower, upper], same order as the parameters.
+LEFT_BOUNDS = np.array([[0, 50], [0, 50], [0, 300], [0, 300], [0, 50], [0, 1],
+                        [-np.pi, np.pi], [-np.pi, np.pi], [-np.pi, np.pi],
+                        [0, 100], [0, 100], [0, 1600]], dtype=float)
+RIGHT_BOUNDS = np.array([[0, 300], [0, 300], [0, 300], [0, 300], [0, 50], [0, 1],
+                         [-np.pi, np.pi], [-np.pi, np.pi], [-np.pi, np.pi],
+                         [-100, 100], [0, 100], [0, 1600]], dtype=float)
+for _array in (LEFT_TRUTH, RIGHT_TRUTH, LEFT_BOUNDS, RIGHT_BOUNDS):
+    _array.setflags(write=False)
+
+
+class Identifiable(NamedTuple):
+    """What the images determine (A4.1); leading shape of the input parameters."""
+
+    fx: np.ndarray  # f Nx [px]
+    fy: np.ndarray  # f Ny [px]
+    kappa: np.ndarray  # k f^2, normalised division coefficient
+    u0: np.ndarray  # [px]
+    v0: np.ndarray  # [px]
+    R: np.ndarray  # (..., 3, 3) world -> camera
+    T: np.ndarray  # (..., 3) [unit]
+
+
+def seed_control_points(spacing=10.0):
+    """The §3.6 control points: x_w, y_w, z_w each in {0, s, ..., 7 s}, (512, 3) [unit].
+
+    Ordered z slowest, then y, then x (x fastest), one 8 x 8 chart per depth. The grid
+    origin at the world origin matches the ch4_calibration scenario (chart columns 1..8)
+    and puts the left ground-truth pixels in about u in [104, 208], v in [67, 174].
+    """
+    steps = spacing * np.arange(8.0)
+    z, y, x = np.meshgrid(steps, steps, steps, indexing='ij')
+    return np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+
+
+def rotation_zyx(alpha, beta, gamma):
+    """R = Rz(alpha) Ry(beta) Rx(gamma) for (P,) angles [rad] -> (P, 3, 3)."""
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    cb, sb = np.cos(beta), np.sin(beta)
+    cg, sg = np.cos(gamma), np.sin(gamma)
+    return np.stack([
+        np.stack([ca * cb, ca * sb * sg - sa * cg, ca * sb * cg + sa * sg], axis=-1),
+        np.stack([sa * cb, sa * sb * sg + ca * cg, sa * sb * cg - ca * sg], axis=-1),
+        np.stack([-sb, cb * sg, cb * cg], axis=-1),
+    ], axis=-2)
+
+
+def distorted_radius(r_u, k):
+    """Root r >= 0 of k r^3 + r - r_u = 0 for k >= 0 (unique), elementwise by broadcasting.
+
+    Closed form r = 2/s sinh(asinh(1.5 s r_u)/3) with s = sqrt(3k), r = r_u where k = 0,
+    then one Newton step to remove rounding.
+    """
+    r_u, k = np.broadcast_arrays(np.asarray(r_u, dtype=float), np.asarray(k, dtype=float))
+    positive = k > 0
+    s = np.sqrt(3 * np.where(positive, k, 1.0))
+    r = np.where(positive, 2 / s * np.sinh(np.arcsinh(1.5 * s * r_u) / 3), r_u)
+    return r - (k * r ** 3 + r - r_u) / (3 * k * r ** 2 + 1)
+
+
+def camera_points(params, points_world):
+    """World points (N, 3) into each camera of a population (P, 12) -> (P, N, 3)."""
+    R = rotation_zyx(params[:, 6], params[:, 7], params[:, 8])
+    return np.einsum('pij,nj->pni', R, points_world) + params[:, None, 9:12]
+
+
+def _check(params, points_world, distortion):
+    params = np.asarray(params, dtype=float)
+    points_world = np.asarray(points_world, dtype=float)
+    if params.ndim != 2 or params.shape[1] != 12:
+        raise ValueError(f'params: expected shape (P, 12), got {params.shape}')
+    if points_world.ndim != 2 or points_world.shape[1] != 3:
+        raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')
+    if distortion not in DISTORTIONS:
+        raise ValueError(f'distortion: expected one of {DISTORTIONS}, got {distortion!r}')
+    if np.any(params[:, 5] < 0):
+        raise ValueError('params: the division model needs k >= 0 (column 5)')
+    return params, points_world
+
+
+def project_with_depth(params, points_world, distortion='implicit'):
+    """Like :func:`project_seed`, also returning the camera depths Z (P, N) [unit]."""
+    params, points_world = _check(params, points_world, distortion)
+    X = camera_points(params, points_world)
+    Z = X[..., 2]
+    f, k = params[:, 4:5], params[:, 5:6]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        xy_u = f[..., None] * X[..., :2] / Z[..., None]
+        r_u = np.hypot(xy_u[..., 0], xy_u[..., 1])
+        r = distorted_radius(r_u, k) if distortion == 'implicit' else r_u
+        xy_d = xy_u / (1 + k * r ** 2)[..., None]
+    uv = xy_d * params[:, None, 2:4] + params[:, None, 0:2]
+    return uv, Z
+
+
+def project_seed(params, points_world, distortion='implicit'):
+    """Pixels of N world points in each of P cameras (§3.2, 4.2.1-4.2.4).
+
+    Args:
+        params: (P, 12) cameras, ``PARAM_NAMES`` order, k >= 0.
+        points_world: (N, 3) points [unit].
+        distortion: ``'implicit'`` (r is the distorted radius, the thesis's model, A4.2)
+            or ``'explicit'`` (r = r_u).
+
+    Returns:
+        (P, N, 2) pixels (u, v). Points with Z <= 0 are not masked (inf/nan at Z = 0).
+
+    Raises:
+        ValueError: on bad shapes, an unknown ``distortion`` or a negative k.
+    """
+    return project_with_depth(params, points_world, distortion)[0]
+
+
+def identifiable(params):
+    """The combinations the images fix (A4.1) of (12,) or (P, 12) params."""
+    params = np.asarray(params, dtype=float)
+    if params.shape[-1] != 12:
+        raise ValueError(f'params: expected shape (..., 12), got {params.shape}')
+    f = params[..., 4]
+    return Identifiable(fx=f * params[..., 2], fy=f * params[..., 3],
+                        kappa=params[..., 5] * f ** 2, u0=params[..., 0].copy(),
+                        v0=params[..., 1].copy(),
+                        R=rotation_zyx(params[..., 6], params[..., 7], params[..., 8]),
+                        T=params[..., 9:12].copy())
