@@ -1,0 +1,123 @@
+"""Plane algebraic curves g(X, Y) = a^T mu_n(X, Y) = 0 (ALGORITHMS §2.3 step 1).
+
+Coordinates are normalised image coordinates (X, Y) = (x/z, y/z) of one camera's optical
+frame (f = 1, after undistortion). Coefficient vectors have unit norm; their sign is
+arbitrary.
+
+Monomial order (``monomial_exponents``): by total degree d = 0..n, and within one degree by
+decreasing power of X, i.e. for n = 2: 1, X, Y, X^2, XY, Y^2 and for n = 3 then
+X^3, X^2 Y, X Y^2, Y^3. The thesis's conic (3.4.1) A X^2 + B Y^2 + C XY + D X + E Y + F is
+a = (F, D, E, A, C, B) in this order.
+"""
+from math import comb
+
+import numpy as np
+
+from vgm_common.errors import InvalidInput
+
+
+def monomial_exponents(degree):
+    """(M, 2) int exponents (j, l) of X^j Y^l, j + l <= degree, in the module's order;
+    M = (degree + 1)(degree + 2) / 2."""
+    if int(degree) != degree or degree < 1:
+        raise InvalidInput(f'degree: expected an integer >= 1, got {degree!r}',
+                           key='degree', value=degree)
+    return np.array([(j, d - j) for d in range(int(degree) + 1) for j in range(d, -1, -1)])
+
+
+def _as_xy(xy):
+    xy = np.asarray(xy, dtype=float)
+    if xy.ndim != 2 or xy.shape[1] != 2:
+        raise InvalidInput(f'xy: expected shape (N, 2), got {xy.shape}', key='xy',
+                           value=xy.shape)
+    return xy
+
+
+def monomials(xy, degree):
+    """Monomial matrix (N, M) with rows mu_n(X, Y) for (N, 2) points ``xy``."""
+    xy = _as_xy(xy)
+    exponents = monomial_exponents(degree)
+    return xy[:, None, 0] ** exponents[:, 0] * xy[:, None, 1] ** exponents[:, 1]
+
+
+def check_coefficients(a, degree):
+    """``a`` as a float (M,) array; ``InvalidInput`` if its length does not match degree."""
+    a = np.asarray(a, dtype=float)
+    size = len(monomial_exponents(degree))
+    if a.shape != (size,):
+        raise InvalidInput(f'coefficients: expected shape ({size},) for degree {degree}, '
+                           f'got {a.shape}', key='coefficients', value=a.shape)
+    return a
+
+
+def _shift_scale_matrix(mean, scale, degree):
+    """(M, M) matrix T with mu(scale * (p - mean)) = T mu(p) for every point p."""
+    exponents = monomial_exponents(degree)
+    index = {tuple(e): i for i, e in enumerate(exponents)}
+    T = np.zeros((len(exponents), len(exponents)))
+    for row, (jx, jy) in enumerate(exponents):
+        for p in range(jx + 1):
+            for q in range(jy + 1):
+                T[row, index[p, q]] += (scale ** (jx + jy) * comb(jx, p) * comb(jy, q)
+                                        * (-mean[0]) ** (jx - p) * (-mean[1]) ** (jy - q))
+    return T
+
+
+def fit_implicit_curve(xy, degree):
+    """Fit a degree-n curve to (N, 2) points: min ||M a|| subject to ||a|| = 1.
+
+    The fit is solved by SVD in Hartley-normalised coordinates (centroid at 0, mean distance
+    sqrt(2)) and mapped back to the original coordinates. Returns the (M,) unit-norm
+    coefficients. Raises ``InvalidInput`` with fewer than M - 1 points (the curve is then
+    not determined).
+    """
+    xy = _as_xy(xy)
+    size = len(monomial_exponents(degree))
+    if len(xy) < size - 1:
+        raise InvalidInput(f'xy: a degree-{degree} curve needs at least {size - 1} points, '
+                           f'got {len(xy)}', key='xy', value=len(xy))
+    mean = xy.mean(axis=0)
+    scale = np.sqrt(2.0) / np.mean(np.linalg.norm(xy - mean, axis=1))
+    _, _, vt = np.linalg.svd(monomials(scale * (xy - mean), degree), full_matrices=False)
+    a = _shift_scale_matrix(mean, scale, degree).T @ vt[-1]
+    return a / np.linalg.norm(a)
+
+
+def evaluate_curve(a, xy, degree):
+    """Algebraic value g(X, Y) = a^T mu_n(X, Y), shape (N,)."""
+    return monomials(xy, degree) @ check_coefficients(a, degree)
+
+
+def curve_gradient(a, xy, degree):
+    """Gradient (dg/dX, dg/dY) at (N, 2) points, shape (N, 2)."""
+    a = check_coefficients(a, degree)
+    xy = _as_xy(xy)
+    jx, jy = monomial_exponents(degree).T
+    x, y = xy[:, None, 0], xy[:, None, 1]
+    # terms with a zero exponent are multiplied by 0, so clipping it at 0 is safe
+    d_dx = jx * x ** np.maximum(jx - 1, 0) * y ** jy
+    d_dy = jy * x ** jx * y ** np.maximum(jy - 1, 0)
+    return np.column_stack([d_dx @ a, d_dy @ a])
+
+
+def sampson_distance(a, xy, degree):
+    """First-order geometric distance |g| / ||grad g|| of (N, 2) points to the curve, (N,),
+    in the units of ``xy`` (normalised image units: pixels / f)."""
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return (np.abs(evaluate_curve(a, xy, degree))
+                / np.linalg.norm(curve_gradient(a, xy, degree), axis=1))
+
+
+def project_to_curve(a, xy, degree, iterations=5):
+    """Move (N, 2) points onto the curve by repeated first-order (Sampson) steps
+    xy <- xy - g grad g / ||grad g||^2; returns (N, 2). Use it on noisy image-1 samples so
+    that their rays lie on cone 1. Points where the gradient vanishes are left as they are.
+    """
+    xy = _as_xy(xy).copy()
+    for _ in range(iterations):
+        gradient = curve_gradient(a, xy, degree)
+        norm2 = np.sum(gradient**2, axis=1)
+        step = np.divide(evaluate_curve(a, xy, degree), norm2, out=np.zeros(len(xy)),
+                         where=norm2 > 0)
+        xy -= step[:, None] * gradient
+    return xy
