@@ -1,0 +1,148 @@
+"""Fusion of dense SFS depth with sparse stereo depth (ALGORITHMS.md §4.4, A5.8) and the
+chapter's error metrics (§4.5).
+
+Depth maps are (H, W) float arrays; sparse stereo depth is NaN where absent.
+"""
+from typing import NamedTuple
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve
+
+from vgm_common.errors import InvalidInput
+
+
+class RowFusion(NamedTuple):
+    depth: np.ndarray  # (H, W) fused depth, in the stereo depth's unit
+    trained_rows: np.ndarray  # (H,) bool, rows with at least one stereo point
+    loss_initial: np.ndarray  # (H,) scaled mean squared error before training, NaN if untrained
+    loss_final: np.ndarray  # (H,) the same after training
+
+
+class DepthErrors(NamedTuple):
+    mean: float  # mean |Z' - G| (Table 5.1)
+    std: float  # std of |Z' - G| (Table 5.2)
+    rms: float  # sqrt(mean (Z' - G)^2)
+
+
+def _check_pair(Z_sfs, Z_stereo):
+    Z_sfs, Z_stereo = np.asarray(Z_sfs, dtype=float), np.asarray(Z_stereo, dtype=float)
+    if Z_sfs.ndim != 2 or Z_sfs.shape != Z_stereo.shape:
+        raise InvalidInput(f'Z_sfs {Z_sfs.shape} and Z_stereo {Z_stereo.shape}: expected '
+                           'two (H, W) maps of one shape', key='Z_sfs', value=Z_sfs.shape)
+    mask = np.isfinite(Z_stereo)
+    if not mask.any():
+        raise InvalidInput('Z_stereo has no finite point', key='Z_stereo')
+    return Z_sfs, Z_stereo, mask
+
+
+def _sigmoid(a):
+    return 1.0 / (1.0 + np.exp(-a))
+
+
+def _forward(params, x):
+    """Batched 1-6-3-1 network: x (R, N) -> output (R, N) and the hidden activations."""
+    W1, b1, W2, b2, W3, b3 = params  # (R,6), (R,6), (R,3,6), (R,3), (R,3), (R,)
+    h1 = _sigmoid(x[..., None] * W1[:, None, :] + b1[:, None, :])  # (R, N, 6)
+    h2 = _sigmoid(np.einsum('rnj,rkj->rnk', h1, W2) + b2[:, None, :])  # (R, N, 3)
+    return np.einsum('rnk,rk->rn', h2, W3) + b3[:, None], h1, h2
+
+
+def train_row_networks(x, t, mask, rng, hidden=(6, 3), learning_rate=0.5, epochs=2000):
+    """Train one network per row at once by full-batch back-propagation (§4.4).
+
+    ``x``, ``t`` (R, N) scaled inputs and targets, ``mask`` (R, N) bool training points
+    (each row's loss is the mean squared error over its own points). Weights start from
+    N(0, 1/fan_in) drawn from ``rng``. Returns (params, loss_initial (R,), loss_final (R,)).
+    """
+    R = x.shape[0]
+    n1, n2 = hidden
+    params = [rng.normal(0, 1.0, (R, n1)), np.zeros((R, n1)),
+              rng.normal(0, n1**-0.5, (R, n2, n1)), np.zeros((R, n2)),
+              rng.normal(0, n2**-0.5, (R, n2)), np.zeros(R)]
+    weight = mask / np.maximum(mask.sum(axis=1, keepdims=True), 1)  # per-row mean
+    losses = []
+    for _ in range(epochs + 1):
+        y, h1, h2 = _forward(params, x)
+        err = np.where(mask, y - t, 0.0)
+        losses.append(np.sum(weight * err**2, axis=1))
+        if len(losses) > epochs:
+            break
+        g_y = 2 * weight * err  # (R, N) dLoss/dy
+        g_a2 = g_y[..., None] * params[4][:, None, :] * h2 * (1 - h2)  # (R, N, 3)
+        g_a1 = np.einsum('rnk,rkj->rnj', g_a2, params[2]) * h1 * (1 - h1)  # (R, N, 6)
+        grads = [np.einsum('rnj,rn->rj', g_a1, x), g_a1.sum(axis=1),
+                 np.einsum('rnk,rnj->rkj', g_a2, h1), g_a2.sum(axis=1),
+                 np.einsum('rn,rnk->rk', g_y, h2), g_y.sum(axis=1)]
+        params = [w - learning_rate * g for w, g in zip(params, grads)]
+    return params, losses[0], losses[-1]
+
+
+def fuse_mlp_rows(Z_sfs, Z_stereo, rng, hidden=(6, 3), learning_rate=0.5, epochs=2000):
+    """The seed's ``mlp_rows`` fusion: per image row, a network maps Z_sfs to Z_stereo.
+
+    Each row is min-max scaled to [0, 1] (inputs over the whole row of ``Z_sfs``, targets
+    over its stereo points), trained on its stereo points and applied to the whole row.
+    Rows without stereo points borrow the nearest trained row's network with that row's
+    scaling. ``rng`` a numpy Generator (deterministic for a seed). Returns ``RowFusion``.
+    """
+    Z_sfs, Z_stereo, mask = _check_pair(Z_sfs, Z_stereo)
+    trained = mask.any(axis=1)
+    rows = np.flatnonzero(trained)
+    x_lo, x_hi = Z_sfs.min(axis=1), Z_sfs.max(axis=1)
+    masked_t = np.where(mask, Z_stereo, np.nan)[rows]
+    t_lo, t_hi = np.nanmin(masked_t, axis=1), np.nanmax(masked_t, axis=1)
+    x_lo, x_span = x_lo[rows, None], np.maximum(x_hi - x_lo, 1e-12)[rows, None]
+    t_span = np.maximum(t_hi - t_lo, 1e-12)[:, None]
+    t = np.where(mask[rows], (Z_stereo[rows] - t_lo[:, None]) / t_span, 0.0)
+    params, loss0, loss1 = train_row_networks((Z_sfs[rows] - x_lo) / x_span, t, mask[rows],
+                                              rng, hidden, learning_rate, epochs)
+    # nearest trained row (index into ``rows``) for every image row
+    source = np.argmin(np.abs(np.arange(Z_sfs.shape[0])[:, None] - rows[None, :]), axis=1)
+    y, _, _ = _forward([w[source] for w in params], (Z_sfs - x_lo[source]) / x_span[source])
+    loss_initial, loss_final = np.full(len(trained), np.nan), np.full(len(trained), np.nan)
+    loss_initial[rows], loss_final[rows] = loss0, loss1
+    return RowFusion(y * t_span[source] + t_lo[source, None], trained, loss_initial,
+                     loss_final)
+
+
+def _difference_operators(H, W):
+    """Sparse forward differences along x (columns) and y (rows) of a row-major (H, W)."""
+    def diff(n):
+        return sp.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], shape=(n - 1, n))
+    return sp.kron(sp.eye(H), diff(W)), sp.kron(diff(H), sp.eye(W))
+
+
+def fuse_least_squares(Z_sfs, Z_stereo, weight=1.0):
+    """Dense depth Z minimising sum_stereo (Z - Z_s)^2 + weight ||grad Z - grad(a Z_sfs + b)||^2.
+
+    (a, b) is the least-squares affine fit of Z_sfs to the stereo points, made first;
+    gradients are forward differences. ``weight`` > 0 [dimensionless]. Solves the sparse
+    normal equations. Returns (H, W) depth in the stereo depth's unit.
+    """
+    Z_sfs, Z_stereo, mask = _check_pair(Z_sfs, Z_stereo)
+    if not weight > 0:
+        raise InvalidInput(f'weight must be > 0, got {weight}', key='weight', value=weight)
+    a, b = np.polyfit(Z_sfs[mask], Z_stereo[mask], 1) if mask.sum() > 1 else (1.0, 0.0)
+    guide = (a * Z_sfs + b).ravel()
+    Dx, Dy = _difference_operators(*Z_sfs.shape)
+    S = sp.diags(mask.ravel().astype(float))
+    lhs = S + weight * (Dx.T @ Dx + Dy.T @ Dy)
+    rhs = np.where(mask, Z_stereo, 0.0).ravel() + weight * (Dx.T @ Dx + Dy.T @ Dy) @ guide
+    return spsolve(lhs.tocsc(), rhs).reshape(Z_sfs.shape)
+
+
+def depth_error_stats(Z, G, mask=None):
+    """§4.5 errors of an estimate ``Z`` against ground truth ``G``, both (H, W), over the
+    bool ``mask`` (default: where both are finite). Z is first mapped linearly so that its
+    range over the mask becomes G's. Returns ``DepthErrors``."""
+    Z, G = np.asarray(Z, dtype=float), np.asarray(G, dtype=float)
+    if mask is None:
+        mask = np.isfinite(Z) & np.isfinite(G)
+    z, g = Z[mask], G[mask]
+    if z.size == 0 or np.ptp(z) == 0:
+        raise InvalidInput('depth_error_stats: empty mask or constant estimate', key='mask')
+    mapped = g.min() + (z - z.min()) * np.ptp(g) / np.ptp(z)
+    err = mapped - g
+    return DepthErrors(float(np.mean(np.abs(err))), float(np.std(np.abs(err))),
+                       float(np.sqrt(np.mean(err**2))))
