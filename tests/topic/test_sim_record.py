@@ -13,6 +13,7 @@ from mcap_ros2.decoder import DecoderFactory
 from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import Image, JointState
 
+from bag_tools.bag_writer import header_stamp_ns
 from harness import SCENARIO_DIR, executable
 from sensor_sim.sensor_sim_node import parse_published_counts
 from vgm_common.conversions import stamp_to_ns
@@ -85,13 +86,11 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
         for connection, _, rawdata in reader.messages():
             in_bag[connection.topic] += 1
             if connection.topic == '/joint_states':
-                joint_stamps.append(int.from_bytes(rawdata[4:8], 'little') * 10**9 +
-                                    int.from_bytes(rawdata[8:12], 'little'))
+                joint_stamps.append(header_stamp_ns(rawdata))
         assert reader.topics['/stereo/left/image_raw'].msgtype == 'sensor_msgs/msg/Image'
     assert {t: in_bag[t] for t in expected} == expected
-    # Joint states at >= 100 Hz, from their header stamps (CDR: 4-byte encapsulation
-    # header, then stamp sec, nanosec). The median period: a VM whose host steals the CPU
-    # stalls every process now and then, which is not the simulator's schedule.
+    # Joint states at >= 100 Hz, from their header stamps. The median period: a VM whose
+    # host steals the CPU stalls every process now and then, not the simulator's schedule.
     joint_periods = np.diff(np.array(sorted(joint_stamps)) * 1e-9)
     assert np.median(joint_periods) <= 1 / 100.0
 

@@ -19,9 +19,9 @@ from calib_node.seed_camera import (
     identifiable,
     project_seed,
     project_with_depth,
-    rotation_zyx,
     seed_control_points,
 )
+from vgm_common.geometry import rpy_to_matrix
 
 POINTS_WORLD = seed_control_points()
 TRUTH = np.stack([LEFT_TRUTH, RIGHT_TRUTH])
@@ -54,7 +54,7 @@ def test_ground_truth_sees_the_control_points():
 def test_rotation_is_yaw_pitch_roll():
     angles = np.random.default_rng(0).uniform(-np.pi, np.pi, (20, 3))
     expected = Rotation.from_euler('ZYX', angles).as_matrix()  # Rz Ry Rx
-    np.testing.assert_allclose(rotation_zyx(*angles.T), expected, atol=1e-14)
+    np.testing.assert_allclose(rpy_to_matrix(*angles.T[::-1]), expected, atol=1e-14)
 
 
 def test_implicit_distortion_solves_its_cubic():
@@ -79,7 +79,7 @@ def test_implicit_distortion_solves_its_cubic():
 def test_zero_k_is_the_pinhole():
     params = random_cameras(np.random.default_rng(2), 4)
     params[:, 5] = 0.0
-    X = np.einsum('pij,nj->pni', rotation_zyx(*params[:, 6:9].T), POINTS_WORLD)
+    X = np.einsum('pij,nj->pni', rpy_to_matrix(*params[:, 6:9].T[::-1]), POINTS_WORLD)
     X += params[:, None, 9:12]
     fx, fy = params[:, 4] * params[:, 2], params[:, 4] * params[:, 3]
     expected = np.stack([fx[:, None] * X[..., 0] / X[..., 2] + params[:, 0, None],

@@ -13,6 +13,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from vgm_common.geometry import rpy_to_matrix
+
 PARAM_NAMES = ('u0', 'v0', 'Nx', 'Ny', 'f', 'k', 'alpha', 'beta', 'gamma', 'Tx', 'Ty', 'Tz')
 DISTORTIONS = ('implicit', 'explicit')
 
@@ -57,18 +59,6 @@ def seed_control_points(spacing=10.0):
     return np.column_stack([x.ravel(), y.ravel(), z.ravel()])
 
 
-def rotation_zyx(alpha, beta, gamma):
-    """R = Rz(alpha) Ry(beta) Rx(gamma) for (P,) angles [rad] -> (P, 3, 3)."""
-    ca, sa = np.cos(alpha), np.sin(alpha)
-    cb, sb = np.cos(beta), np.sin(beta)
-    cg, sg = np.cos(gamma), np.sin(gamma)
-    return np.stack([
-        np.stack([ca * cb, ca * sb * sg - sa * cg, ca * sb * cg + sa * sg], axis=-1),
-        np.stack([sa * cb, sa * sb * sg + ca * cg, sa * sb * cg - ca * sg], axis=-1),
-        np.stack([-sb, cb * sg, cb * cg], axis=-1),
-    ], axis=-2)
-
-
 def distorted_radius(r_u, k):
     """Root r >= 0 of k r^3 + r - r_u = 0 for k >= 0 (unique), elementwise by broadcasting.
 
@@ -84,7 +74,8 @@ def distorted_radius(r_u, k):
 
 def camera_points(params, points_world):
     """World points (N, 3) into each camera of a population (P, 12) -> (P, N, 3)."""
-    R = rotation_zyx(params[:, 6], params[:, 7], params[:, 8])
+    # R = Rz(alpha) Ry(beta) Rx(gamma): roll gamma, pitch beta, yaw alpha.
+    R = rpy_to_matrix(params[:, 8], params[:, 7], params[:, 6])
     return np.einsum('pij,nj->pni', R, points_world) + params[:, None, 9:12]
 
 
@@ -144,5 +135,5 @@ def identifiable(params):
     return Identifiable(fx=f * params[..., 2], fy=f * params[..., 3],
                         kappa=params[..., 5] * f ** 2, u0=params[..., 0].copy(),
                         v0=params[..., 1].copy(),
-                        R=rotation_zyx(params[..., 6], params[..., 7], params[..., 8]),
+                        R=rpy_to_matrix(params[..., 8], params[..., 7], params[..., 6]),
                         T=params[..., 9:12].copy())

@@ -37,57 +37,15 @@ from scipy.special import ndtri
 
 from sensor_sim import chart, curves, surfaces
 from vgm_common.errors import InvalidInput
+from vgm_common.reflectance import VARIANTS as ON_VARIANTS
+from vgm_common.reflectance import oren_nayar
 
 BACKGROUND_GREY = 20.0
 CHART_BACK_ALBEDO = 0.3  # the unprinted back of the chart plate
 MAX_SEGMENT_PX = 0.5  # longest projected curve segment drawn as a straight piece [px]
 MAX_CURVE_SAMPLES = 400_000
 DEPTH_TOLERANCE = (1e-3, 1e-3)  # (absolute [m], relative) slack of the curve depth test
-ON_VARIANTS = ('oren_nayar', 'thesis')
 _STENCIL_ELEMENTS = 2_000_000  # pixel candidates handled at once when drawing the curve
-
-
-def oren_nayar(normals, light, views, roughness, variant='oren_nayar'):
-    """Oren-Nayar reflectance factor without albedo (N,).
-
-    Args:
-        normals: (N, 3) unit surface normals.
-        light: (3,) unit vector from the surface toward the distant light.
-        views: (N, 3) unit vectors from the surface point toward the viewer.
-        roughness: Oren-Nayar sigma [rad]; 0 gives Lambert's cos(theta_i).
-        variant: ``'oren_nayar'`` (sin(alpha) tan(beta), the published model) or
-            ``'thesis'`` (sin(alpha) sin(beta), as the thesis prints it; A5.1).
-
-    Returns:
-        cos(theta_i) * (A + B * max(0, cos(phi_r - phi_i)) * sin(alpha) * f(beta)),
-        0 where the light or the viewer is behind the surface (cos theta <= 0).
-    """
-    if variant not in ON_VARIANTS:
-        raise InvalidInput(f'oren_nayar: variant must be one of {ON_VARIANTS}, got '
-                           f'{variant!r}', key='variant', value=variant)
-    normals = np.asarray(normals, dtype=float).reshape(-1, 3)
-    views = np.asarray(views, dtype=float).reshape(-1, 3)
-    light = np.asarray(light, dtype=float).reshape(3)
-    cos_i = normals @ light
-    cos_r = np.sum(normals * views, axis=1)
-    sigma2 = roughness ** 2
-    A = 1 - 0.5 * sigma2 / (sigma2 + 0.33)
-    B = 0.45 * sigma2 / (sigma2 + 0.09)
-    theta_i = np.arccos(np.clip(cos_i, -1.0, 1.0))
-    theta_r = np.arccos(np.clip(cos_r, -1.0, 1.0))
-    alpha, beta = np.maximum(theta_i, theta_r), np.minimum(theta_i, theta_r)
-    # cos(phi_r - phi_i): angle between light and view projected on the tangent plane.
-    light_tangent = light - cos_i[:, None] * normals
-    view_tangent = views - cos_r[:, None] * normals
-    norms = np.linalg.norm(light_tangent, axis=1) * np.linalg.norm(view_tangent, axis=1)
-    with np.errstate(divide='ignore', invalid='ignore'):
-        cos_phi = np.where(norms > 1e-12,
-                           np.sum(light_tangent * view_tangent, axis=1) / norms, 0.0)
-    lit = (cos_i > 0) & (cos_r > 0)
-    with np.errstate(invalid='ignore'):  # tan(beta) of unlit points is discarded below
-        beta_term = np.tan(beta) if variant == 'oren_nayar' else np.sin(beta)
-    factor = cos_i * (A + B * np.maximum(0.0, cos_phi) * np.sin(alpha) * beta_term)
-    return np.where(lit, factor, 0.0)
 
 
 # Standard normal quantiles at 65536 equiprobable levels: indexing it with uniform 16-bit

@@ -8,40 +8,22 @@ The source radiance E0 is taken as pi, so R = albedo cos(theta_i) when roughness
 import numpy as np
 
 from vgm_common.errors import InvalidInput
-
-VARIANTS = ('thesis', 'oren_nayar')
+from vgm_common.reflectance import oren_nayar_terms
 
 
 def reflectance_terms(p, q, ps, qs, albedo, roughness, variant='thesis'):
-    """(M, cos_theta_i) of (5.3.5), R = M cos_theta_i, on broadcast arrays p, q.
+    """(M, cos_theta_i) of (5.3.5), R = M cos_theta_i, on broadcast arrays p, q: the
+    shared Oren-Nayar model with normal (-p, -q, 1), light (-ps, -qs, 1), viewer (0, 0, 1).
 
     ``'thesis'`` uses sin(alpha) sin(beta) as printed, ``'oren_nayar'`` sin(alpha)
     tan(beta) (A5.1); both reduce to M = albedo for roughness = 0.
     """
-    if variant not in VARIANTS:
-        raise InvalidInput(f'variant: expected one of {VARIANTS}, got {variant!r}',
-                           key='variant', value=variant)
     p, q = np.broadcast_arrays(np.asarray(p, dtype=float), np.asarray(q, dtype=float))
-    norm_n, norm_s = np.sqrt(1 + p**2 + q**2), np.sqrt(1 + ps**2 + qs**2)
-    cos_i = (1 + p * ps + q * qs) / (norm_n * norm_s)
-    s2 = roughness**2
-    A, B = 1 - 0.5 * s2 / (s2 + 0.33), 0.45 * s2 / (s2 + 0.09)
-    if B == 0:
-        return np.full(p.shape, albedo * A), cos_i
-    n = np.stack([-p, -q, np.ones_like(p)], axis=-1) / norm_n[..., None]
-    s = np.array([-ps, -qs, 1.0]) / norm_s
-    cos_r = n[..., 2]
-    to_v = np.array([0.0, 0.0, 1.0]) - cos_r[..., None] * n  # viewer and light projected
-    to_s = s - cos_i[..., None] * n  # onto the tangent plane
-    lengths = np.linalg.norm(to_v, axis=-1) * np.linalg.norm(to_s, axis=-1)
-    with np.errstate(divide='ignore', invalid='ignore'):
-        cos_phi = np.where(lengths > 1e-12, np.sum(to_v * to_s, axis=-1) / lengths, 0.0)
-    theta_i = np.arccos(np.clip(cos_i, -1, 1))
-    theta_r = np.arccos(np.clip(cos_r, -1, 1))
-    alpha, beta = np.maximum(theta_i, theta_r), np.minimum(theta_i, theta_r)
-    trig = np.sin(beta) if variant == 'thesis' else np.tan(beta)
-    return albedo * (A + B * np.maximum(0.0, cos_phi) * np.sin(alpha) * trig), cos_i
-
+    normals = np.stack([-p, -q, np.ones_like(p)], axis=-1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    light = np.array([-ps, -qs, 1.0]) / np.sqrt(1 + ps**2 + qs**2)
+    M, cos_i = oren_nayar_terms(normals, light, np.array([0.0, 0.0, 1.0]), roughness, variant)
+    return albedo * M, cos_i
 
 def reflectance(p, q, ps, qs, albedo, roughness, variant='thesis'):
     """Image irradiance R(p, q) = M max(0, cos_theta_i) (5.3.5), attached shadows at 0."""

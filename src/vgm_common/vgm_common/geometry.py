@@ -8,23 +8,32 @@ as in geometry_msgs.
 import numpy as np
 
 
-def rot_x(angle):
+def _rotation(angle, axis):
+    """Rotation(s) by ``angle`` [rad] (scalar or any shape S) about a coordinate axis:
+    (3, 3), or (*S, 3, 3) for arrays of angles."""
     c, s = np.cos(angle), np.sin(angle)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    rows = {'x': ((one, zero, zero), (zero, c, -s), (zero, s, c)),
+            'y': ((c, zero, s), (zero, one, zero), (-s, zero, c)),
+            'z': ((c, -s, zero), (s, c, zero), (zero, zero, one))}[axis]
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def rot_x(angle):
+    return _rotation(angle, 'x')
 
 
 def rot_y(angle):
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return _rotation(angle, 'y')
 
 
 def rot_z(angle):
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return _rotation(angle, 'z')
 
 
 def rpy_to_matrix(roll, pitch, yaw):
-    """3x3 rotation of fixed-axis roll, pitch, yaw [rad]."""
+    """Rotation of fixed-axis roll, pitch, yaw [rad]: (3, 3), or (*S, 3, 3) for arrays of
+    angles (a whole population of cameras at once)."""
     return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
 
 
