@@ -64,3 +64,33 @@ class NodeProcess:
                 pass
         self._log.close()
         return self.proc.returncode
+
+
+def publish_rig(node, calibration_path, stamp_ns=1):
+    """Publish a calibration file's cameras on the latched camera_info and pose topics,
+    as calib_node does with `calibration_file` (the left/right pair rectified); returns
+    the publishers (keep them alive) and the rig {name: (PinholeCamera, R, P)}."""
+    from geometry_msgs.msg import PoseStamped
+    from sensor_msgs.msg import CameraInfo
+
+    from vgm_common.calibration_io import read_calibration, stereo_rectification
+    from vgm_common.camera_topics import (
+        BASE_FRAME,
+        CAMERA_INFO_TOPICS,
+        OPTICAL_FRAMES,
+        POSE_TOPICS,
+    )
+    from vgm_common.conversions import camera_to_camera_info, matrix_to_pose_stamped
+    from vgm_common.qos import LATCHED_QOS
+
+    rig = read_calibration(calibration_path)
+    rectified = stereo_rectification(rig['left'][0], rig['right'][0])
+    rig = {name: (camera, *rectified.get(name, (R, P))) for name, (camera, R, P) in rig.items()}
+    publishers = []
+    for name, (camera, R, P) in rig.items():
+        info = node.create_publisher(CameraInfo, CAMERA_INFO_TOPICS[name], LATCHED_QOS)
+        pose = node.create_publisher(PoseStamped, POSE_TOPICS[name], LATCHED_QOS)
+        info.publish(camera_to_camera_info(camera, stamp_ns, OPTICAL_FRAMES[name], R, P))
+        pose.publish(matrix_to_pose_stamped(camera.T_base_camera, stamp_ns, BASE_FRAME))
+        publishers += [info, pose]
+    return publishers, rig

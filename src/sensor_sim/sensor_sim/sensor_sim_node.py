@@ -24,6 +24,8 @@ from sensor_sim.arm_sim import SimulatedArm
 from sensor_sim.contact import contact_force
 from sensor_sim.curves import curve_polylines
 from sensor_sim.render import SceneRenderer, add_noise
+from vgm_common.calibration_io import write_calibration
+from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
 from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
@@ -31,11 +33,7 @@ from vgm_common.qos import DEFAULT_QOS
 from vgm_common.robot_model import load_robot
 from vgm_common.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
 
-IMAGE_TOPICS = {'left': '/stereo/left/image_raw', 'right': '/stereo/right/image_raw',
-                'aux': '/aux/image_raw'}
 TARGET_POSE_TOPIC = '/calibration/target_pose'
-OPTICAL_FRAMES = {'left': 'stereo_left_optical_frame', 'right': 'stereo_right_optical_frame',
-                  'aux': 'aux_optical_frame'}
 
 
 class SensorSim(Node):
@@ -260,6 +258,10 @@ class SensorSim(Node):
                           'T_base_camera': cam.T_base_camera.tolist()}
                    for name, cam in self.scenario.cameras.items()}
         (directory / 'cameras.yaml').write_text(yaml.safe_dump(cameras))
+        if all(c.distortion_model == 'plumb_bob' for c in self.scenario.cameras.values()):
+            # The true rig as a calibration file: calib_node's `calibration_file` loads it.
+            write_calibration(directory / 'true_calibration', self.scenario.cameras,
+                              OPTICAL_FRAMES)
         pieces = curve_polylines(self.scenario.curve, self.scenario.surface)
         np.savez(directory / 'curve_base.npz', *pieces)
         for name in CAMERA_NAMES:

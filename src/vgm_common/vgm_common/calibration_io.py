@@ -1,0 +1,176 @@
+"""Calibration files. No rclpy.
+
+Two formats:
+
+- ``<name>.yaml`` per camera (``left.yaml``, ``right.yaml``, ``aux.yaml``): the
+  camera_calibration_parsers format that ROS camera drivers load (image size, camera
+  name, K, distortion model and D, R, P). It carries no pose.
+- ``calibration.yaml``: the whole rig in one file, what calib_node's
+  ``calibration_file`` loads. ``cameras: {left: {...}, right: ..., aux: ...}`` where each
+  entry is the camera_calibration_parsers mapping plus ``frame_id`` and
+  ``pose_in_base_link: {position: [x, y, z], orientation: [x, y, z, w]}`` (the optical
+  frame in base_link), and optional ``quality`` (e.g. reprojection RMS per camera).
+"""
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.errors import InvalidInput
+from vgm_common.geometry import make_transform, matrix_to_quaternion, quaternion_to_matrix
+
+RIG_FILE = 'calibration.yaml'
+CAMERA_NAMES_IN_FILES = {'left': 'stereo_left', 'right': 'stereo_right', 'aux': 'aux'}
+
+
+def _matrix(rows, cols, values):
+    return {'rows': rows, 'cols': cols, 'data': [float(v) for v in np.ravel(values)]}
+
+
+def camera_yaml_dict(camera, camera_name, R=None, P=None):
+    """The camera_calibration_parsers mapping of a plumb_bob PinholeCamera."""
+    if camera.distortion_model != 'plumb_bob':
+        raise InvalidInput(f'{camera_name}: only plumb_bob cameras can be written, got '
+                           f'{camera.distortion_model!r}', key='distortion_model')
+    R = np.eye(3) if R is None else np.asarray(R, dtype=float)
+    P = np.hstack([camera.K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=float)
+    return {'image_width': int(camera.width), 'image_height': int(camera.height),
+            'camera_name': camera_name, 'camera_matrix': _matrix(3, 3, camera.K),
+            'distortion_model': 'plumb_bob',
+            'distortion_coefficients': _matrix(1, len(camera.D), camera.D),
+            'rectification_matrix': _matrix(3, 3, R), 'projection_matrix': _matrix(3, 4, P)}
+
+
+def _read_matrix(entry, key, shape):
+    try:
+        value = entry[key]
+        data = np.array(value['data'], dtype=float)
+        if shape is not None:
+            data = data.reshape(shape)
+    except (KeyError, TypeError, ValueError) as error:
+        raise InvalidInput(f'{key}: expected {{rows, cols, data}} of shape {shape} ({error})',
+                           key=key) from None
+    if not np.all(np.isfinite(data)):
+        raise InvalidInput(f'{key}: non-finite values', key=key)
+    return data
+
+
+def camera_from_yaml_dict(entry, T_base_camera=None):
+    """camera_calibration_parsers mapping -> (PinholeCamera, R (3x3), P (3x4))."""
+    if not isinstance(entry, dict):
+        raise InvalidInput('camera entry must be a mapping', key='camera')
+    if entry.get('distortion_model', 'plumb_bob') != 'plumb_bob':
+        raise InvalidInput(f'unsupported distortion model {entry["distortion_model"]!r}',
+                           key='distortion_model')
+    K = _read_matrix(entry, 'camera_matrix', (3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
+        raise InvalidInput(f'camera_matrix is not an intrinsic matrix: {K.tolist()}',
+                           key='camera_matrix')
+    try:
+        width, height = int(entry['image_width']), int(entry['image_height'])
+    except (KeyError, TypeError, ValueError):
+        raise InvalidInput('image_width and image_height are required integers',
+                           key='image_width') from None
+    if width <= 0 or height <= 0:
+        raise InvalidInput('image size must be positive', key='image_width')
+    D = _read_matrix(entry, 'distortion_coefficients', None)
+    R = _read_matrix(entry, 'rectification_matrix', (3, 3))
+    P = _read_matrix(entry, 'projection_matrix', (3, 4))
+    T = np.eye(4) if T_base_camera is None else T_base_camera
+    return PinholeCamera(width, height, K, D, T), R, P
+
+
+def write_camera_yaml(path, camera, camera_name, R=None, P=None):
+    Path(path).write_text(yaml.safe_dump(camera_yaml_dict(camera, camera_name, R, P),
+                                         sort_keys=False))
+
+
+def read_camera_yaml(path):
+    """camera_calibration_parsers file -> (PinholeCamera (pose = identity), R, P)."""
+    return camera_from_yaml_dict(yaml.safe_load(Path(path).read_text()))
+
+
+def write_calibration(directory, cameras, frame_ids, rectification=None, quality=None):
+    """Write ``calibration.yaml`` and one camera_calibration_parsers file per camera.
+
+    Args:
+        directory: created if missing.
+        cameras: {name: PinholeCamera (plumb_bob) with its pose in base_link}.
+        frame_ids: {name: optical frame id}.
+        rectification: {name: (R, P)}; default R = I, P = [K | 0].
+        quality: {name: {key: number}} stored beside each camera (e.g. rms_px).
+
+    Returns:
+        Path of ``calibration.yaml``.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    rectification = rectification or {}
+    rig = {}
+    for name, camera in cameras.items():
+        R, P = rectification.get(name, (None, None))
+        camera_name = CAMERA_NAMES_IN_FILES.get(name, name)
+        write_camera_yaml(directory / f'{name}.yaml', camera, camera_name, R, P)
+        entry = camera_yaml_dict(camera, camera_name, R, P)
+        T = camera.T_base_camera
+        entry['frame_id'] = frame_ids[name]
+        entry['pose_in_base_link'] = {
+            'position': [float(v) for v in T[:3, 3]],
+            'orientation': [float(v) for v in matrix_to_quaternion(T[:3, :3])]}
+        if quality and name in quality:
+            entry['quality'] = {k: float(v) for k, v in quality[name].items()}
+        rig[name] = entry
+    path = directory / RIG_FILE
+    path.write_text(yaml.safe_dump({'cameras': rig}, sort_keys=False))
+    return path
+
+
+def read_calibration(path):
+    """``calibration.yaml`` (or the directory holding it) -> {name: (PinholeCamera with
+    pose, R, P)}. Raises InvalidInput naming what is wrong."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / RIG_FILE
+    try:
+        document = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as error:
+        raise InvalidInput(f'cannot read calibration file {path}: {error}',
+                           key='calibration_file') from None
+    if not isinstance(document, dict) or not isinstance(document.get('cameras'), dict):
+        raise InvalidInput(f'{path}: expected a top-level "cameras" mapping',
+                           key='calibration_file')
+    rig = {}
+    for name, entry in document['cameras'].items():
+        try:
+            pose = entry['pose_in_base_link']
+            position = np.array(pose['position'], dtype=float).reshape(3)
+            quaternion = np.array(pose['orientation'], dtype=float).reshape(4)
+        except (KeyError, TypeError, ValueError):
+            raise InvalidInput(f'{path}: cameras.{name}.pose_in_base_link needs position [3] '
+                               'and orientation [x, y, z, w]', key=f'cameras.{name}') from None
+        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(quaternion))
+                and abs(np.linalg.norm(quaternion) - 1) < 1e-6):
+            raise InvalidInput(f'{path}: cameras.{name}.pose_in_base_link is not a finite '
+                               'pose with a unit quaternion', key=f'cameras.{name}')
+        T = make_transform(quaternion_to_matrix(quaternion), position)
+        try:
+            rig[name] = camera_from_yaml_dict(entry, T)
+        except InvalidInput as error:
+            raise InvalidInput(f'{path}: cameras.{name}: {error}',
+                               key=f'cameras.{name}') from None
+    return rig
+
+
+def stereo_rectification(left, right, alpha=0.0):
+    """The rectified stereo pair of two plumb_bob PinholeCameras with poses (ROS
+    convention, as cv2.stereoRectify computes it): {'left': (R1, P1), 'right': (R2, P2)}
+    where R rotates the camera's optical frame into the rectified frame and the right P
+    carries Tx = -fx * baseline [m] in P[0, 3]. ``alpha`` 0 crops to valid pixels only."""
+    T_right_left = right.T_camera_base @ left.T_base_camera
+    size = (int(left.width), int(left.height))
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(
+        left.K, left.D, right.K, right.D, size, T_right_left[:3, :3],
+        T_right_left[:3, 3].reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha)
+    return {'left': (R1, P1), 'right': (R2, P2)}

@@ -1,0 +1,108 @@
+"""The cameras' topics and frames (INTERFACES.md), and ``CalibratedCameras``: what a node
+needs to know of the calibrated rig, assembled from the latched CameraInfo and pose
+topics calib_node publishes."""
+from dataclasses import dataclass
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo
+
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.conversions import camera_info_to_camera, pose_to_matrix
+from vgm_common.errors import InvalidInput
+from vgm_common.qos import LATCHED_QOS
+
+CAMERA_NAMES = ('left', 'right', 'aux')
+_NAMESPACES = {'left': '/stereo/left', 'right': '/stereo/right', 'aux': '/aux'}
+IMAGE_TOPICS = {name: f'{ns}/image_raw' for name, ns in _NAMESPACES.items()}
+CAMERA_INFO_TOPICS = {name: f'{ns}/camera_info' for name, ns in _NAMESPACES.items()}
+POSE_TOPICS = {name: f'{ns}/pose' for name, ns in _NAMESPACES.items()}
+OPTICAL_FRAMES = {'left': 'stereo_left_optical_frame', 'right': 'stereo_right_optical_frame',
+                  'aux': 'aux_optical_frame'}
+BASE_FRAME = 'base_link'
+
+
+@dataclass(frozen=True)
+class CalibratedCamera:
+    """One camera as calibrated: the raw camera (K, D, pose in base_link) and the
+    rectification (R 3x3, P 3x4) of its CameraInfo."""
+
+    camera: PinholeCamera
+    R: np.ndarray
+    P: np.ndarray
+
+
+class CalibratedCameras:
+    """Subscribes the latched camera_info and pose of ``names`` and keeps the newest
+    valid pair of each. Invalid messages are reported to ``diagnostics`` and ignored (the
+    previous calibration stays). ``version`` increases whenever a camera changes, so
+    users can rebuild cached maps; ``on_change(name)`` is called then, if given."""
+
+    def __init__(self, node, names=CAMERA_NAMES, diagnostics=None, on_change=None):
+        self.names = tuple(names)
+        self._diagnostics = diagnostics
+        self._on_change = on_change
+        self._infos = {}
+        self._poses = {}
+        self._cameras = {}
+        self.version = 0
+        for name in self.names:
+            node.create_subscription(CameraInfo, CAMERA_INFO_TOPICS[name],
+                                     lambda msg, n=name: self._on_info(n, msg), LATCHED_QOS)
+            node.create_subscription(PoseStamped, POSE_TOPICS[name],
+                                     lambda msg, n=name: self._on_pose(n, msg), LATCHED_QOS)
+
+    @property
+    def ready(self):
+        return all(name in self._cameras for name in self.names)
+
+    def missing(self):
+        """Names of the cameras not yet calibrated (for diagnostics)."""
+        return [name for name in self.names if name not in self._cameras]
+
+    def __getitem__(self, name):
+        return self._cameras[name]
+
+    def get(self, name):
+        return self._cameras.get(name)
+
+    def _on_info(self, name, msg):
+        try:
+            camera_info_to_camera(msg)  # validates
+            R = np.array(msg.r, dtype=float).reshape(3, 3)
+            P = np.array(msg.p, dtype=float).reshape(3, 4)
+            if not (np.all(np.isfinite(R)) and np.all(np.isfinite(P))):
+                raise InvalidInput('camera_info R or P has non-finite values', key='r')
+        except (InvalidInput, ValueError) as error:
+            self._reject(CAMERA_INFO_TOPICS[name], error)
+            return
+        self._infos[name] = msg
+        self._update(name)
+
+    def _on_pose(self, name, msg):
+        try:
+            if msg.header.frame_id != BASE_FRAME:
+                raise InvalidInput(f'camera pose must be in {BASE_FRAME}, got '
+                                   f'{msg.header.frame_id!r}', key='frame_id')
+            T = pose_to_matrix(msg.pose)
+        except InvalidInput as error:
+            self._reject(POSE_TOPICS[name], error)
+            return
+        self._poses[name] = T
+        self._update(name)
+
+    def _update(self, name):
+        if name not in self._infos or name not in self._poses:
+            return
+        info = self._infos[name]
+        self._cameras[name] = CalibratedCamera(
+            camera_info_to_camera(info, self._poses[name]),
+            np.array(info.r, dtype=float).reshape(3, 3),
+            np.array(info.p, dtype=float).reshape(3, 4))
+        self.version += 1
+        if self._on_change is not None:
+            self._on_change(name)
+
+    def _reject(self, what, error):
+        if self._diagnostics is not None:
+            self._diagnostics.reject(what, error)
