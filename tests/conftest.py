@@ -1,27 +1,17 @@
 """Shared fixtures: private ROS domains, node processes torn down pass or fail, and an
 rclpy node in the test process on the same domain."""
-import itertools
-import os
 import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from harness import NodeProcess, executable, wait_for  # noqa: F401 (re-exported)
-
-# Each pytest process gets its own block of domain ids.
-_domain_ids = itertools.count(10 + (os.getpid() % 40) * 5)
+from harness import NodeProcess, executable, next_ros_env, wait_for  # noqa: F401 (re-exported)
 
 
 @pytest.fixture
 def ros_env():
-    """Environment for node processes: a private domain, localhost-only discovery."""
-    env = dict(os.environ)
-    env['ROS_DOMAIN_ID'] = str(next(_domain_ids) % 200 + 1)
-    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    env['PYTHONUNBUFFERED'] = '1'
-    return env
+    return next_ros_env()
 
 
 @pytest.fixture

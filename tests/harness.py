@@ -1,5 +1,6 @@
 """Test harness: installed executables, node processes that are always torn down, and
 bounded waits on conditions (never fixed sleeps). Fixtures are in conftest.py."""
+import itertools
 import os
 import signal
 import subprocess
@@ -9,6 +10,18 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 INSTALL_DIR = REPO_ROOT / 'ros2_ws' / 'install'
 SCENARIO_DIR = REPO_ROOT / 'src' / 'sensor_sim' / 'scenarios'
+
+# Each pytest process gets its own block of domain ids.
+_domain_ids = itertools.count(10 + (os.getpid() % 40) * 5)
+
+
+def next_ros_env():
+    """Environment for node processes: a private domain, localhost-only discovery."""
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(next(_domain_ids) % 200 + 1)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
 
 
 
