@@ -16,5 +16,5 @@ setup(
     install_requires=['setuptools'],
     zip_safe=True,
     license='Apache-2.0',
-    entry_points={'console_scripts': []},
+    entry_points={'console_scripts': ['sfs_stereo_node = sfs_stereo_node.node:main']},
 )

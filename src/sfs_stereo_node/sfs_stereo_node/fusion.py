@@ -5,6 +5,7 @@ Depth maps are (H, W) float arrays; sparse stereo depth is NaN where absent.
 """
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
@@ -146,3 +147,65 @@ def depth_error_stats(Z, G, mask=None):
     err = mapped - g
     return DepthErrors(float(np.mean(np.abs(err))), float(np.std(np.abs(err))),
                        float(np.sqrt(np.mean(err**2))))
+
+
+def _normalized_blur(values, weights, sigma):
+    """Gaussian-weighted local mean of ``values`` where ``weights`` > 0 (normalised
+    convolution); also returns the local weight (the blurred weights)."""
+    ksize = int(2 * np.ceil(3 * sigma) + 1)
+    blur = lambda a: cv2.GaussianBlur(a, (ksize, ksize), sigma,  # noqa: E731
+                                      borderType=cv2.BORDER_CONSTANT)
+    w = blur(weights)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return blur(values * weights) / w, w
+
+
+def fuse_local_affine(Z_sfs, Z_stereo, sigma=12.0, prior=0.5, residual_sigma=4.0):
+    """Our fusion: SFS shape mapped onto the stereo points by a spatially varying affine
+    map, then the remaining residual interpolated (all by Gaussian normalised
+    convolution, O(HW), no solver).
+
+    1. Global least-squares line Z_stereo ~ a0 Z_sfs + b0 over all stereo points.
+    2. Local line (a(x), b(x)): weighted least squares over the stereo points with
+       Gaussian weights of ``sigma`` [px] around x, shrunk toward (a0, b0) with
+       ``prior`` [points] of pseudo-weight, so sparse neighbourhoods fall back to the
+       global map (the SFS scale drifts across the image: Tsai-Shah's height errors
+       accumulate along the light direction).
+    3. Z = a Z_sfs + b + r, r the residual at the stereo points interpolated with
+       ``residual_sigma`` [px] and faded out away from stereo points.
+    Returns (H, W) depth in the stereo depth's unit; NaN where Z_sfs is NaN.
+    """
+    Z_sfs, Z_stereo, mask = _check_pair(Z_sfs, Z_stereo)
+    valid_sfs = np.isfinite(Z_sfs)
+    mask = mask & valid_sfs
+    if mask.sum() < 2:
+        raise InvalidInput('fewer than 2 stereo points on the SFS surface', key='Z_stereo')
+    x, t = Z_sfs[mask], Z_stereo[mask]
+    a0, b0 = np.polyfit(x, t, 1) if np.ptp(x) > 0 else (0.0, float(np.mean(t)))
+    w = mask.astype(np.float32)
+    xs = np.where(mask, Z_sfs, 0.0).astype(np.float32)
+    ts = np.where(mask, Z_stereo, 0.0).astype(np.float32)
+    ksize = int(2 * np.ceil(3 * sigma) + 1)
+
+    def blur(a):
+        return cv2.GaussianBlur(a, (ksize, ksize), sigma,
+                                borderType=cv2.BORDER_CONSTANT).astype(float)
+
+    # Gaussian-weighted sums, scaled so that one point at the centre weighs 1.
+    scale = 2 * np.pi * sigma**2
+    S, Sx, St = blur(w) * scale, blur(xs) * scale, blur(ts) * scale
+    Sxx, Sxt = blur(xs * xs) * scale, blur(xs * ts) * scale
+    # Centred moments plus the prior: prior points lying on the global line.
+    mean_x = np.where(S > 0, Sx / np.maximum(S, 1e-12), 0.0)
+    var_x = np.maximum(Sxx - Sx * mean_x, 0.0)
+    cov_xt = Sxt - St * mean_x
+    spread = np.var(x) if np.ptp(x) > 0 else 1.0
+    a = (cov_xt + prior * spread * a0) / (var_x + prior * spread)
+    b = np.where(S > 0, (St - a * Sx) / np.maximum(S, 1e-12), b0)
+    b = (S * b + prior * (b0 + (a0 - a) * mean_x)) / (S + prior)
+    guide = a * np.where(valid_sfs, Z_sfs, 0.0) + b
+    residual = np.where(mask, Z_stereo - guide, 0.0)
+    smooth, weight = _normalized_blur(residual.astype(np.float32), w, residual_sigma)
+    fade = weight / (weight + 0.05 / (2 * np.pi * residual_sigma**2))
+    fused = guide + np.nan_to_num(smooth) * fade
+    return np.where(valid_sfs, fused, np.nan)

@@ -25,22 +25,55 @@ def reflectance_terms(p, q, ps, qs, albedo, roughness, variant='thesis'):
     M, cos_i = oren_nayar_terms(normals, light, np.array([0.0, 0.0, 1.0]), roughness, variant)
     return albedo * M, cos_i
 
+
 def reflectance(p, q, ps, qs, albedo, roughness, variant='thesis'):
     """Image irradiance R(p, q) = M max(0, cos_theta_i) (5.3.5), attached shadows at 0."""
     M, cos_i = reflectance_terms(p, q, ps, qs, albedo, roughness, variant)
     return M * np.maximum(cos_i, 0.0)
 
 
-def _gradients(Z):
-    """Backward differences p = Z(x, y) - Z(x-1, y), q = Z(x, y) - Z(x, y-1); missing
-    neighbours count as 0."""
-    p = Z - np.pad(Z, ((0, 0), (1, 0)))[:, :-1]
-    q = Z - np.pad(Z, ((1, 0), (0, 0)))[:-1, :]
+def light_gradient(light_optical):
+    """(ps, qs) of a unit light direction (surface -> light) given in an optical frame (x
+    right, y down, z forward): the SFS frame has the same x, y and z toward the viewer,
+    so (-ps, -qs, 1) ~ (lx, ly, -lz), ps = lx / lz, qs = ly / lz. The light must be on
+    the camera's side of the scene (lz < 0)."""
+    lx, ly, lz = (float(v) for v in np.ravel(light_optical))
+    if not lz < -1e-3 * np.sqrt(lx**2 + ly**2 + lz**2):
+        raise InvalidInput(f'light direction {light_optical} is not on the camera side '
+                           '(z must be < 0 in the optical frame)', key='light_direction')
+    return lx / lz, ly / lz
+
+
+def upwind_signs(light):
+    """(sx, sy) in {-1, +1}: the difference direction along each axis facing the light.
+
+    With p = sx (Z(x) - Z(x - sx)) (backward differences for sx = +1, forward for -1),
+    dp/dZ(x) = sx and the Newton derivative at a flat start is
+    -M (sx ps + sy qs) / |s| = -M (|ps| + |qs|) / |s|: never zero for an oblique light.
+    The thesis's fixed backward differences give -M (ps + qs) / |s|, which vanishes for
+    a light along the image's anti-diagonal (ps = -qs) and is weak near it; that was
+    the old restriction to lights near the diagonal.
+    """
+    ps, qs = light
+    return (1.0 if ps >= 0 else -1.0), (1.0 if qs >= 0 else -1.0)
+
+
+def _gradients(Z, sx=1.0, sy=1.0):
+    """p = sx (Z(x, y) - Z(x - sx, y)), q = sy (Z(x, y) - Z(x, y - sy)); missing
+    neighbours count as 0. sx = sy = 1 are the thesis's backward differences."""
+    if sx > 0:
+        p = Z - np.pad(Z, ((0, 0), (1, 0)))[:, :-1]
+    else:
+        p = np.pad(Z, ((0, 0), (0, 1)))[:, 1:] - Z
+    if sy > 0:
+        q = Z - np.pad(Z, ((1, 0), (0, 0)))[:-1, :]
+    else:
+        q = np.pad(Z, ((0, 1), (0, 0)))[1:, :] - Z
     return p, q
 
 
 def sfs_depth(E, light, albedo=1.0, roughness=0.0, iterations=200, tol=1e-4, eps_c=1e-3,
-              variant='thesis'):
+              variant='thesis', mask=None, upwind=True, max_step=None):
     """Relative height map from one image by the Jacobi-Newton iteration (5.3.11).
 
     ``E`` (H, W) irradiance scaled to [0, 1]; ``light`` (ps, qs). Starts from Z = 0 and
@@ -48,23 +81,41 @@ def sfs_depth(E, light, albedo=1.0, roughness=0.0, iterations=200, tol=1e-4, eps
     M lagged from the previous iterate (A5.2), the (1 + p^2 + q^2)^(3/2) denominator
     (A5.3) and |df/dZ| clamped from below at ``eps_c`` keeping its sign (A5.4). Stops after
     ``iterations`` or when max |dZ| < ``tol``. Returns (H, W) float, up to scale and offset.
+
+    ``upwind`` (default) takes each axis's difference from the side facing the light
+    (``upwind_signs``), so any oblique light works; False is the thesis's backward
+    differences (good only for lights near the image diagonal, ps + qs far from 0).
+    ``max_step`` > 0 limits |dZ| per iteration (damped Newton): all pixels move at once,
+    so an undamped step taken while the upstream neighbours still lag can jump past the
+    reflectance maximum onto the wrong branch and diverge (measured on a Gaussian bump
+    lit along x); None or 0 is the thesis's full step.
+    ``mask`` (H, W) bool, optional: only these pixels are updated (the others, e.g. the
+    background, stay at 0).
     """
     E = np.asarray(E, dtype=float)
     if E.ndim != 2:
         raise InvalidInput(f'E: expected an (H, W) image, got shape {E.shape}', key='E',
                            value=E.shape)
+    if mask is not None and np.shape(mask) != E.shape:
+        raise InvalidInput(f'mask {np.shape(mask)} differs from E {E.shape}', key='mask')
     ps, qs = light
+    sx, sy = upwind_signs(light) if upwind else (1.0, 1.0)
     norm_s = np.sqrt(1 + ps**2 + qs**2)
     Z = np.zeros_like(E)
     for _ in range(iterations):
-        p, q = _gradients(Z)
+        p, q = _gradients(Z, sx, sy)
         M, cos_i = reflectance_terms(p, q, ps, qs, albedo, roughness, variant)
         f = E - M * np.maximum(cos_i, 0.0)
         pq = 1 + p**2 + q**2
-        df = -M * ((ps + qs) / (np.sqrt(pq) * norm_s)
-                   - (p + q) * (1 + p * ps + q * qs) / (pq**1.5 * norm_s))
+        # df/dZ = -(sx dR/dp + sy dR/dq), M held constant (A5.2)
+        df = -M * ((sx * ps + sy * qs) / (np.sqrt(pq) * norm_s)
+                   - (sx * p + sy * q) * (1 + p * ps + q * qs) / (pq**1.5 * norm_s))
         df = np.where(np.abs(df) < eps_c, np.where(df < 0, -eps_c, eps_c), df)
         step = f / df
+        if max_step:
+            step = np.clip(step, -max_step, max_step)
+        if mask is not None:
+            step = np.where(mask, step, 0.0)
         Z = Z - step
         if np.max(np.abs(step)) < tol:
             break

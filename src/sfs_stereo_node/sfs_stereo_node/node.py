@@ -1,0 +1,279 @@
+"""sfs_stereo_node: dense depth of the stereo rig's view by SSD stereo + shape from
+shading, fused (thesis chapter 5). Subscribes the raw left/right images and the latched
+calibration; publishes /stereo/disparity, /depth/stereo, /depth/sfs, /depth/fused and
+/depth/camera_info in the rectified left frame (see README.md).
+
+Only the newest synchronized pair is processed, in a worker thread: pairs arriving while
+one is processed replace the waiting one and are counted as dropped, so there is never a
+backlog, whatever the per-frame time.
+"""
+import threading
+import time
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+from stereo_msgs.msg import DisparityImage
+
+from sfs_stereo_node.pipeline import FUSIONS, STEREOS, DepthConfig, process_pair
+from sfs_stereo_node.rectify import rectification_maps
+from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES, CalibratedCameras
+from vgm_common.conversions import image_to_numpy, make_header, numpy_to_image, stamp_to_ns
+from vgm_common.errors import InvalidInput
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.qos import DEFAULT_QOS
+from vgm_common.sync import ExactTimeSync
+
+DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
+GREY_ENCODINGS = ('mono8', 'mono16', 'rgb8', 'bgr8')
+INVALID_DISPARITY = -1.0  # below min_disparity, as stereo_image_proc marks no match
+
+
+def _check_light(value):
+    if len(value) != 3 or not np.all(np.isfinite(value)) or np.linalg.norm(value) == 0:
+        return 'expected 3 finite numbers, not all zero'
+    if value[2] >= 0:
+        return 'z must be < 0 (the light must be on the camera side of the surface)'
+    return None
+
+
+class SfsStereoNode(Node):
+    node_name = 'sfs_stereo_node'
+
+    def __init__(self):
+        super().__init__(self.node_name)
+        self.diagnostics = Diagnostics(self)
+        d = DepthConfig()
+        self.params = NodeParameters(self, [
+            Param('window', d.window, 'SSD window side [px] (3 = thesis); odd.',
+                  range=(1, 15), check=lambda v: None if v % 2 else 'must be odd'),
+            Param('max_disparity', d.max_disparity, 'Largest disparity searched [px, full '
+                  'resolution].', range=(1, 1024)),
+            Param('min_disparity', d.min_disparity, 'Smallest disparity searched [px, full '
+                  'resolution].', range=(0, 1023)),
+            Param('match_threshold', d.match_threshold, 'Largest normalised SSD cost of a '
+                  'confident match (sigma_thr).', range=(1e-6, 10.0)),
+            Param('min_texture', d.min_texture, 'Least grey-level std in the window of a '
+                  'confident match [grey levels]; 0 disables.', range=(0.0, 255.0)),
+            Param('uniqueness', d.uniqueness, 'Best cost must be this fraction below the '
+                  'best cost more than 1 px away; 0 disables.', range=(0.0, 0.99)),
+            Param('left_right_check', d.left_right_check, 'Keep only matches the right '
+                  'image picks back (within 1 px).'),
+            Param('light_direction', list(d.light_direction), 'Unit vector from the '
+                  'surface toward the light in the LEFT optical frame (x right, y down, z '
+                  'forward).', check=_check_light),
+            Param('albedo', d.albedo, 'Surface albedo.', range=(0.01, 1.0)),
+            Param('ambient', d.ambient, 'Ambient light as a fraction of the source '
+                  '(grey = 255 albedo (R + ambient)).', range=(0.0, 1.0)),
+            Param('roughness', d.roughness, 'Oren-Nayar sigma [rad].', range=(0.0, 1.5)),
+            Param('fusion', d.fusion, 'Fusion of SFS and stereo: mlp_rows = thesis '
+                  'per-row networks; local_affine = ours (default); least_squares.',
+                  choices=FUSIONS),
+            Param('stereo', d.stereo, 'Matcher: ssd = thesis normalised SSD; sgbm = '
+                  'cv2.StereoSGBM reference.', choices=STEREOS),
+            Param('seed', d.seed, 'Seed of the mlp_rows network initialisation.',
+                  range=(0, 2**31 - 1)),
+            Param('sfs_iterations', d.sfs_iterations, 'Jacobi-Newton iterations of SFS.',
+                  range=(1, 5000)),
+            Param('sfs_max_step', d.sfs_max_step, 'Largest SFS height step per '
+                  'iteration [px units] (damping).', range=(0.01, 100.0)),
+            Param('sfs_downsample', d.sfs_downsample, 'SFS runs on the processing grid '
+                  'reduced by this factor (speed).', range=(1, 8)),
+            Param('downsample', d.downsample, 'Processing (and output) resolution = '
+                  'rectified image / this.', range=(1, 8)),
+            Param('min_intensity', d.min_intensity, 'Darker pixels are not surface '
+                  '(background, shadow) [grey levels 0..255]: NaN in the depth images.',
+                  range=(0.0, 255.0)),
+            Param('mlp_epochs', d.mlp_epochs, 'Training epochs of mlp_rows.',
+                  range=(1, 100000)),
+            Param('fusion_sigma', d.fusion_sigma, 'local_affine neighbourhood [px].',
+                  range=(1.0, 500.0)),
+            Param('fusion_weight', d.fusion_weight, 'least_squares gradient weight.',
+                  range=(1e-6, 1e6)),
+            Param('sync_max_wait', 1.0, 'Longest wait for the other image of a pair [s].',
+                  range=(0.01, 60.0), read_only=True),
+            Param('log_every', 10.0, 'Seconds between INFO lines on processed frames.',
+                  range=(0.0, 3600.0)),
+        ], self.diagnostics)
+        self.cameras = CalibratedCameras(self, ('left', 'right'), self.diagnostics)
+        self.publishers_ = {
+            'disparity': self.create_publisher(DisparityImage, '/stereo/disparity',
+                                               DEFAULT_QOS),
+            'stereo': self.create_publisher(Image, '/depth/stereo', DEFAULT_QOS),
+            'sfs': self.create_publisher(Image, '/depth/sfs', DEFAULT_QOS),
+            'fused': self.create_publisher(Image, '/depth/fused', DEFAULT_QOS),
+            'info': self.create_publisher(CameraInfo, '/depth/camera_info', DEFAULT_QOS)}
+        self.sync = ExactTimeSync(('left', 'right'), self._on_pair, queue_size=10,
+                                  max_wait=self.params.sync_max_wait)
+        self.sync_lock = threading.Lock()
+        for name in ('left', 'right'):
+            self.create_subscription(Image, IMAGE_TOPICS[name],
+                                     lambda msg, n=name: self._on_image(n, msg), DEFAULT_QOS)
+        self.maps = None
+        self.maps_key = None
+        self.processed = self.dropped = self.failed = 0
+        self.sync_dropped_reported = 0
+        self.last_timings = {}
+        self.last_density = float('nan')
+        self.last_log = -float('inf')
+        self.pending = None
+        self.wakeup = threading.Condition()
+        self.closed = False
+        self.worker = threading.Thread(target=self._work, name='depth', daemon=True)
+        self.worker.start()
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.get_logger().info('waiting for calibrated camera_info + pose of left and '
+                               'right, and image pairs')
+
+    # --- input ------------------------------------------------------------------------
+
+    def _on_image(self, name, msg):
+        with self.sync_lock:
+            self.sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
+            if self.sync.dropped > self.sync_dropped_reported:
+                self.sync_dropped_reported = self.sync.dropped
+                self.diagnostics.reject('stereo pair', InvalidInput(
+                    'image without a partner of identical stamp dropped '
+                    f'({self.sync.dropped} so far)', key='stamp'))
+
+    def _on_pair(self, stamp_ns, messages):
+        with self.wakeup:
+            if self.pending is not None:
+                self.dropped += 1  # superseded before it was processed
+            self.pending = (stamp_ns, messages)
+            self.wakeup.notify()
+
+    def _work(self):
+        while True:
+            with self.wakeup:
+                while self.pending is None and not self.closed:
+                    self.wakeup.wait(0.5)
+                if self.closed:
+                    return
+                stamp_ns, messages = self.pending
+                self.pending = None
+            try:
+                self._process(stamp_ns, messages)
+            except InvalidInput as error:
+                self.failed += 1
+                self.diagnostics.reject('stereo pair', error)
+            except Exception as error:  # noqa: BLE001 - keep serving, report it
+                self.failed += 1
+                self.diagnostics.reject('stereo pair', f'{type(error).__name__}: {error}')
+
+    def _rectified_pair(self, left_shape):
+        if not self.cameras.ready:
+            raise InvalidInput(f'no calibration yet for {", ".join(self.cameras.missing())} '
+                               '(camera_info + pose)', key='camera_info')
+        key = (self.cameras.version, left_shape)
+        if self.maps_key != key:
+            self.maps = None
+            left, right = self.cameras['left'], self.cameras['right']
+            for name, calibrated in (('left', left), ('right', right)):
+                size = (calibrated.camera.height, calibrated.camera.width)
+                if size != left_shape:
+                    raise InvalidInput(f'{name} camera_info is {size[1]}x{size[0]} but the '
+                                       f'images are {left_shape[1]}x{left_shape[0]}',
+                                       key='size')
+            self.maps = rectification_maps(
+                left.camera.K, left.camera.D, left.R, left.P, right.camera.K,
+                right.camera.D, right.R, right.P, (left_shape[1], left_shape[0]))
+            self.maps_key = key
+        return self.maps
+
+    def _image(self, name, msg):
+        if msg.encoding not in GREY_ENCODINGS:
+            raise InvalidInput(f'{name} image encoding {msg.encoding!r} not one of '
+                               f'{", ".join(GREY_ENCODINGS)}', key='encoding')
+        image = image_to_numpy(msg)
+        if msg.encoding == 'bgr8':
+            image = image[..., ::-1]
+        return image
+
+    def _process(self, stamp_ns, messages):
+        left, right = (self._image(n, messages[n]) for n in ('left', 'right'))
+        if left.shape[:2] != right.shape[:2]:
+            raise InvalidInput(f'left {left.shape[1]}x{left.shape[0]} and right '
+                               f'{right.shape[1]}x{right.shape[0]} images differ in size',
+                               key='size')
+        pair = self._rectified_pair(left.shape[:2])
+        p = self.params
+        config = DepthConfig(
+            window=p.window, max_disparity=p.max_disparity, min_disparity=p.min_disparity,
+            match_threshold=p.match_threshold, min_texture=p.min_texture,
+            uniqueness=p.uniqueness, left_right_check=p.left_right_check,
+            light_direction=tuple(p.light_direction), albedo=p.albedo, ambient=p.ambient,
+            roughness=p.roughness, fusion=p.fusion, stereo=p.stereo, seed=p.seed,
+            sfs_iterations=p.sfs_iterations, sfs_max_step=p.sfs_max_step,
+            sfs_downsample=p.sfs_downsample, downsample=p.downsample,
+            min_intensity=p.min_intensity, mlp_epochs=p.mlp_epochs,
+            fusion_sigma=p.fusion_sigma, fusion_weight=p.fusion_weight)
+        if config.min_disparity >= config.max_disparity:
+            raise InvalidInput('min_disparity must be below max_disparity', key='min_disparity')
+        result = process_pair(left, right, pair, (left.shape[1], left.shape[0]), config)
+        self._publish(stamp_ns, result)
+        self.processed += 1
+        self.last_timings = result.timings
+        self.last_density = result.density
+        now = time.monotonic()
+        if self.processed == 1 or now - self.last_log >= self.params.log_every:
+            self.last_log = now
+            self.get_logger().info(
+                f'frame {self.processed}: {result.depth_fused.shape[1]}x'
+                f'{result.depth_fused.shape[0]}, match density {result.density:.3f}, '
+                f'{result.timings["total"] * 1000:.0f} ms, {self.dropped} dropped')
+
+    def _publish(self, stamp_ns, result):
+        h, w = result.depth_fused.shape
+        header = make_header(stamp_ns, DEPTH_FRAME)
+        disparity = DisparityImage(header=header, f=float(result.focal_px),
+                                   t=float(result.baseline_m))
+        disparity.image = numpy_to_image(
+            np.where(np.isfinite(result.disparity), result.disparity, INVALID_DISPARITY),
+            '32FC1', stamp_ns, DEPTH_FRAME)
+        x, y, ww, hh = result.valid_window
+        disparity.valid_window.x_offset, disparity.valid_window.y_offset = x, y
+        disparity.valid_window.width, disparity.valid_window.height = ww, hh
+        factor = self.params.downsample
+        disparity.min_disparity = float(self.params.min_disparity // factor)
+        disparity.max_disparity = float(np.ceil(self.params.max_disparity / factor))
+        disparity.delta_d = 0.1  # subpixel parabola refinement, about 0.1 px
+        info = CameraInfo(header=header, height=h, width=w, distortion_model='plumb_bob',
+                          d=[0.0] * 5, k=result.P[:3, :3].flatten().tolist(),
+                          r=np.eye(3).flatten().tolist(), p=result.P.flatten().tolist())
+        self.publishers_['disparity'].publish(disparity)
+        for key, depth in (('stereo', result.depth_stereo), ('sfs', result.depth_sfs),
+                           ('fused', result.depth_fused)):
+            self.publishers_[key].publish(numpy_to_image(depth, '32FC1', stamp_ns,
+                                                         DEPTH_FRAME))
+        self.publishers_['info'].publish(info)
+
+    def _publish_diagnostics(self):
+        values = {'frames processed': self.processed, 'frames dropped (busy)': self.dropped,
+                  'pairs failed': self.failed, 'unpaired images dropped': self.sync.dropped,
+                  'match density': f'{self.last_density:.4f}',
+                  **{f'time {k} [ms]': f'{v * 1000:.1f}' for k, v in self.last_timings.items()},
+                  **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()}}
+        if not self.cameras.ready:
+            level, message = 'warn', f'no calibration for {", ".join(self.cameras.missing())}'
+        elif not self.processed:
+            level, message = 'warn', 'no pair processed yet'
+        else:
+            level, message = 'ok', f'{self.processed} pairs processed'
+        self.diagnostics.publish('depth', level, message, values)
+
+    def close(self):
+        with self.wakeup:
+            self.closed = True
+            self.wakeup.notify()
+        self.worker.join(timeout=5.0)
+        self.get_logger().info(f'processed {self.processed} pairs, dropped {self.dropped}, '
+                               f'failed {self.failed}')
+
+
+def main(args=None):
+    return run_node(SfsStereoNode, args)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,161 @@
+"""Stereo rectification from calibrated CameraInfo (K, D, R, P), ROS convention.
+
+The rectified left frame ("the depth images' frame") is the left optical frame rotated by
+the left CameraInfo's R (x_rect = R x_optical), with intrinsics P_left[:3, :3]; the right
+P carries Tx = P[0, 3] = -fx * baseline. Maps come from cv2.initUndistortRectifyMap, as
+ROS's image_geometry / stereo_image_proc do.
+"""
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from vgm_common.errors import InvalidInput
+
+
+class RectifiedPair(NamedTuple):
+    """Remap tables of both cameras and the rectified geometry."""
+
+    maps_left: tuple  # (map_x, map_y) float32 (H, W): raw pixel seen at each rectified pixel
+    maps_right: tuple
+    size: tuple  # (width, height) of the rectified images [px]
+    K: np.ndarray  # (3, 3) rectified intrinsics = P_left[:3, :3]
+    P_left: np.ndarray  # (3, 4)
+    R_left: np.ndarray  # (3, 3) left optical -> rectified frame
+    focal_px: float  # fx of the rectified pair [px]
+    baseline_m: float  # [m] > 0, right camera to the right of the left one
+
+
+def _check_rotation(R, name):
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+        raise InvalidInput(f'{name}: expected a finite 3x3 rotation', key=name)
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InvalidInput(f'{name} is not a proper rotation (R R^T != I or det < 0)',
+                           key=name)
+    return R
+
+
+def _check_projection(P, name):
+    P = np.asarray(P, dtype=float)
+    if P.shape != (3, 4) or not np.all(np.isfinite(P)):
+        raise InvalidInput(f'{name}: expected a finite 3x4 projection', key=name)
+    if not (P[0, 0] > 0 and P[1, 1] > 0 and P[2, 2] == 1):
+        raise InvalidInput(f'{name}: fx, fy must be > 0 and P[2, 2] = 1, got '
+                           f'{P[0, 0]}, {P[1, 1]}, {P[2, 2]}', key=name)
+    return P
+
+
+def rectified_geometry(P_left, P_right):
+    """(focal_px, baseline_m) of a rectified pair from the two P matrices; raises
+    InvalidInput when they do not describe one horizontal rectified pair with the right
+    camera on the right (Tx = -fx b < 0)."""
+    P_left, P_right = _check_projection(P_left, 'P_left'), _check_projection(P_right, 'P_right')
+    if not np.allclose(P_left[:3, :3], P_right[:3, :3], rtol=1e-6, atol=1e-6):
+        raise InvalidInput('P_left and P_right have different intrinsics: not a rectified '
+                           'pair', key='P_right')
+    if P_left[0, 3] != 0 or P_left[1, 3] != 0 or P_right[1, 3] != 0:
+        raise InvalidInput('P_left must have no translation and P_right only Tx (a '
+                           'horizontally rectified pair)', key='P_right')
+    focal = float(P_right[0, 0])
+    baseline = -float(P_right[0, 3]) / focal
+    if not baseline > 0:
+        raise InvalidInput(f'right P gives baseline {baseline:g} m: expected Tx = -fx b < 0',
+                           key='P_right', value=baseline)
+    return focal, baseline
+
+
+def rectification_maps(K_left, D_left, R_left, P_left, K_right, D_right, R_right, P_right,
+                       size):
+    """Remap tables of a calibrated pair for images of ``size`` (width, height).
+
+    Validates every matrix (finite, R proper rotations, P a rectified pair) and raises
+    InvalidInput otherwise, so an unrectifiable calibration never produces images.
+    """
+    width, height = (int(v) for v in size)
+    if width < 8 or height < 8:
+        raise InvalidInput(f'image size {size} too small', key='size', value=size)
+    R_left, R_right = _check_rotation(R_left, 'R_left'), _check_rotation(R_right, 'R_right')
+    focal, baseline = rectified_geometry(P_left, P_right)
+    maps = []
+    for K, D, R, P, name in ((K_left, D_left, R_left, P_left, 'left'),
+                             (K_right, D_right, R_right, P_right, 'right')):
+        K, D = np.asarray(K, dtype=float), np.asarray(D, dtype=float).ravel()
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
+            raise InvalidInput(f'K_{name}: expected finite intrinsics with fx, fy > 0',
+                               key=f'K_{name}')
+        if not np.all(np.isfinite(D)):
+            raise InvalidInput(f'D_{name} has non-finite values', key=f'D_{name}')
+        maps.append(cv2.initUndistortRectifyMap(K, D, R, np.asarray(P, dtype=float),
+                                                (width, height), cv2.CV_32FC1))
+    P_left = np.asarray(P_left, dtype=float)
+    return RectifiedPair(tuple(maps[0]), tuple(maps[1]), (width, height), P_left[:3, :3].copy(),
+                         P_left.copy(), R_left, focal, baseline)
+
+
+def rectify(image, maps, interpolation=cv2.INTER_LINEAR):
+    """Rectified copy of ``image`` (H, W) by ``maps`` (map_x, map_y); pixels that map
+    outside the raw image are 0 (cv2.BORDER_CONSTANT)."""
+    return cv2.remap(np.asarray(image), maps[0], maps[1], interpolation,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+def rectified_valid_mask(maps, raw_size):
+    """(H, W) bool: rectified pixels whose raw source lies inside the raw image."""
+    width, height = raw_size
+    x, y = maps
+    return (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
+
+
+def raw_depth_to_rectified(depth_raw, pair):
+    """Depth [m] along the rectified left optical axis at every rectified pixel, from a
+    depth map along the RAW left optical axis (e.g. sensor_sim's depth_left.npy).
+
+    A rectified pixel (u, v) looks along r = K^-1 (u, v, 1) in the rectified frame, i.e.
+    along R^T r in the raw optical frame, and sees the raw pixel ``maps_left`` gives; with
+    the raw depth z there the point is z / (R^T r)_z * R^T r, whose rectified Z is
+    z / (R^T r)_z. Raw depth is sampled by nearest neighbour (NaN stays NaN).
+    """
+    width, height = pair.size
+    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    rays = np.linalg.solve(pair.K, np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))
+    raw_z = (pair.R_left.T @ rays)[2].reshape(height, width)
+    sampled = cv2.remap(np.asarray(depth_raw, dtype=np.float32), pair.maps_left[0],
+                        pair.maps_left[1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                        borderValue=float('nan'))
+    return sampled / raw_z
+
+
+def light_in_rectified_frame(light_optical, R_left):
+    """Unit light direction (surface -> light) rotated from the left optical frame into
+    the rectified frame (x right, y down, z forward)."""
+    light = np.asarray(light_optical, dtype=float).ravel()
+    norm = np.linalg.norm(light)
+    if light.shape != (3,) or not np.isfinite(norm) or norm == 0:
+        raise InvalidInput(f'light_direction must be a finite non-zero 3-vector, got '
+                           f'{light_optical}', key='light_direction')
+    return np.asarray(R_left, dtype=float) @ (light / norm)
+
+
+def scaled_pair(pair, factor):
+    """``pair`` downsampled by an integer ``factor``: maps sampled at every rectified
+    pixel of the coarse grid (pixel centres, the cv2.resize INTER_AREA convention), K and
+    P scaled; the baseline is unchanged."""
+    if factor == 1:
+        return pair
+    width, height = pair.size
+    w, h = width // factor, height // factor
+    centres = (np.arange(max(w, h)) + 0.5) * factor - 0.5
+    cols, rows = centres[:w], centres[:h]
+
+    def sample(map_xy):
+        return tuple(cv2.remap(m, np.tile(cols.astype(np.float32), (h, 1)),
+                               np.tile(rows.astype(np.float32)[:, None], (1, w)),
+                               cv2.INTER_LINEAR) for m in map_xy)
+
+    S = np.diag([1.0 / factor, 1.0 / factor, 1.0])
+    shift = np.array([[1, 0, 0.5 / factor - 0.5], [0, 1, 0.5 / factor - 0.5], [0, 0, 1]])
+    P = shift @ S @ pair.P_left
+    return RectifiedPair(sample(pair.maps_left), sample(pair.maps_right), (w, h),
+                         P[:3, :3].copy(), P, pair.R_left, pair.focal_px / factor,
+                         pair.baseline_m)

@@ -1,0 +1,188 @@
+"""Topic level, real processes: sensor_sim (a 320x240 copy of the default scenario) +
+sfs_stereo_node with the true calibration published as calib_node would -> the five
+outputs, fused depth against the simulator's ground truth; and bad input."""
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from sensor_msgs.msg import CameraInfo, Image
+from stereo_msgs.msg import DisparityImage
+
+from harness import SCENARIO_DIR, executable, publish_rig, wait_for
+from sfs_stereo_node.rectify import raw_depth_to_rectified, rectification_maps
+from vgm_common.calibration_io import write_calibration
+from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
+from vgm_common.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
+from vgm_common.qos import DEFAULT_QOS
+from vgm_common.scenario import load_scenario
+
+FRAME = 'stereo_left_optical_frame'
+NODE_ARGS = ['-p', 'downsample:=1', '-p', 'max_disparity:=80', '-p', 'log_every:=0.0']
+
+
+def small_scenario(tmp_path):
+    """The default scenario with 320x240 cameras (intrinsics halved), no calibration."""
+    data = yaml.safe_load((SCENARIO_DIR / 'default.yaml').read_text())
+    for camera in data['cameras'].values():
+        camera['width'], camera['height'] = 320, 240
+        for key in ('fx', 'fy'):
+            camera[key] /= 2
+        # pixel centres: u_small = (u + 0.5) / 2 - 0.5
+        for key in ('cx', 'cy'):
+            camera[key] = (camera[key] + 0.5) / 2 - 0.5
+    path = tmp_path / 'small.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def collect(rclpy_node):
+    received = {'disparity': [], 'stereo': [], 'sfs': [], 'fused': [], 'info': [],
+                'diagnostics': []}
+    for key, msg_type, topic in (('disparity', DisparityImage, '/stereo/disparity'),
+                                 ('stereo', Image, '/depth/stereo'),
+                                 ('sfs', Image, '/depth/sfs'),
+                                 ('fused', Image, '/depth/fused'),
+                                 ('info', CameraInfo, '/depth/camera_info'),
+                                 ('diagnostics', DiagnosticArray, '/diagnostics')):
+        rclpy_node.create_subscription(msg_type, topic, received[key].append, DEFAULT_QOS)
+    return received
+
+
+def stamps(messages):
+    return {stamp_to_ns(m.header.stamp) for m in messages}
+
+
+def statuses(received, name_part):
+    return [s for d in received['diagnostics'] for s in d.status if name_part in s.name]
+
+
+def test_fused_depth_of_the_sim_scene_matches_ground_truth(spawn, rclpy_node, tmp_path):
+    scenario = small_scenario(tmp_path)
+    truth = tmp_path / 'truth'
+    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', f'scenario:={scenario}',
+                 '-p', 'calibration_phase:=false', '-p', 'min_subscribers:=1',
+                 '-p', 'rate:=2.0', '-p', f'ground_truth_dir:={truth}'])
+    calibration = truth / 'true_calibration' / 'calibration.yaml'
+    wait_for(lambda: (truth / 'depth_left.npy').exists() and calibration.exists(), 60,
+             'sensor_sim ground truth')
+    publishers, rig = publish_rig(rclpy_node, calibration)  # noqa: F841 (kept alive)
+    node = spawn([executable('sfs_stereo_node'), '--ros-args', *NODE_ARGS])
+    received = collect(rclpy_node)
+
+    def complete_stamp():
+        common = stamps(received['fused']) & stamps(received['stereo']) & \
+            stamps(received['sfs']) & stamps(received['disparity']) & stamps(received['info'])
+        return min(common) if common else None
+    rclpy_node.spin_until(complete_stamp, 90, 'all five outputs of one pair')
+    stamp = complete_stamp()
+    pick = {k: next(m for m in v if stamp_to_ns(m.header.stamp) == stamp)
+            for k, v in received.items() if k != 'diagnostics'}
+    for key in ('stereo', 'sfs', 'fused'):
+        msg = pick[key]
+        assert (msg.encoding, msg.width, msg.height, msg.header.frame_id) == \
+            ('32FC1', 320, 240, FRAME), key
+    info, disparity = pick['info'], pick['disparity']
+    assert info.header.frame_id == FRAME and (info.width, info.height) == (320, 240)
+    P_left = rig['left'][2]
+    np.testing.assert_allclose(np.reshape(info.p, (3, 4)), P_left, atol=1e-9)
+    np.testing.assert_allclose(np.reshape(info.k, (3, 3)), P_left[:, :3], atol=1e-9)
+    assert list(info.d) == [0.0] * 5 and np.allclose(np.reshape(info.r, (3, 3)), np.eye(3))
+    baseline = -rig['right'][2][0, 3] / rig['right'][2][0, 0]
+    assert disparity.t == pytest.approx(baseline, rel=1e-6)  # 0.14 m (float32)
+    assert disparity.f == pytest.approx(P_left[0, 0], rel=1e-6)
+    assert disparity.image.encoding == '32FC1' and disparity.header.frame_id == FRAME
+
+    # Ground truth: the raw left depth re-sampled in the rectified left frame (Z along
+    # the rectified optical axis), compared on the pixels where both are finite.
+    left, right = rig['left'], rig['right']
+    pair = rectification_maps(left[0].K, left[0].D, left[1], left[2], right[0].K,
+                              right[0].D, right[1], right[2], (320, 240))
+    G = raw_depth_to_rectified(np.load(truth / 'depth_left.npy'), pair)
+    fused, sfs, stereo = (image_to_numpy(pick[k]) for k in ('fused', 'sfs', 'stereo'))
+    d = image_to_numpy(disparity.image)
+    matched = np.isfinite(stereo)
+    np.testing.assert_allclose(stereo[matched], disparity.f * disparity.t / d[matched],
+                               rtol=1e-5)
+    assert np.all(d[~matched] == -1.0)
+    on = np.isfinite(G) & np.isfinite(fused)
+    assert on.sum() > 0.95 * np.isfinite(G).sum()  # fused covers the surface
+    assert np.isnan(fused[np.isnan(G)]).mean() > 0.9  # and little else
+    err_fused = np.abs(fused[on] - G[on])
+    err_sfs = np.abs(sfs[on] - G[on])
+    err_stereo = np.abs(stereo - G)[np.isfinite(stereo) & np.isfinite(G)]
+    print(f'median |error| fused {np.median(err_fused) * 1e3:.1f} mm, sfs '
+          f'{np.median(err_sfs) * 1e3:.1f} mm, stereo {np.median(err_stereo) * 1e3:.1f} mm '
+          f'on {matched.sum()} matches; fused p90 {np.percentile(err_fused, 90) * 1e3:.1f}')
+    assert np.median(err_fused) < 0.025  # [m] measured 17 mm (README)
+    assert np.percentile(err_fused, 90) < 0.09  # measured 68 mm
+    assert np.median(err_fused) < 0.5 * np.median(err_sfs)
+    rclpy_node.spin_until(lambda: any(s.values and any(
+        kv.key == 'match density' for kv in s.values) for s in statuses(received, ': depth')),
+        10, 'depth diagnostics')
+    assert node.alive() and sim.alive() and 'Traceback' not in node.output()
+
+
+def rendered_pair(tmp_path):
+    """A clean 320x240 left/right pair of the small scenario, as uint8."""
+    from sensor_sim.render import SceneRenderer
+    scenario = load_scenario(small_scenario(tmp_path))
+    renderer = SceneRenderer(scenario)
+    return scenario, [np.clip(np.rint(renderer.scene_image(n)), 0, 255).astype(np.uint8)
+                      for n in ('left', 'right')]
+
+
+def test_bad_input_is_reported_and_the_node_keeps_serving(spawn, rclpy_node, tmp_path):
+    scenario, (left, right) = rendered_pair(tmp_path)
+    node = spawn([executable('sfs_stereo_node'), '--ros-args', *NODE_ARGS])
+    received = collect(rclpy_node)
+    image_pub = {n: rclpy_node.create_publisher(Image, IMAGE_TOPICS[n], DEFAULT_QOS)
+                 for n in ('left', 'right')}
+    rclpy_node.spin_until(lambda: all(p.get_subscription_count() for p in image_pub.values()),
+                          30, 'the node to subscribe the images')
+
+    def send(stamp, left_img, right_img, encoding='mono8', right_stamp=None):
+        image_pub['left'].publish(numpy_to_image(left_img, encoding, stamp,
+                                                 OPTICAL_FRAMES['left']))
+        image_pub['right'].publish(numpy_to_image(right_img, encoding,
+                                                  right_stamp or stamp,
+                                                  OPTICAL_FRAMES['right']))
+
+    def wait_rejection(text, what):
+        rclpy_node.spin_until(lambda: any(text in s.message for s in
+                                          statuses(received, 'rejected stereo pair')),
+                              30, what)
+
+    # 1. no camera info yet
+    send(1_000_000_000, left, right)
+    wait_rejection('no calibration yet', 'a rejection for the missing calibration')
+    # 2. the true calibration, as calib_node publishes it
+    calib_dir = tmp_path / 'calib'
+    write_calibration(calib_dir, {n: scenario.cameras[n] for n in ('left', 'right', 'aux')},
+                      OPTICAL_FRAMES)
+    publishers, rig = publish_rig(rclpy_node, calib_dir)  # noqa: F841 (kept alive)
+    # 3. wrong encoding
+    bad = Image(header=numpy_to_image(left, 'mono8', 2_000_000_000, 'x').header, height=240,
+                width=320, encoding='yuv422', step=640, data=bytes(240 * 640))
+    image_pub['left'].publish(bad)
+    image_pub['right'].publish(numpy_to_image(right, 'mono8', 2_000_000_000, 'x'))
+    wait_rejection('encoding', 'a rejection of the yuv422 image')
+    # 4. size/step mismatch: data shorter than step * height
+    short = numpy_to_image(left, 'mono8', 3_000_000_000, 'x')
+    short.data = bytes(short.data)[:-320]
+    image_pub['left'].publish(short)
+    image_pub['right'].publish(numpy_to_image(right, 'mono8', 3_000_000_000, 'x'))
+    wait_rejection('bytes', 'a rejection of the truncated image')
+    # 5. left and right of different sizes
+    send(4_000_000_000, left, right[:120, :160])
+    wait_rejection('differ in size', 'a rejection of the size mismatch')
+    # 6. all-black pair: no surface, nothing to publish
+    send(5_000_000_000, np.zeros_like(left), np.zeros_like(right))
+    wait_rejection('no surface', 'a rejection of the black pair')
+    # 7. mismatched stamps: the unpaired images are dropped and counted
+    send(6_000_000_000, left, right, right_stamp=6_500_000_000)
+    send(7_000_000_000, left, right)  # completes a newer pair: the unpaired ones drop
+    wait_rejection('without a partner', 'a rejection of the unpaired images')
+    rclpy_node.spin_until(lambda: 7_000_000_000 in stamps(received['fused']), 60,
+                          'fused depth of the good pair after the bad input')
+    assert stamps(received['fused']) == {7_000_000_000}  # nothing for the bad ones
+    assert node.alive() and 'Traceback' not in node.output()
