@@ -2,14 +2,22 @@
 
 Waypoints are (N, 4, 4) poses in base_link (INTERFACES.md /curve/waypoints): origin on
 the surface, x along the curve's tangent, z the approach direction into the surface.
-Each ``TrackingController.step`` drives the tool tip towards the next waypoint ahead,
-pressed along its approach axis by a depth from an integral (admittance) force law, with a
-feed-forward along the path, and solves the redundant IK with W = I (KKT, or damped least
-squares near singularities), the joint velocity scaled into its limits.
+``TrackingController`` runs the whole task as phases: approach (free-space move to a
+pre-contact pose above the first waypoint, then descent along its approach axis until the
+measured force reaches the desired one), contact (the force settles), tracking (a
+reference runs along the path by arc length at ``speed``; the tool frame E comes from the
+tangent-plane construction of §6.4; the depth along the approach axis from an integral
+force law), done (lift-off and hold); stop or any failure holds still. Each step turns the
+reference pose and its feed-forward twist into joint velocities through ``RateSolver``
+(pose feedback, so no drift accumulates).
 """
-import numpy as np
+from dataclasses import dataclass, field, replace
 
-from pa10_ik_node.ik import dls_velocity, kkt_velocity, pose_error
+import numpy as np
+import pinocchio as pin
+
+from pa10_ik_node.ik import pose_error
+from pa10_ik_node.path import WaypointPath
 from vgm_common.errors import InvalidInput
 
 
@@ -79,109 +87,355 @@ def approach_correction(integral, measured_force, desired_force, stiffness, dt, 
     return depth, integral
 
 
+PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
+ACTIVE_PHASES = ('approach', 'contact', 'tracking')
+
+
+class Unreachable(InvalidInput):
+    """Waypoints outside the arm's workspace, or a reference the arm cannot follow."""
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Settings of ``TrackingController`` (units in brackets)."""
+
+    desired_force: float = 5.0  # [N]
+    stiffness: float = 2000.0  # [N/m] contact stiffness estimate (feed-forward depth)
+    speed: float = 0.015  # [m/s] along the path
+    pose_gain: float = 10.0  # [1/s] pose feedback
+    force_gain: float = 5.0  # [1/s] integral force law (approach_correction)
+    track_spin: bool = False  # track the spin about the approach axis too (6 constraints)
+    standoff: float = 0.03  # [m] pre-contact pose above the first waypoint
+    descent_speed: float = 0.01  # [m/s] along the approach axis before contact
+    lift_height: float = 0.03  # [m] lift-off when done
+    max_linear_speed: float = 0.05  # [m/s] free-space moves
+    max_angular_speed: float = 0.5  # [rad/s] free-space moves
+    max_depth: float = 0.01  # [m] deepest commanded indentation; descent beyond: failure
+    force_tolerance: float = 0.05  # relative band in which the contact counts as settled
+    settle_time: float = 0.3  # [s] in that band before tracking starts
+    contact_timeout: float = 5.0  # [s] tracking starts after this even if not settled
+    ramp_time: float = 0.5  # [s] speed ramp at the start of tracking
+    lookahead: float = 0.005  # [m] next marker Q ahead of the contact point P (§6.4)
+    governor_distance: float = 0.002  # [m] the reference waits while the tip lags more
+    max_position_error: float = 0.01  # [m] beyond this for error_timeout: failure
+    error_timeout: float = 1.0  # [s]
+    reach_margin: float = 0.02  # [m] waypoints must lie this far inside the reach
+    closed_tolerance: float = 0.01  # [m] path ends closer than this: a loop
+
+
+@dataclass
+class TrackingStats:
+    """Lateral position errors [m] and force errors [N] over the tracking phase."""
+
+    position_errors: list = field(default_factory=list)
+    force_errors: list = field(default_factory=list)
+
+    def summary(self):
+        """(rms position error [m], largest |force error| [N]); NaN when empty."""
+        if not self.position_errors:
+            return float('nan'), float('nan')
+        return (float(np.sqrt(np.mean(np.square(self.position_errors)))),
+                float(np.max(np.abs(self.force_errors))))
+
+
+def workspace_reach(robot):
+    """(shoulder (3,), reach [m]): the arm's tip stays within ``reach`` of the second
+    joint's origin (the sum of the link offsets beyond it, tool included)."""
+    q0 = np.zeros(robot.n_joints)
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q0)
+    pin.updateFramePlacements(robot.model, data)
+    origins = [data.oMi[j].translation.copy() for j in range(1, robot.model.njoints)]
+    tip = data.oMf[robot.tool_frame_id].translation
+    shoulder = origins[1] if len(origins) > 1 else origins[0]
+    chain = origins[1:] + [tip]
+    reach = sum(np.linalg.norm(b - a) for a, b in zip(chain[:-1], chain[1:]))
+    return shoulder, float(reach)
+
+
+def spin_free_task(J, twist, T_desired):
+    """The 5 constraints that leave the spin about the desired approach axis free.
+
+    The angular rows are expressed in the desired frame's (x, y, z) and the z row is
+    dropped. Returns (J (5, n), twist (5,)).
+    """
+    R = T_desired[:3, :3]
+    J5 = np.vstack([J[:3], R[:, :2].T @ J[3:]])
+    return J5, np.concatenate([twist[:3], R[:, :2].T @ twist[3:]])
+
+
+def tilt_error(R_current, approach_desired):
+    """Rotation vector (3,) [rad] turning the tool's z axis onto ``approach_desired``."""
+    z = R_current[:, 2]
+    axis = np.cross(z, approach_desired)
+    norm = np.linalg.norm(axis)
+    angle = np.arctan2(norm, np.dot(z, approach_desired))
+    if norm < 1e-12:
+        return np.zeros(3) if angle < 1.0 else R_current[:, 0] * np.pi
+    return axis / norm * angle
+
+
 class TrackingController:
-    """Follows a waypoint path with the tool tip, pressing with ``desired_force``.
+    """The tracking task as a phase machine; ``step`` gives joint velocities.
 
     Args:
         robot: ``RobotModel`` (tool frame = the tip, z = approach axis).
-        waypoints: (N, 4, 4) poses in base_link.
-        desired_force: [N]; stiffness: contact stiffness estimate [N/m].
-        speed: feed-forward speed along the path [m/s]; gain: pose gain [1/s].
-        track_spin: False leaves the spin about the approach axis free (5 constraints).
-        max_joint_velocity: [rad/s] scalar cap on top of the robot's limits (None: none).
-        advance_distance: [m] the index advances when the tip is this close to its waypoint
-            (pressed to the commanded depth); stop_distance: [m] the same for the first
-            one (the end of the approach, which starts the force integral) and the last.
-        max_linear_speed: [m/s] bound of the commanded linear twist (approach phase).
-        sigma_threshold, damping: DLS is used when J's smallest singular value is lower.
+        solver: ``RateSolver`` (method, W, limits handling).
+        config: ``TrackingConfig``.
+        max_joint_velocity: [rad/s] cap on top of the robot's limits (None: none).
+
+    Attributes:
+        phase: one of ``PHASES``; reason: why the controller stopped or failed ('' else).
+        progress: 0..1 along the path (tracking); stats: ``TrackingStats``.
     """
 
-    def __init__(self, robot, waypoints, desired_force=5.0, stiffness=2000.0, speed=0.01,
-                 gain=10.0, track_spin=False, max_joint_velocity=None, force_gain=5.0,
-                 advance_distance=0.002, stop_distance=0.0005, max_linear_speed=0.05,
-                 sigma_threshold=0.02, damping=0.05):
-        waypoints = np.array(waypoints, dtype=float)
-        if waypoints.ndim != 3 or waypoints.shape[1:] != (4, 4) or len(waypoints) < 1 \
-                or not np.all(np.isfinite(waypoints)):
-            raise InvalidInput('waypoints must be a finite (N, 4, 4) array', 'waypoints',
-                               waypoints)
-        self.robot, self.waypoints = robot, waypoints
-        self.desired_force, self.stiffness = float(desired_force), float(stiffness)
-        self.speed, self.gain, self.track_spin = speed, gain, track_spin
-        self.force_gain = force_gain
-        self.advance_distance, self.stop_distance = advance_distance, stop_distance
-        self.max_linear_speed = max_linear_speed
-        self.sigma_threshold, self.damping = sigma_threshold, damping
+    def __init__(self, robot, solver, config=None, max_joint_velocity=None):
+        self.robot, self.solver = robot, solver
+        self.config = TrackingConfig() if config is None else config
         limits = np.array(robot.velocity_limits, dtype=float)
         if max_joint_velocity is not None:
             limits = np.minimum(limits, max_joint_velocity)
         self.velocity_limits = limits
-        self.index, self.integral, self.done = 0, 0.0, False
+        self.shoulder, self.reach = workspace_reach(robot)
+        self.phase, self.reason, self.path = 'idle', '', None
+        self._reset_state()
 
-    def _desired_pose(self, depth):
-        T = self.waypoints[self.index].copy()
-        T[:3, 3] += depth * T[:3, 2]
+    def _reset_state(self):
+        self.stage = ''  # approach: 'free' or 'descend'; done: lifting
+        self.integral, self.time_in_phase, self.settled_time = 0.0, 0.0, 0.0
+        self.s_start = self.s_ref = self.travelled = 0.0
+        self.error_time = 0.0
+        self.best_distance, self.stall_time = np.inf, 0.0
+        self.progress, self.stats = 0.0, TrackingStats()
+        self.T_hold, self.T_end = None, None
+        self.descended, self.end_time = 0.0, 0.0
+        self.solver.reset()
+
+    def configure(self, **changes):
+        """Change settings (between or during runs)."""
+        self.config = replace(self.config, **changes)
+
+    # --- commands --------------------------------------------------------------------
+
+    def check_reachable(self, path):
+        """Raises ``Unreachable`` if a waypoint or the pre-contact pose is out of reach."""
+        c = self.config
+        points = np.vstack([path.points, path.points[:1] - c.standoff * path.approach[:1]])
+        distances = np.linalg.norm(points - self.shoulder, axis=1)
+        worst = int(np.argmax(distances))
+        if distances[worst] > self.reach - c.reach_margin:
+            raise Unreachable(
+                f'waypoint {min(worst, len(path.points) - 1)} at {points[worst].round(3)} is '
+                f'{distances[worst]:.3f} m from the shoulder, beyond the reach '
+                f'{self.reach:.3f} m - {c.reach_margin} m margin', 'waypoints', points[worst])
+
+    def start(self, waypoints):
+        """Begin the task on ``waypoints`` (N, 4, 4). Raises ``InvalidInput`` /
+        ``Unreachable`` and stays as it was if they cannot be followed."""
+        path = WaypointPath(waypoints, self.config.closed_tolerance)
+        self.check_reachable(path)
+        self.path = path
+        self._reset_state()
+        self._enter('approach', 'free')
+
+    def update_path(self, waypoints, tip):
+        """Take over a new path while running: continue from its point nearest to the tip
+        (``tip`` (3,)), keeping the fraction of a loop already travelled."""
+        path = WaypointPath(waypoints, self.config.closed_tolerance)
+        self.check_reachable(path)
+        old = self.path
+        if self.phase != 'tracking' or old is None:
+            self.path = path
+            return
+        fraction = self.travelled / old.length if old.length > 0 else 0.0
+        around = (self.s_start + fraction * path.length) % path.length if path.closed \
+            else fraction * path.length
+        s_near, _ = path.nearest(tip, around, window=0.25 * path.length)
+        self.path = path
+        self.travelled = fraction * path.length
+        self.s_start = s_near - self.travelled if path.closed else 0.0
+        self.s_ref = s_near if not path.closed else self.s_start + self.travelled
+
+    def stop(self, reason='stop requested'):
+        if self.phase in ('stopped', 'failed'):
+            return
+        self.phase, self.reason = 'stopped', reason
+
+    def fail(self, reason):
+        self.phase, self.reason = 'failed', reason
+
+    def _enter(self, phase, stage=''):
+        self.phase, self.stage, self.time_in_phase = phase, stage, 0.0
+        self.best_distance, self.stall_time, self.error_time = np.inf, 0.0, 0.0
+
+    # --- the control step ------------------------------------------------------------
+
+    def _sample(self, s):
+        path = self.path
+        return path.sample(s % path.length if path.closed else s)
+
+    def _frame(self, s, position):
+        """The tool frame E at arc length ``s`` (§6.4 steps 1-4): z = approach, x towards
+        the next marker Q projected on the tangent plane; origin ``position``."""
+        P, z, tangent = self._sample(s)
+        Q = self._sample(s + self.config.lookahead)[0]
+        if np.linalg.norm(Q - P) < 1e-9:
+            Q = P + tangent * self.config.lookahead
+        try:
+            _, T = next_target_on_tangent_plane(P, -z, Q)
+        except InvalidInput:  # Q' at P: fall back to the tangent
+            _, T = next_target_on_tangent_plane(P, -z, P + tangent)
+        T[:3, 3] = position
         return T
 
     def step(self, q, measured_force, dt):
-        """One control step: joint velocity (7,) [rad/s] and an info dict.
-
-        info: 'index', 'done', 'depth' [m], 'phi' [rad] (7.3.15, logged only),
-        'twist' (6,), 'dls' (whether DLS was used), 'T_desired'.
-        """
+        """One control step at joints ``q`` (n,) [rad] with the measured force [N] over
+        ``dt`` [s]. Returns (qdot (n,) [rad/s], info dict)."""
         q = self.robot.check_q(q)
-        depth, self.integral = approach_correction(  # no integral before the approach ends
-            self.integral, measured_force, self.desired_force, self.stiffness,
-            dt if self.index > 0 else 0.0, self.force_gain)
         T = self.robot.forward_kinematics(q)
-        last = len(self.waypoints) - 1
-        while True:  # advance past the (pressed) waypoints within reach
-            distance = np.linalg.norm(self._desired_pose(depth)[:3, 3] - T[:3, 3])
-            reach = self.advance_distance if self.index > 0 else self.stop_distance
-            if self.index < last and distance < reach:
-                self.index += 1
-                continue
-            break
-        T_d = self._desired_pose(depth)
-        error = pose_error(T, T_d)
-        if self.index == last and np.linalg.norm(error[:3]) < self.stop_distance:
-            self.done = True
-        info = {'index': self.index, 'done': self.done, 'depth': depth, 'T_desired': T_d,
-                'phi': force_tilt_angle(measured_force, self.desired_force), 'dls': False,
-                'twist': np.zeros(6)}
-        if self.done:
+        c = self.config
+        self.time_in_phase += dt
+        info = {'phase': self.phase, 'phi': force_tilt_angle(measured_force,
+                                                             c.desired_force),
+                'force_error': measured_force - c.desired_force, 'T': T,
+                'position_error': float('nan')}
+        if self.phase not in ACTIVE_PHASES and self.phase != 'done':
             return np.zeros(self.robot.n_joints), info
+        target = self._reference(T, measured_force, dt, info)
+        if target is None:  # the phase machine stopped or failed
+            info['phase'] = self.phase
+            return np.zeros(self.robot.n_joints), info
+        T_d, feed_forward, free_move = target
+        info.update(phase=self.phase, T_desired=T_d)
+        qdot, solve_info = self._solve(q, T, T_d, feed_forward, free_move)
+        info.update(solve_info)
+        return qdot, info
 
-        approach = T_d[:3, 2]
-        if not self.track_spin:  # tilt only: the rotation taking the tool's z onto approach
-            axis = np.cross(T[:3, 2], approach)
-            angle = np.arctan2(np.linalg.norm(axis), np.dot(T[:3, 2], approach))
-            norm = np.linalg.norm(axis)
-            error[3:] = axis / norm * angle if norm > 1e-12 else 0.0
-        if 0 < self.index < last and distance < 2 * self.advance_distance:  # on the path:
-            tangent = T_d[:3, 0]  # move along it at the set speed, correct across it
-            error[:3] -= tangent * np.dot(tangent, error[:3])
-            twist = self.gain * error
-            twist[:3] += self.speed * tangent
+    def _reference(self, T, force, dt, info):
+        """(T_desired, feed-forward twist (6,), free_move) of the current phase; None
+        if the phase machine stopped."""
+        c = self.config
+        path = self.path
+        tip = T[:3, 3]
+        if self.phase == 'approach':
+            P0, z0, _ = self._sample(0.0)
+            if self.stage == 'free':
+                T_d = self._frame(0.0, P0 - c.standoff * z0)
+                distance = np.linalg.norm(T_d[:3, 3] - tip)
+                angle = np.linalg.norm(tilt_error(T[:3, :3], z0))
+                if distance < 0.001 and angle < 0.01:
+                    self.stage, self.descended = 'descend', 0.0
+                    self.best_distance, self.stall_time = np.inf, 0.0
+                elif not self._progressing(distance + 0.05 * angle, dt):
+                    self.fail(f'cannot reach the pre-contact pose: {distance * 1e3:.1f} mm '
+                              f'away, no progress for {c.error_timeout * 2:.1f} s')
+                    return None
+                else:
+                    return T_d, np.zeros(6), True
+            # Descend along the approach axis, slower as the force builds up.
+            if force >= c.desired_force:
+                self._enter('contact')
+                return self._reference(T, force, 0.0, info)
+            slow = np.clip(1.0 - force / c.desired_force, 0.2, 1.0)
+            self.descended += c.descent_speed * slow * dt
+            if self.descended > c.standoff + c.max_depth:
+                self.fail(f'no contact: descended {self.descended * 1e3:.0f} mm along the '
+                          'approach axis without reaching the desired force')
+                return None
+            T_d = self._frame(0.0, P0 + (self.descended - c.standoff) * z0)
+            feed_forward = np.concatenate([c.descent_speed * slow * z0, np.zeros(3)])
+            return self._checked(T, T_d, feed_forward, dt)
+        if self.phase == 'contact':
+            depth, self.integral = approach_correction(
+                self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
+                c.max_depth)
+            P0, z0, _ = self._sample(0.0)
+            in_band = abs(force - c.desired_force) <= c.force_tolerance * c.desired_force
+            self.settled_time = self.settled_time + dt if in_band else 0.0
+            if self.settled_time >= c.settle_time or self.time_in_phase > c.contact_timeout:
+                self._enter('tracking')
+                self.s_start = self.s_ref = self.travelled = 0.0
+            T_d = self._frame(0.0, P0 + depth * z0)
+            return self._checked(T, T_d, np.zeros(6), dt)
+        if self.phase == 'tracking':
+            depth, self.integral = approach_correction(
+                self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
+                c.max_depth)
+            remaining = path.length - self.travelled
+            speed = c.speed * min(1.0, max(self.time_in_phase / c.ramp_time, 0.05))
+            P, z, _ = self._sample(self.s_ref)
+            lag = np.linalg.norm(P + depth * z - tip)
+            if lag < c.governor_distance:  # the reference waits for a lagging tip
+                advance = min(speed * dt, remaining)
+                self.s_ref += advance
+                self.travelled += advance
+            self.progress = self.travelled / path.length
+            P, z, _ = self._sample(self.s_ref)
+            T_d = self._frame(self.s_ref, P + depth * z)
+            moving = self.travelled < path.length
+            feed_forward = np.concatenate([speed * T_d[:3, 0] if moving else np.zeros(3),
+                                           np.zeros(3)])
+            s_near, _ = path.nearest(tip, self.s_ref % path.length if path.closed
+                                     else self.s_ref, window=0.05)
+            lateral = path.lateral_distance(tip, s_near)
+            info['position_error'] = lateral
+            self.stats.position_errors.append(lateral)
+            self.stats.force_errors.append(force - c.desired_force)
+            if not moving:
+                self.end_time += dt
+                if np.linalg.norm(T_d[:3, 3] - tip) < 0.0005 or self.end_time > 1.0:
+                    self._enter('done', 'lifting')
+                self.T_end = T_d.copy()
+            return self._checked(T, T_d, feed_forward, dt)
+        # done: lift off along the approach axis and hold.
+        T_d = self.T_end.copy()
+        lift = min(self.time_in_phase * c.descent_speed, c.lift_height)
+        T_d[:3, 3] -= lift * T_d[:3, 2]
+        feed_forward = np.zeros(6)
+        if lift < c.lift_height:
+            feed_forward[:3] = -c.descent_speed * T_d[:3, 2]
+        return T_d, feed_forward, False
+
+    def _progressing(self, distance, dt):
+        """False once ``distance`` has not dropped by 1 mm for 2 error_timeouts."""
+        if distance < self.best_distance - 0.001:
+            self.best_distance, self.stall_time = distance, 0.0
         else:
-            twist = self.gain * error
-        linear = np.linalg.norm(twist[:3])
-        if linear > self.max_linear_speed:
-            twist[:3] *= self.max_linear_speed / linear
+            self.stall_time += dt
+        return self.stall_time < 2 * self.config.error_timeout
 
-        info['twist'] = twist
+    def _checked(self, T, T_d, feed_forward, dt):
+        """The reference, unless the tip has been farther than max_position_error from it
+        for error_timeout (the arm cannot follow: out of reach, at its limits)."""
+        error = np.linalg.norm(T_d[:3, 3] - T[:3, 3])
+        self.error_time = self.error_time + dt if error > self.config.max_position_error \
+            else 0.0
+        if self.error_time > self.config.error_timeout:
+            self.fail(f'cannot follow the path: the tool tip is {error * 1e3:.1f} mm from '
+                      f'its reference at {T_d[:3, 3].round(3)} (out of reach or at the '
+                      'joint limits)')
+            return None
+        return T_d, feed_forward, False
+
+    def _solve(self, q, T, T_d, feed_forward, free_move):
+        c = self.config
+        error = pose_error(T, T_d)
+        if not c.track_spin:
+            error[3:] = tilt_error(T[:3, :3], T_d[:3, 2])
+        twist = feed_forward + c.pose_gain * error
+        if free_move:
+            linear, angular = np.linalg.norm(twist[:3]), np.linalg.norm(twist[3:])
+            if linear > c.max_linear_speed:
+                twist[:3] *= c.max_linear_speed / linear
+            if angular > c.max_angular_speed:
+                twist[3:] *= c.max_angular_speed / angular
         J = self.robot.jacobian(q)
-        if not self.track_spin:  # rotate the angular rows to (b1, b2, approach), drop the last
-            basis = np.linalg.svd(approach.reshape(1, 3))[2]  # rows: approach, b1, b2
-            R = np.eye(6)
-            R[3:, 3:] = np.roll(basis, -1, axis=0)
-            J, twist = R @ J, R @ twist
-            J[5], twist[5] = 0.0, 0.0
-        active = J if self.track_spin else J[:5]
-        if np.linalg.svd(active, compute_uv=False)[-1] < self.sigma_threshold:
-            info['dls'] = True
-            qdot = dls_velocity(J, twist, self.damping)
+        if not c.track_spin:
+            J, task = spin_free_task(J, twist, T_d)
         else:
-            qdot = kkt_velocity(J, np.eye(self.robot.n_joints), twist)[0]
-        scale = np.max(np.abs(qdot) / self.velocity_limits)
-        return (qdot / scale if scale > 1 else qdot), info
+            task = twist
+        qdot, solve_info = self.solver.solve_limited(
+            J, task, q, self.robot.lower_limits, self.robot.upper_limits,
+            self.velocity_limits)
+        solve_info['twist'] = twist
+        return qdot, solve_info

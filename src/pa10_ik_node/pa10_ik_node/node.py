@@ -1,0 +1,383 @@
+"""pa10_ik_node: follow /curve/waypoints with the arm's tool tip, pressing with a set force.
+
+Closed loop at ``rate`` on /joint_states and /tool/pressure; joint commands out on
+/pa10_controller/joint_trajectory (one point, positions and velocities, a short
+time_from_start: the joint_trajectory_controller convention), the measured tool pose on
+/tool_pose. The task (approach, contact, tracking, done; stopped, failed) is
+``tracking.TrackingController``; the velocity IK is ``ik.RateSolver``. This file only
+declares parameters, converts messages and calls them.
+"""
+import time
+from collections import deque
+
+import numpy as np
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from nav_msgs.msg import Path
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from pa10_ik_node.ik import METHODS, RateSolver
+from pa10_ik_node.path import validate_waypoints
+from pa10_ik_node.tracking import (
+    ACTIVE_PHASES,
+    TrackingConfig,
+    TrackingController,
+    Unreachable,
+)
+from vgm_common.conversions import matrix_to_pose_stamped, path_to_matrices
+from vgm_common.errors import InvalidInput, VgmError
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.robot_model import load_robot
+
+BASE_FRAME = 'base_link'
+THESIS_WEIGHTS = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0]  # §6.6
+
+
+def _check_weights(values):
+    if not values or any(not np.isfinite(v) or v == 0 for v in values):
+        return 'every weight must be finite and non-zero'
+    return None
+
+
+class Pa10IkNode(Node):
+    node_name = 'pa10_ik_node'
+
+    def __init__(self):
+        super().__init__(self.node_name)
+        self.diagnostics = Diagnostics(self)
+        positive = (1e-9, 1e9)
+        self.params = NodeParameters(self, [
+            Param('robot', 'pa10', "Kinematic model: 'pa10', 'pa10_thesis' or a URDF path.",
+                  read_only=True),
+            Param('tool_length', 0.1, '[m] Flange to tool tip; must match the scenario\'s '
+                  'robot.tool_length.', range=(0.0, 1.0), read_only=True),
+            Param('tip_frame', 'tool0', 'Tip frame of the URDF (z = approach axis).',
+                  read_only=True),
+            Param('rate', 100.0, '[Hz] Control rate.', range=(100.0, 1000.0),
+                  read_only=True),
+            Param('method', 'ours', 'Velocity IK: ours (closed-form KKT + feedback, joint '
+                  'limits), primal_dual (the thesis network), dls (reference).',
+                  choices=METHODS, on_change=lambda _: self._rebuild_solver()),
+            Param('weights', [1.0] * 7, 'Diagonal of W (may be indefinite, e.g. the '
+                  f'thesis {THESIS_WEIGHTS}).', check=_check_weights,
+                  on_change=lambda _: self._rebuild_solver()),
+            Param('K', 100.0, 'Penalty gain of the primal-dual network.', range=positive,
+                  on_change=lambda _: self._rebuild_solver()),
+            Param('mu', 0.02, 'Step size of the thesis\'s fixed-step rule for qdot (the '
+                  'benchmark only: the node integrates the network exactly).',
+                  range=positive),
+            Param('eta', 0.02, 'Step size of the thesis\'s fixed-step rule for lambda '
+                  '(benchmark only).', range=positive),
+            Param('damping', 0.05, 'DLS damping; largest adaptive damping of ours.',
+                  range=(0.0, 10.0), on_change=lambda _: self._rebuild_solver()),
+            Param('desired_force', 5.0, '[N] Contact force to hold.', range=(0.01, 200.0),
+                  on_change=lambda v: self._configure(desired_force=v)),
+            Param('contact_stiffness', 2000.0, '[N/m] Stiffness estimate (feed-forward '
+                  'depth; the integral law corrects its error).', range=(1.0, 1e7),
+                  on_change=lambda v: self._configure(stiffness=v)),
+            Param('force_gain', 5.0, '[1/s] Integral gain of the force law.',
+                  range=(0.0, 100.0), on_change=lambda v: self._configure(force_gain=v)),
+            Param('speed', 0.015, '[m/s] Speed along the path.', range=(1e-4, 0.2),
+                  on_change=lambda v: self._configure(speed=v)),
+            Param('pose_gain', 10.0, '[1/s] Pose feedback gain.', range=(0.1, 50.0),
+                  on_change=lambda v: self._configure(pose_gain=v)),
+            Param('max_joint_velocity', 1.0, '[rad/s] Cap on every joint speed (on top of '
+                  'the model\'s limits).', range=(0.01, 10.0), read_only=True),
+            Param('track_spin', False, 'Also track the spin about the approach axis '
+                  '(6 constraints, as the seed); false leaves it free.',
+                  on_change=lambda v: self._configure(track_spin=v)),
+            Param('standoff', 0.03, '[m] Pre-contact pose above the first waypoint.',
+                  range=(0.005, 0.2), on_change=lambda v: self._configure(standoff=v)),
+            Param('descent_speed', 0.01, '[m/s] Descent to contact and lift-off speed.',
+                  range=(1e-4, 0.1), on_change=lambda v: self._configure(descent_speed=v)),
+            Param('lift_height', 0.03, '[m] Lift-off along the approach axis when done.',
+                  range=(0.0, 0.2), on_change=lambda v: self._configure(lift_height=v)),
+            Param('max_position_error', 0.01, '[m] Tip farther than this from its '
+                  'reference for error_timeout: failure.', range=(1e-4, 1.0),
+                  on_change=lambda v: self._configure(max_position_error=v)),
+            Param('error_timeout', 1.0, '[s] See max_position_error.', range=(0.01, 60.0),
+                  on_change=lambda v: self._configure(error_timeout=v)),
+            Param('pressure_timeout', 0.5, '[s] Pressure (or joint state) older than this '
+                  'while active: stop.', range=(0.01, 60.0)),
+            Param('command_horizon', 0.05, '[s] time_from_start of the commanded point.',
+                  range=(0.001, 1.0)),
+            Param('auto_start', False, 'Start as soon as valid waypoints, joint states and '
+                  'pressure are there.'),
+            Param('diagnostics_rate', 2.0, '[Hz] Rate of the tracking diagnostics.',
+                  range=(0.1, 50.0), read_only=True),
+        ], self.diagnostics)
+        p = self.params
+        try:
+            self.robot = load_robot(p.robot, p.tool_length, p.tip_frame)
+        except InvalidInput as error:
+            raise InvalidInput(f'parameter robot: {error}', 'robot', p.robot) from None
+        if len(p.weights) != self.robot.n_joints:
+            raise InvalidInput(f"parameter 'weights': needs {self.robot.n_joints} values, "
+                               f'got {len(p.weights)}', 'weights', p.weights)
+        self.controller = TrackingController(
+            self.robot, self._make_solver(), TrackingConfig(
+                desired_force=p.desired_force, stiffness=p.contact_stiffness,
+                force_gain=p.force_gain, speed=p.speed, pose_gain=p.pose_gain,
+                track_spin=p.track_spin, standoff=p.standoff, descent_speed=p.descent_speed,
+                lift_height=p.lift_height, max_position_error=p.max_position_error,
+                error_timeout=p.error_timeout),
+            max_joint_velocity=p.max_joint_velocity)
+        self.joint_index = {name: i for i, name in enumerate(self.robot.joint_names)}
+        self.q = None  # measured joints, robot order [rad]
+        self.force = 0.0  # [N]
+        self.joint_state_time = self.pressure_time = None  # monotonic receive times [s]
+        self.waypoints = None  # (N, 4, 4) base_link
+        self.step_times = deque(maxlen=500)  # [s]
+        self.last_phase = self.controller.phase
+        self.last_info = {}
+        self.null_space_failures = 0
+        self.last_failure_condition = ''
+
+        self.command_publisher = self.create_publisher(
+            JointTrajectory, '/pa10_controller/joint_trajectory', DEFAULT_QOS)
+        self.pose_publisher = self.create_publisher(PoseStamped, '/tool_pose', DEFAULT_QOS)
+        self.create_subscription(JointState, '/joint_states', self._on_joint_state,
+                                 DEFAULT_QOS)
+        self.create_subscription(WrenchStamped, '/tool/pressure', self._on_pressure,
+                                 DEFAULT_QOS)
+        self.create_subscription(Path, '/curve/waypoints', self._on_waypoints, LATCHED_QOS)
+        self.create_service(Trigger, '~/start_tracking', self._on_start)
+        self.create_service(Trigger, '~/stop', self._on_stop)
+        self.dt = 1.0 / p.rate
+        self.create_timer(self.dt, self._control_step)
+        self.create_timer(1.0 / p.diagnostics_rate, self._publish_diagnostics)
+        self.get_logger().info(
+            f'robot {p.robot} (tool {p.tool_length} m), method {p.method}, {p.rate:g} Hz, '
+            f'desired force {p.desired_force} N, speed {p.speed} m/s, '
+            f'auto_start {p.auto_start}')
+
+    # --- parameters ------------------------------------------------------------------
+
+    def _make_solver(self):
+        p = self.params
+        return RateSolver(p.method, p.weights, K=p.K, damping=p.damping)
+
+    def _rebuild_solver(self):
+        if hasattr(self, 'controller'):
+            if len(self.params.weights) != self.robot.n_joints:
+                self.diagnostics.reject('parameter change', InvalidInput(
+                    f'weights needs {self.robot.n_joints} values; kept the old solver'))
+                return
+            self.controller.solver = self._make_solver()
+
+    def _configure(self, **changes):
+        if hasattr(self, 'controller'):
+            self.controller.configure(**changes)
+
+    # --- inputs ----------------------------------------------------------------------
+
+    def _on_joint_state(self, msg):
+        try:
+            names = list(msg.name)
+            unknown = sorted(set(names) - set(self.joint_index))
+            if unknown:
+                raise InvalidInput(f'unknown joint names {unknown}', 'name', unknown)
+            missing = sorted(set(self.joint_index) - set(names))
+            if missing or len(names) != len(msg.position):
+                raise InvalidInput(f'need one position for each of {self.robot.n_joints} '
+                                   f'joints (missing {missing}, {len(msg.position)} '
+                                   f'positions for {len(names)} names)', 'position')
+            q = np.empty(self.robot.n_joints)
+            for name, value in zip(names, msg.position):
+                q[self.joint_index[name]] = value
+            q = self.robot.check_q(q)
+        except InvalidInput as error:
+            self.diagnostics.reject('/joint_states', error)
+            return
+        self.q = q
+        self.joint_state_time = time.monotonic()
+
+    def _on_pressure(self, msg):
+        force = msg.wrench.force.z
+        if not np.isfinite(force):
+            self.diagnostics.reject('/tool/pressure', InvalidInput(f'force.z is {force}'))
+            return
+        self.force = float(force)
+        self.pressure_time = time.monotonic()
+
+    def _on_waypoints(self, msg):
+        try:
+            if msg.header.frame_id != BASE_FRAME:
+                raise InvalidInput(f'frame {msg.header.frame_id!r}, expected {BASE_FRAME!r}',
+                                   'frame_id', msg.header.frame_id)
+            waypoints = validate_waypoints(path_to_matrices(msg))
+        except InvalidInput as error:
+            self.diagnostics.reject('/curve/waypoints', error)
+            return
+        if self.controller.phase in ACTIVE_PHASES and self.q is not None:
+            tip = self.robot.forward_kinematics(self.q)[:3, 3]
+            try:
+                self.controller.update_path(waypoints, tip)
+            except InvalidInput as error:
+                self.diagnostics.reject('/curve/waypoints', error)
+                return
+            self.get_logger().info(f'took over a new path of {len(waypoints)} waypoints at '
+                                   f'progress {self.controller.progress:.3f}')
+        self.waypoints = waypoints
+        self.get_logger().info(f'waypoints: {len(waypoints)} poses')
+
+    # --- services --------------------------------------------------------------------
+
+    def _missing_inputs(self):
+        missing = []
+        if self.waypoints is None:
+            missing.append('/curve/waypoints')
+        if not self._fresh(self.joint_state_time):
+            missing.append('/joint_states')
+        if not self._fresh(self.pressure_time):
+            missing.append('/tool/pressure')
+        return missing
+
+    def _fresh(self, stamp):
+        return stamp is not None and time.monotonic() - stamp <= self.params.pressure_timeout
+
+    def _start(self):
+        """(success, message)."""
+        missing = self._missing_inputs()
+        if missing:
+            return False, f'cannot start: no recent {", ".join(missing)}'
+        try:
+            self.controller.start(self.waypoints)
+        except Unreachable as error:
+            self.controller.fail(f'unreachable waypoints: {error}')
+            self._hold()
+            return False, self.controller.reason
+        except VgmError as error:
+            return False, f'cannot start: {error}'
+        return True, f'started on {len(self.waypoints)} waypoints'
+
+    def _on_start(self, request, response):
+        response.success, response.message = self._start()
+        self._log_phase_change()
+        return response
+
+    def _on_stop(self, request, response):
+        self.controller.stop('stop requested')
+        self._hold()
+        self._log_phase_change()
+        response.success, response.message = True, 'stopped'
+        return response
+
+    # --- the loop --------------------------------------------------------------------
+
+    def _control_step(self):
+        if self.q is None:
+            return
+        controller = self.controller
+        if self.params.auto_start and controller.phase == 'idle' and \
+                not self._missing_inputs():
+            self._start()
+        if controller.phase in ACTIVE_PHASES:
+            if not self._fresh(self.pressure_time):
+                controller.stop(f'stale pressure: no /tool/pressure for more than '
+                                f'{self.params.pressure_timeout} s')
+            elif not self._fresh(self.joint_state_time):
+                controller.stop(f'stale joint states: no /joint_states for more than '
+                                f'{self.params.pressure_timeout} s')
+            if controller.phase == 'stopped':
+                self._hold()
+        q = self.q
+        if controller.phase in (*ACTIVE_PHASES, 'done'):
+            started = time.perf_counter()
+            qdot, info = controller.step(q, self.force, self.dt)
+            self.step_times.append(time.perf_counter() - started)
+            self.last_info = info
+            if info.get('diverged'):
+                self.null_space_failures += 1
+                self.last_failure_condition = (
+                    'W + K J^T J not positive definite at any K (near a singularity): the '
+                    'network diverges; used the KKT solution')
+            elif info.get('null_space_positive') is False:
+                self.null_space_failures += 1
+                self.last_failure_condition = (
+                    f'W not positive on null(J) (min eigenvalue '
+                    f'{info.get("min_null_eigenvalue", float("nan")):.3g}); fell back to |W|')
+            if controller.phase in ('stopped', 'failed'):
+                self._hold()
+            else:
+                self._command(q, qdot)
+            T = info['T']
+        else:
+            T = self.robot.forward_kinematics(q)
+        self.pose_publisher.publish(matrix_to_pose_stamped(
+            T, self.get_clock().now().nanoseconds, BASE_FRAME))
+        self._log_phase_change()
+
+    def _command(self, q, qdot):
+        horizon = self.params.command_horizon
+        seconds = int(horizon)
+        point = JointTrajectoryPoint(
+            positions=(q + qdot * horizon).tolist(), velocities=qdot.tolist(),
+            time_from_start=Duration(sec=seconds, nanosec=int((horizon - seconds) * 1e9)))
+        # A zero stamp: start now (joint_trajectory_controller convention).
+        self.command_publisher.publish(JointTrajectory(
+            joint_names=list(self.robot.joint_names), points=[point]))
+
+    def _hold(self):
+        """Zero velocity at the measured position."""
+        if self.q is not None:
+            self._command(self.q, np.zeros(self.robot.n_joints))
+
+    def _log_phase_change(self):
+        controller = self.controller
+        phase = controller.phase
+        if phase == self.last_phase:
+            return
+        self.last_phase = phase
+        message = f'phase {phase}'
+        if phase in ('stopped', 'failed'):
+            message += f': {controller.reason}'
+            log = self.get_logger().error if phase == 'failed' else self.get_logger().warning
+            log(message)
+            self._publish_diagnostics()
+            return
+        self.get_logger().info(message)
+        if phase == 'done':
+            rms, force_band = controller.stats.summary()
+            self.get_logger().info(
+                f'tracking done: rms position error {rms * 1e3:.3f} mm, force within '
+                f'+-{force_band:.3f} N of desired ({self.params.desired_force} N)')
+        self._publish_diagnostics()
+
+    def _publish_diagnostics(self):
+        controller, info = self.controller, self.last_info
+        phase = controller.phase
+        if phase == 'approach' and controller.stage == 'descend' and self.force > 0:
+            phase = 'contact'  # touching, force building up
+        values = {
+            'phase': phase,
+            'progress': f'{controller.progress:.4f}',
+            'position_error_m': f'{info.get("position_error", float("nan")):.6f}',
+            'force_N': f'{self.force:.4f}',
+            'force_error_N': f'{self.force - self.params.desired_force:.4f}',
+            'phi_rad': f'{info.get("phi", float("nan")):.5f}',
+            'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}' if self.step_times
+            else 'nan',
+            'method': self.params.method,
+            'reason': controller.reason,
+        }
+        if self.params.method == 'primal_dual':
+            values['failure_condition'] = self.last_failure_condition or 'none detected'
+            values['null_space_failures'] = self.null_space_failures
+        rms, force_band = controller.stats.summary()
+        values.update(rms_position_error_m=f'{rms:.6f}', max_force_error_N=f'{force_band:.4f}')
+        level = {'failed': 'error', 'stopped': 'warn'}.get(controller.phase, 'ok')
+        message = controller.phase + (f': {controller.reason}' if controller.reason else '')
+        self.diagnostics.publish('tracking', level, message, values)
+
+
+def main(args=None):
+    return run_node(Pa10IkNode, args)
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

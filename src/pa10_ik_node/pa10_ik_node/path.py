@@ -1,0 +1,107 @@
+"""A waypoint path by arc length: interpolation, nearest point, closed-loop handling. No ROS.
+
+Waypoints are (N, 4, 4) poses in base_link (INTERFACES.md /curve/waypoints): origin on the
+surface, x along the tangent, z the approach direction into the surface. A path whose
+ends meet (closer than ``closed_tolerance``) is a loop and is followed once around, back
+to its start.
+"""
+import numpy as np
+
+from vgm_common.errors import InvalidInput
+
+
+def validate_waypoints(waypoints, min_spacing=1e-6):
+    """The waypoints as a finite (N, 4, 4) float array with orthonormal rotations.
+
+    Consecutive duplicates (closer than ``min_spacing`` [m]) are dropped.
+
+    Raises:
+        InvalidInput: empty, non-finite, wrong shape, fewer than 2 distinct points, or a
+            rotation that is not orthonormal.
+    """
+    T = np.array(waypoints, dtype=float)
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or len(T) == 0:
+        raise InvalidInput(f'waypoints must be a non-empty (N, 4, 4) array, got shape '
+                           f'{T.shape}', 'waypoints', T.shape)
+    if not np.all(np.isfinite(T)):
+        raise InvalidInput('waypoints must be finite', 'waypoints')
+    R = T[:, :3, :3]
+    if np.max(np.abs(R @ np.transpose(R, (0, 2, 1)) - np.eye(3))) > 1e-4:
+        raise InvalidInput('waypoint rotations must be orthonormal', 'waypoints')
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+                           > min_spacing])
+    T = T[keep]
+    if len(T) < 2:
+        raise InvalidInput('the path needs at least 2 distinct waypoints', 'waypoints')
+    return T
+
+
+class WaypointPath:
+    """Piecewise-linear path through the waypoints with interpolated approach axes.
+
+    Args:
+        waypoints: (N, 4, 4) poses in base_link (validated by ``validate_waypoints``).
+        closed_tolerance: [m] ends closer than this make a loop; the first point is then
+            appended so that the path returns to its start.
+
+    Attributes:
+        points (M, 3) [m], approach (M, 3) unit z axes, arc (M,) cumulative length [m],
+        length [m], closed (bool).
+    """
+
+    def __init__(self, waypoints, closed_tolerance=0.01):
+        T = validate_waypoints(waypoints)
+        points, approach = T[:, :3, 3], T[:, :3, 2]
+        gap = np.linalg.norm(points[-1] - points[0])
+        spacing = np.median(np.linalg.norm(np.diff(points, axis=0), axis=1))
+        self.closed = bool(len(points) > 3 and gap < max(closed_tolerance, 1.5 * spacing))
+        if self.closed and gap > 1e-9:
+            points = np.vstack([points, points[:1]])
+            approach = np.vstack([approach, approach[:1]])
+        self.points = points
+        self.approach = approach / np.linalg.norm(approach, axis=1, keepdims=True)
+        steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+        self.arc = np.concatenate([[0.0], np.cumsum(steps)])
+        self.length = float(self.arc[-1])
+        self.T = T
+
+    def sample(self, s):
+        """(point (3,), approach (3,) unit, tangent (3,) unit) at arc length ``s`` [m]
+        (clamped to the path)."""
+        s = float(np.clip(s, 0.0, self.length))
+        i = int(np.clip(np.searchsorted(self.arc, s, side='right') - 1, 0,
+                        len(self.arc) - 2))
+        h = self.arc[i + 1] - self.arc[i]
+        t = (s - self.arc[i]) / h if h > 0 else 0.0
+        point = self.points[i] + t * (self.points[i + 1] - self.points[i])
+        approach = self.approach[i] + t * (self.approach[i + 1] - self.approach[i])
+        approach /= np.linalg.norm(approach)
+        tangent = (self.points[i + 1] - self.points[i]) / h if h > 0 else np.array(
+            [1.0, 0.0, 0.0])
+        return point, approach, tangent
+
+    def nearest(self, point, around=None, window=None):
+        """Arc length [m] of the path point nearest to ``point`` (3,) and its distance [m].
+
+        With ``around`` and ``window`` [m], only segments within ``window`` of arc length
+        ``around`` are searched (a loop passes near itself at its start and end).
+        """
+        a, b = self.points[:-1], self.points[1:]
+        ab = b - a
+        lengths2 = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
+        t = np.clip(np.einsum('ij,ij->i', point - a, ab) / lengths2, 0.0, 1.0)
+        distances = np.linalg.norm(a + t[:, None] * ab - point, axis=1)
+        s = self.arc[:-1] + t * np.sqrt(lengths2)
+        if around is not None and window is not None:
+            distances = np.where(np.abs(s - around) <= window, distances, np.inf)
+            if not np.isfinite(distances).any():
+                return self.nearest(point)
+        i = int(np.argmin(distances))
+        return float(s[i]), float(distances[i])
+
+    def lateral_distance(self, point, s):
+        """Distance [m] from ``point`` to the path at ``s`` across the approach axis:
+        the in-surface tracking error, leaving out the indentation along the approach."""
+        p, z, _ = self.sample(s)
+        d = point - p
+        return float(np.linalg.norm(d - z * np.dot(z, d)))

@@ -1,0 +1,247 @@
+"""Topic level, real processes: pa10_ik_node closes the loop with sensor_sim's arm and
+pressure sensor along a piece of the true curve on S3, and rejects bad input."""
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from nav_msgs.msg import Path
+from rclpy.clock import Clock
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+
+from harness import SCENARIO_DIR, executable
+from sensor_sim.surfaces import normal_base, surface_points_base
+from vgm_common.conversions import make_header, matrices_to_path, pose_to_matrix, stamp_to_ns
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.robot_model import JOINT_NAMES
+from vgm_common.scenario import load_scenario
+
+SCENARIO = SCENARIO_DIR / 'default.yaml'
+DESIRED_FORCE = 5.0  # [N]
+SPEED = 0.015  # [m/s]
+
+
+def waypoints_along(points, surface):
+    """(N, 4, 4) waypoints: origin on the curve, x along it, z = -(true surface normal)."""
+    approach = -normal_base(surface, points)
+    poses = []
+    for i, (point, z) in enumerate(zip(points, approach)):
+        j = min(i + 1, len(points) - 1)
+        x = points[j] - points[j - 1]
+        x -= z * (z @ x)
+        x /= np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+        T[:3, 3] = point
+        poses.append(T)
+    return np.array(poses)
+
+
+def lateral_distance(point, curve, approach):
+    """Distance [m] from ``point`` to the dense polyline ``curve`` across the approach
+    axis ``approach`` at its nearest vertex (the indentation is the force's business)."""
+    a, b = curve[:-1], curve[1:]
+    t = np.clip(np.einsum('ij,ij->i', point - a, b - a) / np.sum((b - a) ** 2, axis=1), 0, 1)
+    nearest = a + t[:, None] * (b - a)
+    i = int(np.argmin(np.linalg.norm(nearest - point, axis=1)))
+    d = point - nearest[i]
+    z = approach[min(i, len(approach) - 1)]
+    return float(np.linalg.norm(d - z * (z @ d)))
+
+
+class Probe:
+    """Subscriptions of the test node: tool poses, pressure, diagnostics, commands."""
+
+    def __init__(self, node):
+        self.node = node
+        self.poses, self.pressures, self.diagnostics, self.commands = [], [], [], []
+        node.create_subscription(PoseStamped, '/tool_pose', self.poses.append, DEFAULT_QOS)
+        node.create_subscription(WrenchStamped, '/tool/pressure', self.pressures.append,
+                                 DEFAULT_QOS)
+        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
+                                 DEFAULT_QOS)
+        node.create_subscription(JointTrajectory, '/pa10_controller/joint_trajectory',
+                                 self.commands.append, DEFAULT_QOS)
+        self.path_publisher = node.create_publisher(Path, '/curve/waypoints', LATCHED_QOS)
+        self.tracking = []  # (stamp_ns, {key: value}) of 'tracking' statuses
+        self.rejected = []  # (name, message)
+
+    def _on_diagnostics(self, msg):
+        for status in msg.status:
+            if status.name == 'pa10_ik_node: tracking':
+                self.tracking.append((stamp_to_ns(msg.header.stamp),
+                                      {kv.key: kv.value for kv in status.values},
+                                      status.message))
+            elif 'rejected' in status.name:
+                self.rejected.append((status.name, status.message))
+
+    def phase(self):
+        return self.tracking[-1][1]['phase'] if self.tracking else None
+
+    def first_stamp(self, phase):
+        return next(stamp for stamp, values, _ in self.tracking if values['phase'] == phase)
+
+    def call(self, service, timeout=20):
+        client = self.node.create_client(Trigger, f'/pa10_ik_node/{service}')
+        self.node.spin_until(client.service_is_ready, timeout, f'service {service}')
+        future = client.call_async(Trigger.Request())
+        self.node.spin_until(future.done, timeout, f'{service} response')
+        return future.result()
+
+
+def start_node(spawn, *extra):
+    return spawn([executable('pa10_ik_node'), '--ros-args', '-p', 'tool_length:=0.1',
+                  '-p', f'desired_force:={DESIRED_FORCE}', '-p', f'speed:={SPEED}', *extra])
+
+
+def test_tracks_a_piece_of_the_true_curve_on_s3_with_force(spawn, rclpy_node, tmp_path):
+    scenario = load_scenario(SCENARIO)
+    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', f'scenario:={SCENARIO}',
+                 '-p', 'calibration_phase:=false', '-p', 'rate:=2',
+                 '-p', f'ground_truth_dir:={tmp_path}'])
+    node = start_node(spawn)
+    probe = Probe(rclpy_node)
+    rclpy_node.spin_until(lambda: (tmp_path / 'curve_base.npz').exists(), 60,
+                          'the ground truth curve')
+    curve = np.load(tmp_path / 'curve_base.npz')['arr_0']  # (2000, 3) closed loop [m]
+    piece = curve[:120]  # about 4.4 cm of the loop, from its start
+    waypoints = waypoints_along(piece[::5], scenario.surface)
+    probe.path_publisher.publish(matrices_to_path(waypoints, Clock().now().nanoseconds,
+                                                  'base_link'))
+    rclpy_node.spin_until(lambda: len(probe.poses) > 10 and len(probe.pressures) > 10, 60,
+                          'tool poses and pressure')
+    response = probe.call('start_tracking')
+    assert response.success, response.message
+    rclpy_node.spin_until(lambda: probe.phase() == 'done', 90, 'phase done')
+
+    started, ended = probe.first_stamp('tracking'), probe.first_stamp('done')
+    tips = np.array([pose_to_matrix(p.pose)[:3, 3] for p in probe.poses
+                     if started <= stamp_to_ns(p.header.stamp) <= ended])
+    forces = np.array([w.wrench.force.z for w in probe.pressures
+                       if started <= stamp_to_ns(w.header.stamp) <= ended])
+    approach = -normal_base(scenario.surface, piece)
+    errors = np.array([lateral_distance(tip, piece, approach) for tip in tips])
+    rms, worst = np.sqrt(np.mean(errors ** 2)), errors.max()
+    along = np.linalg.norm(tips[-1] - piece[-1])
+    print(f'{len(tips)} tool poses while tracking: lateral RMS {rms * 1e3:.3f} mm, max '
+          f'{worst * 1e3:.3f} mm; force {forces.min():.3f}..{forces.max():.3f} N; end '
+          f'{along * 1e3:.2f} mm from the last point')
+    assert len(tips) > 50 and len(forces) > 100
+    assert rms < 1e-3 and worst < 3e-3
+    assert np.all(np.abs(forces - DESIRED_FORCE) < 0.1 * DESIRED_FORCE)
+    assert along < 5e-3  # it got to the end of the piece (pressed a few mm in)
+    log = node.output()
+    assert 'tracking done: rms position error' in log
+    assert 'Traceback' not in log + sim.output()
+
+
+class FakeArm:
+    """The test node plays the simulator: joint states at the scenario's start pose and,
+    while ``pressure_on``, a pressure reading (so the test controls staleness)."""
+
+    def __init__(self, node, q, names=JOINT_NAMES):
+        self.node, self.q, self.names = node, list(q), list(names)
+        self.pressure_on = True
+        self.joint_publisher = node.create_publisher(JointState, '/joint_states', DEFAULT_QOS)
+        self.pressure_publisher = node.create_publisher(WrenchStamped, '/tool/pressure',
+                                                        DEFAULT_QOS)
+        node.create_timer(0.01, self._tick)
+
+    def _tick(self):
+        stamp_ns = Clock().now().nanoseconds
+        self.joint_publisher.publish(JointState(header=make_header(stamp_ns, 'base_link'),
+                                                name=self.names, position=self.q))
+        if self.pressure_on:
+            self.pressure_publisher.publish(WrenchStamped(header=make_header(stamp_ns,
+                                                                             'tool0')))
+
+
+@pytest.fixture
+def fake_loop(spawn, rclpy_node):
+    scenario = load_scenario(SCENARIO)
+    node = start_node(spawn)
+    probe = Probe(rclpy_node)
+    arm = FakeArm(rclpy_node, scenario.robot.initial_joints)
+    rclpy_node.spin_until(lambda: len(probe.poses) > 5, 60, 'tool poses')
+    return node, probe, arm, scenario
+
+
+def path_message(waypoints, frame='base_link'):
+    return matrices_to_path(waypoints, Clock().now().nanoseconds, frame)
+
+
+def short_path(scenario, offset=(0.0, 0.0, 0.0)):
+    """5 cm along the surface's x from its centre, shifted by ``offset`` [m]."""
+    xy = np.column_stack([np.linspace(0.0, 0.125, 11), np.zeros(11)])
+    waypoints = waypoints_along(surface_points_base(scenario.surface, xy), scenario.surface)
+    waypoints[:, :3, 3] += offset
+    return waypoints
+
+
+def test_bad_paths_and_joint_states_are_rejected(fake_loop, rclpy_node):
+    node, probe, arm, scenario = fake_loop
+    good = short_path(scenario)
+    bad_paths = {
+        'empty': Path(header=make_header(0, 'base_link')),
+        'non-finite': path_message(good),
+        'wrong frame': path_message(good, 'tool0'),
+    }
+    bad_paths['non-finite'].poses[3].pose.position.y = float('nan')
+    for what, msg in bad_paths.items():
+        seen = len(probe.rejected)
+        probe.path_publisher.publish(msg)
+        rclpy_node.spin_until(lambda seen=seen: any('/curve/waypoints' in name
+                                                    for name, _ in probe.rejected[seen:]),
+                              20, f'a diagnostic rejecting the {what} path')
+    response = probe.call('start_tracking')  # nothing valid to follow
+    assert not response.success and 'waypoints' in response.message
+    rclpy_node.spin_until(lambda: probe.tracking, 20, 'tracking diagnostics')
+    assert probe.phase() == 'idle'
+
+    arm.names = [f'joint_{i}' for i in range(7)]
+    rclpy_node.spin_until(lambda: any('/joint_states' in name and 'unknown joint' in message
+                                      for name, message in probe.rejected),
+                          20, 'a diagnostic rejecting unknown joint names')
+    assert node.alive() and 'Traceback' not in node.output()
+
+
+def test_unreachable_waypoints_fail_clearly_and_the_arm_holds(fake_loop, rclpy_node):
+    node, probe, arm, scenario = fake_loop
+    probe.path_publisher.publish(path_message(short_path(scenario, offset=(1.5, 0, 0))))
+    rclpy_node.spin_until(lambda: 'waypoints' in node.output(), 20, 'the path taken')
+    response = probe.call('start_tracking')
+    assert not response.success and 'unreachable' in response.message
+    rclpy_node.spin_until(lambda: probe.phase() == 'failed', 20, 'phase failed')
+    status = probe.tracking[-1]
+    assert 'beyond the reach' in status[2]
+    # The hold command may arrive just after the diagnostic (another topic).
+    rclpy_node.spin_until(lambda: probe.commands and not np.any(
+        probe.commands[-1].points[0].velocities), 10, 'a zero-velocity hold command')
+    hold = probe.commands[-1].points[0]
+    np.testing.assert_allclose(hold.positions, scenario.robot.initial_joints, atol=1e-12)
+    assert node.alive() and 'Traceback' not in node.output()
+
+
+def test_stale_pressure_stops_the_arm(fake_loop, rclpy_node):
+    node, probe, arm, scenario = fake_loop
+    probe.path_publisher.publish(path_message(short_path(scenario)))
+    rclpy_node.spin_until(lambda: 'waypoints' in node.output(), 20, 'the path taken')
+    response = probe.call('start_tracking')
+    assert response.success, response.message
+    rclpy_node.spin_until(lambda: probe.phase() == 'approach' and len(probe.commands) > 20,
+                          20, 'approach commands')
+    moving = probe.commands[-1].points[0]
+    assert np.max(np.abs(moving.velocities)) > 1e-3  # it was heading for the surface
+    arm.pressure_on = False
+    rclpy_node.spin_until(lambda: probe.phase() == 'stopped', 20, 'phase stopped')
+    assert 'stale pressure' in probe.tracking[-1][2]
+    rclpy_node.spin_until(lambda: not np.any(probe.commands[-1].points[0].velocities), 10,
+                          'a zero-velocity hold command')
+    count = len(probe.commands)
+    hold = probe.commands[-1].points[0]
+    np.testing.assert_allclose(hold.positions, scenario.robot.initial_joints, atol=1e-12)
+    seen = len(probe.tracking)
+    rclpy_node.spin_until(lambda: len(probe.tracking) > seen + 1, 10, 'more diagnostics')
+    assert probe.phase() == 'stopped' and len(probe.commands) == count  # and it stays so
+    assert node.alive() and 'Traceback' not in node.output()
