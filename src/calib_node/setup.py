@@ -16,5 +16,5 @@ setup(
     install_requires=['setuptools'],
     zip_safe=True,
     license='Apache-2.0',
-    entry_points={'console_scripts': []},
+    entry_points={'console_scripts': ['calib_node = calib_node.node:main']},
 )

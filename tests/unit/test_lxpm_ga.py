@@ -185,3 +185,21 @@ def test_ga_lowers_the_noise_free_stereo_cost():
     # The thesis's operators on its 24-D box converge slowly: the small budget only lowers
     # the best cost several-fold (LM refinement follows, not tested here).
     assert result.best_cost < initial[0] / 3
+
+
+def test_rig_objective_equals_the_stereo_objective_and_handles_own_points():
+    from calib_node.lxpm_ga import rig_objective
+
+    pixels = project_seed(TRUTH, POINTS_WORLD)
+    population = np.stack([TRUTH.ravel(), TRUTH.ravel() * 1.01, TRUTH.ravel() * 0.99])
+    stereo = stereo_objective(POINTS_WORLD, pixels[0], pixels[1])(population)
+    rig = rig_objective([(POINTS_WORLD, pixels[0]), (POINTS_WORLD, pixels[1])])(population)
+    np.testing.assert_allclose(rig, stereo, rtol=1e-12)
+    assert rig[0] == 0.0 and np.all(rig[1:] > 0)
+    # a camera with half the points: the cost is its own sum
+    half = rig_objective([(POINTS_WORLD[:256], pixels[0][:256])])
+    shifted = LEFT_TRUTH.copy()
+    shifted[0] += 1.0  # u0 one pixel off: 1 px^2 per point
+    assert half(shifted[None])[0] == pytest.approx(256.0)
+    with pytest.raises(ValueError):
+        rig_objective([(POINTS_WORLD, pixels[0][:10])])

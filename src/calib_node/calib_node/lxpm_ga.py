@@ -171,3 +171,37 @@ def stereo_objective(points_world, pixels_left, pixels_right, distortion='implic
         return np.where(in_front, total, np.inf)
 
     return cost
+
+
+def rig_objective(observations, distortion='implicit'):
+    """The cost (4.3.2) of M cameras with their own point sets: (P, 12 M) -> (P,).
+
+    ``observations``: list of (points_world (N_c, 3), pixels (N_c, 2)) per camera; genes
+    12 c .. 12 c + 11 are camera c in ``PARAM_NAMES`` order. The sum of the squared pixel
+    residuals over every camera [px^2]; +inf where a point is at Z <= 0. With the same
+    points in two cameras it is :func:`stereo_objective`.
+    """
+    cameras = []
+    for points_world, pixels in observations:
+        points_world = np.array(points_world, dtype=float)
+        pixels = np.array(pixels, dtype=float)
+        if points_world.ndim != 2 or points_world.shape[1] != 3 or \
+                pixels.shape != (points_world.shape[0], 2):
+            raise ValueError(f'observations: expected (N, 3) points and (N, 2) pixels, got '
+                             f'{points_world.shape} and {pixels.shape}')
+        cameras.append((points_world, pixels))
+
+    def cost(q):
+        q = np.asarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[1] != 12 * len(cameras):
+            raise ValueError(f'q: expected shape (P, {12 * len(cameras)}), got {q.shape}')
+        total = np.zeros(q.shape[0])
+        in_front = np.ones(q.shape[0], dtype=bool)
+        for c, (points_world, pixels) in enumerate(cameras):
+            uv, Z = project_with_depth(q[:, 12 * c:12 * c + 12], points_world, distortion)
+            in_front &= np.all(Z > 0, axis=1)
+            with np.errstate(invalid='ignore', over='ignore'):
+                total += np.sum((uv - pixels) ** 2, axis=(1, 2))
+        return np.where(in_front, total, np.inf)
+
+    return cost

@@ -103,11 +103,27 @@ def refine_seed_lm(params_left, params_right, points_world, pixels_left, pixels_
         return np.concatenate([(project_seed(p[None], points_world)[0] - obs).ravel()
                                for p, obs in zip(cameras(x), observed)])
 
+    def jacobian(x):
+        # Central differences, every perturbed camera projected in one population call
+        # (the block of each camera; the two cameras share no parameter).
+        J = np.zeros((4 * len(points_world), 22))
+        for c in range(2):
+            z = x[11 * c:11 * c + 11]
+            step = np.finfo(float).eps ** (1 / 3) * np.maximum(1.0, np.abs(z))
+            population = np.array([_from_identifiable(z + sign * step[j] * np.eye(11)[j],
+                                                      focal[c])
+                                   for j in range(11) for sign in (1.0, -1.0)])
+            population[:, 5] = np.maximum(population[:, 5], 0.0)  # kappa at its bound
+            uv = project_seed(population, points_world).reshape(11, 2, -1)
+            rows = slice(2 * len(points_world) * c, 2 * len(points_world) * (c + 1))
+            J[rows, 11 * c:11 * c + 11] = ((uv[:, 0] - uv[:, 1]) / (2 * step[:, None])).T
+        return J
+
     x0 = np.concatenate([_to_identifiable(p) for p in start])
     lower = np.full(22, -np.inf)
     lower[[4, 15]] = 0.0  # kappa >= 0
     result = least_squares(residuals, x0, bounds=(lower, np.inf), method='trf',
-                           x_scale='jac', jac='3-point', ftol=1e-15, xtol=1e-15,
+                           x_scale='jac', jac=jacobian, ftol=1e-15, xtol=1e-15,
                            gtol=1e-15, max_nfev=200)
     left, right = cameras(result.x)
     dof = max(result.fun.size - result.x.size, 1)
@@ -151,7 +167,14 @@ def dlt_camera(points_world, pixels):
     zero = np.zeros_like(X)
     A = np.concatenate([np.hstack([X, zero, -x[:, :1] * X]),
                         np.hstack([zero, X, -x[:, 1:2] * X])])
-    P = np.linalg.inv(T2) @ np.linalg.svd(A)[2][-1].reshape(3, 4) @ T3
+    P = np.linalg.inv(T2) @ np.linalg.svd(A, full_matrices=False)[2][-1].reshape(3, 4) @ T3
+    return decompose_projection(P)
+
+
+def decompose_projection(P):
+    """3x4 projection P ~ K [R | t] (any scale and sign) -> K (3, 3) upper triangular with
+    a positive diagonal and K[2, 2] = 1, R (3, 3) with det +1, t (3,), by RQ."""
+    P = np.asarray(P, dtype=float)
     if np.linalg.det(P[:, :3]) < 0:
         P = -P
     K, R = rq(P[:, :3])
@@ -197,3 +220,103 @@ def opencv_reference(points_world, pixels_left, pixels_right, image_size_left,
         tuple(int(s) for s in image_size_left), flags=cv2.CALIB_FIX_INTRINSIC, criteria=criteria)
     return OpenCVReference(K_l, K_r, d_l, d_r, R_l, t_l, R_r, t_r, R, T.ravel(),
                            float(rms_l), float(rms_r), float(rms))
+
+
+class NetworkInfo(NamedTuple):
+    rms_before: float  # reprojection RMS [px] of the start camera (full seed model)
+    rms_after: float  # and of the refined camera
+    loss: np.ndarray  # (epochs,) mean network error 1/2 |d - O|^2 in normalised units
+
+
+def undistort_seed_pixels(params, pixels):
+    """Remove the seed's division distortion from (N, 2) pixels of camera ``params`` (12,):
+    X_u = X_d (1 + k |X_d|^2) with X_d = ((u - u0) / Nx, (v - v0) / Ny) (4.2.3, explicit
+    in this direction)."""
+    u0, v0, Nx, Ny, k = params[0], params[1], params[2], params[3], params[5]
+    xy_d = (np.asarray(pixels, dtype=float) - [u0, v0]) / [Nx, Ny]
+    xy_u = xy_d * (1 + k * np.sum(xy_d ** 2, axis=1, keepdims=True))
+    return xy_u * [Nx, Ny] + [u0, v0]
+
+
+def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_B=0.05,
+                   rate_gamma=0.5):
+    """The seed's neural refinement of one camera (ALGORITHMS.md §3.5, 4.5.1-4.5.7).
+
+    A linear network: hidden h_i = B W_i (B 4x4, the extrinsics [R T; 0 1]), output
+    O_i = gamma_i D h_i (D 3x4, the intrinsics [A | 0]), target d_i = (u_i, v_i, 1) with the
+    GA's distortion removed first (the network cannot model k; f and k keep their start
+    values). Full-batch gradient descent on E = 1/2 sum |d_i - O_i|^2 with the thesis's
+    updates (dD = eta_D gamma e h^T, dB = eta_B gamma D^T e W^T, dgamma = eta_g e^T D h),
+    averaged over the points, on Hartley-normalised inputs and targets [C].
+
+    Choices where the thesis is silent [C]: D is scaled so that the mean start depth is 1,
+    which makes gamma_i = 1 (the thesis's start) a consistent start; the rates and epochs
+    are the arguments; the read-out decomposes the trained projection D B by RQ (the
+    product is all the data fix) into K, R, T, and takes fx, fy, u0, v0 from K (skew
+    dropped), Nx = fx / f, Ny = fy / f.
+
+    Args:
+        params: (12,) start camera in ``PARAM_NAMES`` order (the GA result).
+        points_world: (N, 3) [unit]; pixels: (N, 2) [px].
+
+    Returns:
+        (refined params (12,), :class:`NetworkInfo`).
+    """
+    from scipy.spatial.transform import Rotation
+
+    params = np.asarray(params, dtype=float)
+    if params.shape != (12,) or params[4] <= 0:
+        raise ValueError('params: expected shape (12,) with f > 0')
+    points_world, (pixels,) = _check_points(points_world, pixels)
+    start = identifiable(params)
+    targets = undistort_seed_pixels(params, pixels)
+    T3, T2 = _normalise(points_world), _normalise(targets)
+    W = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T  # (N, 4)
+    d = np.column_stack([targets, np.ones(len(targets))]) @ T2.T  # (N, 3)
+    B = np.eye(4)
+    B[:3, :3], B[:3, 3] = start.R, start.T
+    D = np.array([[start.fx, 0, start.u0, 0], [0, start.fy, start.v0, 0], [0, 0, 1, 0]])
+    B = B @ np.linalg.inv(T3)
+    D = T2 @ D
+    # Gauge [C]: D B is all the data fix, so balance the two factors (hidden units of
+    # order 1, mean output depth 1) for a well-conditioned descent.
+    depth = np.mean((W @ B.T)[:, 2])
+    B[:3] /= depth
+    D[:, :3] *= depth
+    D /= np.mean((W @ B.T @ D.T)[:, 2])
+    gamma = np.ones(len(W))
+    count = len(W)
+    loss = np.empty(epochs)
+    rate = 1.0  # backtracking factor on the three rates [C]: halve when a step raises E
+
+    def error(D, B, gamma):
+        h = W @ B.T
+        Dh = h @ D.T
+        e = d - gamma[:, None] * Dh
+        return 0.5 * np.mean(np.sum(e ** 2, axis=1)), h, Dh, e
+
+    current, h, Dh, e = error(D, B, gamma)
+    for epoch in range(epochs):
+        ge = gamma[:, None] * e
+        steps = (rate * rate_D * ge.T @ h / count, rate * rate_B * D.T @ ge.T @ W / count,
+                 rate * rate_gamma * np.sum(e * Dh, axis=1))
+        trial = error(D + steps[0], B + steps[1], gamma + steps[2])
+        if trial[0] <= current:
+            D, B, gamma = D + steps[0], B + steps[1], gamma + steps[2]
+            current, h, Dh, e = trial
+            rate = min(1.0, 1.5 * rate)
+        else:
+            rate *= 0.5
+        loss[epoch] = current
+    P = np.linalg.inv(T2) @ D @ B @ T3
+    K, R, t = decompose_projection(P)
+    refined = params.copy()
+    refined[0:2] = K[0, 2], K[1, 2]
+    refined[2:4] = K[0, 0] / params[4], K[1, 1] / params[4]
+    refined[6:9] = Rotation.from_matrix(R).as_euler('ZYX')  # alpha, beta, gamma
+    refined[9:12] = t
+    rms = [float(np.sqrt(np.mean(np.sum((project_seed(p[None], points_world)[0] - pixels)
+                                        ** 2, axis=1)))) for p in (params, refined)]
+    return refined, NetworkInfo(rms[0], rms[1], loss)
+
+

@@ -76,7 +76,10 @@ def camera_points(params, points_world):
     """World points (N, 3) into each camera of a population (P, 12) -> (P, N, 3)."""
     # R = Rz(alpha) Ry(beta) Rx(gamma): roll gamma, pitch beta, yaw alpha.
     R = rpy_to_matrix(params[:, 8], params[:, 7], params[:, 6])
-    return np.einsum('pij,nj->pni', R, points_world) + params[:, None, 9:12]
+    # Batched matmul (BLAS), several times faster than the equivalent einsum.
+    X = np.matmul(points_world, R.transpose(0, 2, 1))
+    X += params[:, None, 9:12]
+    return X
 
 
 def _check(params, points_world, distortion):
@@ -97,14 +100,17 @@ def project_with_depth(params, points_world, distortion='implicit'):
     """Like :func:`project_seed`, also returning the camera depths Z (P, N) [unit]."""
     params, points_world = _check(params, points_world, distortion)
     X = camera_points(params, points_world)
-    Z = X[..., 2]
+    Z = X[..., 2].copy()
     f, k = params[:, 4:5], params[:, 5:6]
     with np.errstate(divide='ignore', invalid='ignore'):
-        xy_u = f[..., None] * X[..., :2] / Z[..., None]
-        r_u = np.hypot(xy_u[..., 0], xy_u[..., 1])
+        scale = f / Z  # (P, N)
+        x_u, y_u = X[..., 0] * scale, X[..., 1] * scale
+        r_u = np.hypot(x_u, y_u)
         r = distorted_radius(r_u, k) if distortion == 'implicit' else r_u
-        xy_d = xy_u / (1 + k * r ** 2)[..., None]
-    uv = xy_d * params[:, None, 2:4] + params[:, None, 0:2]
+        shrink = 1 / (1 + k * r * r)
+    uv = np.empty(X.shape[:2] + (2,))
+    uv[..., 0] = x_u * shrink * params[:, 2:3] + params[:, 0:1]
+    uv[..., 1] = y_u * shrink * params[:, 3:4] + params[:, 1:2]
     return uv, Z
 
 

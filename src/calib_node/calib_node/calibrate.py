@@ -1,0 +1,288 @@
+"""Calibration of each camera of the rig from chart corners whose base_link positions are
+known (the precision stage): a non-coplanar 3D-2D calibration per camera (the thesis's
+setting, ALGORITHMS.md §3), published as plumb_bob. No rclpy.
+
+Methods (``METHODS``):
+
+- ``lm`` (ours, default): normalised DLT (closed form) or the LX-PM GA as the start, then
+  Levenberg-Marquardt on the reprojection error over fx, fy, cx, cy, k1, k2 (p1, p2, k3
+  optional) and the camera pose, with OpenCV's analytic projection Jacobian. Every camera
+  sees its own points in base_link, so the joint problem over the rig is block diagonal:
+  solving it camera by camera gives the same optimum.
+- ``lxpm_ga`` (the thesis): the seed camera model with f = 1 (so Nx, Ny are fx, fy in
+  px and k is the normalised kappa), LX-PM GA over the stereo pair jointly (24 genes,
+  (4.3.2)) and over aux alone, then the seed's network refinement per camera; the
+  division coefficient is converted to plumb_bob k1, k2 (``division_to_plumb_bob``).
+- ``opencv``: ``cv2.calibrateCamera`` on the same points as one non-planar view, from the
+  DLT intrinsic guess (the reference).
+"""
+import time
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from calib_node.lxpm_ga import lxpm_ga, rig_objective
+from calib_node.refine import dlt_camera, network_refine
+from calib_node.seed_camera import identifiable
+from vgm_common.geometry import make_transform
+
+METHODS = ('lm', 'lxpm_ga', 'opencv')
+LM_STARTS = ('dlt', 'ga')
+
+
+class CalibrationError(ValueError):
+    """The observations cannot give a calibration (too few, degenerate, diverged)."""
+
+
+class CameraFit(NamedTuple):
+    K: np.ndarray  # (3, 3) [px]
+    D: np.ndarray  # (5,) plumb_bob (k1, k2, p1, p2, k3)
+    T_base_camera: np.ndarray  # (4, 4) optical frame in base_link
+    rms_px: float  # reprojection RMS per point (sqrt of the mean squared distance) [px]
+    points: int
+    std: dict  # standard errors of fx, fy, cx, cy [px] (LM and OpenCV; empty for the GA)
+
+
+class GAOptions(NamedTuple):
+    population: int = 240
+    generations: int = 200
+    crossover: float = 0.9
+    mutation: float = 0.005
+    pm_index: float = 0.25
+    lx_variant: str = 'printed'
+    max_distance: float = 3.0  # [m] camera-to-chart-centroid bound of the translation genes
+    network_epochs: int = 3000
+
+
+def degeneracy(points_base, min_points=12, min_thickness=0.02):
+    """Reason why (N, 3) points cannot calibrate a camera, or '' if they can.
+
+    The non-coplanar calibration needs the points to span 3D: the smallest principal
+    spread must be at least ``min_thickness`` times the largest (all views on one plane,
+    e.g. a chart moved within its plane, give 0).
+    """
+    points_base = np.asarray(points_base, dtype=float)
+    if len(points_base) < min_points:
+        return f'{len(points_base)} points, need at least {min_points}'
+    spread = np.linalg.svd(points_base - points_base.mean(axis=0), compute_uv=False)
+    if spread[-1] < min_thickness * spread[0]:
+        return (f'degenerate views: all points lie on one plane (thickness '
+                f'{spread[-1] / spread[0]:.2g} of the extent, need {min_thickness:g}); '
+                'tilt or move the chart along its normal')
+    return ''
+
+
+def _rms(residuals):
+    return float(np.sqrt(np.mean(np.sum(residuals.reshape(-1, 2) ** 2, axis=1))))
+
+
+def _pose(R, t):
+    """World->camera (R, t) -> T_base_camera."""
+    return make_transform(R.T, -R.T @ np.asarray(t, dtype=float).ravel())
+
+
+def _dlt_start(points_base, pixels, image_size):
+    K, R, t = dlt_camera(points_base, pixels)
+    K[0, 1] = 0.0  # no skew in plumb_bob
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
+        raise CalibrationError('the closed-form (DLT) start failed')
+    return K, np.zeros(5), R, t
+
+
+def calibrate_camera_lm(points_base, pixels, image_size, start=None, fit_tangential=True,
+                        fit_k3=False):
+    """LM calibration of one camera from (N, 3) base_link points and (N, 2) pixels.
+
+    Args:
+        image_size: (width, height) [px].
+        start: (K, D, R, t) world->camera start; None: the DLT.
+        fit_tangential: estimate p1, p2 (else 0); fit_k3: estimate k3 (else 0).
+
+    Returns:
+        :class:`CameraFit`.
+    """
+    points_base = np.ascontiguousarray(points_base, dtype=float)
+    pixels = np.asarray(pixels, dtype=float)
+    K, D, R, t = start if start is not None else _dlt_start(points_base, pixels, image_size)
+    x0 = np.concatenate([cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel(),
+                         np.ravel(t), [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+                         (list(np.ravel(D)) + [0.0] * 5)[:5]])
+    free = np.ones(15, dtype=bool)
+    free[12:14] = fit_tangential
+    free[14] = fit_k3
+    x0[~free] = 0.0
+    cache = {}
+
+    def full(xf):
+        x = x0.copy()
+        x[free] = xf
+        return x
+
+    def evaluate(xf):
+        key = xf.tobytes()
+        if key not in cache:
+            x = full(xf)
+            K = np.array([[x[6], 0, x[8]], [0, x[7], x[9]], [0, 0, 1.0]])
+            uv, J = cv2.projectPoints(points_base, x[0:3], x[3:6], K, x[10:15])
+            cache.clear()
+            cache[key] = ((uv.reshape(-1, 2) - pixels).ravel(), J[:, free])
+        return cache[key]
+
+    result = least_squares(lambda xf: evaluate(xf)[0], x0[free],
+                           jac=lambda xf: evaluate(xf)[1], method='lm', x_scale='jac',
+                           xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=500)
+    x = full(result.x)
+    if not np.all(np.isfinite(x)) or x[6] <= 0 or x[7] <= 0:
+        raise CalibrationError('LM diverged')
+    K = np.array([[x[6], 0, x[8]], [0, x[7], x[9]], [0, 0, 1.0]])
+    R = cv2.Rodrigues(x[0:3])[0]
+    dof = max(result.fun.size - result.x.size, 1)
+    try:
+        covariance = np.sum(result.fun ** 2) / dof * np.linalg.inv(result.jac.T @ result.jac)
+        std_all = np.full(15, np.nan)
+        std_all[free] = np.sqrt(np.abs(np.diag(covariance)))
+    except np.linalg.LinAlgError:
+        std_all = np.full(15, np.inf)
+    std = dict(zip(('fx', 'fy', 'cx', 'cy'), std_all[6:10].tolist()))
+    return CameraFit(K, x[10:15].copy(), _pose(R, x[3:6]), _rms(result.fun), len(pixels), std)
+
+
+def calibrate_camera_opencv(points_base, pixels, image_size, fit_tangential=True,
+                            fit_k3=False):
+    """``cv2.calibrateCamera`` on the points as one non-planar view (DLT intrinsic guess)."""
+    points_base = np.asarray(points_base, dtype=float)
+    K0 = _dlt_start(points_base, pixels, image_size)[0]
+    K0[:2, 2] = np.clip(K0[:2, 2], 0.0, np.asarray(image_size, dtype=float) - 1.0)
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS
+    flags |= 0 if fit_tangential else cv2.CALIB_ZERO_TANGENT_DIST
+    flags |= 0 if fit_k3 else cv2.CALIB_FIX_K3
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    rms, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
+        [points_base.astype(np.float32).reshape(-1, 1, 3)],
+        [np.asarray(pixels, dtype=np.float32).reshape(-1, 1, 2)],
+        tuple(int(s) for s in image_size), K0, np.zeros(5), flags=flags, criteria=criteria)
+    R = cv2.Rodrigues(rvecs[0])[0]
+    std = dict(zip(('fx', 'fy', 'cx', 'cy'), std_intrinsics.ravel()[:4].tolist()))
+    D = np.array((list(dist.ravel()) + [0.0] * 5)[:5])
+    return CameraFit(K, D, _pose(R, tvecs[0]), float(rms), len(pixels), std)
+
+
+def division_to_plumb_bob(kappa, max_radius, fit_k3=False, samples=200):
+    """plumb_bob radial coefficients closest to the seed's division model (A4.2).
+
+    The division model x_d = x_u / (1 + kappa |x_d|^2) (normalised coordinates) maps the
+    undistorted radius r_u to r_d; plumb_bob writes r_d = r_u (1 + k1 r_u^2 + k2 r_u^4
+    [+ k3 r_u^6]). We fit k1, k2 (k3) by linear least squares on r_d / r_u - 1 over
+    r_u in (0, max_radius] (the image corner's normalised radius), so the two agree over
+    the whole image; for small kappa r^2 this tends to k1 = -kappa, k2 = 3 kappa^2.
+
+    Returns:
+        (D (5,), largest distortion disagreement over the range, as a normalised radius).
+    """
+    r_u = np.linspace(max_radius / samples, max_radius, samples)
+    from vgm_common.camera_model import division_distorted_radius
+    r_d = division_distorted_radius(r_u, kappa)
+    powers = 3 if fit_k3 else 2
+    A = np.column_stack([r_u ** (2 * (j + 1)) for j in range(powers)])
+    coefficients = np.linalg.lstsq(A, r_d / r_u - 1, rcond=None)[0]
+    D = np.zeros(5)
+    D[0], D[1] = coefficients[0], coefficients[1]
+    if fit_k3:
+        D[4] = coefficients[2]
+    residual = np.max(np.abs(r_u * (1 + A @ coefficients) - r_d))
+    return D, float(residual)
+
+
+def _ga_bounds(points_base, image_size, max_distance):
+    """Seed-model bounds [C] for a camera of ``image_size`` seeing points centred at 0."""
+    width, height = image_size
+    return np.array([[0, width], [0, height], [0.25 * width, 4 * width],
+                     [0.25 * width, 4 * width], [1, 1], [0, 1],
+                     [-np.pi, np.pi], [-np.pi, np.pi], [-np.pi, np.pi],
+                     [-max_distance, max_distance], [-max_distance, max_distance],
+                     [0, max_distance]], dtype=float)
+
+
+def calibrate_rig_ga(observations, rng, options=None, fit_k3=False):
+    """The thesis's method on the rig: {name: (points (N, 3), pixels (N, 2), (w, h))} ->
+    ({name: CameraFit}, {name: seed params after the GA}, {name: after the network}).
+
+    Points are shifted to their common centroid first (the translation genes are then
+    camera-to-chart offsets, bounded by ``options.max_distance``) [C]. The stereo pair
+    ('left', 'right' when both are present) is one 24-gene GA as in (4.3.2); any other
+    camera its own 12-gene GA.
+    """
+    options = options or GAOptions()
+    names = list(observations)
+    centre = np.mean(np.concatenate([observations[n][0] for n in names]), axis=0)
+    groups = [[n for n in ('left', 'right') if n in observations]]
+    groups = [g for g in groups if g] + [[n] for n in names if n not in ('left', 'right')]
+    fits, after_ga, after_network = {}, {}, {}
+    for group in groups:
+        data = [(observations[n][0] - centre, observations[n][1]) for n in group]
+        bounds = np.concatenate([_ga_bounds(p, observations[n][2], options.max_distance)
+                                 for n, (p, _) in zip(group, data)])
+        result = lxpm_ga(rig_objective(data), bounds[:, 0], bounds[:, 1], rng,
+                         population=options.population, generations=options.generations,
+                         crossover_probability=options.crossover,
+                         mutation_probability=options.mutation, pm_index=options.pm_index,
+                         lx_variant=options.lx_variant)
+        for c, (name, (points, pixels)) in enumerate(zip(group, data)):
+            params = result.best[12 * c:12 * c + 12]
+            after_ga[name] = params
+            refined, _ = network_refine(params, points, pixels,
+                                        epochs=options.network_epochs)
+            after_network[name] = refined
+            ident = identifiable(refined)
+            K = np.array([[ident.fx, 0, ident.u0], [0, ident.fy, ident.v0], [0, 0, 1.0]])
+            width, height = observations[name][2]
+            corner = np.max(np.abs(np.array([[0, 0], [width, height]]) - [ident.u0, ident.v0])
+                            / [ident.fx, ident.fy], axis=0)
+            D, _ = division_to_plumb_bob(float(ident.kappa), float(np.hypot(*corner)),
+                                         fit_k3)
+            T = ident.T - ident.R @ centre  # back to base_link: R (x - centre) + T
+            uv = cv2.projectPoints(np.ascontiguousarray(observations[name][0]),
+                                   cv2.Rodrigues(ident.R)[0], T, K, D)[0].reshape(-1, 2)
+            fits[name] = CameraFit(K, D, _pose(ident.R, T), _rms(uv - observations[name][1]),
+                                   len(pixels), {})
+    return fits, after_ga, after_network
+
+
+class RigResult(NamedTuple):
+    fits: dict  # {name: CameraFit}
+    method: str
+    seconds: float
+
+
+def calibrate_rig(observations, method='lm', seed=0, lm_start='dlt', ga=None,
+                  fit_tangential=True, fit_k3=False):
+    """Calibrate every camera of ``observations`` = {name: (points_base (N, 3),
+    pixels (N, 2), (width, height))} with ``method`` (``METHODS``).
+
+    Raises:
+        CalibrationError: a camera's points are too few or degenerate, or a fit failed.
+    """
+    if method not in METHODS:
+        raise ValueError(f'method: expected one of {METHODS}, got {method!r}')
+    for name, (points, _, _) in observations.items():
+        reason = degeneracy(points)
+        if reason:
+            raise CalibrationError(f'{name}: {reason}')
+    started = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    if method == 'lxpm_ga':
+        fits = calibrate_rig_ga(observations, rng, ga, fit_k3)[0]
+    elif method == 'opencv':
+        fits = {name: calibrate_camera_opencv(p, uv, size, fit_tangential, fit_k3)
+                for name, (p, uv, size) in observations.items()}
+    else:
+        starts = {name: None for name in observations}
+        if lm_start == 'ga':
+            for name, fit in calibrate_rig_ga(observations, rng, ga, fit_k3)[0].items():
+                T_camera_base = np.linalg.inv(fit.T_base_camera)
+                starts[name] = (fit.K, fit.D, T_camera_base[:3, :3], T_camera_base[:3, 3])
+        fits = {name: calibrate_camera_lm(p, uv, size, starts[name], fit_tangential, fit_k3)
+                for name, (p, uv, size) in observations.items()}
+    return RigResult(fits, method, time.perf_counter() - started)

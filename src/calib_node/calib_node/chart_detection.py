@@ -1,0 +1,128 @@
+"""Chessboard detection mapped to the chart frame of INTERFACES.md ("The calibration chart").
+
+The chart has ``rows`` x ``cols`` inner corners; corner (r, c) is at (c s, r s, 0) in the
+chart frame, z = x cross y points away from a camera that sees the printed face, and the
+square diagonally outside corner (0, 0) is black. ``rows + cols`` is odd, so the two ends
+of the board differ: at corner (0, 0) both diagonal squares are black, at corner
+(rows-1, cols-1) both are white.
+
+OpenCV returns the corners row by row (``cols`` per row) starting at any of the four
+outer corners, and possibly mirrored. We fix the order in two steps: the handedness (the
+image of chart x cross chart y must point along the optical axis, i.e. be positive in
+(u right, v down) pixel coordinates), then the colours (the darker end is corner (0, 0)).
+No rclpy.
+"""
+from typing import NamedTuple, Optional
+
+import cv2
+import numpy as np
+
+
+class Detection(NamedTuple):
+    corners: Optional[np.ndarray]  # (rows * cols, 2) [px] in chart order (r * cols + c)
+    reason: str  # why there is no detection ('' when found)
+    sharpness: float  # OpenCV's edge width estimate [px] (nan when not measured)
+
+
+def chart_points(rows, cols, spacing):
+    """Inner corners (rows * cols, 3) in the chart frame [m]: index r * cols + c is
+    (c spacing, r spacing, 0)."""
+    r, c = np.divmod(np.arange(rows * cols), cols)
+    return np.column_stack([c * spacing, r * spacing, np.zeros(rows * cols)])
+
+
+def to_grey(image, encoding):
+    """mono8 / mono16 / rgb8 / bgr8 / rgba8 / bgra8 array -> 8-bit grey (H, W)."""
+    if encoding in ('mono8', '8UC1'):
+        return image
+    if encoding in ('mono16', '16UC1'):
+        return (image >> 8).astype(np.uint8)
+    conversions = {'rgb8': cv2.COLOR_RGB2GRAY, 'bgr8': cv2.COLOR_BGR2GRAY,
+                   'rgba8': cv2.COLOR_RGBA2GRAY, 'bgra8': cv2.COLOR_BGRA2GRAY}
+    if encoding not in conversions:
+        raise ValueError(f'unsupported encoding for chart detection: {encoding!r} '
+                         f'(mono8, mono16, 8UC1, 16UC1, rgb8, bgr8, rgba8, bgra8)')
+    return cv2.cvtColor(image, conversions[encoding])
+
+
+def _mean_grey(grey, points, radius):
+    """Mean grey level in (2 radius + 1)^2 windows around (K, 2) points, averaged."""
+    height, width = grey.shape
+    values = []
+    for u, v in np.round(points).astype(int):
+        u0, u1 = max(u - radius, 0), min(u + radius + 1, width)
+        v0, v1 = max(v - radius, 0), min(v + radius + 1, height)
+        if u1 > u0 and v1 > v0:
+            values.append(grey[v0:v1, u0:u1].mean())
+    return float(np.mean(values)) if values else np.nan
+
+
+def _end_squares(grid):
+    """Centres [px] of the inner and the outer diagonal square at corner (0, 0) of a
+    (rows, cols, 2) corner grid, by the local affine map of the neighbouring corners."""
+    g00, g01, g10, g11 = grid[0, 0], grid[0, 1], grid[1, 0], grid[1, 1]
+    inner = (g00 + g01 + g10 + g11) / 4
+    outer = g00 - 0.5 * (g01 - g00) - 0.5 * (g10 - g00)
+    return np.array([inner, outer]), np.linalg.norm(g11 - g00) / np.sqrt(2)
+
+
+def orient_corners(grey, corners, rows, cols, min_contrast=0.2):
+    """Reorder OpenCV's (rows * cols, 2) corners into the chart order.
+
+    Returns (corners (rows * cols, 2) or None, reason). None when the two ends of the board
+    are not clearly different (``min_contrast``: the grey difference of the ends as a
+    fraction of the board's black-white difference).
+    """
+    grid = np.asarray(corners, dtype=float).reshape(rows, cols, 2)
+    along_cols = (grid[:, -1] - grid[:, 0]).sum(axis=0)
+    along_rows = (grid[-1] - grid[0]).sum(axis=0)
+    if along_cols[0] * along_rows[1] - along_cols[1] * along_rows[0] < 0:
+        grid = grid[:, ::-1]  # mirrored order: make chart x cross y point into the image
+    start_squares, start_size = _end_squares(grid)
+    end_squares, end_size = _end_squares(grid[::-1, ::-1])
+    radius = max(1, int(0.2 * min(start_size, end_size)))
+    start = _mean_grey(grey, start_squares, radius)
+    end = _mean_grey(grey, end_squares, radius)
+    # The board's own contrast: a black and a white square of the first row.
+    black_white = abs(_mean_grey(grey, start_squares[:1], radius)
+                      - _mean_grey(grey, [(grid[0, 1] + grid[0, 2] + grid[1, 1] + grid[1, 2])
+                                          / 4], radius))
+    if not np.isfinite(start - end) or abs(start - end) < min_contrast * max(black_white, 1.0):
+        return None, (f'ambiguous chart orientation: the board ends differ by '
+                      f'{abs(start - end):.1f} grey levels only')
+    if start > end:
+        grid = grid[::-1, ::-1]  # the darker end is corner (0, 0)
+    return grid.reshape(-1, 2), ''
+
+
+def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
+    """Find the rows x cols inner corners of the chart in an 8-bit grey image.
+
+    OpenCV's sector-based detector (``findChessboardCornersSB``, subpixel accurate) first,
+    the classic one with ``cornerSubPix`` as a fallback. A board must be found whole
+    (partial boards are not found), be sharp enough (OpenCV's edge-width estimate at most
+    ``max_blur_px``) and have distinguishable ends (``orient_corners``).
+
+    Returns:
+        :class:`Detection` (corners None and a reason when rejected).
+    """
+    grey = np.ascontiguousarray(grey, dtype=np.uint8)
+    size = (int(cols), int(rows))
+    found, corners = cv2.findChessboardCornersSB(
+        grey, size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)
+    if not found:
+        found, corners = cv2.findChessboardCorners(
+            grey, size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found:
+            return Detection(None, f'no {rows}x{cols} chessboard found', np.nan)
+        corners = cv2.cornerSubPix(
+            grey, corners, (5, 5), (-1, -1),
+            (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 50, 1e-3))
+    corners = corners.reshape(-1, 2).astype(float)
+    sharpness = float(cv2.estimateChessboardSharpness(grey, size, corners.astype(np.float32)
+                                                      .reshape(-1, 1, 2))[0][0])
+    if np.isfinite(sharpness) and sharpness > max_blur_px:
+        return Detection(None, f'chart too blurred (edge width {sharpness:.1f} px > '
+                               f'{max_blur_px:g})', sharpness)
+    ordered, reason = orient_corners(grey, corners, rows, cols, min_contrast)
+    return Detection(ordered, reason, sharpness)

@@ -1,0 +1,380 @@
+"""calib_node: calibrates the stereo pair and the aux camera from the chart on the precision
+stage and publishes latched CameraInfo (plumb_bob, stereo rectification) and camera poses.
+
+Captures are paired by identical stamp (left, right, aux images and the chart's target
+pose). Chart detection and calibration run in a worker thread, so the executor keeps
+taking images while a view is processed. With ``calibration_file`` set, the saved
+calibration is published at start instead and no chart is needed.
+"""
+import queue
+import threading
+import time
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
+
+from calib_node.calibrate import (
+    LM_STARTS,
+    METHODS,
+    CalibrationError,
+    GAOptions,
+    calibrate_rig,
+)
+from calib_node.chart_detection import chart_points, detect_chessboard, to_grey
+from calib_node.lxpm_ga import LX_VARIANTS
+from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_topics import (
+    BASE_FRAME,
+    CAMERA_INFO_TOPICS,
+    CAMERA_NAMES,
+    IMAGE_TOPICS,
+    OPTICAL_FRAMES,
+    POSE_TOPICS,
+)
+from vgm_common.conversions import (
+    camera_to_camera_info,
+    image_to_numpy,
+    matrix_to_pose_stamped,
+    pose_to_matrix,
+    stamp_to_ns,
+)
+from vgm_common.errors import InvalidInput, VgmError
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, ParameterError, run_node
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.sync import ExactTimeSync
+
+TARGET_POSE_TOPIC = '/calibration/target_pose'
+SYNC_KEYS = (*CAMERA_NAMES, 'target')
+
+
+class CalibNode(Node):
+    node_name = 'calib_node'
+
+    def __init__(self):
+        super().__init__(self.node_name)
+        self.diagnostics = Diagnostics(self)
+        self.params = NodeParameters(self, [
+            Param('chart.rows', 6, 'Inner corners along the chart y axis (rows + cols odd).',
+                  range=(2, 100), read_only=True),
+            Param('chart.cols', 9, 'Inner corners along the chart x axis.', range=(2, 100),
+                  read_only=True),
+            Param('chart.spacing', 0.025, 'Chessboard square size [m].', range=(1e-4, 10.0),
+                  read_only=True),
+            Param('chart.pattern', 'chessboard', 'Chart pattern.', choices=('chessboard',),
+                  read_only=True),
+            Param('min_views', 10, 'Views (captures with the chart found in at least one '
+                  'camera) needed to calibrate.', range=(1, 10000)),
+            Param('auto_calibrate', True, 'Calibrate as soon as min_views views are '
+                  'collected (the calibrate service recalibrates on all views so far).'),
+            Param('calibration_file', '', 'A calibration.yaml (or its directory) to publish '
+                  'at start instead of calibrating; empty: calibrate from the chart.',
+                  read_only=True),
+            Param('output_dir', '', 'Where calibration.yaml and left/right/aux.yaml '
+                  '(camera_calibration_parsers) are written; empty: not written.'),
+            Param('method', 'lm', 'lm: DLT (or GA) start + Levenberg-Marquardt, plumb_bob '
+                  '(ours); lxpm_ga: the thesis GA + network refinement; opencv: '
+                  'cv2.calibrateCamera reference.', choices=METHODS),
+            Param('lm_start', 'dlt', 'Start of the lm method: closed-form DLT or the GA.',
+                  choices=LM_STARTS),
+            Param('seed', 0, 'Random seed of the GA.', range=(0, 2 ** 31 - 1)),
+            Param('ga.population', 240, 'GA population (thesis 240).', range=(4, 100000)),
+            Param('ga.generations', 200, 'GA generations (thesis 200).', range=(1, 100000)),
+            Param('ga.crossover', 0.9, 'Laplace crossover probability per pair (thesis 0.9).',
+                  range=(0.0, 1.0)),
+            Param('ga.mutation', 0.005, 'Power mutation probability per gene (thesis '
+                  '0.005).', range=(0.0, 1.0)),
+            Param('ga.pm_index', 0.25, 'Power mutation index p, s = s1^(1/p) (not in the '
+                  'thesis; ALGORITHMS.md A4.4).', range=(1e-3, 100.0)),
+            Param('ga.lx_variant', 'printed', 'Laplace crossover: as printed in the thesis, '
+                  'or the symmetric Laplace quantile (A4.5).', choices=LX_VARIANTS),
+            Param('ga.mutation_sign', 'corrected', 'Power mutation sign: y = x + s (xu - x) '
+                  'upward, the correction of the printed x - s (xl - xu) (A4.4); the '
+                  'only variant that stays in the bounds.', choices=('corrected',)),
+            Param('ga.max_distance', 3.0, 'Bound of the GA translation genes: camera to '
+                  'chart-centroid distance [m].', range=(0.01, 1000.0)),
+            Param('network.epochs', 3000, 'Gradient-descent epochs of the thesis network '
+                  'refinement.', range=(0, 1000000)),
+            Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
+            Param('fit_k3', False, 'Estimate k3 (else 0).'),
+            Param('max_rms_px', 2.0, 'A calibration whose reprojection RMS exceeds this in '
+                  'any camera is refused (not published) [px].', range=(0.0, 1e6)),
+            Param('max_blur_px', 4.0, 'Chart views whose edge width exceeds this are '
+                  'rejected as blurred [px].', range=(0.5, 100.0)),
+            Param('sync_max_wait', 5.0, 'Incomplete capture sets are dropped after this [s].',
+                  range=(0.01, 60.0), read_only=True),
+        ], self.diagnostics)
+        p = self.params
+        if (self._param('chart.rows') + self._param('chart.cols')) % 2 == 0:
+            raise ParameterError('parameters chart.rows + chart.cols must be odd (the '
+                                 'board must not be symmetric under a half turn)',
+                                 key='chart.rows')
+        self.chart = chart_points(self._param('chart.rows'), self._param('chart.cols'),
+                                  self._param('chart.spacing'))
+
+        self.info_publishers = {n: self.create_publisher(CameraInfo, CAMERA_INFO_TOPICS[n],
+                                                         LATCHED_QOS) for n in CAMERA_NAMES}
+        self.pose_publishers = {n: self.create_publisher(PoseStamped, POSE_TOPICS[n],
+                                                         LATCHED_QOS) for n in CAMERA_NAMES}
+        self.lock = threading.Lock()  # views, image sizes, counters
+        self.calibration_lock = threading.Lock()  # one calibration at a time
+        self.views = []  # [{name: (points_base (N, 3), pixels (N, 2))}]
+        self.image_sizes = {}  # name -> (width, height), fixed by the first good image
+        self.rejected_views = 0
+        self.calibrations = 0
+        self.last_result = None
+        self.auto_done_at = None  # view count of the last automatic calibration
+        self.stopping = threading.Event()
+        services = MutuallyExclusiveCallbackGroup()
+        self.create_service(Trigger, '~/calibrate', self._on_calibrate, callback_group=services)
+        self.create_service(Trigger, '~/reset', self._on_reset, callback_group=services)
+
+        self.file_mode = bool(p.calibration_file)
+        if self.file_mode:
+            self._publish_file(p.calibration_file)
+            return
+        self.work = queue.Queue(maxsize=30)
+        self.worker = threading.Thread(target=self._work, name='calibration', daemon=True)
+        self.worker.start()
+        self.sync = ExactTimeSync(SYNC_KEYS, self._on_capture, queue_size=10,
+                                  max_wait=p.sync_max_wait)
+        inputs = MutuallyExclusiveCallbackGroup()  # the sync is not thread-safe
+        for name in CAMERA_NAMES:
+            self.create_subscription(Image, IMAGE_TOPICS[name],
+                                     lambda msg, n=name: self._offer(n, msg), DEFAULT_QOS,
+                                     callback_group=inputs)
+        self.create_subscription(PoseStamped, TARGET_POSE_TOPIC,
+                                 lambda msg: self._offer('target', msg), DEFAULT_QOS,
+                                 callback_group=inputs)
+        self.create_timer(1.0, self._publish_status)
+        self.get_logger().info(
+            f'collecting chart views ({p.method}, {self._param("chart.rows")}x'
+            f'{self._param("chart.cols")} chessboard, min_views {p.min_views})')
+
+    def _param(self, name):
+        return getattr(self.params, name)  # dotted names too
+
+    # --- inputs -----------------------------------------------------------------------
+
+    def _offer(self, key, msg):
+        self.sync.add(key, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
+
+    def _on_capture(self, stamp_ns, messages):
+        try:
+            self.work.put_nowait(('view', stamp_ns, messages))
+        except queue.Full:
+            self.diagnostics.reject('view', 'the calibration worker is behind: view dropped')
+
+    def _work(self):
+        while not self.stopping.is_set():
+            try:
+                job = self.work.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            try:
+                if job[0] == 'view':
+                    self._process_view(job[1], job[2])
+            except Exception as error:  # noqa: BLE001 - keep serving, report it
+                self.diagnostics.reject('view', f'{type(error).__name__}: {error}')
+
+    def _process_view(self, stamp_ns, messages):
+        try:
+            target = messages['target']
+            if target.header.frame_id != BASE_FRAME:
+                raise InvalidInput(f'target pose must be in {BASE_FRAME}, got '
+                                   f'{target.header.frame_id!r}', key='frame_id')
+            T_base_chart = pose_to_matrix(target.pose)
+        except InvalidInput as error:
+            self._reject_view(TARGET_POSE_TOPIC, error)
+            return
+        points_base = self.chart @ T_base_chart[:3, :3].T + T_base_chart[:3, 3]
+        view, misses = {}, []
+        for name in CAMERA_NAMES:
+            msg = messages[name]
+            try:
+                grey = to_grey(image_to_numpy(msg), msg.encoding)
+                size = (msg.width, msg.height)
+                with self.lock:
+                    expected = self.image_sizes.setdefault(name, size)
+                if size != expected:
+                    raise InvalidInput(f'image size {size[0]}x{size[1]} differs from this '
+                                       f'camera\'s earlier {expected[0]}x{expected[1]}',
+                                       key='size')
+            except (InvalidInput, ValueError) as error:
+                self.diagnostics.reject(IMAGE_TOPICS[name], error)
+                misses.append(f'{name}: unusable image')
+                continue
+            detection = detect_chessboard(grey, self._param('chart.rows'),
+                                          self._param('chart.cols'), self.params.max_blur_px)
+            if detection.corners is None:
+                misses.append(f'{name}: {detection.reason}')
+                continue
+            view[name] = (points_base, detection.corners)
+        if not view:
+            self._reject_view('view', 'chart not found in any camera (' + '; '.join(misses)
+                              + ')')
+            return
+        with self.lock:
+            self.views.append(view)
+            count = len(self.views)
+        self.get_logger().info(f'view {count}: chart found in {", ".join(view)}'
+                               + (f' (not in {"; ".join(misses)})' if misses else ''))
+        if self.params.auto_calibrate and count >= self.params.min_views and \
+                self.auto_done_at is None:
+            self.auto_done_at = count
+            self._calibrate()
+
+    def _reject_view(self, what, error):
+        with self.lock:
+            self.rejected_views += 1
+        self.diagnostics.reject(what, error)
+
+    # --- calibration ------------------------------------------------------------------
+
+    def _observations(self, views):
+        observations, missing = {}, []
+        for name in CAMERA_NAMES:
+            pairs = [view[name] for view in views if name in view]
+            if not pairs:
+                missing.append(name)
+                continue
+            observations[name] = (np.concatenate([p for p, _ in pairs]),
+                                  np.concatenate([uv for _, uv in pairs]),
+                                  self.image_sizes[name])
+        if missing:
+            raise CalibrationError(f'the chart was never found in {", ".join(missing)}')
+        return observations
+
+    def _calibrate(self):
+        """Calibrate on all views so far; returns (success, message)."""
+        p = self.params
+        with self.lock:
+            views = list(self.views)
+        if len(views) < p.min_views:
+            return False, f'{len(views)} views collected, min_views is {p.min_views}'
+        with self.calibration_lock:
+            try:
+                observations = self._observations(views)
+                ga = GAOptions(self._param('ga.population'), self._param('ga.generations'),
+                               self._param('ga.crossover'), self._param('ga.mutation'),
+                               self._param('ga.pm_index'), self._param('ga.lx_variant'),
+                               self._param('ga.max_distance'),
+                               self._param('network.epochs'))
+                result = calibrate_rig(observations, p.method, p.seed, p.lm_start, ga,
+                                       p.fit_tangential, p.fit_k3)
+                worst = max(result.fits, key=lambda n: result.fits[n].rms_px)
+                if result.fits[worst].rms_px > p.max_rms_px:
+                    raise CalibrationError(
+                        f'{worst}: reprojection RMS {result.fits[worst].rms_px:.3g} px '
+                        f'exceeds max_rms_px {p.max_rms_px:g}')
+                cameras = {name: PinholeCamera(*observations[name][2], fit.K, fit.D,
+                                               fit.T_base_camera)
+                           for name, fit in result.fits.items()}
+                rectification = stereo_rectification(cameras['left'], cameras['right'])
+            except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError) as error:
+                message = f'calibration failed on {len(views)} views: {error}'
+                self.get_logger().error(message)
+                self.diagnostics.publish('calibration', 'error', message,
+                                         {'views': len(views), 'method': p.method})
+                return False, message
+            self._publish(cameras, rectification)
+            quality = {name: {'rms_px': fit.rms_px, 'points': fit.points,
+                              'views': sum(name in v for v in views)}
+                       for name, fit in result.fits.items()}
+            if p.output_dir:
+                try:
+                    write_calibration(p.output_dir, cameras, OPTICAL_FRAMES, rectification,
+                                      quality)
+                except (OSError, VgmError) as error:
+                    self.diagnostics.publish('calibration', 'error',
+                                             f'cannot write {p.output_dir}: {error}')
+            self.calibrations += 1
+            rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in result.fits.items())
+            baseline = np.linalg.norm(cameras['left'].centre_base
+                                      - cameras['right'].centre_base)
+            message = (f'calibrated {len(cameras)} cameras from {len(views)} views: rms '
+                       f'{rms} px, baseline {baseline:.4f} m ({p.method}, '
+                       f'{result.seconds:.2f} s)')
+            self.get_logger().info(message)
+            values = {'views': len(views), 'method': p.method,
+                      'time_s': f'{result.seconds:.3f}', 'baseline_m': f'{baseline:.6f}'}
+            for name, fit in result.fits.items():
+                values[f'rms_px {name}'] = f'{fit.rms_px:.4f}'
+                values[f'points {name}'] = fit.points
+                values[f'views {name}'] = quality[name]['views']
+            self.last_result = values
+            self.diagnostics.publish('calibration', 'ok', message, values)
+            return True, message
+
+    def _publish(self, cameras, rectification, stamp_ns=None):
+        stamp_ns = self.get_clock().now().nanoseconds if stamp_ns is None else stamp_ns
+        for name, camera in cameras.items():
+            R, P = rectification.get(name, (None, None))
+            self.info_publishers[name].publish(
+                camera_to_camera_info(camera, stamp_ns, OPTICAL_FRAMES[name], R, P))
+            self.pose_publishers[name].publish(
+                matrix_to_pose_stamped(camera.T_base_camera, stamp_ns, BASE_FRAME))
+
+    def _publish_file(self, path):
+        rig = read_calibration(path)  # InvalidInput -> one-line start-up error
+        missing = [name for name in CAMERA_NAMES if name not in rig]
+        if missing:
+            raise InvalidInput(f'calibration_file {path} lacks {", ".join(missing)}',
+                               key='calibration_file')
+        cameras = {name: rig[name][0] for name in CAMERA_NAMES}
+        # As the harness and every consumer expect: left/right re-rectified from the
+        # cameras, aux as stored.
+        rectification = {'aux': rig['aux'][1:], **stereo_rectification(cameras['left'],
+                                                                         cameras['right'])}
+        self._publish(cameras, rectification)
+        message = f'published the calibration of {path}'
+        self.get_logger().info(message)
+        self.diagnostics.publish('calibration', 'ok', message, {'calibration_file': path})
+
+    # --- services and status ----------------------------------------------------------
+
+    def _on_calibrate(self, request, response):
+        if self.file_mode:
+            response.success = False
+            response.message = 'publishing calibration_file: no chart views are collected'
+            return response
+        response.success, response.message = self._calibrate()
+        return response
+
+    def _on_reset(self, request, response):
+        with self.lock:
+            forgotten = len(self.views)
+            self.views.clear()
+            self.image_sizes.clear()
+            self.auto_done_at = None
+        response.success = True
+        response.message = f'forgot {forgotten} views'
+        self.get_logger().info(response.message)
+        return response
+
+    def _publish_status(self):
+        with self.lock:
+            values = {'views': len(self.views), 'rejected views': self.rejected_views,
+                      'calibrations': self.calibrations,
+                      'incomplete capture sets (messages)': self.sync.dropped,
+                      'matched capture sets': self.sync.matched}
+        level = 'ok'
+        message = (f'{values["views"]} views, {self.calibrations} calibrations'
+                   if self.calibrations or values['views'] else 'waiting for chart views')
+        self.diagnostics.publish('views', level, message, values)
+
+    def close(self):
+        self.stopping.set()
+
+
+def main(args=None):
+    return run_node(CalibNode, args, executor_class=lambda: MultiThreadedExecutor(3))
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

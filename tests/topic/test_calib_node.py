@@ -1,0 +1,276 @@
+"""calib_node over topics: sensor_sim's calibration phase -> calib_node -> latched
+CameraInfo and poses against the scenario's true cameras; the YAML round trip through
+``output_dir`` and ``calibration_file``; bad input (no chart, NaN target pose, wrong
+encoding / size, degenerate views) -> diagnostics, no calibration, no crash."""
+import math
+
+import numpy as np
+import pytest
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image
+from std_srvs.srv import Trigger
+
+from harness import executable
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_topics import CAMERA_INFO_TOPICS, CAMERA_NAMES, IMAGE_TOPICS, POSE_TOPICS
+from vgm_common.conversions import (
+    camera_info_to_camera,
+    matrix_to_pose_stamped,
+    numpy_to_image,
+    pose_to_matrix,
+)
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+
+TARGET_POSE_TOPIC = '/calibration/target_pose'
+# Tolerances against the default scenario's true cameras (image noise sigma 1 grey level,
+# 10 chart poses; measured errors are about a third of these).
+FOCAL_RTOL = 0.01  # fx, fy
+CENTRE_ATOL_PX = 5.0  # cx, cy
+POSITION_ATOL_M = 0.005  # camera centre
+ANGLE_ATOL_RAD = math.radians(0.3)  # camera orientation
+BASELINE_RTOL = 0.01
+REPROJECTION_MAX_PX = 1.0  # true vs calibrated projection of every chart corner
+
+
+class Probe:
+    """Latched camera_info / pose and /diagnostics as the test node receives them."""
+
+    def __init__(self, node):
+        self.node = node
+        self.infos, self.poses, self.diagnostics = {}, {}, []
+        self.subscriptions = []
+        self.subscribe_calibration()
+        self.subscriptions.append(node.create_subscription(
+            DiagnosticArray, '/diagnostics', lambda m: self.diagnostics.extend(m.status),
+            DEFAULT_QOS))
+
+    def subscribe_calibration(self):
+        for subscription in self.subscriptions[:6]:
+            self.node.destroy_subscription(subscription)
+        self.infos, self.poses = {}, {}
+        subscriptions = []
+        for name in CAMERA_NAMES:
+            subscriptions.append(self.node.create_subscription(
+                CameraInfo, CAMERA_INFO_TOPICS[name],
+                lambda m, n=name: self.infos.__setitem__(n, m), LATCHED_QOS))
+            subscriptions.append(self.node.create_subscription(
+                PoseStamped, POSE_TOPICS[name],
+                lambda m, n=name: self.poses.__setitem__(n, m), LATCHED_QOS))
+        self.subscriptions[:6] = subscriptions
+
+    def calibrated(self):
+        return len(self.infos) == 3 and len(self.poses) == 3
+
+    def wait(self, condition, timeout, what):
+        """spin_until, and on timeout say what calib_node's status reported last."""
+        try:
+            self.node.spin_until(condition, timeout, what)
+        except TimeoutError as error:
+            last = [f'{s.name}: {s.message} {[(kv.key, kv.value) for kv in s.values]}'
+                    for s in self.diagnostics[-5:]]
+            raise AssertionError(f'{error}; last diagnostics: {last}') from None
+
+    def statuses(self, name_part, message_part=''):
+        return [s for s in self.diagnostics
+                if name_part in s.name and message_part in s.message]
+
+
+def call(node, name, timeout=30.0):
+    client = node.create_client(Trigger, name)
+    node.spin_until(lambda: client.service_is_ready(), timeout, f'service {name}')
+    future = client.call_async(Trigger.Request())
+    node.spin_until(future.done, timeout, f'answer of {name}')
+    return future.result()
+
+
+def true_cameras(ground_truth_dir):
+    cameras = yaml.safe_load((ground_truth_dir / 'cameras.yaml').read_text())
+    return {name: PinholeCamera(c['width'], c['height'], np.array(c['K']), np.array(c['D']),
+                                np.array(c['T_base_camera']))
+            for name, c in cameras.items()}
+
+
+def chart_corners_base(ground_truth_dir, rows=6, cols=9, spacing=0.025):
+    r, c = np.divmod(np.arange(rows * cols), cols)
+    corners = np.column_stack([c * spacing, r * spacing, np.zeros(rows * cols), np.ones(rows
+                                                                                        * cols)])
+    return np.concatenate([(T @ corners.T).T[:, :3]
+                           for T in np.load(ground_truth_dir / 'T_base_chart.npy')])
+
+
+def rotation_angle(R):
+    return math.acos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))
+
+
+def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_path):
+    truth_dir, out_dir = tmp_path / 'truth', tmp_path / 'calibration'
+    probe = Probe(rclpy_node)
+    calib = spawn([executable('calib_node'), '--ros-args', '-p', f'output_dir:={out_dir}'])
+    spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default',
+           '-p', 'calibration_phase:=true', '-p', 'min_subscribers:=1',
+           '-p', f'ground_truth_dir:={truth_dir}'])
+    rclpy_node.spin_until(probe.calibrated, 150, 'the calibration')
+    truth = true_cameras(truth_dir)
+    corners = chart_corners_base(truth_dir)
+    estimated = {}
+    for name in CAMERA_NAMES:
+        info, pose = probe.infos[name], probe.poses[name]
+        assert info.distortion_model == 'plumb_bob' and len(info.d) == 5
+        assert info.header.frame_id.endswith('optical_frame')
+        assert pose.header.frame_id == 'base_link'
+        camera = camera_info_to_camera(info, pose_to_matrix(pose.pose))
+        estimated[name] = camera
+        true = truth[name]
+        np.testing.assert_allclose(camera.K[[0, 1], [0, 1]], true.K[[0, 1], [0, 1]],
+                                   rtol=FOCAL_RTOL, err_msg=name)
+        np.testing.assert_allclose(camera.K[:2, 2], true.K[:2, 2], atol=CENTRE_ATOL_PX,
+                                   err_msg=name)
+        np.testing.assert_allclose(camera.centre_base, true.centre_base, atol=POSITION_ATOL_M,
+                                   err_msg=name)
+        assert rotation_angle(camera.T_base_camera[:3, :3].T
+                              @ true.T_base_camera[:3, :3]) < ANGLE_ATOL_RAD, name
+        # K, D and pose together: every chart corner lands where the true camera puts it
+        true_pixels, depth = true.project(corners)
+        seen = (depth > 0) & np.all((true_pixels >= 0) & (true_pixels < [640, 480]), axis=1)
+        error = np.linalg.norm(camera.project(corners[seen])[0] - true_pixels[seen], axis=1)
+        assert error.max() < REPROJECTION_MAX_PX, (name, error.max())
+        if name == 'aux':
+            np.testing.assert_allclose(np.reshape(info.r, (3, 3)), np.eye(3))
+    baseline = np.linalg.norm(estimated['left'].centre_base - estimated['right'].centre_base)
+    true_baseline = np.linalg.norm(truth['left'].centre_base - truth['right'].centre_base)
+    assert baseline == pytest.approx(true_baseline, rel=BASELINE_RTOL)
+    P_right = np.reshape(probe.infos['right'].p, (3, 4))
+    assert -P_right[0, 3] / P_right[0, 0] == pytest.approx(baseline, rel=1e-6)
+    rclpy_node.spin_until(lambda: probe.statuses('calibration', 'calibrated 3 cameras'), 10,
+                          'the calibration diagnostic')
+    values = {kv.key: kv.value for kv in probe.statuses('calibration', 'calibrated')[-1].values}
+    assert int(values['views']) == 10 and values['method'] == 'lm'
+    assert all(float(values[f'rms_px {n}']) < 0.5 for n in CAMERA_NAMES)
+    assert 'calibrated 3 cameras from 10 views' in calib.output()
+    for name in ('calibration.yaml', 'left.yaml', 'right.yaml', 'aux.yaml'):
+        assert (out_dir / name).is_file()
+
+    # The saved calibration, republished by a second calib_node, is identical.
+    first = dict(probe.infos), dict(probe.poses)
+    assert calib.stop() == 0
+    probe.subscribe_calibration()
+    spawn([executable('calib_node'), '--ros-args', '-p',
+           f'calibration_file:={out_dir / "calibration.yaml"}'])
+    rclpy_node.spin_until(probe.calibrated, 30, 'the republished calibration')
+    for name in CAMERA_NAMES:
+        old, new = first[0][name], probe.infos[name]
+        assert (new.width, new.height, new.header.frame_id) == (old.width, old.height,
+                                                                old.header.frame_id)
+        for field in ('k', 'd', 'r', 'p'):
+            np.testing.assert_allclose(getattr(new, field), getattr(old, field), rtol=1e-12,
+                                       atol=1e-12, err_msg=f'{name}.{field}')
+        np.testing.assert_allclose(pose_to_matrix(probe.poses[name].pose),
+                                   pose_to_matrix(first[1][name].pose), atol=1e-12)
+
+
+@pytest.fixture(scope='module')
+def chart_images():
+    """Clean images of the default scenario's first chart pose in the three cameras, and
+    the chart pose (rendered here: the test publishes its own captures)."""
+    from sensor_sim.render import SceneRenderer
+    from vgm_common.scenario import load_scenario, resolve_scenario_path
+
+    scenario = load_scenario(resolve_scenario_path('default'))
+    renderer = SceneRenderer(scenario)
+    images = {name: renderer.chart_image(name, 0) for name in CAMERA_NAMES}
+    scene = {name: renderer.scene_image(name) for name in CAMERA_NAMES}
+    return images, scene, scenario.calibration.T_base_chart[0]
+
+
+class CapturePublisher:
+    def __init__(self, node):
+        self.node = node
+        self.images = {name: node.create_publisher(Image, IMAGE_TOPICS[name], DEFAULT_QOS)
+                       for name in CAMERA_NAMES}
+        self.target = node.create_publisher(PoseStamped, TARGET_POSE_TOPIC, DEFAULT_QOS)
+        self.stamp_ns = 1_000_000_000
+
+    def matched(self):
+        return all(p.get_subscription_count() > 0
+                   for p in (*self.images.values(), self.target))
+
+    def publish(self, images, T_base_chart=None, pose=None, overrides=None):
+        self.stamp_ns += 100_000_000
+        if T_base_chart is not None or pose is not None:
+            msg = pose or matrix_to_pose_stamped(T_base_chart, self.stamp_ns, 'base_link')
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(self.stamp_ns, 10 ** 9)
+            self.target.publish(msg)
+        for name in CAMERA_NAMES:
+            msg = (overrides or {}).get(name) or numpy_to_image(
+                images[name], 'mono8', self.stamp_ns, 'x')
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(self.stamp_ns, 10 ** 9)
+            self.images[name].publish(msg)
+
+
+def test_bad_input_gives_diagnostics_and_no_calibration(spawn, rclpy_node, chart_images):
+    images, scene, T_base_chart = chart_images
+    probe = Probe(rclpy_node)
+    capture = CapturePublisher(rclpy_node)
+    calib = spawn([executable('calib_node'), '--ros-args', '-p', 'min_views:=3'])
+    rclpy_node.spin_until(capture.matched, 30, 'calib_node subscribing')
+    rclpy_node.spin_until(lambda: probe.statuses('views', 'waiting'), 30, 'status')
+
+    # Images without a target pose (outside the chart phase) never complete a capture:
+    # counted, not warned about.
+    for _ in range(15):
+        capture.publish(scene)
+    rclpy_node.spin_until(
+        lambda: any(kv.key.startswith('incomplete') and int(kv.value) > 0
+                    for s in probe.statuses('views') for kv in s.values), 20,
+        'incomplete sets counted')
+    assert not probe.statuses('rejected')
+
+    # No chart in any camera.
+    capture.publish(scene, T_base_chart)
+    rclpy_node.spin_until(lambda: probe.statuses('rejected view', 'chart not found'), 30,
+                          'the no-chart diagnostic')
+    # NaN target pose.
+    nan_pose = matrix_to_pose_stamped(T_base_chart, 0, 'base_link')
+    nan_pose.pose.position.x = float('nan')
+    capture.publish(images, pose=nan_pose)
+    rclpy_node.spin_until(lambda: probe.statuses(f'rejected {TARGET_POSE_TOPIC}',
+                                                 'non-finite'), 30, 'the NaN pose diagnostic')
+    # Wrong encoding, and data that does not match the stated size.
+    float_image = numpy_to_image(images['left'].astype(np.float32), '32FC1', 0, 'x')
+    short_image = numpy_to_image(images['right'], 'mono8', 0, 'x')
+    short_image.height += 10
+    capture.publish(images, T_base_chart, overrides={'left': float_image,
+                                                     'right': short_image})
+    rclpy_node.spin_until(lambda: probe.statuses(f'rejected {IMAGE_TOPICS["left"]}',
+                                                 'encoding'), 30, 'the encoding diagnostic')
+    rclpy_node.spin_until(lambda: probe.statuses(f'rejected {IMAGE_TOPICS["right"]}',
+                                                 'bytes'), 30, 'the size diagnostic')
+    # ... the aux image of that capture was good: one view. Too few views to calibrate:
+    answer = call(rclpy_node, '/calib_node/calibrate')
+    assert not answer.success and 'min_views' in answer.message
+
+    # Degenerate views: the chart at one pose, so every point lies on one plane.
+    for _ in range(3):
+        capture.publish(images, T_base_chart)
+    probe.wait(lambda: probe.statuses('calibration', 'degenerate'), 60,
+               'the degenerate-views diagnostic')
+    answer = call(rclpy_node, '/calib_node/calibrate')
+    assert not answer.success and 'degenerate' in answer.message
+    assert call(rclpy_node, '/calib_node/reset').success
+    answer = call(rclpy_node, '/calib_node/calibrate')
+    assert not answer.success and '0 views' in answer.message
+
+    assert calib.alive()
+    assert not probe.infos and not probe.poses  # nothing was ever published
+    assert 'Traceback' not in calib.output()
+
+
+def test_bad_calibration_file_is_a_one_line_startup_error(spawn, tmp_path):
+    bad = tmp_path / 'calibration.yaml'
+    bad.write_text('cameras: {left: {image_width: 640}}\n')
+    node = spawn([executable('calib_node'), '--ros-args', '-p', f'calibration_file:={bad}'])
+    node.proc.wait(timeout=30)
+    assert node.proc.returncode == 2
+    assert 'start-up error' in node.output() and 'Traceback' not in node.output()
