@@ -16,5 +16,5 @@ setup(
     install_requires=['setuptools'],
     zip_safe=True,
     license='Apache-2.0',
-    entry_points={'console_scripts': []},
+    entry_points={'console_scripts': ['curve_recon_node = curve_recon_node.node:main']},
 )

@@ -36,8 +36,17 @@ def _as_xy(xy):
 def monomials(xy, degree):
     """Monomial matrix (N, M) with rows mu_n(X, Y) for (N, 2) points ``xy``."""
     xy = _as_xy(xy)
-    exponents = monomial_exponents(degree)
-    return xy[:, None, 0] ** exponents[:, 0] * xy[:, None, 1] ** exponents[:, 1]
+    jx, jy = monomial_exponents(degree).T
+    return powers(xy[:, 0], degree)[:, jx] * powers(xy[:, 1], degree)[:, jy]
+
+
+def powers(values, degree):
+    """(N, degree + 1) matrix of values^k, k = 0..degree, by repeated products (faster
+    and exact for negative bases, unlike float exponents)."""
+    result = np.ones((len(values), int(degree) + 1))
+    for k in range(1, int(degree) + 1):
+        result[:, k] = result[:, k - 1] * values
+    return result
 
 
 def check_coefficients(a, degree):

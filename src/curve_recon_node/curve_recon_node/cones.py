@@ -238,7 +238,7 @@ def fit_plane(points):
     """Unit normal (3,) and offset d of the SVD plane n.x + d = 0 through (N, 3) points."""
     points = np.asarray(points, dtype=float)
     centroid = points.mean(axis=0)
-    normal = np.linalg.svd(points - centroid)[2][-1]
+    normal = np.linalg.svd(points - centroid, full_matrices=False)[2][-1]
     return normal, -normal @ centroid
 
 

@@ -1,0 +1,408 @@
+"""curve_recon_node: reconstruct the curve drawn on the surface from its three calibrated
+views and publish tool waypoints (INTERFACES.md; ALGORITHMS.md §2; issue 4).
+
+Inputs: the three images (exact-time sync), the calibrated rig (latched camera_info and
+pose topics), optionally /depth/fused + /depth/camera_info for surface normals.
+Outputs: /curve/waypoints (latched Path), /curve/points (PointCloud2), diagnostics.
+The work runs on a worker thread; callbacks only check and hand over.
+"""
+import queue
+import threading
+import time
+from collections import deque
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from curve_recon_node.pipeline import (
+    METHODS,
+    NoCurve,
+    ReconstructionSettings,
+    reconstruct_capture,
+)
+from curve_recon_node.waypoints import normals_from_depth, waypoint_frames
+from vgm_common.camera_topics import (
+    BASE_FRAME,
+    CAMERA_NAMES,
+    IMAGE_TOPICS,
+    CalibratedCameras,
+)
+from vgm_common.conversions import (
+    image_to_numpy,
+    matrices_to_path,
+    points_to_pointcloud2,
+    stamp_to_ns,
+)
+from vgm_common.errors import InvalidInput, VgmError
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.sync import ExactTimeSync
+
+TARGET_POSE_TOPIC = '/calibration/target_pose'
+DEPTH_TOPIC, DEPTH_INFO_TOPIC = '/depth/fused', '/depth/camera_info'
+
+
+def grey_image(msg):
+    """Image message -> (H, W) float grey image; InvalidInput for other encodings."""
+    array = image_to_numpy(msg)
+    if msg.encoding in ('mono8', '8UC1', 'mono16', '16UC1'):
+        return array.astype(float) * (255.0 / 65535.0 if array.dtype == np.uint16 else 1.0)
+    if msg.encoding in ('rgb8', 'bgr8', 'rgba8', 'bgra8'):
+        weights = [0.299, 0.587, 0.114] if msg.encoding.startswith('rgb') else \
+            [0.114, 0.587, 0.299]
+        return array[:, :, :3].astype(float) @ weights
+    raise InvalidInput(f'expected a mono or colour 8-bit image, got {msg.encoding!r}',
+                       key='encoding', value=msg.encoding)
+
+
+class CurveReconNode(Node):
+    node_name = 'curve_recon_node'
+
+    def __init__(self):
+        super().__init__(self.node_name)
+        self.diagnostics = Diagnostics(self)
+        self.params = NodeParameters(self, [
+            Param('degree', 2, 'Degree n of the implicit image curves (2 conics, 3 cubics).',
+                  range=(1, 6)),
+            Param('method', 'ray_roots', 'Cone intersection: ray_roots (roots of the view-2 '
+                  'cone along view-1 rays, ours) or cone_lsq (minimise S1^2 + S2^2, thesis).',
+                  choices=METHODS),
+            Param('third_view_tolerance', 2.0, '[px] Largest distance of a point\'s '
+                  'projection to the third view\'s curve.', range=(1e-3, 100.0)),
+            Param('spacing', 0.005, '[m] Waypoint spacing along the curve.',
+                  range=(1e-4, 1.0)),
+            Param('views', 3, 'Views to use: 3 (left, right, aux) or 2 (left, right).',
+                  range=(2, 3)),
+            Param('line_width_px', 3.0, '[px] Width of the drawn curve in the images.',
+                  range=(1.0, 30.0)),
+            Param('min_contrast', 8.0, '[grey levels] Faintest line taken as the curve.',
+                  range=(0.5, 255.0)),
+            Param('min_curve_pixels', 60.0, '[px] Shortest image chain taken as the curve.',
+                  range=(5.0, 1e5)),
+            Param('fit_tolerance_px', 0.1, '[px] RMS residual above which a chain is split '
+                  'into pieces (piecewise fit).', range=(1e-3, 100.0)),
+            Param('min_piece_points', 30, 'Chain points below which a piece is not split.',
+                  range=(8, 100000)),
+            Param('refine', True, 'Refine points by minimising their pixel distances to the '
+                  'curves of all views.'),
+            Param('smoothing_window', 0.02, '[m] Window of the smoothing along the curve '
+                  'before resampling.', range=(0.0, 1.0)),
+            Param('use_depth_normals', True, 'Approach direction from /depth/fused surface '
+                  'normals when available (else base -z).'),
+            Param('normal_window_px', 15, '[px] Depth window for a normal\'s plane fit.',
+                  range=(3, 101)),
+            Param('sync_max_wait', 1.0, '[s] How long an incomplete capture waits for its '
+                  'other images.', range=(0.01, 60.0)),
+            Param('aux_wait', 2.0, '[s] With views 3, how long to wait for the aux camera\'s '
+                  'calibration before reconstructing from two views.', range=(0.0, 600.0)),
+            Param('service_timeout', 20.0, '[s] Longest a reconstruct call waits for its '
+                  'capture and result.', range=(0.1, 600.0)),
+        ], self.diagnostics)
+        p = self.params
+        self.cameras = CalibratedCameras(self, CAMERA_NAMES, self.diagnostics,
+                                         self._on_calibration_change)
+        self.sync_keys = CAMERA_NAMES if p.views == 3 else CAMERA_NAMES[:2]
+        self.sync = ExactTimeSync(self.sync_keys, self._on_capture, queue_size=10,
+                                  max_wait=p.sync_max_wait)
+        self.sync_lock = threading.Lock()
+        self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
+        self.chart_stamps = deque(maxlen=200)
+        self.skipped_chart = 0
+        self.state_lock = threading.Lock()
+        self.auto_pending = False  # set when the calibration becomes ready or changes
+        self.last_auto_attempt = -np.inf
+        self.left_right_ready_since = None
+        self.service_requests = []  # [(event, result dict)] waiting for the next capture
+        self.work = queue.Queue(maxsize=1)
+        self.dropped_work = 0
+        self.depth = None  # (depth (H, W), K (3, 3), stamp_ns)
+        self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
+        self.normals_published = False
+        self.stopping = threading.Event()
+
+        sensors = MutuallyExclusiveCallbackGroup()
+        for name in self.sync_keys:
+            self.create_subscription(Image, IMAGE_TOPICS[name],
+                                     lambda msg, n=name: self._on_image(n, msg), DEFAULT_QOS,
+                                     callback_group=sensors)
+        self.create_subscription(PoseStamped, TARGET_POSE_TOPIC, self._on_target_pose,
+                                 DEFAULT_QOS, callback_group=sensors)
+        self.create_subscription(Image, DEPTH_TOPIC, self._on_depth, DEFAULT_QOS,
+                                 callback_group=sensors)
+        self.create_subscription(CameraInfo, DEPTH_INFO_TOPIC, self._on_depth_info,
+                                 DEFAULT_QOS, callback_group=sensors)
+        self.depth_info = None
+        self.waypoint_publisher = self.create_publisher(Path, '/curve/waypoints', LATCHED_QOS)
+        self.points_publisher = self.create_publisher(PointCloud2, '/curve/points',
+                                                      DEFAULT_QOS)
+        self.create_service(Trigger, '/curve_recon_node/reconstruct', self._on_reconstruct,
+                            callback_group=ReentrantCallbackGroup())
+        self.create_timer(1.0, self._publish_status, callback_group=sensors)
+        self.worker = threading.Thread(target=self._run_worker, name='reconstruction',
+                                       daemon=True)
+        self.worker.start()
+        self.get_logger().info(
+            f'ready: method {p.method}, degree {p.degree}, {p.views} views, spacing '
+            f'{p.spacing} m; waiting for the calibration and a capture')
+
+    # --- inputs ----------------------------------------------------------------------
+
+    def _on_calibration_change(self, name):
+        with self.state_lock:
+            self.auto_pending = True
+            self.last_auto_attempt = -np.inf
+
+    def _on_target_pose(self, msg):
+        self.chart_stamps.append(stamp_to_ns(msg.header.stamp))
+
+    def _on_image(self, name, msg):
+        with self.sync_lock:
+            self.sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
+
+    def _views_available(self):
+        """Camera names to use now, or None while the calibration is not ready."""
+        if not all(self.cameras.get(n) for n in ('left', 'right')):
+            self.left_right_ready_since = None
+            return None
+        if self.left_right_ready_since is None:
+            self.left_right_ready_since = time.monotonic()
+        if self.params.views == 3:
+            if self.cameras.get('aux') is not None:
+                return ('left', 'right', 'aux')
+            if time.monotonic() - self.left_right_ready_since < self.params.aux_wait:
+                return None
+        return ('left', 'right')
+
+    def _on_capture(self, stamp_ns, messages):
+        """A synchronized capture (called under sync_lock): hand it to the worker if a
+        reconstruction is wanted."""
+        self.last_match = (time.monotonic(), self.sync.dropped)
+        names = self._views_available()
+        with self.state_lock:
+            wanted_by_service = bool(self.service_requests)
+            now = time.monotonic()
+            wanted_auto = self.auto_pending and now - self.last_auto_attempt >= 1.0
+            if names is None or not (wanted_auto or wanted_by_service):
+                return
+            if stamp_ns in self.chart_stamps:
+                self.skipped_chart += 1
+                return  # the calibration chart is on show: no curve in these images
+            if wanted_auto:
+                self.last_auto_attempt = now
+            requests, self.service_requests = self.service_requests, []
+        job = (stamp_ns, messages, names, requests)
+        try:
+            self.work.put_nowait(job)
+        except queue.Full:  # the worker is busy: keep the newest capture
+            try:
+                old = self.work.get_nowait()
+                self.dropped_work += 1
+                with self.state_lock:
+                    self.service_requests = old[3] + self.service_requests
+            except queue.Empty:
+                pass
+            self.work.put_nowait(job)
+
+    def _on_depth_info(self, msg):
+        try:
+            P = np.array(msg.p, dtype=float).reshape(3, 4)
+            K = P[:3, :3]
+            if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+                raise InvalidInput('depth camera_info P has no valid intrinsics', key='p')
+        except (InvalidInput, ValueError) as error:
+            self.diagnostics.reject(DEPTH_INFO_TOPIC, error)
+            return
+        self.depth_info = (K, int(msg.width), int(msg.height))
+
+    def _on_depth(self, msg):
+        try:
+            if msg.encoding != '32FC1':
+                raise InvalidInput(f'expected 32FC1 depth, got {msg.encoding!r}',
+                                   key='encoding', value=msg.encoding)
+            depth = image_to_numpy(msg).astype(float)
+            if self.depth_info is None:
+                return  # no intrinsics yet: wait for /depth/camera_info
+            K, width, height = self.depth_info
+            if depth.shape != (height, width):
+                raise InvalidInput(f'depth is {depth.shape[1]}x{depth.shape[0]} but its '
+                                   f'camera_info says {width}x{height}', key='size')
+        except InvalidInput as error:
+            self.diagnostics.reject(DEPTH_TOPIC, error)
+            return
+        first = self.depth is None
+        self.depth = (depth, K, stamp_to_ns(msg.header.stamp))
+        if first and self.last_result is not None and self.params.use_depth_normals \
+                and not self.normals_published:
+            try:
+                self.work.put_nowait(('republish', None, None, []))
+            except queue.Full:
+                pass  # a reconstruction is queued: it will use the depth anyway
+
+    def _on_reconstruct(self, request, response):
+        done = threading.Event()
+        result = {}
+        with self.state_lock:
+            self.service_requests.append((done, result))
+        if not done.wait(self.params.service_timeout):
+            with self.state_lock:
+                self.service_requests = [r for r in self.service_requests if r[0] is not done]
+            missing = self.cameras.missing()
+            response.success = False
+            response.message = ('no synchronized capture within '
+                                f'{self.params.service_timeout:g} s'
+                                + (f' (not calibrated: {", ".join(missing)})'
+                                   if missing else ''))
+            return response
+        response.success = result.get('success', False)
+        response.message = result.get('message', '')
+        return response
+
+    # --- work ------------------------------------------------------------------------
+
+    def _run_worker(self):
+        while not self.stopping.is_set():
+            try:
+                stamp_ns, messages, names, requests = self.work.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if stamp_ns == 'republish':
+                self._republish_with_normals()
+                continue
+            success, message = self._reconstruct(stamp_ns, messages, names)
+            with self.state_lock:
+                if success:
+                    self.auto_pending = False
+            for done, result in requests:
+                result.update(success=success, message=message)
+                done.set()
+
+    def _settings(self):
+        p = self.params
+        return ReconstructionSettings(
+            degree=p.degree, method=p.method, third_view_tolerance=p.third_view_tolerance,
+            spacing=p.spacing, line_width_px=p.line_width_px, min_contrast=p.min_contrast,
+            min_curve_pixels=p.min_curve_pixels, fit_tolerance_px=p.fit_tolerance_px,
+            min_piece_points=p.min_piece_points, refine=p.refine,
+            smoothing_window=p.smoothing_window)
+
+    def _reconstruct(self, stamp_ns, messages, names):
+        """Reconstruct one capture and publish; returns (success, message)."""
+        try:
+            images = {}
+            for name in names:
+                try:
+                    images[name] = grey_image(messages[name])
+                except InvalidInput as error:
+                    self.diagnostics.reject(IMAGE_TOPICS[name], error)
+                    return False, f'{IMAGE_TOPICS[name]}: {error}'
+            cameras = {name: self.cameras[name].camera for name in names}
+            for name in names:
+                camera = cameras[name]
+                if images[name].shape != (camera.height, camera.width):
+                    error = InvalidInput(
+                        f'{name} image is {images[name].shape[1]}x{images[name].shape[0]}'
+                        f' but its camera_info says {camera.width}x{camera.height}',
+                        key='size')
+                    self.diagnostics.reject(IMAGE_TOPICS[name], error)
+                    return False, str(error)
+            result = reconstruct_capture(images, cameras, self._settings(), names)
+        except NoCurve as error:
+            self.diagnostics.reject('no curve', error)
+            return False, f'no curve: {error}'
+        except (VgmError, np.linalg.LinAlgError, ValueError) as error:
+            self.diagnostics.reject('reconstruction', error)
+            return False, f'reconstruction failed: {error}'
+        self.last_result = (stamp_ns, result, names)
+        normals_source = self._publish(stamp_ns, result)
+        stats = result.stats
+        shape = 'closed loop' if result.closed else 'open curve'
+        message = (f'published {len(result.waypoints_base)} waypoints ({shape}, '
+                   f'{stats["length_m"]:.2f} m) from {len(names)} views in '
+                   f'{stats["time_ms"]:.0f} ms')
+        self.get_logger().info(message + f'; approach from {normals_source}')
+        values = dict(stats, normals=normals_source, stamp_ns=stamp_ns,
+                      method=self.params.method, degree=self.params.degree)
+        level = 'warn' if len(names) == 2 and stats.get('ambiguous') else 'ok'
+        if len(names) == 2:
+            message += (f'; two views only: {stats.get("ambiguous", 0)} samples ambiguous '
+                        'and dropped')
+        self.diagnostics.publish('reconstruction', level, message, values)
+        return True, message
+
+    def _approach_directions(self, waypoints):
+        """Approach directions (N, 3) into the surface from the fused depth, or None."""
+        if not self.params.use_depth_normals or self.depth is None:
+            return None
+        left = self.cameras.get('left')
+        if left is None:
+            return None
+        depth, K, _ = self.depth
+        T_base_left = left.camera.T_base_camera
+        T_base_rect = np.eye(4)
+        T_base_rect[:3, :3] = T_base_left[:3, :3] @ left.R.T  # x_rect = R_left x_left
+        T_base_rect[:3, 3] = T_base_left[:3, 3]
+        normals = normals_from_depth(waypoints, depth, K, T_base_rect,
+                                     self.params.normal_window_px)
+        if not np.any(np.all(np.isfinite(normals), axis=1)):
+            return None
+        return -normals  # into the surface
+
+    def _publish(self, stamp_ns, result):
+        approach = self._approach_directions(result.waypoints_base)
+        frames = waypoint_frames(result.waypoints_base, result.closed, approach)
+        self.waypoint_publisher.publish(matrices_to_path(frames, stamp_ns, BASE_FRAME))
+        self.points_publisher.publish(points_to_pointcloud2(result.points_base, stamp_ns,
+                                                            BASE_FRAME))
+        self.normals_published = approach is not None
+        if approach is None:
+            return 'base -z (no depth normals)'
+        known = int(np.all(np.isfinite(approach), axis=1).sum())
+        return f'depth normals at {known}/{len(approach)} waypoints'
+
+    def _republish_with_normals(self):
+        if self.last_result is None or self.normals_published:
+            return
+        stamp_ns, result, names = self.last_result
+        source = self._publish(stamp_ns, result)
+        if self.normals_published:
+            self.get_logger().info(f'fused depth arrived: republished '
+                                   f'{len(result.waypoints_base)} waypoints with {source}')
+
+    def _publish_status(self):
+        missing = self.cameras.missing()
+        values = {'matched': self.sync.matched, 'dropped': self.sync.dropped,
+                  'pending': self.sync.pending, 'skipped_chart_captures': self.skipped_chart,
+                  'dropped_work': self.dropped_work,
+                  'depth': 'yes' if self.depth is not None else 'no'}
+        needed = [n for n in missing if n in ('left', 'right')
+                  or (n == 'aux' and self.params.views == 3)]
+        if needed:
+            self.diagnostics.publish('status', 'warn', 'no camera info yet: waiting for the '
+                                     f'calibration of {", ".join(needed)}', values)
+        elif (self.sync.dropped > self.last_match[1] and time.monotonic() - self.last_match[0]
+              > 2 * self.params.sync_max_wait):
+            self.diagnostics.publish(
+                'status', 'warn', 'images not synchronized: '
+                f'{self.sync.dropped - self.last_match[1]} dropped since the last complete '
+                'capture (stamps must be identical)', values)
+        else:
+            self.diagnostics.publish('status', 'ok', 'waypoints published'
+                                     if self.last_result else 'waiting for a capture', values)
+
+    def close(self):
+        self.stopping.set()
+        self.worker.join(timeout=5.0)
+
+
+def main(args=None):
+    return run_node(CurveReconNode, args, executor_class=lambda: MultiThreadedExecutor(3))
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

@@ -1,0 +1,173 @@
+"""One capture to one curve: extraction in each view, piecewise fits, cone intersection,
+third-view selection, refinement, smoothing and resampling. Plain numpy, no ROS: the node
+converts messages and calls ``reconstruct_capture``.
+"""
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from curve_recon_node.curve_extraction import extract_chains
+from curve_recon_node.piecewise import (
+    PiecewiseCurve,
+    View,
+    reconstruct_cone_lsq,
+    reconstruct_ray_roots,
+    refine_points,
+)
+from curve_recon_node.waypoints import (
+    arc_length,
+    open_at_largest_gap,
+    resample,
+    smooth_along_curve,
+    split_at_gaps,
+    tangents,
+)
+from vgm_common.errors import InvalidInput
+
+METHODS = ('ray_roots', 'cone_lsq')
+
+
+class NoCurve(InvalidInput):
+    """The capture holds no usable curve (none seen, seen in too few views, or its views
+    do not agree)."""
+
+
+@dataclass
+class ReconstructionSettings:
+    """The node's parameters that shape a reconstruction (see the README's table)."""
+
+    degree: int = 2
+    method: str = 'ray_roots'
+    third_view_tolerance: float = 2.0  # [px] in the third view
+    spacing: float = 0.005  # [m]
+    line_width_px: float = 3.0
+    min_contrast: float = 8.0  # [grey levels]
+    min_curve_pixels: float = 60.0  # [px] shortest chain accepted as the curve
+    fit_tolerance_px: float = 0.1  # [px] RMS residual of a piece's fit
+    min_piece_points: int = 30
+    refine: bool = True
+    smoothing_window: float = 0.02  # [m]
+    min_fraction: float = 0.5  # of view-1 samples that must be reconstructed
+    depth_range: tuple = (0.005, 5.0)  # [m] where the curve may be (view-1 depth)
+    seeds: int = 12  # cone_lsq seeds per view-1 ray, log-spaced over depth_range
+
+
+@dataclass
+class Reconstruction:
+    """Result: ``waypoints_base`` (M, 3) evenly spaced along the curve, ``closed``,
+    ``points_base`` (K, 3) the points that passed the third-view test and the smoothing's
+    outlier test (refined, not smoothed), in curve order, and ``stats`` for diagnostics."""
+
+    waypoints_base: np.ndarray
+    closed: bool
+    points_base: np.ndarray
+    stats: dict = field(default_factory=dict)
+
+
+def view_curve(image, camera, settings):
+    """The longest curve chain of one image as a ``View`` (undistorted with the camera),
+    or None if there is none."""
+    chains = extract_chains(image, settings.line_width_px, settings.min_contrast,
+                            settings.min_curve_pixels)
+    if not chains:
+        return None, 0
+    chain = chains[0]
+    xy = camera.undistort_pixels(chain.pixels)
+    focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
+    curve = PiecewiseCurve(xy, chain.closed, settings.degree, focal,
+                           settings.fit_tolerance_px, settings.min_piece_points)
+    T_camera_base = camera.T_camera_base
+    return View(curve, T_camera_base[:3, :3], camera.centre_base), len(chains)
+
+
+def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux')):
+    """Reconstruct the curve seen in ``images`` {name: (H, W) grey} by ``cameras`` {name:
+    PinholeCamera with pose}; ``names`` are the views used, view 1 first (2 or 3).
+
+    Raises ``NoCurve`` when a view has no curve or too little of it is reconstructed.
+    """
+    started = time.perf_counter()
+    if settings.method not in METHODS:
+        raise InvalidInput(f'method: expected one of {METHODS}, got {settings.method!r}',
+                           key='method', value=settings.method)
+    views, chain_counts = [], {}
+    for name in names:
+        view, count = view_curve(images[name], cameras[name], settings)
+        chain_counts[name] = count
+        if view is None:
+            seen = [n for n in names if chain_counts.get(n)]
+            raise NoCurve(f'no curve in the {name} image (curve found in: '
+                          f'{", ".join(seen) or "no view"})', key='no curve', value=name)
+        views.append(view)
+    view3 = views[2] if len(views) > 2 else None
+    tol3 = settings.third_view_tolerance
+    if settings.method == 'ray_roots':
+        points, info = reconstruct_ray_roots(views[0], views[1], view3, tol3_px=tol3,
+                                             max_depth=settings.depth_range[1])
+    else:
+        # the thesis's "suitable initial roots": log-spaced depths on each view-1 ray
+        seeds = np.geomspace(*settings.depth_range, settings.seeds)
+        points, info = reconstruct_cone_lsq(views[0], views[1], view3, tol3_px=tol3,
+                                            seed_depths=seeds,
+                                            max_depth=settings.depth_range[1])
+    fraction = len(points) / max(info['n_samples'], 1)
+    stats = {'views': len(views), 'pieces': '/'.join(str(len(v.curve.pieces)) for v in views),
+             'samples': info['n_samples'], 'candidates': info['n_candidates'],
+             'rejected_by_third_view': info['n_rejected_view3'],
+             'ambiguous': info['n_ambiguous'],
+             'without_candidates': info['n_without_candidates'],
+             'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views)}
+    # two views: reconstruct where the intersection is unique and report the rest as
+    # ambiguous (stats), so only the three-view case needs most samples to succeed
+    if (view3 is not None and fraction < settings.min_fraction) or len(points) < 10:
+        raise NoCurve(f'only {len(points)} of {info["n_samples"]} curve samples were '
+                      f'reconstructed ({info["n_rejected_view3"]} rejected by the third '
+                      f'view, {info["n_ambiguous"]} ambiguous): the views do not show one '
+                      'curve', key='no curve', value=stats)
+    residuals = np.column_stack([v.distance_px(points) for v in views])
+    stats['rms_residual_px_before'] = float(np.sqrt(np.mean(residuals**2)))
+    sample_index = info['sample_index']
+    if settings.refine:
+        closed = views[0].curve.closed
+        rough, _ = smooth_along_curve(points, closed, settings.smoothing_window,
+                                      sample_index, len(views[0].curve.xy) if closed
+                                      else None, passes=1)
+        refined, residuals = refine_points(points, views, tangents(rough, closed))
+        good = np.all(np.isfinite(residuals), axis=1)
+        points, residuals, sample_index = refined[good], residuals[good], sample_index[good]
+    stats['rms_residual_px'] = '/'.join(f'{r:.3f}' for r in
+                                        np.sqrt(np.mean(residuals**2, axis=0)))
+    closed = views[0].curve.closed
+    n_chain = len(views[0].curve.xy)
+    max_gap = 4 * settings.spacing + settings.smoothing_window  # [m]
+    # outliers first (isolated points where three cones happen to meet off the curve):
+    # each would otherwise open the loop or split the curve at its two jumps
+    _, inlier = smooth_along_curve(points, closed, settings.smoothing_window, sample_index,
+                                   period=n_chain if closed else None)
+    stats['outliers'] = int((~inlier).sum())
+    points, sample_index = points[inlier], sample_index[inlier]
+    ordered, closed, parameter = open_at_largest_gap(points, closed, max_gap, sample_index)
+    # never bridge a gap with a straight line: keep the longest gap-free run (two views
+    # leave gaps where the intersection is ambiguous)
+    runs = split_at_gaps(ordered, max_gap) if not closed else [np.arange(len(ordered))]
+    longest = max(runs, key=lambda run: arc_length(ordered[run], False)[1])
+    stats['segments'] = len(runs)
+    stats['points_in_other_segments'] = len(ordered) - len(longest)
+    ordered, parameter = ordered[longest], parameter[longest]
+    if len(ordered) < 5:
+        raise NoCurve(f'the longest gap-free piece of the curve has only {len(ordered)} '
+                      'points', key='no curve', value=stats)
+    smoothed, kept = smooth_along_curve(ordered, closed, settings.smoothing_window,
+                                        parameter, period=n_chain if closed else None)
+    waypoints = resample(smoothed, closed, settings.spacing)
+    # the published raw points: those that passed the third view and the outlier test
+    points = ordered[kept]
+    stats['outliers'] += int((~kept).sum())
+    stats.update({'points': len(points), 'closed': closed,
+                  'waypoints': len(waypoints),
+                  'length_m': float(np.sum(np.linalg.norm(np.diff(
+                      np.vstack([waypoints, waypoints[:1]]) if closed else waypoints,
+                      axis=0), axis=1))),
+                  'time_ms': 1e3 * (time.perf_counter() - started)})
+    return Reconstruction(waypoints, closed, points, stats)

@@ -1,0 +1,248 @@
+"""From reconstructed 3D curve points to tool waypoints (issue 4, step 4): smoothing along
+the curve, even resampling, orientation (x along the tangent, z into the surface), and
+surface normals from a depth image.
+
+Points arrive ordered along the curve (by the view-1 chain point they came from).
+"""
+import numpy as np
+
+from vgm_common.errors import InvalidInput
+
+
+def _as_points(points):
+    points = np.asarray(points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InvalidInput(f'points: expected shape (N, 3), got {points.shape}',
+                           key='points', value=points.shape)
+    return points
+
+
+def arc_length(points, closed):
+    """Cumulative arc length (N,) [m] of an ordered polyline, and its total length (with
+    the closing segment if ``closed``)."""
+    points = _as_points(points)
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(steps)])
+    total = s[-1] + (np.linalg.norm(points[0] - points[-1]) if closed else 0.0)
+    return s, total
+
+
+def open_at_largest_gap(points, closed, max_gap_m, parameter=None):
+    """A closed sequence with a gap wider than ``max_gap_m`` [m] cannot be trusted as a
+    loop: roll it to start after its widest gap and open it. Returns (points, closed,
+    parameter) with ``parameter`` (N,) (default: the index) rolled alike and made
+    increasing."""
+    points = _as_points(points)
+    parameter = (np.arange(len(points), dtype=float) if parameter is None
+                 else np.asarray(parameter, dtype=float))
+    if not closed or len(points) < 3:
+        return points, closed, parameter
+    gaps = np.linalg.norm(np.roll(points, -1, axis=0) - points, axis=1)
+    widest = int(np.argmax(gaps))
+    if gaps[widest] <= max_gap_m:
+        return points, True, parameter
+    period = parameter[-1] - parameter[0] + 1.0
+    rolled = np.roll(parameter, -(widest + 1))
+    rolled[rolled < rolled[0]] += period
+    return np.roll(points, -(widest + 1), axis=0), False, rolled
+
+
+def split_at_gaps(points, max_gap_m):
+    """Index arrays of the runs of an ordered open sequence between steps longer than
+    ``max_gap_m`` [m]."""
+    points = _as_points(points)
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    cuts = np.nonzero(steps > max_gap_m)[0] + 1
+    return np.split(np.arange(len(points)), cuts)
+
+
+def smooth_along_curve(points, closed, window_m, parameter=None, period=None,
+                       reject_sigma=4.0, passes=2):
+    """Local quadratic regression of each coordinate against a curve parameter (tricube
+    weights over a window of about ``window_m`` [m]); points whose residual exceeds
+    ``reject_sigma`` robust standard deviations (and 0.5 mm) are dropped between passes.
+
+    Args:
+        parameter: (N,) increasing curve parameter, e.g. the view-1 chain index the points
+            came from (noise-free, unlike the noisy points' own arc length); default: the
+            points' arc length.
+        period: the parameter's period for a closed curve (default: its total range).
+
+    Returns (smoothed points (K, 3), kept mask (N,)).
+    """
+    points = _as_points(points)
+    if parameter is None:
+        parameter, total = arc_length(points, closed)
+        period = total if period is None else period
+    parameter = np.asarray(parameter, dtype=float)
+    if closed and period is None:
+        step = np.median(np.diff(parameter)) if len(parameter) > 1 else 1.0
+        period = parameter[-1] - parameter[0] + step
+    kept = np.ones(len(points), dtype=bool)
+    smoothed = points.copy()
+    for p in range(passes):
+        current, t = points[kept], parameter[kept]
+        if len(current) < 5:
+            return current, kept
+        # window in parameter units: window_m over the mean length per parameter unit
+        _, length = arc_length(current, closed)
+        span = period if closed else t[-1] - t[0]
+        half = 0.5 * float(window_m) * span / max(length, 1e-12)
+        fitted = _local_quadratic(current, t, half, period if closed else None)
+        smoothed = fitted
+        if p == passes - 1:
+            break
+        residual = np.linalg.norm(current - fitted, axis=1)
+        mad = 1.4826 * np.median(residual)
+        outlier = residual > max(reject_sigma * mad, 5e-4)
+        if not outlier.any():
+            break
+        index = np.nonzero(kept)[0]
+        kept[index[outlier]] = False
+    return smoothed, kept
+
+
+def _local_quadratic(values, t, half, period):
+    """Value at each t of the tricube-weighted quadratic fit of ``values`` (N, C) over
+    |dt| < ``half``; ``period`` for a periodic parameter (else None). Points are sorted by
+    t, so each window is a band of neighbours: all fits at once from weighted moments."""
+    n = len(t)
+    spacing = np.min(np.diff(t)) if n > 1 else 1.0
+    k = int(min(n // 2, np.ceil(half / max(spacing, 1e-12))))
+    offsets = np.arange(-k, k + 1)
+    index = np.arange(n)[:, None] + offsets[None, :]
+    if period is not None:
+        wrapped = index % n
+        dt = t[wrapped] - t[:, None]
+        dt = (dt + 0.5 * period) % period - 0.5 * period
+        valid = np.ones_like(dt, dtype=bool)
+        index = wrapped
+    else:
+        valid = (index >= 0) & (index < n)
+        index = np.clip(index, 0, n - 1)
+        dt = t[index] - t[:, None]
+    w = np.where(valid, np.clip(1 - (np.abs(dt) / half)**3, 0.0, None)**3, 0.0)
+    moments = [np.sum(w * dt**p, axis=1) for p in range(5)]
+    normal = np.stack([np.stack(moments[r:r + 3], axis=1) for r in range(3)], axis=1)
+    rhs = np.stack([np.einsum('ij,ijc->ic', w * dt**p, values[index]) for p in range(3)],
+                   axis=1)
+    fitted = values.copy()
+    enough = (w > 0).sum(axis=1) >= 4
+    if enough.any():
+        scale = np.trace(normal[enough], axis1=1, axis2=2)[:, None, None]
+        fitted[enough] = np.linalg.solve(normal[enough] + 1e-12 * scale * np.eye(3),
+                                         rhs[enough])[:, 0, :]
+    return fitted
+
+
+def resample(points, closed, spacing_m):
+    """Evenly spaced points along the polyline: L / round(L / spacing) apart [m], so the
+    spacing is within half a step's share of ``spacing_m``; a closed curve's first point
+    is not repeated. Returns (M, 3)."""
+    points = _as_points(points)
+    if spacing_m <= 0:
+        raise InvalidInput(f'spacing: must be > 0, got {spacing_m}', key='spacing',
+                           value=spacing_m)
+    if closed:
+        points = np.vstack([points, points[:1]])
+    s, total = arc_length(points, False)
+    segments = max(1, int(round(total / spacing_m)))
+    targets = np.linspace(0.0, total, segments + 1)
+    if closed:
+        targets = targets[:-1]
+    return np.column_stack([np.interp(targets, s, points[:, k]) for k in range(3)])
+
+
+def tangents(points, closed):
+    """Unit tangents (N, 3) by central differences (one-sided at open ends)."""
+    points = _as_points(points)
+    if closed:
+        t = np.roll(points, -1, axis=0) - np.roll(points, 1, axis=0)
+    else:
+        t = np.gradient(points, axis=0)
+    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-300)
+
+
+def waypoint_frames(points, closed, approach_base=None):
+    """Poses (N, 4, 4) in base: origin at the point, x along the tangent, z the approach
+    direction made orthogonal to x, y = z x x.
+
+    Args:
+        approach_base: (N, 3) desired approach directions (into the surface), NaN rows or
+            None for the default, the base's -z.
+    """
+    points = _as_points(points)
+    x = tangents(points, closed)
+    z = np.tile([0.0, 0.0, -1.0], (len(points), 1))
+    if approach_base is not None:
+        approach_base = np.asarray(approach_base, dtype=float)
+        known = np.all(np.isfinite(approach_base), axis=1)
+        z[known] = approach_base[known]
+    z = z - np.sum(z * x, axis=1, keepdims=True) * x
+    norm = np.linalg.norm(z, axis=1, keepdims=True)
+    degenerate = norm[:, 0] < 1e-6  # approach along the tangent: fall back to -z of base
+    if degenerate.any():
+        fallback = np.array([0.0, 0.0, -1.0]) - x[degenerate, 2:3] * x[degenerate]
+        fallback_norm = np.linalg.norm(fallback, axis=1, keepdims=True)
+        fallback = np.where(fallback_norm > 1e-6, fallback, np.cross(x[degenerate], [0, 1, 0]))
+        z[degenerate] = fallback
+        norm = np.linalg.norm(z, axis=1, keepdims=True)
+    z /= norm
+    y = np.cross(z, x)
+    T = np.tile(np.eye(4), (len(points), 1, 1))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x, y, z, points
+    return T
+
+
+def depth_points_rect(depth_m, K_rect):
+    """Back-project a depth image (H, W) [m, z along the rectified optical axis; NaN where
+    unknown] with the rectified intrinsics K (3, 3): (H, W, 3) points in the rectified
+    frame [m]."""
+    depth_m = np.asarray(depth_m, dtype=float)
+    if depth_m.ndim != 2:
+        raise InvalidInput(f'depth: expected (H, W), got {depth_m.shape}', key='depth',
+                           value=depth_m.shape)
+    K = np.asarray(K_rect, dtype=float)
+    v, u = np.mgrid[0:depth_m.shape[0], 0:depth_m.shape[1]]
+    y = (v - K[1, 2]) / K[1, 1]
+    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return np.stack([x * depth_m, y * depth_m, depth_m], axis=2)
+
+
+def normals_from_depth(points_base, depth_m, K_rect, T_base_rect, window_px=9,
+                       min_valid=12):
+    """Surface normals (N, 3) in base at ``points_base`` from a depth image.
+
+    Each point is projected into the rectified frame (pose ``T_base_rect`` (4, 4), the
+    rectified left optical frame in base), and a plane is fitted by SVD to the depth
+    image's 3D points in the ``window_px`` x ``window_px`` window around it. The normal is
+    oriented toward the camera (out of the surface). Rows where the point is outside the
+    image or fewer than ``min_valid`` depths are finite are NaN.
+    """
+    points_base = _as_points(points_base)
+    cloud = depth_points_rect(depth_m, K_rect)
+    H, W = depth_m.shape
+    T = np.asarray(T_base_rect, dtype=float)
+    R_base_rect, centre_base = T[:3, :3], T[:3, 3]
+    p_rect = (points_base - centre_base) @ R_base_rect
+    K = np.asarray(K_rect, dtype=float)
+    normals = np.full((len(points_base), 3), np.nan)
+    half = int(window_px) // 2
+    for i, p in enumerate(p_rect):
+        if p[2] <= 0:
+            continue
+        u = K[0, 0] * p[0] / p[2] + K[0, 1] * p[1] / p[2] + K[0, 2]
+        v = K[1, 1] * p[1] / p[2] + K[1, 2]
+        ui, vi = int(round(u)), int(round(v))
+        if not (half <= ui < W - half and half <= vi < H - half):
+            continue
+        patch = cloud[vi - half:vi + half + 1, ui - half:ui + half + 1].reshape(-1, 3)
+        patch = patch[np.all(np.isfinite(patch), axis=1)]
+        if len(patch) < min_valid:
+            continue
+        centred = patch - patch.mean(axis=0)
+        n = np.linalg.svd(centred, full_matrices=False)[2][-1]
+        if n @ p > 0:  # point from the camera toward the surface: flip to face the camera
+            n = -n
+        normals[i] = R_base_rect @ n
+    return normals

@@ -1,0 +1,343 @@
+"""Topic level, real processes: curve_recon_node reconstructs sensor_sim's curve from three
+calibrated views (the true rig published as calib_node's `calibration_file` mode does),
+compared with the simulator's ground truth; and its handling of bad input (no camera
+info yet, mismatched stamps, the curve in one view only, no curve at all)."""
+import time
+
+import cv2
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from scipy.spatial import cKDTree
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from harness import SCENARIO_DIR, executable, publish_rig, wait_for
+from vgm_common.calibration_io import (
+    read_calibration,
+    stereo_rectification,
+    write_calibration,
+)
+from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
+from vgm_common.conversions import (
+    camera_to_camera_info,
+    numpy_to_image,
+    path_to_matrices,
+    pointcloud2_to_points,
+    stamp_to_ns,
+)
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.scenario import load_scenario
+
+SPACING = 0.005  # [m] the default
+
+
+def densify(polyline, step=1e-4):
+    """Points every ``step`` [m] along a polyline (N, 3)."""
+    out = []
+    for a, b in zip(polyline[:-1], polyline[1:]):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step)))
+        out.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
+    out.append(polyline[-1:])
+    return np.vstack(out)
+
+
+class Probe:
+    """What the test node receives from curve_recon_node."""
+
+    def __init__(self, node):
+        self.paths, self.clouds, self.statuses = [], [], []
+        node.create_subscription(Path, '/curve/waypoints', self.paths.append, LATCHED_QOS)
+        node.create_subscription(PointCloud2, '/curve/points', self.clouds.append,
+                                 DEFAULT_QOS)
+        node.create_subscription(DiagnosticArray, '/diagnostics', lambda m: self.statuses.extend(
+            s for s in m.status if s.name.startswith('curve_recon_node')), DEFAULT_QOS)
+
+    def diagnostic(self, name, containing=''):
+        for status in reversed(self.statuses):
+            if status.name == f'curve_recon_node: {name}' and containing in status.message:
+                return status
+        return None
+
+
+def values(status):
+    return {kv.key: kv.value for kv in status.values}
+
+
+def run_scenario(spawn, rclpy_node, tmp_path, scenario, node_args=(), calibration_phase=False,
+                 rate=2.0):
+    """sensor_sim on ``scenario`` + curve_recon_node + the true rig; returns the probe,
+    the truth directory and the rig publishers (keep them)."""
+    probe = Probe(rclpy_node)
+    chart_stamps = []
+    rclpy_node.create_subscription(PoseStamped, '/calibration/target_pose',
+                                   lambda m: chart_stamps.append(stamp_to_ns(m.header.stamp)),
+                                   DEFAULT_QOS)
+    spawn([executable('curve_recon_node'), '--ros-args', *node_args])
+    truth = tmp_path / 'truth'
+    spawn([executable('sensor_sim'), '--ros-args', '-p', f'scenario:={scenario}',
+           '-p', f'calibration_phase:={str(calibration_phase).lower()}',
+           '-p', f'ground_truth_dir:={truth}', '-p', 'min_subscribers:=1',
+           '-p', f'rate:={rate}'])
+    calibration = truth / 'true_calibration' / 'calibration.yaml'
+    wait_for(lambda: calibration.exists() and (truth / 'curve_base.npz').exists(), 90,
+             'sensor_sim ground truth')
+    # the ground truth files are written one after another: wait for the last one
+    wait_for(lambda: (truth / 'depth_aux.npy').exists(), 30, 'the depth ground truth')
+    publishers, _ = publish_rig(rclpy_node, calibration)
+    return probe, truth, publishers, chart_stamps
+
+
+def check_waypoints(path, truth_dir, rms_tol, max_tol, coverage_tol):
+    """Waypoints against the true polylines; returns the measured numbers."""
+    poses = path_to_matrices(path)
+    points = poses[:, :3, 3]
+    with np.load(truth_dir / 'curve_base.npz') as data:
+        true_curve = densify(np.vstack([data[k] for k in data.files]))
+    distance, _ = cKDTree(true_curve).query(points)
+    rms, worst = np.sqrt(np.mean(distance**2)), distance.max()
+    # coverage: every true point near the waypoint polyline (Hausdorff, other direction)
+    coverage = cKDTree(densify(points)).query(true_curve)[0].max()
+    assert path.header.frame_id == 'base_link'
+    assert rms < rms_tol, f'RMS {rms * 1e3:.3f} mm'
+    assert worst < max_tol, f'max {worst * 1e3:.3f} mm'
+    assert coverage < coverage_tol, f'coverage {coverage * 1e3:.2f} mm'
+    # spacing respected: L / round(L / spacing) between neighbours, all within 10 %
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    assert np.all(np.abs(steps - SPACING) < 0.1 * SPACING), (steps.min(), steps.max())
+    # orientation: x along the path, a proper rotation
+    R = poses[:, :3, :3]
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.tile(np.eye(3), (len(R), 1, 1)),
+                               atol=1e-6)
+    direction = np.diff(points, axis=0) / steps[:, None]
+    assert np.median(np.sum(R[1:-1, :, 0] * direction[1:], axis=1)) > 0.98
+    return rms, worst, coverage, points
+
+
+@pytest.mark.parametrize('scenario, degree, method, views, rms_tol, max_tol', [
+    # the default loop on S3, noise 1 grey level: issue goal "well under 1 mm"; measured
+    # 0.32 mm RMS, 1.5 mm max
+    ('default', 2, 'ray_roots', 3, 0.6e-3, 3e-3),
+    # the thesis's method through the node: measured 0.39 mm RMS, 2.9 mm max
+    ('default', 2, 'cone_lsq', 3, 0.8e-3, 5e-3),
+    # two views: only unique intersections (about a quarter of the loop here) are kept and
+    # the rest is reported as ambiguous; no coverage claim
+    ('default', 2, 'ray_roots', 2, 1e-3, 5e-3),
+    # thesis fig. 3.4 ellipse, perfect stereo (0.2 m long): measured 0.07 mm RMS
+    ('ch3_ellipse_perfect', 2, 'ray_roots', 3, 0.3e-3, 1e-3),
+    # thesis fig. 3.13 non-planar cubic, general stereo: measured 0.07 mm RMS
+    ('ch3_cubic_general', 3, 'ray_roots', 3, 0.3e-3, 1e-3),
+])
+def test_reconstructs_the_scenario_curve(spawn, rclpy_node, tmp_path, scenario, degree,
+                                         method, views, rms_tol, max_tol):
+    probe, truth, publishers, _ = run_scenario(
+        spawn, rclpy_node, tmp_path, scenario,
+        ['-p', f'degree:={degree}', '-p', f'method:={method}', '-p', f'views:={views}'])
+    rclpy_node.spin_until(lambda: probe.paths, 90, 'waypoints')
+    rclpy_node.spin_until(lambda: probe.diagnostic('reconstruction') and probe.clouds, 10,
+                          'the reconstruction diagnostic and the points')
+    status = values(probe.diagnostic('reconstruction'))
+    assert status['method'] == method and status['views'] == str(views)
+    if views == 2:
+        assert int(status['ambiguous']) > 0
+        assert 'ambiguous' in probe.diagnostic('reconstruction').message
+    closed = scenario in ('default', 'ch3_ellipse_perfect') and views == 3
+    assert status['closed'] == str(closed)
+    # open curves lose 3 line widths at each image end (trimmed): a few mm in 3D
+    coverage_tol = 4e-3 if closed else (8e-3 if views == 3 else np.inf)
+    rms, worst, coverage, points = check_waypoints(probe.paths[-1], truth, rms_tol, max_tol,
+                                                   coverage_tol)
+    if closed:
+        assert np.linalg.norm(points[0] - points[-1]) < 1.1 * SPACING  # not repeated
+    raw = pointcloud2_to_points(probe.clouds[-1])
+    assert len(raw) == int(status['points']) and len(raw) > len(points)
+    print(f'{scenario} {method} {views} views: {len(points)} waypoints, RMS '
+          f'{rms * 1e3:.3f} mm, max {worst * 1e3:.3f} mm, coverage {coverage * 1e3:.2f} mm; '
+          f'{status}')
+
+
+def test_chart_captures_are_skipped_then_depth_normals_are_used(spawn, rclpy_node,
+                                                               tmp_path):
+    """calibration_phase true: the chart captures (same stamp as a target pose) never
+    become waypoints; then a fused depth arriving late makes the node republish with
+    approach directions from the surface normals."""
+    probe, truth, publishers, chart_stamps = run_scenario(
+        spawn, rclpy_node, tmp_path, 'default', calibration_phase=True, rate=4.0)
+    rclpy_node.spin_until(lambda: probe.paths, 60, 'waypoints')
+    assert chart_stamps and stamp_to_ns(probe.paths[0].header.stamp) > max(chart_stamps)
+    poses = path_to_matrices(probe.paths[-1])
+    # no depth yet: z is the base's -z made orthogonal to x
+    assert np.all(poses[:, 2, 2] < -0.5)
+    # publish the true left depth as the fused depth, in the rectified left frame
+    rig = read_calibration(truth / 'true_calibration')
+    left, right = rig['left'][0], rig['right'][0]
+    R_left, P_left = stereo_rectification(left, right)['left']
+    depth_raw = np.load(truth / 'depth_left.npy')
+    depth_rect = rectified_depth(left, depth_raw, R_left, P_left)
+    info_pub = rclpy_node.create_publisher(CameraInfo, '/depth/camera_info', DEFAULT_QOS)
+    depth_pub = rclpy_node.create_publisher(Image, '/depth/fused', DEFAULT_QOS)
+    rclpy_node.spin_until(lambda: depth_pub.get_subscription_count() > 0, 10, 'depth sub')
+    n_paths = len(probe.paths)
+
+    def publish_depth():
+        info_pub.publish(camera_to_camera_info(left, 1, OPTICAL_FRAMES['left'], R_left,
+                                               P_left))
+        depth_pub.publish(numpy_to_image(depth_rect.astype(np.float32), '32FC1', 1,
+                                         OPTICAL_FRAMES['left']))
+        return len(probe.paths) > n_paths
+
+    deadline = time.monotonic() + 30
+    while not publish_depth():
+        assert time.monotonic() < deadline, 'no republished waypoints'
+        end = time.monotonic() + 0.5
+        rclpy_node.spin_until(lambda end=end: len(probe.paths) > n_paths or time.monotonic() > end,
+                              5, 'republished waypoints')
+    poses = path_to_matrices(probe.paths[-1])
+    # the true surface normal at each waypoint, from the S3 surface: compare the approach
+    # axis with the normal of the true surface points around it
+    true_normals = surface_normals_at(truth, poses[:, :3, 3], left)
+    z = poses[:, :3, 2]
+    # z = -normal made orthogonal to x: compare after the same projection
+    x = poses[:, :3, 0]
+    expected = -true_normals + np.sum(true_normals * x, axis=1, keepdims=True) * x
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    angle = np.degrees(np.arccos(np.clip(np.sum(z * expected, axis=1), -1, 1)))
+    assert np.median(angle) < 2.0 and np.percentile(angle, 95) < 5.0, angle
+
+
+def rectified_depth(camera, depth_raw, R_rect, P_rect):
+    """Depth of the raw left image re-expressed as a depth image of the rectified frame."""
+    H, W = depth_raw.shape
+    v, u = np.mgrid[0:H, 0:W]
+    xy = camera.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    points = np.column_stack([xy, np.ones(len(xy))]) * depth_raw.reshape(-1, 1)
+    rect = points @ R_rect.T
+    ok = np.all(np.isfinite(rect), axis=1) & (rect[:, 2] > 0)
+    K = P_rect[:3, :3]
+    uu = np.round(K[0, 0] * rect[ok, 0] / rect[ok, 2] + K[0, 2]).astype(int)
+    vv = np.round(K[1, 1] * rect[ok, 1] / rect[ok, 2] + K[1, 2]).astype(int)
+    inside = (uu >= 0) & (uu < W) & (vv >= 0) & (vv < H)
+    out = np.full((H, W), np.nan)
+    out[vv[inside], uu[inside]] = rect[ok, 2][inside]
+    return out
+
+
+def surface_normals_at(truth, points, camera):
+    """Surface normals (toward the camera) at base points from the true left depth."""
+    depth = np.load(truth / 'depth_left.npy')
+    H, W = depth.shape
+    v, u = np.mgrid[0:H, 0:W]
+    xy = camera.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    cloud_cam = np.column_stack([xy, np.ones(len(xy))]) * depth.reshape(-1, 1)
+    T = camera.T_base_camera
+    cloud = cloud_cam @ T[:3, :3].T + T[:3, 3]
+    cloud = cloud[np.all(np.isfinite(cloud), axis=1)]
+    tree = cKDTree(cloud)
+    normals = []
+    for p in points:
+        patch = cloud[tree.query_ball_point(p, 0.01)]
+        n = np.linalg.svd(patch - patch.mean(axis=0))[2][-1]
+        normals.append(n if n @ (camera.centre_base - p) > 0 else -n)
+    return np.array(normals)
+
+
+# --- bad input: the test node publishes the images itself --------------------------
+
+def ellipse_images(cameras, names_with_curve):
+    """Grey images (uint8) of a 3D ellipse near the default scene, drawn as a 3 px dark
+    line in the views ``names_with_curve``; plain grey in the others."""
+    t = np.linspace(0, 2 * np.pi, 2000)
+    centre = np.array([0.62, 0.0, 0.30])
+    points = centre + np.column_stack([0.08 * np.cos(t), 0.05 * np.sin(t),
+                                       0.01 * np.sin(2 * t)])
+    images = {}
+    for name, camera in cameras.items():
+        image = np.full((camera.height, camera.width), 160, np.uint8)
+        if name in names_with_curve:
+            pixels, _ = camera.project(points)
+            cv2.polylines(image, [np.round(pixels * 16).astype(np.int32)], True, 60, 3,
+                          cv2.LINE_AA, shift=4)
+        images[name] = image
+    return images, points
+
+
+@pytest.fixture
+def bad_input_setup(spawn, rclpy_node, tmp_path):
+    cameras = load_scenario(SCENARIO_DIR / 'default.yaml').cameras
+    calibration = write_calibration(tmp_path / 'calib', dict(cameras), OPTICAL_FRAMES)
+    probe = Probe(rclpy_node)
+    publishers = {name: rclpy_node.create_publisher(Image, IMAGE_TOPICS[name], DEFAULT_QOS)
+                  for name in IMAGE_TOPICS}
+    node = spawn([executable('curve_recon_node'), '--ros-args', '-p', 'service_timeout:=5.0'])
+    rclpy_node.spin_until(lambda: all(p.get_subscription_count() for p in
+                                      publishers.values()), 30, 'the node subscribing')
+    return cameras, calibration, probe, publishers, node
+
+
+def test_bad_input_gives_diagnostics_and_no_waypoints(bad_input_setup, rclpy_node):
+    cameras, calibration, probe, publishers, node = bad_input_setup
+    stamp = [1_000_000_000]
+
+    def publish(images, stamps=None):
+        stamp[0] += 100_000_000
+        for i, (name, image) in enumerate(images.items()):
+            s = stamp[0] if stamps is None else stamp[0] + stamps[i]
+            publishers[name].publish(numpy_to_image(image, 'mono8', s, OPTICAL_FRAMES[name]))
+
+    def spin_publishing(images, condition, timeout, what, stamps=None):
+        deadline = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < deadline, f'timed out waiting for {what}'
+            publish(images, stamps)
+            end = time.monotonic() + 0.3
+            rclpy_node.spin_until(lambda end=end: condition() or time.monotonic() > end, 2,
+                                  what)
+
+    good, ellipse = ellipse_images(cameras, ('left', 'right', 'aux'))
+    # 1. no camera info yet: good images, but nothing to reconstruct with
+    def uncalibrated_capture_seen():
+        status = probe.diagnostic('status', 'no camera info yet')
+        return status is not None and int(values(status)['matched']) >= 2
+
+    spin_publishing(good, uncalibrated_capture_seen, 20, "'no camera info yet'")
+    assert not probe.paths
+    rig_publishers, _ = publish_rig(rclpy_node, calibration)
+    # 2. mismatched stamps: never a complete capture
+    spin_publishing(good, lambda: probe.diagnostic('status', 'not synchronized'), 20,
+                    "'not synchronized'", stamps=[0, 1000, 2000])
+    assert int(values(probe.diagnostic('status', 'not synchronized'))['dropped']) > 0
+    assert not probe.paths
+    # 3. the curve in one view only: 'no curve', also as the service's answer
+    one_view, _ = ellipse_images(cameras, ('left',))
+    spin_publishing(one_view, lambda: probe.diagnostic('rejected no curve'), 20,
+                    "'no curve' for one view")
+    assert 'right' in probe.diagnostic('rejected no curve').message
+    client = rclpy_node.create_client(Trigger, '/curve_recon_node/reconstruct')
+    assert client.wait_for_service(timeout_sec=10)
+    future = client.call_async(Trigger.Request())
+    spin_publishing(one_view, future.done, 20, 'the service answer')
+    assert not future.result().success and 'no curve' in future.result().message
+    # 4. no curve at all (blank images)
+    blank, _ = ellipse_images(cameras, ())
+    count = sum(s.name.endswith('rejected no curve') for s in probe.statuses)
+    spin_publishing(blank, lambda: sum(s.name.endswith('rejected no curve')
+                                       for s in probe.statuses) > count, 20, "'no curve'")
+    assert not probe.paths and node.alive()
+    # 5. still serving: a good capture gives waypoints on the drawn ellipse
+    future = client.call_async(Trigger.Request())
+    spin_publishing(good, lambda: future.done() and probe.paths, 30, 'waypoints')
+    assert future.result().success and 'published' in future.result().message
+    points = path_to_matrices(probe.paths[-1])[:, :3, 3]
+    distance, _ = cKDTree(ellipse).query(points)
+    assert np.sqrt(np.mean(distance**2)) < 1e-3  # drawn with 1/16 px rounding by OpenCV
+    assert 'Traceback' not in node.output()
+
+
+def test_bad_parameter_is_refused_at_start_up(spawn, rclpy_node):
+    node = spawn([executable('curve_recon_node'), '--ros-args', '-p', 'method:=magic'])
+    wait_for(lambda: not node.alive(), 30, 'the node to exit')
+    assert node.proc.returncode == 2
+    assert "parameter 'method'" in node.output() and 'Traceback' not in node.output()
+

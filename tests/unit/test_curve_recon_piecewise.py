@@ -1,0 +1,255 @@
+"""curve_recon_node cores beyond single conics: curve extraction from images (subpixel,
+chains), piecewise fits, piecewise ray-roots / cone least-squares reconstruction of a
+loop no single conic fits, two-view ambiguity, ordering, resampling, orientation and
+normals from depth; all against synthetic ground truth."""
+import cv2
+import numpy as np
+import pytest
+
+from curve_recon_node.curve_extraction import extract_chains, link_chains
+from curve_recon_node.piecewise import (
+    PiecewiseCurve,
+    View,
+    _real_positive_roots,
+    reconstruct_cone_lsq,
+    reconstruct_ray_roots,
+    refine_points,
+)
+from curve_recon_node.waypoints import (
+    normals_from_depth,
+    open_at_largest_gap,
+    resample,
+    smooth_along_curve,
+    split_at_gaps,
+    waypoint_frames,
+)
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.geometry import look_at_rotation, make_transform
+
+F_PX = 600.0
+K = np.array([[F_PX, 0.0, 320.0], [0.0, F_PX, 240.0], [0.0, 0.0, 1.0]])
+TARGET = np.array([0.6, 0.0, 0.3])
+CENTRES = [(0.95, -0.07, 0.92), (0.95, 0.07, 0.92), (0.40, 0.45, 0.95)]  # default rig
+
+
+def cameras():
+    return [PinholeCamera(640, 480, K, np.zeros(5),
+                          make_transform(look_at_rotation(c, TARGET, up=(0.0, 0.0, 1.0)), c))
+            for c in CENTRES]
+
+
+def loop_points(t):
+    """A non-planar closed loop (a 'saddle' ellipse, 0.24 x 0.16 m) no conic fits."""
+    return TARGET + np.column_stack([0.12 * np.cos(t) + 0.02 * np.cos(2 * t),
+                                     0.08 * np.sin(t), 0.03 * np.cos(2 * t)])
+
+
+def ellipse_image(centre, axes, angle_deg, size=(480, 640), noise=1.0, seed=0,
+                  closed=True):
+    """A 3 px dark antialiased ellipse (or arc) on a shaded background, and its dense
+    true points (M, 2) [px]."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:size[0], 0:size[1]]
+    image = 120.0 + 0.1 * u + 0.05 * v
+    t = np.linspace(0, 2 * np.pi if closed else np.pi, 4000)
+    c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
+    local = np.column_stack([axes[0] * np.cos(t), axes[1] * np.sin(t)])
+    truth = centre + local @ np.array([[c, s], [-s, c]])
+    mask = np.zeros(size, np.uint8)
+    cv2.polylines(mask, [np.round(truth * 256).astype(np.int32)], closed, 255, 3,
+                  cv2.LINE_AA, shift=8)
+    image *= 1.0 - 0.6 * mask / 255.0
+    image += rng.normal(scale=noise, size=size)
+    return np.clip(np.round(image), 0, 255).astype(np.uint8), truth
+
+
+def test_extraction_finds_subpixel_ordered_closed_chain():
+    image, truth = ellipse_image(np.array([300.3, 250.7]), (120.0, 70.0), 25.0)
+    chains = extract_chains(image, line_width_px=3.0)
+    assert len(chains) == 1 and chains[0].closed
+    from scipy.spatial import cKDTree
+    distance, _ = cKDTree(truth).query(chains[0].pixels)
+    # cv2's antialiased line is not exactly symmetric: 0.1 px RMS is its own accuracy
+    assert np.sqrt(np.mean(distance**2)) < 0.15 and distance.max() < 0.5
+    # ordered: consecutive points ~1 px apart, the truth index advances monotonically
+    steps = np.linalg.norm(np.diff(chains[0].pixels, axis=0), axis=1)
+    assert steps.max() < 2.0
+    perimeter = np.sum(np.linalg.norm(np.diff(truth, axis=0), axis=1))
+    assert chains[0].length_px == pytest.approx(perimeter, rel=0.05)
+
+
+def test_extraction_open_arc_is_trimmed_and_blank_or_chart_images_give_nothing():
+    image, truth = ellipse_image(np.array([320.0, 240.0]), (150.0, 90.0), 0.0, closed=False)
+    chains = extract_chains(image)
+    assert len(chains) == 1 and not chains[0].closed
+    from scipy.spatial import cKDTree
+    distance = cKDTree(truth).query(chains[0].pixels)[0]
+    # trimmed end caps: at most ~2 px at the very ends of cv2's round-capped line
+    assert distance[3:-3].max() < 0.5 and distance.max() < 2.5
+    blank, _ = ellipse_image(np.array([320.0, 240.0]), (150.0, 90.0), 0.0, noise=2.0)
+    blank = np.clip(blank.astype(float) * 0 + 140 + np.random.default_rng(1).normal(
+        scale=2.0, size=blank.shape), 0, 255)
+    assert extract_chains(blank) == []
+    # a chessboard (what sensor_sim shows during calibration) has edges, not thin lines
+    board = np.kron((np.indices((8, 10)).sum(axis=0) % 2) * 200.0 + 30.0, np.ones((40, 40)))
+    board = cv2.GaussianBlur(board, (0, 0), 0.8)[:480, :640]
+    assert all(c.length_px < 60 for c in extract_chains(board))
+
+
+def test_link_chains_orders_shuffled_points_of_a_circle():
+    t = np.linspace(0, 2 * np.pi, 300, endpoint=False)
+    circle = np.column_stack([100 + 50 * np.cos(t), 100 + 50 * np.sin(t)])
+    order = np.random.default_rng(3).permutation(len(t))
+    chains = link_chains(circle[order], link_radius_px=2.0)
+    assert len(chains) == 1 and chains[0].closed and len(chains[0].pixels) == 300
+    # the chain walks the circle: the angle changes by one step between neighbours
+    angles = np.unwrap(np.arctan2(chains[0].pixels[:, 1] - 100, chains[0].pixels[:, 0] - 100))
+    np.testing.assert_allclose(np.abs(np.diff(angles)), 2 * np.pi / 300, rtol=1e-6)
+
+
+def test_real_positive_roots_match_numpy():
+    rng = np.random.default_rng(4)
+    poly = rng.normal(size=(50, 4))
+    poly[:5, 3] = 0.0  # some of lower degree
+    rows, roots = _real_positive_roots(poly)
+    for i in range(50):
+        expected = np.roots(np.trim_zeros(poly[i, ::-1], 'f'))
+        expected = np.sort(expected.real[(np.abs(expected.imag) < 1e-9) & (expected.real > 0)])
+        np.testing.assert_allclose(np.sort(roots[rows == i]), expected, rtol=1e-8)
+
+
+def make_views(sigma_px=0.0, n=800, seed=0, fit_tolerance_px=0.05):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    truth = loop_points(t)
+    rng = np.random.default_rng(seed)
+    views = []
+    for camera in cameras():
+        pixels, depth = camera.project(truth)
+        assert np.all(depth > 0)
+        pixels = pixels + rng.normal(scale=sigma_px, size=pixels.shape) if sigma_px else pixels
+        curve = PiecewiseCurve(camera.undistort_pixels(pixels), True, 2, F_PX,
+                               fit_tolerance_px)
+        views.append(View(curve, camera.T_camera_base[:3, :3], camera.centre_base))
+    return views, truth
+
+
+def test_piecewise_fit_splits_a_loop_no_conic_fits():
+    views, _ = make_views()
+    for view in views:
+        curve = view.curve
+        single = PiecewiseCurve(curve.xy, True, 2, F_PX, fit_tolerance_px=np.inf)
+        assert len(single.pieces) == 1 and single.rms_px > 0.3  # one conic is poor
+        assert len(curve.pieces) > 2
+        # split until 0.05 px, unless a piece got too short to split further (where the
+        # aux view sees the loop nearly edge-on and its image turns sharply)
+        piece_rms = np.array([p.rms_px for p in curve.pieces])
+        assert np.mean(piece_rms <= 0.05) >= 0.85 and np.median(piece_rms) < 0.05
+        # every chain point is in some piece; pieces overlap
+        assert np.all(curve.member.any(axis=0)) and curve.member.sum() > len(curve.xy)
+        # distances: 0 on the chain, about the offset off it (first order)
+        distance, direction = curve.distance(curve.xy[::40])
+        assert np.abs(distance).max() * F_PX < 0.05
+        moved = curve.xy[::40] + 0.5 / F_PX * direction
+        np.testing.assert_allclose(np.median(curve.distance(moved)[0] * F_PX), 0.5, atol=0.02)
+        assert np.percentile(np.abs(curve.distance(moved)[0] * F_PX - 0.5), 90) < 0.15
+
+
+@pytest.mark.parametrize('method', ['ray_roots', 'cone_lsq'])
+def test_piecewise_reconstruction_noise_free(method):
+    views, truth = make_views()
+    size = np.ptp(truth, axis=0).max()
+    if method == 'ray_roots':
+        points, info = reconstruct_ray_roots(*views, tol3_px=0.5)
+        # each kept point lies on its own view-1 ray: compare with that sample's truth
+        errors = np.linalg.norm(points - truth[info['sample_index']], axis=1)
+        assert len(points) >= 0.9 * len(truth)
+    else:
+        points, info = reconstruct_cone_lsq(*views, tol3_px=0.5,
+                                            seed_depths=np.geomspace(0.3, 3.0, 8))
+        assert len(points) >= 0.6 * len(truth)  # flat minima near tangencies rejected
+        errors = None
+    from scipy.spatial import cKDTree
+    dense = loop_points(np.linspace(0, 2 * np.pi, 200000))
+    distance = cKDTree(dense).query(points)[0]
+    # issue goal: noise-free points within 1e-6 of the curve's size (met by single conics,
+    # test_curve_recon.py); here the piecewise conics approximate the image curves to
+    # 0.05 px, which bounds the error instead. Three cones also meet at isolated points
+    # off the curve, which the third view cannot remove (the smoothing's outlier test
+    # does): allow 1 % of such points.
+    assert np.percentile(distance, 99) < 1e-2 * size
+    assert np.median(distance) < 1e-3 * size
+    if errors is not None:
+        assert np.median(errors) < 1e-3 * size
+    # refinement over all three views brings every point closer to all image curves
+    refined, residuals = refine_points(points, views)
+    assert np.sqrt(np.mean(residuals**2)) < 0.05
+    assert np.all(np.isfinite(refined))
+
+
+def test_piecewise_reconstruction_with_pixel_noise_and_two_views():
+    views, truth = make_views(sigma_px=0.1, seed=5, fit_tolerance_px=0.15)
+    points, info = reconstruct_ray_roots(*views, tol3_px=2.0)
+    refined, _ = refine_points(points, views)
+    from scipy.spatial import cKDTree
+    dense = loop_points(np.linspace(0, 2 * np.pi, 200000))
+    distance = cKDTree(dense).query(refined)[0]
+    # [m] 0.1 px noise at 0.8 m; isolated triple-cone points (see above) excepted
+    assert np.median(distance) < 5e-4 and np.percentile(distance, 95) < 2e-3
+    assert len(points) + info['n_rejected_view3'] + info['n_without_candidates'] == len(truth)
+    # two views: only unique intersections are kept; the rest is reported as ambiguous
+    points2, info2 = reconstruct_ray_roots(views[0], views[1])
+    assert info2['n_ambiguous'] > 0
+    assert len(points2) + info2['n_ambiguous'] + info2['n_without_candidates'] == len(truth)
+    assert np.sqrt(np.mean(cKDTree(dense).query(points2)[0]**2)) < 2e-3
+
+
+def test_smoothing_ordering_and_resampling():
+    t = np.linspace(0, 2 * np.pi, 500, endpoint=False)
+    truth = loop_points(t)
+    rng = np.random.default_rng(6)
+    noisy = truth + rng.normal(scale=2e-4, size=truth.shape)
+    noisy[100] += [0.01, 0.0, 0.0]  # an outlier
+    smoothed, kept = smooth_along_curve(noisy, True, 0.02, np.arange(500.0), period=500)
+    assert not kept[100] and kept.sum() >= 495
+    from scipy.spatial import cKDTree
+    dense = loop_points(np.linspace(0, 2 * np.pi, 200000))
+    assert np.sqrt(np.mean(cKDTree(dense).query(smoothed)[0]**2)) < 1.5e-4  # noise 2e-4
+    waypoints = resample(smoothed, True, 0.005)
+    steps = np.linalg.norm(np.diff(np.vstack([waypoints, waypoints[:1]]), axis=0), axis=1)
+    np.testing.assert_allclose(steps, 0.005, rtol=0.05)
+    assert np.linalg.norm(waypoints[0] - waypoints[-1]) > 0.004  # first not repeated
+    # a gap wider than allowed opens the loop there, rolled to start after the gap
+    cut = np.delete(truth, np.arange(200, 260), axis=0)
+    opened, closed, parameter = open_at_largest_gap(cut, True, 0.02)
+    assert not closed and np.allclose(opened[0], truth[260])
+    assert np.all(np.diff(parameter) > 0)
+    # two gaps: the open sequence splits into runs, never bridged
+    runs = split_at_gaps(np.delete(opened, np.arange(100, 150), axis=0), 0.02)
+    assert [len(r) for r in runs] == [100, len(opened) - 150]
+
+
+def test_frames_and_normals_from_a_plane_depth():
+    t = np.linspace(0, 2 * np.pi, 100, endpoint=False)
+    points = loop_points(t)
+    frames = waypoint_frames(points, True)
+    R = frames[:, :3, :3]
+    np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
+    tangent = np.roll(points, -1, axis=0) - np.roll(points, 1, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    np.testing.assert_allclose(R[:, :, 0], tangent, atol=1e-12)
+    assert np.all(R[:, 2, 2] < -0.75)  # base -z made orthogonal to x (slopes < 0.85)
+    # a tilted plane seen by a rectified camera: normals exact, facing the camera
+    camera = cameras()[0]
+    T_base_rect = camera.T_base_camera
+    normal_base = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    n_rect = T_base_rect[:3, :3].T @ normal_base
+    p0_rect = T_base_rect[:3, :3].T @ (TARGET - T_base_rect[:3, 3])
+    v, u = np.mgrid[0:480, 0:640]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(u.shape)], 2)
+    depth = (n_rect @ p0_rect) / (rays @ n_rect)  # z of the ray-plane intersection
+    on_plane = points - ((points - TARGET) @ normal_base)[:, None] * normal_base
+    normals = normals_from_depth(on_plane, depth, K, T_base_rect, window_px=7)
+    np.testing.assert_allclose(normals, np.tile(normal_base, (100, 1)), atol=1e-6)
+    frames = waypoint_frames(on_plane, True, -normals)
+    np.testing.assert_allclose(frames[:, :3, 2] @ normal_base,
+                               -np.sqrt(1 - (frames[:, :3, 0] @ normal_base)**2), atol=1e-9)
