@@ -21,8 +21,8 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import Image
 
 from sensor_sim.render import add_noise
-from sensor_sim.sensor_sim_node import parse_published_counts
 from vgm_common.launcher import Launch
+from vgm_common.node_tools import parse_published_counts
 from vgm_common.qos import DEFAULT_QOS
 
 RESULTS = Path(__file__).resolve().parent / 'results'

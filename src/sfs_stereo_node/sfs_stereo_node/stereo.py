@@ -64,10 +64,13 @@ def normalized_ssd_volume(I_left, I_right, max_disparity, window=3, min_disparit
     left = np.pad(I_left, ((0, 0), (r, r + max_disparity)))
     right = np.pad(I_right, ((0, 0), (r, r)))
     energy_right = _box_sum(right**2, window)[:, r:r + W]
+    # Window energies of the shifted left image are columns of ONE box sum over the
+    # padded left image (the kept columns' windows lie inside every shifted view).
+    energy_left = _box_sum(left**2, window)
     for d in range(min_disparity, min(max_disparity + 1, W)):
         shifted = left[:, d:d + W + 2 * r]  # shifted(x) = I_l(x + d), 0 beyond the image
         ssd = _box_sum((right - shifted) ** 2, window)[:, r:r + W]
-        energy = energy_right * _box_sum(shifted**2, window)[:, r:r + W]
+        energy = energy_right * energy_left[:, d + r:d + r + W]
         with np.errstate(divide='ignore', invalid='ignore'):
             layer = ssd / np.sqrt(energy)
         layer[~(energy > 0)] = np.inf
@@ -112,30 +115,40 @@ def confident_disparity(cost, threshold, texture=None, min_texture=0.0, uniquene
         raise InvalidInput(f'cost: expected (D+1, H, W), got {cost.shape}', key='cost',
                            value=cost.shape)
     n_disp, H, W = cost.shape
+    # Layers below min_disparity are all +inf (not searched): leave them out of every
+    # reduction below (same result; a pixel whose costs are all inf is rejected anyway).
+    searched = np.flatnonzero(np.isfinite(cost).any(axis=(1, 2)))
+    first = int(searched[0]) if len(searched) else 0
+    if first > 0:
+        cost = cost[first:]
     d0 = np.argmin(cost, axis=0)
     c0 = np.take_along_axis(cost, d0[None], axis=0)[0]
+    d0 = d0 + first
     keep = (c0 < threshold) & (d0 > 0)
     if texture is not None and min_texture > 0:
         keep &= np.asarray(texture) >= min_texture
     if uniqueness > 0:
-        disparities = np.arange(n_disp)[:, None, None]
+        disparities = np.arange(first, n_disp)[:, None, None]
         far = np.abs(disparities - d0[None]) > 1
         second = np.min(np.where(far, cost, np.inf), axis=0)
         keep &= c0 < (1 - uniqueness) * second
     if left_right_check:
         # cost_right[d, y, xr] = C_L(xr + d, y, d): the right image's own costs
         cost_right = np.full_like(cost, np.inf)
-        for d in range(min(n_disp, W)):
-            cost_right[d, :, :W - d] = cost[d, :, d:]
-        d_right = np.argmin(cost_right, axis=0)
+        for d in range(first, min(n_disp, W)):
+            cost_right[d - first, :, :W - d] = cost[d - first, :, d:]
+        d_right = np.argmin(cost_right, axis=0) + first
         x_right = np.maximum(np.arange(W)[None, :] - d0, 0)
         d_back = np.take_along_axis(d_right, x_right, axis=1)
         keep &= np.abs(d_back - d0) <= lr_tolerance
     disparity = d0.astype(float)
     if subpixel:
         inner = (d0 > 0) & (d0 < n_disp - 1)
-        lo = np.take_along_axis(cost, np.clip(d0 - 1, 0, n_disp - 1)[None], axis=0)[0]
-        hi = np.take_along_axis(cost, np.clip(d0 + 1, 0, n_disp - 1)[None], axis=0)[0]
+        # d0 - 1 below the searched layers reads +inf there, as in the full volume
+        lo = np.take_along_axis(cost, np.clip(d0 - 1 - first, 0, None)[None], axis=0)[0]
+        lo = np.where(d0 - 1 < first, np.inf, lo)
+        hi = np.take_along_axis(cost, np.clip(d0 + 1 - first, 0, n_disp - 1 - first)[None],
+                                axis=0)[0]
         with np.errstate(invalid='ignore', divide='ignore'):
             curvature = lo - 2 * c0 + hi
             offset = np.where(inner & np.isfinite(curvature) & (curvature > 0),

@@ -2,9 +2,11 @@
 diagnostics on /diagnostics, throttled rejection of bad input, and a clean ``main``."""
 import math
 import os
+import re
 import signal
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
@@ -16,6 +18,7 @@ from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from rclpy.publisher import Publisher
 from rclpy.signals import SignalHandlerOptions
 
 from vgm_common.errors import VgmError
@@ -159,8 +162,45 @@ def _is_kind(value, kind):
     return isinstance(value, kind) and not (kind is int and isinstance(value, bool))
 
 
+class CountingPublisher(Publisher):
+    """A publisher that counts what it sent. Pass ``publisher_class=CountingPublisher`` to
+    ``create_publisher``; ``run_node`` logs the counts when the node stops (``published:
+    /topic=N ...``, read back by ``parse_published_counts``), so a recording can be
+    checked for lost messages."""
+
+    sent = 0
+
+    def publish(self, msg):
+        super().publish(msg)
+        self.sent += 1
+
+
+def parse_published_counts(log_text):
+    """{topic: messages published} from a node's 'published: /topic=N ...' log lines (a
+    node may log several; a topic counted in several lines keeps the last count)."""
+    lines = re.findall(r'published: (.*)', log_text)
+    if not lines:
+        raise ValueError('no "published:" line in the log')
+    return {topic: int(n) for line in lines for topic, n in re.findall(r'(\S+)=(\d+)', line)}
+
+
+def _log_published_counts(node):
+    counts = {}
+    for publisher in node.publishers:
+        if isinstance(publisher, CountingPublisher):
+            counts[publisher.topic_name] = counts.get(publisher.topic_name, 0) + publisher.sent
+    if counts:
+        node.get_logger().info('published: ' + ' '.join(f'{t}={n}' for t, n in counts.items()))
+
+
 class Diagnostics:
-    """Publishes DiagnosticArray on /diagnostics and logs rejected input, throttled."""
+    """Publishes DiagnosticArray on /diagnostics and logs rejected input, throttled.
+
+    A reliable publisher drops what it sends before discovery matched a subscriber, and
+    nodes report their start-up state at once: until some subscriber (a monitor, the
+    recorder) has matched, the latest ``UNSENT_LIMIT`` arrays wait and go out first."""
+
+    UNSENT_LIMIT = 20
 
     LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN,
               'error': DiagnosticStatus.ERROR, 'stale': DiagnosticStatus.STALE}
@@ -168,8 +208,11 @@ class Diagnostics:
     def __init__(self, node, hardware_id='simulation'):
         self._node = node
         self._hardware_id = hardware_id
-        self._publisher = node.create_publisher(DiagnosticArray, '/diagnostics', DEFAULT_QOS)
+        self._publisher = node.create_publisher(DiagnosticArray, '/diagnostics', DEFAULT_QOS,
+                                                publisher_class=CountingPublisher)
         self._last_log = {}
+        self._unsent = deque(maxlen=self.UNSENT_LIMIT)
+        self._lock = threading.Lock()  # nodes publish from worker threads too
         self.rejected = {}  # reason key -> count
 
     def publish(self, name, level, message, values=None):
@@ -180,7 +223,13 @@ class Diagnostics:
                                           for k, v in (values or {}).items()])
         array = DiagnosticArray(status=[status])
         array.header.stamp = self._node.get_clock().now().to_msg()
-        self._publisher.publish(array)
+        with self._lock:
+            if self._publisher.get_subscription_count() == 0:
+                self._unsent.append(array)
+                return
+            while self._unsent:
+                self._publisher.publish(self._unsent.popleft())
+            self._publisher.publish(array)
 
     def reject(self, what, error, throttle_s=2.0):
         """Count and report bad input ``what`` (e.g. a topic); log at most every
@@ -276,6 +325,7 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
             close = getattr(node, 'close', None)
             if close:
                 close()
+            _log_published_counts(node)
             status = status or getattr(node, 'exit_status', 0)
             wait_for_delivery(node)
             node.destroy_node()
