@@ -54,6 +54,11 @@ class GAOptions(NamedTuple):
     lx_variant: str = 'printed'
     max_distance: float = 3.0  # [m] camera-to-chart-centroid bound of the translation genes
     network_epochs: int = 3000
+    lx_draw: str = 'gene'  # one Laplace phi per gene (A4.5) or per pair
+    tournament: int = 3  # tournament size [C] (A4.6)
+    elitism: int = 1  # elite individuals kept [C] (A4.6)
+    network_weights: str = 'structured'  # train only the matrices' entries, or 'free'
+    network_accept: str = 'if_better'  # keep the network's camera only if its RMS is lower
 
 
 def degeneracy(points_base, min_points=12, min_thickness=0.02):
@@ -228,12 +233,15 @@ def calibrate_rig_ga(observations, rng, options=None, fit_k3=False):
                          population=options.population, generations=options.generations,
                          crossover_probability=options.crossover,
                          mutation_probability=options.mutation, pm_index=options.pm_index,
-                         lx_variant=options.lx_variant)
+                         lx_variant=options.lx_variant, lx_draw=options.lx_draw,
+                         tournament=options.tournament, elitism=options.elitism)
         for c, (name, (points, pixels)) in enumerate(zip(group, data)):
             params = result.best[12 * c:12 * c + 12]
             after_ga[name] = params
             refined, _ = network_refine(params, points, pixels,
-                                        epochs=options.network_epochs)
+                                        epochs=options.network_epochs,
+                                        weights=options.network_weights,
+                                        accept=options.network_accept)
             after_network[name] = refined
             ident = identifiable(refined)
             K = np.array([[ident.fx, 0, ident.u0], [0, ident.fy, ident.v0], [0, 0, 1.0]])

@@ -9,9 +9,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from calib_node.seed_camera import project_with_depth
+from calib_node.seed_camera import PopulationCost
 
 LX_VARIANTS = ('printed', 'symmetric')
+LX_DRAWS = ('gene', 'pair')  # one phi per gene (A4.5's resolution) or one per parent pair
 
 
 class GAResult(NamedTuple):
@@ -37,14 +38,19 @@ def laplace_phi(u, a=0.0, b=0.15, variant='printed'):
     raise ValueError(f'lx_variant: expected one of {LX_VARIANTS}, got {variant!r}')
 
 
-def laplace_crossover(x1, x2, rng, probability=0.9, a=0.0, b=0.15, variant='printed'):
-    """Children of the (M, D) parent pairs: y_i = x_i + phi |x1 - x2|, one phi per gene.
+def laplace_crossover(x1, x2, rng, probability=0.9, a=0.0, b=0.15, variant='printed',
+                      draw='gene'):
+    """Children of the (M, D) parent pairs: y_i = x_i + phi |x1 - x2|, one phi per gene
+    (``draw='gene'``, A4.5) or one per pair (``'pair'``).
 
     Each pair crosses with ``probability``, otherwise its children are copies.
     Returns (y1, y2), each (M, D), not clipped.
     """
     cross = rng.random(x1.shape[0]) < probability
-    phi = laplace_phi(rng.random(x1.shape), a, b, variant)
+    if draw not in LX_DRAWS:
+        raise ValueError(f'lx_draw: expected one of {LX_DRAWS}, got {draw!r}')
+    shape = x1.shape if draw == 'gene' else (x1.shape[0], 1)
+    phi = laplace_phi(rng.random(shape), a, b, variant)
     spread = np.where(cross[:, None], phi * np.abs(x1 - x2), 0.0)
     return x1 + spread, x2 + spread
 
@@ -81,7 +87,7 @@ def _evaluate(objective, population):
 def lxpm_ga(objective, lower, upper, rng, population=240, generations=200,
             crossover_probability=0.9, mutation_probability=0.005, laplace_a=0.0,
             laplace_b=0.15, pm_index=0.25, lx_variant='printed', tournament=3, elitism=1,
-            progress=None):
+            progress=None, lx_draw='gene'):
     """Minimise ``objective`` over the box [lower, upper] with the LX-PM GA (§3.4).
 
     Uniform initialisation in the box; each generation: ``tournament`` selection, Laplace
@@ -122,7 +128,7 @@ def lxpm_ga(objective, lower, upper, rng, population=240, generations=200,
         elite = np.argsort(cost, kind='stable')[:elitism]
         parents = x[tournament_select(cost, 2 * pairs, rng, tournament)]
         y1, y2 = laplace_crossover(parents[0::2], parents[1::2], rng, crossover_probability,
-                                   laplace_a, laplace_b, lx_variant)
+                                   laplace_a, laplace_b, lx_variant, lx_draw)
         children = np.clip(np.concatenate([y1, y2])[:population], lower, upper)
         children = power_mutation(children, lower, upper, rng, mutation_probability,
                                   pm_index)
@@ -157,18 +163,13 @@ def stereo_objective(points_world, pixels_left, pixels_right, distortion='implic
             raise ValueError(f'{name}: expected shape ({points_world.shape[0]}, 2), '
                              f'got {pixels.shape}')
 
+    costs = [PopulationCost(points_world, pixels, distortion) for pixels in observed]
+
     def cost(q):
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != 24:
             raise ValueError(f'q: expected shape (P, 24), got {q.shape}')
-        total = np.zeros(q.shape[0])
-        in_front = np.ones(q.shape[0], dtype=bool)
-        for params, pixels in zip((q[:, :12], q[:, 12:]), observed):
-            uv, Z = project_with_depth(params, points_world, distortion)
-            in_front &= np.all(Z > 0, axis=1)
-            with np.errstate(invalid='ignore', over='ignore'):
-                total += np.sum((uv - pixels) ** 2, axis=(1, 2))
-        return np.where(in_front, total, np.inf)
+        return costs[0](q[:, :12]) + costs[1](q[:, 12:])
 
     return cost
 
@@ -191,17 +192,16 @@ def rig_objective(observations, distortion='implicit'):
                              f'{points_world.shape} and {pixels.shape}')
         cameras.append((points_world, pixels))
 
+    costs = [PopulationCost(points_world, pixels, distortion)
+             for points_world, pixels in cameras]
+
     def cost(q):
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != 12 * len(cameras):
             raise ValueError(f'q: expected shape (P, {12 * len(cameras)}), got {q.shape}')
         total = np.zeros(q.shape[0])
-        in_front = np.ones(q.shape[0], dtype=bool)
-        for c, (points_world, pixels) in enumerate(cameras):
-            uv, Z = project_with_depth(q[:, 12 * c:12 * c + 12], points_world, distortion)
-            in_front &= np.all(Z > 0, axis=1)
-            with np.errstate(invalid='ignore', over='ignore'):
-                total += np.sum((uv - pixels) ** 2, axis=(1, 2))
-        return np.where(in_front, total, np.inf)
+        for c, camera_cost in enumerate(costs):
+            total += camera_cost(q[:, 12 * c:12 * c + 12])
+        return total
 
     return cost

@@ -9,6 +9,7 @@ calibration is published at start instead and no chart is needed.
 import queue
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -26,7 +27,8 @@ from calib_node.calibrate import (
     calibrate_rig,
 )
 from calib_node.chart_detection import chart_points, detect_chessboard, to_grey
-from calib_node.lxpm_ga import LX_VARIANTS
+from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS
+from calib_node.refine import NETWORK_ACCEPT, NETWORK_WEIGHTS
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import (
@@ -45,7 +47,14 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, ParameterError, run_node
+from vgm_common.node_tools import (
+    CountingPublisher,
+    Diagnostics,
+    NodeParameters,
+    Param,
+    ParameterError,
+    run_node,
+)
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 
@@ -93,6 +102,12 @@ class CalibNode(Node):
                   'thesis; ALGORITHMS.md A4.4).', range=(1e-3, 100.0)),
             Param('ga.lx_variant', 'printed', 'Laplace crossover: as printed in the thesis, '
                   'or the symmetric Laplace quantile (A4.5).', choices=LX_VARIANTS),
+            Param('ga.lx_draw', 'gene', 'Laplace spread phi drawn per gene (A4.5) or per '
+                  'parent pair.', choices=LX_DRAWS),
+            Param('ga.tournament', 3, 'Tournament size of the selection [C] (A4.6).',
+                  range=(1, 1000)),
+            Param('ga.elitism', 1, 'Best individuals carried over each generation [C] '
+                  '(A4.6).', range=(0, 1000)),
             Param('ga.mutation_sign', 'corrected', 'Power mutation sign: y = x + s (xu - x) '
                   'upward, the correction of the printed x - s (xl - xu) (A4.4); the '
                   'only variant that stays in the bounds.', choices=('corrected',)),
@@ -100,6 +115,13 @@ class CalibNode(Node):
                   'chart-centroid distance [m].', range=(0.01, 1000.0)),
             Param('network.epochs', 3000, 'Gradient-descent epochs of the thesis network '
                   'refinement.', range=(0, 1000000)),
+            Param('network.weights', 'structured', 'structured: train only the entries of '
+                  'D = [A | 0] and B = [R T; 0 1] that stand for parameters (ALGORITHMS.md '
+                  '3.5); free: every weight, read out by RQ of D B.',
+                  choices=NETWORK_WEIGHTS),
+            Param('network.accept', 'if_better', 'if_better: keep the network camera only '
+                  'if its full-model RMS is below the GA camera; always: keep it.',
+                  choices=NETWORK_ACCEPT),
             Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
             Param('fit_k3', False, 'Estimate k3 (else 0).'),
             Param('max_rms_px', 2.0, 'A calibration whose reprojection RMS exceeds this in '
@@ -117,11 +139,14 @@ class CalibNode(Node):
         self.chart = chart_points(self._param('chart.rows'), self._param('chart.cols'),
                                   self._param('chart.spacing'))
 
-        self.info_publishers = {n: self.create_publisher(CameraInfo, CAMERA_INFO_TOPICS[n],
-                                                         LATCHED_QOS) for n in CAMERA_NAMES}
-        self.pose_publishers = {n: self.create_publisher(PoseStamped, POSE_TOPICS[n],
-                                                         LATCHED_QOS) for n in CAMERA_NAMES}
+        self.info_publishers = {n: self.create_publisher(
+            CameraInfo, CAMERA_INFO_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher)
+            for n in CAMERA_NAMES}
+        self.pose_publishers = {n: self.create_publisher(
+            PoseStamped, POSE_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher)
+            for n in CAMERA_NAMES}
         self.lock = threading.Lock()  # views, image sizes, counters
+        self.detection_pool = ThreadPoolExecutor(len(CAMERA_NAMES))
         self.calibration_lock = threading.Lock()  # one calibration at a time
         self.views = []  # [{name: (points_base (N, 3), pixels (N, 2))}]
         self.image_sizes = {}  # name -> (width, height), fixed by the first good image
@@ -193,11 +218,11 @@ class CalibNode(Node):
             self._reject_view(TARGET_POSE_TOPIC, error)
             return
         points_base = self.chart @ T_base_chart[:3, :3].T + T_base_chart[:3, 3]
-        view, misses = {}, []
+        view, misses, greys = {}, [], {}
         for name in CAMERA_NAMES:
             msg = messages[name]
             try:
-                grey = to_grey(image_to_numpy(msg), msg.encoding)
+                greys[name] = to_grey(image_to_numpy(msg), msg.encoding)
                 size = (msg.width, msg.height)
                 with self.lock:
                     expected = self.image_sizes.setdefault(name, size)
@@ -208,9 +233,13 @@ class CalibNode(Node):
             except (InvalidInput, ValueError) as error:
                 self.diagnostics.reject(IMAGE_TOPICS[name], error)
                 misses.append(f'{name}: unusable image')
-                continue
-            detection = detect_chessboard(grey, self._param('chart.rows'),
-                                          self._param('chart.cols'), self.params.max_blur_px)
+                greys.pop(name, None)
+        # OpenCV's detector releases the GIL: the cameras' images are searched in parallel.
+        detections = dict(zip(greys, self.detection_pool.map(
+            lambda grey: detect_chessboard(grey, self._param('chart.rows'),
+                                           self._param('chart.cols'), self.params.max_blur_px),
+            greys.values())))
+        for name, detection in detections.items():
             if detection.corners is None:
                 misses.append(f'{name}: {detection.reason}')
                 continue
@@ -264,7 +293,10 @@ class CalibNode(Node):
                                self._param('ga.crossover'), self._param('ga.mutation'),
                                self._param('ga.pm_index'), self._param('ga.lx_variant'),
                                self._param('ga.max_distance'),
-                               self._param('network.epochs'))
+                               self._param('network.epochs'), self._param('ga.lx_draw'),
+                               self._param('ga.tournament'), self._param('ga.elitism'),
+                               self._param('network.weights'),
+                               self._param('network.accept'))
                 result = calibrate_rig(observations, p.method, p.seed, p.lm_start, ga,
                                        p.fit_tangential, p.fit_k3)
                 worst = max(result.fits, key=lambda n: result.fits[n].rms_px)

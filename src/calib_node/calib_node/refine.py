@@ -13,7 +13,12 @@ import numpy as np
 from scipy.linalg import rq
 from scipy.optimize import least_squares
 
-from calib_node.seed_camera import Identifiable, identifiable, project_seed
+from calib_node.seed_camera import (
+    Identifiable,
+    PopulationCost,
+    identifiable,
+    project_seed,
+)
 
 IDENTIFIABLE_NAMES = ('u0', 'v0', 'fx', 'fy', 'kappa', 'alpha', 'beta', 'gamma', 'Tx', 'Ty',
                       'Tz')
@@ -224,8 +229,12 @@ def opencv_reference(points_world, pixels_left, pixels_right, image_size_left,
 
 class NetworkInfo(NamedTuple):
     rms_before: float  # reprojection RMS [px] of the start camera (full seed model)
-    rms_after: float  # and of the refined camera
+    rms_after: float  # and of the network's camera
     loss: np.ndarray  # (epochs,) mean network error 1/2 |d - O|^2 in normalised units
+    accepted: bool  # the network's camera was returned (else the start camera)
+
+
+NETWORK_ACCEPT = ('if_better', 'always')
 
 
 def undistort_seed_pixels(params, pixels):
@@ -238,8 +247,11 @@ def undistort_seed_pixels(params, pixels):
     return xy_u * [Nx, Ny] + [u0, v0]
 
 
+NETWORK_WEIGHTS = ('structured', 'free')
+
+
 def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_B=0.05,
-                   rate_gamma=0.5):
+                   rate_gamma=0.5, weights='structured', accept='if_better'):
     """The seed's neural refinement of one camera (ALGORITHMS.md §3.5, 4.5.1-4.5.7).
 
     A linear network: hidden h_i = B W_i (B 4x4, the extrinsics [R T; 0 1]), output
@@ -247,13 +259,28 @@ def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_
     GA's distortion removed first (the network cannot model k; f and k keep their start
     values). Full-batch gradient descent on E = 1/2 sum |d_i - O_i|^2 with the thesis's
     updates (dD = eta_D gamma e h^T, dB = eta_B gamma D^T e W^T, dgamma = eta_g e^T D h),
-    averaged over the points, on Hartley-normalised inputs and targets [C].
+    averaged over the points, on Hartley-normalised inputs and targets, with a
+    backtracking factor on the rates (halved when a step would raise E) [C].
 
-    Choices where the thesis is silent [C]: D is scaled so that the mean start depth is 1,
-    which makes gamma_i = 1 (the thesis's start) a consistent start; the rates and epochs
-    are the arguments; the read-out decomposes the trained projection D B by RQ (the
-    product is all the data fix) into K, R, T, and takes fx, fy, u0, v0 from K (skew
-    dropped), Nx = fx / f, Ny = fy / f.
+    ``weights`` [C] (A4.10):
+
+    - ``'structured'`` (default): the weights *are* the matrices, as §3.5 states: only the
+      entries that stand for fx, fy, u0, v0 in D and for [R T] in B's top rows are
+      trained (the thesis's updates masked to them; D's zeros, D33 = 1 and B's last row
+      (0, 0, 0, 1) stay), which the similarity normalisations preserve. Read-out as §3.5:
+      D's entries, B's 3x3 block projected onto SO(3) by SVD (its scale, a gauge shared
+      with gamma, divided out of T too).
+    - ``'free'``: every entry of D and B trained; read-out by RQ of the product D B (the
+      data fix only the product; this moves the principal point freely and can wreck a
+      poor start).
+
+    Start [C]: B's top rows are divided by the mean start depth, so that gamma_i = 1 (the
+    thesis's start) is consistent (D h has third component about 1).
+
+    ``accept`` [C]: ``'if_better'`` (default) returns the network's camera only if its
+    full-model reprojection RMS is lower than the start's (the network fits targets
+    undistorted with the GA's k, which it cannot correct, so a poor k can make the
+    network's camera worse in the full model); ``'always'`` returns it regardless.
 
     Args:
         params: (12,) start camera in ``PARAM_NAMES`` order (the GA result).
@@ -267,6 +294,10 @@ def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_
     params = np.asarray(params, dtype=float)
     if params.shape != (12,) or params[4] <= 0:
         raise ValueError('params: expected shape (12,) with f > 0')
+    if weights not in NETWORK_WEIGHTS:
+        raise ValueError(f'weights: expected one of {NETWORK_WEIGHTS}, got {weights!r}')
+    if accept not in NETWORK_ACCEPT:
+        raise ValueError(f'accept: expected one of {NETWORK_ACCEPT}, got {accept!r}')
     points_world, (pixels,) = _check_points(points_world, pixels)
     start = identifiable(params)
     targets = undistort_seed_pixels(params, pixels)
@@ -278,12 +309,20 @@ def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_
     D = np.array([[start.fx, 0, start.u0, 0], [0, start.fy, start.v0, 0], [0, 0, 1, 0]])
     B = B @ np.linalg.inv(T3)
     D = T2 @ D
-    # Gauge [C]: D B is all the data fix, so balance the two factors (hidden units of
-    # order 1, mean output depth 1) for a well-conditioned descent.
-    depth = np.mean((W @ B.T)[:, 2])
-    B[:3] /= depth
-    D[:, :3] *= depth
-    D /= np.mean((W @ B.T @ D.T)[:, 2])
+    if weights == 'structured':
+        mask_D = np.zeros((3, 4))
+        mask_D[0, 0] = mask_D[1, 1] = mask_D[0, 2] = mask_D[1, 2] = 1.0
+        mask_B = np.zeros((4, 4))
+        mask_B[:3] = 1.0
+        B[:3] /= np.mean((W @ B.T)[:, 2])  # gauge: mean depth 1, so gamma = 1 fits
+    else:
+        mask_D, mask_B = np.ones((3, 4)), np.ones((4, 4))
+        # Gauge [C]: D B is all the data fix, so balance the two factors (hidden units of
+        # order 1, mean output depth 1) for a well-conditioned descent.
+        depth = np.mean((W @ B.T)[:, 2])
+        B[:3] /= depth
+        D[:, :3] *= depth
+        D /= np.mean((W @ B.T @ D.T)[:, 2])
     gamma = np.ones(len(W))
     count = len(W)
     loss = np.empty(epochs)
@@ -298,7 +337,8 @@ def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_
     current, h, Dh, e = error(D, B, gamma)
     for epoch in range(epochs):
         ge = gamma[:, None] * e
-        steps = (rate * rate_D * ge.T @ h / count, rate * rate_B * D.T @ ge.T @ W / count,
+        steps = (rate * rate_D * mask_D * (ge.T @ h) / count,
+                 rate * rate_B * mask_B * (D.T @ ge.T @ W) / count,
                  rate * rate_gamma * np.sum(e * Dh, axis=1))
         trial = error(D + steps[0], B + steps[1], gamma + steps[2])
         if trial[0] <= current:
@@ -308,15 +348,208 @@ def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_
         else:
             rate *= 0.5
         loss[epoch] = current
-    P = np.linalg.inv(T2) @ D @ B @ T3
-    K, R, t = decompose_projection(P)
     refined = params.copy()
-    refined[0:2] = K[0, 2], K[1, 2]
-    refined[2:4] = K[0, 0] / params[4], K[1, 1] / params[4]
+    if weights == 'structured':
+        A = (np.linalg.inv(T2) @ D)[:, :3]
+        A = A / A[2, 2]
+        extrinsic = B @ T3
+        extrinsic = extrinsic / extrinsic[3, 3]
+        U, singular, Vt = np.linalg.svd(extrinsic[:3, :3])
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        t = extrinsic[:3, 3] / np.mean(singular)
+        refined[0:2] = A[0, 2], A[1, 2]
+        refined[2:4] = A[0, 0] / params[4], A[1, 1] / params[4]
+    else:
+        K, R, t = decompose_projection(np.linalg.inv(T2) @ D @ B @ T3)
+        refined[0:2] = K[0, 2], K[1, 2]
+        refined[2:4] = K[0, 0] / params[4], K[1, 1] / params[4]
     refined[6:9] = Rotation.from_matrix(R).as_euler('ZYX')  # alpha, beta, gamma
     refined[9:12] = t
     rms = [float(np.sqrt(np.mean(np.sum((project_seed(p[None], points_world)[0] - pixels)
                                         ** 2, axis=1)))) for p in (params, refined)]
-    return refined, NetworkInfo(rms[0], rms[1], loss)
+    accepted = accept == 'always' or rms[1] < rms[0]
+    return (refined if accepted else params.copy()), NetworkInfo(rms[0], rms[1], loss,
+                                                                 accepted)
 
 
+def _null_vector(rows):
+    """Unit vector minimising |rows @ x| (last right singular vector)."""
+    return np.linalg.svd(rows, full_matrices=False)[2][-1]
+
+
+def _orthonormal_rows(rows):
+    """Nearest (in Frobenius norm) matrix with orthonormal rows to (2, 3) ``rows``."""
+    U, _, Vt = np.linalg.svd(rows, full_matrices=False)
+    return U @ Vt
+
+
+def radial_division_init(points_world, pixels):
+    """Closed-form seed camera (12,) with f = 1 for the division model (§3.2), no start.
+
+    Radial distortion about the principal point c keeps each image point on the line
+    through c and its undistorted image (Tsai's radial alignment constraint), whatever the
+    distortion coefficient; with Nx != Ny this holds in pixels too, because the distortion
+    scales the pixel offset m = (u - u0, v - v0) by one scalar. Three linear steps, exact
+    on noise-free data [O: Tsai 1987; Thirthala & Pollefeys' radial 1D camera]:
+
+    1. The line through c and the undistorted projection is l = M X~ with M (3x4) of rank
+       2 and c its left null vector, so every point gives m~^T M X~ = 0, linear in the 12
+       entries of M (Hartley-normalised, SVD null vector); c = left null vector of M.
+    2. With c fixed, the 8 entries of A ~ fx [r1 t1], B ~ fy [r2 t2] from
+       m_x (B X~) - m_y (A X~) = 0 (SVD null vector): r1, r2 (orthonormalised), t1, t2 and
+       the aspect fy / fx = |B[:3]| / |A[:3]|.
+    3. r3 = r1 x r2; the model m (1 + lambda rho)(r3 x + t3) = (fx, fy) (r1 x + t1, r2 x + t2)
+       with rho = m_x^2 + (m_y fx / fy)^2 and lambda = kappa / fx^2 is linear in
+       (t3, lambda, lambda t3, fx): least squares over both image axes. The overall sign
+       of A, B is chosen so that fx > 0.
+
+    Needs non-coplanar points and some distortion or perspective (without distortion
+    step 1's null space is 3-dimensional: then use :func:`dlt_camera`).
+
+    Args:
+        points_world: (N, 3) [unit], N >= 12; pixels: (N, 2) [px].
+
+    Returns:
+        (12,) seed parameters (u0, v0, Nx = fx, Ny = fy, f = 1, k = kappa >= 0, alpha,
+        beta, gamma, Tx, Ty, Tz), the start for :func:`refine_seed_lm`.
+    """
+    from scipy.spatial.transform import Rotation
+
+    points_world, (pixels,) = _check_points(points_world, pixels)
+    if points_world.shape[0] < 12:
+        raise ValueError('radial_division_init: needs at least 12 points')
+    T3, T2 = _normalise(points_world), _normalise(pixels)
+    X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T  # (N, 4)
+    m = np.column_stack([pixels, np.ones(len(pixels))]) @ T2.T  # (N, 3)
+    # Step 1: m~^T M X~ = 0 in normalised coordinates; back: M = T2^T M_n T3.
+    M = T2.T @ _null_vector((m[:, :, None] * X[:, None, :]).reshape(len(X), 12)
+                            ).reshape(3, 4) @ T3
+    c = np.linalg.svd(M.T)[2][-1]
+    u0, v0 = c[:2] / c[2]
+    # Step 2: (u - u0) B X~ - (v - v0) A X~ = 0, world normalised (X~_n = T3 X~).
+    offsets = pixels - [u0, v0]
+    scale = 1.0 / np.mean(np.linalg.norm(offsets, axis=1))
+    mx, my = offsets[:, 0] * scale, offsets[:, 1] * scale
+    AB = _null_vector(np.hstack([-my[:, None] * X, mx[:, None] * X])).reshape(2, 4) @ T3
+    norms = np.linalg.norm(AB[:, :3], axis=1)
+    aspect = norms[1] / norms[0]
+    translation_xy = AB[:, 3] / norms
+    rows = _orthonormal_rows(AB[:, :3] / norms[:, None])
+    # Step 3: linear in theta = (t3, lambda, lambda t3, fx), pixel offsets in px.
+    mx, my = offsets[:, 0], offsets[:, 1]
+    rho = mx ** 2 + (my / aspect) ** 2
+    for sign in (1.0, -1.0):
+        r12 = sign * rows
+        t12 = sign * translation_xy
+        R = np.vstack([r12, np.cross(r12[0], r12[1])])
+        cam = points_world @ R.T  # without t3
+        x1, y1 = cam[:, 0] + t12[0], cam[:, 1] + t12[1]
+        z = cam[:, 2]
+        system = np.concatenate([
+            np.column_stack([mx, rho * mx * z, rho * mx, -x1]),
+            np.column_stack([my, rho * my * z, rho * my, -aspect * y1])])
+        rhs = -np.concatenate([mx * z, my * z])
+        column_scale = 1.0 / np.maximum(np.linalg.norm(system, axis=0), 1e-300)
+        theta = np.linalg.lstsq(system * column_scale, rhs, rcond=None)[0] * column_scale
+        t3, lam, _, fx = theta
+        if fx > 0:
+            break
+    kappa = max(float(lam) * fx ** 2, 0.0)
+    angles = Rotation.from_matrix(R).as_euler('ZYX')  # R = Rz(alpha) Ry(beta) Rx(gamma)
+    return np.r_[u0, v0, fx, aspect * fx, 1.0, kappa, angles, t12, t3]
+
+
+def _rac_pose(points_world, pixels, centre):
+    """Tsai's radial alignment constraint with the centre known: (r1, r2) orthonormal rows
+    (2, 3), (t1, t2) and the aspect fy / fx from m_x (B X~) - m_y (A X~) = 0 with
+    A ~ fx [r1 t1], B ~ fy [r2 t2] (8 unknowns, SVD null vector; exact without noise
+    whatever the radial distortion)."""
+    T3 = _normalise(points_world)
+    X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T
+    offsets = pixels - centre
+    offsets = offsets / np.mean(np.linalg.norm(offsets, axis=1))
+    AB = _null_vector(np.hstack([-offsets[:, 1:2] * X, offsets[:, 0:1] * X])).reshape(2, 4)
+    AB = AB @ T3
+    norms = np.linalg.norm(AB[:, :3], axis=1)
+    return _orthonormal_rows(AB[:, :3] / norms[:, None]), AB[:, 3] / norms, norms[1] / norms[0]
+
+
+def division_init(points_world, pixels, grid=9, depths=48, keep=3):
+    """Closed-form start candidates (seed params (12,) with f = 1) for the division model
+    (§3.2), best first by their full-model reprojection RMS.
+
+    The centre (u0, v0) is searched on a ``grid`` x ``grid`` lattice over the pixels'
+    bounding box enlarged by its own size on each side (plus the centre of
+    :func:`radial_division_init`). For each centre: the radial alignment constraint gives
+    r1, r2, t1, t2 and the aspect linearly (:func:`_rac_pose`); r3 = r1 x r2 (both signs of
+    (r1, r2) tried); then for each of ``depths`` values of t3 (log-spaced over 0.1 .. 1000
+    times the points' extent) the model m (1 + lambda rho) = (fx x1, fy y1) / (r3 x + t3)
+    is linear in (fx, lambda), lambda = kappa / fx^2, rho = m_x^2 + (m_y fx / fy)^2.
+    Every (centre, sign, t3) candidate is scored by its full-model RMS; the best ``keep``
+    with distinct centres are returned. In the thesis's nearly affine view (a 70-unit cube
+    at 1210 units) fx and t3 are weakly separated, so several starts go to LM.
+    """
+    from scipy.spatial.transform import Rotation
+
+    points_world, (pixels,) = _check_points(points_world, pixels)
+    low, high = pixels.min(axis=0), pixels.max(axis=0)
+    size = np.maximum(high - low, 1.0)
+    us = np.linspace(low[0] - size[0], high[0] + size[0], grid)
+    vs = np.linspace(low[1] - size[1], high[1] + size[1], grid)
+    centres = [np.array([u, v]) for u in us for v in vs]
+    try:
+        centres.append(radial_division_init(points_world, pixels)[:2])
+    except (ValueError, np.linalg.LinAlgError):
+        pass
+    extent = np.max(np.linalg.norm(points_world - points_world.mean(axis=0), axis=1))
+    score = PopulationCost(points_world, pixels)
+    candidates = []
+    for centre in centres:
+        offsets = pixels - centre
+        rows, t12, aspect = _rac_pose(points_world, pixels, centre)
+        rho = offsets[:, 0] ** 2 + (offsets[:, 1] / aspect) ** 2
+        for sign in (1.0, -1.0):
+            R = np.vstack([sign * rows, np.cross(rows[0], rows[1])])
+            cam = points_world @ R.T
+            t3 = -cam[:, 2].min() + extent * np.geomspace(0.1, 1000, depths)  # Z > 0
+            depth = cam[None, :, 2] + t3[:, None]  # (depths, N)
+            # per t3: m = fx a - lambda b, a = (x1, aspect y1) / Z, b = rho m
+            a = np.concatenate([(cam[:, 0] + sign * t12[0]) / depth,
+                                aspect * (cam[:, 1] + sign * t12[1]) / depth], axis=1)
+            m = offsets.T.ravel()
+            b = np.concatenate([rho, rho]) * m
+            saa, sab, sbb = np.sum(a * a, axis=1), a @ b, b @ b
+            sam, sbm = a @ m, b @ m
+            det = saa * sbb - sab ** 2
+            with np.errstate(all='ignore'):
+                fx = (sbb * sam - sab * sbm) / det
+                lam = -(saa * sbm - sab * sam) / det
+            good = np.isfinite(fx) & (fx > 0)
+            if not np.any(good):
+                continue
+            angles = Rotation.from_matrix(R).as_euler('ZYX')
+            population = np.column_stack([
+                np.full(good.sum(), centre[0]), np.full(good.sum(), centre[1]),
+                fx[good], aspect * fx[good], np.ones(good.sum()),
+                np.maximum(lam[good], 0.0) * fx[good] ** 2, np.tile(angles, (good.sum(), 1)),
+                np.tile(sign * t12, (good.sum(), 1)), t3[good]])
+            error = np.sqrt(score(population) / len(pixels))
+            best = int(np.nanargmin(np.where(np.isfinite(error), error, np.nan))) \
+                if np.any(np.isfinite(error)) else None
+            if best is not None:
+                candidates.append((float(error[best]), population[best]))
+    if not candidates:
+        raise ValueError('division_init: no candidate centre gave a camera')
+    candidates.sort(key=lambda c: c[0])
+    return [params for _, params in candidates[:keep]]
+
+
+def calibrate_seed_stereo(points_world, pixels_left, pixels_right):
+    """Ours on the thesis's setting: :func:`division_init` per camera, then
+    :func:`refine_seed_lm` over both cameras (full implicit division model).
+
+    Returns:
+        (left (12,), right (12,), :class:`RefineInfo`) as :func:`refine_seed_lm`.
+    """
+    starts = [division_init(points_world, uv)[0] for uv in (pixels_left, pixels_right)]
+    return refine_seed_lm(*starts, points_world, pixels_left, pixels_right)

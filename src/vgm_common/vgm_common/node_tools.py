@@ -273,9 +273,10 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
     """Construct and spin ``node_class`` until Ctrl-C, SIGTERM, external shutdown or the
     node's own exit request; returns the process exit status.
 
-    Ctrl-C and SIGTERM both raise KeyboardInterrupt in the spinning thread (rclpy's own
-    signal handler would invalidate the context first), so the node can still log and
-    publish while it stops; further signals are ignored until it has stopped. A VgmError
+    Ctrl-C and SIGTERM end construction by KeyboardInterrupt and spinning within
+    ``POLL_PERIOD`` (rclpy's own signal handler would invalidate the context first), so
+    the node can still log and publish while it stops; further signals are ignored until
+    it has stopped. A VgmError
     during construction (bad parameter, bad scenario) is logged in one line with exit
     status 2, never as a traceback. The node may define, all optional:
 
@@ -298,10 +299,11 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
         executor = executor_class()
         executor.add_node(node)
         exit_requested = getattr(node, 'exit_requested', None) or threading.Event()
-        try:
-            _spin_until(executor, exit_requested.is_set)
-        except KeyboardInterrupt:
-            pass
+        # While spinning a signal only sets a flag: raised inside a callback it could fall
+        # between a publish and its bookkeeping (the published counts).
+        signalled = threading.Event()
+        _set_stop_signal_handler(lambda signum, frame: signalled.set())
+        _spin_until(executor, lambda: exit_requested.is_set() or signalled.is_set())
         _set_stop_signal_handler(signal.SIG_IGN)
         drain = getattr(node, 'drain', None)
         if drain is not None:
