@@ -10,7 +10,6 @@ SOURCES := $(shell find src -type f -not -path '*/__pycache__/*' -not -name '*.p
 # Node processes in tests and the demo talk only on this machine.
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 SCENARIO ?= default
-DEMO_SECONDS ?= 12
 PYTEST_ARGS ?=
 
 .PHONY: setup build test demo bench clean distclean
@@ -39,7 +38,7 @@ test: build
 
 demo: build
 	source ros2_ws/install/setup.bash && \
-	  $(VENV)/bin/python scripts/demo.py --scenario $(SCENARIO) --seconds $(DEMO_SECONDS)
+	  $(VENV)/bin/python scripts/demo.py --scenario $(SCENARIO)
 
 bench: build
 	source ros2_ws/install/setup.bash && \
