@@ -302,6 +302,12 @@ def test_bad_input_gives_diagnostics_and_no_waypoints(bad_input_setup, rclpy_nod
         return status is not None and int(values(status)['matched']) >= 2
 
     spin_publishing(good, uncalibrated_capture_seen, 20, "'no camera info yet'")
+    # Every capture sent so far must have reached the node before the calibration does (a
+    # loaded machine delivers late): a capture after the calibration is rightly used.
+    sent = (stamp[0] - 1_000_000_000) // 100_000_000
+    rclpy_node.spin_until(
+        lambda: int(values(probe.diagnostic('status', 'no camera info yet'))['matched']) >= sent,
+        20, 'the node to take every capture sent before the calibration')
     assert not probe.paths
     rig_publishers, _ = publish_rig(rclpy_node, calibration)
     # 2. mismatched stamps: never a complete capture

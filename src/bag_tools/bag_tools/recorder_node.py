@@ -47,7 +47,8 @@ from bag_tools.message_definitions import DefinitionNotFoundError, definition
 from vgm_common.errors import VgmError
 from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 
-SUBSCRIPTION_DEPTH = 100  # keep-last depth of every recording subscription
+SUBSCRIPTION_DEPTH = 1000  # keep-last depth of every recording subscription: 5 s of
+# 200 Hz joint states, so a recorder stalled by a loaded machine catches up without loss
 # After a stop request, keep taking the messages the middleware already holds until none
 # came for QUIET_PERIOD (a recorder behind the publishers must not lose its backlog), at
 # most MAX_DRAIN_PERIOD.

@@ -45,6 +45,7 @@ from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 
 TARGET_POSE_TOPIC = '/calibration/target_pose'
+CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 DEPTH_TOPIC, DEPTH_INFO_TOPIC = '/depth/fused', '/depth/camera_info'
 
 
@@ -274,6 +275,14 @@ class CurveReconNode(Node):
                 continue
             if stamp_ns == 'republish':
                 self._republish_with_normals()
+                continue
+            # The chart's pose, stamped like its images, may arrive after them: give it
+            # CHART_POSE_GRACE before taking a capture for one of the scene.
+            self.stopping.wait(CHART_POSE_GRACE)
+            if stamp_ns in self.chart_stamps:
+                with self.state_lock:
+                    self.skipped_chart += 1
+                    self.service_requests = requests + self.service_requests
                 continue
             success, message = self._reconstruct(stamp_ns, messages, names)
             with self.state_lock:

@@ -114,6 +114,9 @@ class SfsStereoNode(Node):
                   range=(0.01, 60.0), read_only=True),
             Param('log_every', 10.0, 'Seconds between INFO lines on processed frames.',
                   range=(0.0, 3600.0)),
+            Param('max_rate', 0.0, 'Process at most this many pairs per second (always the '
+                  'newest) [Hz]; 0 = as fast as they come. Frees the CPU for other nodes.',
+                  range=(0.0, 100.0)),
         ], self.diagnostics)
         self.cameras = CalibratedCameras(self, ('left', 'right'), self.diagnostics)
         self.publishers_ = {
@@ -173,6 +176,7 @@ class SfsStereoNode(Node):
                     return
                 stamp_ns, messages = self.pending
                 self.pending = None
+            started = time.monotonic()
             try:
                 self._process(stamp_ns, messages)
             except InvalidInput as error:
@@ -181,6 +185,10 @@ class SfsStereoNode(Node):
             except Exception as error:  # noqa: BLE001 - keep serving, report it
                 self.failed += 1
                 self.diagnostics.reject('stereo pair', f'{type(error).__name__}: {error}')
+            if self.params.max_rate > 0:  # pause; the newest pair waits in self.pending
+                pause = started + 1.0 / self.params.max_rate - time.monotonic()
+                with self.wakeup:
+                    self.wakeup.wait_for(lambda: self.closed, timeout=max(0.0, pause))
 
     def _rectified_pair(self, left_shape):
         if not self.cameras.ready:
