@@ -195,16 +195,25 @@ def curve_waypoints(scenario, spacing=0.002):
                      for p, n, q in zip(points, normals, ahead)])
 
 
-def run_force(scenario_name, speed=0.02, dt=0.01):
+def run_force(scenario_name, force_law='integral', speed=0.02, dt=0.01, depth_error=0.0,
+              force_gain=5.0):
+    """One whole closed curve under force control. ``depth_error`` [m]: the waypoints are
+    displaced by depth_error * sin(2 * 2 pi * s / length) along their approach axis (a
+    reconstructed curve off the surface), which the force law has to absorb."""
     scenario = load_scenario(REPO / 'src' / 'sensor_sim' / 'scenarios'
                              / f'{scenario_name}.yaml')
     robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
     waypoints = curve_waypoints(scenario)
+    if depth_error:
+        fraction = np.linspace(0.0, 1.0, len(waypoints), endpoint=False)
+        waypoints[:, :3, 3] += (depth_error * np.sin(4 * np.pi * fraction))[:, None] \
+            * waypoints[:, :3, 2]
     desired = 5.0
     controller = TrackingController(
         robot, RateSolver('ours', np.ones(7)),
         TrackingConfig(desired_force=desired, stiffness=scenario.contact_stiffness,
-                       speed=speed), max_joint_velocity=1.0)
+                       speed=speed, force_law=force_law, force_gain=force_gain),
+        max_joint_velocity=1.0)
     controller.start(waypoints)
     arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints)
     rng = np.random.default_rng(scenario.seed)
@@ -230,7 +239,8 @@ def run_force(scenario_name, speed=0.02, dt=0.01):
     rms, _ = controller.stats.summary()
     forces = np.array(forces)
     return {
-        'scenario': scenario_name, 'surface': scenario.surface.kind,
+        'scenario': scenario_name, 'surface': scenario.surface.kind, 'force_law': force_law,
+        'force_gain': force_gain, 'depth_error_mm': depth_error * 1e3,
         'phase': controller.phase, 'reason': controller.reason,
         'path_length_m': controller.path.length, 'closed': controller.path.closed,
         'sim_time_s': t, 'rms_lateral_mm': rms * 1e3,
@@ -256,7 +266,15 @@ def main():
     plotted = plot_table(logs, OUT)
     force_rows = []
     for scenario_name in ('S1', 'S2', 'default'):
-        row = run_force(scenario_name)
+        for force_law in ('integral', 'tilt'):
+            row = run_force(scenario_name, force_law)
+            force_rows.append(row)
+            print(row, flush=True)
+    # The tilt law is an integral law in disguise: d(depth)/dt = -v sin(phi) ~
+    # v pi k / (2 lambda_d) * depth error, i.e. a gain of 12.6 /s at 0.02 m/s, 2000 N/m, 5 N.
+    matched_gain = 0.02 * np.pi * 2000.0 / (2 * 5.0)
+    for force_law, gain in (('integral', 5.0), ('tilt', 5.0), ('integral', matched_gain)):
+        row = run_force('default', force_law, depth_error=0.001, force_gain=gain)
         force_rows.append(row)
         print(row, flush=True)
 
@@ -288,13 +306,24 @@ def main():
               f'after {diverged_at} iterations.', '',
               '## Force tracking in the simulated contact (whole closed curves, ours, '
               '5 N desired, 0.02 m/s, 100 Hz, pressure noise of the scenario)', '',
-              '| scenario | surface | length [m] | end phase | RMS lateral [mm] | max lateral '
-              '[mm] | true force range [N] | max force error [%] | RMS force error [N] | '
-              'phi range [rad] | median step [ms] |',
-              '|---|---|---|---|---|---|---|---|---|---|---|']
+              'force_law: integral = ours (depth = lambda_d / k_est + integral of the force '
+              'error); tilt = the thesis\'s 7.3.15 rule (the motion PQ\' tilted by phi into / '
+              'out of the surface at every control step, tracking.tilted_motion).',
+              '',
+              'The last three rows: the waypoints 1 mm * sin(2 turns) off the surface along '
+              'their approach axis (+-2 N of depth disturbance); force_gain only acts in '
+              'the integral law (the tilt law\'s equivalent gain is v pi k / (2 lambda_d) = '
+              f'{0.02 * np.pi * 2000.0 / 10.0:.1f} /s).', '',
+              '| scenario | surface | force_law | force_gain [1/s] | waypoint depth error '
+              '[mm] | length [m] | end phase | RMS lateral [mm] | '
+              'max lateral [mm] | true force range [N] | max force error [%] | '
+              'RMS force error [N] | phi range [rad] | median step [ms] |',
+              '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|']
     for row in force_rows:
         lines.append(
-            f'| {row["scenario"]} | {row["surface"]} | {row["path_length_m"]:.3f} | '
+            f'| {row["scenario"]} | {row["surface"]} | {row["force_law"]} | '
+            f'{row["force_gain"]:.3g} | {row["depth_error_mm"]:g} | '
+            f'{row["path_length_m"]:.3f} | '
             f'{row["phase"]} | {row["rms_lateral_mm"]:.4f} | {row["max_lateral_mm"]:.4f} | '
             f'{row["true_force_min_N"]:.3f}..{row["true_force_max_N"]:.3f} | '
             f'{row["max_force_error_pct"]:.2f} | {row["rms_force_error_N"]:.4f} | '

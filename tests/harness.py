@@ -21,6 +21,8 @@ def next_ros_env():
     env['ROS_DOMAIN_ID'] = str(next(_domain_ids) % 200 + 1)
     env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     env['PYTHONUNBUFFERED'] = '1'
+    for variable in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS'):  # as vgm_launch does
+        env.setdefault(variable, '1')
     return env
 
 

@@ -23,6 +23,7 @@ from pa10_ik_node.ik import METHODS, RateSolver
 from pa10_ik_node.path import validate_waypoints
 from pa10_ik_node.tracking import (
     ACTIVE_PHASES,
+    FORCE_LAWS,
     TrackingConfig,
     TrackingController,
     Unreachable,
@@ -81,6 +82,11 @@ class Pa10IkNode(Node):
                   on_change=lambda v: self._configure(stiffness=v)),
             Param('force_gain', 5.0, '[1/s] Integral gain of the force law.',
                   range=(0.0, 100.0), on_change=lambda v: self._configure(force_gain=v)),
+            Param('force_law', 'integral', "Force law: 'integral' (ours: depth = "
+                  "desired_force / contact_stiffness + integral of the force error) or 'tilt' "
+                  "(the thesis's 7.3.15: the motion PQ' tilted by phi into / out of the "
+                  'surface; acts only while moving along the path).', choices=FORCE_LAWS,
+                  on_change=lambda v: self._configure(force_law=v)),
             Param('speed', 0.015, '[m/s] Speed along the path.', range=(1e-4, 0.2),
                   on_change=lambda v: self._configure(speed=v)),
             Param('pose_gain', 10.0, '[1/s] Pose feedback gain.', range=(0.1, 50.0),
@@ -121,7 +127,8 @@ class Pa10IkNode(Node):
         self.controller = TrackingController(
             self.robot, self._make_solver(), TrackingConfig(
                 desired_force=p.desired_force, stiffness=p.contact_stiffness,
-                force_gain=p.force_gain, speed=p.speed, pose_gain=p.pose_gain,
+                force_gain=p.force_gain, force_law=p.force_law, speed=p.speed,
+                pose_gain=p.pose_gain,
                 track_spin=p.track_spin, standoff=p.standoff, descent_speed=p.descent_speed,
                 lift_height=p.lift_height, max_position_error=p.max_position_error,
                 error_timeout=p.error_timeout),
@@ -279,7 +286,16 @@ class Pa10IkNode(Node):
         if self.params.auto_start and controller.phase == 'idle' and \
                 not self._missing_inputs():
             self._start()
-        if controller.phase in ACTIVE_PHASES:
+        # The step the timer really took (a loaded machine runs it late), bounded so one
+        # long stall does not become a jump: the reference then moves at the set speed.
+        now = time.monotonic()
+        stalled = self.last_step is not None and \
+            now - self.last_step > self.params.pressure_timeout / 2
+        dt = self.dt if self.last_step is None else min(now - self.last_step, 3 * self.dt)
+        self.last_step = now
+        # After a stall of this node's own executor the sensors' newest messages are still
+        # queued behind this timer: judge their freshness on the next step.
+        if controller.phase in ACTIVE_PHASES and not stalled:
             if not self._fresh(self.pressure_time):
                 controller.stop(f'stale pressure: no /tool/pressure for more than '
                                 f'{self.params.pressure_timeout} s')
@@ -289,11 +305,6 @@ class Pa10IkNode(Node):
             if controller.phase == 'stopped':
                 self._hold()
         q = self.q
-        # The step the timer really took (a loaded machine runs it late), bounded so one
-        # long stall does not become a jump: the reference then moves at the set speed.
-        now = time.monotonic()
-        dt = self.dt if self.last_step is None else min(now - self.last_step, 3 * self.dt)
-        self.last_step = now
         if controller.phase in (*ACTIVE_PHASES, 'done'):
             started = time.perf_counter()
             qdot, info = controller.step(q, self.force, dt)
@@ -371,6 +382,7 @@ class Pa10IkNode(Node):
             'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}' if self.step_times
             else 'nan',
             'method': self.params.method,
+            'force_law': self.params.force_law,
             'reason': controller.reason,
         }
         if self.params.method == 'primal_dual':

@@ -6,8 +6,9 @@ the surface, x along the curve's tangent, z the approach direction into the surf
 pre-contact pose above the first waypoint, then descent along its approach axis until the
 measured force reaches the desired one), contact (the force settles), tracking (a
 reference runs along the path by arc length at ``speed``; the tool frame E comes from the
-tangent-plane construction of §6.4; the depth along the approach axis from an integral
-force law), done (lift-off and hold); stop or any failure holds still. Each step turns the
+tangent-plane construction of §6.4; the depth along the approach axis from the force law
+``force_law``: ``integral`` (ours) or ``tilt`` (the thesis's 7.3.15 rule, see
+``tilted_motion``)), done (lift-off and hold); stop or any failure holds still. Each step turns the
 reference pose and its feed-forward twist into joint velocities through ``RateSolver``
 (pose feedback, so no drift accumulates).
 """
@@ -87,6 +88,30 @@ def approach_correction(integral, measured_force, desired_force, stiffness, dt, 
     return depth, integral
 
 
+def tilted_motion(measured_force, desired_force, advance):
+    """The thesis's force rule (7.3.15, §6.4 step 7) applied to one step of the motion PQ'.
+
+    At each new contact point the thesis rotates the tool frame E about its y axis by
+    phi = pi (lambda_n - lambda_d) / (2 lambda_d) and takes the rotated z as the approach
+    axis (the normal) for the next tangent plane, so the next motion along PQ' runs in
+    the rotated x direction x' = cos(phi) x_E - sin(phi) z_E (z_E points into the
+    surface). Only that part of Rot(y, phi) moves the tip: rotating the approach axis about
+    the contact point leaves the tip, and so a frictionless point contact's normal force,
+    unchanged. Here the next marker Q is the reference one control step ahead, so a step
+    of ``advance`` [m] along the path becomes ``advance cos(phi)`` along the tangent x_E
+    and ``-advance sin(phi)`` deeper along z_E: too little force (phi < 0) tilts the motion
+    into the surface, too much (phi > 0) out of it; no contact at all (phi = -pi/2) goes
+    straight in. phi is clipped to [-pi/2, pi/2] (lambda_n > 2 lambda_d: straight out).
+
+    Returns:
+        (phi [rad], tangential advance [m], depth change [m] along z_E).
+    """
+    phi = float(np.clip(force_tilt_angle(measured_force, desired_force),
+                        -np.pi / 2, np.pi / 2))
+    return phi, advance * np.cos(phi), -advance * np.sin(phi)
+
+
+FORCE_LAWS = ('integral', 'tilt')
 PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
 ACTIVE_PHASES = ('approach', 'contact', 'tracking')
 
@@ -104,6 +129,7 @@ class TrackingConfig:
     speed: float = 0.015  # [m/s] along the path
     pose_gain: float = 10.0  # [1/s] pose feedback
     force_gain: float = 5.0  # [1/s] integral force law (approach_correction)
+    force_law: str = 'integral'  # 'integral' (ours) or 'tilt' (thesis 7.3.15, tilted_motion)
     track_spin: bool = False  # track the spin about the approach axis too (6 constraints)
     standoff: float = 0.03  # [m] pre-contact pose above the first waypoint
     descent_speed: float = 0.01  # [m/s] along the approach axis before contact
@@ -192,6 +218,7 @@ class TrackingController:
     def __init__(self, robot, solver, config=None, max_joint_velocity=None):
         self.robot, self.solver = robot, solver
         self.config = TrackingConfig() if config is None else config
+        self.configure()  # validates force_law
         limits = np.array(robot.velocity_limits, dtype=float)
         if max_joint_velocity is not None:
             limits = np.minimum(limits, max_joint_velocity)
@@ -203,6 +230,7 @@ class TrackingController:
     def _reset_state(self):
         self.stage = ''  # approach: 'free' or 'descend'; done: lifting
         self.integral, self.time_in_phase, self.settled_time = 0.0, 0.0, 0.0
+        self.depth = 0.0  # [m] commanded indentation along the approach axis
         self.s_start = self.s_ref = self.travelled = 0.0
         self.error_time = 0.0
         self.best_distance, self.stall_time = np.inf, 0.0
@@ -213,6 +241,9 @@ class TrackingController:
 
     def configure(self, **changes):
         """Change settings (between or during runs)."""
+        law = changes.get('force_law', self.config.force_law)
+        if law not in FORCE_LAWS:
+            raise InvalidInput(f'force_law must be one of {FORCE_LAWS}', 'force_law', law)
         self.config = replace(self.config, **changes)
 
     # --- commands --------------------------------------------------------------------
@@ -352,28 +383,42 @@ class TrackingController:
             P0, z0, _ = self._sample(0.0)
             in_band = abs(force - c.desired_force) <= c.force_tolerance * c.desired_force
             self.settled_time = self.settled_time + dt if in_band else 0.0
+            self.depth = depth  # the tilt law starts tracking from the settled depth
             if self.settled_time >= c.settle_time or self.time_in_phase > c.contact_timeout:
                 self._enter('tracking')
                 self.s_start = self.s_ref = self.travelled = 0.0
             T_d = self._frame(0.0, P0 + depth * z0)
             return self._checked(T, T_d, np.zeros(6), dt)
         if self.phase == 'tracking':
-            depth, self.integral = approach_correction(
-                self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
-                c.max_depth)
+            tilt = c.force_law == 'tilt'
+            if not tilt:
+                self.depth, self.integral = approach_correction(
+                    self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
+                    c.max_depth)
             remaining = path.length - self.travelled
             speed = c.speed * min(1.0, max(self.time_in_phase / c.ramp_time, 0.05))
             P, z, _ = self._sample(self.s_ref)
-            lag = np.linalg.norm(P + depth * z - tip)
+            lag = np.linalg.norm(P + self.depth * z - tip)
+            # Direction of motion in E: (along x_E, along z_E) per unit path step.
+            direction = (1.0, 0.0)
             if lag < c.governor_distance:  # the reference waits for a lagging tip
                 advance = min(speed * dt, remaining)
+                if tilt:  # the thesis: PQ' tilted by phi into / out of the surface
+                    phi, advance, deeper = tilted_motion(force, c.desired_force, advance)
+                    direction = (np.cos(phi), -np.sin(phi))
+                    self.depth = float(np.clip(self.depth + deeper, 0.0, c.max_depth))
+                    if remaining - advance < 1e-6:  # no endless creep towards the end
+                        advance = remaining
                 self.s_ref += advance
                 self.travelled += advance
             self.progress = self.travelled / path.length
             P, z, _ = self._sample(self.s_ref)
-            T_d = self._frame(self.s_ref, P + depth * z)
+            T_d = self._frame(self.s_ref, P + self.depth * z)
             moving = self.travelled < path.length
-            feed_forward = np.concatenate([speed * T_d[:3, 0] if moving else np.zeros(3),
+            # Feed-forward no faster than the reference can still go (the path's end).
+            speed = min(speed, remaining / dt) if dt > 0 else speed
+            velocity = speed * (direction[0] * T_d[:3, 0] + direction[1] * T_d[:3, 2])
+            feed_forward = np.concatenate([velocity if moving else np.zeros(3),
                                            np.zeros(3)])
             s_near, _ = path.nearest(tip, self.s_ref % path.length if path.closed
                                      else self.s_ref, window=0.05)

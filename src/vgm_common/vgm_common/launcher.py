@@ -93,7 +93,7 @@ class Launch:
             self.processes[name] = subprocess.Popen(
                 argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL, text=True, bufsize=1,
-                preexec_fn=_own_group_die_with_parent, env=dict(os.environ, PYTHONUNBUFFERED='1'))
+                preexec_fn=_own_group_die_with_parent, env=_node_environment())
         # Threads only after every fork: preexec_fn is unsafe while other threads run.
         for name, process in self.processes.items():
             pump = threading.Thread(target=self._pump, args=(name, process.stdout), daemon=True)
@@ -149,6 +149,16 @@ class Launch:
             self._print('launch', f'{name} failed with exit status '
                         f'{self.processes[name].returncode}\n')
         return 1 if failed_before_stop or self.failed() else 0
+
+
+def _node_environment():
+    """The nodes' environment: unbuffered output (log lines in order) and, unless the
+    user chose otherwise, one BLAS/OpenMP thread per node: a graph of several processes
+    on a few cores stalls when each numpy spins up a thread per core."""
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    for variable in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS'):
+        env.setdefault(variable, '1')
+    return env
 
 
 def _own_group_die_with_parent():
