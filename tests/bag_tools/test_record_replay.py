@@ -19,7 +19,7 @@ from sensor_msgs.msg import Image, JointState
 
 from bag_tools.bag_writer import BagReader, BagWriter
 from bag_tools.player_node import PlayerNode
-from bag_tools.recorder_node import qos_to_dict, subscription_qos
+from bag_tools.recorder_node import SUBSCRIPTION_DEPTH, qos_to_dict, subscription_qos
 from harness import executable, wait_for
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 
@@ -83,7 +83,7 @@ def test_qos_adaptation():
     qos = subscription_qos([latched, best_effort])  # must match both publishers
     assert (qos.durability, qos.reliability) == \
         (DurabilityPolicy.VOLATILE, ReliabilityPolicy.BEST_EFFORT)
-    assert qos.depth == 100
+    assert qos.depth == SUBSCRIPTION_DEPTH
     stored = qos_to_dict(LATCHED_QOS)
     assert {k: stored[k] for k in ('history', 'depth', 'reliability', 'durability',
                                    'liveliness')} == {
