@@ -61,7 +61,7 @@ TOLERANCES = {
     'force in band [%]': 95.0,           # samples within +-10 % of the desired force
 }
 LIFT_OFF_TIME = 2.0  # [s] the graph runs on this long once the arm reports done
-STAGE_TIMEOUTS = {'calibrated': 120.0, 'reconstructed': 60.0, 'fused': 60.0}  # [s]
+STAGE_TIMEOUTS = {'calibrated': 120.0, 'reconstructed': 60.0, 'tracking': 300.0}  # [s]
 
 
 def stage(number, total, text):
@@ -127,10 +127,9 @@ class ClosedLoop:
     def __init__(self, launch, probe, total_stages):
         self.launch, self.probe, self.total = launch, probe, total_stages
         self.step = 'calibrated'
-        self.step_started = self.started = time.monotonic()
+        self.step_started = time.monotonic()
         self.last_print = 0.0
         self.failure = None
-        self.phases = []  # (time, phase) of the arm
         self.done_at = None
 
     def __call__(self):
@@ -161,19 +160,16 @@ class ClosedLoop:
                     return True
             values = self.probe.values('pa10_ik_node: tracking')
             phase = values.get('phase', '?')
-            if not self.phases or self.phases[-1][1] != phase:
-                self.phases.append((now - self.started, phase))
             if chatty:
-                print(f'   ... phase {phase}, progress {float(values.get("progress", 0)):.0%}, '
-                      f'force {values.get("force_N", "?")} N, '
-                      f'path error {values.get("position_error_m", "?")} m', flush=True)
+                print(f'   ... {phase}: {float(values.get("progress", 0)):.0%} of the curve, '
+                      f'force {float(values.get("force_N", "nan")):.2f} N, path error '
+                      f'{float(values.get("position_error_m", "nan")) * 1e3:.2f} mm', flush=True)
             if phase == 'done':  # give the arm a moment to lift off the surface
                 self.done_at = self.done_at or now
                 return now - self.done_at > LIFT_OFF_TIME
             if phase in ('stopped', 'failed'):
                 self.failure = f'the arm {phase}: {self.probe.status["pa10_ik_node: tracking"][0]}'
                 return True
-            return False
         if elapsed > STAGE_TIMEOUTS.get(self.step, np.inf):
             self.failure = f'timed out after {elapsed:.0f} s waiting until {self.step}'
             return True
@@ -310,7 +306,7 @@ def checks(results):
     return rows
 
 
-def plot_report(report_dir, messages, data, scenario):
+def plot_report(report_dir, messages, data):
     figures = []
 
     def save(fig, file, title):
@@ -504,7 +500,7 @@ def main():
     rows = message_rows(counts_mcap, counts_rosbags, published)
     report_dir = bag_dir / 'report'
     report_dir.mkdir(exist_ok=True)
-    figures = plot_report(report_dir, messages, data, scenario)
+    figures = plot_report(report_dir, messages, data)
     timings['total_s'] = time.monotonic() - started
     write_report(report_dir, bag_dir, scenario, results, check_rows, rows, figures, timings)
     (report_dir / 'results.json').write_text(json.dumps(

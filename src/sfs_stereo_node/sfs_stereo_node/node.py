@@ -114,9 +114,10 @@ class SfsStereoNode(Node):
                   range=(0.01, 60.0), read_only=True),
             Param('log_every', 10.0, 'Seconds between INFO lines on processed frames.',
                   range=(0.0, 3600.0)),
-            Param('max_rate', 0.0, 'Process at most this many pairs per second (always the '
-                  'newest) [Hz]; 0 = as fast as they come. Frees the CPU for other nodes.',
-                  range=(0.0, 100.0)),
+            Param('max_rate', 0.0, 'Process at most this many pairs per second of image '
+                  'time: the first pair of each 1/max_rate slot of stamps [Hz]; 0 = as fast '
+                  'as they come. Frees the CPU for other nodes; chosen by stamps, a replayed '
+                  'bag gives the same frames.', range=(0.0, 100.0)),
         ], self.diagnostics)
         self.cameras = CalibratedCameras(self, ('left', 'right'), self.diagnostics)
         self.publishers_ = {
@@ -135,7 +136,8 @@ class SfsStereoNode(Node):
                                      lambda msg, n=name: self._on_image(n, msg), DEFAULT_QOS)
         self.maps = None
         self.maps_key = None
-        self.processed = self.dropped = self.failed = 0
+        self.processed = self.dropped = self.failed = self.throttled = 0
+        self.last_slot = None  # max_rate: the stamp slot of the last pair taken
         self.sync_dropped_reported = 0
         self.last_timings = {}
         self.last_density = float('nan')
@@ -161,6 +163,12 @@ class SfsStereoNode(Node):
                     f'({self.sync.dropped} so far)', key='stamp'))
 
     def _on_pair(self, stamp_ns, messages):
+        if self.params.max_rate > 0:
+            slot = int(stamp_ns * self.params.max_rate) // 1_000_000_000
+            if slot == self.last_slot:
+                self.throttled += 1
+                return
+            self.last_slot = slot
         with self.wakeup:
             if self.pending is not None:
                 self.dropped += 1  # superseded before it was processed
@@ -176,7 +184,6 @@ class SfsStereoNode(Node):
                     return
                 stamp_ns, messages = self.pending
                 self.pending = None
-            started = time.monotonic()
             try:
                 self._process(stamp_ns, messages)
             except InvalidInput as error:
@@ -185,10 +192,6 @@ class SfsStereoNode(Node):
             except Exception as error:  # noqa: BLE001 - keep serving, report it
                 self.failed += 1
                 self.diagnostics.reject('stereo pair', f'{type(error).__name__}: {error}')
-            if self.params.max_rate > 0:  # pause; the newest pair waits in self.pending
-                pause = started + 1.0 / self.params.max_rate - time.monotonic()
-                with self.wakeup:
-                    self.wakeup.wait_for(lambda: self.closed, timeout=max(0.0, pause))
 
     def _rectified_pair(self, left_shape):
         if not self.cameras.ready:
@@ -286,6 +289,7 @@ class SfsStereoNode(Node):
 
     def _publish_diagnostics(self):
         values = {'frames processed': self.processed, 'frames dropped (busy)': self.dropped,
+                  'frames skipped (max_rate)': self.throttled,
                   'pairs failed': self.failed, 'unpaired images dropped': self.sync.dropped,
                   'match density': f'{self.last_density:.4f}',
                   **{f'time {k} [ms]': f'{v * 1000:.1f}' for k, v in self.last_timings.items()},
