@@ -331,10 +331,17 @@ def test_bad_input_gives_diagnostics_and_no_waypoints(bad_input_setup, rclpy_nod
     spin_publishing(blank, lambda: sum(s.name.endswith('rejected no curve')
                                        for s in probe.statuses) > count, 20, "'no curve'")
     assert not probe.paths and node.alive()
-    # 5. still serving: a good capture gives waypoints on the drawn ellipse
-    future = client.call_async(Trigger.Request())
-    spin_publishing(good, lambda: future.done() and probe.paths, 30, 'waypoints')
+    # 5. still serving: a good capture gives waypoints on the drawn ellipse. The "next"
+    # capture may still be a blank one in flight on a loaded machine: then the answer
+    # is 'no curve' and the next call takes a good one.
+    for _ in range(3):
+        future = client.call_async(Trigger.Request())
+        spin_publishing(good, future.done, 30, 'the service answer')
+        if future.result().success:
+            break
+        assert 'no curve' in future.result().message
     assert future.result().success and 'published' in future.result().message
+    rclpy_node.spin_until(lambda: probe.paths, 10, 'waypoints')
     points = path_to_matrices(probe.paths[-1])[:, :3, 3]
     distance, _ = cKDTree(ellipse).query(points)
     assert np.sqrt(np.mean(distance**2)) < 1e-3  # drawn with 1/16 px rounding by OpenCV
