@@ -276,9 +276,9 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
     Ctrl-C and SIGTERM end construction by KeyboardInterrupt and spinning within
     ``POLL_PERIOD`` (rclpy's own signal handler would invalidate the context first), so
     the node can still log and publish while it stops; further signals are ignored until
-    it has stopped. A VgmError
-    during construction (bad parameter, bad scenario) is logged in one line with exit
-    status 2, never as a traceback. The node may define, all optional:
+    it has stopped. A VgmError during construction (bad parameter, bad scenario) is
+    logged in one line with exit status 2, never as a traceback. The node may define,
+    all optional:
 
     - ``exit_requested``: a ``threading.Event``; setting it, from any thread, ends spinning
       (within ``POLL_PERIOD``) as a signal does: playback done, the disk full.
