@@ -7,6 +7,7 @@ from vgm_common.camera_model import PinholeCamera
 from vgm_common.conversions import (
     camera_info_to_camera,
     camera_to_camera_info,
+    image_to_grey,
     image_to_numpy,
     matrices_to_path,
     ns_to_stamp,
@@ -100,3 +101,18 @@ def test_path_round_trip_and_rejections():
 def test_stamp_conversion():
     for ns in (0, 1, 999_999_999, 1_000_000_000, 1_732_000_000_123_456_789):
         assert stamp_to_ns(ns_to_stamp(ns)) == ns
+
+
+def test_image_to_grey_puts_every_encoding_on_one_scale():
+    grey = np.arange(12, dtype=np.uint8).reshape(3, 4) * 20
+    expected = grey.astype(np.float32)
+    np.testing.assert_array_equal(image_to_grey(numpy_to_image(grey, 'mono8', 1, 'f')), expected)
+    mono16 = grey.astype(np.uint16) * 257  # 255 -> 65535
+    np.testing.assert_allclose(image_to_grey(numpy_to_image(mono16, 'mono16', 1, 'f')),
+                               expected, atol=1e-4)
+    rgb = np.stack([grey] * 3, axis=2)
+    for encoding in ('rgb8', 'bgr8'):
+        np.testing.assert_allclose(image_to_grey(numpy_to_image(rgb, encoding, 1, 'f')),
+                                   expected, atol=1e-4)
+    with pytest.raises(InvalidInput, match='32FC1'):
+        image_to_grey(numpy_to_image(expected, '32FC1', 1, 'f'))

@@ -34,6 +34,7 @@ from vgm_common.camera_topics import (
     CalibratedCameras,
 )
 from vgm_common.conversions import (
+    image_to_grey,
     image_to_numpy,
     matrices_to_path,
     points_to_pointcloud2,
@@ -47,19 +48,6 @@ from vgm_common.sync import ExactTimeSync
 TARGET_POSE_TOPIC = '/calibration/target_pose'
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 DEPTH_TOPIC, DEPTH_INFO_TOPIC = '/depth/fused', '/depth/camera_info'
-
-
-def grey_image(msg):
-    """Image message -> (H, W) float grey image; InvalidInput for other encodings."""
-    array = image_to_numpy(msg)
-    if msg.encoding in ('mono8', '8UC1', 'mono16', '16UC1'):
-        return array.astype(float) * (255.0 / 65535.0 if array.dtype == np.uint16 else 1.0)
-    if msg.encoding in ('rgb8', 'bgr8', 'rgba8', 'bgra8'):
-        weights = [0.299, 0.587, 0.114] if msg.encoding.startswith('rgb') else \
-            [0.114, 0.587, 0.299]
-        return array[:, :, :3].astype(float) @ weights
-    raise InvalidInput(f'expected a mono or colour 8-bit image, got {msg.encoding!r}',
-                       key='encoding', value=msg.encoding)
 
 
 class CurveReconNode(Node):
@@ -307,7 +295,7 @@ class CurveReconNode(Node):
             images = {}
             for name in names:
                 try:
-                    images[name] = grey_image(messages[name])
+                    images[name] = image_to_grey(messages[name]).astype(float)
                 except InvalidInput as error:
                     self.diagnostics.reject(IMAGE_TOPICS[name], error)
                     return False, f'{IMAGE_TOPICS[name]}: {error}'

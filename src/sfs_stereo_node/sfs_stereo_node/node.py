@@ -18,7 +18,7 @@ from stereo_msgs.msg import DisparityImage
 from sfs_stereo_node.pipeline import FUSIONS, STEREOS, DepthConfig, process_pair
 from sfs_stereo_node.rectify import rectification_maps
 from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES, CalibratedCameras
-from vgm_common.conversions import image_to_numpy, make_header, numpy_to_image, stamp_to_ns
+from vgm_common.conversions import image_to_grey, make_header, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
 from vgm_common.node_tools import (
     CountingPublisher,
@@ -31,7 +31,6 @@ from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
-GREY_ENCODINGS = ('mono8', 'mono16', 'rgb8', 'bgr8')
 INVALID_DISPARITY = -1.0  # below min_disparity, as stereo_image_proc marks no match
 
 
@@ -213,17 +212,8 @@ class SfsStereoNode(Node):
             self.maps_key = key
         return self.maps
 
-    def _image(self, name, msg):
-        if msg.encoding not in GREY_ENCODINGS:
-            raise InvalidInput(f'{name} image encoding {msg.encoding!r} not one of '
-                               f'{", ".join(GREY_ENCODINGS)}', key='encoding')
-        image = image_to_numpy(msg)
-        if msg.encoding == 'bgr8':
-            image = image[..., ::-1]
-        return image
-
     def _process(self, stamp_ns, messages):
-        left, right = (self._image(n, messages[n]) for n in ('left', 'right'))
+        left, right = (image_to_grey(messages[n]) for n in ('left', 'right'))
         if left.shape[:2] != right.shape[:2]:
             raise InvalidInput(f'left {left.shape[1]}x{left.shape[0]} and right '
                                f'{right.shape[1]}x{right.shape[0]} images differ in size',

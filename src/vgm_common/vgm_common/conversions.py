@@ -65,6 +65,25 @@ def image_to_numpy(msg):
         pixels.reshape(msg.height, msg.width)
 
 
+_GREY_WEIGHTS = {'rgb8': (0.299, 0.587, 0.114), 'rgba8': (0.299, 0.587, 0.114),
+                 'bgr8': (0.114, 0.587, 0.299), 'bgra8': (0.114, 0.587, 0.299)}
+
+
+def image_to_grey(msg):
+    """Image (mono8/16, 8UC1/16UC1, rgb8, bgr8, rgba8, bgra8) -> (H, W) float32 grey
+    levels on the 0..255 scale (16-bit images scaled down, colour by ITU-R BT.601)."""
+    array = image_to_numpy(msg)
+    if msg.encoding in ('mono8', '8UC1'):
+        return array.astype(np.float32)
+    if msg.encoding in ('mono16', '16UC1'):
+        return array.astype(np.float32) * np.float32(255.0 / 65535.0)
+    if msg.encoding in _GREY_WEIGHTS:
+        return (array[:, :, :3].astype(np.float32)
+                @ np.array(_GREY_WEIGHTS[msg.encoding], dtype=np.float32))
+    raise InvalidInput(f'expected a grey or 8-bit colour image, got {msg.encoding!r}',
+                       key='encoding', value=msg.encoding)
+
+
 def numpy_to_image(array, encoding, stamp_ns, frame_id):
     """(H, W) or (H, W, C) array -> Image (little-endian, no row padding)."""
     if encoding not in IMAGE_ENCODINGS:
