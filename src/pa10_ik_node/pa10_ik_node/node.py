@@ -107,7 +107,7 @@ class Pa10IkNode(Node):
                   on_change=lambda v: self._configure(max_position_error=v)),
             Param('error_timeout', 1.0, '[s] See max_position_error.', range=(0.01, 60.0),
                   on_change=lambda v: self._configure(error_timeout=v)),
-            Param('pressure_timeout', 0.5, '[s] Pressure (or joint state) older than this '
+            Param('pressure_timeout', 1.0, '[s] Pressure (or joint state) older than this '
                   'while active: stop.', range=(0.01, 60.0)),
             Param('command_horizon', 0.05, '[s] time_from_start of the commanded point.',
                   range=(0.001, 1.0)),
