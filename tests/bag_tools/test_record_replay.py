@@ -32,7 +32,10 @@ PERIOD = 0.05  # [s] joint state period; an image every third one
 # tens of ms late (a repaired first sample, a descheduled process), so the checks are robust
 # statistics, not a maximum.
 SPEED_TOLERANCE = 0.03  # relative, on the fitted playback speed
-TYPICAL_TIMING_ERROR = 0.01  # [s] median deviation from the recorded schedule
+# [s] median deviation from the recorded schedule: 2-5 ms on an idle machine, measured up
+# to 10.2 ms while the rest of the suite's nodes ran (record and replay times both jitter);
+# a player ignoring the schedule is caught by the speed check.
+TYPICAL_TIMING_ERROR = 0.02
 
 
 def start_recorder(spawn, tmp_path, bag_name, *extra):

@@ -151,9 +151,13 @@ def test_bad_input_is_reported_and_the_node_keeps_serving(spawn, rclpy_node, tmp
                                                   OPTICAL_FRAMES['right']))
 
     def wait_rejection(text, what):
-        rclpy_node.spin_until(lambda: any(text in s.message for s in
-                                          statuses(received, 'rejected stereo pair')),
-                              30, what)
+        try:
+            rclpy_node.spin_until(lambda: any(text in s.message for s in
+                                              statuses(received, 'rejected stereo pair')),
+                                  30, what)
+        except TimeoutError as error:
+            seen = [s.message for s in statuses(received, 'rejected')]
+            raise AssertionError(f'{error}; rejections so far: {seen}') from None
 
     # 1. no camera info yet
     send(1_000_000_000, left, right)
@@ -163,6 +167,11 @@ def test_bad_input_is_reported_and_the_node_keeps_serving(spawn, rclpy_node, tmp
     write_calibration(calib_dir, {n: scenario.cameras[n] for n in ('left', 'right', 'aux')},
                       OPTICAL_FRAMES)
     publishers, rig = publish_rig(rclpy_node, calib_dir)  # noqa: F841 (kept alive)
+    # Steps 3-5 fail before the calibration is looked at, step 6 after: wait until the
+    # node has it, or a loaded machine answers step 6 with 'no calibration yet'.
+    rclpy_node.spin_until(lambda: any('no pair processed' in s.message
+                                      for s in statuses(received, ': depth')),
+                          30, 'the node to take the calibration')
     # 3. wrong encoding
     bad = Image(header=numpy_to_image(left, 'mono8', 2_000_000_000, 'x').header, height=240,
                 width=320, encoding='yuv422', step=640, data=bytes(240 * 640))
