@@ -43,12 +43,12 @@ from calib_node.seed_camera import (
     RIGHT_TRUTH,
     identifiable,
     project_seed,
-    seed_control_points,
+    seed_stereo_observations,
 )
 from vgm_common.scenario import load_scenario, resolve_scenario_path
 
 RESULTS = Path(__file__).resolve().parent / 'results' / 'calib'
-POINTS = seed_control_points()
+POINTS, CLEAN_PIXELS = seed_stereo_observations()  # noise-free
 TRUTH = (LEFT_TRUTH, RIGHT_TRUTH)
 IMAGE_SIZES = ((320, 240), (512, 384))  # the ch4_calibration scenario's cameras
 QUANTITIES = ('fx', 'fy', 'kappa', 'u0', 'v0', 'R', 'T')
@@ -122,8 +122,7 @@ def trial(sigma, seed, run_ga=True, extras=False):
     ``extras``: also the DLT + LM start (the old "ours") and the unstructured network.
     """
     rng = np.random.default_rng(seed)
-    clean = project_seed(np.stack(TRUTH), POINTS)
-    pixels = clean + sigma * rng.standard_normal(clean.shape)
+    pixels = CLEAN_PIXELS + sigma * rng.standard_normal(CLEAN_PIXELS.shape)
     out = {}
 
     def record(method, params, seconds, **more):

@@ -14,13 +14,11 @@ from calib_node.seed_camera import (
     LEFT_TRUTH,
     RIGHT_TRUTH,
     identifiable,
-    project_seed,
-    seed_control_points,
+    seed_stereo_observations,
 )
 
-POINTS_WORLD = seed_control_points()
+POINTS_WORLD, PIXELS = seed_stereo_observations()  # (512, 3), (2, 512, 2) noise-free
 TRUTH = (LEFT_TRUTH, RIGHT_TRUTH)
-PIXELS = project_seed(np.stack(TRUTH), POINTS_WORLD)  # (2, 512, 2), noise-free
 
 
 def relative_errors(params, truth):

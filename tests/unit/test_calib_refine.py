@@ -10,12 +10,11 @@ from calib_node.seed_camera import (
     RIGHT_TRUTH,
     identifiable,
     project_seed,
-    seed_control_points,
+    seed_stereo_observations,
 )
 
-POINTS_WORLD = seed_control_points()
+POINTS_WORLD, PIXELS = seed_stereo_observations()  # (512, 3), (2, 512, 2) noise-free
 TRUTH = (LEFT_TRUTH, RIGHT_TRUTH)
-PIXELS = project_seed(np.stack(TRUTH), POINTS_WORLD)  # (2, 512, 2)
 SIGMA = 0.5  # [px] per coordinate
 
 

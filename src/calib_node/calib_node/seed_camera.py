@@ -59,6 +59,13 @@ def seed_control_points(spacing=10.0):
     return np.column_stack([x.ravel(), y.ravel(), z.ravel()])
 
 
+def seed_stereo_observations():
+    """The thesis's calibration experiment: the 512 control points (N, 3) [unit] and their
+    noise-free pixels in the Table 4.1 left and right cameras, (2, N, 2)."""
+    points = seed_control_points()
+    return points, project_seed(np.stack([LEFT_TRUTH, RIGHT_TRUTH]), points)
+
+
 def distorted_radius(r_u, k):
     """Root r >= 0 of k r^3 + r - r_u = 0 for k >= 0 (unique), elementwise by broadcasting.
 
