@@ -223,11 +223,7 @@ def run_force(scenario_name, force_law='integral', speed=0.02, dt=0.01, depth_er
         started = time.perf_counter()
         qdot, info = controller.step(arm.q, force, dt)
         step_times.append(time.perf_counter() - started)
-        arm.set_trajectory(robot.joint_names, [0.05], [arm.q + 0.05 * qdot], [qdot],
-                           start_time=t)
-        for _ in range(2):
-            t += dt / 2
-            arm.step(t, dt / 2)
+        t = arm.follow_velocity(robot.joint_names, qdot, t, dt)
         T = robot.forward_kinematics(arm.q)
         true_force = contact_force(T[:3, 3], scenario.surface,
                                    scenario.contact_stiffness).force

@@ -135,3 +135,18 @@ def test_hold_stops_where_the_arm_is():
 def test_initial_position_outside_limits_is_rejected():
     with pytest.raises(InvalidInput):
         make_arm(UPPER + 0.1)
+
+
+def test_follow_velocity_reaches_a_feasible_velocity():
+    arm = make_arm()
+    qdot = np.array([0.5, -0.2, 1.0, 0.0, 3.0, -1.0, 0.1])  # within QDOT_MAX
+    t, positions = 0.0, []
+    for _ in range(50):
+        t = arm.follow_velocity(NAMES, qdot, t, DT)
+        positions.append(arm.q)
+    assert t == pytest.approx(50 * DT)
+    # from rest the set point starts at zero velocity: after that start, qdot * DT per period
+    steps = np.diff(positions, axis=0)[-20:]
+    np.testing.assert_allclose(steps, np.tile(qdot * DT, (20, 1)), atol=1e-9)
+    lag = (50 * DT * qdot - arm.q)[qdot != 0] / qdot[qdot != 0]  # [s]
+    assert np.all((lag >= 0) & (lag < 2 * DT)), lag

@@ -81,11 +81,7 @@ def simulate(robot, scenario, waypoints, stiffness_estimate, method='ours', max_
         assert np.all(np.abs(qdot) <= controller.velocity_limits * (1 + 1e-9))
         if controller.phase in ('stopped', 'failed'):
             break
-        arm.set_trajectory(robot.joint_names, [0.05], [arm.q + 0.05 * qdot], [qdot],
-                           start_time=t)
-        for _ in range(2):
-            t += DT / 2
-            arm.step(t, DT / 2)
+        t = arm.follow_velocity(robot.joint_names, qdot, t, DT)
         T = robot.forward_kinematics(arm.q)
         force = contact_force(T[:3, 3], scenario.surface, k).force
         log.append((info['phase'], T, force))

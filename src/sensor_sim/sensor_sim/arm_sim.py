@@ -128,6 +128,18 @@ class SimulatedArm:
         self._q = q_new
         return self.q, self.qdot
 
+    def follow_velocity(self, joint_names, qdot, t, period, horizon=0.05, substeps=2):
+        """One control period of a velocity controller in an offline closed loop (tests,
+        bench): the command pa10_ik_node sends (q + qdot * horizon at ``horizon`` [s] with
+        velocity qdot, from time ``t``), followed in ``substeps`` steps as sensor_sim's
+        faster loop does. Returns the time after the period [s]."""
+        self.set_trajectory(joint_names, [horizon], [self._q + horizon * np.asarray(qdot)],
+                            [qdot], start_time=t)
+        for _ in range(substeps):
+            t += period / substeps
+            self.step(t, period / substeps)
+        return t
+
     def desired(self, t):
         """(n,) set point [rad] of the current command at time ``t`` [s]."""
         times, positions, velocities = self._times, self._positions, self._velocities
