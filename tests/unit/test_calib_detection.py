@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib_node.chart_detection import chart_points, detect_chessboard, orient_corners, to_grey
+from calib_node.chart_detection import chart_points, detect_chessboard, orient_corners
 
 ROWS, COLS, SPACING = 6, 9, 0.025
 SIZE = (640, 480)
@@ -55,6 +55,9 @@ def test_corners_in_chart_order_at_any_orientation(angle_deg):
     truth = project(H, chart_points(ROWS, COLS, SPACING))
     error = np.linalg.norm(detection.corners - truth, axis=1)
     assert error.max() < 0.3, error.max()  # subpixel, and corner (r, c) is corner (r, c)
+    # the node passes float grey levels (vgm_common.image_to_grey): the same corners
+    as_float = detect_chessboard(image.astype(np.float32), ROWS, COLS)
+    np.testing.assert_array_equal(as_float.corners, detection.corners)
 
 
 def test_mirrored_and_reversed_opencv_orders_are_repaired():
@@ -86,10 +89,3 @@ def test_a_symmetric_board_is_ambiguous():
     assert corners is None and 'ambiguous' in reason
 
 
-def test_colour_encodings():
-    image = draw_chart(homography(0.5))
-    rgb = np.dstack([image] * 3)
-    np.testing.assert_array_equal(to_grey(rgb, 'rgb8'), image)
-    np.testing.assert_array_equal(to_grey(image.astype(np.uint16) << 8, 'mono16'), image)
-    with pytest.raises(ValueError, match='encoding'):
-        to_grey(image.astype(np.float32), '32FC1')

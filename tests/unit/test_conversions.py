@@ -114,5 +114,5 @@ def test_image_to_grey_puts_every_encoding_on_one_scale():
     for encoding in ('rgb8', 'bgr8'):
         np.testing.assert_allclose(image_to_grey(numpy_to_image(rgb, encoding, 1, 'f')),
                                    expected, atol=1e-4)
-    with pytest.raises(InvalidInput, match='32FC1'):
+    with pytest.raises(InvalidInput, match="encoding '32FC1'"):
         image_to_grey(numpy_to_image(expected, '32FC1', 1, 'f'))

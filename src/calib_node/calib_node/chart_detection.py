@@ -31,20 +31,6 @@ def chart_points(rows, cols, spacing):
     return np.column_stack([c * spacing, r * spacing, np.zeros(rows * cols)])
 
 
-def to_grey(image, encoding):
-    """mono8 / mono16 / rgb8 / bgr8 / rgba8 / bgra8 array -> 8-bit grey (H, W)."""
-    if encoding in ('mono8', '8UC1'):
-        return image
-    if encoding in ('mono16', '16UC1'):
-        return (image >> 8).astype(np.uint8)
-    conversions = {'rgb8': cv2.COLOR_RGB2GRAY, 'bgr8': cv2.COLOR_BGR2GRAY,
-                   'rgba8': cv2.COLOR_RGBA2GRAY, 'bgra8': cv2.COLOR_BGRA2GRAY}
-    if encoding not in conversions:
-        raise ValueError(f'unsupported encoding for chart detection: {encoding!r} '
-                         f'(mono8, mono16, 8UC1, 16UC1, rgb8, bgr8, rgba8, bgra8)')
-    return cv2.cvtColor(image, conversions[encoding])
-
-
 def _mean_grey(grey, points, radius):
     """Mean grey level in (2 radius + 1)^2 windows around (K, 2) points, averaged."""
     height, width = grey.shape
@@ -96,7 +82,7 @@ def orient_corners(grey, corners, rows, cols, min_contrast=0.2):
 
 
 def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
-    """Find the rows x cols inner corners of the chart in an 8-bit grey image.
+    """Find the rows x cols inner corners of the chart in a grey image (0..255).
 
     OpenCV's sector-based detector (``findChessboardCornersSB``, subpixel accurate) first,
     the classic one with ``cornerSubPix`` as a fallback. A board must be found whole
@@ -106,7 +92,9 @@ def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
     Returns:
         :class:`Detection` (corners None and a reason when rejected).
     """
-    grey = np.ascontiguousarray(grey, dtype=np.uint8)
+    if grey.dtype != np.uint8:  # OpenCV's detectors take 8-bit images only
+        grey = np.clip(np.rint(grey), 0, 255).astype(np.uint8)
+    grey = np.ascontiguousarray(grey)
     size = (int(cols), int(rows))
     found, corners = cv2.findChessboardCornersSB(
         grey, size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)

@@ -26,7 +26,7 @@ from calib_node.calibrate import (
     GAOptions,
     calibrate_rig,
 )
-from calib_node.chart_detection import chart_points, detect_chessboard, to_grey
+from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS
 from calib_node.refine import NETWORK_ACCEPT, NETWORK_WEIGHTS
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
@@ -41,7 +41,7 @@ from vgm_common.camera_topics import (
 )
 from vgm_common.conversions import (
     camera_to_camera_info,
-    image_to_numpy,
+    image_to_grey,
     matrix_to_pose_stamped,
     pose_to_matrix,
     stamp_to_ns,
@@ -222,7 +222,7 @@ class CalibNode(Node):
         for name in CAMERA_NAMES:
             msg = messages[name]
             try:
-                greys[name] = to_grey(image_to_numpy(msg), msg.encoding)
+                greys[name] = image_to_grey(msg)
                 size = (msg.width, msg.height)
                 with self.lock:
                     expected = self.image_sizes.setdefault(name, size)

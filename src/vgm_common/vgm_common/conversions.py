@@ -80,7 +80,8 @@ def image_to_grey(msg):
     if msg.encoding in _GREY_WEIGHTS:
         return (array[:, :, :3].astype(np.float32)
                 @ np.array(_GREY_WEIGHTS[msg.encoding], dtype=np.float32))
-    raise InvalidInput(f'expected a grey or 8-bit colour image, got {msg.encoding!r}',
+    raise InvalidInput(f'image encoding {msg.encoding!r} is not grey or 8-bit colour '
+                       '(mono8, mono16, 8UC1, 16UC1, rgb8, bgr8, rgba8, bgra8)',
                        key='encoding', value=msg.encoding)
 
 
