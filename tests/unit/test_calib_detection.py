@@ -4,7 +4,12 @@ import cv2
 import numpy as np
 import pytest
 
-from calib_node.chart_detection import chart_points, detect_chessboard, orient_corners
+from calib_node.chart_detection import (
+    cells_alternate,
+    chart_points,
+    detect_chessboard,
+    orient_corners,
+)
 
 ROWS, COLS, SPACING = 6, 9, 0.025
 SIZE = (640, 480)
@@ -89,3 +94,15 @@ def test_a_symmetric_board_is_ambiguous():
     assert corners is None and 'ambiguous' in reason
 
 
+
+
+def test_a_sheared_grid_of_saddle_points_is_not_a_chessboard():
+    # What OpenCV once returned on a strongly slanted board: row r shifted by r squares.
+    # Its corners are all saddle points of the board, but its cells straddle square edges.
+    H = homography(np.radians(10))
+    image = draw_chart(H)
+    r, c = np.divmod(np.arange(4 * 5), 5)
+    sheared = project(H, np.column_stack([(c + r) * SPACING, r * SPACING]))
+    assert not cells_alternate(image, sheared, 4, 5)
+    true = project(H, chart_points(ROWS, COLS, SPACING))
+    assert cells_alternate(image, true, ROWS, COLS)

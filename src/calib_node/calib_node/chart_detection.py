@@ -52,6 +52,22 @@ def _end_squares(grid):
     return np.array([inner, outer]), np.linalg.norm(g11 - g00) / np.sqrt(2)
 
 
+def cells_alternate(grey, corners, rows, cols):
+    """Whether the (rows - 1) x (cols - 1) cells between the corners alternate black and
+    white: every cell of one colour darker than every cell of the other. OpenCV now and
+    then returns a sheared grid on a strongly slanted board, whose corners fit a
+    homography but whose cells straddle the squares' edges (mid-grey)."""
+    grid = np.asarray(corners, dtype=float).reshape(rows, cols, 2)
+    centres = (grid[:-1, :-1] + grid[:-1, 1:] + grid[1:, :-1] + grid[1:, 1:]) / 4
+    size = np.median(np.linalg.norm(grid[1:, 1:] - grid[:-1, :-1], axis=2)) / np.sqrt(2)
+    radius = max(1, int(0.2 * size))
+    means = np.array([[_mean_grey(grey, [centre], radius) for centre in row]
+                      for row in centres])
+    r, c = np.indices(means.shape)
+    even, odd = means[(r + c) % 2 == 0], means[(r + c) % 2 == 1]
+    return bool(even.max() < odd.min() or odd.max() < even.min())
+
+
 def orient_corners(grey, corners, rows, cols, min_contrast=0.2):
     """Reorder OpenCV's (rows * cols, 2) corners into the chart order.
 
@@ -87,7 +103,8 @@ def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
     OpenCV's sector-based detector (``findChessboardCornersSB``, subpixel accurate) first,
     the classic one with ``cornerSubPix`` as a fallback. A board must be found whole
     (partial boards are not found), be sharp enough (OpenCV's edge-width estimate at most
-    ``max_blur_px``) and have distinguishable ends (``orient_corners``).
+    ``max_blur_px``), alternate black and white cell by cell (``cells_alternate``) and
+    have distinguishable ends (``orient_corners``).
 
     Returns:
         :class:`Detection` (corners None and a reason when rejected).
@@ -112,5 +129,8 @@ def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
     if np.isfinite(sharpness) and sharpness > max_blur_px:
         return Detection(None, f'chart too blurred (edge width {sharpness:.1f} px > '
                                f'{max_blur_px:g})', sharpness)
+    if not cells_alternate(grey, corners, rows, cols):
+        return Detection(None, 'the corners found do not form a chessboard (its cells '
+                               'do not alternate black and white)', sharpness)
     ordered, reason = orient_corners(grey, corners, rows, cols, min_contrast)
     return Detection(ordered, reason, sharpness)
