@@ -6,6 +6,10 @@ follows the curve pressing on the surface. Then the bag is read back with two
 independent readers, everything is compared with the simulator's ground truth, and a
 report (markdown + PNG) and a summary table are written. Exit status 1 if a stage misses
 its tolerance, a node fails or a message is lost.
+
+A curve that does not lie on the scenario's surface (the thesis's chapter-3 curves float
+in front of a background plane) has nothing to press on: then the demo runs the vision
+stages only, without pa10_ik_node, and says so.
 """
 import argparse
 import json
@@ -37,6 +41,8 @@ from std_srvs.srv import Trigger  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import demo_evaluation as evaluation  # noqa: E402
 
+from sensor_sim.curves import curve_points_base  # noqa: E402
+from sensor_sim.surfaces import signed_height_base  # noqa: E402
 from vgm_common.camera_topics import IMAGE_TOPICS, CalibratedCameras  # noqa: E402
 from vgm_common.conversions import image_to_numpy, pose_to_matrix  # noqa: E402
 from vgm_common.launcher import Launch  # noqa: E402
@@ -50,6 +56,10 @@ NODES = ['recorder', 'sensor_sim', 'calib_node', 'sfs_stereo_node', 'curve_recon
 # Pipeline outputs the demo's probe watches to know how far the graph has got.
 WATCHED_TOPICS = {'/curve/waypoints': (PathMsg, LATCHED_QOS), '/depth/fused': (Image, DEFAULT_QOS)}
 DESIRED_FORCE = 5.0  # [N]
+ON_SURFACE_TOLERANCE = 1e-3  # [m] a curve this close to the surface can be pressed on
+# Image-curve degree for curve_recon_node by the scenario's curve kind; a loop on a curved
+# surface is fitted piecewise with conics (the graph's default).
+CURVE_DEGREES = {'parabola': 2, 'ellipse': 2, 'circle': 2, 'line_pair': 2, 'cubic': 3}
 
 # Tolerances of the stages (the summary table shows each beside its measured value).
 TOLERANCES = {
@@ -61,6 +71,7 @@ TOLERANCES = {
     'force in band [%]': 95.0,           # samples within +-10 % of the desired force
 }
 LIFT_OFF_TIME = 2.0  # [s] the graph runs on this long once the arm reports done
+DEPTH_GRACE = 30.0  # [s] without tracking: how long to wait for fused depth after the curve
 STAGE_TIMEOUTS = {'calibrated': 120.0, 'reconstructed': 60.0, 'tracking': 300.0}  # [s]
 
 
@@ -124,13 +135,13 @@ class GraphProbe:
 class ClosedLoop:
     """Steps of the run, checked each time the launcher polls (``until``)."""
 
-    def __init__(self, launch, probe, total_stages):
-        self.launch, self.probe, self.total = launch, probe, total_stages
+    def __init__(self, launch, probe, total_stages, track):
+        self.launch, self.probe, self.total, self.track = launch, probe, total_stages, track
         self.step = 'calibrated'
         self.step_started = time.monotonic()
         self.last_print = 0.0
         self.failure = None
-        self.done_at = None
+        self.done_at = self.curve_at = None
 
     def __call__(self):
         self.probe.spin()
@@ -146,11 +157,20 @@ class ClosedLoop:
             elif chatty:
                 views = re.findall(r'view (\d+): chart found', self.launch.log_text('calib_node'))
                 print(f'   ... {views[-1] if views else 0} chart views', flush=True)
-        elif self.step == 'reconstructed':
-            if self.probe.waypoints is not None and self.probe.received['/depth/fused']:
-                poses = len(self.probe.waypoints.poses)
-                print(f'   curve: {poses} waypoints; fused depth frames: '
-                      f'{self.probe.received["/depth/fused"]}', flush=True)
+        elif self.step == 'reconstructed' and self.probe.waypoints is not None:
+            self.curve_at = self.curve_at or now
+            depth_frames = self.probe.received['/depth/fused']
+            # Tracking needs the depth (approach directions); the vision stages alone
+            # report a missing depth as a failed stage rather than waiting for it forever.
+            if depth_frames or (not self.track and now - self.curve_at > DEPTH_GRACE):
+                why_no_depth = '' if depth_frames else ' ({})'.format(self.probe.status.get(
+                    'sfs_stereo_node: rejected stereo pair', ('no reason given',))[0])
+                print(f'   curve: {len(self.probe.waypoints.poses)} waypoints; fused depth '
+                      f'frames: {depth_frames}{why_no_depth}', flush=True)
+                if not self.track:
+                    self._next('done', 4, 'no tracking: the curve does not lie on the '
+                               'surface, there is nothing to press on')
+                    return True
                 self._next('tracking', 4, 'tracking the curve under force control')
         elif self.step == 'tracking':
             if self.probe.start_tracking() and self.probe.start_future.result() is not None:
@@ -187,6 +207,13 @@ def write_params(graph, path, settings):
     for node, values in settings.items():
         params[node]['ros__parameters'].update(values)
     path.write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+def curve_on_surface(scenario):
+    """Whether the scenario's curve lies on its surface: only then can the arm press on it."""
+    heights = signed_height_base(scenario.surface,
+                                 curve_points_base(scenario.curve, scenario.surface))
+    return bool(np.all(np.abs(heights) < ON_SURFACE_TOLERANCE))
 
 
 def light_in_left_optical_frame(scenario):
@@ -239,7 +266,7 @@ def inside(log_time, windows, margin_ns=int(0.5e9)):
     return any(a + margin_ns <= log_time <= b - margin_ns for a, b in windows)
 
 
-def evaluate(scenario, messages, truth_dir, calibration_dir):
+def evaluate(scenario, messages, truth_dir, calibration_dir, track):
     """Every stage against the ground truth: {measure: value} and the data for plots."""
     curve = evaluation.true_curve(truth_dir)
     cameras = evaluation.true_cameras(truth_dir)
@@ -269,6 +296,9 @@ def evaluate(scenario, messages, truth_dir, calibration_dir):
             results['depth'][topic] = evaluation.depth_errors(depth, P_rect, R_rect, T_base_left,
                                                               scenario.surface)
 
+    if not track:
+        data.update(tool_all=np.empty((0, 3)), tool_tracking=np.empty((0, 3)), windows=[])
+        return results, data
     windows = phase_windows(messages['/diagnostics'], 'tracking')
     tool = [(t, m) for t, m in messages['/tool_pose'] if inside(t, windows)]
     force = [(t, m.wrench.force.z) for t, m in messages['/tool/pressure'] if inside(t, windows)]
@@ -284,11 +314,12 @@ def evaluate(scenario, messages, truth_dir, calibration_dir):
     return results, data
 
 
-def checks(results):
-    """(measure, value, tolerance, passed) rows of the summary."""
+def checks(results, track):
+    """(measure, value, tolerance, passed) rows of the summary (no tracking rows when the
+    demo did not track)."""
     rows = []
 
-    def check(name, value, smaller_is_better=True):
+    def check(name, value, smaller_is_better=True):  # a missing value is inf (failed)
         tolerance = TOLERANCES[name]
         ok = value <= tolerance if smaller_is_better else value >= tolerance
         rows.append((name, value, tolerance, bool(ok)))
@@ -298,7 +329,10 @@ def checks(results):
           max(calibration[n]['image_rms_px'] for n in ('left', 'right', 'aux')))
     check('curve RMS [mm]', results['curve']['rms_m'] * 1e3)
     check('curve coverage [mm]', results['curve']['coverage_m'] * 1e3)
-    check('fused depth median [mm]', results['depth']['/depth/fused']['median_abs_m'] * 1e3)
+    fused = results['depth'].get('/depth/fused')
+    check('fused depth median [mm]', fused['median_abs_m'] * 1e3 if fused else np.inf)
+    if not track:
+        return rows
     tracking = results.get('tracking')
     check('tool path RMS [mm]', tracking['path_rms_m'] * 1e3 if tracking else np.inf)
     check('force in band [%]', tracking['force_in_band'] * 100 if tracking else 0.0,
@@ -427,6 +461,8 @@ def main():
         print(f'scenario {scenario.name} has no calibration chart: the demo needs one',
               file=sys.stderr)
         return 2
+    track = curve_on_surface(scenario)
+    nodes = NODES if track else [n for n in NODES if n != 'pa10_ik_node']
     name = f'demo-{datetime.now():%Y%m%d-%H%M%S}'
     bag_dir = args.bags / name
     work_dir = args.bags / f'.{name}-work'  # moved into the bag directory at the end
@@ -436,7 +472,7 @@ def main():
     light = light_in_left_optical_frame(scenario)
     views = len(scenario.calibration.T_base_chart) * scenario.calibration.captures_per_pose
 
-    stage(1, total, f'starting the graph on scenario {scenario.name}: {", ".join(NODES)}')
+    stage(1, total, f'starting the graph on scenario {scenario.name}: {", ".join(nodes)}')
     print(f'   node logs: {bag_dir}/launch.log; bag: {bag_dir}', flush=True)
     graph = Path(get_package_share_directory('vgm_common')) / 'params' / 'graph.yaml'
     params_file = work_dir / 'params.yaml'  # kept with the bag: how it was made
@@ -446,7 +482,11 @@ def main():
                        # recorder, calib_node and curve_recon_node see every camera: no
                        # chart view is lost to discovery
                        'min_subscribers': 3},
-        'calib_node': {'min_views': views, 'output_dir': str(calibration_dir)},
+        'calib_node': {'min_views': views, 'output_dir': str(calibration_dir),
+                       'chart.rows': scenario.calibration.rows,
+                       'chart.cols': scenario.calibration.cols,
+                       'chart.spacing': scenario.calibration.spacing},
+        'curve_recon_node': {'degree': CURVE_DEGREES.get(scenario.curve.kind, 2)},
         'sfs_stereo_node': {'light_direction': [float(v) for v in light],
                             'albedo': scenario.surface.albedo,
                             'roughness': scenario.surface.roughness},
@@ -454,9 +494,9 @@ def main():
                          'tool_length': scenario.robot.tool_length,
                          'desired_force': DESIRED_FORCE}})
     log_file = open(work_dir / 'launch.log', 'w')
-    launch = Launch(params_file, nodes=NODES, out=log_file)
+    launch = Launch(params_file, nodes=nodes, out=log_file)
     probe = GraphProbe()
-    loop = ClosedLoop(launch, probe, total)
+    loop = ClosedLoop(launch, probe, total, track)
     stage(2, total, f'calibrating the rig from {views} chart views')
     started = time.monotonic()
     try:
@@ -478,7 +518,7 @@ def main():
               file=sys.stderr)
         return 1
     published = Counter()  # what every node says it published, per topic
-    for node in NODES[1:]:
+    for node in nodes[1:]:
         published.update(parse_published_counts(launch.log_text(node)))
 
     stage(5, total, 'reading the bag with mcap + mcap_ros2 and with rosbags')
@@ -495,8 +535,8 @@ def main():
 
     stage(6, total, 'comparing with the ground truth and writing the report')
     results, data = evaluate(scenario, messages, bag_dir / 'ground_truth',
-                             bag_dir / 'calibration')
-    check_rows = checks(results)
+                             bag_dir / 'calibration', track)
+    check_rows = checks(results, track)
     rows = message_rows(counts_mcap, counts_rosbags, published)
     report_dir = bag_dir / 'report'
     report_dir.mkdir(exist_ok=True)
