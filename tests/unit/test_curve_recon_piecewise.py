@@ -11,6 +11,7 @@ from curve_recon_node.piecewise import (
     PiecewiseCurve,
     View,
     _real_positive_roots,
+    pinv_solve,
     reconstruct_cone_lsq,
     reconstruct_ray_roots,
     refine_points,
@@ -118,6 +119,47 @@ def test_real_positive_roots_match_numpy():
         np.testing.assert_allclose(np.sort(roots[rows == i]), expected, rtol=1e-8)
 
 
+def test_real_positive_roots_of_quadratics_and_lines_match_numpy():
+    """The closed form for degrees 1 and 2, incl. (nearly) double roots."""
+    rng = np.random.default_rng(6)
+    poly = rng.normal(size=(400, 3))
+    poly[:50, 2] = 0.0  # lines
+    c0, c2 = np.abs(poly[50:150, 0]), np.abs(poly[50:150, 2])
+    poly[50:150, 1] = -2.0 * np.sqrt(c0 * c2)  # double root sqrt(c0 / c2) > 0
+    poly[50:150, 0], poly[50:150, 2] = c0, c2
+    rows, roots = _real_positive_roots(poly)
+    for i in range(len(poly)):
+        expected = np.roots(np.trim_zeros(poly[i, ::-1], 'f'))
+        if 50 <= i < 150:  # rounding may make the double root a close complex pair
+            np.testing.assert_allclose(roots[rows == i], [np.sqrt(c0[i - 50] / c2[i - 50])] * 2,
+                                       rtol=1e-6)
+            continue
+        expected = np.sort(expected.real[(np.abs(expected.imag) < 1e-9) & (expected.real > 0)])
+        np.testing.assert_allclose(np.sort(roots[rows == i]), expected, rtol=1e-8)
+
+
+@pytest.mark.parametrize('views', [3, 2])
+def test_pinv_solve_matches_numpy_pinv(views):
+    """Batched closed-form minimum-norm solutions against np.linalg.pinv, for Jacobians of
+    rank 3, 2 (the refinement's usual case: the tangent is a near-null direction), 1, 0."""
+    rng = np.random.default_rng(7)
+    for rank in (3, 2, 1, 0):
+        basis = rng.normal(size=(300, rank, 3))
+        J = np.einsum('qvr,qri->qvi', rng.normal(size=(300, views, rank)), basis)
+        J += 1e-9 * rng.normal(size=J.shape)  # below rcond: dropped, as by pinv
+        J *= np.exp(rng.uniform(-5, 5, size=(300, 1, 1)))
+        r = rng.normal(size=(300, views))
+        expected = np.einsum('qiv,qv->qi', np.linalg.pinv(J, rcond=1e-2), r)
+        got = pinv_solve(J, r, rcond=1e-2)
+        scale = np.maximum(np.linalg.norm(expected, axis=1, keepdims=True), 1e-300)
+        # rows whose singular value ratio sits at rcond may legitimately differ
+        s = np.linalg.svd(J, compute_uv=False)
+        clear = np.all(np.abs(s / s[:, :1] - 1e-2) > 1e-4, axis=1) | (s[:, 0] == 0)
+        assert clear.mean() > 0.95
+        np.testing.assert_allclose(got[clear] / scale[clear], expected[clear] / scale[clear],
+                                   atol=1e-7)
+
+
 def make_views(sigma_px=0.0, n=800, seed=0, fit_tolerance_px=0.05):
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     truth = loop_points(t)
@@ -181,15 +223,16 @@ def test_piecewise_reconstruction_noise_free(method):
     if errors is not None:
         assert np.median(errors) < 1e-3 * size
     # refinement over all three views brings every point closer to all image curves
-    refined, residuals = refine_points(points, views)
+    refined, residuals, before = refine_points(points, views)
     assert np.sqrt(np.mean(residuals**2)) < 0.05
+    assert np.sqrt(np.mean(residuals**2)) < np.sqrt(np.mean(before**2))
     assert np.all(np.isfinite(refined))
 
 
 def test_piecewise_reconstruction_with_pixel_noise_and_two_views():
     views, truth = make_views(sigma_px=0.1, seed=5, fit_tolerance_px=0.15)
     points, info = reconstruct_ray_roots(*views, tol3_px=2.0)
-    refined, _ = refine_points(points, views)
+    refined, _, _ = refine_points(points, views)
     from scipy.spatial import cKDTree
     dense = loop_points(np.linspace(0, 2 * np.pi, 200000))
     distance = cKDTree(dense).query(refined)[0]

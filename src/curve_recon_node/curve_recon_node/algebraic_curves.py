@@ -9,6 +9,7 @@ decreasing power of X, i.e. for n = 2: 1, X, Y, X^2, XY, Y^2 and for n = 3 then
 X^3, X^2 Y, X Y^2, Y^3. The thesis's conic (3.4.1) A X^2 + B Y^2 + C XY + D X + E Y + F is
 a = (F, D, E, A, C, B) in this order.
 """
+from functools import lru_cache
 from math import comb
 
 import numpy as np
@@ -22,7 +23,15 @@ def monomial_exponents(degree):
     if int(degree) != degree or degree < 1:
         raise InvalidInput(f'degree: expected an integer >= 1, got {degree!r}',
                            key='degree', value=degree)
-    return np.array([(j, d - j) for d in range(int(degree) + 1) for j in range(d, -1, -1)])
+    return _exponents(int(degree))
+
+
+@lru_cache(maxsize=None)
+def _exponents(degree):
+    """``monomial_exponents`` built once per degree (read-only: it is shared)."""
+    exponents = np.array([(j, d - j) for d in range(degree + 1) for j in range(d, -1, -1)])
+    exponents.setflags(write=False)
+    return exponents
 
 
 def _as_xy(xy):
@@ -61,15 +70,26 @@ def check_coefficients(a, degree):
 
 def _shift_scale_matrix(mean, scale, degree):
     """(M, M) matrix T with mu(scale * (p - mean)) = T mu(p) for every point p."""
+    rows, columns, total, binomial, power_x, power_y = _shift_scale_terms(int(degree))
+    size = len(monomial_exponents(degree))
+    T = np.zeros((size, size))
+    T[rows, columns] = (scale ** total * binomial * (-mean[0]) ** power_x
+                        * (-mean[1]) ** power_y)
+    return T
+
+
+@lru_cache(maxsize=None)
+def _shift_scale_terms(degree):
+    """The binomial expansion of (scale (X - mx))^jx (scale (Y - my))^jy for each monomial
+    (row) into monomials X^p Y^q (column), once per degree: arrays of row, column, jx + jy,
+    comb(jx, p) comb(jy, q), jx - p and jy - q (one entry per term; each (row, column)
+    occurs once)."""
     exponents = monomial_exponents(degree)
     index = {tuple(e): i for i, e in enumerate(exponents)}
-    T = np.zeros((len(exponents), len(exponents)))
-    for row, (jx, jy) in enumerate(exponents):
-        for p in range(jx + 1):
-            for q in range(jy + 1):
-                T[row, index[p, q]] += (scale ** (jx + jy) * comb(jx, p) * comb(jy, q)
-                                        * (-mean[0]) ** (jx - p) * (-mean[1]) ** (jy - q))
-    return T
+    terms = [(row, index[p, q], jx + jy, comb(jx, p) * comb(jy, q), jx - p, jy - q)
+             for row, (jx, jy) in enumerate(exponents)
+             for p in range(jx + 1) for q in range(jy + 1)]
+    return tuple(np.array(column) for column in zip(*terms))
 
 
 def fit_implicit_curve(xy, degree):
@@ -86,8 +106,9 @@ def fit_implicit_curve(xy, degree):
         raise InvalidInput(f'xy: a degree-{degree} curve needs at least {size - 1} points, '
                            f'got {len(xy)}', key='xy', value=len(xy))
     mean = xy.mean(axis=0)
-    scale = np.sqrt(2.0) / np.mean(np.linalg.norm(xy - mean, axis=1))
-    _, _, vt = np.linalg.svd(monomials(scale * (xy - mean), degree), full_matrices=False)
+    centred = xy - mean
+    scale = np.sqrt(2.0) / np.mean(np.linalg.norm(centred, axis=1))
+    _, _, vt = np.linalg.svd(monomials(scale * centred, degree), full_matrices=False)
     a = _shift_scale_matrix(mean, scale, degree).T @ vt[-1]
     return a / np.linalg.norm(a)
 

@@ -77,37 +77,41 @@ def ridge_points(image, line_width_px=3.0, min_contrast_grey=8.0):
     sigma = line_sigma(line_width_px)
     smooth = cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma)
     # central differences of the smoothed image: derivatives of the Gaussian-filtered image
-    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
-    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=1, scale=0.5)
     hxx = cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=1)
     hyy = cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=1)
     hxy = cv2.Sobel(smooth, cv2.CV_32F, 1, 1, ksize=3, scale=0.25)
-    # largest eigenvalue lam = half_trace + root of [[hxx, hxy], [hxy, hyy]]; the test
-    # lam > threshold without a square root over the whole image: root > threshold - h
+    # largest eigenvalue lam = half_trace + root of [[hxx, hxy], [hxy, hyy]] <= max(hxx,
+    # hyy) + |hxy|: that cheap bound (OpenCV, whole image) leaves a few thousand pixels
+    # near lines for the exact test lam > threshold (it is compared with a slightly lower
+    # value so that rounding cannot drop a pixel the exact test keeps)
     threshold = line_response(min_contrast_grey, line_width_px, sigma)
-    margin = threshold - 0.5 * (hxx + hyy)
-    root2 = (0.5 * (hxx - hyy))**2 + hxy**2
-    candidate = (margin < 0) | (root2 > margin * np.abs(margin))
-    candidate[:2, :] = candidate[-2:, :] = False
-    candidate[:, :2] = candidate[:, -2:] = False
-    v, u = np.nonzero(candidate)
-    if len(u) == 0:
+    bound = cv2.add(cv2.max(hxx, hyy), cv2.absdiff(hxy, 0.0))
+    near_line = cv2.compare(bound, 0.999 * threshold, cv2.CMP_GT)
+    near_line[:2, :] = near_line[-2:, :] = near_line[:, :2] = near_line[:, -2:] = 0
+    found = cv2.findNonZero(near_line)  # row by row, as np.nonzero
+    if found is None:
         return np.empty((0, 2)), np.empty(0), np.empty((0, 2))
+    u, v = found.reshape(-1, 2).T
     a, b, c = hxx[v, u], hxy[v, u], hyy[v, u]
-    lam_c = 0.5 * (a + c) + np.sqrt(root2[v, u])  # and its eigenvector (the normal):
+    lam_c = 0.5 * (a + c) + np.sqrt((0.5 * (a - c))**2 + b**2)
+    candidate = lam_c > threshold
+    u, v, a, b, c, lam_c = (x[candidate] for x in (u, v, a, b, c, lam_c))
     # eigenvector of lam: (b, lam - a) or (lam - c, b), whichever is better conditioned
-    n1 = np.column_stack([b, lam_c - a])
-    n2 = np.column_stack([lam_c - c, b])
-    use2 = np.linalg.norm(n2, axis=1) > np.linalg.norm(n1, axis=1)
-    normal = np.where(use2[:, None], n2, n1)
-    norm = np.linalg.norm(normal, axis=1)
-    normal = np.divide(normal, norm[:, None], out=np.tile([1.0, 0.0], (len(u), 1)),
-                       where=norm[:, None] > 0)
-    gradient_along = gx[v, u] * normal[:, 0] + gy[v, u] * normal[:, 1]
-    t = -gradient_along / lam_c  # Newton step to the extremum across the line [px]
-    offset = t[:, None] * normal
-    inside = np.all(np.abs(offset) <= 0.5, axis=1)
-    points = np.column_stack([u, v])[inside] + offset[inside]
+    use2 = np.hypot(lam_c - c, b) > np.hypot(b, lam_c - a)
+    nx, ny = np.where(use2, lam_c - c, b), np.where(use2, b, lam_c - a)
+    norm = np.hypot(nx, ny)
+    with np.errstate(divide='ignore', invalid='ignore'):  # float64 from here on
+        nx = np.where(norm > 0, nx / norm, 1.0).astype(float)
+        ny = np.where(norm > 0, ny / norm, 0.0).astype(float)
+    # gradient of the smoothed image along the normal, by central differences (only at
+    # these pixels)
+    gx = 0.5 * (smooth[v, u + 1] - smooth[v, u - 1])
+    gy = 0.5 * (smooth[v + 1, u] - smooth[v - 1, u])
+    t = -(gx * nx + gy * ny) / lam_c  # Newton step to the extremum across the line [px]
+    offset_u, offset_v = t * nx, t * ny
+    inside = (np.abs(offset_u) <= 0.5) & (np.abs(offset_v) <= 0.5)
+    points = np.column_stack([u[inside] + offset_u[inside], v[inside] + offset_v[inside]])
+    normal = np.column_stack([nx, ny])
     strength = lam_c[inside] / line_response(1.0, line_width_px, sigma)
     return points.astype(float), strength.astype(float), normal[inside]
 
@@ -133,15 +137,17 @@ def link_chains(points, link_radius_px=2.0, min_points=20):
     n_groups, labels = connected_components(graph, directed=False)
     sizes = np.bincount(labels, minlength=n_groups)
     mst = minimum_spanning_tree(graph)
+    # both directions stored once, so the path searches need not transpose it each time
     mst = (mst + mst.T).tocsr()
     chains = []
     for group in np.nonzero(sizes >= min_points)[0]:
         start = int(np.nonzero(labels == group)[0][0])
         far = _farthest(mst, start)[0]
         end, predecessors = _farthest(mst, far)
+        predecessor = predecessors.tolist()  # plain ints: the walk is a Python loop
         path = [end]
         while path[-1] != far:
-            path.append(int(predecessors[path[-1]]))
+            path.append(predecessor[path[-1]])
         if len(path) < min_points:
             continue
         pixels = points[np.array(path)]
@@ -153,8 +159,9 @@ def link_chains(points, link_radius_px=2.0, min_points=20):
 
 
 def _farthest(tree_graph, source):
-    """Vertex of a tree farthest (by path length) from ``source``, and predecessors."""
-    distance, predecessors = dijkstra(tree_graph, directed=False, indices=source,
+    """Vertex of a tree (symmetric sparse matrix) farthest (by path length) from
+    ``source``, and predecessors."""
+    distance, predecessors = dijkstra(tree_graph, directed=True, indices=source,
                                       return_predecessors=True)
     distance[~np.isfinite(distance)] = -1.0
     return int(np.argmax(distance)), predecessors

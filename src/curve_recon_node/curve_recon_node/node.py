@@ -325,7 +325,9 @@ class CurveReconNode(Node):
                    f'{stats["time_ms"]:.0f} ms')
         self.get_logger().info(message + f'; approach from {normals_source}')
         values = dict(stats, normals=normals_source, stamp_ns=stamp_ns,
-                      method=self.params.method, degree=self.params.degree)
+                      method=self.params.method, degree=self.params.degree,
+                      stage_ms=', '.join(f'{stage} {ms:.1f}'
+                                         for stage, ms in stats['stage_ms'].items()))
         level = 'warn' if len(names) == 2 and stats.get('ambiguous') else 'ok'
         if len(names) == 2:
             message += (f'; two views only: {stats.get("ambiguous", 0)} samples ambiguous '

@@ -35,7 +35,6 @@ from scipy.spatial import cKDTree
 from curve_recon_node.algebraic_curves import (
     fit_implicit_curve,
     monomial_exponents,
-    monomials,
     powers,
 )
 from vgm_common.errors import InvalidInput
@@ -81,6 +80,12 @@ class PiecewiseCurve:
         self.overlap = float(overlap)
         self.pieces = []
         n = len(xy)
+        # each piece's residual is measured on these (a chain point is in several fits):
+        # monomials (N, M) and their X and Y derivatives (N, M) each
+        mono, mono_gradients = _monomials_and_gradients(self.xy, self.degree)
+        self._monomials = mono
+        self._monomials_dx = np.ascontiguousarray(mono_gradients[:, :, 0])
+        self._monomials_dy = np.ascontiguousarray(mono_gradients[:, :, 1])
         self._split(0, n, depth=0)
         self._tree = cKDTree(self.xy)
         # owner of each chain point: the piece in which it lies most centrally, so the
@@ -92,6 +97,9 @@ class PiecewiseCurve:
         self.owner = np.argmax(centrality, axis=0)
         self.member = np.isfinite(centrality)  # (P, N): chain point in piece's support
         self.coefficient_matrix = np.array([p.coefficients for p in self.pieces])
+        # (P, 2, 2) lower and upper corner of each piece's chain points [normalised]
+        self.piece_boxes = np.array([[self.xy[p.indices].min(axis=0),
+                                      self.xy[p.indices].max(axis=0)] for p in self.pieces])
 
     # --- fitting ---------------------------------------------------------------------
 
@@ -100,10 +108,12 @@ class PiecewiseCurve:
         return idx % len(self.xy) if self.closed else idx
 
     def _fit(self, indices):
-        points = self.xy[indices]
-        a = fit_implicit_curve(points, self.degree)
-        residual = _sampson(a[None], monomials(points, self.degree),
-                            _monomial_gradients(points, self.degree))[0]
+        a = fit_implicit_curve(self.xy[indices], self.degree)
+        # Sampson distances |g| / ||grad g|| of the piece's chain points
+        with np.errstate(divide='ignore', invalid='ignore'):
+            residual = (np.abs(self._monomials[indices] @ a)
+                        / np.hypot(self._monomials_dx[indices] @ a,
+                                   self._monomials_dy[indices] @ a))
         return a, float(np.sqrt(np.mean(residual**2)) * self.focal_px)
 
     def _split(self, start, length, depth):
@@ -137,40 +147,33 @@ class PiecewiseCurve:
         nearest chain point. NaN inputs give NaN."""
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
         finite = np.all(np.isfinite(xy), axis=1)
-        distance = np.full(len(xy), np.nan)
-        direction = np.full((len(xy), 2), np.nan)
-        if finite.any():
-            index, _ = self.nearest(xy[finite])
-            a = self.coefficient_matrix[self.owner[index]]
-            gradient = np.sum(_monomial_gradients(xy[finite], self.degree) * a[:, :, None],
-                              axis=1)
-            norm = np.linalg.norm(gradient, axis=1)
-            value = np.sum(monomials(xy[finite], self.degree) * a, axis=1)
-            with np.errstate(divide='ignore', invalid='ignore'):
-                distance[finite] = value / norm
-                direction[finite] = gradient / norm[:, None]
-        return distance, direction
+        if not finite.all():
+            distance = np.full(len(xy), np.nan)
+            direction = np.full((len(xy), 2), np.nan)
+            if finite.any():
+                distance[finite], direction[finite] = self.distance(xy[finite])
+            return distance, direction
+        index, _ = self.nearest(xy)
+        a = self.coefficient_matrix[self.owner[index]]
+        mono, mono_gradients = _monomials_and_gradients(xy, self.degree)
+        gradient = np.einsum('qmk,qm->qk', mono_gradients, a)
+        norm = np.sqrt(gradient[:, 0]**2 + gradient[:, 1]**2)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            return np.einsum('qm,qm->q', mono, a) / norm, gradient / norm[:, None]
 
     @property
     def rms_px(self):
         return float(np.sqrt(np.mean([p.rms_px**2 for p in self.pieces])))
 
 
-def _monomial_gradients(xy, degree):
-    """(Q, M, 2) derivatives of each monomial with respect to X and Y."""
+def _monomials_and_gradients(xy, degree):
+    """(Q, M) monomials of (Q, 2) points and (Q, M, 2) their derivatives with respect to X
+    and Y, from one set of powers."""
     jx, jy = monomial_exponents(degree).T
     px, py = powers(xy[:, 0], degree), powers(xy[:, 1], degree)
     d_dx = jx * px[:, np.maximum(jx - 1, 0)] * py[:, jy]
     d_dy = jy * px[:, jx] * py[:, np.maximum(jy - 1, 0)]
-    return np.stack([d_dx, d_dy], axis=2)
-
-
-def _sampson(coefficients, mono, mono_gradients):
-    """|g| / ||grad g|| for each row of coefficients (P, M) at Q points, (P, Q)."""
-    value = coefficients @ mono.T
-    gradient = np.einsum('qmk,pm->pqk', mono_gradients, coefficients)
-    with np.errstate(divide='ignore', invalid='ignore'):
-        return np.abs(value) / np.linalg.norm(gradient, axis=2)
+    return px[:, jx] * py[:, jy], np.stack([d_dx, d_dy], axis=2)
 
 
 @dataclass(frozen=True)
@@ -200,22 +203,34 @@ class View:
         """(N,) bool: each point's projection has its nearest chain point in piece
         ``pieces[i]``'s support and within ``support_px`` of the chain."""
         xy, _ = self.project(points_base)
-        ok = np.all(np.isfinite(xy), axis=1)
+        pieces = np.asarray(pieces)
+        # only a projection inside its piece's box grown by support_px can pass (and NaN
+        # fails): the costly nearest-neighbour query is left for those (a small relative
+        # margin keeps rounding from dropping a point exactly at the limit)
+        reach = support_px / self.curve.focal_px * (1 + 1e-9)
+        box = self.curve.piece_boxes[pieces]
+        ok = np.all((xy >= box[:, 0] - reach) & (xy <= box[:, 1] + reach), axis=1)
         result = np.zeros(len(xy), dtype=bool)
         if ok.any():
             index, distance = self.curve.nearest(xy[ok])
-            result[ok] = (self.curve.member[np.asarray(pieces)[ok], index]
+            result[ok] = (self.curve.member[pieces[ok], index]
                           & (distance * self.curve.focal_px <= support_px))
         return result
+
+
+def _cone_monomials(x_camera, degree):
+    """(Q, M) homogeneous monomials x1^j x2^l x3^(n - j - l) of camera points (Q, 3), in
+    the order of the coefficients (products of powers: exact for negative coordinates and
+    faster than float exponents)."""
+    jx, jy = monomial_exponents(degree).T
+    px, py, pz = (powers(x_camera[:, axis], degree) for axis in range(3))
+    return px[:, jx] * py[:, jy] * pz[:, degree - jx - jy]
 
 
 def _cone_values(coefficients, degree, x_camera):
     """Cone polynomial of each row's piece at each row's camera point: (Q,) for
     coefficients (Q, M) and x_camera (Q, 3)."""
-    jl = monomial_exponents(degree)
-    exponents = np.column_stack([jl, degree - jl.sum(axis=1)])
-    return np.einsum('qm,qm->q', np.prod(x_camera[:, None, :] ** exponents, axis=2),
-                     coefficients)
+    return np.einsum('qm,qm->q', _cone_monomials(x_camera, degree), coefficients)
 
 
 def _cone_gradients(coefficients, degree, x_camera, R_camera_base):
@@ -235,7 +250,8 @@ def _cone_gradients(coefficients, degree, x_camera, R_camera_base):
 def _real_positive_roots(poly):
     """Real roots > 0 of polynomials with coefficients (Q, n + 1) in increasing order:
     returns (row index (K,), root (K,)). Leading coefficients near zero lower the degree
-    (handled by the companion matrix of the trimmed polynomial, per degree)."""
+    (handled per degree: in closed form up to quadratics, else by the eigenvalues of the
+    trimmed polynomial's companion matrix)."""
     rows, roots = [], []
     scale = np.abs(poly).max(axis=1)
     scale[scale == 0] = 1.0
@@ -250,19 +266,41 @@ def _real_positive_roots(poly):
         if len(sel) == 0:
             continue
         c = p[sel, :d + 1]
-        companion = np.zeros((len(sel), d, d))
-        companion[:, 0, :] = -c[:, d - 1::-1] / c[:, d:d + 1]
-        if d > 1:
+        if d <= 2:
+            r, real_roots = _real_roots_up_to_quadratic(c)
+        else:
+            companion = np.zeros((len(sel), d, d))
+            companion[:, 0, :] = -c[:, d - 1::-1] / c[:, d:d + 1]
             companion[:, np.arange(1, d), np.arange(d - 1)] = 1.0
-        eig = np.linalg.eigvals(companion)  # (S, d)
-        real = np.abs(eig.imag) <= 1e-7 * (1 + np.abs(eig.real))
-        positive = real & (eig.real > 0)
-        r, k = np.nonzero(positive)
-        rows.append(sel[r])
-        roots.append(eig.real[r, k])
+            eig = np.linalg.eigvals(companion)  # (S, d)
+            r, k = np.nonzero(np.abs(eig.imag) <= 1e-7 * (1 + np.abs(eig.real)))
+            real_roots = eig.real[r, k]
+        positive = real_roots > 0
+        rows.append(sel[r[positive]])
+        roots.append(real_roots[positive])
     if not rows:
         return np.empty(0, dtype=int), np.empty(0)
     return np.concatenate(rows), np.concatenate(roots)
+
+
+def _real_roots_up_to_quadratic(c):
+    """Real roots of the rows of c (S, 2) or (S, 3) (increasing order, leading coefficient
+    nonzero): (row (K,), root (K,)). As for the companion matrices' eigenvalues, a complex
+    pair whose imaginary part is within 1e-7 (1 + |real part|) counts as a double root."""
+    if c.shape[1] == 2:
+        return np.arange(len(c)), -c[:, 0] / c[:, 1]
+    b, q = c[:, 1] / c[:, 2], c[:, 0] / c[:, 2]  # s^2 + b s + q
+    discriminant = b * b - 4.0 * q
+    root_of_magnitude = np.sqrt(np.abs(discriminant))
+    real_pair = discriminant >= 0
+    # the larger root without cancellation, the smaller one from the product q
+    larger = -0.5 * (b + np.copysign(root_of_magnitude, b))
+    smaller = np.divide(q, larger, out=np.zeros_like(q), where=larger != 0)
+    near_double = ~real_pair & (0.5 * root_of_magnitude <= 1e-7 * (1 + np.abs(0.5 * b)))
+    real = np.nonzero(real_pair | near_double)[0]
+    first = np.where(real_pair, larger, -0.5 * b)[real]
+    second = np.where(real_pair, smaller, -0.5 * b)[real]
+    return np.concatenate([real, real]), np.concatenate([first, second])
 
 
 def _rays(view1, samples):
@@ -294,20 +332,22 @@ def reconstruct_ray_roots(view1, view2, view3=None, *, samples=None, tol3_px=2.0
     degree = curve2.degree
     n_pieces = len(curve2.pieces)
     nodes = np.arange(degree + 1.0)
-    # every (ray, piece) pair: evaluate the cone at n + 1 depths and solve exactly
+    # every (ray, piece) pair: evaluate the cone at n + 1 depths and solve exactly; the
+    # camera-2 points of a ray do not depend on the piece, so their monomials are shared
+    x_cam = ((view1.centre_base + nodes[:, None, None] * rays[None] - view2.centre_base)
+             @ view2.R_camera_base.T)  # (n + 1, R, 3)
+    values = (_cone_monomials(x_cam.reshape(-1, 3), degree)
+              @ curve2.coefficient_matrix.T).reshape(len(nodes), -1)  # (n + 1, R P)
+    poly = np.linalg.solve(np.vander(nodes, increasing=True), values).T
     ray_index = np.repeat(np.arange(len(samples)), n_pieces)
     piece_index = np.tile(np.arange(n_pieces), len(samples))
-    values = np.empty((len(ray_index), len(nodes)))
-    for k, s in enumerate(nodes):
-        x_cam = (view1.centre_base + s * rays[ray_index] - view2.centre_base) \
-            @ view2.R_camera_base.T
-        values[:, k] = _cone_values(curve2.coefficient_matrix[piece_index], degree, x_cam)
-    poly = np.linalg.solve(np.vander(nodes, increasing=True), values.T).T
     rows, depth = _real_positive_roots(poly)
     points = view1.centre_base + depth[:, None] * rays[ray_index[rows]]
     _, depth2 = view2.project(points)
-    keep = ((depth2 > 0) & (depth < max_depth)
-            & view2.in_support(points, piece_index[rows], support_px))
+    # the cheap tests first: the support test's nearest-neighbour query is the costly one
+    plausible = (depth2 > 0) & (depth < max_depth)
+    rows, points = rows[plausible], points[plausible]
+    keep = view2.in_support(points, piece_index[rows], support_px)
     return select_candidates(ray_index[rows][keep], points[keep], len(samples), samples,
                              view3, tol3_px, distinct_m)
 
@@ -411,39 +451,38 @@ def select_candidates(ray_of_candidate, candidates, n_samples, samples, view3, t
     chain indices, ``third_view_px`` (K,), ``n_samples``, ``n_candidates``,
     ``n_without_candidates``, ``n_rejected_view3``, ``n_ambiguous``.
     """
-    order = np.argsort(ray_of_candidate, kind='stable')
-    ray_of_candidate, candidates = ray_of_candidate[order], candidates[order]
     distance3 = (view3.distance_px(candidates) if view3 is not None
                  else np.zeros(len(candidates)))
-    bounds = np.searchsorted(ray_of_candidate, np.arange(n_samples + 1))
-    points, index, d3 = [], [], []
-    rejected = ambiguous = empty = 0
-    for i in range(n_samples):
-        lo, hi = bounds[i], bounds[i + 1]
-        if lo == hi:
-            empty += 1
-            continue
-        if view3 is not None:
-            best = lo + int(np.argmin(distance3[lo:hi]))
-            if distance3[best] <= tol3_px:
-                points.append(candidates[best])
-                index.append(samples[i])
-                d3.append(distance3[best])
-            else:
-                rejected += 1
-        else:
-            group = candidates[lo:hi]
-            if np.linalg.norm(group - group.mean(axis=0), axis=1).max() <= distinct_m / 2:
-                points.append(group.mean(axis=0))
-                index.append(samples[i])
-                d3.append(0.0)
-            else:
-                ambiguous += 1
-    info = {'sample_index': np.array(index, dtype=int), 'third_view_px': np.array(d3),
+    # by sample, then (three views) by third-view distance: each sample's best candidate
+    # comes first in its group
+    order = np.lexsort((distance3, ray_of_candidate) if view3 is not None
+                       else (ray_of_candidate,))
+    ray_of_candidate, candidates = ray_of_candidate[order], candidates[order]
+    distance3 = distance3[order]
+    first = np.nonzero(np.diff(ray_of_candidate, prepend=-1))[0]  # start of each group
+    empty = n_samples - len(first)
+    rejected = ambiguous = 0
+    if view3 is not None:
+        accepted = distance3[first] <= tol3_px
+        rejected = int((~accepted).sum())
+        points, d3 = candidates[first[accepted]], distance3[first[accepted]]
+    else:
+        counts = np.diff(np.append(first, len(candidates)))
+        group = np.repeat(np.arange(len(first)), counts)
+        group_mean = np.zeros((len(first), 3))
+        np.add.at(group_mean, group, candidates)
+        group_mean /= counts[:, None]
+        widest = np.zeros(len(first))
+        np.maximum.at(widest, group, np.linalg.norm(candidates - group_mean[group], axis=1))
+        accepted = widest <= distinct_m / 2
+        ambiguous = int((~accepted).sum())
+        points, d3 = group_mean[accepted], np.zeros(int(accepted.sum()))
+    index = samples[ray_of_candidate[first[accepted]]]
+    info = {'sample_index': np.asarray(index, dtype=int), 'third_view_px': d3,
             'n_samples': n_samples, 'n_candidates': len(candidates),
             'n_without_candidates': empty, 'n_rejected_view3': rejected,
             'n_ambiguous': ambiguous}
-    return np.array(points, dtype=float).reshape(-1, 3), info
+    return np.asarray(points, dtype=float).reshape(-1, 3), info
 
 
 def refine_points(points_base, views, tangents=None, iterations=3, max_step_m=0.01):
@@ -452,16 +491,20 @@ def refine_points(points_base, views, tangents=None, iterations=3, max_step_m=0.
     length): minimum-norm Gauss-Newton steps, batched. The along-curve direction is
     (nearly) in the null space; steps are also kept normal to ``tangents`` (N, 3) if
     given, so that points do not slide along the curve and keep their order.
-    Returns (points (N, 3), residuals (N, V) [px])."""
+    Returns (points (N, 3), their signed residuals (N, V) [px], the residuals before
+    refinement (N, V) [px]); NaN where a point is behind a camera."""
     x = np.array(points_base, dtype=float).reshape(-1, 3)
+    initial_residuals = None
     for _ in range(iterations):
         residuals, J = _distance_jacobian(x, views)
+        if initial_residuals is None:
+            initial_residuals = residuals
         ok = np.all(np.isfinite(residuals), axis=1) & np.all(np.isfinite(J), axis=(1, 2))
         if not ok.any():
             break
         # minimum-norm Gauss-Newton step: nothing along the (near-)null direction, the
         # curve's tangent, so points do not slide along the curve
-        step = -np.einsum('qiv,qv->qi', np.linalg.pinv(J[ok], rcond=1e-2), residuals[ok])
+        step = -pinv_solve(J[ok], residuals[ok], rcond=1e-2)
         if tangents is not None:
             t = tangents[ok]
             step -= np.sum(step * t, axis=1, keepdims=True) * t
@@ -469,7 +512,7 @@ def refine_points(points_base, views, tangents=None, iterations=3, max_step_m=0.
         step *= np.minimum(1.0, max_step_m / np.maximum(norm, 1e-300))
         x[ok] += step
     residuals, _ = _distance_jacobian(x, views)
-    return x, residuals
+    return x, residuals, residuals if initial_residuals is None else initial_residuals
 
 
 def _distance_jacobian(x, views):
@@ -491,3 +534,73 @@ def _distance_jacobian(x, views):
         residuals[:, k] = f * distance
         J[:, k] = f * np.einsum('qi,qij->qj', direction, d_xy) @ view.R_camera_base
     return residuals, J
+
+
+def pinv_solve(J, r, rcond):
+    """pinv(J, rcond) @ r for a batch of (Q, V, 3) J and (Q, V) r: the minimum-norm least-
+    squares solution that drops singular values at or below ``rcond`` times the largest,
+    as ``np.linalg.pinv`` does, but in closed form from the eigenvalues of the 3 x 3 normal
+    matrices A = J^T J (the squared singular values): Q small LAPACK SVDs, one call each,
+    cost 2-3 times more. Returns (Q, 3)."""
+    A = np.einsum('qvi,qvj->qij', J, J)
+    g = np.einsum('qvi,qv->qi', J, r)
+    eigenvalues = _symmetric_eigenvalues_3x3(A)  # descending
+    kept = (eigenvalues > rcond**2 * eigenvalues[:, :1]).sum(axis=1)
+    x = np.zeros_like(g)
+    full = kept == 3
+    x[full] = _solve_3x3(A[full], g[full])
+    # rank 2: solve on the plane normal to the dropped eigenvector v3; lifting v3's
+    # eigenvalue to the largest one keeps the matrix as well conditioned as the plane's
+    two = kept == 2
+    v3 = _eigenvector_3x3(A[two], eigenvalues[two, 2])
+    lifted = A[two] + eigenvalues[two, 0, None, None] * v3[:, :, None] * v3[:, None, :]
+    x[two] = _solve_3x3(lifted, g[two] - np.sum(v3 * g[two], axis=1, keepdims=True) * v3)
+    one = kept == 1
+    v1 = _eigenvector_3x3(A[one], eigenvalues[one, 0])
+    x[one] = v1 * (np.sum(v1 * g[one], axis=1) / eigenvalues[one, 0])[:, None]
+    return x
+
+
+def _symmetric_eigenvalues_3x3(A):
+    """Eigenvalues (Q, 3), descending, of symmetric (Q, 3, 3) matrices (trigonometric
+    closed form)."""
+    q = np.trace(A, axis1=1, axis2=2) / 3.0
+    B = A - q[:, None, None] * np.eye(3)
+    p = np.sqrt(np.sum(B * B, axis=(1, 2)) / 6.0)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        half_det = _determinant_3x3(B) / (2.0 * p**3)
+    angle = np.arccos(np.clip(np.nan_to_num(half_det), -1.0, 1.0)) / 3.0
+    largest = q + 2.0 * p * np.cos(angle)
+    smallest = q + 2.0 * p * np.cos(angle + 2.0 * np.pi / 3.0)
+    return np.column_stack([largest, 3.0 * q - largest - smallest, smallest])
+
+
+def _eigenvector_3x3(A, eigenvalue):
+    """Unit eigenvectors (S, 3) of symmetric (S, 3, 3) matrices for simple eigenvalues
+    (S,): the longest cross product of two rows of A - eigenvalue I."""
+    M = A - eigenvalue[:, None, None] * np.eye(3)
+    candidates = np.stack([_cross(M[:, 0], M[:, 1]), _cross(M[:, 0], M[:, 2]),
+                           _cross(M[:, 1], M[:, 2])], axis=1)
+    lengths = np.sqrt(np.sum(candidates**2, axis=2))
+    best = np.argmax(lengths, axis=1)
+    rows = np.arange(len(M))
+    return candidates[rows, best] / np.maximum(lengths[rows, best], 1e-300)[:, None]
+
+
+def _solve_3x3(M, b):
+    """Solutions (S, 3) of (S, 3, 3) M x = b by Cramer's rule (batched, no LAPACK)."""
+    c0, c1, c2 = M[:, :, 0], M[:, :, 1], M[:, :, 2]
+    cofactors = np.stack([_cross(c1, c2), _cross(c2, c0), _cross(c0, c1)], axis=1)
+    determinant = np.sum(c0 * cofactors[:, 0], axis=1)
+    return np.einsum('sij,sj->si', cofactors, b) / determinant[:, None]
+
+
+def _determinant_3x3(M):
+    return np.sum(M[:, :, 0] * _cross(M[:, :, 1], M[:, :, 2]), axis=1)
+
+
+def _cross(a, b):
+    """Row-wise cross products of (S, 3) arrays (np.cross costs more on small batches)."""
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+                            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])

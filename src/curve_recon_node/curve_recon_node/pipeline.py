@@ -65,18 +65,36 @@ class Reconstruction:
     stats: dict = field(default_factory=dict)
 
 
-def view_curve(image, camera, settings):
+class StageClock:
+    """Wall time [ms] spent in each named stage of a reconstruction (summed over calls)."""
+
+    def __init__(self):
+        self.stage_ms = {}
+        self._last = time.perf_counter()
+
+    def lap(self, stage):
+        """Charge the time since the previous lap (or the start) to ``stage``."""
+        now = time.perf_counter()
+        self.stage_ms[stage] = self.stage_ms.get(stage, 0.0) + 1e3 * (now - self._last)
+        self._last = now
+
+
+def view_curve(image, camera, settings, clock=None):
     """The longest curve chain of one image as a ``View`` (undistorted with the camera),
-    or None if there is none."""
+    or None if there is none. ``clock`` (a ``StageClock``) gets the stages' times."""
+    clock = StageClock() if clock is None else clock
     chains = extract_chains(image, settings.line_width_px, settings.min_contrast,
                             settings.min_curve_pixels)
+    clock.lap('extraction')
     if not chains:
         return None, 0
     chain = chains[0]
     xy = camera.undistort_pixels(chain.pixels)
     focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
+    clock.lap('undistortion')
     curve = PiecewiseCurve(xy, chain.closed, settings.degree, focal,
                            settings.fit_tolerance_px, settings.min_piece_points)
+    clock.lap('piecewise fits')
     T_camera_base = camera.T_camera_base
     return View(curve, T_camera_base[:3, :3], camera.centre_base), len(chains)
 
@@ -88,12 +106,13 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
     Raises ``NoCurve`` when a view has no curve or too little of it is reconstructed.
     """
     started = time.perf_counter()
+    clock = StageClock()
     if settings.method not in METHODS:
         raise InvalidInput(f'method: expected one of {METHODS}, got {settings.method!r}',
                            key='method', value=settings.method)
     views, chain_counts = [], {}
     for name in names:
-        view, count = view_curve(images[name], cameras[name], settings)
+        view, count = view_curve(images[name], cameras[name], settings, clock)
         chain_counts[name] = count
         if view is None:
             seen = [n for n in names if chain_counts.get(n)]
@@ -111,6 +130,7 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
         points, info = reconstruct_cone_lsq(views[0], views[1], view3, tol3_px=tol3,
                                             seed_depths=seeds,
                                             max_depth=settings.depth_range[1])
+    clock.lap(settings.method)
     fraction = len(points) / max(info['n_samples'], 1)
     stats = {'views': len(views), 'pieces': '/'.join(str(len(v.curve.pieces)) for v in views),
              'samples': info['n_samples'], 'candidates': info['n_candidates'],
@@ -125,17 +145,19 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
                       f'reconstructed ({info["n_rejected_view3"]} rejected by the third '
                       f'view, {info["n_ambiguous"]} ambiguous): the views do not show one '
                       'curve', key='no curve', value=stats)
-    residuals = np.column_stack([v.distance_px(points) for v in views])
-    stats['rms_residual_px_before'] = float(np.sqrt(np.mean(residuals**2)))
     sample_index = info['sample_index']
     if settings.refine:
         closed = views[0].curve.closed
         rough, _ = smooth_along_curve(points, closed, settings.smoothing_window,
                                       sample_index, len(views[0].curve.xy) if closed
                                       else None, passes=1)
-        refined, residuals = refine_points(points, views, tangents(rough, closed))
+        refined, residuals, before = refine_points(points, views, tangents(rough, closed))
         good = np.all(np.isfinite(residuals), axis=1)
         points, residuals, sample_index = refined[good], residuals[good], sample_index[good]
+        clock.lap('refinement')
+    else:
+        before = residuals = np.column_stack([v.distance_px(points) for v in views])
+    stats['rms_residual_px_before'] = float(np.sqrt(np.mean(before**2)))
     stats['rms_residual_px'] = '/'.join(f'{r:.3f}' for r in
                                         np.sqrt(np.mean(residuals**2, axis=0)))
     closed = views[0].curve.closed
@@ -163,11 +185,13 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
     waypoints = resample(smoothed, closed, settings.spacing)
     # the published raw points: those that passed the third view and the outlier test
     points = ordered[kept]
+    clock.lap('ordering, smoothing, resampling')
     stats['outliers'] += int((~kept).sum())
     stats.update({'points': len(points), 'closed': closed,
                   'waypoints': len(waypoints),
                   'length_m': float(np.sum(np.linalg.norm(np.diff(
                       np.vstack([waypoints, waypoints[:1]]) if closed else waypoints,
                       axis=0), axis=1))),
-                  'time_ms': 1e3 * (time.perf_counter() - started)})
+                  'time_ms': 1e3 * (time.perf_counter() - started),
+                  'stage_ms': clock.stage_ms})
     return Reconstruction(waypoints, closed, points, stats)

@@ -122,17 +122,22 @@ def _local_quadratic(values, t, half, period):
         index = np.clip(index, 0, n - 1)
         dt = t[index] - t[:, None]
     w = np.where(valid, np.clip(1 - (np.abs(dt) / half)**3, 0.0, None)**3, 0.0)
-    moments = [np.sum(w * dt**p, axis=1) for p in range(5)]
-    normal = np.stack([np.stack(moments[r:r + 3], axis=1) for r in range(3)], axis=1)
-    rhs = np.stack([np.einsum('ij,ijc->ic', w * dt**p, values[index]) for p in range(3)],
-                   axis=1)
-    fitted = values.copy()
+    weighted_powers = [w]  # w dt^p, p = 0..4, by repeated products
+    for _ in range(4):
+        weighted_powers.append(weighted_powers[-1] * dt)
+    moments = np.stack([wp.sum(axis=1) for wp in weighted_powers], axis=1)  # (N, 5)
+    normal = np.stack([moments[:, r:r + 3] for r in range(3)], axis=1)
+    normal += 1e-12 * np.trace(normal, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    # only the fit's value at dt = 0 is wanted, e0^T normal^-1 rhs: by Cramer's rule the
+    # first row of the inverse is (column 1 x column 2) / det, so each neighbour's weight
+    # in it is that row applied to its (w, w dt, w dt^2)
+    first_row = np.cross(normal[:, :, 1], normal[:, :, 2])
+    determinant = np.sum(normal[:, :, 0] * first_row, axis=1)
+    weight = sum(first_row[:, p, None] * weighted_powers[p] for p in range(3))
+    with np.errstate(divide='ignore', invalid='ignore'):
+        fitted = (weight[:, None, :] @ values[index])[:, 0, :] / determinant[:, None]
     enough = (w > 0).sum(axis=1) >= 4
-    if enough.any():
-        scale = np.trace(normal[enough], axis1=1, axis2=2)[:, None, None]
-        fitted[enough] = np.linalg.solve(normal[enough] + 1e-12 * scale * np.eye(3),
-                                         rhs[enough])[:, 0, :]
-    return fitted
+    return np.where(enough[:, None], fitted, values)
 
 
 def resample(points, closed, spacing_m):
