@@ -1,0 +1,77 @@
+"""Real images for tests and benches: the sample data Debian's ``opencv-doc`` package
+ships (the Middlebury Aloe pair with ground-truth disparity, OpenCV's 9x6 chessboard
+stereo calibration photographs), fetched once from the Debian registry and cached
+outside the repository.
+
+``opencv_sample_dir()`` returns the directory holding the files; it raises
+SampleDataError with the reason when they cannot be fetched (a test that needs them
+fails with that reason rather than skipping)."""
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+from vgm_common.errors import VgmError
+
+PACKAGE = 'opencv-doc'
+DATA_IN_PACKAGE = Path('usr/share/doc/opencv-doc/examples/data')
+# Only what the tests and benches use is kept (the package is ~96 MB).
+ALOE_FILES = ('aloeL.jpg', 'aloeR.jpg', 'aloeGT.png')
+STEREO_CALIBRATION_IDS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14)  # no 10 shipped
+STEREO_CALIBRATION_FILES = tuple(
+    f'{side}{index:02d}.jpg' for index in STEREO_CALIBRATION_IDS for side in ('left', 'right'))
+CHESSBOARD_INNER_CORNERS = (9, 6)  # of the stereo calibration photographs
+
+
+class SampleDataError(VgmError):
+    """The sample data could not be fetched or is incomplete."""
+
+
+def cache_dir():
+    """Where the files are kept: $VGM_DATA_CACHE, else ~/.cache/vgm/opencv-doc."""
+    root = os.environ.get('VGM_DATA_CACHE') or Path.home() / '.cache' / 'vgm'
+    return Path(root) / PACKAGE
+
+
+def opencv_sample_dir():
+    """The directory with the Aloe pair and the stereo calibration photographs,
+    downloading them with `apt-get download` + `dpkg-deb -x` on first use."""
+    target = cache_dir()
+    wanted = ALOE_FILES + STEREO_CALIBRATION_FILES
+    if all((target / name).is_file() for name in wanted):
+        return target
+    for tool in ('apt-get', 'dpkg-deb'):
+        if shutil.which(tool) is None:
+            raise SampleDataError(f'cannot fetch {PACKAGE}: {tool} is not on PATH '
+                                  '(a Debian machine is needed for the real-image data)')
+    with tempfile.TemporaryDirectory(prefix='vgm-opencv-doc-') as work:
+        work = Path(work)
+        _run(['apt-get', 'download', PACKAGE], cwd=work)
+        debs = sorted(work.glob(f'{PACKAGE}_*.deb'))
+        if not debs:
+            raise SampleDataError(f'apt-get download {PACKAGE} produced no .deb in {work}')
+        _run(['dpkg-deb', '-x', str(debs[0]), str(work / 'x')], cwd=work)
+        source = work / 'x' / DATA_IN_PACKAGE
+        missing = [name for name in wanted if not (source / name).is_file()]
+        if missing:
+            raise SampleDataError(f'{debs[0].name} lacks {", ".join(missing)}')
+        staging = target.with_name(target.name + '.partial')
+        shutil.rmtree(staging, ignore_errors=True)
+        staging.mkdir(parents=True)
+        for name in wanted:
+            shutil.copy2(source / name, staging / name)
+        shutil.rmtree(target, ignore_errors=True)
+        staging.rename(target)  # complete or absent: a killed fetch leaves no half cache
+    return target
+
+
+def _run(argv, cwd):
+    try:
+        result = subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=600)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        raise SampleDataError(f'{" ".join(argv)} failed: {error}') from error
+    if result.returncode != 0:
+        tail = (result.stderr or result.stdout).strip().splitlines()[-3:]
+        raise SampleDataError(f'{" ".join(argv)} exited {result.returncode}: '
+                              + ' | '.join(tail))
