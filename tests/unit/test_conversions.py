@@ -5,6 +5,7 @@ from sensor_msgs.msg import Image
 
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.conversions import (
+    camera_info_rectification,
     camera_info_to_camera,
     camera_to_camera_info,
     image_to_grey,
@@ -73,6 +74,52 @@ def test_camera_info_round_trip_and_bad_k():
     msg.k[0] = 0.0
     with pytest.raises(InvalidInput, match='K'):
         camera_info_to_camera(msg)
+
+
+def _camera_info():
+    K = np.array([[500.0, 0, 320], [0, 510, 240], [0, 0, 1]])
+    camera = PinholeCamera(640, 480, K, [0.1, -0.05, 0.001, 0.002, 0.01], np.eye(4))
+    return camera_to_camera_info(camera, 42, 'stereo_left_optical_frame')
+
+
+@pytest.mark.parametrize('field, value, words', [
+    ('k', [500.0, 0, 320, 3.0, 510, 240, 0, 0, 1], 'upper-triangular'),
+    ('d', [], 'D has 0 coefficients'),
+    ('d', [0.01] * 14, 'D has 14 coefficients'),
+    ('distortion_model', 'rational_polynomial', 'unsupported distortion model'),
+])
+def test_camera_info_with_a_bad_k_or_d_is_rejected(field, value, words):
+    msg = _camera_info()
+    setattr(msg, field, value)
+    with pytest.raises(InvalidInput, match=words):
+        camera_info_to_camera(msg)
+
+
+def test_camera_info_without_a_model_is_undistorted():
+    msg = _camera_info()
+    msg.distortion_model, msg.d = '', []
+    np.testing.assert_array_equal(camera_info_to_camera(msg).D, np.zeros(5))
+    msg.d = [0.1, 0, 0, 0, 0]
+    with pytest.raises(InvalidInput, match='no distortion_model'):
+        camera_info_to_camera(msg)
+
+
+def test_camera_info_rectification():
+    msg = _camera_info()
+    R, P = camera_info_rectification(msg)
+    np.testing.assert_array_equal(R, np.eye(3))
+    msg.r = [0.0] * 9  # "not set": the identity
+    np.testing.assert_array_equal(camera_info_rectification(msg)[0], np.eye(3))
+    msg.r = [2.0, 0, 0, 0, 1, 0, 0, 0, 1]
+    with pytest.raises(InvalidInput, match='R is not a rotation'):
+        camera_info_rectification(msg)
+    msg = _camera_info()
+    msg.p = [0.0] * 12
+    with pytest.raises(InvalidInput, match='P is not a projection'):
+        camera_info_rectification(msg)
+    msg.p = [float('inf')] * 12
+    with pytest.raises(InvalidInput, match='non-finite'):
+        camera_info_rectification(msg)
 
 
 def test_pointcloud_round_trip():

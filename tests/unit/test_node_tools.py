@@ -1,6 +1,7 @@
 """vgm_common.node_tools with real rclpy nodes in this process: NodeParameters (kinds,
 ranges, lists, refusals with a reason, the on_change hook) and run_node (exit request,
 drain after a signal, exit status, one-line start-up error)."""
+import array
 import os
 import signal
 import threading
@@ -110,6 +111,9 @@ def test_changes_are_checked_then_applied_and_reported(make_node):
 
     assert refusal(node, 'rate', 50) == ''  # an int for a float
     assert params.rate == 50.0 and changes == [('rate', 50.0)]
+    # A numeric array arrives from the parameter service as array('d').
+    assert refusal(node, 'weights', array.array('d', [5.0, 6.0])) == ''
+    assert params.weights == [5.0, 6.0] and isinstance(params.weights, list)
 
     assert "parameter 'rate'" in refusal(node, 'rate', 500.0)
     assert "parameter 'rate'" in refusal(node, 'rate', 'fast')  # dynamic typing: ours to refuse
@@ -203,3 +207,21 @@ def test_run_node_reports_a_bad_parameter_in_one_line(private_domain, capfd):
     assert status == 2 and Configured.log == []
     assert len(errors) == 1 and 'Traceback' not in output, output
     assert "[ticker]: start-up error: parameter 'rate': expected float" in errors[0]
+
+
+@pytest.mark.parametrize('content, reason', [
+    (None, 'cannot read params file'),
+    ('ticker: [\n', 'is not valid YAML (line 2)'),
+    ('- a\n- b\n', 'must map node names'),
+])
+def test_run_node_reports_a_bad_params_file_in_one_line(private_domain, capfd, tmp_path,
+                                                        content, reason):
+    path = tmp_path / 'params.yaml'
+    if content is not None:
+        path.write_text(content)
+    status = run_node(_Ticker, args=['probe', '--ros-args', '--params-file', str(path)])
+    captured = capfd.readouterr()
+    output = (captured.out + captured.err).strip()
+    assert status == 2 and len(output.splitlines()) == 1 and 'Traceback' not in output, output
+    assert output.startswith('[ERROR] [ticker]: start-up error: ') and reason in output
+    assert str(path) in output

@@ -8,7 +8,11 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo
 
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.conversions import camera_info_to_camera, pose_to_matrix
+from vgm_common.conversions import (
+    camera_info_rectification,
+    camera_info_to_camera,
+    pose_to_matrix,
+)
 from vgm_common.errors import InvalidInput
 from vgm_common.qos import LATCHED_QOS
 
@@ -69,10 +73,7 @@ class CalibratedCameras:
     def _on_info(self, name, msg):
         try:
             camera_info_to_camera(msg)  # validates
-            R = np.array(msg.r, dtype=float).reshape(3, 3)
-            P = np.array(msg.p, dtype=float).reshape(3, 4)
-            if not (np.all(np.isfinite(R)) and np.all(np.isfinite(P))):
-                raise InvalidInput('camera_info R or P has non-finite values', key='r')
+            camera_info_rectification(msg)
         except (InvalidInput, ValueError) as error:
             self._reject(CAMERA_INFO_TOPICS[name], error)
             return
@@ -96,9 +97,7 @@ class CalibratedCameras:
             return
         info = self._infos[name]
         self._cameras[name] = CalibratedCamera(
-            camera_info_to_camera(info, self._poses[name]),
-            np.array(info.r, dtype=float).reshape(3, 3),
-            np.array(info.p, dtype=float).reshape(3, 4))
+            camera_info_to_camera(info, self._poses[name]), *camera_info_rectification(info))
         self.version += 1
         if self._on_change is not None:
             self._on_change(name)

@@ -103,16 +103,28 @@ def numpy_to_image(array, encoding, stamp_ns, frame_id):
 # --- sensor_msgs/CameraInfo ----------------------------------------------------------
 
 def camera_info_to_camera(msg, T_base_camera=None):
-    """CameraInfo -> PinholeCamera (raw, unrectified intrinsics K and plumb_bob D)."""
+    """CameraInfo -> PinholeCamera (raw, unrectified intrinsics K and plumb_bob D).
+
+    K must be upper-triangular with positive focal lengths and K[2, 2] = 1. The model
+    names the coefficients: plumb_bob takes exactly five (k1, k2, t1, t2, k3); no model
+    ('') means no distortion, with D empty or all zero."""
     K = np.array(msg.k, dtype=float).reshape(3, 3)
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
-        raise InvalidInput(f'camera_info K is not a valid intrinsic matrix: {K.tolist()}',
-                           key='k')
+    if (not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1
+            or np.any(K[[1, 2, 2], [0, 0, 1]] != 0)):
+        raise InvalidInput(f'camera_info K is not a valid intrinsic matrix (upper-triangular, '
+                           f'fx, fy > 0, K[2][2] = 1): {K.tolist()}', key='k')
     if msg.distortion_model not in ('plumb_bob', ''):
         raise InvalidInput(f'unsupported distortion model {msg.distortion_model!r}',
                            key='distortion_model')
     D = np.zeros(5)
-    D[:len(msg.d)] = np.asarray(msg.d, dtype=float)[:5]
+    if msg.distortion_model == 'plumb_bob':
+        if len(msg.d) != 5:
+            raise InvalidInput(f'camera_info D has {len(msg.d)} coefficients: plumb_bob '
+                               'takes 5 (k1, k2, t1, t2, k3)', key='d')
+        D[:] = msg.d
+    elif any(msg.d):
+        raise InvalidInput('camera_info D has coefficients but no distortion_model',
+                           key='distortion_model')
     if not np.all(np.isfinite(D)):
         raise InvalidInput('camera_info D contains non-finite values', key='d')
     if msg.width == 0 or msg.height == 0:
@@ -121,14 +133,34 @@ def camera_info_to_camera(msg, T_base_camera=None):
     return PinholeCamera(int(msg.width), int(msg.height), K, D, T)
 
 
+def camera_info_rectification(msg):
+    """(R 3x3, P 3x4) of a CameraInfo, validated: R a rotation (an all-zero R, "not
+    set", is taken as the identity), P finite with positive focal lengths and last row
+    (0, 0, 1, 0)."""
+    R = np.array(msg.r, dtype=float).reshape(3, 3)
+    P = np.array(msg.p, dtype=float).reshape(3, 4)
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(P))):
+        raise InvalidInput('camera_info R or P has non-finite values', key='r')
+    if not R.any():
+        R = np.eye(3)
+    elif not is_rotation(R, tol=1e-6):
+        raise InvalidInput(f'camera_info R is not a rotation: {R.tolist()}', key='r')
+    if P[0, 0] <= 0 or P[1, 1] <= 0 or np.any(P[2] != (0, 0, 1, 0)):
+        raise InvalidInput(f'camera_info P is not a projection matrix (fx, fy > 0, last row '
+                           f'0 0 1 0): {P.tolist()}', key='p')
+    return R, P
+
+
 def camera_to_camera_info(camera, stamp_ns, frame_id, R=None, P=None):
     """PinholeCamera -> CameraInfo. R (3x3) and P (3x4) default to the unrectified
     identity and [K | 0]."""
     R = np.eye(3) if R is None else np.asarray(R, dtype=float)
     P = np.hstack([camera.K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=float)
+    D = np.zeros(5)
+    D[:len(camera.D)] = camera.D  # plumb_bob's five, a shorter D padded with zeros
     return CameraInfo(header=make_header(stamp_ns, frame_id), height=camera.height,
                       width=camera.width, distortion_model='plumb_bob',
-                      d=[float(x) for x in camera.D], k=camera.K.flatten().tolist(),
+                      d=D.tolist(), k=camera.K.flatten().tolist(),
                       r=R.flatten().tolist(), p=P.flatten().tolist())
 
 

@@ -1,9 +1,11 @@
 """What every node does at its edges: typed parameters with descriptors and validation,
 diagnostics on /diagnostics, throttled rejection of bad input, and a clean ``main``."""
+import array
 import math
 import os
 import re
 import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -12,8 +14,10 @@ from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -70,6 +74,8 @@ class Param:
         return value
 
     def _coerce_list(self, value):
+        if isinstance(value, array.array):  # how rclpy hands a numeric array at run time
+            value = value.tolist()
         if not isinstance(value, (list, tuple)):
             raise self._error(f'expected a list, got {value!r}', value)
         value = list(value)
@@ -289,13 +295,25 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
       ``destroy_node``, so its last log lines and diagnostics still go out.
     - ``exit_status``: read after ``close()``; e.g. 1 when the node failed while running.
     - ``node_name``: a class attribute, names the error line when construction fails.
+    - ``diagnostics``: a ``Diagnostics``; a clash of node names is reported there too.
+
+    A ``--params-file`` that is missing or not YAML is one error line and exit status 2.
     """
-    init_rclpy(args)
+    name = getattr(node_class, 'node_name', node_class.__name__)
+    try:
+        check_params_files(sys.argv[1:] if args is None else args)
+        init_rclpy(args)
+    except (VgmError, RCLError) as error:
+        # Before rclpy is up its logger may not print: one line on stderr, as it would.
+        first_line = str(error).split(', at /')[0].splitlines()[0]
+        print(f'[ERROR] [{name}]: start-up error: {first_line}', file=sys.stderr, flush=True)
+        return 2
     previous_handlers = _set_stop_signal_handler(_raise_keyboard_interrupt)
     node = executor = None
     status = 0
     try:
         node = node_class()
+        node.create_timer(NAME_CHECK_PERIOD, _name_clash_check(node))
         executor = executor_class()
         executor.add_node(node)
         exit_requested = getattr(node, 'exit_requested', None) or threading.Event()
@@ -312,7 +330,6 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
                         timeout=drain())
     except VgmError as error:
         if node is None:
-            name = getattr(node_class, 'node_name', node_class.__name__)
             rclpy.logging.get_logger(name).error(f'start-up error: {error}')
         else:
             node.get_logger().error(f'stopped on error: {error}')
@@ -335,6 +352,52 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
         for signum, handler in previous_handlers.items():
             signal.signal(signum, handler)
     return status
+
+
+def check_params_files(argv):
+    """Raise VgmError naming the file if a ``--params-file`` in ``argv`` is missing or is
+    not a YAML mapping (rcl would fail with a traceback-length message)."""
+    for flag, path in zip(argv, argv[1:]):
+        if flag != '--params-file':
+            continue
+        try:
+            content = yaml.safe_load(Path(path).read_text())
+        except OSError as error:
+            raise VgmError(f'cannot read params file {path}: {error.strerror}') from None
+        except yaml.YAMLError as error:
+            mark = getattr(error, 'problem_mark', None)
+            where = f' (line {mark.line + 1})' if mark else ''
+            raise VgmError(f'params file {path} is not valid YAML{where}: '
+                           f'{getattr(error, "problem", error)}') from None
+        if not isinstance(content, dict):
+            raise VgmError(f'params file {path} must map node names to '
+                           '{ros__parameters: {...}}')
+
+
+NAME_CHECK_PERIOD = 2.0  # [s]
+
+
+def _name_clash_check(node):
+    """A timer callback that logs an error (once per clash) when another node with the
+    same fully qualified name runs on the domain: ROS 2 allows it, but parameters and
+    services of the two then answer for each other."""
+    state = {'clashing': False}
+
+    def check():
+        me = (node.get_name(), node.get_namespace())
+        count = sum(1 for entry in node.get_node_names_and_namespaces() if entry == me)
+        clashing = count > 1
+        if clashing and not state['clashing']:
+            message = (f'{count} nodes named {node.get_fully_qualified_name()} run on this '
+                       'domain: their parameters and services are ambiguous; give one '
+                       'another name (--ros-args -r __node:=<name>)')
+            node.get_logger().error(message)
+            diagnostics = getattr(node, 'diagnostics', None)
+            if isinstance(diagnostics, Diagnostics):
+                diagnostics.publish('node name', 'error', message, {'nodes': count})
+        state['clashing'] = clashing
+
+    return check
 
 
 def _spin_until(executor, done, timeout=None):
