@@ -16,5 +16,6 @@ setup(
     entry_points={'console_scripts': [
         'recorder = bag_tools.recorder_node:main',
         'player = bag_tools.player_node:main',
+        'reindex = bag_tools.reindex:main',
     ]},
 )

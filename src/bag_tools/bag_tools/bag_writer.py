@@ -20,7 +20,10 @@ and metadata indexes) written on close.
 
 Crash safety: every chunk goes to the operating system as soon as it is finalized (no user
 space buffering), so a killed process loses at most the chunk being filled; ``flush()``
-finalizes it early. ``BagReader`` reads such a file without summary or ``metadata.yaml``.
+finalizes it early. Each write leaves the file ending in a footer without a summary, so a
+killed recording's files are valid MCAP that streaming readers read whole; ``reindex``
+(bag_tools.reindex) adds the summary and ``metadata.yaml`` that indexed readers and
+rosbags need. ``BagReader`` reads such a bag without either.
 """
 import heapq
 import os
@@ -227,21 +230,37 @@ class _FileInfo:
         }
 
 
-class _UnbufferedFile:
-    """The write side of a file with no user-space buffer: what ``write`` returns from is in
-    the operating system (it survives the process being killed). mcap's Writer writes whole
-    records (a chunk at a time), so this costs nothing."""
+# What a killed recording ends with: a DataEnd record (data section CRC 0 = not
+# computed), a Footer without a summary (summary start 0) and the closing magic.
+_SEAL = (struct.pack('<BQI', 0x0F, 4, 0)
+         + struct.pack('<BQQQI', 0x02, 20, 0, 0, 0) + MCAP_MAGIC)
+
+
+class _SealedFile:
+    """The write side of an MCAP file that is complete after every write.
+
+    No user-space buffer: what ``write`` returns from is in the operating system (it
+    survives the process being killed); mcap's Writer writes whole records (a chunk at a
+    time), so this costs nothing. Each write also ends the file with ``_SEAL``, which the
+    next write overwrites, so a file cut short by a crash is still a valid MCAP file
+    without a summary: streaming readers (mcap's NonSeekingReader in log-time order, or
+    its seeking reader, which falls back to streaming) read every chunk written.
+    ``close`` cuts the last seal off behind the Writer's own footer."""
 
     def __init__(self, path):
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         self._position = 0
 
     def write(self, data):
-        view = memoryview(data).cast('B')
+        # One call: the seal moves with the data, the file is never left without one
+        # (unless the kernel cuts the write itself short).
+        view = memoryview(bytes(data) + _SEAL)
+        offset = self._position
         while view:
-            written = os.write(self._fd, view)
+            written = os.pwrite(self._fd, view, offset)
             view = view[written:]
-            self._position += written
+            offset += written
+        self._position += len(data)
         return len(data)
 
     def tell(self):
@@ -252,6 +271,7 @@ class _UnbufferedFile:
 
     def close(self):
         if self._fd >= 0:
+            os.ftruncate(self._fd, self._position)
             os.close(self._fd)
             self._fd = -1
 
@@ -418,6 +438,11 @@ class BagWriter:
         temporary.write_text(text, encoding='utf-8')
         temporary.replace(self.path / METADATA_FILENAME)
 
+    def split(self):
+        """Finish the open file and go on in ``<name>_<n+1>.mcap``."""
+        self._check_open()
+        self._split()
+
     def __enter__(self):
         return self
 
@@ -434,7 +459,7 @@ class BagWriter:
     def _open_file(self):
         name = f'{self.path.name}_{len(self._files)}.mcap'
         self._files.append(_FileInfo(path=name))
-        self._stream = _UnbufferedFile(self.path / name)
+        self._stream = _SealedFile(self.path / name)
         self._writer = Writer(self._stream, chunk_size=self._chunk_size,
                               compression=self._compression)
         self._writer.start(profile=MCAP_PROFILE, library=LIBRARY)
@@ -605,7 +630,9 @@ class BagReader:
         """The ``TopicInfo`` of ``name``, or None."""
         return next((t for t in self.topics if t.name == name), None)
 
-    def _file_messages(self, path, topics):
+    def file_messages(self, path, topics=None):
+        """Iterate ``BagMessage`` of one of ``files`` in log-time order (``topics``: names
+        to keep; None = all)."""
         if _has_footer(path):
             with open(path, 'rb') as stream:
                 reader = SeekingReader(stream)
@@ -626,5 +653,5 @@ class BagReader:
             topics: iterable of topic names to keep; None = all.
         """
         topics = None if topics is None else sorted(set(topics))
-        iterators = [self._file_messages(path, topics) for path in self.files]
+        iterators = [self.file_messages(path, topics) for path in self.files]
         return heapq.merge(*iterators, key=lambda m: m.log_time)
