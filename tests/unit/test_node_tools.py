@@ -80,10 +80,19 @@ def test_start_up_values_take_the_declared_kind(make_node):
     assert params.names == [] and params.count == 3 and params.mode == 'fast'
 
 
+def test_an_empty_list_parameter_has_a_value(make_node):
+    node = make_node()
+    NodeParameters(node, [Param('topics', [], 'Topic names.', read_only=True)])
+    # What the get_parameters service answers (it answers nothing for an unset one).
+    assert node.get_parameter('topics').value == []
+    assert node.get_parameter('topics').type_ == Parameter.Type.STRING_ARRAY
+    assert 'read-only' in refusal(node, 'topics', ['/a'])
+
+
 @pytest.mark.parametrize('overrides, reason', [
     ({'rate': 'fast'}, 'expected float'),
-    ({'rate': 500.0}, 'outside [0.0, 200.0]'),
-    ({'rate': float('nan')}, 'finite'),
+    ({'rate': 500.0}, 'out of range'),  # the descriptor's floating-point range
+    ({'rate': float('nan')}, 'out of range'),
     ({'count': 2.5}, 'count'),
     ({'count': 11}, 'out of range'),  # refused by rclpy itself: the descriptor's range
     ({'mode': 'slow'}, 'not one of fast, exact'),
@@ -115,13 +124,13 @@ def test_changes_are_checked_then_applied_and_reported(make_node):
     assert refusal(node, 'weights', array.array('d', [5.0, 6.0])) == ''
     assert params.weights == [5.0, 6.0] and isinstance(params.weights, list)
 
-    assert "parameter 'rate'" in refusal(node, 'rate', 500.0)
+    assert 'rate out of range' in refusal(node, 'rate', 500.0)  # rclpy's, by the descriptor
     assert "parameter 'rate'" in refusal(node, 'rate', 'fast')  # dynamic typing: ours to refuse
     assert "parameter 'mode'" in refusal(node, 'mode', 'slow')
     assert refusal(node, 'frozen', 'y')  # read-only
     assert params.rate == 50.0 and params.mode == 'fast' and params.frozen == 'x'
     assert changes == [('rate', 50.0)]
-    assert diagnostics.rejected == {'parameter change': 3}
+    assert diagnostics.rejected == {'parameter change': 2}  # the two refused by our check
 
     # Another callback vetoes after ours accepted: the change never happened, so nothing
     # is applied.

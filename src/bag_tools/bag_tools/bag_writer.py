@@ -330,6 +330,11 @@ class BagWriter:
     def message_count(self):
         return sum(t.message_count for t in self._topics.values())
 
+    def topic_type(self, name):
+        """The type ``name`` is recorded with, or None."""
+        topic = self._topics.get(name)
+        return None if topic is None else topic.type
+
     @property
     def file_paths(self):
         """Paths of the data files written so far (the last one may still be open)."""

@@ -228,6 +228,7 @@ class RecorderNode(Node):
         self._queue = _MessageQueue(self.params.max_cache_size)
         self._recorded = {}  # topic -> subscription
         self._skipped = set()  # topics warned about once and not recorded
+        self._mixed_types = set()  # recorded topics that gained a publisher of another type
         self._bytes_written = 0  # serialized message bytes handed to the bag (writer thread)
         self.write_error = None
         self.exit_requested = threading.Event()
@@ -267,7 +268,14 @@ class RecorderNode(Node):
         if self._closed:
             return
         for name, types in self.get_topic_names_and_types():
-            if name in self._recorded or name in self._skipped or not self._wanted(name):
+            if name in self._recorded:
+                if len(types) > 1 and name not in self._mixed_types:
+                    # Recorded with its first type; the others' messages cannot be.
+                    self._mixed_types.add(name)
+                    self.diagnostics.reject(name, f'now published with several types {types}: '
+                                            f'only {self._bag.topic_type(name)} is recorded')
+                continue
+            if name in self._skipped or not self._wanted(name):
                 continue
             if len(types) != 1:
                 self._skip(name, f'published with several types {types}')

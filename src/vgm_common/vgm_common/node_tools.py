@@ -16,7 +16,12 @@ from typing import Any, Callable, Optional, Sequence
 import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.duration import Duration
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
@@ -92,11 +97,17 @@ class Param:
         text = self.description + (f' One of: {", ".join(self.choices)}.' if self.choices else '')
         # Dynamic typing lets coerce() give the one-line error (and accept an integer
         # for a float) instead of rclpy raising a traceback at declaration.
-        descriptor = ParameterDescriptor(description=text, read_only=self.read_only,
+        # An empty list is declared typed but unset and then set (NodeParameters), which
+        # rclpy refuses for a read-only one: its read-only-ness is then ours to enforce.
+        descriptor = ParameterDescriptor(description=text,
+                                         read_only=self.read_only and self.default != [],
                                          dynamic_typing=self.default != [])
         if self.range and self.kind is int:
             descriptor.integer_range = [IntegerRange(from_value=self.range[0],
                                                      to_value=self.range[1])]
+        elif self.range and self.kind is float:  # `ros2 param describe` shows it
+            descriptor.floating_point_range = [FloatingPointRange(
+                from_value=float(self.range[0]), to_value=float(self.range[1]))]
         return descriptor
 
 
@@ -120,6 +131,10 @@ class NodeParameters:
             except (InvalidParameterTypeException, InvalidParameterValueException) as error:
                 # A value of the wrong type, or outside a range the descriptor states.
                 raise ParameterError(f'parameter {p.name!r}: {error}', key=p.name) from None
+            if value is None and p.default == []:
+                # Typed but unset, rclpy's get_parameters service would answer nothing
+                # for it (nor for any name asked with it): set the empty list.
+                node.set_parameters([Parameter(p.name, Parameter.Type.STRING_ARRAY, [])])
             values[p.name] = _coerce(p, value)
         self._values = values
         node.add_on_set_parameters_callback(self._on_set)
