@@ -14,6 +14,7 @@ stages only, without pa10_ik_node, and says so.
 import argparse
 import json
 import re
+import shlex
 import shutil
 import sys
 import time
@@ -453,6 +454,11 @@ def main():
     parser.add_argument('--bags', type=Path, default=REPO_ROOT / 'bags')
     parser.add_argument('--timeout', type=float, default=600.0,
                         help='give up after this long [s]')
+    parser.add_argument('--remote-nodes', nargs='+', default=[], metavar='NODE',
+                        help='nodes started through --remote-prefix (another host)')
+    parser.add_argument('--remote-prefix', default='', metavar='COMMAND',
+                        help='command before each remote node, e.g. "ip netns exec B" '
+                        '(the multi-host test\'s simulated second machine)')
     args = parser.parse_args()
 
     scenario_path = resolve_scenario_path(args.scenario).resolve()
@@ -494,7 +500,8 @@ def main():
                          'tool_length': scenario.robot.tool_length,
                          'desired_force': DESIRED_FORCE}})
     log_file = open(work_dir / 'launch.log', 'w')
-    launch = Launch(params_file, nodes=nodes, out=log_file)
+    launch = Launch(params_file, nodes=nodes, out=log_file, command_prefixes={
+        node: shlex.split(args.remote_prefix) for node in args.remote_nodes})
     probe = GraphProbe()
     loop = ClosedLoop(launch, probe, total, track)
     stage(2, total, f'calibrating the rig from {views} chart views')

@@ -54,7 +54,10 @@ def node_names(params_file):
 class Launch:
     """Runs nodes as process groups; ``run()`` returns 0 if none failed."""
 
-    def __init__(self, params_file, nodes=None, overrides=(), out=sys.stdout):
+    def __init__(self, params_file, nodes=None, overrides=(), out=sys.stdout,
+                 command_prefixes=None):
+        """``command_prefixes``: {node: argv} run before a node's executable, e.g.
+        ``['ip', 'netns', 'exec', 'host_b']`` to start it on a simulated second host."""
         self.params_file = Path(params_file).resolve()
         available = node_names(self.params_file)
         self.nodes = list(nodes) if nodes else available
@@ -68,6 +71,7 @@ class Launch:
                 raise LaunchError(f'--set {item!r}: expected NODE:PARAM:=VALUE '
                                   'for a launched node')
             self.overrides[node] += ['-p', assignment]
+        self.command_prefixes = dict(command_prefixes or {})
         self.out = out
         self.processes = {}
         self.logs = {name: [] for name in self.nodes}  # every line each node printed
@@ -88,7 +92,8 @@ class Launch:
 
     def start(self):
         for name in self.nodes:
-            argv = [str(find_executable(name)), '--ros-args', '-r', f'__node:={name}',
+            argv = [*self.command_prefixes.get(name, []), str(find_executable(name)),
+                    '--ros-args', '-r', f'__node:={name}',
                     '--params-file', str(self.params_file), *self.overrides[name]]
             self.processes[name] = subprocess.Popen(
                 argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
