@@ -4,7 +4,9 @@ calib_node, sfs_stereo_node, curve_recon_node and pa10_ik_node. DDS discovers ac
 link (ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET); shared memory is not used between
 namespaces, so every image the vision nodes see crossed the veth.
 
-Faults (tests/multihost/fault_scenario.py, run on host a): the link down for 5 s
+1. The quick closed loop (scripts/demo.py) completes within the demo's tolerances with
+   nothing lost between the publishers and the bag.
+2. Faults (tests/multihost/fault_scenario.py, run on host a): the link down for 5 s
    mid-stream, then pa10_ik_node killed and restarted on host b."""
 import json
 import os
@@ -14,8 +16,11 @@ import sys
 import pytest
 from netns import TwoHosts
 
-from harness import REPO_ROOT, next_ros_env
+from harness import REPO_ROOT, SCENARIO_DIR, next_ros_env
 
+DEMO_TIMEOUT = 600.0  # [s]
+REMOTE_NODES = ('calib_node', 'sfs_stereo_node', 'curve_recon_node', 'pa10_ik_node')
+IMAGE_BYTES = 320 * 240  # one quick-scenario mono8 image
 RECOVERY_LIMIT = 2.0  # [s] data again after the link comes back
 RESTART_LIMIT = 10.0  # [s] a restarted node back in service
 
@@ -30,6 +35,35 @@ def host_env():
 def hosts():
     with TwoHosts(os.getpid()) as hosts:
         yield hosts
+
+
+@pytest.mark.timeout(DEMO_TIMEOUT + 60)
+def test_closed_loop_across_two_hosts(hosts, tmp_path):
+    sent_before = hosts.transmitted_bytes('a')
+    process = subprocess.run(
+        [*hosts.prefix('a'), sys.executable, str(REPO_ROOT / 'scripts' / 'demo.py'),
+         '--scenario', str(SCENARIO_DIR / 'quick.yaml'), '--bags', str(tmp_path),
+         '--remote-nodes', *REMOTE_NODES, '--remote-prefix', ' '.join(hosts.prefix('b'))],
+        env=host_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        timeout=DEMO_TIMEOUT, start_new_session=True)
+    sys.stdout.write(process.stdout[-6000:])
+    bag_dirs = [d for d in tmp_path.iterdir() if d.name.startswith('demo-')]
+    assert bag_dirs, 'the demo recorded no bag'
+    results = json.loads((bag_dirs[0] / 'report' / 'results.json').read_text())
+    measured = results['results']
+    for camera in ('left', 'right', 'aux'):
+        assert measured['calibration'][camera]['image_rms_px'] < 0.5
+    assert measured['curve']['rms_m'] < 1.0e-3
+    tracking = measured['tracking']
+    assert tracking['path_rms_m'] < 1.0e-3 and tracking['force_in_band'] > 0.95
+    for topic, _, in_mcap, in_rosbags, lost in results['messages']:
+        assert in_mcap == in_rosbags, topic
+        assert lost in (None, 0), f'{topic}: {lost} lost between hosts'
+    assert process.returncode == 0
+    # The images reached host b over the link: at least every chart view, three cameras.
+    sent = hosts.transmitted_bytes('a') - sent_before
+    images = sum(n for topic, _, n, _, _ in results['messages'] if topic.endswith('image_raw'))
+    assert sent > images * IMAGE_BYTES, f'{sent} bytes over the link for {images} images'
 
 
 @pytest.mark.timeout(300)
