@@ -494,3 +494,65 @@ def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_se
     points = path_to_matrices(probe.paths[-1])[:, :3, 3]
     assert np.sqrt(np.mean(cKDTree(ellipse).query(points)[0]**2)) < 1e-3
     assert node.alive() and 'Traceback' not in node.output()
+
+
+# --- generated draws unlike the shipped scenarios (issue 14) -------------------------
+
+@pytest.mark.parametrize('family, seed, noise_grey', [
+    ('self_approaching', 3, 2.0),  # a closed space curve passing near itself
+    ('planar_cubic', 2, 2.0),  # a tilted planar cubic with an inflection
+])
+def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
+        spawn, rclpy_node, tmp_path, family, seed, noise_grey):
+    """A generated curve and rig (sensor_sim.curve_families: f 400-1400 px, k1 down to
+    -0.4, an oblique third camera) through the node: waypoints within the bench's goals
+    (RMS < 1 mm, > 90 % of the true curve within 3 mm) and an RMS at or below the
+    triangulation reference's on the same images and calibration."""
+    from curve_recon_node.pipeline import ReconstructionSettings, view_curve
+    from curve_recon_node.reference import triangulate_views
+    from sensor_sim.curve_families import generate_case
+    from sensor_sim.render import SceneRenderer, add_noise
+
+    case = generate_case(family, seed, noise_grey=noise_grey)
+    cameras = case.scenario.cameras
+    renderer = SceneRenderer(case.scenario)
+    images = {name: add_noise(renderer.scene_image(name), noise_grey,
+                              np.random.default_rng([seed, i]))
+              for i, name in enumerate(('left', 'right', 'aux'))}
+    calibration = write_calibration(tmp_path / 'calib', dict(cameras), OPTICAL_FRAMES)
+    probe = Probe(rclpy_node)
+    publishers = {name: rclpy_node.create_publisher(Image, IMAGE_TOPICS[name], DEFAULT_QOS)
+                  for name in IMAGE_TOPICS}
+    node = spawn([executable('curve_recon_node'), '--ros-args',
+                  '-p', f'degree:={case.degree}',
+                  '-p', f'line_width_px:={case.line_width_px:.3f}'])
+    rig_publishers, _ = publish_rig(rclpy_node, calibration)
+    rclpy_node.spin_until(lambda: all(p.get_subscription_count() for p in
+                                      publishers.values()), 30, 'the node subscribing')
+    stamp = [3_000_000_000]
+    deadline = time.monotonic() + 60
+    while not probe.paths:  # the calibration's arrival triggers one reconstruction
+        assert time.monotonic() < deadline, 'no waypoints'
+        stamp[0] += 100_000_000
+        for name, image in images.items():
+            publishers[name].publish(numpy_to_image(image, 'mono8', stamp[0],
+                                                    OPTICAL_FRAMES[name]))
+        end = time.monotonic() + 0.5
+        rclpy_node.spin_until(lambda end=end: probe.paths or time.monotonic() > end, 2,
+                              'waypoints')
+    points = path_to_matrices(probe.paths[-1])[:, :3, 3]
+    truth = densify(np.vstack([case.truth_base, case.truth_base[:1]]) if case.closed
+                    else case.truth_base)
+    rms = np.sqrt(np.mean(cKDTree(truth).query(points)[0]**2))
+    coverage = np.mean(cKDTree(densify(points)).query(truth)[0] <= 3e-3)
+    # the reference on the same images, chains and calibration
+    settings = ReconstructionSettings(degree=case.degree, line_width_px=case.line_width_px)
+    views = [view_curve(images[n].astype(float), cameras[n], settings)[0]
+             for n in ('left', 'right', 'aux')]
+    reference, _ = triangulate_views(views)
+    reference_rms = np.sqrt(np.mean(cKDTree(truth).query(reference)[0]**2))
+    print(f'{family} seed {seed}: ours RMS {rms * 1e3:.3f} mm, coverage {coverage:.3f}; '
+          f'triangulation RMS {reference_rms * 1e3:.3f} mm')
+    assert rms < 1e-3 and coverage > 0.9
+    assert rms <= reference_rms
+    assert node.alive() and 'Traceback' not in node.output()

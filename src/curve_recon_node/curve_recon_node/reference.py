@@ -35,7 +35,8 @@ def triangulate_chains(xy_views, R_camera_base, centre_base, closed, focal_px,
         closed: per view, whether its chain is a loop.
         focal_px: [px] per normalised unit, for the view-3 tolerance.
         tol3_px: [px] largest distance of a point's view-3 projection to view 3's chain.
-        breaks: indices of view 2's chain where it jumps (no segment there).
+        breaks: indices where the chains of views 2 and 3 jump (no segment there; the
+            thesis's line pair has its two pieces in one array).
 
     Returns (points (K, 3) in base [m] in view-1 order, view-1 indices (K,)). With two
     views, view-1 points whose epipolar line crosses view 2's chain more than once are
@@ -71,7 +72,7 @@ def triangulate_chains(xy_views, R_camera_base, centre_base, closed, focal_px,
         with np.errstate(divide='ignore', invalid='ignore'):
             proj3 = x3[:, :2] / x3[:, 2:]
         dense3 = cKDTree(densify_polyline(_closed_polyline(np.asarray(xy_views[2], float),
-                                                           closed[2])))
+                                                           closed[2]), breaks))
         d3 = dense3.query(np.nan_to_num(proj3, nan=1e9))[0] * focal_px
         d3[~(x3[:, 2] > 0)] = np.inf
     else:

@@ -286,9 +286,12 @@ def generate_case(family, seed, noise_grey=None, line_width_px=None, contrast_gr
                            f'{family!r}', key='family', value=family)
     rng = np.random.default_rng([seed, sorted(FAMILIES).index(family)])
     base = load_scenario(resolve_scenario_path('default'))
-    width = rng.uniform(1.5, 5.0) if line_width_px is None else float(line_width_px)
-    contrast = rng.uniform(10.0, 80.0) if contrast_grey is None else float(contrast_grey)
-    noise = rng.uniform(0.0, 4.0) if noise_grey is None else float(noise_grey)
+    # always drawn, so fixing one leaves the rest of the draw as it is
+    width, contrast, noise = (rng.uniform(1.5, 5.0), rng.uniform(10.0, 80.0),
+                              rng.uniform(0.0, 4.0))
+    width = width if line_width_px is None else float(line_width_px)
+    contrast = contrast if contrast_grey is None else float(contrast_grey)
+    noise = noise if noise_grey is None else float(noise_grey)
     if family == 'surface_loop':
         params = {'center': rng.uniform(-0.08, 0.08, 2), 'radii':
                   np.array([rng.uniform(0.2, 0.34), rng.uniform(0.12, 0.22)]),
