@@ -29,7 +29,7 @@ both times in the same run.
 Seeded; writes bench/results/curve_recon/{results.md, results.json, *.png} (parts A, B)
 and families.md / families.json (part C).
 Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_curve_recon.py
-     [--part C]  (only the generated families)
+     [--part A | --part C]  (only the thesis experiments / the generated families)
 """
 import json
 import sys
@@ -643,7 +643,29 @@ def main():
     return 0
 
 
+def main_thesis():
+    """Part A alone (fig. 3.10 and the other chapter-3 sweeps) -> thesis.md."""
+    OUT.mkdir(parents=True, exist_ok=True)
+    started = time.time()
+    rows = run_thesis_experiments()
+    lines, table = summarise_thesis(rows)
+    md = ['# curve_recon_node bench, part A: thesis chapter-3 experiments', '',
+          'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+          f'bench/bench_curve_recon.py --part A` ({time.time() - started:.0f} s, seeded).',
+          '', *lines]
+    (OUT / 'thesis.md').write_text('\n'.join(md) + '\n')
+    (OUT / 'thesis.json').write_text(json.dumps(rows, indent=1, default=float))
+    try:
+        plot_thesis(table, rows)
+    except ImportError:
+        pass
+    print('\n'.join(md))
+    return 0
+
+
 if __name__ == '__main__':
     if '--part' in sys.argv and sys.argv[sys.argv.index('--part') + 1] == 'C':
         sys.exit(main_families(sys.argv[sys.argv.index('--part') + 2:] or None))
+    if '--part' in sys.argv and sys.argv[sys.argv.index('--part') + 1] == 'A':
+        sys.exit(main_thesis())
     sys.exit(main_families() or main())

@@ -105,7 +105,8 @@ def _second_pair(views, points, info, tol3_px, settings):
     their epipolar lines the two cones meet at a grazing angle, so the root is off and
     view 3 rejects it) get a second chance from views 1 and 3, checked by view 2: with
     the oblique third camera that pair is well conditioned there. Returns the merged
-    (points, info), in view-1 order."""
+    (points, info), in view-1 order; the counts of the first pass stay as they were
+    and ``n_second_pair`` counts the samples recovered."""
     missing = np.setdiff1d(np.arange(info['n_samples']), info['sample_index'])
     if len(missing) < 3:
         return points, info
@@ -119,7 +120,6 @@ def _second_pair(views, points, info, tol3_px, settings):
     merged = dict(info, sample_index=index[order],
                   third_view_px=np.concatenate([info['third_view_px'],
                                                 more_info['third_view_px']])[order],
-                  n_rejected_view3=info['n_rejected_view3'] - len(more),
                   n_candidates=info['n_candidates'] + more_info['n_candidates'],
                   n_second_pair=len(more))
     return np.vstack([points, more])[order], merged
