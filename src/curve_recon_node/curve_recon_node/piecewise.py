@@ -113,7 +113,9 @@ class PiecewiseCurve:
         algebraic fit, the one nearer its points. Taubin's avoids the algebraic fit's
         near-singular solutions on long gentle pieces (pixels of residual where the
         points are within 0.05 px of a cubic); the algebraic one is sometimes nearer on
-        a piece that no degree-n curve fits (a sharp turn too short to split)."""
+        a piece that no degree-n curve fits (a sharp turn too short to split). Both are
+        always tried: stopping at a Taubin fit within the tolerance took a helix's
+        coverage at noise 4 from 0.97 to 0.78 (a single cubic piece, systematic error)."""
         best = None
         for fit in FITS:
             a = fit_implicit_curve(self.xy[indices], self.degree, fit)
