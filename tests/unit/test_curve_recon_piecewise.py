@@ -189,8 +189,11 @@ def test_piecewise_fit_splits_a_loop_no_conic_fits():
         # every chain point is in some piece; pieces overlap
         assert np.all(curve.member.any(axis=0)) and curve.member.sum() > len(curve.xy)
         # distances: 0 on the chain, about the offset off it (first order)
+        # (over every chain point: the short unsplittable pieces of the aux view's sharp
+        # turns reach 0.13 px with either fit, Taubin's or the algebraic one)
+        on_chain = np.abs(curve.distance(curve.xy)[0]) * F_PX
+        assert np.sqrt(np.mean(on_chain**2)) < 0.05 and on_chain.max() < 0.15
         distance, direction = curve.distance(curve.xy[::40])
-        assert np.abs(distance).max() * F_PX < 0.05
         moved = curve.xy[::40] + 0.5 / F_PX * direction
         np.testing.assert_allclose(np.median(curve.distance(moved)[0] * F_PX), 0.5, atol=0.02)
         assert np.percentile(np.abs(curve.distance(moved)[0] * F_PX - 0.5), 90) < 0.15

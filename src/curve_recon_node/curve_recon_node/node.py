@@ -4,8 +4,13 @@ views and publish tool waypoints (INTERFACES.md; ALGORITHMS.md §2; issue 4).
 Inputs: the three images (exact-time sync), the calibrated rig (latched camera_info and
 pose topics), optionally /depth/fused + /depth/camera_info for surface normals.
 Outputs: /curve/waypoints (latched Path), /curve/points (PointCloud2), diagnostics.
-The work runs on a worker thread; callbacks only check and hand over.
+The work runs on a worker thread; callbacks only check and hand over. No exception
+escapes a callback or the worker (each is reported once, throttled, with a diagnostic, and
+the node keeps serving); a worker that died anyway is restarted by the status timer.
+~/reconstruct never blocks an executor thread: its requests are answered later, from the
+worker or the timeout timer (``DeferredServiceExecutor``).
 """
+import functools
 import queue
 import threading
 import time
@@ -15,6 +20,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -26,7 +32,13 @@ from curve_recon_node.pipeline import (
     ReconstructionSettings,
     reconstruct_capture,
 )
-from curve_recon_node.waypoints import normals_from_depth, waypoint_frames
+from curve_recon_node.waypoints import (
+    DEPTH_RANGE_M,
+    check_depth_intrinsics,
+    normals_from_depth,
+    usable_depth,
+    waypoint_frames,
+)
 from vgm_common.camera_topics import (
     BASE_FRAME,
     CAMERA_NAMES,
@@ -48,6 +60,58 @@ from vgm_common.sync import ExactTimeSync
 TARGET_POSE_TOPIC = '/calibration/target_pose'
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 DEPTH_TOPIC, DEPTH_INFO_TOPIC = '/depth/fused', '/depth/camera_info'
+SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are answered
+
+
+def guarded(what):
+    """Decorate a callback so no exception escapes it: an unexpected one is reported as
+    rejected ``what`` (one throttled log line and a diagnostic) and the callback returns
+    None. Expected bad input is rejected inside the callbacks with a better reason."""
+    def decorate(callback):
+        @functools.wraps(callback)
+        def wrapper(self, *args, **kwargs):
+            try:
+                return callback(self, *args, **kwargs)
+            except Exception as error:  # noqa: BLE001 - the root rule: nothing escapes
+                self.diagnostics.reject(what, f'{type(error).__name__}: {error}')
+                return None
+        return wrapper
+    return decorate
+
+
+class DeferredServiceExecutor(MultiThreadedExecutor):
+    """A MultiThreadedExecutor that hands the requests of services whose callback has a
+    ``deferred_request(request, header)`` attribute to it instead of calling the
+    callback, so the service answers later with ``send_response`` and no executor thread
+    waits (rclpy's coroutine callbacks would busy-spin the executor while they wait)."""
+
+    def _take_service(self, srv):
+        deferred = getattr(srv.callback, 'deferred_request', None)
+        if deferred is None:
+            return super()._take_service(srv)
+        try:
+            with srv.handle:
+                request, header = srv.handle.service_take_request(srv.srv_type.Request)
+        except InvalidHandle:
+            return None
+
+        async def _execute():
+            if header is not None:
+                deferred(request, header)
+        return _execute
+
+
+class DeferredCallback:
+    """A service callback for ``DeferredServiceExecutor``: it hands each request to
+    ``deferred_request(request, header)``; called as a plain callback (by another
+    executor) it runs ``blocking(request, response)``, which waits on the calling thread."""
+
+    def __init__(self, deferred_request, blocking):
+        self.deferred_request = deferred_request
+        self._blocking = blocking
+
+    def __call__(self, request, response):
+        return self._blocking(request, response)
 
 
 class CurveReconNode(Node):
@@ -67,7 +131,7 @@ class CurveReconNode(Node):
             Param('spacing', 0.005, '[m] Waypoint spacing along the curve.',
                   range=(1e-4, 1.0)),
             Param('views', 3, 'Views to use: 3 (left, right, aux) or 2 (left, right).',
-                  range=(2, 3)),
+                  range=(2, 3), on_change=self._on_views_change),
             Param('line_width_px', 3.0, '[px] Width of the drawn curve in the images.',
                   range=(1.0, 30.0)),
             Param('min_contrast', 8.0, '[grey levels] Faintest line taken as the curve.',
@@ -96,10 +160,8 @@ class CurveReconNode(Node):
         p = self.params
         self.cameras = CalibratedCameras(self, CAMERA_NAMES, self.diagnostics,
                                          self._on_calibration_change)
-        self.sync_keys = CAMERA_NAMES if p.views == 3 else CAMERA_NAMES[:2]
-        self.sync = ExactTimeSync(self.sync_keys, self._on_capture, queue_size=10,
-                                  max_wait=p.sync_max_wait)
         self.sync_lock = threading.Lock()
+        self.sync = self._new_sync(p.views)
         self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
         self.chart_stamps = deque(maxlen=200)
         self.skipped_chart = 0
@@ -107,16 +169,19 @@ class CurveReconNode(Node):
         self.auto_pending = False  # set when the calibration becomes ready or changes
         self.last_auto_attempt = -np.inf
         self.left_right_ready_since = None
-        self.service_requests = []  # [(event, result dict)] waiting for the next capture
+        # ~/reconstruct calls waiting for the next capture: [(reply(success, message),
+        # deadline)] (see _on_reconstruct_request)
+        self.service_requests = []
         self.work = queue.Queue(maxsize=1)
         self.dropped_work = 0
-        self.depth = None  # (depth (H, W), K (3, 3), stamp_ns)
+        self.depth = None  # (depth (H, W) with unusable values NaN, K (3, 3), stamp_ns)
         self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
         self.normals_published = False
         self.stopping = threading.Event()
 
         sensors = MutuallyExclusiveCallbackGroup()
-        for name in self.sync_keys:
+        # all three cameras, so `views` can change at run time; the sync takes the used ones
+        for name in CAMERA_NAMES:
             self.create_subscription(Image, IMAGE_TOPICS[name],
                                      lambda msg, n=name: self._on_image(n, msg), DEFAULT_QOS,
                                      callback_group=sensors)
@@ -131,12 +196,16 @@ class CurveReconNode(Node):
             Path, '/curve/waypoints', LATCHED_QOS, publisher_class=CountingPublisher)
         self.points_publisher = self.create_publisher(
             PointCloud2, '/curve/points', DEFAULT_QOS, publisher_class=CountingPublisher)
-        self.create_service(Trigger, '/curve_recon_node/reconstruct', self._on_reconstruct,
-                            callback_group=ReentrantCallbackGroup())
+        self.reconstruct_service = self.create_service(
+            Trigger, '/curve_recon_node/reconstruct',
+            DeferredCallback(self._on_reconstruct_request, self._on_reconstruct_blocking),
+            callback_group=ReentrantCallbackGroup())
         self.create_timer(1.0, self._publish_status, callback_group=sensors)
-        self.worker = threading.Thread(target=self._run_worker, name='reconstruction',
-                                       daemon=True)
-        self.worker.start()
+        self.create_timer(SERVICE_POLL_PERIOD, self._answer_timed_out_requests,
+                          callback_group=sensors)
+        self.worker = None
+        self.worker_restarts = 0
+        self._start_worker()
         self.get_logger().info(
             f'ready: method {p.method}, degree {p.degree}, {p.views} views, spacing '
             f'{p.spacing} m; waiting for the calibration and a capture')
@@ -148,12 +217,35 @@ class CurveReconNode(Node):
             self.auto_pending = True
             self.last_auto_attempt = -np.inf
 
+    def _new_sync(self, views):
+        keys = CAMERA_NAMES if views == 3 else CAMERA_NAMES[:2]
+        self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
+        return ExactTimeSync(keys, self._on_capture, queue_size=10,
+                             max_wait=self.params.sync_max_wait)
+
+    def _on_views_change(self, views):
+        # a new sync for the new set of cameras: captures pending in the old one lack a
+        # view (or have one too many) and are dropped with it
+        with self.sync_lock:
+            self.sync = self._new_sync(views)
+        self.get_logger().info(f'views set to {views}: synchronizing '
+                               f'{", ".join(self.sync.keys)}')
+
+    @guarded('calibration change')
+    def _on_calibration_change(self, name):
+        with self.state_lock:
+            self.auto_pending = True
+            self.last_auto_attempt = -np.inf
+
+    @guarded(TARGET_POSE_TOPIC)
     def _on_target_pose(self, msg):
         self.chart_stamps.append(stamp_to_ns(msg.header.stamp))
 
+    @guarded('image')
     def _on_image(self, name, msg):
         with self.sync_lock:
-            self.sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
+            if name in self.sync.keys:
+                self.sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
 
     def _views_available(self):
         """Camera names to use now, or None while the calibration is not ready."""
@@ -174,6 +266,8 @@ class CurveReconNode(Node):
         reconstruction is wanted."""
         self.last_match = (time.monotonic(), self.sync.dropped)
         names = self._views_available()
+        if names is not None and not set(names) <= set(messages):
+            return  # `views` changed while this capture was completed
         with self.state_lock:
             wanted_by_service = bool(self.service_requests)
             now = time.monotonic()
@@ -199,17 +293,19 @@ class CurveReconNode(Node):
                 pass
             self.work.put_nowait(job)
 
+    @guarded(DEPTH_INFO_TOPIC)
     def _on_depth_info(self, msg):
         try:
             P = np.array(msg.p, dtype=float).reshape(3, 4)
             K = P[:3, :3]
-            if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-                raise InvalidInput('depth camera_info P has no valid intrinsics', key='p')
+            check_depth_intrinsics(K, int(msg.width), int(msg.height))
         except (InvalidInput, ValueError) as error:
-            self.diagnostics.reject(DEPTH_INFO_TOPIC, error)
+            self.diagnostics.reject(DEPTH_INFO_TOPIC, f'P: {error}')
+            self.depth_info = None  # the depth images that go with it are unusable too
             return
         self.depth_info = (K, int(msg.width), int(msg.height))
 
+    @guarded(DEPTH_TOPIC)
     def _on_depth(self, msg):
         try:
             if msg.encoding != '32FC1':
@@ -217,11 +313,24 @@ class CurveReconNode(Node):
                                    key='encoding', value=msg.encoding)
             depth = image_to_numpy(msg).astype(float)
             if self.depth_info is None:
-                return  # no intrinsics yet: wait for /depth/camera_info
+                return  # no (valid) intrinsics yet: wait for /depth/camera_info
             K, width, height = self.depth_info
             if depth.shape != (height, width):
                 raise InvalidInput(f'depth is {depth.shape[1]}x{depth.shape[0]} but its '
                                    f'camera_info says {width}x{height}', key='size')
+            depth, removed = usable_depth(depth)
+            if not np.isfinite(depth).any():
+                raise InvalidInput(
+                    'no usable depth: every value is NaN, not positive or outside '
+                    f'[{DEPTH_RANGE_M[0]:g}, {DEPTH_RANGE_M[1]:g}] m ({removed})',
+                    key='depth', value=removed)
+            if any(removed.values()):
+                # the rest of the image still serves; these pixels never give a normal
+                self.diagnostics.reject(
+                    'depth values', f'{DEPTH_TOPIC}: ignored for approach axes: '
+                    f'{removed["not_positive"]} zero or negative, {removed["too_far"]} '
+                    f'beyond {DEPTH_RANGE_M[1]:g} m, {removed["too_near"]} nearer than '
+                    f'{DEPTH_RANGE_M[0]:g} m')
         except InvalidInput as error:
             self.diagnostics.reject(DEPTH_TOPIC, error)
             return
@@ -234,51 +343,95 @@ class CurveReconNode(Node):
             except queue.Full:
                 pass  # a reconstruction is queued: it will use the depth anyway
 
-    def _on_reconstruct(self, request, response):
+    @guarded('reconstruct request')
+    def _on_reconstruct_request(self, request, header):
+        """A ~/reconstruct call (DeferredServiceExecutor): queue its reply for the next
+        capture; the worker answers it, or _answer_timed_out_requests after
+        ``service_timeout``."""
+        def reply(success, message):
+            response = Trigger.Response(success=success, message=message)
+            try:
+                self.reconstruct_service.send_response(response, header)
+            except Exception as error:  # noqa: BLE001 - the caller may be gone
+                self.diagnostics.reject('reconstruct reply', error)
+        self._queue_request(reply)
+
+    def _queue_request(self, reply):
+        deadline = time.monotonic() + self.params.service_timeout
+        with self.state_lock:
+            self.service_requests.append((reply, deadline))
+
+    def _on_reconstruct_blocking(self, request, response):
+        """~/reconstruct under an executor without deferred services: wait here."""
         done = threading.Event()
         result = {}
-        with self.state_lock:
-            self.service_requests.append((done, result))
-        if not done.wait(self.params.service_timeout):
-            with self.state_lock:
-                self.service_requests = [r for r in self.service_requests if r[0] is not done]
-            missing = self.cameras.missing()
-            response.success = False
-            response.message = ('no synchronized capture within '
-                                f'{self.params.service_timeout:g} s'
-                                + (f' (not calibrated: {", ".join(missing)})'
-                                   if missing else ''))
-            return response
+
+        def reply(success, message):
+            result.update(success=success, message=message)
+            done.set()
+        self._queue_request(reply)
+        done.wait(self.params.service_timeout + 2 * SERVICE_POLL_PERIOD + 1.0)
         response.success = result.get('success', False)
-        response.message = result.get('message', '')
+        response.message = result.get('message', 'no answer')
         return response
 
+    @guarded('reconstruct timeout')
+    def _answer_timed_out_requests(self):
+        now = time.monotonic()
+        with self.state_lock:
+            expired = [r for r in self.service_requests if r[1] <= now]
+            self.service_requests = [r for r in self.service_requests if r[1] > now]
+        if not expired:
+            return
+        missing = self.cameras.missing()
+        message = ('no synchronized capture within '
+                   f'{self.params.service_timeout:g} s'
+                   + (f' (not calibrated: {", ".join(missing)})' if missing else ''))
+        for reply, _ in expired:
+            reply(False, message)
+
     # --- work ------------------------------------------------------------------------
+
+    def _start_worker(self):
+        self.worker = threading.Thread(target=self._run_worker, name='reconstruction',
+                                       daemon=True)
+        self.worker.start()
 
     def _run_worker(self):
         while not self.stopping.is_set():
             try:
-                stamp_ns, messages, names, requests = self.work.get(timeout=0.2)
+                job = self.work.get(timeout=0.2)
             except queue.Empty:
                 continue
-            if stamp_ns == 'republish':
-                self._republish_with_normals()
-                continue
-            # The chart's pose, stamped like its images, may arrive after them: give it
-            # CHART_POSE_GRACE before taking a capture for one of the scene.
-            self.stopping.wait(CHART_POSE_GRACE)
-            if stamp_ns in self.chart_stamps:
-                with self.state_lock:
-                    self.skipped_chart += 1
-                    self.service_requests = requests + self.service_requests
-                continue
-            success, message = self._reconstruct(stamp_ns, messages, names)
+            requests = job[3]
+            try:
+                success, message = self._run_job(*job)
+            except Exception as error:  # noqa: BLE001 - the worker must never die
+                self.diagnostics.reject('reconstruction', f'{type(error).__name__}: {error}')
+                success, message = False, f'reconstruction failed: {error}'
+            for reply, _ in requests:
+                reply(success, message)
+
+    def _run_job(self, stamp_ns, messages, names, requests):
+        """One job of the worker; returns (success, message) for the requests it serves
+        (a chart capture puts its requests back to wait for the next one)."""
+        if stamp_ns == 'republish':
+            self._republish_with_normals()
+            return True, 'republished'
+        # The chart's pose, stamped like its images, may arrive after them: give it
+        # CHART_POSE_GRACE before taking a capture for one of the scene.
+        self.stopping.wait(CHART_POSE_GRACE)
+        if stamp_ns in self.chart_stamps:
             with self.state_lock:
-                if success:
-                    self.auto_pending = False
-            for done, result in requests:
-                result.update(success=success, message=message)
-                done.set()
+                self.skipped_chart += 1
+                self.service_requests = requests + self.service_requests
+            requests.clear()  # they wait for the next capture
+            return False, 'chart capture'
+        success, message = self._reconstruct(stamp_ns, messages, names)
+        with self.state_lock:
+            if success:
+                self.auto_pending = False
+        return success, message
 
     def _settings(self):
         p = self.params
@@ -310,6 +463,7 @@ class CurveReconNode(Node):
                     self.diagnostics.reject(IMAGE_TOPICS[name], error)
                     return False, str(error)
             result = reconstruct_capture(images, cameras, self._settings(), names)
+            normals_source = self._publish(stamp_ns, result)
         except NoCurve as error:
             self.diagnostics.reject('no curve', error)
             return False, f'no curve: {error}'
@@ -317,7 +471,6 @@ class CurveReconNode(Node):
             self.diagnostics.reject('reconstruction', error)
             return False, f'reconstruction failed: {error}'
         self.last_result = (stamp_ns, result, names)
-        normals_source = self._publish(stamp_ns, result)
         stats = result.stats
         shape = 'closed loop' if result.closed else 'open curve'
         message = (f'published {len(result.waypoints_base)} waypoints ({shape}, '
@@ -336,7 +489,8 @@ class CurveReconNode(Node):
         return True, message
 
     def _approach_directions(self, waypoints):
-        """Approach directions (N, 3) into the surface from the fused depth, or None."""
+        """Approach directions (N, 3) into the surface from the fused depth, or None (no
+        depth, or none usable at the waypoints: see normals_from_depth)."""
         if not self.params.use_depth_normals or self.depth is None:
             return None
         left = self.cameras.get('left')
@@ -347,8 +501,12 @@ class CurveReconNode(Node):
         T_base_rect = np.eye(4)
         T_base_rect[:3, :3] = T_base_left[:3, :3] @ left.R.T  # x_rect = R_left x_left
         T_base_rect[:3, 3] = T_base_left[:3, 3]
-        normals = normals_from_depth(waypoints, depth, K, T_base_rect,
-                                     self.params.normal_window_px)
+        try:
+            normals = normals_from_depth(waypoints, depth, K, T_base_rect,
+                                         self.params.normal_window_px)
+        except InvalidInput as error:  # checked on arrival: only a changed rig gets here
+            self.diagnostics.reject(DEPTH_TOPIC, error)
+            return None
         if not np.any(np.all(np.isfinite(normals), axis=1)):
             return None
         return -normals  # into the surface
@@ -374,11 +532,19 @@ class CurveReconNode(Node):
             self.get_logger().info(f'fused depth arrived: republished '
                                    f'{len(result.waypoints_base)} waypoints with {source}')
 
+    @guarded('status')
     def _publish_status(self):
+        if not self.worker.is_alive() and not self.stopping.is_set():
+            # cannot happen (the worker catches everything); if it does, serve on
+            self.worker_restarts += 1
+            self.diagnostics.reject('worker', 'the reconstruction thread stopped: '
+                                    'restarted')
+            self._start_worker()
         missing = self.cameras.missing()
         values = {'matched': self.sync.matched, 'dropped': self.sync.dropped,
                   'pending': self.sync.pending, 'skipped_chart_captures': self.skipped_chart,
-                  'dropped_work': self.dropped_work,
+                  'dropped_work': self.dropped_work, 'worker_restarts': self.worker_restarts,
+                  'waiting_requests': len(self.service_requests),
                   'depth': 'yes' if self.depth is not None else 'no'}
         needed = [n for n in missing if n in ('left', 'right')
                   or (n == 'aux' and self.params.views == 3)]
@@ -398,10 +564,14 @@ class CurveReconNode(Node):
     def close(self):
         self.stopping.set()
         self.worker.join(timeout=5.0)
+        with self.state_lock:
+            waiting, self.service_requests = self.service_requests, []
+        for reply, _ in waiting:
+            reply(False, 'curve_recon_node is shutting down')
 
 
 def main(args=None):
-    return run_node(CurveReconNode, args, executor_class=lambda: MultiThreadedExecutor(3))
+    return run_node(CurveReconNode, args, executor_class=lambda: DeferredServiceExecutor(3))
 
 
 if __name__ == '__main__':

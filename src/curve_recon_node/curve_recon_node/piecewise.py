@@ -33,6 +33,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from curve_recon_node.algebraic_curves import (
+    FITS,
     fit_implicit_curve,
     monomial_exponents,
     powers,
@@ -108,13 +109,25 @@ class PiecewiseCurve:
         return idx % len(self.xy) if self.closed else idx
 
     def _fit(self, indices):
-        a = fit_implicit_curve(self.xy[indices], self.degree)
-        # Sampson distances |g| / ||grad g|| of the piece's chain points
-        with np.errstate(divide='ignore', invalid='ignore'):
-            residual = (np.abs(self._monomials[indices] @ a)
-                        / np.hypot(self._monomials_dx[indices] @ a,
-                                   self._monomials_dy[indices] @ a))
-        return a, float(np.sqrt(np.mean(residual**2)) * self.focal_px)
+        """The piece's coefficients and RMS Sampson residual [px]: of Taubin's and the
+        algebraic fit, the one nearer its points. Taubin's avoids the algebraic fit's
+        near-singular solutions on long gentle pieces (pixels of residual where the
+        points are within 0.05 px of a cubic); the algebraic one is sometimes nearer on
+        a piece that no degree-n curve fits (a sharp turn too short to split). Both are
+        always tried: stopping at a Taubin fit within the tolerance took a helix's
+        coverage at noise 4 from 0.97 to 0.78 (a single cubic piece, systematic error)."""
+        best = None
+        for fit in FITS:
+            a = fit_implicit_curve(self.xy[indices], self.degree, fit)
+            # Sampson distances |g| / ||grad g|| of the piece's chain points
+            with np.errstate(divide='ignore', invalid='ignore'):
+                residual = (np.abs(self._monomials[indices] @ a)
+                            / np.hypot(self._monomials_dx[indices] @ a,
+                                       self._monomials_dy[indices] @ a))
+            rms = float(np.sqrt(np.mean(residual**2)) * self.focal_px)
+            if best is None or rms < best[1]:
+                best = (a, rms)
+        return best
 
     def _split(self, start, length, depth):
         indices = self._indices(start, length)

@@ -26,6 +26,7 @@ from curve_recon_node.waypoints import (
 from vgm_common.errors import InvalidInput
 
 METHODS = ('ray_roots', 'cone_lsq')
+REFINED_RESIDUAL_PX = 1.0  # [px] a refined point must come this near every view's curve
 
 
 class NoCurve(InvalidInput):
@@ -99,6 +100,31 @@ def view_curve(image, camera, settings, clock=None):
     return View(curve, T_camera_base[:3, :3], camera.centre_base), len(chains)
 
 
+def _second_pair(views, points, info, tol3_px, settings):
+    """Samples that views 1 and 2 left unreconstructed (where the curve runs along
+    their epipolar lines the two cones meet at a grazing angle, so the root is off and
+    view 3 rejects it) get a second chance from views 1 and 3, checked by view 2: with
+    the oblique third camera that pair is well conditioned there. Returns the merged
+    (points, info), in view-1 order; the counts of the first pass stay as they were
+    and ``n_second_pair`` counts the samples recovered."""
+    missing = np.setdiff1d(np.arange(info['n_samples']), info['sample_index'])
+    if len(missing) < 3:
+        return points, info
+    more, more_info = reconstruct_ray_roots(views[0], views[2], views[1], samples=missing,
+                                            tol3_px=tol3_px,
+                                            max_depth=settings.depth_range[1])
+    if not len(more):
+        return points, info
+    index = np.concatenate([info['sample_index'], more_info['sample_index']])
+    order = np.argsort(index, kind='stable')
+    merged = dict(info, sample_index=index[order],
+                  third_view_px=np.concatenate([info['third_view_px'],
+                                                more_info['third_view_px']])[order],
+                  n_candidates=info['n_candidates'] + more_info['n_candidates'],
+                  n_second_pair=len(more))
+    return np.vstack([points, more])[order], merged
+
+
 def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux')):
     """Reconstruct the curve seen in ``images`` {name: (H, W) grey} by ``cameras`` {name:
     PinholeCamera with pose}; ``names`` are the views used, view 1 first (2 or 3).
@@ -124,6 +150,8 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
     if settings.method == 'ray_roots':
         points, info = reconstruct_ray_roots(views[0], views[1], view3, tol3_px=tol3,
                                              max_depth=settings.depth_range[1])
+        if view3 is not None:
+            points, info = _second_pair(views, points, info, tol3, settings)
     else:
         # the thesis's "suitable initial roots": log-spaced depths on each view-1 ray
         seeds = np.geomspace(*settings.depth_range, settings.seeds)
@@ -136,6 +164,7 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
              'samples': info['n_samples'], 'candidates': info['n_candidates'],
              'rejected_by_third_view': info['n_rejected_view3'],
              'ambiguous': info['n_ambiguous'],
+             'from_views_1_3': info.get('n_second_pair', 0),
              'without_candidates': info['n_without_candidates'],
              'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views)}
     # two views: reconstruct where the intersection is unique and report the rest as
@@ -152,11 +181,22 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
                                       sample_index, len(views[0].curve.xy) if closed
                                       else None, passes=1)
         refined, residuals, before = refine_points(points, views, tangents(rough, closed))
-        good = np.all(np.isfinite(residuals), axis=1)
+        # a refined point that cannot come within REFINED_RESIDUAL_PX of every view's
+        # curve (or several times the typical residual) lies on no common curve: a root
+        # of a grazing intersection or a wrong branch. Left in, it is an outlier the
+        # smoothing may follow, and a cluster of them splits the curve into runs.
+        worst = np.max(np.abs(residuals), axis=1)
+        finite = np.isfinite(worst)
+        limit = max(REFINED_RESIDUAL_PX,
+                    5 * float(np.median(worst[finite])) if finite.any() else 0.0)
+        good = finite & (worst <= limit)
+        stats_rejected_refined = int((finite & ~good).sum())
         points, residuals, sample_index = refined[good], residuals[good], sample_index[good]
         clock.lap('refinement')
     else:
         before = residuals = np.column_stack([v.distance_px(points) for v in views])
+        stats_rejected_refined = 0
+    stats['off_curve_after_refinement'] = stats_rejected_refined
     stats['rms_residual_px_before'] = float(np.sqrt(np.mean(before**2)))
     stats['rms_residual_px'] = '/'.join(f'{r:.3f}' for r in
                                         np.sqrt(np.mean(residuals**2, axis=0)))

@@ -151,7 +151,9 @@ def resample(points, closed, spacing_m):
     if closed:
         points = np.vstack([points, points[:1]])
     s, total = arc_length(points, False)
-    segments = max(1, int(round(total / spacing_m)))
+    # at least two waypoints on an open curve and three on a loop (so each has a
+    # tangent), however coarse the spacing against the curve's length
+    segments = max(3 if closed else 1, int(round(total / spacing_m)))
     targets = np.linspace(0.0, total, segments + 1)
     if closed:
         targets = targets[:-1]
@@ -159,13 +161,28 @@ def resample(points, closed, spacing_m):
 
 
 def tangents(points, closed):
-    """Unit tangents (N, 3) by central differences (one-sided at open ends)."""
+    """Unit tangents (N, 3) by central differences (one-sided at open ends). Where the
+    difference vanishes (repeated points, a loop of two points) the nearest non-zero
+    tangent along the curve is taken; raises InvalidInput if all points coincide."""
     points = _as_points(points)
+    if len(points) < 2:
+        raise InvalidInput(f'tangents: need at least 2 points, got {len(points)}',
+                           key='points', value=len(points))
     if closed:
         t = np.roll(points, -1, axis=0) - np.roll(points, 1, axis=0)
     else:
         t = np.gradient(points, axis=0)
-    return t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-300)
+    norm = np.linalg.norm(t, axis=1)
+    scale = max(float(np.ptp(points, axis=0).max()), 1e-300)
+    zero = ~(norm > 1e-9 * scale)
+    if zero.all():
+        raise InvalidInput('tangents: all points coincide', key='points',
+                           value=points[0].tolist())
+    if zero.any():
+        nonzero = np.nonzero(~zero)[0]
+        nearest = nonzero[np.abs(np.arange(len(t))[:, None] - nonzero[None]).argmin(axis=1)]
+        t, norm = t[nearest], norm[nearest]
+    return t / norm[:, None]
 
 
 def waypoint_frames(points, closed, approach_base=None):
@@ -214,19 +231,67 @@ def depth_points_rect(depth_m, K_rect):
     return np.stack([x * depth_m, y * depth_m, depth_m], axis=2)
 
 
+DEPTH_RANGE_M = (1e-3, 100.0)  # [m] depths outside are not a surface seen by a camera
+
+
+def usable_depth(depth_m, depth_range=DEPTH_RANGE_M):
+    """The depth image (H, W) with every value that cannot be a seen surface set to NaN
+    (NaN stays unknown, REP 118), and the counts of what was removed: {'not_positive':
+    zero or negative, 'too_far': beyond ``depth_range[1]`` [m] or infinite, 'too_near':
+    positive but nearer than ``depth_range[0]``}."""
+    depth_m = np.array(depth_m, dtype=float)
+    with np.errstate(invalid='ignore'):
+        not_positive = depth_m <= 0
+        too_far = depth_m > depth_range[1]
+        too_near = (depth_m > 0) & (depth_m < depth_range[0])
+    depth_m[not_positive | too_far | too_near] = np.nan
+    return depth_m, {'not_positive': int(not_positive.sum()), 'too_far': int(too_far.sum()),
+                     'too_near': int(too_near.sum())}
+
+
+def check_depth_intrinsics(K_rect, width, height):
+    """InvalidInput unless K (3, 3) is a plausible pinhole matrix for a ``width`` x
+    ``height`` image: finite, positive focal lengths under 1e6 px, the principal point
+    within an image size of the image, zero bottom row but K[2, 2] = 1."""
+    K = np.asarray(K_rect, dtype=float)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)):
+        raise InvalidInput('depth intrinsics: K must be a finite 3x3 matrix', key='K')
+    limit = 1e6  # [px] no lens has a focal length of a million pixels
+    if not (0 < K[0, 0] < limit and 0 < K[1, 1] < limit):
+        raise InvalidInput(f'depth intrinsics: focal lengths {K[0, 0]:g}, {K[1, 1]:g} px '
+                           f'must be in (0, {limit:g})', key='K', value=K.tolist())
+    if not (abs(K[0, 1]) < limit and -width <= K[0, 2] <= 2 * width
+            and -height <= K[1, 2] <= 2 * height):
+        raise InvalidInput(f'depth intrinsics: principal point ({K[0, 2]:g}, {K[1, 2]:g}) '
+                           f'or skew {K[0, 1]:g} implausible for {width}x{height}', key='K',
+                           value=K.tolist())
+    if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        raise InvalidInput('depth intrinsics: K must be upper triangular with K[2, 2] = 1',
+                           key='K', value=K.tolist())
+
+
 def normals_from_depth(points_base, depth_m, K_rect, T_base_rect, window_px=9,
-                       min_valid=12):
+                       min_valid=12, max_depth_mismatch=0.1):
     """Surface normals (N, 3) in base at ``points_base`` from a depth image.
 
     Each point is projected into the rectified frame (pose ``T_base_rect`` (4, 4), the
     rectified left optical frame in base), and a plane is fitted by SVD to the depth
     image's 3D points in the ``window_px`` x ``window_px`` window around it. The normal is
-    oriented toward the camera (out of the surface). Rows where the point is outside the
-    image or fewer than ``min_valid`` depths are finite are NaN.
+    oriented toward the camera (out of the surface). Rows are NaN where the point is
+    outside the image, fewer than ``min_valid`` depths are usable (see ``usable_depth``),
+    or the depth there disagrees with the point's own depth by more than
+    ``max_depth_mismatch`` of it (plus 1 cm): that depth shows some other surface.
+    Raises InvalidInput for implausible intrinsics (``check_depth_intrinsics``).
     """
     points_base = _as_points(points_base)
-    cloud = depth_points_rect(depth_m, K_rect)
+    depth_m = np.asarray(depth_m, dtype=float)
+    if depth_m.ndim != 2:
+        raise InvalidInput(f'depth: expected (H, W), got {depth_m.shape}', key='depth',
+                           value=depth_m.shape)
     H, W = depth_m.shape
+    check_depth_intrinsics(K_rect, W, H)
+    depth_m, _ = usable_depth(depth_m)
+    cloud = depth_points_rect(depth_m, K_rect)
     T = np.asarray(T_base_rect, dtype=float)
     R_base_rect, centre_base = T[:3, :3], T[:3, 3]
     p_rect = (points_base - centre_base) @ R_base_rect
@@ -234,16 +299,18 @@ def normals_from_depth(points_base, depth_m, K_rect, T_base_rect, window_px=9,
     normals = np.full((len(points_base), 3), np.nan)
     half = int(window_px) // 2
     for i, p in enumerate(p_rect):
-        if p[2] <= 0:
+        if not p[2] > 0:
             continue
         u = K[0, 0] * p[0] / p[2] + K[0, 1] * p[1] / p[2] + K[0, 2]
         v = K[1, 1] * p[1] / p[2] + K[1, 2]
+        if not (half <= u < W - half - 0.5 and half <= v < H - half - 0.5):
+            continue  # also false for NaN
         ui, vi = int(round(u)), int(round(v))
-        if not (half <= ui < W - half and half <= vi < H - half):
-            continue
         patch = cloud[vi - half:vi + half + 1, ui - half:ui + half + 1].reshape(-1, 3)
         patch = patch[np.all(np.isfinite(patch), axis=1)]
         if len(patch) < min_valid:
+            continue
+        if abs(np.median(patch[:, 2]) - p[2]) > max_depth_mismatch * p[2] + 0.01:
             continue
         centred = patch - patch.mean(axis=0)
         n = np.linalg.svd(centred, full_matrices=False)[2][-1]

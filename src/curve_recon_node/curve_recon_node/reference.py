@@ -1,0 +1,95 @@
+"""The conventional peer of the curve reconstruction, for benches and tests: epipolar
+matching of view-1 chain points along view 2's chain polyline, cv2.triangulatePoints,
+and view 3 to choose among several crossings (and to reject points off its chain), on
+the same extracted chains and calibration the node uses (issue 14).
+"""
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def _closed_polyline(xy, closed):
+    return np.vstack([xy, xy[:1]]) if closed else xy
+
+
+def densify_polyline(xy, breaks=None, per=20):
+    """``per`` points per segment of a polyline (N, 2); no segment ends at an index in
+    ``breaks`` (the polyline jumps there)."""
+    breaks = set() if breaks is None else set(int(b) for b in breaks)
+    keep = np.array([k + 1 not in breaks for k in range(len(xy) - 1)], dtype=bool)
+    fractions = np.linspace(0, 1, per, endpoint=False)
+    a, b = xy[:-1][keep], xy[1:][keep]
+    dense = a[:, None, :] + fractions[None, :, None] * (b - a)[:, None, :]
+    return np.vstack([dense.reshape(-1, 2), xy[-1:]])
+
+
+def triangulate_chains(xy_views, R_camera_base, centre_base, closed, focal_px,
+                       tol3_px=2.0, breaks=None):
+    """Point-based reconstruction of a curve from its chains in two or three views.
+
+    Args:
+        xy_views: per view, the ordered chain (N_i, 2) in undistorted normalised image
+            coordinates, view 1 first.
+        R_camera_base, centre_base: per view, rotation base -> optical (3, 3) and centre
+            in base (3,) [m].
+        closed: per view, whether its chain is a loop.
+        focal_px: [px] per normalised unit, for the view-3 tolerance.
+        tol3_px: [px] largest distance of a point's view-3 projection to view 3's chain.
+        breaks: indices where the chains of views 2 and 3 jump (no segment there; the
+            thesis's line pair has its two pieces in one array).
+
+    Returns (points (K, 3) in base [m] in view-1 order, view-1 indices (K,)). With two
+    views, view-1 points whose epipolar line crosses view 2's chain more than once are
+    dropped (ambiguous).
+    """
+    P = [np.hstack([R, (-R @ np.asarray(c, float))[:, None]])
+         for R, c in zip(R_camera_base, centre_base)]
+    xy1 = np.asarray(xy_views[0], float)
+    xy2 = _closed_polyline(np.asarray(xy_views[1], float), closed[1])
+    R1, R2 = R_camera_base[0], R_camera_base[1]
+    c1, c2 = np.asarray(centre_base[0], float), np.asarray(centre_base[1], float)
+    # epipolar line in view 2 of each view-1 point: through the epipole and the image of
+    # a point one unit along the ray
+    c1_in_2 = R2 @ (c1 - c2)
+    rays = np.column_stack([xy1, np.ones(len(xy1))]) @ R1  # base directions
+    far = (c1 + rays - c2) @ R2.T
+    lines = np.cross(c1_in_2[None], far)
+    side = np.column_stack([xy2, np.ones(len(xy2))]) @ lines.T  # (N2, N1)
+    valid_segment = np.ones(len(xy2) - 1, bool)
+    if breaks is not None:
+        valid_segment[np.asarray(breaks, int) - 1] = False
+    crossing = (side[:-1] * side[1:] <= 0) & valid_segment[:, None] & (side[:-1] != side[1:])
+    segment, point = np.nonzero(crossing)
+    w = side[segment, point] / (side[segment, point] - side[segment + 1, point])
+    matches = xy2[segment] + w[:, None] * (xy2[segment + 1] - xy2[segment])
+    if not len(point):
+        return np.zeros((0, 3)), np.zeros(0, int)
+    X = cv2.triangulatePoints(P[0], P[1], xy1[point].T, matches.T)
+    X = (X[:3] / X[3]).T
+    if len(xy_views) > 2:
+        R3, c3 = R_camera_base[2], np.asarray(centre_base[2], float)
+        x3 = (X - c3) @ R3.T
+        with np.errstate(divide='ignore', invalid='ignore'):
+            proj3 = x3[:, :2] / x3[:, 2:]
+        dense3 = cKDTree(densify_polyline(_closed_polyline(np.asarray(xy_views[2], float),
+                                                           closed[2]), breaks))
+        d3 = dense3.query(np.nan_to_num(proj3, nan=1e9))[0] * focal_px
+        d3[~(x3[:, 2] > 0)] = np.inf
+    else:
+        d3 = np.zeros(len(X))
+    order = np.lexsort((d3, point))  # per view-1 point, the best crossing first
+    point, X, d3 = point[order], X[order], d3[order]
+    first = np.concatenate([[True], point[1:] != point[:-1]])
+    counts = np.bincount(point, minlength=len(xy1))
+    keep = first & (d3 <= tol3_px)
+    if len(xy_views) == 2:
+        keep &= counts[point] == 1
+    return X[keep], point[keep]
+
+
+def triangulate_views(views, tol3_px=2.0):
+    """``triangulate_chains`` on the node's ``piecewise.View`` objects (their chains as
+    extracted and undistorted)."""
+    return triangulate_chains([v.curve.xy for v in views], [v.R_camera_base for v in views],
+                              [v.centre_base for v in views], [v.curve.closed for v in views],
+                              views[-1].curve.focal_px, tol3_px)
