@@ -46,6 +46,9 @@ from vgm_common.camera_topics import (
     CalibratedCameras,
 )
 from vgm_common.conversions import (
+    camera_info_rectification,
+    camera_info_to_camera,
+    check_grey_image,
     image_to_grey,
     image_to_numpy,
     matrices_to_path,
@@ -243,6 +246,11 @@ class CurveReconNode(Node):
 
     @guarded('image')
     def _on_image(self, name, msg):
+        try:
+            check_grey_image(msg)  # every image, also those of captures not reconstructed
+        except InvalidInput as error:
+            self.diagnostics.reject(IMAGE_TOPICS[name], error)
+            return
         with self.sync_lock:
             if name in self.sync.keys:
                 self.sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
@@ -296,7 +304,8 @@ class CurveReconNode(Node):
     @guarded(DEPTH_INFO_TOPIC)
     def _on_depth_info(self, msg):
         try:
-            P = np.array(msg.p, dtype=float).reshape(3, 4)
+            camera_info_to_camera(msg)  # the whole message must be a valid CameraInfo
+            _, P = camera_info_rectification(msg)
             K = P[:3, :3]
             check_depth_intrinsics(K, int(msg.width), int(msg.height))
         except (InvalidInput, ValueError) as error:
@@ -313,7 +322,8 @@ class CurveReconNode(Node):
                                    key='encoding', value=msg.encoding)
             depth = image_to_numpy(msg).astype(float)
             if self.depth_info is None:
-                return  # no (valid) intrinsics yet: wait for /depth/camera_info
+                raise InvalidInput(f'no valid {DEPTH_INFO_TOPIC} yet: the depth image '
+                                   'cannot be used', key='camera_info')
             K, width, height = self.depth_info
             if depth.shape != (height, width):
                 raise InvalidInput(f'depth is {depth.shape[1]}x{depth.shape[0]} but its '

@@ -43,8 +43,10 @@ def make_header(stamp_ns, frame_id):
 
 # --- sensor_msgs/Image -------------------------------------------------------------
 
-def image_to_numpy(msg):
-    """Image -> array of shape (H, W) or (H, W, C), a copy, in the message's dtype."""
+def check_image(msg):
+    """Raise InvalidInput unless ``msg`` is a well-formed Image (known encoding, non-empty,
+    step and data length consistent); returns (dtype, channels, row bytes). Cheap: the
+    pixels are not touched, so a node can check every image as it arrives."""
     if msg.encoding not in IMAGE_ENCODINGS:
         raise InvalidInput(f'unsupported image encoding {msg.encoding!r}', key='encoding',
                            value=msg.encoding)
@@ -59,6 +61,12 @@ def image_to_numpy(msg):
     if len(msg.data) != msg.step * msg.height:
         raise InvalidInput(f'image data has {len(msg.data)} bytes, expected step * height '
                            f'= {msg.step * msg.height}', key='data', value=len(msg.data))
+    return dtype, channels, row_bytes
+
+
+def image_to_numpy(msg):
+    """Image -> array of shape (H, W) or (H, W, C), a copy, in the message's dtype."""
+    dtype, channels, row_bytes = check_image(msg)
     rows = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)
     pixels = rows[:, :row_bytes].copy().view(dtype).astype(dtype.newbyteorder('='))
     return pixels.reshape(msg.height, msg.width, channels) if channels > 1 else \
@@ -69,20 +77,29 @@ _GREY_WEIGHTS = {'rgb8': (0.299, 0.587, 0.114), 'rgba8': (0.299, 0.587, 0.114),
                  'bgr8': (0.114, 0.587, 0.299), 'bgra8': (0.114, 0.587, 0.299)}
 
 
+GREY_ENCODINGS = ('mono8', 'mono16', '8UC1', '16UC1', *_GREY_WEIGHTS)
+
+
+def check_grey_image(msg):
+    """``check_image``, and an encoding ``image_to_grey`` converts; raises InvalidInput."""
+    check_image(msg)
+    if msg.encoding not in GREY_ENCODINGS:
+        raise InvalidInput(f'image encoding {msg.encoding!r} is not grey or 8-bit colour '
+                           f'({", ".join(GREY_ENCODINGS)})', key='encoding',
+                           value=msg.encoding)
+
+
 def image_to_grey(msg):
     """Image (mono8/16, 8UC1/16UC1, rgb8, bgr8, rgba8, bgra8) -> (H, W) float32 grey
     levels on the 0..255 scale (16-bit images scaled down, colour by ITU-R BT.601)."""
+    check_grey_image(msg)
     array = image_to_numpy(msg)
     if msg.encoding in ('mono8', '8UC1'):
         return array.astype(np.float32)
     if msg.encoding in ('mono16', '16UC1'):
         return array.astype(np.float32) * np.float32(255.0 / 65535.0)
-    if msg.encoding in _GREY_WEIGHTS:
-        return (array[:, :, :3].astype(np.float32)
-                @ np.array(_GREY_WEIGHTS[msg.encoding], dtype=np.float32))
-    raise InvalidInput(f'image encoding {msg.encoding!r} is not grey or 8-bit colour '
-                       '(mono8, mono16, 8UC1, 16UC1, rgb8, bgr8, rgba8, bgra8)',
-                       key='encoding', value=msg.encoding)
+    return (array[:, :, :3].astype(np.float32)
+            @ np.array(_GREY_WEIGHTS[msg.encoding], dtype=np.float32))
 
 
 def numpy_to_image(array, encoding, stamp_ns, frame_id):
