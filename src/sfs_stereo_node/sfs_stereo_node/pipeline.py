@@ -195,7 +195,12 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
         support, raw_count = 1.0, 0
     else:
         # The thesis normalises the other image onto the reference's histogram (5.2.2).
-        alpha, beta = histogram_line_fit(left_o, right_o)
+        # Over the seen surface only: the black borders rectification leaves (or a
+        # darker background) would bend the line.
+        seen_left = left_o[left_o > config.min_intensity]
+        seen_right = right_o[right_o > config.min_intensity]
+        alpha, beta = (histogram_line_fit(seen_left[None], seen_right[None])
+                       if min(len(seen_left), len(seen_right)) > 16 else (1.0, 0.0))
         matches, levels = match_pyramid(
             left_o, alpha * right_o + beta, d_lo, d_hi, config.window,
             config.match_threshold, config.texture_snr, config.min_texture,

@@ -217,17 +217,21 @@ def depth_from_disparity(disparity, f_px, baseline_m):
 
 # --- the fast matcher: band-limited cost volume with OpenCV box filters --------------
 
-def noise_sigma(image):
+def noise_sigma(image, flat_fraction=0.25):
     """Robust estimate of the image noise std [grey levels] (Immerkaer 1996: the
-    Laplacian-difference mask cancels smooth shading to second order), floored at the
-    8-bit quantisation std 1/sqrt(12)."""
+    Laplacian-difference mask cancels smooth shading to second order), taken over the
+    ``flat_fraction`` of pixels with the weakest smoothed gradient (texture and edges
+    would count as noise), floored at the 8-bit quantisation std 1/sqrt(12)."""
     image = np.asarray(image, dtype=np.float32)
-    if min(image.shape) < 3:
+    if min(image.shape) < 8:
         return 1.0 / np.sqrt(12.0)
     mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
-    response = cv2.filter2D(image, cv2.CV_32F, mask)[1:-1, 1:-1]
+    response = np.abs(cv2.filter2D(image, cv2.CV_32F, mask))[2:-2, 2:-2]
+    smooth = cv2.GaussianBlur(image, (0, 0), 2.0)
+    gradient = np.hypot(cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1))
+    flat = gradient[2:-2, 2:-2] <= np.quantile(gradient[2:-2, 2:-2], flat_fraction)
     # median |response| of Gaussian noise = 0.6745 * 6 sigma (sum of squared mask = 36)
-    sigma = float(np.median(np.abs(response))) / (0.6745 * 6.0)
+    sigma = float(np.median(response[flat])) / (0.6745 * 6.0)
     return max(sigma, 1.0 / np.sqrt(12.0))
 
 
