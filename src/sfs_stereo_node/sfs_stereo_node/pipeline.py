@@ -66,8 +66,9 @@ class DepthConfig:
     refine_stereo_sigma: float = 0.002  # [m] shading_refine stereo depth noise
     refine_curvature_sigma: float = 1e-4  # [m/px^2] shading_refine thin-plate prior
     refine_finest_steps: int = 1  # shading_refine Gauss-Newton steps on the full grid
-    texture_snr: float = 5.0  # window std >= this x the image noise std for a match
+    texture_snr: float = 2.5  # window std >= this x the image noise std for a match
     min_support: float = 0.3  # fewer matches backed by neighbours: the pair looks unmatched
+    full_band_layers: int = 24  # wider bands are searched on a halved image first
     max_pixels: int = 4_194_304  # larger images are refused before any work (memory)
 
 
@@ -204,7 +205,7 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
         matches, levels = match_pyramid(
             left_o, alpha * right_o + beta, d_lo, d_hi, config.window,
             config.match_threshold, config.texture_snr, config.min_texture,
-            config.uniqueness, config.left_right_check)
+            config.uniqueness, config.left_right_check, config.full_band_layers)
         raw_count = int(np.isfinite(matches.disparity).sum())
         raw_disparity, support = coherent_matches(matches.disparity)
         distinct = matches.distinctiveness[np.isfinite(raw_disparity)]

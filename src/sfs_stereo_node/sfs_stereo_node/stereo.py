@@ -386,40 +386,34 @@ def coherent_matches(disparity, radius=2, tolerance=1.0, min_support=2):
     return np.where(backed, disparity, np.nan), float(backed.sum() / valid.sum())
 
 
-def _refine_around(I_left, I_right, centre, window, radius, threshold):
-    """Best raw disparity within ``radius`` px of the integer per-pixel ``centre`` (H, W)
-    by the normalised SSD, subpixel by the parabola; NaN where the best lies on the
-    edge of the search or costs more than ``threshold``. Returns (disparity, cost)."""
+def _match_tiles(I_left, I_right, centre, have, window, threshold, texture, min_texture,
+                 uniqueness, left_right_check, radius, tile=64):
+    """``match_band`` tile by tile, each ``tile`` x ``tile`` block searching only the
+    disparities its predicted ``centre`` (where ``have``) spans, +- ``radius``: exact
+    constant-disparity windows, left-right check and band-edge rejection as on the
+    whole band, at a fraction of its layers. Returns ``Matches``."""
     H, W = I_left.shape
-    size = (window, window)
-    inv_left, inv_right = _inverse_energy(I_left, size), _inverse_energy(I_right, size)
-    cols, rows = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
-    layers = []
-    for delta in range(-radius, radius + 1):
-        map_x = cols - (centre + delta).astype(np.float32)
-        shifted = cv2.remap(I_right, map_x, rows, cv2.INTER_NEAREST,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        shifted_inv = cv2.remap(inv_right, map_x, rows, cv2.INTER_NEAREST,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=np.inf)
-        diff = I_left - shifted
-        ssd = cv2.boxFilter(np.nan_to_num(diff * diff, nan=1e12), cv2.CV_32F, size,
-                            normalize=False, borderType=cv2.BORDER_REFLECT)
-        layer = ssd * inv_left * shifted_inv
-        layer[~np.isfinite(layer)] = np.inf
-        layers.append(layer)
-    cost = np.stack(layers)
-    best = np.argmin(cost, axis=0)
-    c0 = np.take_along_axis(cost, best[None], axis=0)[0].astype(float)
-    lo = np.take_along_axis(cost, np.clip(best - 1, 0, 2 * radius)[None], axis=0)[0]
-    hi = np.take_along_axis(cost, np.clip(best + 1, 0, 2 * radius)[None], axis=0)[0]
-    with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
-        lo, hi = lo.astype(float), hi.astype(float)
-        curvature = lo - 2 * c0 + hi
-        offset = np.where(np.isfinite(curvature) & (curvature > 0), 0.5 * (lo - hi) / curvature,
-                          0.0)
-    disparity = centre + best - radius + np.clip(np.nan_to_num(offset), -0.5, 0.5)
-    keep = (best > 0) & (best < 2 * radius) & np.isfinite(c0) & (c0 < threshold)
-    return np.where(keep, disparity, np.nan), c0
+    margin = window // 2 + 1
+    disparity = np.full((H, W), np.nan)
+    cost = np.full((H, W), np.inf)
+    distinct = np.zeros((H, W))
+    for r0 in range(0, H, tile):
+        for c0 in range(0, W, tile):
+            r1, c1 = min(r0 + tile, H), min(c0 + tile, W)
+            known = have[r0:r1, c0:c1]
+            if not known.any():
+                continue
+            lo = int(np.min(centre[r0:r1, c0:c1][known])) - radius
+            hi = int(np.max(centre[r0:r1, c0:c1][known])) + radius
+            rows = slice(max(r0 - margin, 0), min(r1 + margin, H))
+            a, b = max(c0 - margin - max(hi, 0), 0), min(c1 + margin - min(lo, 0), W)
+            m = match_band(I_left[rows, a:b], I_right[rows, a:b], lo, hi, window, threshold,
+                           texture[rows, a:b], min_texture, uniqueness, left_right_check)
+            inner = (slice(r0 - rows.start, r1 - rows.start), slice(c0 - a, c1 - a))
+            disparity[r0:r1, c0:c1] = m.disparity[inner]
+            cost[r0:r1, c0:c1] = m.cost[inner]
+            distinct[r0:r1, c0:c1] = m.distinctiveness[inner]
+    return Matches(disparity, cost, distinct)
 
 
 def _half(image):
@@ -434,9 +428,9 @@ def match_pyramid(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, textu
     """``match_band`` made fast for wide bands: while the band has more than
     ``max_full_band`` layers (and the half image keeps ``min_width`` px), the whole
     band is searched on the image halved (INTER_AREA; disparities halve), and the
-    full resolution only refines within ``radius`` px around twice the coarse match.
-    Confidence (uniqueness, left-right check) is decided where the whole band is
-    searched; texture at every level: window std >= max(``min_texture``,
+    full resolution only within ``radius`` px around twice the coarse matches, tile by
+    tile (``_match_tiles``, with every test of ``match_band``). Texture at every level:
+    window std >= max(``min_texture``,
     ``texture_snr`` x the level's noise std (``noise_sigma``)), so the same setting
     holds for any contrast, noise and resolution.
     Returns (``Matches`` at full resolution, levels used)."""
@@ -470,8 +464,12 @@ def match_pyramid(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, textu
     predicted[:up.shape[0], :up.shape[1]] = up
     have = predicted > -1e5
     centre = np.rint(np.where(have, 2 * predicted, 0.0))
-    disparity, cost = _refine_around(I_left, I_right, centre, window, radius, threshold)
-    keep = have & (texture >= texture_floor(I_left)) & (disparity >= d_lo) & (disparity <= d_hi)
-    distinct = cv2.resize(coarse.distinctiveness.astype(np.float32), (W, H),
-                          interpolation=cv2.INTER_NEAREST).astype(float)
+    fine = _match_tiles(I_left, I_right, centre, have, window, threshold, texture,
+                        texture_floor(I_left), uniqueness, left_right_check, radius)
+    # only where the coarse level found the pixel's match and the fine one agrees
+    keep = have & (np.abs(fine.disparity - centre) <= radius)
+    disparity, cost = fine.disparity, fine.cost
+    distinct = np.maximum(fine.distinctiveness, cv2.resize(
+        coarse.distinctiveness.astype(np.float32), (W, H),
+        interpolation=cv2.INTER_NEAREST).astype(float))
     return Matches(np.where(keep, disparity, np.nan), cost, distinct), levels + 1
