@@ -196,7 +196,14 @@ def test_bad_input_is_reported_and_the_node_keeps_serving(spawn, rclpy_node, tmp
     wait_rejection('without a partner', 'a rejection of the unpaired images')
     rclpy_node.spin_until(lambda: 7_000_000_000 in stamps(received['fused']), 60,
                           'fused depth of the good pair after the bad input')
-    assert stamps(received['fused']) == {7_000_000_000}  # nothing for the bad ones
+    # 8. a pair over max_pixels (4 Mpx): refused before any conversion
+    huge = np.zeros((2100, 2100), np.uint8)
+    send(8_000_000_000, huge, huge)
+    wait_rejection('max_pixels', 'a rejection of the 2100x2100 pair')
+    send(9_000_000_000, left, right)  # and it still serves after the huge pair
+    rclpy_node.spin_until(lambda: 9_000_000_000 in stamps(received['fused']), 60,
+                          'fused depth of a good pair after the huge one')
+    assert stamps(received['fused']) == {7_000_000_000, 9_000_000_000}  # none for bad ones
     assert node.alive() and 'Traceback' not in node.output()
 
 
