@@ -32,6 +32,7 @@ from vgm_common.errors import InvalidInput
 
 FUSIONS = ('shading_refine', 'local_affine', 'least_squares', 'mlp_rows')
 STEREOS = ('ssd', 'sgbm')
+SFS_MAX_WIDTH = 160  # [px] widest grid SFS runs on
 
 
 @dataclass
@@ -55,7 +56,7 @@ class DepthConfig:
     stereo: str = 'ssd'
     seed: int = 0
     sfs_iterations: int = 150
-    sfs_downsample: int = 2  # SFS grid = processing grid / this
+    sfs_downsample: int = 2  # SFS grid = processing grid / this (at least; SFS_MAX_WIDTH)
     sfs_max_step: float = 0.5
     downsample: int = 2
     min_intensity: float = 30.0  # [grey levels] darker = no surface (background, shadow)
@@ -237,7 +238,10 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     t = time.perf_counter()
     light = light_in_rectified_frame(config.light_direction, pair.R_left)
     E = np.clip(left / 255.0 - config.albedo * config.ambient, 0.0, None)
-    k = int(config.sfs_downsample)
+    # Tsai-Shah needs ~grid-width iterations to carry the relief across: a grid of at
+    # most SFS_MAX_WIDTH px keeps sfs_iterations (and the per-iteration step, in that
+    # grid's pixels) meaning the same at every resolution, and the time bounded.
+    k = max(int(config.sfs_downsample), int(np.ceil(w / SFS_MAX_WIDTH)))
     # SFS's height step is in pixel units of its grid: the damping follows the grid.
     max_step = config.sfs_max_step
     if k > 1:  # Tsai-Shah needs ~image-width iterations: a coarser grid is k^3 cheaper
