@@ -424,7 +424,7 @@ def _half(image):
 
 def match_pyramid(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, texture_snr=0.0,
                   min_texture=0.0, uniqueness=0.0, left_right_check=True,
-                  max_full_band=24, min_width=200, radius=2):
+                  max_full_band=24, min_width=96, radius=2):
     """``match_band`` made fast for wide bands: while the band has more than
     ``max_full_band`` layers (and the half image keeps ``min_width`` px), the whole
     band is searched on the image halved (INTER_AREA; disparities halve), and the
