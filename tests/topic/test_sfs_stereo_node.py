@@ -196,5 +196,193 @@ def test_bad_input_is_reported_and_the_node_keeps_serving(spawn, rclpy_node, tmp
     wait_rejection('without a partner', 'a rejection of the unpaired images')
     rclpy_node.spin_until(lambda: 7_000_000_000 in stamps(received['fused']), 60,
                           'fused depth of the good pair after the bad input')
-    assert stamps(received['fused']) == {7_000_000_000}  # nothing for the bad ones
+    # 8. a pair over max_pixels (4 Mpx): refused before any conversion
+    huge = np.zeros((2100, 2100), np.uint8)
+    send(8_000_000_000, huge, huge)
+    wait_rejection('max_pixels', 'a rejection of the 2100x2100 pair')
+    send(9_000_000_000, left, right)  # and it still serves after the huge pair
+    rclpy_node.spin_until(lambda: 9_000_000_000 in stamps(received['fused']), 60,
+                          'fused depth of a good pair after the huge one')
+    assert stamps(received['fused']) == {7_000_000_000, 9_000_000_000}  # none for bad ones
+    assert node.alive() and 'Traceback' not in node.output()
+
+
+def test_aloe_as_a_rectified_pair_with_a_cx_offset_then_a_textureless_pair(spawn, rclpy_node):
+    """Real data (Middlebury Aloe from Debian's opencv-doc): the pair published as an
+    already-rectified pair whose right principal point carries a 24 px offset (the right
+    image cropped by 24 columns) -> every depth topic arrives and the published,
+    offset-corrected disparity matches the ground truth within the bench's bound; then a
+    texture-less pair -> disparity and stereo depth still arrive, no fused depth, and the
+    reason in /diagnostics."""
+    import cv2
+    from geometry_msgs.msg import PoseStamped
+
+    from sfs_stereo_node.stereo import sgbm_disparity
+    from vgm_common.camera_topics import CAMERA_INFO_TOPICS, POSE_TOPICS
+    from vgm_common.qos import LATCHED_QOS
+    from vgm_common.sample_data import opencv_sample_dir
+    directory = opencv_sample_dir()  # raises with the reason when it cannot be fetched
+    left, right = (cv2.imread(str(directory / n), cv2.IMREAD_GRAYSCALE)
+                   for n in ('aloeL.jpg', 'aloeR.jpg'))
+    truth = cv2.imread(str(directory / 'aloeGT.png'), cv2.IMREAD_GRAYSCALE).astype(float)
+    shift = 24
+    left, right, truth = left[:, :-shift], right[:, shift:], truth[:, :-shift]
+    height, width = left.shape
+    f, baseline = 1000.0, 0.1
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
+    K_right = K.copy()
+    K_right[0, 2] -= shift
+    publishers = []
+    for name, k, tx in (('left', K, 0.0), ('right', K_right, -f * baseline)):
+        info = CameraInfo(width=width, height=height, distortion_model='plumb_bob',
+                          d=[0.0] * 5, k=k.ravel().tolist(), r=[0.0] * 9,  # R empty
+                          p=np.hstack([k, [[tx], [0], [0]]]).ravel().tolist())
+        info.header.frame_id = OPTICAL_FRAMES[name]
+        pose = PoseStamped()
+        pose.header.frame_id = 'base_link'
+        pose.pose.position.x = 0.0 if name == 'left' else baseline
+        pose.pose.orientation.w = 1.0
+        for msg_type, topic, msg in ((CameraInfo, CAMERA_INFO_TOPICS[name], info),
+                                     (PoseStamped, POSE_TOPICS[name], pose)):
+            publisher = rclpy_node.create_publisher(msg_type, topic, LATCHED_QOS)
+            publisher.publish(msg)
+            publishers.append(publisher)
+    # Node defaults but for the scene: a depth band of any depth, the whole image as
+    # surface, the quick fusion (shading_refine assumes one albedo).
+    node = spawn([executable('sfs_stereo_node'), '--ros-args', '-p', 'fusion:=local_affine',
+                  '-p', 'min_depth:=0.0', '-p', 'max_depth:=0.0', '-p', 'max_disparity:=260',
+                  '-p', 'min_intensity:=0.0', '-p', 'log_every:=0.0'])
+    received = collect(rclpy_node)
+    image_pub = {n: rclpy_node.create_publisher(Image, IMAGE_TOPICS[n], DEFAULT_QOS)
+                 for n in ('left', 'right')}
+    rclpy_node.spin_until(lambda: all(p.get_subscription_count() for p in image_pub.values()),
+                          30, 'the node to subscribe the images')
+
+    def send(stamp, pair):
+        for name, image in zip(('left', 'right'), pair):
+            image_pub[name].publish(numpy_to_image(image, 'mono8', stamp, OPTICAL_FRAMES[name]))
+
+    def all_topics(stamp):
+        return all(stamp in stamps(received[k]) for k in ('disparity', 'stereo', 'sfs',
+                                                          'fused', 'info'))
+    stamp = 1_000_000_000
+    # Re-sent until processed: the calibration may reach the node after the first pair.
+    for _ in range(12):
+        send(stamp, (left, right))
+        try:
+            rclpy_node.spin_until(lambda: all_topics(stamp), 10, 'Aloe depth topics')
+            break
+        except TimeoutError:
+            continue
+    assert all_topics(stamp), 'no complete set of depth topics for the Aloe pair'
+    msg = next(m for m in received['disparity'] if stamp_to_ns(m.header.stamp) == stamp)
+    disparity = image_to_numpy(msg.image)
+    h, w = disparity.shape  # downsample 2 (default)
+    truth_small = cv2.resize(truth, (w, h), interpolation=cv2.INTER_NEAREST) / 2
+    known = truth_small > 0
+    ours = known & (disparity > 0)
+    bad = np.mean(np.abs(disparity[ours] - truth_small[ours]) > 1.0)  # 2 px at full size
+    small = [cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA).astype(float)
+             for im in (left, right)]
+    sgbm = sgbm_disparity(small[0], small[1], 130 + shift // 2, 3, shift // 2 - 1) - shift / 2
+    theirs = known & np.isfinite(sgbm) & (sgbm > 0)
+    bad_sgbm = np.mean(np.abs(sgbm[theirs] - truth_small[theirs]) > 1.0)
+    print(f'Aloe bad pixels ours {bad:.3f} at density {ours.sum() / known.sum():.3f}, '
+          f'SGBM {bad_sgbm:.3f} at {theirs.sum() / known.sum():.3f}')
+    # The issue's goal: at most 1.5x SGBM's bad-pixel rate at >= half its density
+    # (bench: 5.3 % at 38.6 % density, SGBM 5.6 % at 66 %).
+    assert bad < 1.5 * bad_sgbm and ours.sum() > 0.5 * theirs.sum()
+    assert msg.t == pytest.approx(baseline) and msg.f == pytest.approx(f / 2)
+
+    flat_stamp = 2_000_000_000
+    flat = np.full((height, width), 140, np.uint8)
+    for _ in range(12):
+        send(flat_stamp, (flat, flat))
+        try:
+            rclpy_node.spin_until(lambda: flat_stamp in stamps(received['stereo']), 10,
+                                  'stereo depth of the texture-less pair')
+            break
+        except TimeoutError:
+            continue
+    assert flat_stamp in stamps(received['disparity'])
+    rclpy_node.spin_until(lambda: any('confident stereo matches' in s.message
+                                      for s in statuses(received, ': depth')), 10,
+                          'the fallback reason in /diagnostics')
+    assert flat_stamp not in stamps(received['fused'])
+    stereo = next(m for m in received['stereo'] if stamp_to_ns(m.header.stamp) == flat_stamp)
+    assert np.isnan(image_to_numpy(stereo)).all()
+    assert node.alive() and 'Traceback' not in node.output()
+    assert 'confident stereo matches' in node.output()  # the one log line
+
+
+def publish_rectified_rig(rclpy_node, K_left, K_right, size, baseline, publishers):
+    """An already-rectified pair as a rectified driver publishes it: D zero, R empty,
+    P = [K | 0] and [K_right | (-fx b, 0, 0)]; poses 1 cm apart are not used for depth."""
+    from geometry_msgs.msg import PoseStamped
+
+    from vgm_common.camera_topics import CAMERA_INFO_TOPICS, POSE_TOPICS
+    from vgm_common.qos import LATCHED_QOS
+    width, height = size
+    for name, k, tx in (('left', K_left, 0.0), ('right', K_right, -K_left[0, 0] * baseline)):
+        info = CameraInfo(width=width, height=height, distortion_model='plumb_bob',
+                          d=[0.0] * 5, k=np.asarray(k).ravel().tolist(), r=[0.0] * 9,
+                          p=np.hstack([k, [[tx], [0], [0]]]).ravel().tolist())
+        info.header.frame_id = OPTICAL_FRAMES[name]
+        pose = PoseStamped()
+        pose.header.frame_id = 'base_link'
+        pose.pose.position.x = 0.0 if name == 'left' else baseline
+        pose.pose.orientation.w = 1.0
+        for msg_type, topic, msg in ((CameraInfo, CAMERA_INFO_TOPICS[name], info),
+                                     (PoseStamped, POSE_TOPICS[name], pose)):
+            if topic not in publishers:
+                publishers[topic] = rclpy_node.create_publisher(msg_type, topic, LATCHED_QOS)
+            publishers[topic].publish(msg)
+
+
+def test_generated_scene_at_320_and_640_as_a_rectified_pair(spawn, rclpy_node):
+    """A scene of the families (sensor_sim.scene_families: a saddle with a drawn curve,
+    noise 1 grey level, 8 cm baseline, 0.8 m away, right principal point 5 px off) at
+    320x240 and 640x480, one node, the same defaults: fused depth within tolerance of
+    the ground truth and well below SFS alone."""
+    from sensor_sim.scene_families import draw_scene
+    light = draw_scene('saddle', seed=1, size=(32, 24)).light  # the light a user would set
+    node = spawn([executable('sfs_stereo_node'), '--ros-args', '-p', 'downsample:=1',
+                  '-p', 'log_every:=0.0', '-p',
+                  f'light_direction:=[{", ".join(f"{v:.6f}" for v in light)}]'])
+    received = collect(rclpy_node)
+    image_pub = {n: rclpy_node.create_publisher(Image, IMAGE_TOPICS[n], DEFAULT_QOS)
+                 for n in ('left', 'right')}
+    rclpy_node.spin_until(lambda: all(p.get_subscription_count() for p in image_pub.values()),
+                          30, 'the node to subscribe the images')
+    publishers = {}
+    for index, size in enumerate(((320, 240), (640, 480))):
+        scene = draw_scene('saddle', seed=1, size=size, cx_offset=5.0)
+        publish_rectified_rig(rclpy_node, scene.K_left, scene.K_right, size, scene.baseline,
+                              publishers)
+        stamp = (index + 1) * 1_000_000_000
+        for _ in range(12):  # re-sent until the node has the new calibration
+            for name, image in (('left', scene.left), ('right', scene.right)):
+                image_pub[name].publish(numpy_to_image(image, 'mono8', stamp,
+                                                       OPTICAL_FRAMES[name]))
+            try:
+                rclpy_node.spin_until(lambda s=stamp: s in stamps(received['fused']), 15,
+                                      f'fused depth at {size}')
+                break
+            except TimeoutError:
+                continue
+        rclpy_node.spin_until(lambda s=stamp: s in stamps(received['sfs']), 10, 'sfs depth')
+        fused, sfs = (image_to_numpy(next(m for m in received[k]
+                                          if stamp_to_ns(m.header.stamp) == stamp))
+                      for k in ('fused', 'sfs'))
+        assert fused.shape == (size[1], size[0])
+        truth = scene.depth
+        on = np.isfinite(truth) & np.isfinite(fused)
+        assert on.sum() > 0.95 * np.isfinite(truth).sum()
+        err_fused, err_sfs = np.abs(fused - truth)[on], np.abs(sfs - truth)[on]
+        print(f'{size}: fused median {1e3 * np.median(err_fused):.1f} mm, '
+              f'p90 {1e3 * np.percentile(err_fused, 90):.1f}; sfs median '
+              f'{1e3 * np.median(err_sfs):.1f} mm')
+        # measured (bench, the same scene): 1.1 / 0.7 mm fused, 14 / 13 mm SFS
+        assert np.median(err_fused) < 0.004 and np.percentile(err_fused, 90) < 0.012
+        assert np.median(err_fused) < 0.3 * np.median(err_sfs)
     assert node.alive() and 'Traceback' not in node.output()

@@ -31,6 +31,7 @@ from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
+WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
 INVALID_DISPARITY = -1.0  # below min_disparity, as stereo_image_proc marks no match
 
 
@@ -59,7 +60,16 @@ class SfsStereoNode(Node):
             Param('match_threshold', d.match_threshold, 'Largest normalised SSD cost of a '
                   'confident match (sigma_thr).', range=(1e-6, 10.0)),
             Param('min_texture', d.min_texture, 'Least grey-level std in the window of a '
-                  'confident match [grey levels]; 0 disables.', range=(0.0, 255.0)),
+                  'confident match [grey levels], a floor under texture_snr; 0 disables.',
+                  range=(0.0, 255.0)),
+            Param('texture_snr', d.texture_snr, 'Least window std of a confident match, in '
+                  'units of the image noise std estimated from each image (contrast and '
+                  'resolution relative); 0 disables.', range=(0.0, 100.0)),
+            Param('min_support', d.min_support, 'Fraction of matches backed by their '
+                  'neighbours below which the pair looks unmatched (a warning).',
+                  range=(0.0, 1.0)),
+            Param('max_pixels', d.max_pixels, 'Images with more pixels are refused before '
+                  'any work (memory bound).', range=(64, 100_000_000)),
             Param('uniqueness', d.uniqueness, 'Best cost must be this fraction below the '
                   'best cost more than 1 px away; 0 disables.', range=(0.0, 0.99)),
             Param('left_right_check', d.left_right_check, 'Keep only matches the right '
@@ -140,6 +150,10 @@ class SfsStereoNode(Node):
         self.sync_dropped_reported = 0
         self.last_timings = {}
         self.last_density = float('nan')
+        self.last_confidence = {}
+        self.last_fusion = ''
+        self.last_warnings = ()
+        self.last_warned = {}  # kind of warning -> monotonic time of its last log line
         self.last_log = -float('inf')
         self.pending = None
         self.wakeup = threading.Condition()
@@ -213,6 +227,11 @@ class SfsStereoNode(Node):
         return self.maps
 
     def _process(self, stamp_ns, messages):
+        for name in ('left', 'right'):  # before any conversion: a bound on memory
+            msg = messages[name]
+            if msg.width * msg.height > self.params.max_pixels:
+                raise InvalidInput(f'{name} image {msg.width}x{msg.height} has more than '
+                                   f'max_pixels {self.params.max_pixels} pixels', key='size')
         left, right = (image_to_grey(messages[n]) for n in ('left', 'right'))
         if left.shape[:2] != right.shape[:2]:
             raise InvalidInput(f'left {left.shape[1]}x{left.shape[0]} and right '
@@ -230,7 +249,8 @@ class SfsStereoNode(Node):
             sfs_downsample=p.sfs_downsample, downsample=p.downsample,
             min_intensity=p.min_intensity, mlp_epochs=p.mlp_epochs,
             fusion_sigma=p.fusion_sigma, fusion_weight=p.fusion_weight,
-            min_depth=p.min_depth, max_depth=p.max_depth,
+            min_depth=p.min_depth, max_depth=p.max_depth, texture_snr=p.texture_snr,
+            min_support=p.min_support, max_pixels=p.max_pixels,
             refine_shading_sigma=p.refine_shading_sigma,
             refine_stereo_sigma=p.refine_stereo_sigma,
             refine_curvature_sigma=p.refine_curvature_sigma,
@@ -244,16 +264,26 @@ class SfsStereoNode(Node):
         self.processed += 1
         self.last_timings = result.timings
         self.last_density = result.density
+        self.last_confidence = result.confidence
+        self.last_fusion = result.fusion or 'none'
+        self.last_warnings = result.warnings
+        for warning in result.warnings:  # one line per kind of warning, throttled
+            kind = warning.split(':')[0]
+            now = time.monotonic()
+            if now - self.last_warned.get(kind, -float('inf')) >= WARN_EVERY_S:
+                self.last_warned[kind] = now
+                self.get_logger().warning(f'frame {self.processed}: {warning}')
         now = time.monotonic()
         if self.processed == 1 or now - self.last_log >= self.params.log_every:
             self.last_log = now
             self.get_logger().info(
-                f'frame {self.processed}: {result.depth_fused.shape[1]}x'
-                f'{result.depth_fused.shape[0]}, match density {result.density:.3f}, '
+                f'frame {self.processed}: {result.depth_stereo.shape[1]}x'
+                f'{result.depth_stereo.shape[0]}, match density {result.density:.3f}, '
+                f'fused by {self.last_fusion}, '
                 f'{result.timings["total"] * 1000:.0f} ms, {self.dropped} dropped')
 
     def _publish(self, stamp_ns, result):
-        h, w = result.depth_fused.shape
+        h, w = result.depth_stereo.shape
         header = make_header(stamp_ns, DEPTH_FRAME)
         disparity = DisparityImage(header=header, f=float(result.focal_px),
                                    t=float(result.baseline_m))
@@ -264,8 +294,8 @@ class SfsStereoNode(Node):
         disparity.valid_window.x_offset, disparity.valid_window.y_offset = x, y
         disparity.valid_window.width, disparity.valid_window.height = ww, hh
         factor = self.params.downsample
-        disparity.min_disparity = float(self.params.min_disparity // factor)
-        disparity.max_disparity = float(np.ceil(self.params.max_disparity / factor))
+        disparity.min_disparity = float(self.params.min_disparity / factor)
+        disparity.max_disparity = float(self.params.max_disparity / factor)
         disparity.delta_d = 0.1  # subpixel parabola refinement, about 0.1 px
         info = CameraInfo(header=header, height=h, width=w, distortion_model='plumb_bob',
                           d=[0.0] * 5, k=result.P[:3, :3].flatten().tolist(),
@@ -273,6 +303,8 @@ class SfsStereoNode(Node):
         self.publishers_['disparity'].publish(disparity)
         for key, depth in (('stereo', result.depth_stereo), ('sfs', result.depth_sfs),
                            ('fused', result.depth_fused)):
+            if depth is None:  # nothing to scale it: the reason is in /diagnostics
+                continue
             self.publishers_[key].publish(numpy_to_image(depth, '32FC1', stamp_ns,
                                                          DEPTH_FRAME))
         self.publishers_['info'].publish(info)
@@ -282,12 +314,18 @@ class SfsStereoNode(Node):
                   'frames skipped (max_rate)': self.throttled,
                   'pairs failed': self.failed, 'unpaired images dropped': self.sync.dropped,
                   'match density': f'{self.last_density:.4f}',
+                  'fused by': self.last_fusion,
+                  **{k: f'{v:.4f}' if isinstance(v, float) else v
+                     for k, v in self.last_confidence.items()},
+                  'warnings': ' | '.join(self.last_warnings),
                   **{f'time {k} [ms]': f'{v * 1000:.1f}' for k, v in self.last_timings.items()},
                   **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()}}
         if not self.cameras.ready:
             level, message = 'warn', f'no calibration for {", ".join(self.cameras.missing())}'
         elif not self.processed:
             level, message = 'warn', 'no pair processed yet'
+        elif self.last_warnings:
+            level, message = 'warn', self.last_warnings[0]
         else:
             level, message = 'ok', f'{self.processed} pairs processed'
         self.diagnostics.publish('depth', level, message, values)

@@ -22,17 +22,17 @@ from sfs_stereo_node.rectify import (
 from sfs_stereo_node.refine import ShadingModel, refine_depth
 from sfs_stereo_node.sfs import light_gradient, sfs_depth
 from sfs_stereo_node.stereo import (
-    confident_disparity,
+    coherent_matches,
     depth_from_disparity,
     histogram_line_fit,
-    left_reference_volume,
+    match_pyramid,
     sgbm_disparity,
-    window_std,
 )
 from vgm_common.errors import InvalidInput
 
 FUSIONS = ('shading_refine', 'local_affine', 'least_squares', 'mlp_rows')
 STEREOS = ('ssd', 'sgbm')
+SFS_MAX_WIDTH = 160  # [px] widest grid SFS runs on
 
 
 @dataclass
@@ -45,7 +45,7 @@ class DepthConfig:
     min_depth: float = 0.35  # [m] nearest surface the rig sees; 0 = no limit
     max_depth: float = 1.5  # [m] farthest; 0 = no limit
     match_threshold: float = 0.02
-    min_texture: float = 2.0  # [grey levels] window std
+    min_texture: float = 0.0  # [grey levels] window std floor (texture_snr scales)
     uniqueness: float = 0.02
     left_right_check: bool = True
     light_direction: tuple = (-0.23, -0.70, -0.67)  # left optical frame, surface -> light
@@ -56,7 +56,7 @@ class DepthConfig:
     stereo: str = 'ssd'
     seed: int = 0
     sfs_iterations: int = 150
-    sfs_downsample: int = 2  # SFS grid = processing grid / this
+    sfs_downsample: int = 2  # SFS grid = processing grid / this (at least; SFS_MAX_WIDTH)
     sfs_max_step: float = 0.5
     downsample: int = 2
     min_intensity: float = 30.0  # [grey levels] darker = no surface (background, shadow)
@@ -67,13 +67,19 @@ class DepthConfig:
     refine_stereo_sigma: float = 0.002  # [m] shading_refine stereo depth noise
     refine_curvature_sigma: float = 1e-4  # [m/px^2] shading_refine thin-plate prior
     refine_finest_steps: int = 1  # shading_refine Gauss-Newton steps on the full grid
+    texture_snr: float = 2.5  # window std >= this x the image noise std for a match
+    min_support: float = 0.3  # fewer matches backed by neighbours: the pair looks unmatched
+    full_band_layers: int = 24  # wider bands are searched on a halved image first
+    max_pixels: int = 4_194_304  # larger images are refused before any work (memory)
 
 
 class DepthResult(NamedTuple):
-    disparity: np.ndarray  # (h, w) float32 [px at processing resolution], NaN = no match
+    disparity: np.ndarray  # (h, w) float32 [px at processing resolution], NaN = no match;
+    # the offset-corrected disparity of /stereo/disparity: Z = focal b / disparity
     depth_stereo: np.ndarray  # (h, w) float32 [m], NaN where no confident match
-    depth_sfs: np.ndarray  # (h, w) float32 [m], SFS mapped affinely onto the stereo depths
-    depth_fused: np.ndarray  # (h, w) float32 [m], NaN where no surface
+    depth_sfs: np.ndarray  # (h, w) float32 [m], SFS mapped affinely onto the stereo
+    # depths; None when there are too few matches to scale it
+    depth_fused: np.ndarray  # (h, w) float32 [m], NaN where no surface; None: no fusion
     surface: np.ndarray  # (h, w) bool, where the surface is seen
     focal_px: float  # at processing resolution
     baseline_m: float
@@ -81,6 +87,9 @@ class DepthResult(NamedTuple):
     valid_window: tuple  # (x, y, w, h) of fully valid rectified pixels
     density: float  # confident matches / surface pixels
     timings: dict  # stage -> seconds
+    fusion: str = ''  # the fusion that made depth_fused ('' = none)
+    warnings: tuple = ()  # why the result is less than asked for (fallbacks, doubts)
+    confidence: dict = {}  # per-frame match quality (README: diagnostics)
 
 
 def to_grey(image):
@@ -100,15 +109,58 @@ def _valid_window(mask):
             int(rows[-1] - rows[0] + 1))
 
 
+def _oriented(image, pair):
+    """The image seen so that the baseline runs along the rows with the right camera
+    on the right (``RectifiedPair.transpose``, ``mirror``); its own inverse swapped:
+    ``_unoriented``."""
+    image = image.T if pair.transpose else image
+    return np.ascontiguousarray(image[:, ::-1] if pair.mirror else image)
+
+
+def _unoriented(image, pair):
+    image = image[:, ::-1] if pair.mirror else image
+    return np.ascontiguousarray(image.T if pair.transpose else image)
+
+
+def disparity_band(pair, config, factor):
+    """Integer raw disparities (lo, hi) to search at processing resolution: the
+    offset-corrected [min_disparity, max_disparity] narrowed to the depth band
+    [min_depth, max_depth] (Z = f b / (d - offset)), one layer of margin each side."""
+    fb = pair.focal_px * pair.baseline_m
+    d_max = config.max_disparity / factor
+    d_min = config.min_disparity / factor
+    if config.min_depth > 0:
+        d_max = min(d_max, fb / config.min_depth)
+    if config.max_depth > 0:
+        d_min = max(d_min, fb / config.max_depth)
+    if not d_min < d_max:
+        raise InvalidInput(f'empty disparity band: {d_min:.1f}..{d_max:.1f} px (check '
+                           'min/max_disparity against min/max_depth)', key='max_disparity')
+    offset = pair.disparity_offset
+    return int(np.floor(offset + d_min)) - 1, int(np.ceil(offset + d_max)) + 1
+
+
+def check_size(width, height, config):
+    """Refuses, before any work, images whose pixels or whose matching memory (a few
+    float32 images per pixel plus the coarsest level's band) exceed the bounds."""
+    if width * height > config.max_pixels:
+        raise InvalidInput(f'image {width}x{height} has {width * height} pixels, more than '
+                           f'max_pixels {config.max_pixels}', key='size',
+                           value=(width, height))
+
+
 def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     """Run the pipeline on one raw pair of grey images (2-D arrays, 0..255).
 
     ``pair`` a full-resolution ``RectifiedPair``; ``raw_size`` (width, height) of the raw
-    images. Raises InvalidInput when the pair gives nothing usable (no surface, no
-    confident match), so the caller reports it instead of publishing.
+    images. Raises InvalidInput when the pair gives nothing (no surface); otherwise
+    returns what exists: with too few stereo matches depth_sfs and depth_fused are
+    None, and when the chosen fusion cannot start a fallback fills depth_fused; each
+    such case adds its reason to ``warnings``.
     """
-    timings = {}
+    timings, warnings = {}, []
     started = time.perf_counter()
+    check_size(*raw_size, config)
     factor = int(config.downsample)
     small = scaled_pair(pair, factor)
     w, h = small.size
@@ -118,10 +170,12 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
         if factor > 1:
             rect = cv2.resize(rect[:h * factor, :w * factor], (w, h),
                               interpolation=cv2.INTER_AREA)
-        images.append(rect.astype(float))
+        images.append(rect.astype(np.float32))
     left, right = images
     valid = rectified_valid_mask(small.maps_left, raw_size) & \
         rectified_valid_mask(small.maps_right, raw_size)
+    if small.maps_left is None:
+        valid = np.ones((h, w), dtype=bool)
     surface = cv2.morphologyEx((left > config.min_intensity).astype(np.uint8),
                                cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(bool)
     surface &= cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
@@ -131,54 +185,77 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     timings['rectify'] = time.perf_counter() - started
 
     t = time.perf_counter()
-    d_max = max(1, int(np.ceil(config.max_disparity / factor)))
-    d_min = min(int(config.min_disparity // factor), d_max)
-    # The rig sees the surface within [min_depth, max_depth]: only d = f b / Z there is
-    # searched (fewer cost layers), and a best match on the band's edge is rejected (the
-    # true minimum may lie outside it).
-    fb = small.focal_px * small.baseline_m
-    if config.min_depth > 0:
-        d_max = max(1, min(d_max, int(np.ceil(fb / config.min_depth)) + 1))
-    if config.max_depth > 0:
-        d_min = min(max(d_min, int(np.floor(fb / config.max_depth)) - 1), d_max - 1)
+    d_lo, d_hi = disparity_band(small, config, factor)
+    left_o, right_o = _oriented(left, small), _oriented(right, small)
+    confidence = {}
     if config.stereo == 'sgbm':
-        disparity = sgbm_disparity(left, right, d_max, window=max(config.window, 3),
-                                   min_disparity=d_min)
+        raw_disparity = sgbm_disparity(left_o, right_o, d_hi, window=max(config.window, 3),
+                                       min_disparity=d_lo)
+        with np.errstate(invalid='ignore'):
+            raw_disparity[(raw_disparity <= d_lo + 0.5) | (raw_disparity >= d_hi - 0.5)] = \
+                np.nan
+        support, raw_count = 1.0, 0
     else:
         # The thesis normalises the other image onto the reference's histogram (5.2.2).
-        alpha, beta = histogram_line_fit(left, right)
-        cost = left_reference_volume(left, alpha * right + beta, d_max, config.window, d_min)
-        disparity = confident_disparity(
-            cost, config.match_threshold, window_std(left, config.window),
-            config.min_texture, config.uniqueness, config.left_right_check)
-    disparity = np.where(surface, disparity, np.nan)
-    with np.errstate(invalid='ignore'):
-        on_edge = (disparity >= d_max - 0.5) | ((disparity <= d_min + 0.5) & (d_min > 0))
-    disparity[on_edge] = np.nan
+        # Over the seen surface only: the black borders rectification leaves (or a
+        # darker background) would bend the line.
+        seen_left = left_o[left_o > config.min_intensity]
+        seen_right = right_o[right_o > config.min_intensity]
+        alpha, beta = (histogram_line_fit(seen_left[None], seen_right[None])
+                       if min(len(seen_left), len(seen_right)) > 16 else (1.0, 0.0))
+        matches, levels = match_pyramid(
+            left_o, alpha * right_o + beta, d_lo, d_hi, config.window,
+            config.match_threshold, config.texture_snr, config.min_texture,
+            config.uniqueness, config.left_right_check, config.full_band_layers)
+        raw_count = int(np.isfinite(matches.disparity).sum())
+        raw_disparity, support = coherent_matches(matches.disparity)
+        distinct = matches.distinctiveness[np.isfinite(raw_disparity)]
+        confidence['match quality'] = float(np.median(distinct)) if len(distinct) else 0.0
+        confidence['match levels'] = levels
+    confidence['match support'] = support
+    disparity = _unoriented(raw_disparity, small) - small.disparity_offset
+    disparity = np.where(surface & (disparity > 0), disparity, np.nan)
     depth_stereo = depth_from_disparity(disparity, small.focal_px, small.baseline_m)
     matched = np.isfinite(depth_stereo)
     density = float(matched.sum() / surface.sum())
+    confidence['match density'] = density
     timings['stereo'] = time.perf_counter() - t
+    if support < config.min_support and raw_count >= 8:
+        warnings.append(f'pair looks unmatched (noise, or not a pair of one scene): only '
+                        f'{100 * support:.0f} % of the matches are backed by their '
+                        f'neighbours (min_support {100 * config.min_support:.0f} %)')
+    result = dict(disparity=disparity.astype(np.float32),
+                  depth_stereo=depth_stereo.astype(np.float32), depth_sfs=None,
+                  depth_fused=None, surface=surface, focal_px=small.focal_px,
+                  baseline_m=small.baseline_m, P=small.P_left, valid_window=_valid_window(valid),
+                  density=density, timings=timings, confidence=confidence)
     if matched.sum() < 8:
-        raise InvalidInput(f'only {int(matched.sum())} confident stereo matches: nothing '
-                           'to fix the depth scale', key='image')
+        warnings.append(f'only {int(matched.sum())} confident stereo matches: nothing '
+                        'fixes the depth scale, no SFS or fused depth')
+        timings['total'] = time.perf_counter() - started
+        return DepthResult(**result, warnings=tuple(warnings))
 
     t = time.perf_counter()
     light = light_in_rectified_frame(config.light_direction, pair.R_left)
     E = np.clip(left / 255.0 - config.albedo * config.ambient, 0.0, None)
-    k = int(config.sfs_downsample)
+    # Tsai-Shah needs ~grid-width iterations to carry the relief across: a grid of at
+    # most SFS_MAX_WIDTH px keeps sfs_iterations (and the per-iteration step, in that
+    # grid's pixels) meaning the same at every resolution, and the time bounded.
+    k = max(int(config.sfs_downsample), int(np.ceil(w / SFS_MAX_WIDTH)))
+    # SFS's height step is in pixel units of its grid: the damping follows the grid.
+    max_step = config.sfs_max_step
     if k > 1:  # Tsai-Shah needs ~image-width iterations: a coarser grid is k^3 cheaper
         hs, ws = h // k, w // k
         E_small = cv2.resize(E[:hs * k, :ws * k], (ws, hs), interpolation=cv2.INTER_AREA)
         mask_small = cv2.resize(surface[:hs * k, :ws * k].astype(np.float32), (ws, hs),
                                 interpolation=cv2.INTER_AREA) > 0.5
         height = sfs_depth(E_small, light_gradient(light), config.albedo, config.roughness,
-                           config.sfs_iterations, tol=1e-4, max_step=config.sfs_max_step,
+                           config.sfs_iterations, tol=1e-4, max_step=max_step,
                            mask=mask_small)
         height = k * cv2.resize(height, (w, h), interpolation=cv2.INTER_LINEAR)
     else:
         height = sfs_depth(E, light_gradient(light), config.albedo, config.roughness,
-                           config.sfs_iterations, tol=1e-4, max_step=config.sfs_max_step,
+                           config.sfs_iterations, tol=1e-4, max_step=max_step,
                            mask=surface)
     # Height toward the viewer, in pixel units: depth grows as height falls.
     relief = np.where(surface, -height, np.nan)
@@ -190,27 +267,42 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     t = time.perf_counter()
     stereo_on_surface = np.where(on, depth_stereo, np.nan)
     filled = np.where(surface, depth_sfs, np.nanmean(depth_sfs))
-    if config.fusion == 'shading_refine':
-        model = ShadingModel(light, config.albedo, config.ambient, config.roughness)
-        fused = refine_depth(left, stereo_on_surface, surface, small.P_left[:3, :3], model,
-                             sigma_i=config.refine_shading_sigma,
-                             sigma_z=config.refine_stereo_sigma,
-                             curvature_sigma=config.refine_curvature_sigma,
-                             finest_steps=config.refine_finest_steps).depth
-    elif config.fusion == 'mlp_rows':
-        rng = rng if rng is not None else np.random.default_rng(config.seed)
-        fused = fusion_cores.fuse_mlp_rows(filled, stereo_on_surface, rng,
-                                           epochs=config.mlp_epochs).depth
-    elif config.fusion == 'least_squares':
-        fused = fusion_cores.fuse_least_squares(filled, stereo_on_surface,
-                                                config.fusion_weight)
-    else:
+    fusion = config.fusion
+    try:
+        fused = _fuse(fusion, left, stereo_on_surface, surface, depth_sfs, filled, small,
+                      light, config, rng)
+    except InvalidInput as error:
+        warnings.append(f'{fusion} fusion could not run ({error}): fused depth by '
+                        'local_affine instead')
+        fusion = 'local_affine'
         fused = fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface,
                                                config.fusion_sigma)
     fused = np.where(surface, fused, np.nan)
+    # How much of the fused surface stereo backs: pixels within 2 % of the image width
+    # of a confident match.
+    reach = max(2.0, 0.02 * w)
+    distance = cv2.distanceTransform((~on).astype(np.uint8), cv2.DIST_L2, 3)
+    confidence['fused backed by stereo'] = float((distance[surface] <= reach).mean())
     timings['fusion'] = time.perf_counter() - t
     timings['total'] = time.perf_counter() - started
-    return DepthResult(disparity.astype(np.float32), depth_stereo.astype(np.float32),
-                       depth_sfs.astype(np.float32), fused.astype(np.float32), surface,
-                       small.focal_px, small.baseline_m, small.P_left, _valid_window(valid),
-                       density, timings)
+    result.update(depth_sfs=depth_sfs.astype(np.float32), depth_fused=fused.astype(np.float32))
+    return DepthResult(**result, fusion=fusion, warnings=tuple(warnings))
+
+
+def _fuse(fusion, left, stereo_on_surface, surface, depth_sfs, filled, small, light, config,
+          rng):
+    if fusion == 'shading_refine':
+        model = ShadingModel(light, config.albedo, config.ambient, config.roughness)
+        return refine_depth(left, stereo_on_surface, surface, small.P_left[:3, :3], model,
+                            sigma_i=config.refine_shading_sigma,
+                            sigma_z=config.refine_stereo_sigma,
+                            curvature_sigma=config.refine_curvature_sigma,
+                            finest_steps=config.refine_finest_steps,
+                            search_axis=0 if small.transpose else 1).depth
+    if fusion == 'mlp_rows':
+        rng = rng if rng is not None else np.random.default_rng(config.seed)
+        return fusion_cores.fuse_mlp_rows(filled, stereo_on_surface, rng,
+                                          epochs=config.mlp_epochs).depth
+    if fusion == 'least_squares':
+        return fusion_cores.fuse_least_squares(filled, stereo_on_surface, config.fusion_weight)
+    return fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface, config.fusion_sigma)

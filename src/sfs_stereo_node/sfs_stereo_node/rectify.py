@@ -16,20 +16,39 @@ from vgm_common.errors import InvalidInput
 class RectifiedPair(NamedTuple):
     """Remap tables of both cameras and the rectified geometry."""
 
-    maps_left: tuple  # (map_x, map_y) float32 (H, W): raw pixel seen at each rectified pixel
-    maps_right: tuple
+    maps_left: tuple  # (map_x, map_y) float32 (H, W): raw pixel seen at each rectified
+    maps_right: tuple  # pixel; None: the images are rectified already (used as they are)
     size: tuple  # (width, height) of the rectified images [px]
     K: np.ndarray  # (3, 3) rectified intrinsics = P_left[:3, :3]
     P_left: np.ndarray  # (3, 4)
     R_left: np.ndarray  # (3, 3) left optical -> rectified frame
-    focal_px: float  # fx of the rectified pair [px]
-    baseline_m: float  # [m] > 0, right camera to the right of the left one
+    focal_px: float  # focal length along the baseline [px]
+    baseline_m: float  # [m] > 0
+    # Principal point of the left minus the right image along the matching direction
+    # [px]: a match of raw disparity d (left pixel - right pixel) is at depth
+    # Z = focal b / (d - disparity_offset) (image_geometry's StereoCameraModel).
+    disparity_offset: float = 0.0
+    # Matching runs along image rows of the pair seen through this orientation: the
+    # baseline vertical -> transposed; the right camera on the left (or above) ->
+    # mirrored, so that a nearer point always has the larger disparity.
+    transpose: bool = False
+    mirror: bool = False
+
+
+class PairGeometry(NamedTuple):
+    focal_px: float
+    baseline_m: float
+    disparity_offset: float
+    transpose: bool
+    mirror: bool
 
 
 def _check_rotation(R, name):
     R = np.asarray(R, dtype=float)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         raise InvalidInput(f'{name}: expected a finite 3x3 rotation', key=name)
+    if not R.any():  # an empty CameraInfo R (all zero): no rectification rotation
+        return np.eye(3)
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise InvalidInput(f'{name} is not a proper rotation (R R^T != I or det < 0)',
                            key=name)
@@ -46,23 +65,53 @@ def _check_projection(P, name):
     return P
 
 
-def rectified_geometry(P_left, P_right):
-    """(focal_px, baseline_m) of a rectified pair from the two P matrices; raises
-    InvalidInput when they do not describe one horizontal rectified pair with the right
-    camera on the right (Tx = -fx b < 0)."""
+def pair_geometry(P_left, P_right):
+    """``PairGeometry`` of a rectified pair from its two P matrices (ROS convention,
+    as cv2.stereoRectify makes them for any baseline direction): equal fx, fy and skew;
+    the right P translates along x only (Tx = -fx b: horizontal pair, right camera on
+    the right for Tx < 0) or along y only (Ty = -fy b: vertical pair); the principal
+    points may differ along the baseline by the disparity offset, not across it.
+    Raises InvalidInput naming what does not fit."""
     P_left, P_right = _check_projection(P_left, 'P_left'), _check_projection(P_right, 'P_right')
-    if not np.allclose(P_left[:3, :3], P_right[:3, :3], rtol=1e-6, atol=1e-6):
-        raise InvalidInput('P_left and P_right have different intrinsics: not a rectified '
+    if P_left[:, 3].any():
+        raise InvalidInput(f'P_left must have no translation, got {P_left[:, 3].tolist()}',
+                           key='P_left')
+    Tx, Ty, Tz = P_right[:, 3]
+    if Tz != 0 or (Tx != 0) == (Ty != 0):
+        raise InvalidInput(f'P_right translation {P_right[:, 3].tolist()}: expected Tx '
+                           'only (horizontal pair) or Ty only (vertical pair)',
+                           key='P_right')
+    transpose = Tx == 0
+    along, across = (1, 0) if transpose else (0, 1)  # principal point rows of P
+    same = [(0, 0), (1, 1), (0, 1), (across, 2)]
+    if not all(np.isclose(P_left[i, j], P_right[i, j], rtol=1e-6, atol=1e-6)
+               for i, j in same):
+        raise InvalidInput('P_left and P_right differ in fx, fy, skew or the principal '
+                           f'point across the baseline (c{"xy"[across]}): not a rectified '
                            'pair', key='P_right')
-    if P_left[0, 3] != 0 or P_left[1, 3] != 0 or P_right[1, 3] != 0:
-        raise InvalidInput('P_left must have no translation and P_right only Tx (a '
-                           'horizontally rectified pair)', key='P_right')
-    focal = float(P_right[0, 0])
-    baseline = -float(P_right[0, 3]) / focal
-    if not baseline > 0:
-        raise InvalidInput(f'right P gives baseline {baseline:g} m: expected Tx = -fx b < 0',
-                           key='P_right', value=baseline)
-    return focal, baseline
+    focal = float(P_right[along, along])
+    shift = float(P_right[along, 3])
+    mirror = shift > 0
+    baseline = abs(shift) / focal
+    offset = float(P_left[along, 2] - P_right[along, 2]) * (-1.0 if mirror else 1.0)
+    return PairGeometry(focal, baseline, offset, bool(transpose), bool(mirror))
+
+
+def rectified_geometry(P_left, P_right):
+    """(focal_px, baseline_m) of a rectified pair (``pair_geometry``)."""
+    geometry = pair_geometry(P_left, P_right)
+    return geometry.focal_px, geometry.baseline_m
+
+
+def is_rectified_already(K, D, R, P):
+    """True when a camera's images need no resampling: D zero, R identity (or empty)
+    and K equal to the rectified intrinsics P[:3, :3] (a rectified driver, a dataset
+    pair)."""
+    R = np.asarray(R, dtype=float)
+    return (not np.asarray(D, dtype=float).any()
+            and (not R.any() or np.allclose(R, np.eye(3), atol=1e-9))
+            and np.allclose(np.asarray(K, dtype=float), np.asarray(P, dtype=float)[:3, :3],
+                            rtol=1e-9, atol=1e-9))
 
 
 def rectification_maps(K_left, D_left, R_left, P_left, K_right, D_right, R_right, P_right,
@@ -70,14 +119,16 @@ def rectification_maps(K_left, D_left, R_left, P_left, K_right, D_right, R_right
     """Remap tables of a calibrated pair for images of ``size`` (width, height).
 
     Validates every matrix (finite, R proper rotations, P a rectified pair) and raises
-    InvalidInput otherwise, so an unrectifiable calibration never produces images.
+    InvalidInput otherwise, so an unrectifiable calibration never produces images. A
+    pair whose cameras are both ``is_rectified_already`` gets no tables (maps None):
+    its images are used as they are.
     """
     width, height = (int(v) for v in size)
     if width < 8 or height < 8:
         raise InvalidInput(f'image size {size} too small', key='size', value=size)
     R_left, R_right = _check_rotation(R_left, 'R_left'), _check_rotation(R_right, 'R_right')
-    focal, baseline = rectified_geometry(P_left, P_right)
-    maps = []
+    geometry = pair_geometry(P_left, P_right)
+    cameras = []
     for K, D, R, P, name in ((K_left, D_left, R_left, P_left, 'left'),
                              (K_right, D_right, R_right, P_right, 'right')):
         K, D = np.asarray(K, dtype=float), np.asarray(D, dtype=float).ravel()
@@ -86,16 +137,23 @@ def rectification_maps(K_left, D_left, R_left, P_left, K_right, D_right, R_right
                                key=f'K_{name}')
         if not np.all(np.isfinite(D)):
             raise InvalidInput(f'D_{name} has non-finite values', key=f'D_{name}')
-        maps.append(cv2.initUndistortRectifyMap(K, D, R, np.asarray(P, dtype=float),
-                                                (width, height), cv2.CV_32FC1))
+        cameras.append((K, D, R, np.asarray(P, dtype=float)))
+    if all(is_rectified_already(*camera) for camera in cameras):
+        maps = [None, None]
+    else:
+        maps = [tuple(cv2.initUndistortRectifyMap(K, D, R, P, (width, height),
+                                                  cv2.CV_32FC1))
+                for K, D, R, P in cameras]
     P_left = np.asarray(P_left, dtype=float)
-    return RectifiedPair(tuple(maps[0]), tuple(maps[1]), (width, height), P_left[:3, :3].copy(),
-                         P_left.copy(), R_left, focal, baseline)
+    return RectifiedPair(maps[0], maps[1], (width, height), P_left[:3, :3].copy(),
+                         P_left.copy(), R_left, *geometry)
 
 
 def rectify(image, maps, interpolation=cv2.INTER_LINEAR):
     """Rectified copy of ``image`` (H, W) by ``maps`` (map_x, map_y); pixels that map
-    outside the raw image are 0 (cv2.BORDER_CONSTANT)."""
+    outside the raw image are 0 (cv2.BORDER_CONSTANT). ``maps`` None: ``image`` itself."""
+    if maps is None:
+        return np.asarray(image)
     return cv2.remap(np.asarray(image), maps[0], maps[1], interpolation,
                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
@@ -103,6 +161,8 @@ def rectify(image, maps, interpolation=cv2.INTER_LINEAR):
 def rectified_valid_mask(maps, raw_size):
     """(H, W) bool: rectified pixels whose raw source lies inside the raw image."""
     width, height = raw_size
+    if maps is None:
+        return np.ones((height, width), dtype=bool)
     x, y = maps
     return (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
 
@@ -120,9 +180,12 @@ def raw_depth_to_rectified(depth_raw, pair):
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     rays = np.linalg.solve(pair.K, np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))
     raw_z = (pair.R_left.T @ rays)[2].reshape(height, width)
-    sampled = cv2.remap(np.asarray(depth_raw, dtype=np.float32), pair.maps_left[0],
-                        pair.maps_left[1], cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                        borderValue=float('nan'))
+    if pair.maps_left is None:
+        sampled = np.asarray(depth_raw, dtype=np.float32)[:height, :width]
+    else:
+        sampled = cv2.remap(np.asarray(depth_raw, dtype=np.float32), pair.maps_left[0],
+                            pair.maps_left[1], cv2.INTER_NEAREST,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=float('nan'))
     return sampled / raw_z
 
 
@@ -149,6 +212,8 @@ def scaled_pair(pair, factor):
     cols, rows = centres[:w], centres[:h]
 
     def sample(map_xy):
+        if map_xy is None:
+            return None
         return tuple(cv2.remap(m, np.tile(cols.astype(np.float32), (h, 1)),
                                np.tile(rows.astype(np.float32)[:, None], (1, w)),
                                cv2.INTER_LINEAR) for m in map_xy)
@@ -156,6 +221,7 @@ def scaled_pair(pair, factor):
     S = np.diag([1.0 / factor, 1.0 / factor, 1.0])
     shift = np.array([[1, 0, 0.5 / factor - 0.5], [0, 1, 0.5 / factor - 0.5], [0, 0, 1]])
     P = shift @ S @ pair.P_left
-    return RectifiedPair(sample(pair.maps_left), sample(pair.maps_right), (w, h),
-                         P[:3, :3].copy(), P, pair.R_left, pair.focal_px / factor,
-                         pair.baseline_m)
+    return pair._replace(maps_left=sample(pair.maps_left), maps_right=sample(pair.maps_right),
+                         size=(w, h), K=P[:3, :3].copy(), P_left=P,
+                         focal_px=pair.focal_px / factor,
+                         disparity_offset=pair.disparity_offset / factor)

@@ -154,11 +154,13 @@ def dark_line_mask(image, surface, size=7, threshold=8.0):
     return cv2.dilate(lines, np.ones((3, 3), np.uint8)).astype(bool)
 
 
-def horizontal_texture(image):
+def horizontal_texture(image, axis=1):
     """Mean |dI/du| over the 3 x 3 neighbourhood [grey levels/px]: what a horizontal
     disparity search can lock onto. Along edges near the rows (the aperture problem)
-    it is small, and matches there slide along the edge."""
-    gradient = np.abs(cv2.Sobel(np.asarray(image, dtype=np.float32), cv2.CV_32F, 1, 0,
+    it is small, and matches there slide along the edge. ``axis`` 0: |dI/dv|, for a
+    search along the columns (a vertical baseline)."""
+    dx, dy = (1, 0) if axis == 1 else (0, 1)
+    gradient = np.abs(cv2.Sobel(np.asarray(image, dtype=np.float32), cv2.CV_32F, dx, dy,
                                 ksize=3)) / 8.0
     return cv2.blur(gradient, (3, 3)).astype(float)
 
@@ -374,7 +376,7 @@ def _gauss_newton(level, z, model, sigma_i, sigma_z, curvature_sigma, steps, cau
 def refine_depth(image, Z_stereo, surface, K, model, sigma_i=2.0, sigma_z=0.002,
                  curvature_sigma=1e-4, steps=(12, 6, 3), min_width=40, cauchy=3.0,
                  max_step=0.02, finest_steps=1, min_stereo_gradient=5.0, edge_threshold=15.0,
-                 lines=None):
+                 lines=None, search_axis=1):
     """Shading-refined metric depth (module docstring) of one image.
 
     ``image`` (H, W) grey levels 0..255 of the reference camera (rectified);
@@ -386,8 +388,8 @@ def refine_depth(image, Z_stereo, surface, K, model, sigma_i=2.0, sigma_z=0.002,
     ``finest_steps`` on the full grid); ``min_width`` [px] of the coarsest level;
     ``cauchy`` IRLS scale in sigma_i; ``max_step`` [m] clamps each update;
     stereo depths where ``horizontal_texture`` < ``min_stereo_gradient`` [grey levels/px]
-    are not used (0 keeps all); ``lines`` (H, W) bool pixels left out of the shading term
-    (default ``dark_line_mask``).
+    are not used (0 keeps all; ``search_axis`` 0 for a vertical baseline); ``lines``
+    (H, W) bool pixels left out of the shading term (default ``dark_line_mask``).
     Returns ``RefineResult``.
     """
     image = np.asarray(image, dtype=float)
@@ -401,7 +403,8 @@ def refine_depth(image, Z_stereo, surface, K, model, sigma_i=2.0, sigma_z=0.002,
     if lines is None:
         lines = dark_line_mask(image, surface)
     if min_stereo_gradient > 0:
-        Z_stereo = np.where(horizontal_texture(image) >= min_stereo_gradient, Z_stereo, np.nan)
+        Z_stereo = np.where(horizontal_texture(image, search_axis) >= min_stereo_gradient,
+                            Z_stereo, np.nan)
     # Global gate: depths more than 6 robust standard deviations from the median match
     # are false matches (a lone one in a corner would otherwise bend the whole corner).
     finite = Z_stereo[np.isfinite(Z_stereo) & surface]

@@ -3,6 +3,8 @@
 Images are (H, W) float arrays of a rectified pair, x = column, y = row. The right image
 is the reference (A5.5): right pixel x matches left pixel x + d, d >= 0 [px].
 """
+from typing import NamedTuple
+
 import cv2
 import numpy as np
 
@@ -175,7 +177,7 @@ def sgbm_disparity(I_left, I_right, max_disparity, window=5, min_disparity=0):
                                     mode=cv2.STEREO_SGBM_MODE_SGBM)
     disparity = matcher.compute(left8, right8).astype(float) / 16.0
     # SGBM marks invalid pixels with min_disparity - 1
-    return np.where((disparity > min_disparity - 1) & (disparity > 0), disparity, np.nan)
+    return np.where(disparity > min_disparity - 1, disparity, np.nan)
 
 
 def sparse_disparity(cost, threshold, left_right_check=False, lr_tolerance=0):
@@ -211,3 +213,263 @@ def depth_from_disparity(disparity, f_px, baseline_m):
     disparity = np.asarray(disparity, dtype=float)
     with np.errstate(divide='ignore', invalid='ignore'):
         return np.where(disparity > 0, f_px * baseline_m / disparity, np.nan)
+
+
+# --- the fast matcher: band-limited cost volume with OpenCV box filters --------------
+
+def noise_sigma(image, flat_fraction=0.25):
+    """Robust estimate of the image noise std [grey levels] (Immerkaer 1996: the
+    Laplacian-difference mask cancels smooth shading to second order), taken over the
+    ``flat_fraction`` of pixels with the weakest smoothed gradient (texture and edges
+    would count as noise), floored at the 8-bit quantisation std 1/sqrt(12)."""
+    image = np.asarray(image, dtype=np.float32)
+    if min(image.shape) < 8:
+        return 1.0 / np.sqrt(12.0)
+    mask = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
+    response = np.abs(cv2.filter2D(image, cv2.CV_32F, mask))[2:-2, 2:-2]
+    smooth = cv2.GaussianBlur(image, (0, 0), 2.0)
+    gradient = np.hypot(cv2.Sobel(smooth, cv2.CV_32F, 1, 0), cv2.Sobel(smooth, cv2.CV_32F, 0, 1))
+    flat = gradient[2:-2, 2:-2] <= np.quantile(gradient[2:-2, 2:-2], flat_fraction)
+    # median |response| of Gaussian noise = 0.6745 * 6 sigma (sum of squared mask = 36)
+    sigma = float(np.median(response[flat])) / (0.6745 * 6.0)
+    return max(sigma, 1.0 / np.sqrt(12.0))
+
+
+class Matches(NamedTuple):
+    disparity: np.ndarray  # (H, W) float raw disparity [px], NaN where not confident
+    cost: np.ndarray  # (H, W) best cost c0 (inf where nothing was searched)
+    distinctiveness: np.ndarray  # (H, W) 1 - c0 / c1, c1 the best cost > 1 px away
+
+
+def _inverse_energy(image, size):
+    energy = cv2.boxFilter(image * image, cv2.CV_32F, size, normalize=False,
+                           borderType=cv2.BORDER_REFLECT)
+    with np.errstate(divide='ignore'):
+        return np.where(energy > 0, 1.0 / np.sqrt(np.maximum(energy, 1e-30)),
+                        np.inf).astype(np.float32)
+
+
+def _columns(d, W):
+    """(left columns, right columns) that disparity d pairs: right x = left x - d."""
+    return ((slice(d, W), slice(0, W - d)) if d >= 0 else (slice(0, W + d), slice(-d, W)))
+
+
+def cost_layers(I_left, I_right, d_lo, d_hi, window=3):
+    """Yield (k, d, layer) for the integer raw disparities d = d_lo + k up to d_hi (any
+    sign): the left-reference normalised SSD (the thesis's cost, 5.2.3) comparing left
+    pixel x with right pixel x - d, float32 (H, W), +inf where x - d leaves the image
+    or a window has no energy. Per layer one subtraction, one square and one
+    unnormalised box filter on the overlapping columns; window energies once per image."""
+    I_left = np.ascontiguousarray(_check_image(I_left, 'I_left'), dtype=np.float32)
+    I_right = np.ascontiguousarray(_check_image(I_right, 'I_right'), dtype=np.float32)
+    if I_left.shape != I_right.shape:
+        raise InvalidInput(f'I_left {I_left.shape} and I_right {I_right.shape} differ',
+                           key='I_left', value=I_left.shape)
+    if window < 1 or window % 2 == 0 or d_hi < d_lo:
+        raise InvalidInput(f'window must be odd >= 1 and d_lo <= d_hi, got {window}, '
+                           f'{d_lo}, {d_hi}', key='window', value=window)
+    H, W = I_left.shape
+    size = (window, window)
+    inv_left, inv_right = _inverse_energy(I_left, size), _inverse_energy(I_right, size)
+    for k, d in enumerate(range(d_lo, d_hi + 1)):
+        layer = np.full((H, W), np.inf, dtype=np.float32)
+        if abs(d) < W - window:
+            left_cols, right_cols = _columns(d, W)
+            diff = I_left[:, left_cols] - I_right[:, right_cols]
+            ssd = cv2.boxFilter(diff * diff, cv2.CV_32F, size, normalize=False,
+                                borderType=cv2.BORDER_REFLECT)
+            part = ssd * inv_left[:, left_cols] * inv_right[:, right_cols]
+            part[np.isnan(part)] = np.inf
+            layer[:, left_cols] = part
+        yield k, d, layer
+
+
+def band_cost_volume(I_left, I_right, d_lo, d_hi, window=3):
+    """The (d_hi - d_lo + 1, H, W) float32 stack of ``cost_layers`` (for tests and
+    inspection; the matcher streams the layers instead of storing them)."""
+    return np.stack([layer for _, _, layer in cost_layers(I_left, I_right, d_lo, d_hi,
+                                                           window)])
+
+
+def match_band(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, texture=None,
+               min_texture=0.0, uniqueness=0.0, left_right_check=True, lr_tolerance=1,
+               subpixel=True):
+    """Confident left-reference raw disparity over the band d_lo..d_hi: the thesis's
+    selection (best normalised SSD cost below ``threshold``) made confident as
+    ``confident_disparity`` describes (texture, uniqueness against the best cost more
+    than 1 px away, left-right check, parabola subpixel); a best match on either edge
+    of the band is rejected (the true minimum may lie outside it).
+
+    The cost layers are streamed, never stored: memory O(H W), whatever the band. The
+    best cost more than one layer from the best is exact: when layer k becomes the
+    best, the runner-up is the minimum over layers <= k - 2, kept as a running minimum.
+    Returns ``Matches``.
+    """
+    I_left = _check_image(I_left, 'I_left')
+    H, W = I_left.shape
+    c0 = np.full((H, W), np.inf, np.float32)
+    c1 = np.full((H, W), np.inf, np.float32)
+    d0 = np.zeros((H, W), np.int32)
+    lo = np.full((H, W), np.inf, np.float32)  # cost at d0 - 1
+    hi = np.full((H, W), np.inf, np.float32)  # cost at d0 + 1
+    min_upto_prev = np.full((H, W), np.inf, np.float32)  # min over layers <= k - 1
+    min_before_prev = np.full((H, W), np.inf, np.float32)  # min over layers <= k - 2
+    previous = np.full((H, W), np.inf, np.float32)
+    best_right = np.full((H, W), np.inf, np.float32)
+    d_right = np.zeros((H, W), np.int32)
+    for k, d, layer in cost_layers(I_left, I_right, d_lo, d_hi, window):
+        better = layer < c0
+        adjacent = d0 == k - 1
+        np.copyto(hi, layer, where=adjacent & ~better)
+        # not the new best: a runner-up candidate unless it neighbours the best
+        np.copyto(c1, np.minimum(c1, layer), where=~better & ~adjacent)
+        np.copyto(c1, min_before_prev, where=better)
+        np.copyto(lo, previous, where=better)
+        np.copyto(hi, np.float32(np.inf), where=better)
+        np.copyto(c0, layer, where=better)
+        np.copyto(d0, np.int32(k), where=better)
+        np.copyto(min_before_prev, min_upto_prev)
+        np.minimum(min_upto_prev, layer, out=min_upto_prev)
+        previous = layer
+        if left_right_check and abs(d) < W:
+            left_cols, right_cols = _columns(d, W)
+            part, best = layer[:, left_cols], best_right[:, right_cols]
+            won = part < best
+            np.copyto(best, part, where=won)
+            np.copyto(d_right[:, right_cols], np.int32(k), where=won)
+    n = d_hi - d_lo + 1
+    c0, c1 = c0.astype(float), c1.astype(float)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        distinct = np.where(np.isfinite(c1) & (c1 > 0), 1.0 - c0 / c1, 0.0)
+    keep = np.isfinite(c0) & (c0 < threshold) & (d0 > 0) & (d0 < n - 1)
+    if texture is not None and min_texture > 0:
+        keep &= np.asarray(texture) >= min_texture
+    if uniqueness > 0:
+        keep &= distinct > uniqueness
+    if left_right_check:
+        x_right = np.clip(np.arange(W)[None, :] - (d0 + d_lo), 0, W - 1)
+        keep &= np.abs(np.take_along_axis(d_right, x_right, axis=1) - d0) <= lr_tolerance
+    disparity = (d0 + d_lo).astype(float)
+    if subpixel:
+        with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
+            lo, hi = lo.astype(float), hi.astype(float)
+            curvature = lo - 2 * c0 + hi
+            offset = np.where(np.isfinite(curvature) & (curvature > 0),
+                              0.5 * (lo - hi) / curvature, 0.0)
+        disparity += np.clip(np.nan_to_num(offset), -0.5, 0.5)
+    return Matches(np.where(keep, disparity, np.nan), c0, distinct)
+
+
+def coherent_matches(disparity, radius=2, tolerance=1.0, min_support=2):
+    """``disparity`` with the matches that no neighbour backs removed: a match is kept
+    when at least ``min_support`` other matches within ``radius`` px lie within
+    ``tolerance`` px of its disparity (false matches are isolated; on a surface,
+    neighbours agree). Returns (disparity, support fraction of the input matches)."""
+    disparity = np.asarray(disparity, dtype=float)
+    valid = np.isfinite(disparity)
+    if not valid.any():
+        return disparity, 0.0
+    side = 2 * radius + 1
+    d = np.where(valid, disparity, 0.0).astype(np.float32)
+    v = valid.astype(np.float32)
+    support = np.zeros(disparity.shape, dtype=np.float32)
+    H, W = disparity.shape
+    padded_d = cv2.copyMakeBorder(d, radius, radius, radius, radius, cv2.BORDER_CONSTANT)
+    padded_v = cv2.copyMakeBorder(v, radius, radius, radius, radius, cv2.BORDER_CONSTANT)
+    for dy in range(side):
+        for dx in range(side):
+            if dy == radius and dx == radius:
+                continue
+            nd, nv = padded_d[dy:dy + H, dx:dx + W], padded_v[dy:dy + H, dx:dx + W]
+            support += nv * (np.abs(nd - d) <= tolerance)
+    backed = valid & (support >= min_support)
+    return np.where(backed, disparity, np.nan), float(backed.sum() / valid.sum())
+
+
+def _match_tiles(I_left, I_right, centre, have, window, threshold, texture, min_texture,
+                 uniqueness, left_right_check, radius, tile=64):
+    """``match_band`` tile by tile, each ``tile`` x ``tile`` block searching only the
+    disparities its predicted ``centre`` (where ``have``) spans, +- ``radius``: exact
+    constant-disparity windows, left-right check and band-edge rejection as on the
+    whole band, at a fraction of its layers. Returns ``Matches``."""
+    H, W = I_left.shape
+    margin = window // 2 + 1
+    disparity = np.full((H, W), np.nan)
+    cost = np.full((H, W), np.inf)
+    distinct = np.zeros((H, W))
+    for r0 in range(0, H, tile):
+        for c0 in range(0, W, tile):
+            r1, c1 = min(r0 + tile, H), min(c0 + tile, W)
+            known = have[r0:r1, c0:c1]
+            if not known.any():
+                continue
+            lo = int(np.min(centre[r0:r1, c0:c1][known])) - radius
+            hi = int(np.max(centre[r0:r1, c0:c1][known])) + radius
+            rows = slice(max(r0 - margin, 0), min(r1 + margin, H))
+            a, b = max(c0 - margin - max(hi, 0), 0), min(c1 + margin - min(lo, 0), W)
+            m = match_band(I_left[rows, a:b], I_right[rows, a:b], lo, hi, window, threshold,
+                           texture[rows, a:b], min_texture, uniqueness, left_right_check)
+            inner = (slice(r0 - rows.start, r1 - rows.start), slice(c0 - a, c1 - a))
+            disparity[r0:r1, c0:c1] = m.disparity[inner]
+            cost[r0:r1, c0:c1] = m.cost[inner]
+            distinct[r0:r1, c0:c1] = m.distinctiveness[inner]
+    return Matches(disparity, cost, distinct)
+
+
+def _half(image):
+    H, W = image.shape
+    return cv2.resize(np.ascontiguousarray(image[:H // 2 * 2, :W // 2 * 2], dtype=np.float32),
+                      (W // 2, H // 2), interpolation=cv2.INTER_AREA)
+
+
+def match_pyramid(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, texture_snr=0.0,
+                  min_texture=0.0, uniqueness=0.0, left_right_check=True,
+                  max_full_band=24, min_width=96, radius=2):
+    """``match_band`` made fast for wide bands: while the band has more than
+    ``max_full_band`` layers (and the half image keeps ``min_width`` px), the whole
+    band is searched on the image halved (INTER_AREA; disparities halve), and the
+    full resolution only within ``radius`` px around twice the coarse matches, tile by
+    tile (``_match_tiles``, with every test of ``match_band``). Texture at every level:
+    window std >= max(``min_texture``,
+    ``texture_snr`` x the level's noise std (``noise_sigma``)), so the same setting
+    holds for any contrast, noise and resolution.
+    Returns (``Matches`` at full resolution, levels used)."""
+    I_left = np.asarray(_check_image(I_left, 'I_left'), dtype=np.float32)
+    I_right = np.asarray(_check_image(I_right, 'I_right'), dtype=np.float32)
+    H, W = I_left.shape
+
+    def texture_floor(image):
+        return max(min_texture, texture_snr * noise_sigma(image))
+
+    texture = window_std(I_left, window)
+    if d_hi - d_lo + 1 <= max_full_band or W // 2 < min_width:
+        matches = match_band(I_left, I_right, d_lo, d_hi, window, threshold, texture,
+                             texture_floor(I_left), uniqueness, left_right_check)
+        return matches, 1
+    coarse, levels = match_pyramid(_half(I_left), _half(I_right), int(np.floor(d_lo / 2)),
+                                   int(np.ceil(d_hi / 2)), window, threshold, texture_snr,
+                                   min_texture, uniqueness, left_right_check, max_full_band,
+                                   min_width, radius)
+    found = np.isfinite(coarse.disparity)
+    # Fill one-pixel holes of the coarse map (its texture test is stricter: averaging
+    # halves the shading gradients) from the nearest coarse match.
+    filled = np.where(found, coarse.disparity, 0.0).astype(np.float32)
+    count = cv2.boxFilter(found.astype(np.float32), -1, (3, 3), normalize=False)
+    total = cv2.boxFilter(filled, -1, (3, 3), normalize=False)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        near = np.where(found, filled, np.where(count > 0, total / count, np.nan))
+    up = cv2.resize(np.nan_to_num(near, nan=-1e6).astype(np.float32), (W // 2 * 2, H // 2 * 2),
+                    interpolation=cv2.INTER_NEAREST)
+    predicted = np.full((H, W), -1e6, np.float32)
+    predicted[:up.shape[0], :up.shape[1]] = up
+    have = predicted > -1e5
+    centre = np.rint(np.where(have, 2 * predicted, 0.0))
+    fine = _match_tiles(I_left, I_right, centre, have, window, threshold, texture,
+                        texture_floor(I_left), uniqueness, left_right_check, radius)
+    # only where the coarse level found the pixel's match and the fine one agrees
+    keep = have & (np.abs(fine.disparity - centre) <= radius)
+    disparity, cost = fine.disparity, fine.cost
+    distinct = np.maximum(fine.distinctiveness, cv2.resize(
+        coarse.distinctiveness.astype(np.float32), (W, H),
+        interpolation=cv2.INTER_NEAREST).astype(float))
+    return Matches(np.where(keep, disparity, np.nan), cost, distinct), levels + 1
