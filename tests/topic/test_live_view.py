@@ -54,7 +54,9 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
     spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default', '-p', 'rate:=5.0',
            '-p', f'ground_truth_dir:={truth}', '-p', 'calibration_phase:=false'])
     calibration = truth / 'true_calibration' / 'calibration.yaml'
-    wait_for(calibration.exists, 60, 'sensor_sim ground truth')
+    # the ground truth files are written one after another: wait for the last one
+    wait_for(lambda: calibration.exists() and (truth / 'depth_aux.npy').exists(), 60,
+             'sensor_sim ground truth')
     # The rig as calib_node publishes it: latched, before any viewer connects.
     rig_publishers, rig = publish_rig(rclpy_node, calibration)
     raw_left = {}  # stamp -> the CDR bytes a plain ROS subscriber receives

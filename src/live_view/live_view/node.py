@@ -8,9 +8,10 @@ channel with message encoding ``cdr`` and its ROS 2 schema (``ros2msg``, the ful
 concatenated definition, as the bags carry it). Subscriptions are raw: the serialized
 CDR a publisher sent is forwarded unchanged, so an image costs one copy, no decoding.
 
-Latched topics (calibration, poses, waypoints) were published once, maybe before the
-viewer connected: the last message of each transient-local topic is kept and sent again
-when a client subscribes to it.
+A topic is subscribed in ROS only while some client subscribes to its channel (as
+foxglove_bridge does): what nobody watches costs the graph nothing. Latched topics
+(calibration, poses, waypoints) are subscribed transient-local, so a viewer that
+connects late still gets their value (the last one is also kept for a second viewer).
 
 Foxglove's 3D panel places things by frame transforms; tf2_msgs is not in the pip
 wheels, so ``/tf`` carries foxglove's own ``FrameTransforms`` schema: base_link to each
@@ -80,12 +81,16 @@ def frame_transform(pose_stamped, child_frame_id):
 
 
 class _Forwarded:
-    """One advertised topic: its foxglove channel, counts and, if latched, the last
-    message (sent again to a client that subscribes later)."""
+    """One advertised topic: its foxglove channel, the ROS subscription while some client
+    subscribes to it, counts and, if latched, the last message (sent again to a client
+    that subscribes while the ROS subscription already exists)."""
 
-    def __init__(self, channel, latched):
+    def __init__(self, channel, message_type, qos):
         self.channel = channel
-        self.latched = latched
+        self.message_type = message_type
+        self.qos = qos
+        self.latched = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        self.subscription = None
         self.last = None  # (data, log_time_ns)
         self.received = 0
         self.forwarded = 0
@@ -143,6 +148,7 @@ class LiveViewNode(Node):
         self._client_topics = {}  # client id -> set of topics
         self._transforms_sent = 0
         self._camera_transforms = {}  # camera frame -> FrameTransform
+        self._wake = self.create_guard_condition(self._update_subscriptions)
         try:
             self._server = foxglove.start_server(
                 name='vgm live_view', host=self.params.address, port=self.params.port,
@@ -199,17 +205,31 @@ class LiveViewNode(Node):
         except (ImportError, AttributeError, ValueError, DefinitionNotFoundError) as error:
             self._skip(name, f'type {type_name} is not installed ({error})')
             return
-        qos = subscription_qos(p.qos_profile for p in publishers)
         channel = foxglove.Channel(
             name, message_encoding='cdr',
             schema=foxglove.Schema(name=type_name, encoding=encoding, data=text.encode()))
-        forwarded = _Forwarded(channel, qos.durability == DurabilityPolicy.TRANSIENT_LOCAL)
+        forwarded = _Forwarded(channel, message_type,
+                               subscription_qos(p.qos_profile for p in publishers))
         with self._lock:
             self._forwarded[name] = forwarded
-        self.create_subscription(
-            message_type, name, lambda data, info, f=forwarded: self._on_message(f, data, info),
-            qos, raw=True)
         self.get_logger().info(f'serving {name} [{type_name}]')
+
+    def _update_subscriptions(self):
+        """Subscribe in ROS to what some client subscribed to, and only that (as
+        foxglove_bridge): an unwatched image costs the graph nothing. Executor thread,
+        woken by the server's threads."""
+        with self._lock:
+            watched = set().union(*self._client_topics.values())
+            forwarded = dict(self._forwarded)
+        for topic, f in forwarded.items():
+            if topic in watched and f.subscription is None:
+                # A transient-local subscription receives the latched value again.
+                f.subscription = self.create_subscription(
+                    f.message_type, topic,
+                    lambda data, info, f=f: self._on_message(f, data, info), f.qos, raw=True)
+            elif topic not in watched and f.subscription is not None:
+                self.destroy_subscription(f.subscription)
+                f.subscription = None
 
     def _on_message(self, forwarded, data, info):
         log_time_ns = info.get('received_timestamp') or time.time_ns()
@@ -226,12 +246,14 @@ class LiveViewNode(Node):
         with self._lock:
             self._client_topics.setdefault(client_id, set()).add(topic)
             forwarded = self._forwarded.get(topic)
-        if forwarded is not None and forwarded.last is not None:
+        if topic == TRANSFORMS_TOPIC:
+            self._send_camera_transforms()
+        elif forwarded is not None and forwarded.subscription is not None \
+                and forwarded.last is not None:
             data, log_time_ns = forwarded.last
             # Everyone subscribed gets it again: harmless for a latched value.
             forwarded.channel.log(data, log_time=log_time_ns)
-        elif topic == TRANSFORMS_TOPIC:
-            self._send_camera_transforms()
+        self._wake.trigger()
 
     def client_unsubscribed(self, client_id, topic):
         with self._lock:
@@ -239,6 +261,7 @@ class LiveViewNode(Node):
             topics.discard(topic)
             if not topics:
                 self._client_topics.pop(client_id, None)
+        self._wake.trigger()
 
     # -- frame transforms ----------------------------------------------------------------
 
