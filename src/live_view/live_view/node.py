@@ -32,7 +32,6 @@ import time
 import foxglove
 from foxglove.channels import FrameTransformsChannel
 from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
-from foxglove.websocket import Capability
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
@@ -152,7 +151,9 @@ class LiveViewNode(Node):
         try:
             self._server = foxglove.start_server(
                 name='vgm live_view', host=self.params.address, port=self.params.port,
-                capabilities=[Capability.Time], server_listener=_Listener(self),
+                # No Capability.Time: the app then times messages by their log time
+                # (the receive time here), as with foxglove_bridge on wall-clock time.
+                server_listener=_Listener(self),
                 supported_encodings=['cdr'],
                 message_backlog_size=self.params.message_backlog_size)
         except Exception as error:  # noqa: BLE001 -- the SDK raises a bare RuntimeError
