@@ -287,6 +287,8 @@ class LiveViewNode(Node):
             self._transforms_sent += len(transforms)
 
     def _on_tool_pose(self, msg):
+        if not self._transforms.has_sinks():  # nobody watches /tf
+            return
         try:
             transform = frame_transform(msg, TOOL_FRAME)
         except InvalidInput as error:
