@@ -85,6 +85,8 @@ def _image_panel_shows_camera(crop):
     return dark, lit
 
 
+# pytest-timeout counts the fixture's first-run installs (apt-get, npm) in this test.
+@pytest.mark.timeout(540)
 def test_foxglove_app_live_and_zstd_bag(studio, spawn, rclpy_node, tmp_path):
     chromium, modules = studio
     live_view = spawn([executable('live_view'), '--ros-args', '-p', 'port:=0'])
