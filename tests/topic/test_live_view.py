@@ -80,20 +80,26 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
         assert '/parameter_events' not in channels  # exclude
 
         client.subscribe([LEFT, '/joint_states', '/tf', POSE_TOPICS['left']])
-        # A bad pose is rejected (the node keeps serving), a good one becomes tool0.
+        received = {}
+        transforms = {}
+        # The camera transforms come on subscribing to /tf (they were latched before).
+        def record(topic, log_time_ns, payload):
+            received.setdefault(topic, payload)
+            if topic == '/tf':
+                transforms.update({t['child']: t for t in decode_frame_transforms(payload)})
+            return topic == '/tf'
+
+        client.receive_until(record, 30, 'the camera transforms')
+        # Now that /tf is watched: a bad pose is rejected (the node keeps serving), a good
+        # one becomes tool0.
         tool_pose.publish(_tool_pose((0.1, 0.2, 0.3), (0.0, 0.0, 0.0, 2.0)))
         wait_for(lambda: 'rejected /tool_pose' in live_view.output(), 30,
                  'the bad tool pose to be rejected')
         good_tool = _tool_pose((0.4, -0.2, 0.55), (0.0, 0.0, np.sin(0.3), np.cos(0.3)))
         tool_pose.publish(good_tool)
 
-        received = {}
-        transforms = {}
-
         def collect(topic, log_time_ns, payload):
-            received.setdefault(topic, payload)
-            if topic == '/tf':
-                transforms.update({t['child']: t for t in decode_frame_transforms(payload)})
+            record(topic, log_time_ns, payload)
             return set(received) == {LEFT, '/joint_states', '/tf', POSE_TOPICS['left']} and \
                 {OPTICAL_FRAMES['left'], OPTICAL_FRAMES['aux'], 'tool0'} <= set(transforms)
 
