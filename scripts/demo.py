@@ -16,6 +16,7 @@ import json
 import re
 import shlex
 import shutil
+import socket
 import sys
 import time
 from collections import Counter, defaultdict
@@ -52,8 +53,9 @@ from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS  # noqa: E402
 from vgm_common.scenario import load_scenario, resolve_scenario_path  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-NODES = ['recorder', 'sensor_sim', 'calib_node', 'sfs_stereo_node', 'curve_recon_node',
-         'pa10_ik_node']
+NODES = ['recorder', 'live_view', 'sensor_sim', 'calib_node', 'sfs_stereo_node',
+         'curve_recon_node', 'pa10_ik_node']
+LIVE_VIEW_PORT = 8765  # live_view's default (foxglove_bridge's), on 127.0.0.1
 # Pipeline outputs the demo's probe watches to know how far the graph has got.
 WATCHED_TOPICS = {'/curve/waypoints': (PathMsg, LATCHED_QOS), '/depth/fused': (Image, DEFAULT_QOS)}
 DESIRED_FORCE = 5.0  # [N]
@@ -202,11 +204,21 @@ class ClosedLoop:
         stage(number, self.total, text)
 
 
+def free_live_view_port():
+    """LIVE_VIEW_PORT, or any free port while something else holds it (another demo)."""
+    with socket.socket() as probe:
+        try:
+            probe.bind(('127.0.0.1', LIVE_VIEW_PORT))
+        except OSError:
+            probe.bind(('127.0.0.1', 0))
+        return probe.getsockname()[1]
+
+
 def write_params(graph, path, settings):
     """The graph's params file with ``settings`` {node: {parameter: value}} applied."""
     params = yaml.safe_load(graph.read_text())
     for node, values in settings.items():
-        params[node]['ros__parameters'].update(values)
+        params.setdefault(node, {'ros__parameters': {}})['ros__parameters'].update(values)
     path.write_text(yaml.safe_dump(params, sort_keys=False))
 
 
@@ -480,10 +492,15 @@ def main():
 
     stage(1, total, f'starting the graph on scenario {scenario.name}: {", ".join(nodes)}')
     print(f'   node logs: {bag_dir}/launch.log; bag: {bag_dir}', flush=True)
+    layout = Path(get_package_share_directory('live_view')) / 'layouts' / 'vgm_live_view.json'
+    live_view_port = free_live_view_port()
+    print(f'   watch it live: in Foxglove, Open connection > Foxglove WebSocket > '
+          f'ws://127.0.0.1:{live_view_port} (layout: {layout})', flush=True)
     graph = Path(get_package_share_directory('vgm_common')) / 'params' / 'graph.yaml'
     params_file = work_dir / 'params.yaml'  # kept with the bag: how it was made
     write_params(graph, params_file, {
-        'recorder': {'output_dir': str(args.bags), 'bag_name': name},
+        'recorder': {'output_dir': str(args.bags), 'bag_name': name, 'compression': 'zstd'},
+        'live_view': {'port': live_view_port},
         'sensor_sim': {'scenario': str(scenario_path), 'ground_truth_dir': str(truth_dir),
                        # recorder, calib_node and curve_recon_node see every camera: no
                        # chart view is lost to discovery

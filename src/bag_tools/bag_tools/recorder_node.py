@@ -56,6 +56,7 @@ QUIET_PERIOD = 0.25  # [s]
 MAX_DRAIN_PERIOD = 10.0  # [s]
 DIAGNOSTICS_PERIOD = 2.0  # [s]
 HEADER_TYPE = 'std_msgs/Header'
+_COMPRESSION_ALIASES = {'none': ''}  # rosbag2's spelling -> BagWriter's
 
 
 class RecorderStartupError(VgmError):
@@ -205,9 +206,10 @@ class RecorderNode(Node):
                   range=(0.0, 3600.0), read_only=True),
             Param('max_file_size', 0, '[bytes] Split to <bag_name>_<n+1>.mcap once a file '
                   'reaches this size; 0 = never.', range=(0, 2**62), read_only=True),
-            Param('compression', '', 'Chunk compression of the MCAP files: "" (none, '
-                  "rosbag2's default), zstd or lz4 (mcap's chunk compression: every MCAP "
-                  'reader decompresses it).', choices=('', 'zstd', 'lz4'), read_only=True),
+            Param('compression', 'none', 'Chunk compression of the MCAP files: none '
+                  "(rosbag2's default; \"\" says the same), zstd or lz4 (mcap's chunk "
+                  'compression: every MCAP reader decompresses it).',
+                  choices=('none', '', 'zstd', 'lz4'), read_only=True),
             Param('max_cache_size', 100 * 1024 * 1024, '[bytes] Messages waiting to be written; '
                   'beyond this the oldest are dropped (counted). 0 = unbounded.',
                   range=(0, 2**62), read_only=True),
@@ -221,7 +223,8 @@ class RecorderNode(Node):
                                      self.params.bag_name or default_bag_name())
         try:
             self._bag = BagWriter(self.bag_path, max_file_size=self.params.max_file_size,
-                                  compression=self.params.compression)
+                                  compression=_COMPRESSION_ALIASES.get(
+                                      self.params.compression, self.params.compression))
         except BagError as error:
             raise RecorderStartupError(str(error)) from None
         self._bag_lock = threading.Lock()  # BagWriter is used by the executor and writer threads

@@ -1,0 +1,329 @@
+"""``live_view``: the graph's topics served to Foxglove over its WebSocket protocol, as
+ROS users get them from foxglove_bridge.
+
+The server is the ``foxglove-sdk`` package's (subprotocol ``foxglove.sdk.v1``, the one
+foxglove_bridge 3.x speaks). Every topic the graph publishes (or the chosen ``topics``,
+less ``exclude``; found while running, as the recorder finds them) is advertised as a
+channel with message encoding ``cdr`` and its ROS 2 schema (``ros2msg``, the full
+concatenated definition, as the bags carry it). Subscriptions are raw: the serialized
+CDR a publisher sent is forwarded unchanged, so an image costs one copy, no decoding.
+
+A topic is subscribed in ROS only while some client subscribes to its channel (as
+foxglove_bridge does): what nobody watches costs the graph nothing. Latched topics
+(calibration, poses, waypoints) are subscribed transient-local, so a viewer that
+connects late still gets their value (the last one is also kept for a second viewer).
+
+Foxglove's 3D panel places things by frame transforms; tf2_msgs is not in the pip
+wheels, so ``/tf`` carries foxglove's own ``FrameTransforms`` schema: base_link to each
+camera's optical frame (from calib_node's latched poses, sent again every
+``CAMERA_TRANSFORM_PERIOD`` so a late viewer has them) and base_link to ``tool0`` (from
+each ``/tool_pose``).
+
+A slow viewer never slows the graph: the subscription callbacks only hand the bytes to
+the server, which queues at most ``message_backlog_size`` messages per client and drops
+the oldest beyond that (inside foxglove-sdk, which does not report how many).
+/diagnostics, every ``DIAGNOSTICS_PERIOD``: the URL, clients, channels, messages
+forwarded per topic, transforms sent and rejected inputs.
+"""
+import sys
+import threading
+import time
+
+import foxglove
+from foxglove.channels import FrameTransformsChannel
+from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
+from geometry_msgs.msg import PoseStamped
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy
+
+from bag_tools.message_definitions import DefinitionNotFoundError, definition
+from bag_tools.recorder_node import import_message_type, subscription_qos, topic_is_hidden
+from vgm_common.camera_topics import BASE_FRAME, OPTICAL_FRAMES, POSE_TOPICS
+from vgm_common.conversions import pose_to_matrix
+from vgm_common.errors import InvalidInput, VgmError
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+
+TRANSFORMS_TOPIC = '/tf'
+TOOL_POSE_TOPIC = '/tool_pose'
+TOOL_FRAME = 'tool0'
+CAMERA_TRANSFORM_PERIOD = 1.0  # [s]
+DIAGNOSTICS_PERIOD = 2.0  # [s]
+
+
+class LiveViewStartupError(VgmError):
+    """The server cannot listen where asked (address in use, not an address of this
+    machine)."""
+
+
+def _absolute_names(names):
+    relative = [name for name in names if not name.startswith('/')]
+    return f'must hold absolute topic names, got {relative}' if relative else None
+
+
+def frame_transform(pose_stamped, child_frame_id):
+    """foxglove ``FrameTransform`` of ``child_frame_id`` in the pose's frame.
+
+    Raises:
+        InvalidInput: no frame, or a pose with non-finite values or a non-unit quaternion.
+    """
+    if not pose_stamped.header.frame_id:
+        raise InvalidInput('pose has no header.frame_id', key='frame_id')
+    pose_to_matrix(pose_stamped.pose)  # validates
+    p, q = pose_stamped.pose.position, pose_stamped.pose.orientation
+    stamp = pose_stamped.header.stamp
+    return FrameTransform(
+        timestamp=Timestamp(sec=stamp.sec, nsec=stamp.nanosec),
+        parent_frame_id=pose_stamped.header.frame_id, child_frame_id=child_frame_id,
+        translation=Vector3(x=p.x, y=p.y, z=p.z),
+        rotation=Quaternion(x=q.x, y=q.y, z=q.z, w=q.w))
+
+
+class _Forwarded:
+    """One advertised topic: its foxglove channel, the ROS subscription while some client
+    subscribes to it, counts and, if latched, the last message (sent again to a client
+    that subscribes while the ROS subscription already exists)."""
+
+    def __init__(self, channel, message_type, qos):
+        self.channel = channel
+        self.message_type = message_type
+        self.qos = qos
+        self.latched = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        self.subscription = None
+        self.last = None  # (data, log_time_ns)
+        self.received = 0
+        self.forwarded = 0
+
+
+class _Listener:
+    """foxglove-sdk's ServerListener: called on the server's threads."""
+
+    def __init__(self, live_view):
+        self._live_view = live_view
+
+    def on_subscribe(self, client, channel):
+        self._live_view.client_subscribed(client.id, channel.topic)
+
+    def on_unsubscribe(self, client, channel):
+        self._live_view.client_unsubscribed(client.id, channel.topic)
+
+
+class LiveViewNode(Node):
+    """Discovers topics, subscribes to them raw and forwards them to the Foxglove server.
+
+    Raises:
+        ParameterError: invalid parameter value.
+        LiveViewStartupError: the server cannot listen on ``address``:``port``.
+    """
+
+    node_name = 'live_view'
+
+    def __init__(self, **kwargs):
+        super().__init__(self.node_name, **kwargs)
+        self.diagnostics = Diagnostics(self)
+        self.params = NodeParameters(self, [
+            Param('address', '127.0.0.1', 'Address the WebSocket server listens on; '
+                  '0.0.0.0 opens it to the network (on purpose: anyone there can watch).',
+                  read_only=True),
+            Param('port', 8765, 'TCP port of the WebSocket server (foxglove_bridge\'s); 0 = '
+                  'any free port (logged).', range=(0, 65535), read_only=True),
+            Param('topics', [], 'Topics to serve (exact names); empty = every published topic.',
+                  check=_absolute_names, read_only=True),
+            Param('exclude', [], 'Topics never served (exact names).', check=_absolute_names,
+                  read_only=True),
+            Param('include_hidden_topics', False, 'Also serve hidden topics (a name token '
+                  'starting with _).', read_only=True),
+            Param('discovery_period', 0.5, '[s] How often the graph is polled for new topics.',
+                  range=(0.01, 60.0), read_only=True),
+            Param('message_backlog_size', 300, 'Messages queued per client at most; a slow '
+                  'client loses the oldest beyond this (10 s of three 30 Hz cameras).',
+                  range=(1, 100000), read_only=True),
+        ], self.diagnostics)
+        self._topics_wanted = set(self.params.topics)
+        self._excluded = set(self.params.exclude)
+        self._lock = threading.Lock()  # the server's threads and the executor's
+        self._forwarded = {}  # topic -> _Forwarded
+        self._skipped = set()
+        self._client_topics = {}  # client id -> set of topics
+        self._transforms_sent = 0
+        self._camera_transforms = {}  # camera frame -> FrameTransform
+        self._wake = self.create_guard_condition(self._update_subscriptions)
+        try:
+            self._server = foxglove.start_server(
+                name='vgm live_view', host=self.params.address, port=self.params.port,
+                # No Capability.Time: the app then times messages by their log time
+                # (the receive time here), as with foxglove_bridge on wall-clock time.
+                server_listener=_Listener(self),
+                supported_encodings=['cdr'],
+                message_backlog_size=self.params.message_backlog_size)
+        except Exception as error:  # noqa: BLE001 -- the SDK raises a bare RuntimeError
+            raise LiveViewStartupError(
+                f'cannot serve on {self.params.address}:{self.params.port}: {error}') from None
+        self.url = f'ws://{self.params.address}:{self._server.port}'
+        self._transforms = FrameTransformsChannel(TRANSFORMS_TOPIC)
+        for name, topic in POSE_TOPICS.items():
+            self.create_subscription(
+                PoseStamped, topic,
+                lambda msg, frame=OPTICAL_FRAMES[name], t=topic: self._on_camera_pose(
+                    t, frame, msg), LATCHED_QOS)
+        self.create_subscription(PoseStamped, TOOL_POSE_TOPIC, self._on_tool_pose, DEFAULT_QOS)
+        self.create_timer(self.params.discovery_period, self._discover)
+        self.create_timer(CAMERA_TRANSFORM_PERIOD, self._send_camera_transforms)
+        self.create_timer(DIAGNOSTICS_PERIOD, self._publish_status)
+        self.get_logger().info(
+            f'serving the graph to Foxglove at {self.url} (open Foxglove, "Open connection", '
+            f'Foxglove WebSocket, {self.url})')
+        self._discover()
+
+    # -- topics (executor thread) ------------------------------------------------------
+
+    def _wanted(self, name):
+        if name in self._excluded:
+            return False
+        if self._topics_wanted:
+            return name in self._topics_wanted
+        return self.params.include_hidden_topics or not topic_is_hidden(name)
+
+    def _discover(self):
+        for name, types in self.get_topic_names_and_types():
+            if name in self._forwarded or name in self._skipped or not self._wanted(name):
+                continue
+            if len(types) != 1:
+                self._skip(name, f'published with several types {types}')
+                continue
+            publishers = self.get_publishers_info_by_topic(name)
+            if publishers:  # only subscribed so far: nothing to forward
+                self._advertise(name, types[0], publishers)
+
+    def _skip(self, name, reason):
+        self._skipped.add(name)
+        self.get_logger().warning(f'not serving {name}: {reason}')
+
+    def _advertise(self, name, type_name, publishers):
+        try:
+            message_type = import_message_type(type_name)
+            encoding, text = definition(type_name)
+        except (ImportError, AttributeError, ValueError, DefinitionNotFoundError) as error:
+            self._skip(name, f'type {type_name} is not installed ({error})')
+            return
+        channel = foxglove.Channel(
+            name, message_encoding='cdr',
+            schema=foxglove.Schema(name=type_name, encoding=encoding, data=text.encode()))
+        forwarded = _Forwarded(channel, message_type,
+                               subscription_qos(p.qos_profile for p in publishers))
+        with self._lock:
+            self._forwarded[name] = forwarded
+        self.get_logger().info(f'serving {name} [{type_name}]')
+
+    def _update_subscriptions(self):
+        """Subscribe in ROS to what some client subscribed to, and only that (as
+        foxglove_bridge): an unwatched image costs the graph nothing. Executor thread,
+        woken by the server's threads."""
+        with self._lock:
+            watched = set().union(*self._client_topics.values())
+            forwarded = dict(self._forwarded)
+        for topic, f in forwarded.items():
+            if topic in watched and f.subscription is None:
+                # A transient-local subscription receives the latched value again.
+                f.subscription = self.create_subscription(
+                    f.message_type, topic,
+                    lambda data, info, f=f: self._on_message(f, data, info), f.qos, raw=True)
+            elif topic not in watched and f.subscription is not None:
+                self.destroy_subscription(f.subscription)
+                f.subscription = None
+
+    def _on_message(self, forwarded, data, info):
+        log_time_ns = info.get('received_timestamp') or time.time_ns()
+        forwarded.received += 1
+        if forwarded.latched:
+            forwarded.last = (data, log_time_ns)
+        if forwarded.channel.has_sinks():  # some client subscribed to it
+            forwarded.channel.log(data, log_time=log_time_ns)
+            forwarded.forwarded += 1
+
+    # -- clients (server threads) --------------------------------------------------------
+
+    def client_subscribed(self, client_id, topic):
+        with self._lock:
+            self._client_topics.setdefault(client_id, set()).add(topic)
+            forwarded = self._forwarded.get(topic)
+        if topic == TRANSFORMS_TOPIC:
+            self._send_camera_transforms()
+        elif forwarded is not None and forwarded.subscription is not None \
+                and forwarded.last is not None:
+            data, log_time_ns = forwarded.last
+            # Everyone subscribed gets it again: harmless for a latched value.
+            forwarded.channel.log(data, log_time=log_time_ns)
+        self._wake.trigger()
+
+    def client_unsubscribed(self, client_id, topic):
+        with self._lock:
+            topics = self._client_topics.get(client_id, set())
+            topics.discard(topic)
+            if not topics:
+                self._client_topics.pop(client_id, None)
+        self._wake.trigger()
+
+    # -- frame transforms ----------------------------------------------------------------
+
+    def _on_camera_pose(self, topic, frame, msg):
+        try:
+            if msg.header.frame_id != BASE_FRAME:
+                raise InvalidInput(f'camera pose must be in {BASE_FRAME}, got '
+                                   f'{msg.header.frame_id!r}', key='frame_id')
+            transform = frame_transform(msg, frame)
+        except InvalidInput as error:
+            self.diagnostics.reject(topic, error)
+            return
+        with self._lock:
+            self._camera_transforms[frame] = transform
+        self._send_camera_transforms()
+
+    def _send_camera_transforms(self):
+        with self._lock:
+            transforms = list(self._camera_transforms.values())
+        if transforms:
+            self._transforms.log(FrameTransforms(transforms=transforms))
+            self._transforms_sent += len(transforms)
+
+    def _on_tool_pose(self, msg):
+        if not self._transforms.has_sinks():  # nobody watches /tf
+            return
+        try:
+            transform = frame_transform(msg, TOOL_FRAME)
+        except InvalidInput as error:
+            self.diagnostics.reject(TOOL_POSE_TOPIC, error)
+            return
+        self._transforms.log(FrameTransforms(transforms=[transform]))
+        self._transforms_sent += 1
+
+    # -- diagnostics and shutdown ------------------------------------------------------
+
+    def _publish_status(self):
+        with self._lock:
+            forwarded = dict(self._forwarded)
+            clients = len(self._client_topics)
+        values = {'url': self.url, 'clients': clients, 'channels': len(forwarded) + 1,
+                  'transforms sent': self._transforms_sent,
+                  'backlog per client': self.params.message_backlog_size}
+        for topic, f in sorted(forwarded.items()):
+            values[topic] = f'{f.forwarded} forwarded of {f.received}'
+        if self._skipped:
+            values['not served'] = ', '.join(sorted(self._skipped))
+        rejected = sum(self.diagnostics.rejected.values())
+        level = 'warn' if self._skipped or rejected else 'ok'
+        message = f'{clients} client(s), {len(forwarded)} topics'
+        self.diagnostics.publish('server', level, message, values)
+
+    def close(self):
+        """Stop the server (clients see the connection close)."""
+        self._server.stop()
+
+
+def main(args=None):
+    """Run live_view until SIGINT/SIGTERM; exit status 2 when it cannot serve (one line)."""
+    return run_node(LiveViewNode, args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
