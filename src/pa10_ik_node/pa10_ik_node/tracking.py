@@ -30,6 +30,13 @@ def _unit(v, key):
     return v / norm
 
 
+def perpendicular(v):
+    """A unit vector (3,) orthogonal to the non-zero (3,) ``v``."""
+    v = _unit(v, 'v')
+    other = np.eye(3)[int(np.argmin(np.abs(v)))]
+    return _unit(np.cross(v, other), 'v x e')
+
+
 def next_target_on_tangent_plane(P, normal, Q):
     """Next target Q' on the tangent plane at P and the tool frame E there (§6.4 steps 1-4).
 
@@ -288,8 +295,12 @@ class TrackingController:
         self.s_ref = s_near if not path.closed else self.s_start + self.travelled
 
     def stop(self, reason='stop requested'):
-        if self.phase in ('stopped', 'failed'):
+        """Hold still. A failed task becomes stopped (the stop acknowledges the failure;
+        its reason is kept in the new one); a stopped one stays as it is."""
+        if self.phase == 'stopped':
             return
+        if self.phase == 'failed':
+            reason = f'{reason} (after: {self.reason})'
         self.phase, self.reason = 'stopped', reason
 
     def fail(self, reason):
@@ -312,10 +323,14 @@ class TrackingController:
         Q = self._sample(s + self.config.lookahead)[0]
         if np.linalg.norm(Q - P) < 1e-9:
             Q = P + tangent * self.config.lookahead
-        try:
-            _, T = next_target_on_tangent_plane(P, -z, Q)
-        except InvalidInput:  # Q' at P: fall back to the tangent
-            _, T = next_target_on_tangent_plane(P, -z, P + tangent)
+        # Q' at P (Q along the approach axis): fall back to the tangent, then to any
+        # direction across the approach axis.
+        for ahead in (Q, P + tangent, P + perpendicular(z)):
+            try:
+                _, T = next_target_on_tangent_plane(P, -z, ahead)
+                break
+            except InvalidInput:
+                continue
         T[:3, 3] = position
         return T
 
