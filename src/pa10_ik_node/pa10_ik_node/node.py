@@ -389,8 +389,8 @@ class Pa10IkNode(Node):
             T, self.get_clock().now().nanoseconds, BASE_FRAME))
         self._log_phase_change()
 
-    def _command(self, q, qdot):
-        horizon = self.params.command_horizon
+    def _command(self, q, qdot, horizon=None):
+        horizon = self.params.command_horizon if horizon is None else horizon
         seconds = int(horizon)
         point = JointTrajectoryPoint(
             positions=(q + qdot * horizon).tolist(), velocities=qdot.tolist(),
@@ -400,9 +400,10 @@ class Pa10IkNode(Node):
             joint_names=list(self.robot.joint_names), points=[point]))
 
     def _hold(self):
-        """Zero velocity at the measured position."""
+        """Zero velocity at the measured position, now (time_from_start 0: a position
+        arm does not coast on to a point ahead, a velocity arm gets zero at once)."""
         if self.q is not None:
-            self._command(self.q, np.zeros(self.robot.n_joints))
+            self._command(self.q, np.zeros(self.robot.n_joints), horizon=0.0)
 
     def _on_internal_error(self, what, error):
         """An exception in a callback (a solver, a singular configuration, a bug): stop
@@ -450,6 +451,7 @@ class Pa10IkNode(Node):
             phase = 'contact'  # touching, force building up
         values = {
             'phase': phase,
+            'stage': controller.stage,
             'progress': f'{controller.progress:.4f}',
             'position_error_m': f'{info.get("position_error", float("nan")):.6f}',
             'force_N': f'{self.force:.4f}',
