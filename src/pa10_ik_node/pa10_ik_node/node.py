@@ -113,6 +113,15 @@ class Pa10IkNode(Node):
                   on_change=lambda v: self._configure(force_law=v)),
             Param('speed', 0.015, '[m/s] Speed along the path.', range=(1e-4, 0.2),
                   on_change=lambda v: self._configure(speed=v)),
+            Param('adapt_response', False, 'Measure how much of the commanded motion the '
+                  'arm makes and scale commands up for an arm slower than commanded (at most '
+                  '2.5 times, within the joint speed limits). Off by default: on a loaded '
+                  'machine late commands make any arm look slow.',
+                  on_change=lambda v: self._configure(adapt_response=v)),
+            Param('pose_integral_gain', 20.0, '[1/s^2] Integral of the tip\'s error across '
+                  'the approach axis while tracking (a slow arm trails its reference '
+                  'otherwise); 0 turns it off.', range=(0.0, 200.0),
+                  on_change=lambda v: self._configure(pose_integral_gain=v)),
             Param('pose_gain', 10.0, '[1/s] Pose feedback gain.', range=(0.1, 50.0),
                   on_change=lambda v: self._configure(pose_gain=v)),
             Param('max_joint_velocity', 1.0, '[rad/s] Cap on every joint speed (on top of '
@@ -152,7 +161,8 @@ class Pa10IkNode(Node):
             self.robot, self._make_solver(), TrackingConfig(
                 desired_force=p.desired_force, stiffness=p.contact_stiffness,
                 force_gain=p.force_gain, force_law=p.force_law, speed=p.speed,
-                pose_gain=p.pose_gain,
+                pose_gain=p.pose_gain, adapt_response=p.adapt_response,
+                pose_integral_gain=p.pose_integral_gain,
                 track_spin=p.track_spin, standoff=p.standoff, descent_speed=p.descent_speed,
                 lift_height=p.lift_height, max_position_error=p.max_position_error,
                 error_timeout=p.error_timeout),
@@ -456,6 +466,7 @@ class Pa10IkNode(Node):
             'position_error_m': f'{info.get("position_error", float("nan")):.6f}',
             'force_N': f'{self.force:.4f}',
             'force_error_N': f'{self.force - self.params.desired_force:.4f}',
+            'arm_response': f'{controller.response:.3f}',
             'phi_rad': f'{info.get("phi", float("nan")):.5f}',
             'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}' if self.step_times
             else 'nan',

@@ -120,6 +120,8 @@ def tilted_motion(measured_force, desired_force, advance):
 
 FORCE_LAWS = ('integral', 'tilt')
 MIN_RESPONSE = 0.4  # commands are scaled up at most 2.5 times (_compensated)
+RESPONSE_WINDOW = 1.0  # [s] forgetting time of the response estimate
+MAX_INTEGRAL_SPEEDS = 1.0  # see TrackingConfig.pose_integral_gain
 PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
 ACTIVE_PHASES = ('approach', 'contact', 'tracking')
 
@@ -138,9 +140,12 @@ class TrackingConfig:
     pose_gain: float = 10.0  # [1/s] pose feedback
     # [1/s^2] integral of the tip's error across the approach axis while tracking: an arm
     # slower than commanded (a lag, a velocity scale) would otherwise trail the reference
-    # by speed / pose_gain and cut the path's curves. Bounded to add at most ``speed``.
+    # by speed / pose_gain and cut the path's curves. Bounded to add at most
+    # MAX_INTEGRAL_SPEEDS x ``speed``.
     pose_integral_gain: float = 20.0
-    adapt_response: bool = True  # scale commands by the arm's measured response
+    # Scale commands by the arm's measured response (opt-in: over topics on a loaded
+    # machine late commands make any arm look slow, and scaling up then overshoots).
+    adapt_response: bool = False
     force_gain: float = 5.0  # [1/s] integral force law (approach_correction)
     force_law: str = 'integral'  # 'integral' (ours) or 'tilt' (thesis 7.3.15, tilted_motion)
     track_spin: bool = False  # track the spin about the approach axis too (6 constraints)
@@ -238,6 +243,7 @@ class TrackingController:
         self.lift_reference, self.wait_time, self.end_time = 0.0, 0.0, 0.0
         self.pose_integral = np.zeros(3)  # [m s] see TrackingConfig.pose_integral_gain
         self.response = 1.0  # fraction of the commanded motion the arm makes (estimated)
+        self.response_sums = np.zeros(2)  # [m] (made, commanded), see _update_response
         self.last_tip = self.last_tip_velocity = None
         self.solver.reset()
 
@@ -361,19 +367,23 @@ class TrackingController:
 
     def _update_response(self, tip, dt):
         """Estimate how much of the commanded tip motion the arm makes (1: all of it; an
-        arm slower than commanded less) from the measured tip's displacement over the last
-        step against the velocity commanded then; low-pass filtered over ~0.3 s, only
-        while the command moved the tip fast enough to measure."""
+        arm slower than commanded less): the measured tip's displacement along the
+        velocity commanded a step before, over the commanded distance, both summed with
+        a forgetting time of ``RESPONSE_WINDOW`` (a delayed or jittery measurement
+        averages out), counted only while the command moves the tip fast enough to
+        measure."""
         c = self.config
         v = self.last_tip_velocity
         if self.last_tip is None or v is None or dt <= 0 or not c.adapt_response:
             return
-        speed2 = float(np.dot(v, v))
-        if speed2 < (0.3 * c.speed) ** 2:
-            return
-        sample = float(np.dot(tip - self.last_tip, v)) / (speed2 * dt)
-        sample = float(np.clip(sample, MIN_RESPONSE, 1.0))
-        self.response += min(dt / 0.3, 1.0) * (sample - self.response)
+        speed = float(np.linalg.norm(v))
+        forget = np.exp(-dt / RESPONSE_WINDOW)
+        self.response_sums *= forget
+        if speed >= 0.3 * c.speed:
+            self.response_sums += (float(np.dot(tip - self.last_tip, v)) / speed, speed * dt)
+        made, commanded = self.response_sums
+        if commanded > 0.3 * c.speed * RESPONSE_WINDOW / 2:  # enough motion to judge
+            self.response = float(np.clip(made / commanded, MIN_RESPONSE, 1.0))
 
     def _compensated(self, qdot):
         """qdot scaled up by 1 / response, within the velocity limits."""
@@ -566,7 +576,7 @@ class TrackingController:
             z = T_d[:3, 2]
             lateral = error[:3] - z * np.dot(z, error[:3])  # depth: the force law's
             self.pose_integral = self.pose_integral + lateral * self.last_dt
-            bound = c.speed / c.pose_integral_gain
+            bound = MAX_INTEGRAL_SPEEDS * c.speed / c.pose_integral_gain
             norm = np.linalg.norm(self.pose_integral)
             if norm > bound:
                 self.pose_integral *= bound / norm

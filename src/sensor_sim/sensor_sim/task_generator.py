@@ -262,6 +262,25 @@ def run_closed_loop(controller, robot, arm, surface, stiffness, dt=0.01, max_tim
     return log
 
 
+def path_errors(tips, surface, path_base, within_m=0.002):
+    """Distances [m] (K,) of the tips' (K, 3) foot points on the surface (along the
+    normal) to the dense path polyline ``path_base`` (M, 3), and the fraction of the
+    path's points that some foot point came within ``within_m`` [m] of."""
+    from sensor_sim.surfaces import signed_height_base
+
+    tips = np.asarray(tips, dtype=float).reshape(-1, 3)
+    feet = tips - signed_height_base(surface, tips)[:, None] * normal_base(surface, tips)
+    a, b = path_base[:-1], path_base[1:]
+    ab = b - a
+    lengths2 = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
+    distances = np.empty(len(feet))
+    for i, foot in enumerate(feet):
+        s = np.clip(np.einsum('ij,ij->i', foot - a, ab) / lengths2, 0.0, 1.0)
+        distances[i] = np.min(np.linalg.norm(a + s[:, None] * ab - foot, axis=1))
+    near = np.array([np.min(np.linalg.norm(feet - p, axis=1)) for p in path_base])
+    return distances, float(np.mean(near < within_m))
+
+
 def tracking_metrics(log, surface, path_base, desired_force, robot, within_m=0.002):
     """The issue-13 goals of one run, measured on the true state while tracking.
 
@@ -276,27 +295,15 @@ def tracking_metrics(log, surface, path_base, desired_force, robot, within_m=0.0
         commanded |qdot| / limit), limit_margin_rad (smallest distance of q to a position
         limit), step_ms_median, stop_latency_ms.
     """
-    from sensor_sim.surfaces import signed_height_base
-
     tracking = np.array([phase == 'tracking' for phase in log.phases])
     tips = np.array(log.tips)[tracking] if tracking.any() else np.zeros((0, 3))
     forces = np.array(log.forces)[tracking]
     result = {'tracking_steps': int(tracking.sum())}
     if len(tips):
-        normals = normal_base(surface, tips)
-        feet = tips - signed_height_base(surface, tips)[:, None] * normals
-        a, b = path_base[:-1], path_base[1:]
-        ab = b - a
-        lengths2 = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
-        distances = []
-        for foot in feet:
-            s = np.clip(np.einsum('ij,ij->i', foot - a, ab) / lengths2, 0.0, 1.0)
-            distances.append(np.min(np.linalg.norm(a + s[:, None] * ab - foot, axis=1)))
-        distances = np.array(distances)
-        near = np.array([np.min(np.linalg.norm(feet - p, axis=1)) for p in path_base])
+        distances, passed = path_errors(tips, surface, path_base, within_m)
         result.update(rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3),
                       max_mm=float(distances.max() * 1e3),
-                      passed_fraction=float(np.mean(near < within_m)),
+                      passed_fraction=passed,
                       force_p95_pct=float(np.percentile(np.abs(forces - desired_force), 95)
                                           / desired_force * 100))
     else:
