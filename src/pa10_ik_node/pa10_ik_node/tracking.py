@@ -242,6 +242,7 @@ class TrackingController:
         self.reference_depth = 0.0  # [m] descent reference along the approach axis
         self.lift_reference, self.wait_time, self.end_time = 0.0, 0.0, 0.0
         self.pose_integral = np.zeros(3)  # [m s] see TrackingConfig.pose_integral_gain
+        self.reference_moving = False
         self.response = 1.0  # fraction of the commanded motion the arm makes (estimated)
         self.response_sums = np.zeros(2)  # [m] (made, commanded), see _update_response
         self.last_tip = self.last_tip_velocity = None
@@ -461,6 +462,7 @@ class TrackingController:
             P, z, tangent = self._sample(self.s_ref)
             T_d = self._frame(self.s_ref, P + self.depth * z)
             moving = self.travelled < path.length and advanced
+            self.reference_moving = moving
             # Feed-forward no faster than the reference can still go (the path's end),
             # along the path itself: x_E points at the marker Q ahead (a chord), which
             # on a curve would push the tip inwards.
@@ -572,7 +574,11 @@ class TrackingController:
         if not c.track_spin:
             error[3:] = tilt_error(T[:3, :3], T_d[:3, 2])
         twist = feed_forward + c.pose_gain * error
-        if self.phase == 'tracking' and c.pose_integral_gain > 0:
+        if not (self.phase == 'tracking' and self.reference_moving):
+            # Only while the reference moves: at the path's end or while it waits for the
+            # tip, a held integral would push the tip on past its reference.
+            self.pose_integral = np.zeros(3)
+        elif c.pose_integral_gain > 0:
             z = T_d[:3, 2]
             lateral = error[:3] - z * np.dot(z, error[:3])  # depth: the force law's
             self.pose_integral = self.pose_integral + lateral * self.last_dt
