@@ -150,3 +150,55 @@ def test_follow_velocity_reaches_a_feasible_velocity():
     np.testing.assert_allclose(steps, np.tile(qdot * DT, (20, 1)), atol=1e-9)
     lag = (50 * DT * qdot - arm.q)[qdot != 0] / qdot[qdot != 0]  # [s]
     assert np.all((lag >= 0) & (lag < 2 * DT)), lag
+
+
+def test_velocity_arm_follows_only_the_commanded_velocities():
+    arm = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode='velocity')
+    qdot = np.array([0.2, -0.1, 0.3, 0.0, 0.5, -0.4, 0.1])
+    # Positions that disagree with the velocities: a velocity interface ignores them.
+    arm.set_trajectory(NAMES, [0.5], [np.full(7, 1.0)], [qdot], start_time=0.0)
+    run(arm, 0.0, 0.3)
+    np.testing.assert_allclose(arm.q, 0.3 * qdot, atol=1e-12)
+    run(arm, 0.3, 0.7)  # past the last point: zero velocity, it stays
+    np.testing.assert_allclose(arm.q, 0.5 * qdot, atol=DT * np.abs(qdot).max() + 1e-12)
+    np.testing.assert_allclose(arm.qdot, 0.0)
+
+
+@pytest.mark.parametrize('mode', ['position', 'velocity'])
+def test_slower_arm_makes_a_fraction_of_the_commanded_motion(mode):
+    qdot = np.array([0.2, -0.1, 0.3, 0.0, 0.5, -0.4, 0.1])
+    full = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode=mode)
+    slow = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode=mode,
+                        speed_scale=0.5)
+    t = 0.0
+    for _ in range(50):  # 0.5 s of pa10_ik_node's commands, 100 Hz
+        full.follow_velocity(NAMES, qdot, t, DT)
+        t = slow.follow_velocity(NAMES, qdot, t, DT)
+    np.testing.assert_allclose(full.q, 0.5 * qdot, rtol=0.05)
+    ratio = slow.q[qdot != 0] / full.q[qdot != 0]
+    if mode == 'velocity':  # exactly the scale
+        np.testing.assert_allclose(ratio, 0.5, atol=0.02)
+    else:  # a lag behind set points that start from where the arm is: ~the scale, less
+        assert np.all((ratio > 0.35) & (ratio < 0.55)), ratio
+
+
+@pytest.mark.parametrize('mode', ['position', 'velocity'])
+def test_a_hold_now_stops_either_arm_within_one_step(mode):
+    arm = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode=mode)
+    qdot = np.full(7, 0.3)
+    t = 0.0
+    for _ in range(20):
+        t = arm.follow_velocity(NAMES, qdot, t, DT)
+    assert np.all(arm.qdot > 0.25)
+    q_measured = arm.q
+    arm.set_trajectory(NAMES, [0.0], [q_measured], start_time=t)  # pa10_ik_node's hold
+    arm.step(t + 0.005, 0.005)
+    np.testing.assert_allclose(arm.qdot, 0.0, atol=1e-12)
+    np.testing.assert_allclose(arm.q, q_measured, atol=1e-12)
+
+
+@pytest.mark.parametrize('kwargs', [{'mode': 'torque'}, {'speed_scale': 0.0},
+                                    {'speed_scale': 1.5}, {'speed_scale': float('nan')}])
+def test_bad_arm_mode_or_scale_is_rejected(kwargs):
+    with pytest.raises(InvalidInput):
+        SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), **kwargs)

@@ -1,6 +1,7 @@
 """PA-10 kinematics on Pinocchio against an independent Denavit-Hartenberg model."""
 import importlib.metadata
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pinocchio as pin
@@ -139,3 +140,81 @@ def test_bad_joint_vector_is_rejected(q):
 def test_bad_model_request_is_rejected(robot, kwargs):
     with pytest.raises(InvalidInput):
         load_robot(robot, **kwargs)
+
+
+def _edited_pa10(tmp_path, old, new, count=1):
+    text = pa10_urdf('pa10', 0.1)
+    assert old in text
+    path = tmp_path / 'arm.urdf'
+    path.write_text(text.replace(old, new, count))
+    return str(path)
+
+
+@pytest.mark.parametrize('edit, message', [
+    # No tool0: the tip link renamed.
+    (('tool0', 'flange', 2), "no frame 'tool0'"),
+    # 6 joints: the last revolute joint made fixed.
+    (('name="pa10_joint7" type="revolute"', 'name="pa10_joint7" type="fixed"'),
+     '6 joints move'),
+    # 8 joints: the tool joint made revolute, with limits.
+    (('name="pa10_joint_tool" type="fixed">',
+      'name="pa10_joint_tool" type="revolute"><axis xyz="0 0 1"/>'
+      '<limit lower="-1" upper="1" velocity="1" effort="1"/>'), '8 joints move'),
+    # A joint lacking limits.
+    (('<limit lower="-1.6406094968746698" upper="1.6406094968746698" velocity="1.0" '
+      'effort="232.0"/>', ''), 'pa10_joint2 lacks limits'),
+    # Limits without velocity.
+    (('velocity="2.0" effort="100.0"', 'effort="100.0"'), 'lacks limits (velocity'),
+    # A continuous joint.
+    (('name="pa10_joint1" type="revolute"', 'name="pa10_joint1" type="continuous"'),
+     'pa10_joint1 is continuous'),
+    # Position limits that leave no motion.
+    (('lower="-3.0892327760299634" upper="3.0892327760299634"',
+      'lower="0.5" upper="0.5"'), 'no usable position limits'),
+])
+def test_urdf_that_is_no_7_dof_arm_with_tool0_is_refused_clearly(tmp_path, edit, message):
+    path = _edited_pa10(tmp_path, *edit)
+    with pytest.raises(InvalidInput) as raised:
+        load_robot(path)
+    assert message in str(raised.value)
+    assert '\n' not in str(raised.value)  # one line
+
+
+def test_panda_with_a_tool0_added_is_a_7_dof_arm(tmp_path):
+    from sensor_sim.task_generator import panda_arm  # fails (not skips) without the data
+
+    arm = panda_arm()
+    full_urdf = importlib.metadata.distribution('example-robot-data').locate_file(
+        'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf')
+    reference = load_robot(str(full_urdf), tip_frame='panda_hand_tcp')
+    assert ElementTree.fromstring(arm.urdf).find("link[@name='tool0']") is not None
+    model = pin.buildModelFromXML(arm.urdf)
+    assert model.existFrame('tool0')
+    path = tmp_path / 'panda_tool0.urdf'
+    path.write_text(arm.urdf)
+    robot = load_robot(str(path))
+    assert robot.n_joints == 7
+    q = arm.start_joints
+    np.testing.assert_allclose(robot.forward_kinematics(q), reference.forward_kinematics(q),
+                               atol=1e-12)
+
+
+def test_random_pa10_like_arms_are_7_dof_with_their_tool(tmp_path):
+    from sensor_sim.task_generator import random_pa10_like_arm
+
+    rng = np.random.default_rng(13)
+    for i in range(5):
+        arm = random_pa10_like_arm(rng)
+        path = tmp_path / f'arm{i}.urdf'
+        path.write_text(arm.urdf)
+        robot = load_robot(str(path))
+        assert robot.n_joints == 7
+        assert np.all(robot.lower_limits < arm.start_joints - 0.49)
+        assert np.all(robot.upper_limits > arm.start_joints + 0.49)
+        # Zero pose straight up: the tip at the sum of the offsets and the tool.
+        tip = robot.forward_kinematics(np.zeros(7))[:3, 3]
+        np.testing.assert_allclose(tip, [0, 0, sum(arm.link_offsets_m) + arm.tool_length_m],
+                                   atol=1e-12)
+        real = np.array([0.317, 0.45, 0.48, 0.07])
+        assert np.all(np.abs(np.array(arm.link_offsets_m) / real - 1) <= 0.4)
+        assert 0.05 <= arm.tool_length_m <= 0.2

@@ -7,6 +7,7 @@ time_from_start: the joint_trajectory_controller convention), the measured tool 
 ``tracking.TrackingController``; the velocity IK is ``ik.RateSolver``. This file only
 declares parameters, converts messages and calls them.
 """
+import functools
 import time
 from collections import deque
 
@@ -35,6 +36,8 @@ from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import load_robot
 
 BASE_FRAME = 'base_link'
+MAX_FORCE_N = 1e4  # a pressure reading beyond this is a broken sensor, not a contact
+JOINT_LIMIT_SLACK_RAD = 0.1  # a measured joint this far outside its limits is no reading
 THESIS_WEIGHTS = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0]  # §6.6
 
 
@@ -42,6 +45,27 @@ def _check_weights(values):
     if not values or any(not np.isfinite(v) or v == 0 for v in values):
         return 'every weight must be finite and non-zero'
     return None
+
+
+def _guarded(what):
+    """Decorate a timer, subscription or service callback so that no exception escapes
+    it to the executor (that would end the process): the node stops the arm, logs one
+    throttled line, publishes a diagnostic and keeps serving (``_on_internal_error``).
+    A service then answers success=false with the error."""
+    def decorate(callback):
+        @functools.wraps(callback)
+        def wrapper(self, *args):
+            try:
+                return callback(self, *args)
+            except Exception as error:  # noqa: BLE001 - the last line of defence
+                self._on_internal_error(what, error)
+                if len(args) == 2:  # a service: (request, response)
+                    response = args[1]
+                    response.success, response.message = False, f'{what}: {error}'
+                    return response
+                return None
+        return wrapper
+    return decorate
 
 
 class Pa10IkNode(Node):
@@ -89,6 +113,15 @@ class Pa10IkNode(Node):
                   on_change=lambda v: self._configure(force_law=v)),
             Param('speed', 0.015, '[m/s] Speed along the path.', range=(1e-4, 0.2),
                   on_change=lambda v: self._configure(speed=v)),
+            Param('adapt_response', False, 'Measure how much of the commanded motion the '
+                  'arm makes and scale commands up for an arm slower than commanded (at most '
+                  '2.5 times, within the joint speed limits). Off by default: on a loaded '
+                  'machine late commands make any arm look slow.',
+                  on_change=lambda v: self._configure(adapt_response=v)),
+            Param('pose_integral_gain', 20.0, '[1/s^2] Integral of the tip\'s error across '
+                  'the approach axis while tracking (a slow arm trails its reference '
+                  'otherwise); 0 turns it off.', range=(0.0, 200.0),
+                  on_change=lambda v: self._configure(pose_integral_gain=v)),
             Param('pose_gain', 10.0, '[1/s] Pose feedback gain.', range=(0.1, 50.0),
                   on_change=lambda v: self._configure(pose_gain=v)),
             Param('max_joint_velocity', 1.0, '[rad/s] Cap on every joint speed (on top of '
@@ -128,7 +161,8 @@ class Pa10IkNode(Node):
             self.robot, self._make_solver(), TrackingConfig(
                 desired_force=p.desired_force, stiffness=p.contact_stiffness,
                 force_gain=p.force_gain, force_law=p.force_law, speed=p.speed,
-                pose_gain=p.pose_gain,
+                pose_gain=p.pose_gain, adapt_response=p.adapt_response,
+                pose_integral_gain=p.pose_integral_gain,
                 track_spin=p.track_spin, standoff=p.standoff, descent_speed=p.descent_speed,
                 lift_height=p.lift_height, max_position_error=p.max_position_error,
                 error_timeout=p.error_timeout),
@@ -142,6 +176,7 @@ class Pa10IkNode(Node):
         self.last_phase = self.controller.phase
         self.last_info = {}
         self.null_space_failures = 0
+        self.internal_errors = 0
         self.last_failure_condition = ''
 
         self.command_publisher = self.create_publisher(
@@ -185,35 +220,65 @@ class Pa10IkNode(Node):
 
     # --- inputs ----------------------------------------------------------------------
 
+    @_guarded('/joint_states')
     def _on_joint_state(self, msg):
         try:
-            names = list(msg.name)
-            unknown = sorted(set(names) - set(self.joint_index))
-            if unknown:
-                raise InvalidInput(f'unknown joint names {unknown}', 'name', unknown)
-            missing = sorted(set(self.joint_index) - set(names))
-            if missing or len(names) != len(msg.position):
-                raise InvalidInput(f'need one position for each of {self.robot.n_joints} '
-                                   f'joints (missing {missing}, {len(msg.position)} '
-                                   f'positions for {len(names)} names)', 'position')
-            q = np.empty(self.robot.n_joints)
-            for name, value in zip(names, msg.position):
-                q[self.joint_index[name]] = value
-            q = self.robot.check_q(q)
+            q = self._joint_vector(msg)
         except InvalidInput as error:
             self.diagnostics.reject('/joint_states', error)
             return
         self.q = q
         self.joint_state_time = time.monotonic()
 
+    def _joint_vector(self, msg):
+        """The measured joints (n,) in robot order; ``InvalidInput`` for a reading that
+        cannot be the arm's (unknown, duplicate or missing names, non-finite or far
+        outside the joint limits)."""
+        names = list(msg.name)
+        duplicates = sorted({name for name in names if names.count(name) > 1})
+        if duplicates:
+            raise InvalidInput(f'duplicate joint names {duplicates}', 'name', duplicates)
+        unknown = sorted(set(names) - set(self.joint_index))
+        if unknown:
+            raise InvalidInput(f'unknown joint names {unknown}', 'name', unknown)
+        missing = sorted(set(self.joint_index) - set(names))
+        if missing or len(names) != len(msg.position):
+            raise InvalidInput(f'need one position for each of {self.robot.n_joints} '
+                               f'joints (missing {missing}, {len(msg.position)} '
+                               f'positions for {len(names)} names)', 'position')
+        q = np.empty(self.robot.n_joints)
+        for name, value in zip(names, msg.position):
+            q[self.joint_index[name]] = value
+        q = self.robot.check_q(q)
+        lower = self.robot.lower_limits - JOINT_LIMIT_SLACK_RAD
+        upper = self.robot.upper_limits + JOINT_LIMIT_SLACK_RAD
+        outside = np.flatnonzero((q < lower) | (q > upper))
+        if outside.size:
+            i = int(outside[0])
+            raise InvalidInput(
+                f'{self.robot.joint_names[i]} at {q[i]:.6g} rad is more than '
+                f'{JOINT_LIMIT_SLACK_RAD} rad outside its limits '
+                f'[{self.robot.lower_limits[i]:.4g}, {self.robot.upper_limits[i]:.4g}]',
+                'position', q[i])
+        return q
+
+    @_guarded('/tool/pressure')
     def _on_pressure(self, msg):
         force = msg.wrench.force.z
-        if not np.isfinite(force):
-            self.diagnostics.reject('/tool/pressure', InvalidInput(f'force.z is {force}'))
+        frame = msg.header.frame_id
+        if frame != self.params.tip_frame:
+            error = InvalidInput(f'frame {frame!r}, expected the tip frame '
+                                 f'{self.params.tip_frame!r}', 'frame_id', frame)
+        elif not (np.isfinite(force) and abs(force) <= MAX_FORCE_N):
+            error = InvalidInput(f'force.z is {force} N, beyond the sanity bound '
+                                 f'+-{MAX_FORCE_N:g} N (a broken sensor)', 'force.z', force)
+        else:
+            self.force = float(force)
+            self.pressure_time = time.monotonic()
             return
-        self.force = float(force)
-        self.pressure_time = time.monotonic()
+        self.diagnostics.reject('/tool/pressure', error)
 
+    @_guarded('/curve/waypoints')
     def _on_waypoints(self, msg):
         try:
             if msg.header.frame_id != BASE_FRAME:
@@ -265,11 +330,13 @@ class Pa10IkNode(Node):
             return False, f'cannot start: {error}'
         return True, f'started on {len(self.waypoints)} waypoints'
 
+    @_guarded('start_tracking')
     def _on_start(self, request, response):
         response.success, response.message = self._start()
         self._log_phase_change()
         return response
 
+    @_guarded('stop')
     def _on_stop(self, request, response):
         self.controller.stop('stop requested')
         self._hold()
@@ -279,6 +346,7 @@ class Pa10IkNode(Node):
 
     # --- the loop --------------------------------------------------------------------
 
+    @_guarded('control step')
     def _control_step(self):
         if self.q is None:
             return
@@ -331,8 +399,8 @@ class Pa10IkNode(Node):
             T, self.get_clock().now().nanoseconds, BASE_FRAME))
         self._log_phase_change()
 
-    def _command(self, q, qdot):
-        horizon = self.params.command_horizon
+    def _command(self, q, qdot, horizon=None):
+        horizon = self.params.command_horizon if horizon is None else horizon
         seconds = int(horizon)
         point = JointTrajectoryPoint(
             positions=(q + qdot * horizon).tolist(), velocities=qdot.tolist(),
@@ -342,9 +410,28 @@ class Pa10IkNode(Node):
             joint_names=list(self.robot.joint_names), points=[point]))
 
     def _hold(self):
-        """Zero velocity at the measured position."""
+        """Zero velocity at the measured position, now (time_from_start 0: a position
+        arm does not coast on to a point ahead, a velocity arm gets zero at once)."""
         if self.q is not None:
-            self._command(self.q, np.zeros(self.robot.n_joints))
+            self._command(self.q, np.zeros(self.robot.n_joints), horizon=0.0)
+
+    def _on_internal_error(self, what, error):
+        """An exception in a callback (a solver, a singular configuration, a bug): stop
+        the arm at its measured position, report, keep serving."""
+        reason = f'{what}: {type(error).__name__}: {error}'
+        self.internal_errors += 1
+        self.get_logger().error(f'internal error in {reason} ({self.internal_errors} so '
+                                'far); the arm holds', throttle_duration_sec=2.0)
+        try:
+            if self.controller.phase in (*ACTIVE_PHASES, 'done'):
+                self.controller.fail(reason)
+            self._hold()
+            self.diagnostics.publish('internal error', 'error', reason,
+                                     {'count': self.internal_errors})
+            self._log_phase_change()
+        except Exception as second:  # noqa: BLE001 - e.g. a publisher already destroyed
+            self.get_logger().error(f'could not stop after the internal error: {second}',
+                                    throttle_duration_sec=2.0)
 
     def _log_phase_change(self):
         controller = self.controller
@@ -352,14 +439,13 @@ class Pa10IkNode(Node):
         if phase == self.last_phase:
             return
         self.last_phase = phase
-        message = f'phase {phase}'
-        if phase in ('stopped', 'failed'):
-            message += f': {controller.reason}'
-            log = self.get_logger().error if phase == 'failed' else self.get_logger().warning
-            log(message)
-            self._publish_diagnostics()
-            return
-        self.get_logger().info(message)
+        # rclpy ties one severity to each call site: one call per severity.
+        if phase == 'failed':
+            self.get_logger().error(f'phase failed: {controller.reason}')
+        elif phase == 'stopped':
+            self.get_logger().warning(f'phase stopped: {controller.reason}')
+        else:
+            self.get_logger().info(f'phase {phase}')
         if phase == 'done':
             rms, force_band = controller.stats.summary()
             self.get_logger().info(
@@ -367,6 +453,7 @@ class Pa10IkNode(Node):
                 f'+-{force_band:.3f} N of desired ({self.params.desired_force} N)')
         self._publish_diagnostics()
 
+    @_guarded('diagnostics')
     def _publish_diagnostics(self):
         controller, info = self.controller, self.last_info
         phase = controller.phase
@@ -374,10 +461,12 @@ class Pa10IkNode(Node):
             phase = 'contact'  # touching, force building up
         values = {
             'phase': phase,
+            'stage': controller.stage,
             'progress': f'{controller.progress:.4f}',
             'position_error_m': f'{info.get("position_error", float("nan")):.6f}',
             'force_N': f'{self.force:.4f}',
             'force_error_N': f'{self.force - self.params.desired_force:.4f}',
+            'arm_response': f'{controller.response:.3f}',
             'phi_rad': f'{info.get("phi", float("nan")):.5f}',
             'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}' if self.step_times
             else 'nan',

@@ -9,6 +9,10 @@ import numpy as np
 
 from vgm_common.errors import InvalidInput
 
+# A step between waypoints closer than ~18 deg to their approach axis does not lie on a
+# surface (INTERFACES.md: x along the tangent, z into the surface): no tool frame.
+MAX_APPROACH_COSINE = 0.95
+
 
 def validate_waypoints(waypoints, min_spacing=1e-6):
     """The waypoints as a finite (N, 4, 4) float array with orthonormal rotations.
@@ -33,6 +37,15 @@ def validate_waypoints(waypoints, min_spacing=1e-6):
     T = T[keep]
     if len(T) < 2:
         raise InvalidInput('the path needs at least 2 distinct waypoints', 'waypoints')
+    steps = np.diff(T[:, :3, 3], axis=0)
+    steps /= np.linalg.norm(steps, axis=1, keepdims=True)
+    along = np.abs(np.einsum('ij,ij->i', steps, T[:-1, :3, 2]))
+    worst = int(np.argmax(along))
+    if along[worst] > MAX_APPROACH_COSINE:
+        raise InvalidInput(
+            f'the path runs along its approach axis at waypoint {worst} ('
+            f'{np.degrees(np.arccos(min(along[worst], 1.0))):.1f} deg from it): waypoints '
+            'must lie on the surface, z the approach into it', 'waypoints', worst)
     return T
 
 

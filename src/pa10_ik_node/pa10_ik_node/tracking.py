@@ -15,11 +15,11 @@ reference pose and its feed-forward twist into joint velocities through ``RateSo
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import pinocchio as pin
 
 from pa10_ik_node.ik import pose_error
 from pa10_ik_node.path import WaypointPath
 from vgm_common.errors import InvalidInput
+from vgm_common.robot_model import workspace_reach
 
 
 def _unit(v, key):
@@ -28,6 +28,13 @@ def _unit(v, key):
     if v.shape != (3,) or not np.isfinite(norm) or norm < 1e-12:
         raise InvalidInput(f'{key} must be a finite non-zero (3,) vector', key, v)
     return v / norm
+
+
+def perpendicular(v):
+    """A unit vector (3,) orthogonal to the non-zero (3,) ``v``."""
+    v = _unit(v, 'v')
+    other = np.eye(3)[int(np.argmin(np.abs(v)))]
+    return _unit(np.cross(v, other), 'v x e')
 
 
 def next_target_on_tangent_plane(P, normal, Q):
@@ -112,6 +119,9 @@ def tilted_motion(measured_force, desired_force, advance):
 
 
 FORCE_LAWS = ('integral', 'tilt')
+MIN_RESPONSE = 0.4  # commands are scaled up at most 2.5 times (_compensated)
+RESPONSE_WINDOW = 1.0  # [s] forgetting time of the response estimate
+MAX_INTEGRAL_SPEEDS = 1.0  # see TrackingConfig.pose_integral_gain
 PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
 ACTIVE_PHASES = ('approach', 'contact', 'tracking')
 
@@ -128,6 +138,14 @@ class TrackingConfig:
     stiffness: float = 2000.0  # [N/m] contact stiffness estimate (feed-forward depth)
     speed: float = 0.015  # [m/s] along the path
     pose_gain: float = 10.0  # [1/s] pose feedback
+    # [1/s^2] integral of the tip's error across the approach axis while tracking: an arm
+    # slower than commanded (a lag, a velocity scale) would otherwise trail the reference
+    # by speed / pose_gain and cut the path's curves. Bounded to add at most
+    # MAX_INTEGRAL_SPEEDS x ``speed``.
+    pose_integral_gain: float = 20.0
+    # Scale commands by the arm's measured response (opt-in: over topics on a loaded
+    # machine late commands make any arm look slow, and scaling up then overshoots).
+    adapt_response: bool = False
     force_gain: float = 5.0  # [1/s] integral force law (approach_correction)
     force_law: str = 'integral'  # 'integral' (ours) or 'tilt' (thesis 7.3.15, tilted_motion)
     track_spin: bool = False  # track the spin about the approach axis too (6 constraints)
@@ -162,21 +180,6 @@ class TrackingStats:
             return float('nan'), float('nan')
         return (float(np.sqrt(np.mean(np.square(self.position_errors)))),
                 float(np.max(np.abs(self.force_errors))))
-
-
-def workspace_reach(robot):
-    """(shoulder (3,), reach [m]): the arm's tip stays within ``reach`` of the second
-    joint's origin (the sum of the link offsets beyond it, tool included)."""
-    q0 = np.zeros(robot.n_joints)
-    data = robot.model.createData()
-    pin.forwardKinematics(robot.model, data, q0)
-    pin.updateFramePlacements(robot.model, data)
-    origins = [data.oMi[j].translation.copy() for j in range(1, robot.model.njoints)]
-    tip = data.oMf[robot.tool_frame_id].translation
-    shoulder = origins[1] if len(origins) > 1 else origins[0]
-    chain = origins[1:] + [tip]
-    reach = sum(np.linalg.norm(b - a) for a, b in zip(chain[:-1], chain[1:]))
-    return shoulder, float(reach)
 
 
 def spin_free_task(J, twist, T_desired):
@@ -236,7 +239,13 @@ class TrackingController:
         self.best_distance, self.stall_time = np.inf, 0.0
         self.progress, self.stats = 0.0, TrackingStats()
         self.T_hold, self.T_end = None, None
-        self.descended, self.end_time = 0.0, 0.0
+        self.reference_depth = 0.0  # [m] descent reference along the approach axis
+        self.lift_reference, self.wait_time, self.end_time = 0.0, 0.0, 0.0
+        self.pose_integral = np.zeros(3)  # [m s] see TrackingConfig.pose_integral_gain
+        self.reference_moving = False
+        self.response = 1.0  # fraction of the commanded motion the arm makes (estimated)
+        self.response_sums = np.zeros(2)  # [m] (made, commanded), see _update_response
+        self.last_tip = self.last_tip_velocity = None
         self.solver.reset()
 
     def configure(self, **changes):
@@ -288,8 +297,12 @@ class TrackingController:
         self.s_ref = s_near if not path.closed else self.s_start + self.travelled
 
     def stop(self, reason='stop requested'):
-        if self.phase in ('stopped', 'failed'):
+        """Hold still. A failed task becomes stopped (the stop acknowledges the failure;
+        its reason is kept in the new one); a stopped one stays as it is."""
+        if self.phase == 'stopped':
             return
+        if self.phase == 'failed':
+            reason = f'{reason} (after: {self.reason})'
         self.phase, self.reason = 'stopped', reason
 
     def fail(self, reason):
@@ -298,6 +311,7 @@ class TrackingController:
     def _enter(self, phase, stage=''):
         self.phase, self.stage, self.time_in_phase = phase, stage, 0.0
         self.best_distance, self.stall_time, self.error_time = np.inf, 0.0, 0.0
+        self.pose_integral = np.zeros(3)
 
     # --- the control step ------------------------------------------------------------
 
@@ -312,10 +326,14 @@ class TrackingController:
         Q = self._sample(s + self.config.lookahead)[0]
         if np.linalg.norm(Q - P) < 1e-9:
             Q = P + tangent * self.config.lookahead
-        try:
-            _, T = next_target_on_tangent_plane(P, -z, Q)
-        except InvalidInput:  # Q' at P: fall back to the tangent
-            _, T = next_target_on_tangent_plane(P, -z, P + tangent)
+        # Q' at P (Q along the approach axis): fall back to the tangent, then to any
+        # direction across the approach axis.
+        for ahead in (Q, P + tangent, P + perpendicular(z)):
+            try:
+                _, T = next_target_on_tangent_plane(P, -z, ahead)
+                break
+            except InvalidInput:
+                continue
         T[:3, 3] = position
         return T
 
@@ -326,6 +344,7 @@ class TrackingController:
         T = self.robot.forward_kinematics(q)
         c = self.config
         self.time_in_phase += dt
+        self.last_dt = dt
         info = {'phase': self.phase, 'phi': force_tilt_angle(measured_force,
                                                              c.desired_force),
                 'force_error': measured_force - c.desired_force, 'T': T,
@@ -338,9 +357,42 @@ class TrackingController:
             return np.zeros(self.robot.n_joints), info
         T_d, feed_forward, free_move = target
         info.update(phase=self.phase, T_desired=T_d)
+        self._update_response(T[:3, 3], dt)
         qdot, solve_info = self._solve(q, T, T_d, feed_forward, free_move)
         info.update(solve_info)
+        qdot = self._compensated(qdot)
+        self.last_tip, self.last_tip_velocity = T[:3, 3].copy(), \
+            (self.robot.jacobian(q) @ qdot)[:3]
+        info['response'] = self.response
         return qdot, info
+
+    def _update_response(self, tip, dt):
+        """Estimate how much of the commanded tip motion the arm makes (1: all of it; an
+        arm slower than commanded less): the measured tip's displacement along the
+        velocity commanded a step before, over the commanded distance, both summed with
+        a forgetting time of ``RESPONSE_WINDOW`` (a delayed or jittery measurement
+        averages out), counted only while the command moves the tip fast enough to
+        measure."""
+        c = self.config
+        v = self.last_tip_velocity
+        if self.last_tip is None or v is None or dt <= 0 or not c.adapt_response:
+            return
+        speed = float(np.linalg.norm(v))
+        forget = np.exp(-dt / RESPONSE_WINDOW)
+        self.response_sums *= forget
+        if speed >= 0.3 * c.speed:
+            self.response_sums += (float(np.dot(tip - self.last_tip, v)) / speed, speed * dt)
+        made, commanded = self.response_sums
+        if commanded > 0.3 * c.speed * RESPONSE_WINDOW / 2:  # enough motion to judge
+            self.response = float(np.clip(made / commanded, MIN_RESPONSE, 1.0))
+
+    def _compensated(self, qdot):
+        """qdot scaled up by 1 / response, within the velocity limits."""
+        if self.response >= 1.0:
+            return qdot
+        scaled = qdot / self.response
+        over = np.max(np.abs(scaled) / self.velocity_limits)
+        return scaled / over if over > 1.0 else scaled
 
     def _reference(self, T, force, dt, info):
         """(T_desired, feed-forward twist (6,), free_move) of the current phase; None
@@ -355,7 +407,8 @@ class TrackingController:
                 distance = np.linalg.norm(T_d[:3, 3] - tip)
                 angle = np.linalg.norm(tilt_error(T[:3, :3], z0))
                 if distance < 0.001 and angle < 0.01:
-                    self.stage, self.descended = 'descend', 0.0
+                    self.stage = 'descend'
+                    self.reference_depth = float(np.dot(tip - P0, z0))
                     self.best_distance, self.stall_time = np.inf, 0.0
                 elif not self._progressing(distance + 0.05 * angle, dt):
                     self.fail(f'cannot reach the pre-contact pose: {distance * 1e3:.1f} mm '
@@ -363,19 +416,7 @@ class TrackingController:
                     return None
                 else:
                     return T_d, np.zeros(6), True
-            # Descend along the approach axis, slower as the force builds up.
-            if force >= c.desired_force:
-                self._enter('contact')
-                return self._reference(T, force, 0.0, info)
-            slow = np.clip(1.0 - force / c.desired_force, 0.2, 1.0)
-            self.descended += c.descent_speed * slow * dt
-            if self.descended > c.standoff + c.max_depth:
-                self.fail(f'no contact: descended {self.descended * 1e3:.0f} mm along the '
-                          'approach axis without reaching the desired force')
-                return None
-            T_d = self._frame(0.0, P0 + (self.descended - c.standoff) * z0)
-            feed_forward = np.concatenate([c.descent_speed * slow * z0, np.zeros(3)])
-            return self._checked(T, T_d, feed_forward, dt)
+            return self._descend(T, P0, z0, force, dt, info)
         if self.phase == 'contact':
             depth, self.integral = approach_correction(
                 self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
@@ -401,7 +442,13 @@ class TrackingController:
             lag = np.linalg.norm(P + self.depth * z - tip)
             # Direction of motion in E: (along x_E, along z_E) per unit path step.
             direction = (1.0, 0.0)
-            if lag < c.governor_distance:  # the reference waits for a lagging tip
+            advanced = lag < c.governor_distance
+            self.wait_time = 0.0 if advanced else self.wait_time + dt
+            if self.wait_time > 2 * c.error_timeout:
+                self.fail(f'the tool tip lags its reference by {lag * 1e3:.1f} mm (measured) '
+                          f'for {self.wait_time:.1f} s: the arm does not follow')
+                return None
+            if advanced:  # the reference waits for a lagging tip
                 advance = min(speed * dt, remaining)
                 if tilt:  # the thesis: PQ' tilted by phi into / out of the surface
                     phi, advance, deeper = tilted_motion(force, c.desired_force, advance)
@@ -412,12 +459,18 @@ class TrackingController:
                 self.s_ref += advance
                 self.travelled += advance
             self.progress = self.travelled / path.length
-            P, z, _ = self._sample(self.s_ref)
+            P, z, tangent = self._sample(self.s_ref)
             T_d = self._frame(self.s_ref, P + self.depth * z)
-            moving = self.travelled < path.length
-            # Feed-forward no faster than the reference can still go (the path's end).
+            moving = self.travelled < path.length and advanced
+            self.reference_moving = moving
+            # Feed-forward no faster than the reference can still go (the path's end),
+            # along the path itself: x_E points at the marker Q ahead (a chord), which
+            # on a curve would push the tip inwards.
             speed = min(speed, remaining / dt) if dt > 0 else speed
-            velocity = speed * (direction[0] * T_d[:3, 0] + direction[1] * T_d[:3, 2])
+            along = tangent - z * np.dot(z, tangent)
+            along_norm = np.linalg.norm(along)
+            along = along / along_norm if along_norm > 1e-9 else T_d[:3, 0]
+            velocity = speed * (direction[0] * along + direction[1] * z)
             feed_forward = np.concatenate([velocity if moving else np.zeros(3),
                                            np.zeros(3)])
             s_near, _ = path.nearest(tip, self.s_ref % path.length if path.closed
@@ -426,19 +479,72 @@ class TrackingController:
             info['position_error'] = lateral
             self.stats.position_errors.append(lateral)
             self.stats.force_errors.append(force - c.desired_force)
-            if not moving:
+            if self.travelled >= path.length:
                 self.end_time += dt
                 if np.linalg.norm(T_d[:3, 3] - tip) < 0.0005 or self.end_time > 1.0:
                     self._enter('done', 'lifting')
+                    self.lift_reference = 0.0
                 self.T_end = T_d.copy()
             return self._checked(T, T_d, feed_forward, dt)
-        # done: lift off along the approach axis and hold.
+        return self._lift(T, dt)  # done: lift off along the approach axis and hold
+
+    def _descend(self, T, P0, z0, force, dt, info):
+        """Descent along the first approach axis until the measured force reaches the
+        desired one, judged on the measured tip: the reference runs at most
+        ``governor_distance`` ahead of it (an arm slower than commanded is waited for),
+        the tip may go ``max_depth`` past the first waypoint (distance budget) and must
+        keep going (stall budget: 1 mm, or the force's worth of it, per 2
+        error_timeouts)."""
+        c = self.config
+        tip = T[:3, 3]
+        if force >= c.desired_force:
+            self._enter('contact')
+            return self._reference(T, force, 0.0, info)
+        depth = float(np.dot(tip - P0, z0))  # [m] measured, > 0 past the first waypoint
+        info['measured_depth'] = depth
+        if depth > c.max_depth:
+            self.fail(f'no contact: the tip is {depth * 1e3:.1f} mm past the first waypoint '
+                      f'along its approach axis (measured) with {force:.2f} N of the '
+                      f'desired {c.desired_force:g} N')
+            return None
+        if not self._progressing(-depth - max(force, 0.0) / c.stiffness, dt):
+            self.fail(f'descent stalled: the tip moved less than 1 mm along the approach '
+                      f'axis in {2 * c.error_timeout:.1f} s (at {depth * 1e3:.1f} mm from the '
+                      f'first waypoint, {force:.2f} N)')
+            return None
+        slow = np.clip(1.0 - force / c.desired_force, 0.2, 1.0)
+        previous = self.reference_depth
+        self.reference_depth = max(previous, min(previous + c.descent_speed * slow * dt,
+                                                 depth + c.governor_distance))
+        rate = (self.reference_depth - previous) / dt if dt > 0 else 0.0
+        T_d = self._frame(0.0, P0 + self.reference_depth * z0)
+        feed_forward = np.concatenate([rate * z0, np.zeros(3)])
+        return self._checked(T, T_d, feed_forward, dt)
+
+    def _lift(self, T, dt):
+        """Lift-off along the last approach axis by ``lift_height``, on the measured tip:
+        the reference leads it by at most ``governor_distance``; stage 'lifted' once the
+        tip is there, a failure if it stalls."""
+        c = self.config
         T_d = self.T_end.copy()
-        lift = min(self.time_in_phase * c.descent_speed, c.lift_height)
-        T_d[:3, 3] -= lift * T_d[:3, 2]
+        z = T_d[:3, 2]
+        lifted = float(np.dot(self.T_end[:3, 3] - T[:3, 3], z))  # [m] measured
+        previous = self.lift_reference
+        if self.stage == 'lifting':
+            if lifted >= c.lift_height - 0.0005:
+                self.stage = 'lifted'
+            elif not self._progressing(c.lift_height - lifted, dt):
+                self.fail(f'lift-off stalled: the tip rose {lifted * 1e3:.1f} of '
+                          f'{c.lift_height * 1e3:.0f} mm, no progress for '
+                          f'{2 * c.error_timeout:.1f} s')
+                return None
+            self.lift_reference = max(previous, min(previous + c.descent_speed * dt,
+                                                    lifted + c.governor_distance,
+                                                    c.lift_height))
+        T_d[:3, 3] -= self.lift_reference * z
         feed_forward = np.zeros(6)
-        if lift < c.lift_height:
-            feed_forward[:3] = -c.descent_speed * T_d[:3, 2]
+        if dt > 0:
+            feed_forward[:3] = -(self.lift_reference - previous) / dt * z
         return T_d, feed_forward, False
 
     def _progressing(self, distance, dt):
@@ -468,6 +574,19 @@ class TrackingController:
         if not c.track_spin:
             error[3:] = tilt_error(T[:3, :3], T_d[:3, 2])
         twist = feed_forward + c.pose_gain * error
+        if not (self.phase == 'tracking' and self.reference_moving):
+            # Only while the reference moves: at the path's end or while it waits for the
+            # tip, a held integral would push the tip on past its reference.
+            self.pose_integral = np.zeros(3)
+        elif c.pose_integral_gain > 0:
+            z = T_d[:3, 2]
+            lateral = error[:3] - z * np.dot(z, error[:3])  # depth: the force law's
+            self.pose_integral = self.pose_integral + lateral * self.last_dt
+            bound = MAX_INTEGRAL_SPEEDS * c.speed / c.pose_integral_gain
+            norm = np.linalg.norm(self.pose_integral)
+            if norm > bound:
+                self.pose_integral *= bound / norm
+            twist[:3] += c.pose_integral_gain * self.pose_integral
         if free_move:
             linear, angular = np.linalg.norm(twist[:3]), np.linalg.norm(twist[3:])
             if linear > c.max_linear_speed:

@@ -5,10 +5,20 @@ trajectory names its joints in any order, its points have ``time_from_start`` re
 a start time, and a new trajectory replaces the old one. The arm moves toward the
 interpolated set point as fast as its joint velocity limits allow and never leaves its
 position limits; there are no dynamics beyond that.
+
+Two more arms for the controller to cope with (``mode``, ``speed_scale``): a
+``'velocity'`` arm follows only the commanded velocities (a velocity interface: each
+point's velocity holds until that point's time, then zero; positions are ignored, so it
+drifts unless its commander closes the loop on the measured state), and an arm slower
+than commanded: ``speed_scale`` < 1 scales the commanded velocity (velocity mode) or
+makes the position follow its set point with a first-order lag (position mode: each step
+closes only that fraction of the gap).
 """
 import numpy as np
 
 from vgm_common.errors import InvalidInput
+
+ARM_MODES = ('position', 'velocity')
 
 
 class SimulatedArm:
@@ -19,12 +29,23 @@ class SimulatedArm:
         lower_limits, upper_limits: (n,) position limits [rad].
         velocity_limits: (n,) positive speed limits [rad/s].
         q0: (n,) initial positions [rad], within the limits. The arm holds them.
+        mode: ``'position'`` (follow the interpolated set point) or ``'velocity'``
+            (follow only the commanded velocities).
+        speed_scale: in (0, 1]: the fraction of the commanded motion the arm makes.
 
     Raises:
-        InvalidInput: inconsistent or non-finite limits, or ``q0`` outside them.
+        InvalidInput: inconsistent or non-finite limits, ``q0`` outside them, an unknown
+            mode or a speed_scale outside (0, 1].
     """
 
-    def __init__(self, joint_names, lower_limits, upper_limits, velocity_limits, q0):
+    def __init__(self, joint_names, lower_limits, upper_limits, velocity_limits, q0,
+                 mode='position', speed_scale=1.0):
+        if mode not in ARM_MODES:
+            raise InvalidInput(f'mode must be one of {ARM_MODES}, got {mode!r}', 'mode', mode)
+        if not (isinstance(speed_scale, (int, float)) and 0.0 < speed_scale <= 1.0):
+            raise InvalidInput(f'speed_scale must be in (0, 1], got {speed_scale!r}',
+                               'speed_scale', speed_scale)
+        self.mode, self.speed_scale = mode, float(speed_scale)
         self.joint_names = tuple(joint_names)
         n = len(self.joint_names)
         if len(set(self.joint_names)) != n:
@@ -43,10 +64,10 @@ class SimulatedArm:
         self.hold()
 
     @classmethod
-    def from_robot_model(cls, robot, q0):
+    def from_robot_model(cls, robot, q0, mode='position', speed_scale=1.0):
         """An arm with the joints and limits of a ``vgm_common.robot_model.RobotModel``."""
         return cls(robot.joint_names, robot.lower_limits, robot.upper_limits,
-                   robot.velocity_limits, q0)
+                   robot.velocity_limits, q0, mode, speed_scale)
 
     @property
     def q(self):
@@ -122,7 +143,11 @@ class SimulatedArm:
         if not (np.isfinite(t) and np.isfinite(dt) and dt > 0):
             raise InvalidInput(f'need finite t and dt > 0, got t={t}, dt={dt}', 'dt', dt)
         max_step = self._qdot_max * dt
-        q_new = self._q + np.clip(self.desired(t) - self._q, -max_step, max_step)
+        if self.mode == 'velocity':
+            motion = self.speed_scale * self.commanded_velocity(t) * dt
+        else:
+            motion = self.speed_scale * (self.desired(t) - self._q)
+        q_new = self._q + np.clip(motion, -max_step, max_step)
         q_new = np.clip(q_new, self._lower, self._upper)
         self._qdot = (q_new - self._q) / dt
         self._q = q_new
@@ -139,6 +164,19 @@ class SimulatedArm:
             t += period / substeps
             self.step(t, period / substeps)
         return t
+
+    def commanded_velocity(self, t):
+        """(n,) velocity command [rad/s] at time ``t`` [s] (velocity mode): the velocity of
+        the point the trajectory is heading for (its positions' slope where it has no
+        velocities), zero before the start and after the last point."""
+        times, positions, velocities = self._times, self._positions, self._velocities
+        tau = t - self._start_time
+        if tau < 0 or tau >= times[-1] or len(times) < 2:
+            return np.zeros(len(self._q))
+        i = max(int(np.searchsorted(times, tau, side='right')) - 1, 0)
+        if velocities is not None:
+            return velocities[i + 1].copy()
+        return (positions[i + 1] - positions[i]) / (times[i + 1] - times[i])
 
     def desired(self, t):
         """(n,) set point [rad] of the current command at time ``t`` [s]."""

@@ -19,7 +19,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from sensor_sim.arm_sim import SimulatedArm
+from sensor_sim.arm_sim import ARM_MODES, SimulatedArm
 from sensor_sim.contact import contact_force
 from sensor_sim.curves import curve_polylines
 from sensor_sim.render import SceneRenderer, add_noise
@@ -57,6 +57,12 @@ class SensorSim(Node):
                   'discovery. 0 = start at once.', range=(0, 100), read_only=True),
             Param('subscriber_timeout', 30.0, '[s] Longest wait for min_subscribers.',
                   range=(0.0, 3600.0), read_only=True),
+            Param('arm_mode', 'position', "The simulated arm follows the commanded "
+                  "'position' (set points) or only the commanded 'velocity'.",
+                  choices=ARM_MODES, read_only=True),
+            Param('arm_speed_scale', 1.0, 'Fraction of the commanded motion the arm '
+                  'makes (< 1: an arm slower than commanded).', range=(0.01, 1.0),
+                  read_only=True),
         ])
         self.scenario = load_scenario(resolve_scenario_path(self.params.scenario))
         self.get_logger().info(f'scenario {self.scenario.name} ({self.scenario.path})')
@@ -80,7 +86,9 @@ class SensorSim(Node):
 
         robot = self.scenario.robot
         self.robot = load_robot(robot.model, robot.tool_length)
-        self.arm = SimulatedArm.from_robot_model(self.robot, robot.initial_joints)
+        self.arm = SimulatedArm.from_robot_model(self.robot, robot.initial_joints,
+                                                 self.params.arm_mode,
+                                                 self.params.arm_speed_scale)
         self.diagnostics = Diagnostics(self)
         if self.params.ground_truth_dir:
             self._write_ground_truth(Path(self.params.ground_truth_dir))
@@ -113,7 +121,8 @@ class SensorSim(Node):
                           callback_group=MutuallyExclusiveCallbackGroup())
         self.get_logger().info(
             f'publishing 3 cameras at {frame_rate:g} Hz ({self.chart_frames} calibration '
-            f'captures first), joint states at {self.params.joint_state_rate:g} Hz')
+            f'captures first), joint states at {self.params.joint_state_rate:g} Hz, arm '
+            f'{robot.model} following {self.params.arm_mode}s x{self.params.arm_speed_scale:g}')
 
     # --- cameras ---------------------------------------------------------------------
 

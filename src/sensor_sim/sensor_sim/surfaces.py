@@ -16,6 +16,8 @@ Kinds (ALGORITHMS.md §6.6 for S1-S3):
 - ``S2``: h = x^2 y sin(x/3) + cos(y^2);
 - ``S3``: h = xy + 0.5x - 0.6;
 - ``sphere``: the upper hemisphere h = sqrt(r^2 - x^2 - y^2) on the disc x^2 + y^2 <= r^2;
+- ``paraboloid``: the dome h = -(x^2 + y^2) / (2 r) (apex radius of curvature r =
+  ``Surface.radius``; used in-process by the task generator, not a scenario type);
 - ``vase``: Zhang et al. 1999's synthetic vase, h = sqrt(max(f(y)^2 - x^2, 0)) with
   f(y) = 0.15 - 0.1 y (6y+1)^2 (y-1)^2 (3y-2), on x in [-0.5, 0.5], y in [0, 1];
 - ``heightmap``: bilinear interpolation of ``Surface.heights`` (rows along y, grid spacing
@@ -115,6 +117,8 @@ def _heights(surface, x, y):
         return x * y + 0.5 * x - 0.6
     if kind == 'sphere':
         return np.sqrt(np.maximum(surface.radius ** 2 - x * x - y * y, 0.0))
+    if kind == 'paraboloid':
+        return -(x * x + y * y) / (2.0 * surface.radius)
     if kind == 'vase':
         f = _VASE_PROFILE(y)
         return np.sqrt(np.maximum(f * f - x * x, 0.0))
@@ -138,6 +142,8 @@ def _gradients(surface, x, y, h):
         return np.column_stack([y + 0.5, x])
     if kind == 'sphere':
         return _divide_or_zero(np.column_stack([-x, -y]), h)
+    if kind == 'paraboloid':
+        return np.column_stack([-x, -y]) / surface.radius
     if kind == 'vase':
         # Where the vase is clamped to the base plane (h = 0) the surface is flat.
         f = _VASE_PROFILE(y)

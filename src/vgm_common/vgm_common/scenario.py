@@ -253,13 +253,38 @@ def parse_scenario(data, path=Path('scenario.yaml')):
                     noise.number('pressure_sigma', default=0.0, minimum=0.0)),
         calibration=(_parse_calibration(root.section('calibration'))
                      if root.has('calibration') else None),
-        robot=Robot(robot.string('model', default='pa10'),
-                    robot.vector('initial_joints', 7),
-                    robot.number('tool_length', default=0.0, minimum=0.0)),
+        robot=_parse_robot(robot, base_dir),
         contact_stiffness=root.section('contact').number('stiffness', positive=True),
     )
     _check_cameras_see_surface(scenario)
     return scenario
+
+
+def _parse_robot(section, base_dir):
+    """robot: the model ('pa10', 'pa10_thesis' or a URDF path, relative to the scenario
+    file), loaded here so that a URDF that is no 7-DOF arm with ``tool0`` and joint
+    limits, or start joints outside them, is a scenario error naming robot.model."""
+    from vgm_common.errors import InvalidInput
+    from vgm_common.robot_model import PARAMETER_SETS, load_robot
+
+    model = section.string('model', default='pa10')
+    if model not in PARAMETER_SETS:
+        model = str(base_dir / model)
+    initial_joints = section.vector('initial_joints', 7)
+    tool_length = section.number('tool_length', default=0.0, minimum=0.0)
+    try:
+        robot = load_robot(model, tool_length)
+    except InvalidInput as error:
+        raise ScenarioError(f'{section.path("model")}: {error}',
+                            key=section.path('model')) from None
+    outside = (initial_joints < robot.lower_limits) | (initial_joints > robot.upper_limits)
+    if np.any(outside):
+        i = int(np.flatnonzero(outside)[0])
+        raise ScenarioError(f'{section.path("initial_joints")}: {robot.joint_names[i]} at '
+                            f'{initial_joints[i]} rad is outside its limits '
+                            f'[{robot.lower_limits[i]:.4g}, {robot.upper_limits[i]:.4g}]',
+                            key=section.path('initial_joints'))
+    return Robot(model, initial_joints, tool_length)
 
 
 def _parse_surface(section, base_dir):

@@ -1,0 +1,400 @@
+"""Seeded generators of force-tracking tasks: arms, posed surfaces and paths on them.
+
+For the tests and bench/bench_pa10_ik.py (issue 13: any 7-DOF arm, any surface
+orientation). No ROS. Every random choice takes a ``numpy.random.Generator``.
+
+- Arms: PA-10-like URDFs (the PA-10's joint axes, link offsets within +-40 % of the real
+  arm's, other joint and velocity limits, a 0.05-0.2 m tool, ``tool0`` at the tip) and the
+  Franka Panda of example-robot-data with a ``tool0`` added at its ``panda_hand_tcp``.
+- Surfaces: planes, paraboloid domes and S1-S3, posed so that the normal under the path's
+  centre is tilted 0-45 deg away from the tool's axis at the arm's start pose.
+- Paths: a line, an arc, a self-crossing figure eight, a spiral of two turns and a tight
+  loop (6 mm radius) near the arm's reach (placed in front of the start pose with the
+  elbow opened to 60 % of its angle), as waypoints (origin on the surface, x along
+  the tangent, z into the surface: INTERFACES.md /curve/waypoints).
+"""
+import importlib.metadata
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from sensor_sim.surfaces import height, normal_base, surface_points_base
+from vgm_common.errors import InvalidInput
+from vgm_common.robot_model import (
+    PA10_LOWER_LIMITS_RAD,
+    PA10_UPPER_LIMITS_RAD,
+    PA10_VELOCITY_LIMITS_RAD_S,
+    PARAMETER_SETS,
+    Pa10Parameters,
+    load_robot,
+    pa10_like_urdf,
+    urdf_with_tool0,
+)
+from vgm_common.scenario import Surface
+
+LINK_SPREAD = 0.4  # link offsets within +-40 % of the real PA-10's
+TOOL_RANGE_M = (0.05, 0.2)
+# Elbow-up, the PA-10's tool pointing straight down (the default scenario's start pose).
+PA10_START_JOINTS = np.array([0.0, 0.388, 0.0, 1.645, 0.0, 1.109, 0.0])  # [rad]
+# The Panda's "ready" pose, hand pointing down.
+PANDA_START_JOINTS = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.785])  # [rad]
+PANDA_URDF = 'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf'
+SURFACE_KINDS = ('plane', 'paraboloid', 'S1', 'S2', 'S3')
+PATH_SHAPES = ('line', 'arc', 'figure_eight', 'spiral', 'tight_loop')
+WAYPOINT_SPACING_M = 0.001
+
+
+@dataclass(frozen=True)
+class GeneratedArm:
+    """A generated arm: its URDF text, start joints [rad] and what was drawn."""
+
+    name: str
+    urdf: str
+    start_joints: np.ndarray
+    description: str
+    link_offsets_m: tuple = ()  # PA-10-like arms: (d1, d3, d5, d7)
+    tool_length_m: float = float('nan')  # PA-10-like arms
+
+
+def random_pa10_like_arm(rng, name='pa10_random'):
+    """A PA-10-like 7-DOF arm: link offsets d1, d3, d5, d7 each the real arm's times
+    U(0.6, 1.4), joint limits each the real arm's times U(0.6, 1.0) (widened to keep
+    0.5 rad beyond the start pose), velocity limits times U(0.5, 1.5), a tool of
+    U(0.05, 0.2) m. Start pose: ``PA10_START_JOINTS``."""
+    real = PARAMETER_SETS['pa10']
+    factors = rng.uniform(1 - LINK_SPREAD, 1 + LINK_SPREAD, 4)
+    params = Pa10Parameters(*(np.array([real.d1, real.d3, real.d5, real.d7]) * factors))
+    upper = np.maximum(PA10_UPPER_LIMITS_RAD * rng.uniform(0.6, 1.0, 7),
+                       np.abs(PA10_START_JOINTS) + 0.5)
+    lower = -np.maximum(-PA10_LOWER_LIMITS_RAD * rng.uniform(0.6, 1.0, 7),
+                        np.abs(PA10_START_JOINTS) + 0.5)
+    velocity = PA10_VELOCITY_LIMITS_RAD_S * rng.uniform(0.5, 1.5, 7)
+    tool = float(rng.uniform(*TOOL_RANGE_M))
+    urdf = pa10_like_urdf(params, tool, lower, upper, velocity, name=name)
+    description = (f'd = ({params.d1:.3f}, {params.d3:.3f}, {params.d5:.3f}, '
+                   f'{params.d7:.3f}) m, tool {tool:.3f} m')
+    return GeneratedArm(name, urdf, PA10_START_JOINTS.copy(), description,
+                        (params.d1, params.d3, params.d5, params.d7), tool)
+
+
+def panda_arm():
+    """The Franka Panda of example-robot-data with ``tool0`` at its ``panda_hand_tcp``.
+
+    Raises:
+        InvalidInput: example-robot-data is not installed.
+    """
+    try:
+        path = importlib.metadata.distribution('example-robot-data').locate_file(PANDA_URDF)
+        text = path.read_text()
+    except (importlib.metadata.PackageNotFoundError, OSError) as err:
+        raise InvalidInput(f'the Panda URDF of example-robot-data is not available: {err}',
+                           'robot') from err
+    return GeneratedArm('panda', urdf_with_tool0(text, 'panda_hand_tcp'),
+                        PANDA_START_JOINTS.copy(), 'Franka Panda (example-robot-data), '
+                        'tool0 at panda_hand_tcp')
+
+
+def stretched_joints(start_joints, elbow_index=3, factor=0.6):
+    """The start pose with the elbow (joint 4 of the PA-10 and the Panda) opened to
+    ``factor`` of its angle: a pose within the limits near the arm's reach."""
+    q = np.array(start_joints, dtype=float)
+    q[elbow_index] *= factor
+    return q
+
+
+def posed_surface(kind, robot, placement_joints, tilt_rad, rng, ahead_m=0.1):
+    """A surface of ``kind`` whose normal under its centre (surface units (0, 0)) is
+    tilted by ``tilt_rad`` from the tool's axis at ``placement_joints`` (about a random
+    axis across it, random spin about the normal), the centre ``ahead_m`` [m] ahead of
+    the tool tip along its axis.
+
+    Args:
+        kind: one of ``SURFACE_KINDS``.
+        robot: ``RobotModel``; placement_joints: (n,) [rad] (the start pose, or
+            ``stretched_joints`` of it for a path near the reach).
+
+    Returns:
+        A ``vgm_common.scenario.Surface``.
+    """
+    if kind not in SURFACE_KINDS:
+        raise InvalidInput(f'kind must be one of {SURFACE_KINDS}', 'kind', kind)
+    T0 = robot.forward_kinematics(placement_joints)
+    axis_tool = T0[:3, 2]
+    centre = T0[:3, 3] + ahead_m * axis_tool
+    across = np.cross(axis_tool, rng.normal(size=3))
+    across /= np.linalg.norm(across)
+    normal_wanted = Rotation.from_rotvec(tilt_rad * across).apply(-axis_tool)
+    scale, extent, radius = {
+        'plane': (1.0, ((-0.3, 0.3), (-0.3, 0.3)), 1.0),
+        'paraboloid': (1.0, ((-0.15, 0.15), (-0.15, 0.15)), float(rng.uniform(0.08, 0.3))),
+    }.get(kind, (0.2, ((-0.5, 0.5), (-0.5, 0.5)), 1.0))
+    surface = Surface(kind=kind, T_base_surface=np.eye(4), scale=scale, extent=extent,
+                      albedo=0.8, roughness=0.0, radius=radius)
+    normal_local = normal_base(surface, surface_points_base(surface, [[0.0, 0.0]]))[0]
+    align, _ = Rotation.align_vectors([normal_wanted], [normal_local])
+    spin = Rotation.from_rotvec(rng.uniform(-np.pi, np.pi) * normal_wanted)
+    R = (spin * align).as_matrix()
+    h0 = float(height(surface, [[0.0, 0.0]])[0])
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = centre - R @ (scale * np.array([0.0, 0.0, h0]))
+    return replace(surface, T_base_surface=T)
+
+
+def path_xy_m(shape, rng):
+    """(M, 2) dense points [m] of a path shape around (0, 0), and whether it is closed."""
+    t = np.linspace(0.0, 1.0, 2001)
+    if shape == 'line':
+        length = rng.uniform(0.04, 0.06)
+        angle = rng.uniform(0, np.pi)
+        xy = np.outer(t - 0.5, [np.cos(angle), np.sin(angle)]) * length
+        return xy, False
+    if shape == 'arc':
+        radius, sweep = rng.uniform(0.02, 0.035), rng.uniform(0.6, 1.0) * np.pi
+        a = sweep * (t - 0.5)
+        return radius * np.column_stack([np.sin(a), 1 - np.cos(a)]), False
+    if shape == 'figure_eight':  # lemniscate of Gerono: crosses itself at the centre
+        size = rng.uniform(0.02, 0.03)
+        a = 2 * np.pi * t[:-1]
+        return size * np.column_stack([np.sin(a), np.sin(a) * np.cos(a)]), True
+    if shape == 'spiral':  # two turns, radius 5 -> 20 mm
+        a = 4 * np.pi * t
+        r = 0.005 + 0.015 * t
+        return np.column_stack([r * np.cos(a), r * np.sin(a)]), False
+    if shape == 'tight_loop':  # 6 mm radius: curvature 167 /m
+        a = 2 * np.pi * t[:-1]
+        return 0.006 * np.column_stack([np.cos(a), np.sin(a)]), True
+    raise InvalidInput(f'shape must be one of {PATH_SHAPES}', 'shape', shape)
+
+
+def surface_waypoints(surface, xy_m, closed, spacing_m=WAYPOINT_SPACING_M):
+    """Waypoints (N, 4, 4) about every ``spacing_m`` [m] along the dense surface-frame
+    path ``xy_m`` [m] (divided by the surface's scale into surface units): origin on the
+    surface, z = -normal, x along the path across z. A closed path's first point is not
+    repeated."""
+    points = surface_points_base(surface, np.asarray(xy_m) / surface.scale)
+    if not np.all(np.isfinite(points)):
+        raise InvalidInput('the path leaves the surface\'s domain', 'path')
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(steps)])
+    count = max(int(round(arc[-1] / spacing_m)), 2)
+    keep = np.searchsorted(arc, np.linspace(0.0, arc[-1], count + 1 - int(closed),
+                                            endpoint=not closed))
+    points = points[np.clip(keep, 0, len(points) - 1)]
+    approach = -normal_base(surface, points)
+    ahead = np.roll(points, -1, axis=0) - points
+    if not closed:
+        ahead[-1] = points[-1] - points[-2]
+    poses = np.tile(np.eye(4), (len(points), 1, 1))
+    for i, (p, z, d) in enumerate(zip(points, approach, ahead)):
+        x = d - z * np.dot(z, d)
+        x /= np.linalg.norm(x)
+        poses[i, :3, :3] = np.column_stack([x, np.cross(z, x), z])
+        poses[i, :3, 3] = p
+    return poses
+
+
+@dataclass
+class LoopLog:
+    """What an offline closed loop recorded, one entry per control step."""
+
+    phases: list
+    tips: list  # (3,) measured tool tip [m]
+    forces: list  # [N] true contact force
+    qdot_commanded: list  # (n,) [rad/s]
+    q: list  # (n,) measured joints [rad]
+    step_times: list  # [s] controller.step wall time
+    stop_latency: float = float('nan')  # [s] from a stop to zero joint velocity
+
+
+def run_closed_loop(controller, robot, arm, surface, stiffness, dt=0.01, max_time=120.0,
+                    stop_at_progress=None, pressure_sigma=0.0, rng=None, hold_time=0.5,
+                    substeps=2):
+    """``controller`` (a pa10_ik_node TrackingController, started) against ``arm`` (a
+    ``SimulatedArm``) and the spring contact on ``surface``: control every ``dt`` [s], the
+    arm stepped ``substeps`` times per period, the command as pa10_ik_node sends it (a
+    point ``q + qdot horizon`` at the horizon; a hold at time 0 once the controller
+    stopped or failed). ``stop_at_progress``: call ``controller.stop()`` once progress
+    reaches it. Runs until done and lifted (plus ``hold_time``), stopped or failed (plus
+    ``hold_time``, measuring how long the arm takes to stand still) or ``max_time``."""
+    import time
+
+    from sensor_sim.contact import contact_force
+
+    rng = rng or np.random.default_rng(0)
+    log = LoopLog([], [], [], [], [], [])
+    t, force, ended_at, stopped_at = 0.0, 0.0, None, None
+    names = robot.joint_names
+    while t < max_time:
+        q = arm.q
+        if stop_at_progress is not None and controller.progress >= stop_at_progress:
+            controller.stop('stop requested mid-motion')
+            stop_at_progress = None
+        started = time.perf_counter()
+        qdot, info = controller.step(q, force, dt)
+        log.step_times.append(time.perf_counter() - started)
+        halted = controller.phase in ('stopped', 'failed')
+        if halted:
+            arm.set_trajectory(names, [0.0], [q], start_time=t)  # the node's hold
+            stopped_at = t if stopped_at is None else stopped_at
+            for _ in range(substeps):
+                t += dt / substeps
+                arm.step(t, dt / substeps)
+                if np.isnan(log.stop_latency) and np.max(np.abs(arm.qdot)) < 1e-9:
+                    log.stop_latency = t - stopped_at
+        else:
+            t = arm.follow_velocity(names, qdot, t, dt, substeps=substeps)
+        tip = robot.forward_kinematics(arm.q)[:3, 3]
+        true_force = contact_force(tip, surface, stiffness).force
+        force = max(0.0, true_force + rng.normal(0.0, pressure_sigma)) if true_force > 0 \
+            and pressure_sigma > 0 else true_force
+        log.phases.append(info['phase'])
+        log.tips.append(tip)
+        log.forces.append(true_force)
+        log.qdot_commanded.append(np.zeros_like(qdot) if halted else qdot)
+        log.q.append(arm.q)
+        finished = halted or (controller.phase == 'done' and controller.stage == 'lifted')
+        if finished and ended_at is None:
+            ended_at = t
+        if ended_at is not None and t - ended_at >= hold_time:
+            break
+    return log
+
+
+def path_errors(tips, surface, path_base, within_m=0.002):
+    """Distances [m] (K,) of the tips' (K, 3) foot points on the surface (along the
+    normal) to the dense path polyline ``path_base`` (M, 3), and the fraction of the
+    path's points that some foot point came within ``within_m`` [m] of."""
+    from sensor_sim.surfaces import signed_height_base
+
+    tips = np.asarray(tips, dtype=float).reshape(-1, 3)
+    feet = tips - signed_height_base(surface, tips)[:, None] * normal_base(surface, tips)
+    a, b = path_base[:-1], path_base[1:]
+    ab = b - a
+    lengths2 = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
+    distances = np.empty(len(feet))
+    for i, foot in enumerate(feet):
+        s = np.clip(np.einsum('ij,ij->i', foot - a, ab) / lengths2, 0.0, 1.0)
+        distances[i] = np.min(np.linalg.norm(a + s[:, None] * ab - foot, axis=1))
+    near = np.array([np.min(np.linalg.norm(feet - p, axis=1)) for p in path_base])
+    return distances, float(np.mean(near < within_m))
+
+
+def tracking_metrics(log, surface, path_base, desired_force, robot, within_m=0.002):
+    """The issue-13 goals of one run, measured on the true state while tracking.
+
+    Args:
+        log: ``LoopLog``; surface: the true surface; path_base: (M, 3) the dense true
+        path [m]; desired_force [N]; robot: ``RobotModel`` (limits).
+
+    Returns:
+        dict: rms_mm (distance of the tip's foot point on the surface to the path),
+        passed_fraction (path points with a foot point within ``within_m``),
+        force_p95_pct (95th percentile of |force error| / desired), velocity_ratio (largest
+        commanded |qdot| / limit), limit_margin_rad (smallest distance of q to a position
+        limit), step_ms_median, stop_latency_ms.
+    """
+    tracking = np.array([phase == 'tracking' for phase in log.phases])
+    tips = np.array(log.tips)[tracking] if tracking.any() else np.zeros((0, 3))
+    forces = np.array(log.forces)[tracking]
+    result = {'tracking_steps': int(tracking.sum())}
+    if len(tips):
+        distances, passed = path_errors(tips, surface, path_base, within_m)
+        result.update(rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3),
+                      max_mm=float(distances.max() * 1e3),
+                      passed_fraction=passed,
+                      force_p95_pct=float(np.percentile(np.abs(forces - desired_force), 95)
+                                          / desired_force * 100))
+    else:
+        result.update(rms_mm=float('nan'), max_mm=float('nan'), passed_fraction=0.0,
+                      force_p95_pct=float('nan'))
+    qdot = np.array(log.qdot_commanded)
+    q = np.array(log.q)
+    result.update(
+        velocity_ratio=float(np.max(np.abs(qdot) / robot.velocity_limits)),
+        limit_margin_rad=float(np.min(np.minimum(q - robot.lower_limits,
+                                                 robot.upper_limits - q))),
+        step_ms_median=float(np.median(log.step_times) * 1e3),
+        stop_latency_ms=float(log.stop_latency * 1e3))
+    return result
+
+
+ARM_SIMULATIONS = (('position', 1.0), ('velocity', 1.0), ('position', 0.5), ('velocity', 0.5))
+
+
+@dataclass(frozen=True)
+class CaseSpec:
+    """One generated case: an arm x a surface x a path, and how the arm is simulated."""
+
+    arm: GeneratedArm
+    surface_kind: str
+    tilt_rad: float
+    path_shape: str
+    arm_mode: str
+    speed_scale: float
+    seed: int
+
+    @property
+    def label(self):
+        return (f'{self.arm.name} / {self.surface_kind} {np.degrees(self.tilt_rad):.0f} deg / '
+                f'{self.path_shape} / {self.arm_mode} x{self.speed_scale:g}')
+
+
+@dataclass(frozen=True)
+class BuiltCase:
+    """A case made concrete: the robot, the posed surface, the waypoints, the dense true
+    path (M, 3) [m] and a fresh simulated arm at the start pose."""
+
+    spec: CaseSpec
+    robot: object
+    surface: Surface
+    waypoints: np.ndarray
+    path_base: np.ndarray
+    closed: bool
+
+    def simulated_arm(self):
+        from sensor_sim.arm_sim import SimulatedArm
+
+        return SimulatedArm.from_robot_model(self.robot, self.spec.arm.start_joints,
+                                             self.spec.arm_mode, self.spec.speed_scale)
+
+
+def generate_cases(seed, random_arms=3, with_panda=True):
+    """Every arm (``random_arms`` PA-10-like ones and the Panda) on every surface kind, the
+    path shapes and arm simulations cycling, tilts 0-45 deg (the first case of each arm
+    untilted, the last one at 45 deg). Returns a list of ``CaseSpec``."""
+    rng = np.random.default_rng(seed)
+    arms = [random_pa10_like_arm(rng, f'pa10_random{i}') for i in range(random_arms)]
+    if with_panda:
+        arms.append(panda_arm())
+    cases = []
+    for i, arm in enumerate(arms):
+        for j, kind in enumerate(SURFACE_KINDS):
+            tilt = 0.0 if j == 0 else np.radians(45.0) if j == len(SURFACE_KINDS) - 1 \
+                else float(rng.uniform(0.0, np.radians(45.0)))
+            mode, scale = ARM_SIMULATIONS[(i + j) % len(ARM_SIMULATIONS)]
+            cases.append(CaseSpec(arm, kind, tilt, PATH_SHAPES[(i + 2 * j) % len(PATH_SHAPES)],
+                                  mode, scale, int(rng.integers(2 ** 31))))
+    return cases
+
+
+def build_case(spec, directory):
+    """Write the arm's URDF into ``directory`` and build the case (``BuiltCase``)."""
+    from pathlib import Path
+
+    urdf = Path(directory) / f'{spec.arm.name}.urdf'
+    urdf.write_text(spec.arm.urdf)
+    robot = load_robot(str(urdf))
+    rng = np.random.default_rng(spec.seed)
+    placement = spec.arm.start_joints
+    if spec.path_shape == 'tight_loop':  # near the reach
+        placement = stretched_joints(placement)
+    surface = posed_surface(spec.surface_kind, robot, placement, spec.tilt_rad, rng)
+    xy, closed = path_xy_m(spec.path_shape, rng)
+    waypoints = surface_waypoints(surface, xy, closed)
+    path_base = surface_points_base(surface, xy / surface.scale)
+    if closed:
+        path_base = np.vstack([path_base, path_base[:1]])
+    return BuiltCase(spec, robot, surface, waypoints, path_base, closed)
+
