@@ -19,6 +19,9 @@ import numpy as np
 from vgm_common.errors import InvalidInput
 
 ARM_MODES = ('position', 'velocity')
+# A commanded velocity beyond this multiple of a joint's limit is a broken controller's,
+# refused rather than silently clamped (limits are enforced either way while moving).
+IMPLAUSIBLE_SPEED = 10.0
 
 
 class SimulatedArm:
@@ -102,8 +105,8 @@ class SimulatedArm:
 
         Raises:
             InvalidInput: unknown, missing or duplicate joint names, wrong shapes,
-                non-finite values or times not strictly increasing. The previous command
-                stays in force.
+                non-finite values, times not strictly increasing or velocities beyond
+                IMPLAUSIBLE_SPEED times the limits. The previous command stays in force.
         """
         order = self._column_order(joint_names)
         times = _array(times_from_start, 'times_from_start')
@@ -126,6 +129,12 @@ class SimulatedArm:
                 raise InvalidInput(f'velocities must have shape ({n_points}, {n}), got '
                                    f'{velocities.shape}', 'velocities', velocities)
             velocities = velocities[:, order]
+            too_fast = np.abs(velocities) > IMPLAUSIBLE_SPEED * self._qdot_max
+            if np.any(too_fast):
+                raise InvalidInput(
+                    f'velocities up to {np.abs(velocities).max():.3g} rad/s: beyond '
+                    f'{IMPLAUSIBLE_SPEED:g} times the joint limits, not a command to follow',
+                    'velocities', velocities)
         start_time = _array(start_time, 'start_time')
         if start_time.shape != ():
             raise InvalidInput(f'start_time must be a number, got {start_time}',
