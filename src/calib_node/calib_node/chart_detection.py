@@ -155,4 +155,26 @@ def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
         return Detection(None, 'the corners found do not form a chessboard (its cells '
                                'do not alternate black and white)', sharpness)
     ordered, reason = orient_corners(grey, corners, rows, cols, min_contrast)
+    if ordered is not None and second_board(grey, ordered, rows, cols):
+        return Detection(None, 'two charts in view (which one the pose belongs to is '
+                               'ambiguous)', sharpness)
     return Detection(ordered, reason, sharpness)
+
+
+def second_board(grey, corners, rows, cols):
+    """Whether another rows x cols board is in the image once the found one (its corners'
+    hull grown by two squares) is painted over with the image's median grey
+    (``findChessboardCorners`` with the fast check: cheap when there is none)."""
+    grid = np.asarray(corners, dtype=float).reshape(rows, cols, 2)
+    centre = grid.reshape(-1, 2).mean(axis=0)
+    square = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2))
+    outline = np.array([grid[0, 0], grid[0, -1], grid[-1, -1], grid[-1, 0]])
+    grown = centre + (outline - centre) * (1 + 2.5 * square / np.maximum(
+        np.linalg.norm(outline - centre, axis=1, keepdims=True), 1.0))
+    masked = grey.copy()
+    cv2.fillConvexPoly(masked, np.rint(grown).astype(np.int32), int(np.median(grey)))
+    found, _ = cv2.findChessboardCorners(
+        masked, (int(cols), int(rows)),
+        flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        | cv2.CALIB_CB_FAST_CHECK)
+    return bool(found)

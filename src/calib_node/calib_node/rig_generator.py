@@ -11,7 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from calib_node.chart_detection import chart_points
-from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_model import PinholeCamera, distort_normalized
 from vgm_common.geometry import look_at_rotation, make_transform, rot_x, rot_y, rot_z
 
 BACKGROUND_GREY = 70.0  # a dark wall behind the chart [grey level]
@@ -261,3 +261,80 @@ def true_corners(rig):
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     return [{name: camera.project(chart @ T[:3, :3].T + T[:3, 3])[0]
              for name, camera in rig.cameras.items()} for T in rig.T_base_chart]
+
+
+def _angle_deg(R):
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def score_rig(truth, estimate, absolute=False, reference='left'):
+    """Errors of a calibrated rig against the truth, worst camera per figure.
+
+    Args:
+        truth: {name: PinholeCamera}.
+        estimate: {name: PinholeCamera} (poses in base_link, or in any frame when
+            ``absolute`` is False: poses are compared relative to ``reference``).
+
+    Returns:
+        dict: ``fx``, ``fy`` (relative), ``cx``, ``cy`` [px], ``distortion`` (largest
+        displacement difference over the image with the true K [px]), ``baseline``
+        (relative), ``position`` [m] and ``rotation`` [deg] of each camera relative to
+        ``reference`` (or in base_link), ``rect_rows`` (RMS row difference [px] of true
+        left / right correspondences rectified with the estimate; needs left and right).
+    """
+    from vgm_common.calibration_io import stereo_rectification
+
+    out = {k: 0.0 for k in ('fx', 'fy', 'cx', 'cy', 'distortion', 'position', 'rotation')}
+    for name, true in truth.items():
+        est = estimate[name]
+        out['fx'] = max(out['fx'], abs(est.K[0, 0] / true.K[0, 0] - 1))
+        out['fy'] = max(out['fy'], abs(est.K[1, 1] / true.K[1, 1] - 1))
+        out['cx'] = max(out['cx'], abs(est.K[0, 2] - true.K[0, 2]))
+        out['cy'] = max(out['cy'], abs(est.K[1, 2] - true.K[1, 2]))
+        u, v = np.meshgrid(np.linspace(0, true.width - 1, 9), np.linspace(0, true.height - 1, 9))
+        xy = true.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
+        d_true = distort_normalized(xy, true.D) * [true.K[0, 0], true.K[1, 1]]
+        d_est = distort_normalized(xy, est.D) * [true.K[0, 0], true.K[1, 1]]
+        out['distortion'] = max(out['distortion'],
+                                float(np.max(np.linalg.norm(d_true - d_est, axis=1))))
+        if absolute:
+            T_true, T_est = true.T_base_camera, est.T_base_camera
+        else:
+            if name == reference:
+                continue
+            T_true = np.linalg.inv(truth[reference].T_base_camera) @ true.T_base_camera
+            T_est = np.linalg.inv(estimate[reference].T_base_camera) @ est.T_base_camera
+        out['position'] = max(out['position'], float(np.linalg.norm(T_true[:3, 3]
+                                                                    - T_est[:3, 3])))
+        out['rotation'] = max(out['rotation'], _angle_deg(T_true[:3, :3].T @ T_est[:3, :3]))
+    if 'left' in truth and 'right' in truth:
+        b_true = np.linalg.norm(truth['left'].centre_base - truth['right'].centre_base)
+        b_est = np.linalg.norm(estimate['left'].centre_base - estimate['right'].centre_base)
+        out['baseline'] = abs(b_est / b_true - 1)
+        out['rect_rows'] = rectified_row_error(truth, estimate, stereo_rectification)
+    return out
+
+
+def rectified_row_error(truth, estimate, stereo_rectification):
+    """RMS |v_left - v_right| [px] of true correspondences (points 1..3 m in front of the
+    true left camera, seen by both) rectified with the estimated pair."""
+    rng = np.random.default_rng(0)
+    left, right = truth['left'], truth['right']
+    u = rng.uniform(0, left.width - 1, 400)
+    v = rng.uniform(0, left.height - 1, 400)
+    rays = left.pixel_rays_base(np.column_stack([u, v]))
+    depth = rng.uniform(0.5, 3.0, 400)[:, None] * np.linalg.norm(
+        left.centre_base - right.centre_base) / 0.1
+    points = left.centre_base + rays * depth
+    uv_l, _ = left.project(points)
+    uv_r, d_r = right.project(points)
+    keep = (d_r > 0) & np.all((uv_r >= 0) & (uv_r < [right.width, right.height]), axis=1)
+    rect = stereo_rectification(estimate['left'], estimate['right'])
+    rows = []
+    for name, uv in (('left', uv_l[keep]), ('right', uv_r[keep])):
+        camera = estimate[name]
+        R, P = rect[name]
+        xy = camera.undistort_pixels(uv)
+        ray = np.column_stack([xy, np.ones(len(xy))]) @ np.asarray(R).T
+        rows.append(P[1, 1] * ray[:, 1] / ray[:, 2] + P[1, 2])
+    return float(np.sqrt(np.mean((rows[0] - rows[1]) ** 2)))
