@@ -1,0 +1,81 @@
+"""Handheld calibration (bundle adjustment) and the rig generator: seeded rigs unlike the
+shipped scenarios, exact corners -> the truth to 1e-6; rendered images -> within the
+bounds of OpenCV's error on the same corners; coverage and a second board."""
+import numpy as np
+import pytest
+
+from calib_node.bundle import bundle_adjust
+from calib_node.chart_detection import chart_points, detect_chessboard
+from calib_node.coverage import Coverage, view_parameters
+from calib_node.rig_generator import draw_rig, render_rig, score_rig, true_corners
+from vgm_common.camera_model import PinholeCamera
+
+
+def _cameras(rig, result):
+    return {n: PinholeCamera(c.width, c.height, result.fits[n].K, result.fits[n].D,
+                             result.fits[n].T_base_camera) for n, c in rig.cameras.items()}
+
+
+@pytest.mark.parametrize('seed, cameras', [(3, ('left', 'right', 'aux')),
+                                           (7, ('left', 'right'))])
+def test_exact_corners_give_the_truth(seed, cameras):
+    rig = draw_rig(seed, cameras)
+    chart = chart_points(rig.rows, rig.cols, rig.spacing)
+    sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
+    result = bundle_adjust(chart, true_corners(rig), sizes, names=list(cameras))
+    assert result.reference == 'left' and result.rms_px < 1e-8
+    score = score_rig(rig.cameras, _cameras(rig, result))
+    for figure in ('fx', 'fy', 'baseline'):
+        assert score[figure] < 1e-6, (figure, score)
+    assert score['cx'] < 1e-6 * rig.cameras['left'].width and score['position'] < 1e-9
+    # Some views with a target pose: the frame is base_link, poses absolute.
+    known = [T if i % 3 == 0 else None for i, T in enumerate(rig.T_base_chart)]
+    result = bundle_adjust(chart, true_corners(rig), sizes, known, list(cameras))
+    assert result.reference == 'base_link'
+    assert score_rig(rig.cameras, _cameras(rig, result), absolute=True)['position'] < 1e-9
+
+
+def test_rendered_rig_within_opencv_bounds():
+    """One rendered rig (seed 2: 960 px, 3 cameras, aux 21 deg oblique, 11 views, noise
+    0.9 grey levels): handheld within 1.5x of OpenCV's calibrateCamera + stereoCalibrate
+    on the same corners (the bench's bound), focal lengths within 0.1 %."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / 'bench'))
+    from calib_rigs import opencv_rig
+
+    rig = draw_rig(2)
+    chart = chart_points(rig.rows, rig.cols, rig.spacing)
+    views = [{n: d.corners for n, d in ((n, detect_chessboard(img, rig.rows, rig.cols))
+                                        for n, img in view.items()) if d.corners is not None}
+             for view in render_rig(rig, 2)]
+    sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
+    ours = score_rig(rig.cameras, _cameras(rig, bundle_adjust(chart, views, sizes,
+                                                              names=list(sizes))))
+    theirs = score_rig(rig.cameras, opencv_rig(chart, views, sizes, list(sizes)))
+    assert ours['fx'] < 1e-3 and ours['fy'] < 1e-3
+    for figure in ('fx', 'fy', 'baseline', 'position', 'rotation', 'rect_rows'):
+        assert ours[figure] <= 1.5 * theirs[figure], (figure, ours[figure], theirs[figure])
+
+
+def test_coverage_says_what_is_missing_and_a_second_board_is_refused():
+    rig = draw_rig(4, ('left', 'right'), views=8, noise=0.5)
+    image = render_rig(rig, 0)[0]['left']
+    detection = detect_chessboard(image, rig.rows, rig.cols)
+    assert detection.corners is not None
+    coverage = Coverage()
+    parameters = view_parameters(detection.corners, rig.rows, rig.cols, image.shape[::-1])
+    coverage.add(parameters)
+    assert not coverage.is_new(parameters)  # the same view again adds nothing
+    assert 'skew' in coverage.missing(0.5) and 'x 0 %' in coverage.summary()
+    # The same board pasted beside itself: two charts, ambiguous.
+    box = detection.corners
+    (u0, v0), (u1, v1) = np.floor(box.min(axis=0)).astype(int) - 25, \
+        np.ceil(box.max(axis=0)).astype(int) + 25
+    patch = image[max(v0, 0):v1, max(u0, 0):u1]
+    double = np.full((image.shape[0], 2 * image.shape[1] + 40), 70, np.uint8)
+    double[:image.shape[0], :image.shape[1]] = image
+    left = image.shape[1] + 40 + max(u0, 0)
+    double[max(v0, 0):max(v0, 0) + patch.shape[0], left:left + patch.shape[1]] = patch
+    second = detect_chessboard(double, rig.rows, rig.cols)
+    assert second.corners is None and 'two charts' in second.reason
