@@ -152,3 +152,39 @@ def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exac
             pass
     out['time'] = timings
     return out
+
+
+def main():
+    """``python bench/calib_rigs.py [rigs]``: bench/results/calib/rigs.md and rigs.json."""
+    import json
+    import sys
+    from pathlib import Path
+
+    count = int(sys.argv[1]) if len(sys.argv) > 1 else 10
+    results = [run_rig(seed) for seed in range(count)]
+    lines = ['# calib_node on generated rigs (issue 12)', '',
+             f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+             f'bench/calib_rigs.py {count}`. Worst camera per figure; ratio = ours / OpenCV '
+             '(calibrateCamera + stereoCalibrate, same corners, k1 k2 p1 p2); median and '
+             'max over the rigs. Loaded 2-core machine: times are noisy.', '',
+             '| figure | stage / OpenCV median | max | handheld / OpenCV median | max |',
+             '|---|---|---|---|---|']
+    for figure in FIGURES:
+        ratios = {m: [r[m][figure] / max(r['opencv'][figure], 1e-300) for r in results]
+                  for m in ('stage', 'handheld')}
+        lines.append(f'| {figure} | {np.median(ratios["stage"]):.2f} | '
+                     f'{np.max(ratios["stage"]):.2f} | {np.median(ratios["handheld"]):.2f} | '
+                     f'{np.max(ratios["handheld"]):.2f} |')
+    times = {m: np.median([r['time'][m] for r in results]) for m in ('stage', 'handheld',
+                                                                    'opencv')}
+    lines += ['', 'Median time [s]: ' + ', '.join(f'{m} {t:.2f}' for m, t in times.items())
+              + f' (handheld / OpenCV {times["handheld"] / times["opencv"]:.1f}).']
+    out = Path(__file__).resolve().parent / 'results' / 'calib'
+    out.mkdir(parents=True, exist_ok=True)
+    (out / 'rigs.md').write_text('\n'.join(lines) + '\n')
+    (out / 'rigs.json').write_text(json.dumps(results, indent=1, default=float))
+    print('\n'.join(lines))
+
+
+if __name__ == '__main__':
+    main()
