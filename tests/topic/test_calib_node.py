@@ -402,3 +402,62 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
     theirs = np.sqrt(np.mean(np.concatenate(rows_cv) ** 2))
     assert ours <= theirs * 1.01 and ours < 0.45, (ours, theirs)
     assert calib.alive() and 'Traceback' not in calib.output()
+
+
+def _remapped(prefix):
+    """ros-args remapping calib_node's outputs under ``prefix`` (a second node beside)."""
+    args = []
+    for name in CAMERA_NAMES:
+        args += ['-r', f'{CAMERA_INFO_TOPICS[name]}:={prefix}/{name}/camera_info',
+                 '-r', f'{POSE_TOPICS[name]}:={prefix}/{name}/pose']
+    return args
+
+
+def test_generated_rig_stage_and_handheld(spawn, rclpy_node):
+    """A generated rig unlike the shipped scenarios (rig_generator seed 24: 800 x 600
+    pair, baseline 0.19 m, toed in 5 deg, right k1 -0.38, aux 640 x 480 f 400 px 33 deg
+    oblique, a 5 x 8 chart, 8 views, noise 1.2 grey levels), its rendered captures
+    published once with their target
+    poses: a stage-mode calib_node and a handheld one (outputs remapped under /handheld)
+    both within the bench's bounds of the truth."""
+    from calib_node.rig_generator import draw_rig, render_rig, score_rig
+
+    rig = draw_rig(24, views=8)
+    images = render_rig(rig, 24)
+    chart = ['-p', f'chart.rows:={rig.rows}', '-p', f'chart.cols:={rig.cols}',
+             '-p', f'chart.spacing:={rig.spacing}', '-p', f'min_views:={len(images)}']
+    probe = Probe(rclpy_node)
+    handheld = {'infos': {}, 'poses': {}}
+    for name in CAMERA_NAMES:
+        rclpy_node.create_subscription(CameraInfo, f'/handheld/{name}/camera_info',
+                                       lambda m, n=name: handheld['infos'].__setitem__(n, m),
+                                       LATCHED_QOS)
+        rclpy_node.create_subscription(PoseStamped, f'/handheld/{name}/pose',
+                                       lambda m, n=name: handheld['poses'].__setitem__(n, m),
+                                       LATCHED_QOS)
+    stage = spawn([executable('calib_node'), '--ros-args', *chart, '-p',
+                   'chart.source:=stage'])
+    hand = spawn([executable('calib_node'), '--ros-args', *chart, '-p',
+                  'chart.source:=handheld', '-p', 'min_coverage:=0.0', '-p',
+                  'select_views:=false', '-r', '__node:=calib_handheld', *_remapped('/handheld')])
+    capture = CapturePublisher(rclpy_node)
+    rclpy_node.spin_until(lambda: all(p.get_subscription_count() >= 2
+                                      for p in capture.images.values()), 30, 'subscribers')
+    for view, T in zip(images, rig.T_base_chart):  # 8 captures: within every queue (10)
+        capture.publish(view, T)
+    probe.wait(lambda: probe.calibrated() and len(handheld['infos']) == 3
+               and len(handheld['poses']) == 3, 120, 'both calibrations')
+    for label, infos, poses, absolute in (('stage', probe.infos, probe.poses, True),
+                                          ('handheld', handheld['infos'], handheld['poses'],
+                                           False)):
+        cameras = {n: camera_info_to_camera(infos[n], pose_to_matrix(poses[n].pose))
+                   for n in CAMERA_NAMES}
+        score = score_rig(rig.cameras, cameras)
+        bounds = {'fx': 2e-3, 'fy': 2e-3, 'cx': 2.0, 'cy': 2.0, 'baseline': 2e-3,
+                  'position': 2e-3, 'rotation': 0.1, 'rect_rows': 0.1}
+        for figure, bound in bounds.items():
+            assert score[figure] < bound, (label, figure, score, rig.params)
+        if absolute:  # the stage places every camera in base_link itself
+            assert score_rig(rig.cameras, cameras, absolute=True)['position'] < 2e-3
+    assert stage.alive() and hand.alive()
+    assert 'Traceback' not in stage.output() + hand.output()
