@@ -443,8 +443,10 @@ def test_generated_rig_stage_and_handheld(spawn, rclpy_node):
     capture = CapturePublisher(rclpy_node)
     rclpy_node.spin_until(lambda: all(p.get_subscription_count() >= 2
                                       for p in capture.images.values()), 30, 'subscribers')
-    for view, T in zip(images, rig.T_base_chart):  # 8 captures: within every queue (10)
-        capture.publish(view, T)
+    for count, (view, T) in enumerate(zip(images, rig.T_base_chart), 1):
+        capture.publish(view, T)  # one at a time: a loaded reader drops images otherwise
+        probe.wait(lambda c=count: len(probe.statuses('views', f'{c} views')) >= 2, 60,
+                   f'view {count} in both nodes')
     probe.wait(lambda: probe.calibrated() and len(handheld['infos']) == 3
                and len(handheld['poses']) == 3, 120, 'both calibrations')
     for label, infos, poses, absolute in (('stage', probe.infos, probe.poses, True),
