@@ -154,6 +154,52 @@ def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exac
     return out
 
 
+def rigs_table(count):
+    """Markdown lines and per-rig results of ``count`` generated rigs (seeds 0..count-1)."""
+    results = []
+    for seed in range(count):
+        results.append(run_rig(seed))
+        print(f'rig {seed}: {results[-1]["params"]}', flush=True)
+    lines = ['Worst camera per figure; ratio = ours / OpenCV (cv2.calibrateCamera + '
+             'cv2.stereoCalibrate with CALIB_USE_INTRINSIC_GUESS, the same corners, the same '
+             'parameters k1 k2 p1 p2); "own": OpenCV on its own detection '
+             '(findChessboardCorners + cornerSubPix 11 x 11). Positions and rotations '
+             'relative to the left camera. Goals: stage median <= 0.7, max <= 1.2; '
+             'handheld median <= 1.0, max <= 1.5.', '',
+             '| figure | stage / OpenCV median | max | handheld / OpenCV median | max | '
+             'stage / OpenCV own median | max |', '|---|---|---|---|---|---|---|']
+    for figure in FIGURES:
+        ratios = {m: [r[m][figure] / max(r['opencv'][figure], 1e-300) for r in results]
+                  for m in ('stage', 'handheld')}
+        own = [r['stage'][figure] / max(r['opencv_own'][figure], 1e-300)
+               for r in results if 'opencv_own' in r]
+        lines.append(f'| {figure} | {np.median(ratios["stage"]):.2f} | '
+                     f'{np.max(ratios["stage"]):.2f} | {np.median(ratios["handheld"]):.2f} | '
+                     f'{np.max(ratios["handheld"]):.2f} | '
+                     + (f'{np.median(own):.2f} | {np.max(own):.2f} |' if own else 'n/a | n/a |'))
+    lines += ['', '| rig | width | views | noise | baseline [m] | vergence [deg] | aux oblique '
+              '[deg] | k1 L / R | stage worst ratio | handheld worst ratio | stage fx err | '
+              'OpenCV fx err |', '|---|---|---|---|---|---|---|---|---|---|---|---|']
+    for seed, r in enumerate(results):
+        p = r['params']
+        worst = {m: max(FIGURES, key=lambda f: r[m][f] / max(r['opencv'][f], 1e-300))
+                 for m in ('stage', 'handheld')}
+        lines.append(
+            f'| {seed} | {p["width"]} | {p["views"]} | {p["noise"]:.1f} | '
+            f'{p["baseline_m"]:.3f} | {p["vergence_deg"]:.1f} | {p["aux_oblique_deg"]:.0f} | '
+            f'{p["k1_left"]:.2f} / {p["k1_right"]:.2f} | ' + ' | '.join(
+                f'{worst[m]} {r[m][worst[m]] / max(r["opencv"][worst[m]], 1e-300):.2f}'
+                for m in ('stage', 'handheld'))
+            + f' | {r["stage"]["fx"]:.2e} | {r["opencv"]["fx"]:.2e} |')
+    times = {m: np.median([r['time'][m] for r in results]) for m in ('stage', 'handheld',
+                                                                    'opencv')}
+    lines += ['', 'Median calibration time of the three cameras [s] (loaded 2-core machine): '
+              + ', '.join(f'{m} {t:.2f}' for m, t in times.items())
+              + f'; handheld / OpenCV {times["handheld"] / times["opencv"]:.1f}, stage / '
+              f'OpenCV {times["stage"] / times["opencv"]:.1f}.']
+    return lines, results
+
+
 def main():
     """``python bench/calib_rigs.py [rigs]``: bench/results/calib/rigs.md and rigs.json."""
     import json
@@ -161,24 +207,10 @@ def main():
     from pathlib import Path
 
     count = int(sys.argv[1]) if len(sys.argv) > 1 else 10
-    results = [run_rig(seed) for seed in range(count)]
+    lines, results = rigs_table(count)
     lines = ['# calib_node on generated rigs (issue 12)', '',
              f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-             f'bench/calib_rigs.py {count}`. Worst camera per figure; ratio = ours / OpenCV '
-             '(calibrateCamera + stereoCalibrate, same corners, k1 k2 p1 p2); median and '
-             'max over the rigs. Loaded 2-core machine: times are noisy.', '',
-             '| figure | stage / OpenCV median | max | handheld / OpenCV median | max |',
-             '|---|---|---|---|---|']
-    for figure in FIGURES:
-        ratios = {m: [r[m][figure] / max(r['opencv'][figure], 1e-300) for r in results]
-                  for m in ('stage', 'handheld')}
-        lines.append(f'| {figure} | {np.median(ratios["stage"]):.2f} | '
-                     f'{np.max(ratios["stage"]):.2f} | {np.median(ratios["handheld"]):.2f} | '
-                     f'{np.max(ratios["handheld"]):.2f} |')
-    times = {m: np.median([r['time'][m] for r in results]) for m in ('stage', 'handheld',
-                                                                    'opencv')}
-    lines += ['', 'Median time [s]: ' + ', '.join(f'{m} {t:.2f}' for m, t in times.items())
-              + f' (handheld / OpenCV {times["handheld"] / times["opencv"]:.1f}).']
+             f'bench/calib_rigs.py {count}`.', ''] + lines
     out = Path(__file__).resolve().parent / 'results' / 'calib'
     out.mkdir(parents=True, exist_ok=True)
     (out / 'rigs.md').write_text('\n'.join(lines) + '\n')
