@@ -7,7 +7,13 @@ import pytest
 from calib_node.bundle import bundle_adjust
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
-from calib_node.rig_generator import draw_rig, render_rig, score_rig, true_corners
+from calib_node.rig_generator import (
+    ChartRenderer,
+    draw_rig,
+    render_rig,
+    score_rig,
+    true_corners,
+)
 from vgm_common.camera_model import PinholeCamera
 
 
@@ -64,8 +70,9 @@ def test_rendered_rig_within_opencv_bounds():
 
 
 def test_coverage_says_what_is_missing_and_a_second_board_is_refused():
-    rig = draw_rig(4, ('left', 'right'), views=8, noise=0.5)
-    image = render_rig(rig, 0)[0]['left']
+    rig = draw_rig(24, ('left', 'right'), views=8, noise=0.5)
+    image = ChartRenderer(rig.rows, rig.cols, rig.spacing).render(
+        rig.cameras['left'], rig.T_base_chart[0], np.random.default_rng(0), rig.noise)
     detection = detect_chessboard(image, rig.rows, rig.cols)
     assert detection.corners is not None
     coverage = Coverage()
