@@ -6,7 +6,7 @@ import time
 import cv2
 import numpy as np
 
-from calib_node.bundle import bundle_adjust
+from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import calibrate_rig
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.rig_generator import draw_rig, render_rig, score_rig
@@ -112,7 +112,7 @@ def stage_rig(rig, views):
 def handheld_rig(rig, views):
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
-    result = bundle_adjust(chart, views, sizes, names=list(rig.cameras))
+    result = bundle_adjust_selected(chart, views, sizes, names=list(rig.cameras))
     return {n: PinholeCamera(*sizes[n], f.K, f.D, f.T_base_camera)
             for n, f in result.fits.items()}
 

@@ -91,3 +91,28 @@ def test_coverage_says_what_is_missing_and_a_second_board_is_refused():
     double[max(v0, 0):max(v0, 0) + patch.shape[0], left:left + patch.shape[1]] = patch
     second = detect_chessboard(double, rig.rows, rig.cols)
     assert second.corners is None and 'two charts' in second.reason
+
+
+@pytest.mark.parametrize('tangential', [0.0, 2e-3])
+def test_p1_p2_are_kept_only_where_the_lens_has_them(tangential):
+    """BIC model selection (select_model): true corners + 0.05 px noise of a rig whose
+    lenses have p1 = p2 = ``tangential``: p1, p2 are fitted only when non-zero."""
+    from calib_node.bundle import bundle_adjust_selected
+    from calib_node.rig_generator import Rig
+
+    rig = draw_rig(3, ('left', 'right'))
+    cameras = {n: PinholeCamera(c.width, c.height, c.K, c.D + [0, 0, tangential, tangential,
+                                                                 0], c.T_base_camera)
+               for n, c in rig.cameras.items()}
+    rig = Rig(cameras, *rig[1:])
+    rng = np.random.default_rng(0)
+    views = [{n: uv + rng.normal(0, 0.05, uv.shape) for n, uv in view.items()}
+             for view in true_corners(rig)]
+    chart = chart_points(rig.rows, rig.cols, rig.spacing)
+    sizes = {n: (c.width, c.height) for n, c in cameras.items()}
+    result = bundle_adjust_selected(chart, views, sizes, names=['left', 'right'])
+    p = result.fits['left'].D[2:4]
+    if tangential:  # kept; p1, p2 themselves are weakly determined (measured 1-20 % off)
+        np.testing.assert_allclose(p, tangential, rtol=0.4)
+    else:
+        assert np.all(p == 0.0)

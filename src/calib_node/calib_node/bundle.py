@@ -19,10 +19,26 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from calib_node.calibrate import CalibrationError, CameraFit
+from calib_node.calibrate import CalibrationError, CameraFit, tangential_pays
 from vgm_common.geometry import invert_transform, make_transform
 
 INTRINSICS = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
+
+
+def bundle_adjust_selected(chart, views, image_sizes, T_ref_chart_known=None, names=None,
+                           fit_tangential=True, fit_k3=False, select_model=True):
+    """:func:`bundle_adjust`, and with ``select_model`` also without p1, p2: the simpler
+    rig is kept unless p1, p2 pay (``calibrate.tangential_pays``, BIC over the rig)."""
+    full = bundle_adjust(chart, views, image_sizes, T_ref_chart_known, names,
+                         fit_tangential, fit_k3)
+    if not (fit_tangential and select_model):
+        return full
+    plain = bundle_adjust(chart, views, image_sizes, T_ref_chart_known, names, False, fit_k3)
+    n = 2 * sum(f.points for f in full.fits.values())
+    if tangential_pays(full.rms_px ** 2 * n / 2, plain.rms_px ** 2 * n / 2, n,
+                       len(full.fits)):
+        return full
+    return plain
 
 
 class BundleResult(NamedTuple):

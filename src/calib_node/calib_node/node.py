@@ -19,7 +19,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 
-from calib_node.bundle import bundle_adjust
+from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import (
     LM_STARTS,
     METHODS,
@@ -159,6 +159,8 @@ class CalibNode(Node):
                   'if its full-model RMS is below the GA camera; always: keep it.',
                   choices=NETWORK_ACCEPT),
             Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
+            Param('select_model', True, 'lm: keep p1, p2 only where they lower the residual '
+                  'enough (BIC); they otherwise trade against the principal point.'),
             Param('fit_k3', False, 'Estimate k3 (else 0).'),
             Param('max_rms_px', 2.0, 'A calibration whose reprojection RMS exceeds this in '
                   'any camera is refused (not published) [px].', range=(0.0, 1e6)),
@@ -387,9 +389,10 @@ class CalibNode(Node):
             raise CalibrationError(f'method {self.params.method} needs target poses (the '
                                    'stage); handheld views calibrate with lm')
         known = [T for T, _ in views]
-        result = bundle_adjust(self.chart, [corners for _, corners in views],
-                               {n: self.image_sizes[n] for n in self.names}, known,
-                               self.names, self.params.fit_tangential, self.params.fit_k3)
+        result = bundle_adjust_selected(
+            self.chart, [corners for _, corners in views],
+            {n: self.image_sizes[n] for n in self.names}, known, self.names,
+            self.params.fit_tangential, self.params.fit_k3, self.params.select_model)
         T_base_ref = (rig_pose_matrix(self._param('rig_pose'))
                       if result.reference != BASE_FRAME else np.eye(4))
         return {n: f._replace(T_base_camera=T_base_ref @ f.T_base_camera)
@@ -428,7 +431,8 @@ class CalibNode(Node):
                                    self._param('network.weights'),
                                    self._param('network.accept'))
                     result = calibrate_rig(self._observations(views), p.method, p.seed,
-                                           p.lm_start, ga, p.fit_tangential, p.fit_k3)
+                                           p.lm_start, ga, p.fit_tangential, p.fit_k3,
+                                           p.select_model)
                     fits, seconds = result.fits, result.seconds
                 worst = max(fits, key=lambda n: fits[n].rms_px)
                 if fits[worst].rms_px > p.max_rms_px:
