@@ -537,6 +537,9 @@ class CalibNode(Node):
                       'image sets without a target pose': self.unposed_sets,
                       'incomplete capture sets (messages)': self.sync.dropped,
                       'matched capture sets': self.sync.matched}
+            if self.last_result:  # the latest calibration's quality, repeated at 1 Hz
+                values.update({k: v for k, v in self.last_result.items()
+                               if k.startswith('rms_px')})
             handheld = any(T is None for T, _ in self.views)
             if handheld:
                 values['coverage'] = self.coverage.summary()
