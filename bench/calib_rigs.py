@@ -161,10 +161,10 @@ def rigs_table(count):
         results.append(run_rig(seed))
         print(f'rig {seed}: {results[-1]["params"]}', flush=True)
     lines = ['Worst camera per figure; ratio = ours / OpenCV (cv2.calibrateCamera + '
-             'cv2.stereoCalibrate with CALIB_USE_INTRINSIC_GUESS, the same corners, the same '
-             'parameters k1 k2 p1 p2); "own": OpenCV on its own detection '
-             '(findChessboardCorners + cornerSubPix 11 x 11). Positions and rotations '
-             'relative to the left camera. Goals: stage median <= 0.7, max <= 1.2; '
+             'cv2.stereoCalibrate with CALIB_USE_INTRINSIC_GUESS on the same corners, k1 k2 p1 '
+             'p2; ours selects p1 p2 by BIC and drops them on these lenses); "own": OpenCV '
+             'on its own detection (findChessboardCorners + cornerSubPix 11 x 11). Positions '
+             'and rotations relative to the left camera. Goals: stage median <= 0.7, max <= 1.2; '
              'handheld median <= 1.0, max <= 1.5.', '',
              '| figure | stage / OpenCV median | max | handheld / OpenCV median | max | '
              'stage / OpenCV own median | max |', '|---|---|---|---|---|---|---|']
