@@ -226,7 +226,9 @@ def test_bad_input_gives_diagnostics_and_no_calibration(spawn, rclpy_node, chart
     for _ in range(15):
         capture.publish(scene)
     rclpy_node.spin_until(
-        lambda: any(kv.key.startswith('image sets without') and int(kv.value) > 0
+        # a loaded reader may drop some of the 45 images: their sets count as incomplete
+        lambda: any(kv.key.startswith(('image sets without', 'incomplete'))
+                    and int(kv.value) > 0
                     for s in probe.statuses('views') for kv in s.values), 20,
         'incomplete sets counted')
     assert not probe.statuses('rejected')
