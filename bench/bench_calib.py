@@ -11,9 +11,11 @@
 3. The node's setting: the default scenario's three plumb_bob cameras and 10 chart poses,
    exact corners plus sigma = 0 / 0.5 px noise, methods lm / opencv / lxpm_ga: relative
    errors of fx, fy, baseline; time.
+4. Generated rigs (issue 12, ``calib_rigs.py``): rendered charts through random rigs,
+   stage and handheld calibration against OpenCV on the same images (``--rigs N``).
 
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_calib.py
-    (options: --trials 20 --ga-trials 3 --sigmas 0 0.5 1 1.5 2 2.5 3)
+    (options: --trials 20 --ga-trials 3 --sigmas 0 0.5 1 1.5 2 2.5 3 --rigs 10)
 Writes bench/results/calib/calib.md, calib.json and PNG plots.
 """
 import os
@@ -348,6 +350,8 @@ def main():
                         help='of which with the GA stages (about 3-5 s each)')
     parser.add_argument('--sigmas', type=float, nargs='+',
                         default=[0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
+    parser.add_argument('--rigs', type=int, default=10,
+                        help='generated rigs (issue 12), 0 to skip')
     parser.add_argument('--plot-only', action='store_true',
                         help='redraw the plots from the last calib.json')
     args = parser.parse_args()
@@ -410,6 +414,13 @@ def main():
     lines += ['', '## The node\'s setting: default scenario (3 plumb_bob cameras, 10 chart '
               'poses)', '', 'Exact chart corners projected by the true cameras plus Gaussian '
               'noise; all three cameras calibrated; errors relative.', ''] + scenario_lines
+    if args.rigs:
+        import sys
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from calib_rigs import rigs_table
+        rig_lines, _ = rigs_table(args.rigs)
+        lines += ['', f'## Generated rigs (issue 12): {args.rigs} rigs, rendered charts', '']
+        lines += rig_lines
     lines += ['', f'Bench run time: {time.perf_counter() - started:.0f} s.']
     (RESULTS / 'calib.md').write_text('\n'.join(lines) + '\n')
     (RESULTS / 'calib.json').write_text(json.dumps(

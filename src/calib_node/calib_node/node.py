@@ -19,6 +19,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 
+from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import (
     LM_STARTS,
     METHODS,
@@ -27,6 +28,7 @@ from calib_node.calibrate import (
     calibrate_rig,
 )
 from calib_node.chart_detection import chart_points, detect_chessboard
+from calib_node.coverage import Coverage, view_parameters
 from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS
 from calib_node.refine import NETWORK_ACCEPT, NETWORK_WEIGHTS
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
@@ -47,6 +49,7 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.errors import InvalidInput, VgmError
+from vgm_common.geometry import make_transform, quaternion_to_matrix, rpy_to_matrix
 from vgm_common.node_tools import (
     CountingPublisher,
     Diagnostics,
@@ -59,7 +62,24 @@ from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 
 TARGET_POSE_TOPIC = '/calibration/target_pose'
-SYNC_KEYS = (*CAMERA_NAMES, 'target')
+CHART_SOURCES = ('auto', 'stage', 'handheld')
+TARGET_WAIT_S = 0.5  # how long an image set waits for a target pose of its stamp
+RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
+
+
+def _rig_pose_check(value):
+    if len(value) not in (6, 7) or not all(np.isfinite(value)):
+        return 'expected 6 (x y z roll pitch yaw) or 7 (x y z qx qy qz qw) finite numbers'
+    if len(value) == 7 and abs(np.linalg.norm(value[3:]) - 1) > 1e-3:
+        return 'the quaternion must have unit norm'
+    return None
+
+
+def rig_pose_matrix(value):
+    """``rig_pose`` (x y z roll pitch yaw [m, rad] or x y z qx qy qz qw) -> T_base_left."""
+    value = [float(v) for v in value]
+    R = rpy_to_matrix(*value[3:]) if len(value) == 6 else quaternion_to_matrix(value[3:])
+    return make_transform(R, value[:3])
 
 
 class CalibNode(Node):
@@ -77,6 +97,22 @@ class CalibNode(Node):
                   read_only=True),
             Param('chart.pattern', 'chessboard', 'Chart pattern.', choices=('chessboard',),
                   read_only=True),
+            Param('chart.source', 'auto', 'stage: views need a /calibration/target_pose '
+                  'of their stamp; handheld: target poses are ignored, chart poses are '
+                  'estimated; auto: stage once target poses arrive, handheld before.',
+                  choices=CHART_SOURCES, read_only=True),
+            Param('rig_pose', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'The left camera optical '
+                  'frame in base_link when no view has a target pose: x y z [m] roll pitch '
+                  'yaw [rad], or x y z qx qy qz qw.', check=_rig_pose_check),
+            Param('cameras', list(CAMERA_NAMES), 'The rig\'s cameras (left and right, aux '
+                  'optional).', check=lambda v: None if ({'left', 'right'} <= set(v) <= set(
+                      CAMERA_NAMES) and len(set(v)) == len(v)) else
+                  f'expected left, right and optionally aux, got {v}', read_only=True),
+            Param('min_coverage', 0.5, 'Handheld: each of x, y, size and skew must cover '
+                  'this fraction of camera_calibration\'s ranges before calibrating.',
+                  range=(0.0, 1.0)),
+            Param('select_views', True, 'Handheld: keep a view only if it differs from the '
+                  'kept ones (camera_calibration\'s rule); false keeps every view.'),
             Param('min_views', 10, 'Views (captures with the chart found in at least one '
                   'camera) needed to calibrate.', range=(1, 10000)),
             Param('auto_calibrate', True, 'Calibrate as soon as min_views views are '
@@ -123,6 +159,8 @@ class CalibNode(Node):
                   'if its full-model RMS is below the GA camera; always: keep it.',
                   choices=NETWORK_ACCEPT),
             Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
+            Param('select_model', True, 'lm: keep p1, p2 only where they lower the residual '
+                  'enough (BIC); they otherwise trade against the principal point.'),
             Param('fit_k3', False, 'Estimate k3 (else 0).'),
             Param('max_rms_px', 2.0, 'A calibration whose reprojection RMS exceeds this in '
                   'any camera is refused (not published) [px].', range=(0.0, 1e6)),
@@ -139,18 +177,27 @@ class CalibNode(Node):
         self.chart = chart_points(self._param('chart.rows'), self._param('chart.cols'),
                                   self._param('chart.spacing'))
 
+        self.names = tuple(n for n in CAMERA_NAMES if n in self._param('cameras'))
+        self.source = self._param('chart.source')
         self.info_publishers = {n: self.create_publisher(
             CameraInfo, CAMERA_INFO_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher)
-            for n in CAMERA_NAMES}
+            for n in self.names}
         self.pose_publishers = {n: self.create_publisher(
             PoseStamped, POSE_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher)
-            for n in CAMERA_NAMES}
-        self.lock = threading.Lock()  # views, image sizes, counters
-        self.detection_pool = ThreadPoolExecutor(len(CAMERA_NAMES))
+            for n in self.names}
+        self.lock = threading.Lock()  # views, image sizes, counters, targets
+        self.detection_pool = ThreadPoolExecutor(len(self.names))
         self.calibration_lock = threading.Lock()  # one calibration at a time
-        self.views = []  # [{name: (points_base (N, 3), pixels (N, 2))}]
+        # [(T_base_chart (4, 4) or None for a handheld view, {name: pixels (N, 2)})]
+        self.views = []
+        self.coverage = Coverage()
+        self.targets = {}  # stamp_ns -> PoseStamped, the most recent RECENT_TARGETS
+        self.target_seen = False  # auto: a target pose arrived (the stage is in use)
+        self.target_arrived = threading.Condition(self.lock)
         self.image_sizes = {}  # name -> (width, height), fixed by the first good image
         self.rejected_views = 0
+        self.similar_views = 0  # handheld views like a kept one (select_views)
+        self.unposed_sets = 0  # stage: image sets without a target pose of their stamp
         self.calibrations = 0
         self.last_result = None
         self.auto_done_at = None  # view count of the last automatic calibration
@@ -166,20 +213,22 @@ class CalibNode(Node):
         self.work = queue.Queue(maxsize=30)
         self.worker = threading.Thread(target=self._work, name='calibration', daemon=True)
         self.worker.start()
-        self.sync = ExactTimeSync(SYNC_KEYS, self._on_capture, queue_size=10,
+        # Images are paired by stamp; the target pose of a set is looked up by its stamp
+        # (it may come a little before or after the images, or never: handheld).
+        self.sync = ExactTimeSync(self.names, self._on_capture, queue_size=10,
                                   max_wait=p.sync_max_wait)
         inputs = MutuallyExclusiveCallbackGroup()  # the sync is not thread-safe
-        for name in CAMERA_NAMES:
+        for name in self.names:
             self.create_subscription(Image, IMAGE_TOPICS[name],
                                      lambda msg, n=name: self._offer(n, msg), DEFAULT_QOS,
                                      callback_group=inputs)
-        self.create_subscription(PoseStamped, TARGET_POSE_TOPIC,
-                                 lambda msg: self._offer('target', msg), DEFAULT_QOS,
+        self.create_subscription(PoseStamped, TARGET_POSE_TOPIC, self._on_target, DEFAULT_QOS,
                                  callback_group=inputs)
         self.create_timer(1.0, self._publish_status)
         self.get_logger().info(
             f'collecting chart views ({p.method}, {self._param("chart.rows")}x'
-            f'{self._param("chart.cols")} chessboard, min_views {p.min_views})')
+            f'{self._param("chart.cols")} chessboard, chart.source {self.source}, cameras '
+            f'{", ".join(self.names)}, min_views {p.min_views})')
 
     def _param(self, name):
         return getattr(self.params, name)  # dotted names too
@@ -189,11 +238,27 @@ class CalibNode(Node):
     def _offer(self, key, msg):
         self.sync.add(key, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
 
+    def _on_target(self, msg):
+        if self.source == 'handheld':
+            return
+        with self.lock:
+            self.targets[stamp_to_ns(msg.header.stamp)] = msg
+            while len(self.targets) > RECENT_TARGETS:
+                del self.targets[next(iter(self.targets))]
+            self.target_seen = True
+            self.target_arrived.notify_all()
+
     def _on_capture(self, stamp_ns, messages):
         try:
             self.work.put_nowait(('view', stamp_ns, messages))
         except queue.Full:
-            self.diagnostics.reject('view', 'the calibration worker is behind: view dropped')
+            with self.lock:
+                posed = stamp_ns in self.targets
+                if not posed:  # a handheld stream outruns detection: take what it can
+                    self.similar_views += 1
+            if posed:
+                self.diagnostics.reject('view', 'the calibration worker is behind: view '
+                                        'dropped')
 
     def _work(self):
         while not self.stopping.is_set():
@@ -207,19 +272,40 @@ class CalibNode(Node):
             except Exception as error:  # noqa: BLE001 - keep serving, report it
                 self.diagnostics.reject('view', f'{type(error).__name__}: {error}')
 
+    def _target_of(self, stamp_ns):
+        """The target pose message of ``stamp_ns``, waiting for it as the source asks;
+        None: a handheld view; False: a stage view without a pose (dropped)."""
+        if self.source == 'handheld':
+            return None
+        deadline = time.monotonic() + TARGET_WAIT_S
+        with self.lock:
+            while stamp_ns not in self.targets and not self.stopping.is_set():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self.target_arrived.wait(remaining)
+            target = self.targets.pop(stamp_ns, None)
+            if target is None and (self.source == 'stage' or self.target_seen):
+                self.unposed_sets += 1  # outside the stage's chart phase: not a view
+                return False
+        return target
+
     def _process_view(self, stamp_ns, messages):
-        try:
-            target = messages['target']
-            if target.header.frame_id != BASE_FRAME:
-                raise InvalidInput(f'target pose must be in {BASE_FRAME}, got '
-                                   f'{target.header.frame_id!r}', key='frame_id')
-            T_base_chart = pose_to_matrix(target.pose)
-        except InvalidInput as error:
-            self._reject_view(TARGET_POSE_TOPIC, error)
+        target = self._target_of(stamp_ns)
+        if target is False:
             return
-        points_base = self.chart @ T_base_chart[:3, :3].T + T_base_chart[:3, 3]
-        view, misses, greys = {}, [], {}
-        for name in CAMERA_NAMES:
+        T_base_chart = None
+        if target is not None:
+            try:
+                if target.header.frame_id != BASE_FRAME:
+                    raise InvalidInput(f'target pose must be in {BASE_FRAME}, got '
+                                       f'{target.header.frame_id!r}', key='frame_id')
+                T_base_chart = pose_to_matrix(target.pose)
+            except InvalidInput as error:
+                self._reject_view(TARGET_POSE_TOPIC, error)
+                return
+        corners, misses, greys = {}, [], {}
+        for name in self.names:
             msg = messages[name]
             try:
                 greys[name] = image_to_grey(msg)
@@ -234,27 +320,37 @@ class CalibNode(Node):
                 self.diagnostics.reject(IMAGE_TOPICS[name], error)
                 misses.append(f'{name}: unusable image')
                 greys.pop(name, None)
+        rows, cols = self._param('chart.rows'), self._param('chart.cols')
         # OpenCV's detector releases the GIL: the cameras' images are searched in parallel.
         detections = dict(zip(greys, self.detection_pool.map(
-            lambda grey: detect_chessboard(grey, self._param('chart.rows'),
-                                           self._param('chart.cols'), self.params.max_blur_px),
+            lambda grey: detect_chessboard(grey, rows, cols, self.params.max_blur_px),
             greys.values())))
         for name, detection in detections.items():
             if detection.corners is None:
                 misses.append(f'{name}: {detection.reason}')
                 continue
-            view[name] = (points_base, detection.corners)
-        if not view:
+            corners[name] = detection.corners
+        if not corners:
             self._reject_view('view', 'chart not found in any camera (' + '; '.join(misses)
                               + ')')
             return
         with self.lock:
-            self.views.append(view)
+            if T_base_chart is None:
+                first = next(n for n in self.names if n in corners)
+                parameters = view_parameters(corners[first], rows, cols,
+                                             self.image_sizes[first])
+                if self.params.select_views and not self.coverage.is_new(parameters):
+                    self.similar_views += 1
+                    return
+                self.coverage.add(parameters)
+            self.views.append((T_base_chart, corners))
             count = len(self.views)
-        self.get_logger().info(f'view {count}: chart found in {", ".join(view)}'
-                               + (f' (not in {"; ".join(misses)})' if misses else ''))
+            coverage = self.coverage.summary() if T_base_chart is None else ''
+        self.get_logger().info(f'view {count}: chart found in {", ".join(corners)}'
+                               + (f' (not in {"; ".join(misses)})' if misses else '')
+                               + (f'; coverage {coverage}' if coverage else ''))
         if self.params.auto_calibrate and count >= self.params.min_views and \
-                self.auto_done_at is None:
+                self.auto_done_at is None and not self._coverage_missing(self.views):
             self.auto_done_at = count
             self._calibrate()
 
@@ -265,48 +361,87 @@ class CalibNode(Node):
 
     # --- calibration ------------------------------------------------------------------
 
+    def _coverage_missing(self, views):
+        """What a handheld collection lacks ('' if enough, or if every view is posed)."""
+        if all(T is not None for T, _ in views):
+            return ''
+        with self.lock:
+            return self.coverage.missing(self.params.min_coverage)
+
     def _observations(self, views):
         observations, missing = {}, []
-        for name in CAMERA_NAMES:
-            pairs = [view[name] for view in views if name in view]
+        for name in self.names:
+            pairs = [(T, corners[name]) for T, corners in views if name in corners]
             if not pairs:
                 missing.append(name)
                 continue
-            observations[name] = (np.concatenate([p for p, _ in pairs]),
+            observations[name] = (np.concatenate([self.chart @ T[:3, :3].T + T[:3, 3]
+                                                  for T, _ in pairs]),
                                   np.concatenate([uv for _, uv in pairs]),
                                   self.image_sizes[name])
         if missing:
             raise CalibrationError(f'the chart was never found in {", ".join(missing)}')
         return observations
 
+    def _calibrate_handheld(self, views):
+        """Bundle adjustment over the views; {name: CameraFit} with poses in base_link."""
+        if self.params.method != 'lm':
+            raise CalibrationError(f'method {self.params.method} needs target poses (the '
+                                   'stage); handheld views calibrate with lm')
+        known = [T for T, _ in views]
+        result = bundle_adjust_selected(
+            self.chart, [corners for _, corners in views],
+            {n: self.image_sizes[n] for n in self.names}, known, self.names,
+            self.params.fit_tangential, self.params.fit_k3, self.params.select_model)
+        T_base_ref = (rig_pose_matrix(self._param('rig_pose'))
+                      if result.reference != BASE_FRAME else np.eye(4))
+        return {n: f._replace(T_base_camera=T_base_ref @ f.T_base_camera)
+                for n, f in result.fits.items()}, result.reference
+
     def _calibrate(self):
         """Calibrate on all views so far; returns (success, message)."""
         p = self.params
         with self.lock:
             views = list(self.views)
+        missing = self._coverage_missing(views) if views else ''
+        if missing:  # say what to do with the chart first: more views alike would not help
+            message = (f'not enough coverage in {len(views)} views ({self.coverage.summary()}'
+                       f'; need {100 * p.min_coverage:.0f} % each, and min_views '
+                       f'{p.min_views}): {missing}')
+            self.diagnostics.publish('calibration', 'warn', message,
+                                     {'views': len(views), 'coverage': self.coverage.summary()})
+            return False, message
         if len(views) < p.min_views:
             return False, f'{len(views)} views collected, min_views is {p.min_views}'
+        handheld = any(T is None for T, _ in views)
         with self.calibration_lock:
             try:
-                observations = self._observations(views)
-                ga = GAOptions(self._param('ga.population'), self._param('ga.generations'),
-                               self._param('ga.crossover'), self._param('ga.mutation'),
-                               self._param('ga.pm_index'), self._param('ga.lx_variant'),
-                               self._param('ga.max_distance'),
-                               self._param('network.epochs'), self._param('ga.lx_draw'),
-                               self._param('ga.tournament'), self._param('ga.elitism'),
-                               self._param('network.weights'),
-                               self._param('network.accept'))
-                result = calibrate_rig(observations, p.method, p.seed, p.lm_start, ga,
-                                       p.fit_tangential, p.fit_k3)
-                worst = max(result.fits, key=lambda n: result.fits[n].rms_px)
-                if result.fits[worst].rms_px > p.max_rms_px:
+                started = time.perf_counter()
+                if handheld:
+                    fits, reference = self._calibrate_handheld(views)
+                    seconds = time.perf_counter() - started
+                else:
+                    reference = BASE_FRAME
+                    ga = GAOptions(self._param('ga.population'), self._param('ga.generations'),
+                                   self._param('ga.crossover'), self._param('ga.mutation'),
+                                   self._param('ga.pm_index'), self._param('ga.lx_variant'),
+                                   self._param('ga.max_distance'),
+                                   self._param('network.epochs'), self._param('ga.lx_draw'),
+                                   self._param('ga.tournament'), self._param('ga.elitism'),
+                                   self._param('network.weights'),
+                                   self._param('network.accept'))
+                    result = calibrate_rig(self._observations(views), p.method, p.seed,
+                                           p.lm_start, ga, p.fit_tangential, p.fit_k3,
+                                           p.select_model)
+                    fits, seconds = result.fits, result.seconds
+                worst = max(fits, key=lambda n: fits[n].rms_px)
+                if fits[worst].rms_px > p.max_rms_px:
                     raise CalibrationError(
-                        f'{worst}: reprojection RMS {result.fits[worst].rms_px:.3g} px '
+                        f'{worst}: reprojection RMS {fits[worst].rms_px:.3g} px '
                         f'exceeds max_rms_px {p.max_rms_px:g}')
-                cameras = {name: PinholeCamera(*observations[name][2], fit.K, fit.D,
+                cameras = {name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D,
                                                fit.T_base_camera)
-                           for name, fit in result.fits.items()}
+                           for name, fit in fits.items()}
                 rectification = stereo_rectification(cameras['left'], cameras['right'])
             except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError) as error:
                 message = f'calibration failed on {len(views)} views: {error}'
@@ -316,8 +451,8 @@ class CalibNode(Node):
                 return False, message
             self._publish(cameras, rectification)
             quality = {name: {'rms_px': fit.rms_px, 'points': fit.points,
-                              'views': sum(name in v for v in views)}
-                       for name, fit in result.fits.items()}
+                              'views': sum(name in corners for _, corners in views)}
+                       for name, fit in fits.items()}
             if p.output_dir:
                 try:
                     write_calibration(p.output_dir, cameras, OPTICAL_FRAMES, rectification,
@@ -326,16 +461,20 @@ class CalibNode(Node):
                     self.diagnostics.publish('calibration', 'error',
                                              f'cannot write {p.output_dir}: {error}')
             self.calibrations += 1
-            rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in result.fits.items())
+            rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in fits.items())
             baseline = np.linalg.norm(cameras['left'].centre_base
                                       - cameras['right'].centre_base)
+            mode = 'handheld' if handheld else 'stage'
             message = (f'calibrated {len(cameras)} cameras from {len(views)} views: rms '
-                       f'{rms} px, baseline {baseline:.4f} m ({p.method}, '
-                       f'{result.seconds:.2f} s)')
+                       f'{rms} px, baseline {baseline:.4f} m ({p.method}, {mode}, '
+                       f'{seconds:.2f} s)')
             self.get_logger().info(message)
-            values = {'views': len(views), 'method': p.method,
-                      'time_s': f'{result.seconds:.3f}', 'baseline_m': f'{baseline:.6f}'}
-            for name, fit in result.fits.items():
+            values = {'views': len(views), 'method': p.method, 'chart source': mode,
+                      'reference frame': reference,
+                      'time_s': f'{seconds:.3f}', 'baseline_m': f'{baseline:.6f}'}
+            if handheld:
+                values['coverage'] = self.coverage.summary()
+            for name, fit in fits.items():
                 values[f'rms_px {name}'] = f'{fit.rms_px:.4f}'
                 values[f'points {name}'] = fit.points
                 values[f'views {name}'] = quality[name]['views']
@@ -354,15 +493,15 @@ class CalibNode(Node):
 
     def _publish_file(self, path):
         rig = read_calibration(path)  # InvalidInput -> one-line start-up error
-        missing = [name for name in CAMERA_NAMES if name not in rig]
+        missing = [name for name in self.names if name not in rig]
         if missing:
             raise InvalidInput(f'calibration_file {path} lacks {", ".join(missing)}',
                                key='calibration_file')
-        cameras = {name: rig[name][0] for name in CAMERA_NAMES}
+        cameras = {name: rig[name][0] for name in self.names}
         # As the harness and every consumer expect: left/right re-rectified from the
         # cameras, aux as stored.
-        rectification = {'aux': rig['aux'][1:], **stereo_rectification(cameras['left'],
-                                                                         cameras['right'])}
+        rectification = {**{n: rig[n][1:] for n in self.names if n not in ('left', 'right')},
+                         **stereo_rectification(cameras['left'], cameras['right'])}
         self._publish(cameras, rectification)
         message = f'published the calibration of {path}'
         self.get_logger().info(message)
@@ -382,6 +521,7 @@ class CalibNode(Node):
         with self.lock:
             forgotten = len(self.views)
             self.views.clear()
+            self.coverage.clear()
             self.image_sizes.clear()
             self.auto_done_at = None
         response.success = True
@@ -393,11 +533,24 @@ class CalibNode(Node):
         with self.lock:
             values = {'views': len(self.views), 'rejected views': self.rejected_views,
                       'calibrations': self.calibrations,
+                      'similar views skipped': self.similar_views,
+                      'image sets without a target pose': self.unposed_sets,
                       'incomplete capture sets (messages)': self.sync.dropped,
                       'matched capture sets': self.sync.matched}
+            if self.last_result:  # the latest calibration's quality, repeated at 1 Hz
+                values.update({k: v for k, v in self.last_result.items()
+                               if k.startswith('rms_px')})
+            handheld = any(T is None for T, _ in self.views)
+            if handheld:
+                values['coverage'] = self.coverage.summary()
         level = 'ok'
         message = (f'{values["views"]} views, {self.calibrations} calibrations'
                    if self.calibrations or values['views'] else 'waiting for chart views')
+        if handheld:
+            message += f'; coverage {values["coverage"]}'
+            missing = self._coverage_missing(self.views)
+            if missing and not self.calibrations:
+                message += f' (still: {missing})'
         self.diagnostics.publish('views', level, message, values)
 
     def close(self):

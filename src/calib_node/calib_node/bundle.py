@@ -1,0 +1,232 @@
+"""Handheld-chart calibration of a rig (issue 12): a Zhang start per camera
+(``cv2.calibrateCamera`` on its planar views), then one bundle adjustment over every
+camera's intrinsics and distortion, the rig's extrinsics and every chart pose. No rclpy.
+
+Frames: the reference frame ``ref`` is ``base_link`` when at least one view's chart pose
+is known (``/calibration/target_pose``; those poses are held fixed), else the first
+camera's optical frame (``left``; its pose is the identity, held fixed) and the caller
+places it in base_link (the node's ``rig_pose``).
+
+Parameters of the adjustment, per camera: fx, fy, cx, cy, k1, k2, p1, p2, k3 (p1, p2 and
+k3 optional) and T_camera_ref (Rodrigues vector, translation); per view with an unknown
+chart pose: T_ref_chart. Residuals: every detected corner's reprojection error [px],
+unweighted (the corners' errors are alike, ~0.05-0.1 px). The Jacobian is analytic:
+``cv2.projectPoints``' derivatives chained through ``cv2.composeRT``'s.
+"""
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from calib_node.calibrate import CalibrationError, CameraFit, tangential_pays
+from vgm_common.geometry import invert_transform, make_transform
+
+INTRINSICS = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
+
+
+def bundle_adjust_selected(chart, views, image_sizes, T_ref_chart_known=None, names=None,
+                           fit_tangential=True, fit_k3=False, select_model=True):
+    """:func:`bundle_adjust`, and with ``select_model`` also without p1, p2: the simpler
+    rig is kept unless p1, p2 pay (``calibrate.tangential_pays``, BIC over the rig)."""
+    full = bundle_adjust(chart, views, image_sizes, T_ref_chart_known, names,
+                         fit_tangential, fit_k3)
+    if not (fit_tangential and select_model):
+        return full
+    plain = bundle_adjust(chart, views, image_sizes, T_ref_chart_known, names, False, fit_k3)
+    n = 2 * sum(f.points for f in full.fits.values())
+    if tangential_pays(full.rms_px ** 2 * n / 2, plain.rms_px ** 2 * n / 2, n,
+                       len(full.fits)):
+        return full
+    return plain
+
+
+class BundleResult(NamedTuple):
+    fits: dict  # {name: CameraFit}, T_base_camera = T_ref_camera
+    T_ref_chart: list  # [(4, 4)] chart pose of every view in the reference frame
+    reference: str  # 'base_link' or the name of the reference camera
+    rms_px: float  # over every corner of every camera
+    iterations: int
+
+
+def _rt(T):
+    return cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))[0].ravel(), T[:3, 3].copy()
+
+
+def _T(rvec, tvec):
+    return make_transform(cv2.Rodrigues(np.asarray(rvec, dtype=float))[0], tvec)
+
+
+def _mean_transform(transforms):
+    """Chordal mean of rotations (SVD projection of the sum) and mean translation."""
+    U, _, Vt = np.linalg.svd(np.sum([T[:3, :3] for T in transforms], axis=0))
+    R = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+    return make_transform(R, np.mean([T[:3, 3] for T in transforms], axis=0))
+
+
+def zhang_start(chart, views, image_sizes, fit_tangential=True, fit_k3=False):
+    """Per camera ``cv2.calibrateCamera`` (Zhang) on the views that saw the chart.
+
+    Returns:
+        ({name: (K, D (5,))}, [{name: T_camera_chart (4, 4)}] per view).
+
+    Raises:
+        CalibrationError: a camera saw the chart in fewer than 3 views, or OpenCV failed.
+    """
+    flags = (0 if fit_tangential else cv2.CALIB_ZERO_TANGENT_DIST) | \
+        (0 if fit_k3 else cv2.CALIB_FIX_K3)
+    objects = np.asarray(chart, dtype=np.float32).reshape(-1, 1, 3)
+    intrinsics, poses = {}, [dict() for _ in views]
+    for name, size in image_sizes.items():
+        seen = [i for i, view in enumerate(views) if name in view]
+        if len(seen) < 3:
+            raise CalibrationError(f'{name}: the chart was found in {len(seen)} views, '
+                                   'need at least 3 without target poses')
+        try:
+            _, K, D, rvecs, tvecs = cv2.calibrateCamera(
+                [objects] * len(seen),
+                [np.asarray(views[i][name], dtype=np.float32).reshape(-1, 1, 2) for i in seen],
+                tuple(int(s) for s in size), None, None, flags=flags)
+        except cv2.error as error:
+            raise CalibrationError(f'{name}: Zhang start failed: {error}') from None
+        intrinsics[name] = (K, (list(np.ravel(D)) + [0.0] * 5)[:5])
+        for i, rvec, tvec in zip(seen, rvecs, tvecs):
+            poses[i][name] = _T(rvec.ravel(), tvec.ravel())
+    return intrinsics, poses
+
+
+def bundle_adjust(chart, views, image_sizes, T_ref_chart_known=None, names=None,
+                  fit_tangential=True, fit_k3=False, max_nfev=200):
+    """Calibrate the rig from chessboard views jointly.
+
+    Args:
+        chart: (N, 3) chart-frame corners [m].
+        views: [{name: (N, 2) pixels}] per view (a camera missing from a view did not see
+            the chart).
+        image_sizes: {name: (width, height)}.
+        T_ref_chart_known: per view a (4, 4) chart pose in base_link or None (unknown);
+            None: all unknown.
+        names: camera order; the first is the reference camera when no pose is known.
+
+    Returns:
+        :class:`BundleResult`.
+
+    Raises:
+        CalibrationError: too few views, a camera that never shares a view with the
+            reference, or a failed fit.
+    """
+    chart = np.ascontiguousarray(chart, dtype=float)
+    names = list(names or image_sizes)
+    known = list(T_ref_chart_known or [None] * len(views))
+    intrinsics, T_camera_chart = zhang_start(chart, views, {n: image_sizes[n] for n in names},
+                                             fit_tangential, fit_k3)
+    has_known = any(T is not None for T in known)
+    reference = 'base_link' if has_known else names[0]
+    # Start of T_camera_ref and T_ref_chart from the Zhang poses.
+    T_camera_ref = {}
+    if has_known:
+        for name in names:
+            samples = [T_camera_chart[i][name] @ invert_transform(known[i])
+                       for i in range(len(views)) if known[i] is not None and name in views[i]]
+            if not samples:
+                raise CalibrationError(f'{name} never saw the chart in a view with a target '
+                                       'pose')
+            T_camera_ref[name] = _mean_transform(samples)
+    else:
+        T_camera_ref[reference] = np.eye(4)
+        for name in names[1:]:
+            samples = [T_camera_chart[i][name] @ invert_transform(T_camera_chart[i][reference])
+                       for i in range(len(views)) if name in views[i] and reference in views[i]]
+            if not samples:
+                raise CalibrationError(f'{name} never saw the chart together with {reference}')
+            T_camera_ref[name] = _mean_transform(samples)
+    T_ref_chart = []
+    for i, view in enumerate(views):
+        if known[i] is not None:
+            T_ref_chart.append(np.asarray(known[i], dtype=float))
+            continue
+        samples = [invert_transform(T_camera_ref[n]) @ T_camera_chart[i][n] for n in view]
+        T_ref_chart.append(_mean_transform(samples))
+
+    # Parameter vector: intrinsics (9 per camera), camera poses (6 each), chart poses.
+    C, V = len(names), len(views)
+    x0 = []
+    for name in names:
+        K, D = intrinsics[name]
+        x0 += [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *D[:4], D[4]]
+    for name in names:
+        x0 += [*np.concatenate(_rt(T_camera_ref[name]))]
+    for T in T_ref_chart:
+        x0 += [*np.concatenate(_rt(T))]
+    x0 = np.array(x0, dtype=float)
+    free = np.ones(len(x0), dtype=bool)
+    for c in range(C):
+        free[INTRINSICS * c + 6:INTRINSICS * c + 8] = fit_tangential
+        free[INTRINSICS * c + 8] = fit_k3
+    camera_offset = INTRINSICS * C
+    chart_offset = camera_offset + 6 * C
+    if not has_known:
+        free[camera_offset:camera_offset + 6] = False  # the reference camera is the frame
+    for i in range(V):
+        if known[i] is not None:
+            free[chart_offset + 6 * i:chart_offset + 6 * i + 6] = False
+    pairs = [(c, i) for i in range(V) for c, name in enumerate(names) if name in views[i]]
+    observed = np.concatenate([np.asarray(views[i][names[c]], dtype=float).ravel()
+                               for c, i in pairs])
+    n2 = 2 * len(chart)
+    cache = {}
+
+    def evaluate(xf):
+        key = xf.tobytes()
+        if key in cache:
+            return cache[key]
+        x = x0.copy()
+        x[free] = xf
+        residuals = np.empty(len(pairs) * n2)
+        J = np.zeros((len(pairs) * n2, len(x)))
+        for row, (c, i) in enumerate(pairs):
+            a = INTRINSICS * c
+            fx, fy, cx, cy = x[a:a + 4]
+            K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+            cam = x[camera_offset + 6 * c:camera_offset + 6 * c + 6]
+            board = x[chart_offset + 6 * i:chart_offset + 6 * i + 6]
+            r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = \
+                cv2.composeRT(board[:3], board[3:], cam[:3], cam[3:])
+            uv, Jp = cv2.projectPoints(chart, r3, t3, K, x[a + 4:a + 9])
+            rows = slice(row * n2, (row + 1) * n2)
+            residuals[rows] = uv.ravel() - observed[rows]
+            J_rt = Jp[:, :6]
+            J[rows, a:a + 4] = Jp[:, 6:10]
+            J[rows, a + 4:a + 9] = Jp[:, 10:15]
+            J[rows, chart_offset + 6 * i:chart_offset + 6 * i + 6] = J_rt @ np.block(
+                [[dr3dr1, dr3dt1], [dt3dr1, dt3dt1]])
+            J[rows, camera_offset + 6 * c:camera_offset + 6 * c + 6] = J_rt @ np.block(
+                [[dr3dr2, dr3dt2], [dt3dr2, dt3dt2]])
+        cache.clear()
+        cache[key] = (residuals, J[:, free])
+        return cache[key]
+
+    result = least_squares(lambda xf: evaluate(xf)[0], x0[free], jac=lambda xf: evaluate(xf)[1],
+                           method='lm', x_scale='jac', xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                           max_nfev=max_nfev)
+    x = x0.copy()
+    x[free] = result.x
+    if not np.all(np.isfinite(x)):
+        raise CalibrationError('bundle adjustment diverged')
+    residual_pairs = result.fun.reshape(len(pairs), -1, 2)
+    fits = {}
+    for c, name in enumerate(names):
+        a = INTRINSICS * c
+        K = np.array([[x[a], 0, x[a + 2]], [0, x[a + 1], x[a + 3]], [0, 0, 1.0]])
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise CalibrationError(f'{name}: bundle adjustment gave a negative focal length')
+        T_camera = _T(x[camera_offset + 6 * c:camera_offset + 6 * c + 3],
+                      x[camera_offset + 6 * c + 3:camera_offset + 6 * c + 6])
+        mine = np.concatenate([residual_pairs[k] for k, (cc, _) in enumerate(pairs) if cc == c])
+        fits[name] = CameraFit(K, x[a + 4:a + 9].copy(), invert_transform(T_camera),
+                               float(np.sqrt(np.mean(np.sum(mine ** 2, axis=1)))), len(mine),
+                               {})
+    charts = [_T(x[chart_offset + 6 * i:chart_offset + 6 * i + 3],
+                 x[chart_offset + 6 * i + 3:chart_offset + 6 * i + 6]) for i in range(V)]
+    rms = float(np.sqrt(np.mean(np.sum(residual_pairs ** 2, axis=2))))
+    return BundleResult(fits, charts, reference, rms, int(result.nfev))

@@ -1,0 +1,340 @@
+"""Random camera rigs and chessboard images rendered through their true cameras, for the
+bench and the tests (issue 12): focal lengths, image sizes, radial distortion, baselines,
+vergence, an oblique aux camera with its own lens, chart poses and image noise are drawn
+from a seeded generator. No rclpy.
+
+The chart is the one of INTERFACES.md ("The calibration chart", ``sensor_sim.chart``):
+``rows`` x ``cols`` inner corners, a white margin, corner (0, 0) at the black end.
+"""
+from typing import NamedTuple
+
+import numpy as np
+
+from calib_node.chart_detection import chart_points
+from vgm_common.camera_model import PinholeCamera, distort_normalized
+from vgm_common.geometry import look_at_rotation, make_transform, rot_x, rot_y, rot_z
+
+BACKGROUND_GREY = 70.0  # a dark wall behind the chart [grey level]
+BLACK_GREY, WHITE_GREY = 15.0, 230.0  # the print under the light [grey level]
+CHARTS = ((6, 9, 0.025), (5, 8, 0.03), (7, 10, 0.02), (6, 7, 0.035), (8, 11, 0.018))
+
+
+class Rig(NamedTuple):
+    cameras: dict  # {name: PinholeCamera} the truth, poses in base_link
+    T_base_chart: list  # [(4, 4)] chart frame in base_link, one per view
+    rows: int
+    cols: int
+    spacing: float  # [m]
+    noise: float  # image noise sigma [grey levels]
+    params: dict  # what was drawn (for the bench's tables)
+
+
+def _lens(rng, width, focal_range=(400.0, 1400.0), k1_range=(-0.4, 0.1)):
+    """K and plumb_bob D of a lens: square pixels up to 0.5 % aspect, principal point
+    within 4 % of the centre, k1 drawn, k2 of the opposite sign as real lenses have."""
+    f = rng.uniform(*focal_range) * width / 1280 * rng.uniform(1.0, 1.4)
+    f = float(np.clip(f, *focal_range))
+    height = int(width * 3 / 4)
+    K = np.array([[f, 0, width / 2 + rng.uniform(-0.04, 0.04) * width],
+                  [0, f * rng.uniform(0.995, 1.005), height / 2
+                   + rng.uniform(-0.04, 0.04) * height], [0, 0, 1.0]])
+    k1 = rng.uniform(*k1_range)
+    D = np.array([k1, -0.4 * k1 * rng.uniform(0.0, 1.0), 0.0, 0.0, 0.0])
+    return K, D, (width, height)
+
+
+def board_in_view(camera, corners_base, margin_px=8.0, max_angle_deg=65.0, T_base_chart=None):
+    """Whether the whole board (corners padded by one square) is inside the image with
+    ``margin_px``, in front of the camera, seen from the printed side at most
+    ``max_angle_deg`` from its normal."""
+    pixels, depth = camera.project(corners_base)
+    if np.any(depth <= 0) or not np.all(np.isfinite(pixels)):
+        return False
+    inside = ((pixels[:, 0] > margin_px) & (pixels[:, 0] < camera.width - 1 - margin_px)
+              & (pixels[:, 1] > margin_px) & (pixels[:, 1] < camera.height - 1 - margin_px))
+    if not np.all(inside):
+        return False
+    if T_base_chart is not None:
+        to_chart = T_base_chart[:3, 3] - camera.centre_base
+        cos = T_base_chart[:3, 2] @ to_chart / np.linalg.norm(to_chart)
+        if cos < np.cos(np.radians(max_angle_deg)):  # chart z points away from the camera
+            return False
+    return True
+
+
+def _outline_points(rows, cols, spacing):
+    """The board's outer squares' corners (padded by one square) in the chart frame."""
+    xs = np.array([-spacing, cols * spacing])
+    ys = np.array([-spacing, rows * spacing])
+    grid = np.array([(x, y, 0.0) for x in np.linspace(xs[0], xs[1], 5)
+                     for y in np.linspace(ys[0], ys[1], 5)])
+    return grid
+
+
+def draw_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None):
+    """A random rig and chart poses (issue 12's ranges), from an integer ``seed``.
+
+    Left: width 640..1280 (4:3), f 400..1400 px, k1 in [-0.4, 0.1], k2 = -0.4 k1 * U(0, 1).
+    Right: its own lens of the same size, baseline 0.04..0.3 m along left x, both toed in
+    by half the vergence 0..10 deg. Aux (if asked): its own size and lens, looking at the
+    fixation point from 0..45 deg off the pair's axis. The chart (one of ``CHARTS``)
+    fills about half the narrowest view at the working distance; ``views`` (8..20) poses
+    with the whole board inside every image, tilted up to 40 deg. The rig sits at a random
+    pose in base_link.
+
+    Returns:
+        :class:`Rig`.
+    """
+    rng = np.random.default_rng(seed)
+    rows, cols, spacing = CHARTS[rng.integers(len(CHARTS))]
+    views = int(rng.integers(8, 21)) if views is None else int(views)
+    noise = float(rng.uniform(0.0, 3.0)) if noise is None else float(noise)
+    width = int(rng.choice([640, 800, 960, 1024, 1280]))
+    baseline = float(rng.uniform(0.04, 0.3))
+    vergence = float(np.radians(rng.uniform(0.0, 10.0)))
+    lenses = {'left': _lens(rng, width), 'right': _lens(rng, width)}
+    if 'aux' in cameras:
+        lenses['aux'] = _lens(rng, int(rng.choice([640, 800, 960, 1024, 1280])))
+    board = np.array([(cols + 1) * spacing, (rows + 1) * spacing])
+    # Working distance: the board about half as wide as the narrowest field of view, far
+    # enough that the pair's fields overlap there (vergence or not).
+    fov = min(lens[2][0] / lens[0][0, 0] for lens in lenses.values())  # tan-width
+    distance = max(board[0] / (0.5 * fov), 2.5 * baseline / fov)
+    # Fixation point on the pair's bisector; toe-in turns each axis to it.
+    fixation = np.array([baseline / 2, 0.0, distance])
+    poses = {'left': make_transform(rot_y(vergence / 2), [0, 0, 0]),
+             'right': make_transform(rot_y(-vergence / 2), [baseline, 0, 0])}
+    if 'aux' in cameras:
+        oblique = np.radians(rng.uniform(0.0, 45.0))
+        azimuth = rng.uniform(0, 2 * np.pi)
+        aux_width = lenses['aux'][2][0]
+        aux_distance = max(board[0] / (0.5 * aux_width / lenses['aux'][0][0, 0]), distance * 0.6)
+        direction = np.array([np.sin(oblique) * np.cos(azimuth),
+                              np.sin(oblique) * np.sin(azimuth), -np.cos(oblique)])
+        centre = fixation + aux_distance * direction
+        up = np.array([0.0, -1.0, 0.0])  # image up is -y of the left optical frame
+        poses['aux'] = make_transform(look_at_rotation(centre, fixation, up), centre)
+    T_base_rig = make_transform(rot_z(rng.uniform(-np.pi, np.pi)) @ rot_x(rng.uniform(-2.5, -1.5)),
+                                rng.uniform(-0.5, 0.5, 3) + [0, 0, 1.0])
+    truth = {}
+    for name in cameras:
+        K, D, size = lenses[name]
+        truth[name] = PinholeCamera(size[0], size[1], K, D, T_base_rig @ poses[name])
+    outline = _outline_points(rows, cols, spacing)
+    centre_chart = np.array([(cols - 1) * spacing / 2, (rows - 1) * spacing / 2, 0.0])
+    charts, attempts = [], 0
+    while len(charts) < views:
+        attempts += 1
+        if attempts > 20000:
+            raise RuntimeError(f'draw_rig(seed={seed}): cannot place {views} chart poses')
+        # Chart frame in the rig frame: z away from the cameras, tilted, turned in plane.
+        spread = 0.25 if attempts < 5000 else 0.1
+        centre = fixation + rng.uniform(-spread, spread, 3) * [board[0], board[1], distance]
+        R = (rot_x(rng.uniform(-0.7, 0.7)) @ rot_y(rng.uniform(-0.7, 0.7))
+             @ rot_z(rng.uniform(-0.35, 0.35)))
+        T_rig_chart = make_transform(R, centre - R @ centre_chart)
+        T_base_chart = T_base_rig @ T_rig_chart
+        outline_base = outline @ T_base_chart[:3, :3].T + T_base_chart[:3, 3]
+        if all(board_in_view(camera, outline_base, T_base_chart=T_base_chart)
+               for camera in truth.values()):
+            charts.append(T_base_chart)
+    params = {'width': width, 'baseline_m': baseline, 'vergence_deg': float(np.degrees(vergence)),
+              'views': views, 'noise': noise, 'chart': f'{rows}x{cols} @ {spacing * 1000:g} mm',
+              'f_left': float(lenses['left'][0][0, 0]),
+              'k1_left': float(lenses['left'][1][0]), 'k1_right': float(lenses['right'][1][0])}
+    if 'aux' in cameras:
+        params.update(aux_oblique_deg=float(np.degrees(oblique)),
+                      aux_width=int(lenses['aux'][2][0]), f_aux=float(lenses['aux'][0][0, 0]))
+    return Rig(truth, charts, int(rows), int(cols), float(spacing), noise, params)
+
+
+def _undistortion_map(camera):
+    """Normalised undistorted (x, y) at the pixel centres -1..W, -1..H: (H + 2, W + 2, 2)."""
+    u, v = np.meshgrid(np.arange(-1, camera.width + 1, dtype=float),
+                       np.arange(-1, camera.height + 1, dtype=float))
+    xy = camera.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
+    return xy.reshape(camera.height + 2, camera.width + 2, 2)
+
+
+def _bilinear(grid, u, v):
+    """Bilinear interpolation of a (H + 2, W + 2, 2) map of pixel centres -1.. at (u, v)."""
+    gu, gv = u + 1.0, v + 1.0
+    rows, cols = grid.shape[:2]
+    i = np.clip(np.floor(gu).astype(int), 0, cols - 2)
+    j = np.clip(np.floor(gv).astype(int), 0, rows - 2)
+    fu, fv = (gu - i)[..., None], (gv - j)[..., None]
+    return ((grid[j, i] * (1 - fu) + grid[j, i + 1] * fu) * (1 - fv)
+            + (grid[j + 1, i] * (1 - fu) + grid[j + 1, i + 1] * fu) * fv)
+
+
+class ChartRenderer:
+    """Renders the chart through a true camera, each pixel the mean of ``supersample``^2
+    rays (box filter: the sensor's pixel area), the distortion applied exactly through the
+    camera's undistortion map (interpolated between pixel centres, ~1e-4 px)."""
+
+    def __init__(self, rows, cols, spacing, supersample=4):
+        self.rows, self.cols, self.spacing = rows, cols, spacing
+        self.supersample = int(supersample)
+        self._maps = {}
+
+    def render(self, camera, T_base_chart, rng=None, noise=0.0):
+        """(H, W) uint8 image of the chart at ``T_base_chart``; Gaussian noise ``noise``
+        grey levels from ``rng``, then rounding (the camera's quantisation)."""
+        from sensor_sim.chart import chart_plate_extent
+
+        key = id(camera)
+        if key not in self._maps:
+            self._maps[key] = (camera, _undistortion_map(camera))
+        grid = self._maps[key][1]
+        image = np.full((camera.height, camera.width), BACKGROUND_GREY)
+        T_camera_chart = camera.T_camera_base @ T_base_chart
+        (x0, x1), (y0, y1) = chart_plate_extent(self.rows, self.cols, self.spacing)
+        plate = np.array([(x, y, 0.0) for x in np.linspace(x0, x1, 9)
+                          for y in np.linspace(y0, y1, 9)])
+        pixels, _ = camera.project(plate @ T_base_chart[:3, :3].T + T_base_chart[:3, 3])
+        pixels = pixels[np.all(np.isfinite(pixels), axis=1)]
+        if len(pixels) == 0:
+            return self._quantise(image, rng, noise)
+        u0, v0 = np.maximum(np.floor(pixels.min(axis=0)).astype(int) - 4, 0)
+        u1 = min(int(np.ceil(pixels[:, 0].max())) + 5, camera.width)
+        v1 = min(int(np.ceil(pixels[:, 1].max())) + 5, camera.height)
+        if u1 <= u0 or v1 <= v0:
+            return self._quantise(image, rng, noise)
+        sample = self._sampler(T_camera_chart)
+        # Grey at the pixel corners; only pixels whose four corners differ (an edge of the
+        # print crosses them, the squares are far larger than a pixel) are supersampled.
+        cu, cv = np.meshgrid(np.arange(u0, u1 + 1) - 0.5, np.arange(v0, v1 + 1) - 0.5)
+        corner_grey = sample(_bilinear(grid, cu, cv))
+        block = corner_grey[:-1, :-1].copy()
+        mixed = ((corner_grey[:-1, :-1] != corner_grey[1:, :-1])
+                 | (corner_grey[:-1, :-1] != corner_grey[:-1, 1:])
+                 | (corner_grey[:-1, :-1] != corner_grey[1:, 1:]))
+        mixed = mixed | np.roll(mixed, 1, 0) | np.roll(mixed, -1, 0) | np.roll(mixed, 1, 1) \
+            | np.roll(mixed, -1, 1)  # an edge may pass between the corners of a pixel
+        r, c = np.nonzero(mixed)
+        s = self.supersample
+        offsets = (np.arange(s) + 0.5) / s - 0.5
+        du, dv = np.meshgrid(offsets, offsets)
+        uu = (u0 + c)[:, None] + du.ravel()
+        vv = (v0 + r)[:, None] + dv.ravel()
+        block[r, c] = sample(_bilinear(grid, uu, vv)).mean(axis=1)
+        image[v0:v1, u0:u1] = block
+        return self._quantise(image, rng, noise)
+
+    def _sampler(self, T_camera_chart):
+        """(..., 2) normalised undistorted rays -> (...) grey level of what they hit."""
+        from sensor_sim.chart import chart_albedo
+
+        R, origin = T_camera_chart[:3, :3], T_camera_chart[:3, 3]
+        normal = R[:, 2]
+
+        def sample(xy):
+            x, y = xy[..., 0], xy[..., 1]
+            with np.errstate(divide='ignore', invalid='ignore'):
+                depth = (normal @ origin) / (normal[0] * x + normal[1] * y + normal[2])
+            chart_x = depth * (R[0, 0] * x + R[1, 0] * y + R[2, 0]) - R[:, 0] @ origin
+            chart_y = depth * (R[0, 1] * x + R[1, 1] * y + R[2, 1]) - R[:, 1] @ origin
+            albedo = chart_albedo(np.column_stack([chart_x.ravel(), chart_y.ravel()]),
+                                  self.rows, self.cols, self.spacing).reshape(x.shape)
+            grey = np.where(albedo > 0.5, WHITE_GREY, BLACK_GREY)
+            return np.where(np.isfinite(albedo) & (depth > 0), grey, BACKGROUND_GREY)
+
+        return sample
+
+    @staticmethod
+    def _quantise(image, rng, noise):
+        if noise > 0:
+            image = image + rng.normal(0.0, noise, image.shape)
+        return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def render_rig(rig, seed=0, supersample=4):
+    """Every view of every camera: [{name: (H, W) uint8}], noise from ``seed``."""
+    rng = np.random.default_rng(seed)
+    renderer = ChartRenderer(rig.rows, rig.cols, rig.spacing, supersample)
+    return [{name: renderer.render(camera, T, rng, rig.noise)
+             for name, camera in rig.cameras.items()} for T in rig.T_base_chart]
+
+
+def true_corners(rig):
+    """[{name: (rows * cols, 2)}] true corner pixels of every view and camera."""
+    chart = chart_points(rig.rows, rig.cols, rig.spacing)
+    return [{name: camera.project(chart @ T[:3, :3].T + T[:3, 3])[0]
+             for name, camera in rig.cameras.items()} for T in rig.T_base_chart]
+
+
+def _angle_deg(R):
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+
+
+def score_rig(truth, estimate, absolute=False, reference='left'):
+    """Errors of a calibrated rig against the truth, worst camera per figure.
+
+    Args:
+        truth: {name: PinholeCamera}.
+        estimate: {name: PinholeCamera} (poses in base_link, or in any frame when
+            ``absolute`` is False: poses are compared relative to ``reference``).
+
+    Returns:
+        dict: ``fx``, ``fy`` (relative), ``cx``, ``cy`` [px], ``distortion`` (largest
+        displacement difference over the image with the true K [px]), ``baseline``
+        (relative), ``position`` [m] and ``rotation`` [deg] of each camera relative to
+        ``reference`` (or in base_link), ``rect_rows`` (RMS row difference [px] of true
+        left / right correspondences rectified with the estimate; needs left and right).
+    """
+    from vgm_common.calibration_io import stereo_rectification
+
+    out = {k: 0.0 for k in ('fx', 'fy', 'cx', 'cy', 'distortion', 'position', 'rotation')}
+    for name, true in truth.items():
+        est = estimate[name]
+        out['fx'] = max(out['fx'], abs(est.K[0, 0] / true.K[0, 0] - 1))
+        out['fy'] = max(out['fy'], abs(est.K[1, 1] / true.K[1, 1] - 1))
+        out['cx'] = max(out['cx'], abs(est.K[0, 2] - true.K[0, 2]))
+        out['cy'] = max(out['cy'], abs(est.K[1, 2] - true.K[1, 2]))
+        u, v = np.meshgrid(np.linspace(0, true.width - 1, 9), np.linspace(0, true.height - 1, 9))
+        xy = true.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
+        d_true = distort_normalized(xy, true.D) * [true.K[0, 0], true.K[1, 1]]
+        d_est = distort_normalized(xy, est.D) * [true.K[0, 0], true.K[1, 1]]
+        out['distortion'] = max(out['distortion'],
+                                float(np.max(np.linalg.norm(d_true - d_est, axis=1))))
+        if absolute:
+            T_true, T_est = true.T_base_camera, est.T_base_camera
+        else:
+            if name == reference:
+                continue
+            T_true = np.linalg.inv(truth[reference].T_base_camera) @ true.T_base_camera
+            T_est = np.linalg.inv(estimate[reference].T_base_camera) @ est.T_base_camera
+        out['position'] = max(out['position'], float(np.linalg.norm(T_true[:3, 3]
+                                                                    - T_est[:3, 3])))
+        out['rotation'] = max(out['rotation'], _angle_deg(T_true[:3, :3].T @ T_est[:3, :3]))
+    if 'left' in truth and 'right' in truth:
+        b_true = np.linalg.norm(truth['left'].centre_base - truth['right'].centre_base)
+        b_est = np.linalg.norm(estimate['left'].centre_base - estimate['right'].centre_base)
+        out['baseline'] = abs(b_est / b_true - 1)
+        out['rect_rows'] = rectified_row_error(truth, estimate, stereo_rectification)
+    return out
+
+
+def rectified_row_error(truth, estimate, stereo_rectification):
+    """RMS |v_left - v_right| [px] of true correspondences (points 1..3 m in front of the
+    true left camera, seen by both) rectified with the estimated pair."""
+    rng = np.random.default_rng(0)
+    left, right = truth['left'], truth['right']
+    u = rng.uniform(0, left.width - 1, 400)
+    v = rng.uniform(0, left.height - 1, 400)
+    rays = left.pixel_rays_base(np.column_stack([u, v]))
+    depth = rng.uniform(0.5, 3.0, 400)[:, None] * np.linalg.norm(
+        left.centre_base - right.centre_base) / 0.1
+    points = left.centre_base + rays * depth
+    uv_l, _ = left.project(points)
+    uv_r, d_r = right.project(points)
+    keep = (d_r > 0) & np.all((uv_r >= 0) & (uv_r < [right.width, right.height]), axis=1)
+    rect = stereo_rectification(estimate['left'], estimate['right'])
+    rows = []
+    for name, uv in (('left', uv_l[keep]), ('right', uv_r[keep])):
+        camera = estimate[name]
+        R, P = rect[name]
+        xy = camera.undistort_pixels(uv)
+        ray = np.column_stack([xy, np.ones(len(xy))]) @ np.asarray(R).T
+        rows.append(P[1, 1] * ray[:, 1] / ray[:, 2] + P[1, 2])
+    return float(np.sqrt(np.mean((rows[0] - rows[1]) ** 2)))
