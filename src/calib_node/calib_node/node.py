@@ -63,7 +63,7 @@ from vgm_common.sync import ExactTimeSync
 
 TARGET_POSE_TOPIC = '/calibration/target_pose'
 CHART_SOURCES = ('auto', 'stage', 'handheld')
-TARGET_WAIT_S = 0.5  # how long an image set waits for a target pose of its stamp
+TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
 RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
 
 
@@ -80,6 +80,15 @@ def rig_pose_matrix(value):
     value = [float(v) for v in value]
     R = rpy_to_matrix(*value[3:]) if len(value) == 6 else quaternion_to_matrix(value[3:])
     return make_transform(R, value[:3])
+
+
+def _target_matrix(msg):
+    """The chart pose of a target pose message as a 4x4 matrix; InvalidInput if it is not
+    in base_link or not a valid pose."""
+    if msg.header.frame_id != BASE_FRAME:
+        raise InvalidInput(f'target pose must be in {BASE_FRAME}, got '
+                           f'{msg.header.frame_id!r}', key='frame_id')
+    return pose_to_matrix(msg.pose)
 
 
 class CalibNode(Node):
@@ -241,6 +250,11 @@ class CalibNode(Node):
     def _on_target(self, msg):
         if self.source == 'handheld':
             return
+        try:  # checked as it arrives, whether or not images of its stamp follow
+            _target_matrix(msg)
+        except InvalidInput as error:
+            self.diagnostics.reject(TARGET_POSE_TOPIC, error)
+            return
         with self.lock:
             self.targets[stamp_to_ns(msg.header.stamp)] = msg
             while len(self.targets) > RECENT_TARGETS:
@@ -250,7 +264,7 @@ class CalibNode(Node):
 
     def _on_capture(self, stamp_ns, messages):
         try:
-            self.work.put_nowait(('view', stamp_ns, messages))
+            self.work.put_nowait(('view', stamp_ns, messages, time.monotonic()))
         except queue.Full:
             with self.lock:
                 posed = stamp_ns in self.targets
@@ -268,16 +282,17 @@ class CalibNode(Node):
                 continue
             try:
                 if job[0] == 'view':
-                    self._process_view(job[1], job[2])
+                    self._process_view(*job[1:])
             except Exception as error:  # noqa: BLE001 - keep serving, report it
                 self.diagnostics.reject('view', f'{type(error).__name__}: {error}')
 
-    def _target_of(self, stamp_ns):
-        """The target pose message of ``stamp_ns``, waiting for it as the source asks;
-        None: a handheld view; False: a stage view without a pose (dropped)."""
+    def _target_of(self, stamp_ns, completed):
+        """The target pose message of ``stamp_ns``, waiting for it as the source asks
+        until TARGET_WAIT_S after the image set was ``completed`` [monotonic s]; None: a
+        handheld view; False: a stage view without a pose (dropped)."""
         if self.source == 'handheld':
             return None
-        deadline = time.monotonic() + TARGET_WAIT_S
+        deadline = completed + TARGET_WAIT_S  # a backlog of sets adds no wait
         with self.lock:
             while stamp_ns not in self.targets and not self.stopping.is_set():
                 remaining = deadline - time.monotonic()
@@ -290,20 +305,11 @@ class CalibNode(Node):
                 return False
         return target
 
-    def _process_view(self, stamp_ns, messages):
-        target = self._target_of(stamp_ns)
+    def _process_view(self, stamp_ns, messages, completed):
+        target = self._target_of(stamp_ns, completed)
         if target is False:
             return
-        T_base_chart = None
-        if target is not None:
-            try:
-                if target.header.frame_id != BASE_FRAME:
-                    raise InvalidInput(f'target pose must be in {BASE_FRAME}, got '
-                                       f'{target.header.frame_id!r}', key='frame_id')
-                T_base_chart = pose_to_matrix(target.pose)
-            except InvalidInput as error:
-                self._reject_view(TARGET_POSE_TOPIC, error)
-                return
+        T_base_chart = None if target is None else _target_matrix(target)  # checked
         corners, misses, greys = {}, [], {}
         for name in self.names:
             msg = messages[name]

@@ -1,0 +1,419 @@
+"""The fuzz suite: every node, each its own process on a private domain, fed what a
+wrong driver, a mistyped command or a bad bag sends, then something good.
+
+Per node: bad messages on every topic it subscribes (encodings, sizes, NaN, inf, 1e308,
+wrong lengths, frames, stamps going backwards), every parameter changed to values of
+the wrong kind, non-finite, out of range and across its range, services called out of
+order and all at once, a flood; after each case the process is alive and answers
+get_parameters, input it must refuse is reported (a `rejected` diagnostic or a warning),
+memory stays bounded, and at the end a good input is still processed. Bad start-up
+arguments end every executable in one error line with a non-zero status."""
+import threading
+import time
+
+import bad_messages
+import numpy as np
+import pytest
+import rclpy
+import yaml
+from diagnostic_msgs.msg import DiagnosticArray
+from fuzz_tools import Fuzzer, fuzz_parameters, wait_gone
+from geometry_msgs.msg import PoseStamped, WrenchStamped
+from nav_msgs.msg import Path
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
+
+from bag_tools.bag_writer import BagWriter
+from harness import SCENARIO_DIR, executable, publish_rig
+from sensor_sim.render import SceneRenderer, add_noise
+from vgm_common.calibration_io import write_calibration
+from vgm_common.camera_topics import CAMERA_INFO_TOPICS, IMAGE_TOPICS, OPTICAL_FRAMES
+from vgm_common.conversions import (
+    make_header,
+    matrix_to_pose_stamped,
+    numpy_to_image,
+    stamp_to_ns,
+)
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.robot_model import JOINT_NAMES
+from vgm_common.scenario import load_scenario
+
+MIN_CASES = 20  # kinds of bad input per node, at least
+FLOOD_IMAGES = 100
+FLOOD_MEMORY_BOUND = 400e6  # [bytes] RSS growth allowed by a flood
+TARGET_POSE_TOPIC = '/calibration/target_pose'
+
+
+@pytest.fixture(scope='module')
+def small_scene(tmp_path_factory):
+    """The default scenario at 320x240 (intrinsics halved), its true calibration file,
+    and a renderer of it."""
+    directory = tmp_path_factory.mktemp('scene')
+    data = yaml.safe_load((SCENARIO_DIR / 'default.yaml').read_text())
+    for camera in data['cameras'].values():
+        camera['width'], camera['height'] = 320, 240
+        for key in ('fx', 'fy'):
+            camera[key] /= 2
+        for key in ('cx', 'cy'):
+            camera[key] = (camera[key] + 0.5) / 2 - 0.5
+    path = directory / 'small.yaml'
+    path.write_text(yaml.safe_dump(data))
+    scenario = load_scenario(path)
+    write_calibration(directory / 'calibration', scenario.cameras, OPTICAL_FRAMES)
+    return scenario, path, directory / 'calibration' / 'calibration.yaml', \
+        SceneRenderer(scenario, supersample=2)
+
+
+def grey(array, scenario, index):
+    noisy = add_noise(array, scenario.noise.image_sigma, np.random.default_rng([7, index]))
+    return noisy
+
+
+class Capture:
+    """Publishes images of one stamp on the node's image topics (and a chart pose for
+    calib_node), as a synchronized capture."""
+
+    def __init__(self, fuzzer, cameras, with_target_pose=False):
+        self.fuzzer = fuzzer
+        self.cameras = cameras
+        self.with_target_pose = with_target_pose
+        self.stamp_ns = 1_000_000_000
+
+    def next_stamp(self):
+        self.stamp_ns += 100_000_000
+        return self.stamp_ns
+
+    def publish(self, images_by_camera, stamp_ns, T_base_chart=None):
+        for camera in self.cameras:
+            msg = images_by_camera[camera]
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp_ns, 10**9)
+            self.fuzzer.publisher(IMAGE_TOPICS[camera], Image).publish(msg)
+        if self.with_target_pose:
+            T = np.eye(4) if T_base_chart is None else T_base_chart
+            T[2, 3] = T[2, 3] or 0.4
+            self.fuzzer.publisher(TARGET_POSE_TOPIC, PoseStamped).publish(
+                matrix_to_pose_stamped(T, stamp_ns, 'base_link'))
+
+
+def fuzz_images(fuzzer, capture,
+                survive_labels=('empty frame_id', '1x1 image', '16-bit image')):
+    """Each bad image as a whole capture (every camera the same bad image, one stamp)."""
+    stamp = capture.next_stamp()
+    for label, _ in bad_messages.images(stamp, OPTICAL_FRAMES['left']):
+        stamp = capture.next_stamp()
+        by_camera = {camera: dict(bad_messages.images(stamp, OPTICAL_FRAMES[camera]))[label]
+                     for camera in capture.cameras}
+        act = fuzzer.survive if label in survive_labels else fuzzer.reject
+        act(f'capture: {label}', lambda b=by_camera, s=stamp: capture.publish(b, s))
+
+
+def fuzz_camera_infos(fuzzer, cameras):
+    for camera in cameras:
+        publisher = fuzzer.publisher(CAMERA_INFO_TOPICS[camera], CameraInfo, LATCHED_QOS)
+        for label, msg in bad_messages.camera_infos():
+            fuzzer.reject(f'{CAMERA_INFO_TOPICS[camera]}: {label}',
+                          lambda m=msg, p=publisher: p.publish(m))
+
+
+def flood_images(fuzzer, capture, size=(480, 640)):
+    before = fuzzer.rss_bytes()
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 256, size, dtype=np.uint8)
+    for _ in range(FLOOD_IMAGES):
+        stamp = capture.next_stamp()
+        capture.publish({c: numpy_to_image(frame, 'mono8', stamp, OPTICAL_FRAMES[c])
+                         for c in capture.cameras}, stamp)
+    fuzzer.survive(f'a flood of {FLOOD_IMAGES} captures', lambda: None)
+    grown = fuzzer.rss_bytes() - before
+    assert grown < FLOOD_MEMORY_BOUND, f'{fuzzer.node_name} grew by {grown / 1e6:.0f} MB'
+
+
+def collect(probe, msg_type, topic, qos=DEFAULT_QOS):
+    received = []
+    probe.create_subscription(msg_type, topic, received.append, qos)
+    return received
+
+
+def finish(fuzzer):
+    assert len(set(fuzzer.cases)) >= MIN_CASES, fuzzer.cases
+    assert 'Traceback' not in fuzzer.process.output(), fuzzer.process.output()[-3000:]
+
+
+def start(spawn, rclpy_node, name, *args, package=None):
+    if name == 'sfs_stereo_node':
+        args = ('-p', 'log_every:=0.0', *args)
+    process = spawn([executable(package or name, name), '--ros-args', *args])
+    fuzzer = Fuzzer(rclpy_node, process, name)
+    fuzzer.wait_until_serving()
+    return fuzzer
+
+
+# -- the nodes ---------------------------------------------------------------------------
+
+def test_sfs_stereo_node(spawn, rclpy_node, small_scene):
+    scenario, _, calibration, renderer = small_scene
+    fuzzer = start(spawn, rclpy_node, 'sfs_stereo_node', '-p', 'max_rate:=0.0')
+    publishers, _ = publish_rig(rclpy_node, calibration)  # noqa: F841 (kept alive)
+    capture = Capture(fuzzer, ('left', 'right'))
+    fuzz_images(fuzzer, capture)
+    fuzz_camera_infos(fuzzer, ('left',))
+    publishers, _ = publish_rig(rclpy_node, calibration)  # the good rig again
+    fuzz_parameters(fuzzer)
+    flood_images(fuzzer, capture)
+    # A good pair: fused depth of its stamp.
+    fused = collect(rclpy_node, Image, '/depth/fused')
+    stamp = capture.next_stamp()
+    capture.publish({c: numpy_to_image(grey(renderer.scene_image(c), scenario, i).round()
+                                       .clip(0, 255).astype(np.uint8), 'mono8', stamp,
+                                       OPTICAL_FRAMES[c])
+                     for i, c in enumerate(('left', 'right'))}, stamp)
+    rclpy_node.spin_until(lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in fused),
+                          120, 'fused depth of a good pair after the fuzzing')
+    finish(fuzzer)
+
+
+def test_curve_recon_node(spawn, rclpy_node, small_scene):
+    scenario, _, calibration, renderer = small_scene
+    fuzzer = start(spawn, rclpy_node, 'curve_recon_node')
+    publishers, _ = publish_rig(rclpy_node, calibration)  # noqa: F841 (kept alive)
+    capture = Capture(fuzzer, ('left', 'right', 'aux'))
+    # Out of order and all at once: reconstruct with no capture, four calls waiting while
+    # parameters are read.
+    answers = []
+    callers = [threading.Thread(target=lambda: answers.append(_trigger_in_thread(
+        fuzzer, 'reconstruct'))) for _ in range(4)]
+    fuzzer.cases.append('four reconstruct calls waiting, no capture')
+    for caller in callers:
+        caller.start()
+    fuzzer.check_serving('four reconstruct calls waiting')
+    fuzz_images(fuzzer, capture)
+    fuzz_camera_infos(fuzzer, ('left', 'aux'))
+    depth_info = fuzzer.publisher('/depth/camera_info', CameraInfo)
+    for label, msg in bad_messages.camera_infos():
+        fuzzer.reject(f'/depth/camera_info: {label}', lambda m=msg: depth_info.publish(m))
+    depth = fuzzer.publisher('/depth/fused', Image)
+    depth_info.publish(_good_depth_info())  # the depth values themselves are at fault
+    for label, value in (('negative depth', -1.0), ('zero depth', 0.0), ('depth 1e30', 1e30)):
+        msg = numpy_to_image(np.full((240, 320), value, np.float32), '32FC1',
+                             capture.next_stamp(), OPTICAL_FRAMES['left'])
+        fuzzer.reject(f'/depth/fused: {label}', lambda m=msg: depth.publish(m))
+    publishers, _ = publish_rig(rclpy_node, calibration)
+    fuzz_parameters(fuzzer)
+    flood_images(fuzzer, capture)
+    for caller in callers:
+        caller.join(timeout=60)
+    assert len(answers) == 4 and all(a is not None for a in answers), answers
+    # Good captures, one a second as a camera streams (automatic reconstruction tries at
+    # most once a second): waypoints.
+    waypoints = collect(rclpy_node, Path, '/curve/waypoints', LATCHED_QOS)
+    scene = {c: grey(renderer.scene_image(c), scenario, i).round().clip(0, 255)
+             .astype(np.uint8) for i, c in enumerate(('left', 'right', 'aux'))}
+    good_stamps = set()
+
+    def show_scene():
+        stamp = capture.next_stamp()
+        good_stamps.add(stamp)
+        capture.publish({c: numpy_to_image(scene[c], 'mono8', stamp, OPTICAL_FRAMES[c])
+                         for c in scene}, stamp)
+
+    timer = rclpy_node.create_timer(1.0, show_scene)
+    rclpy_node.spin_until(lambda: any(stamp_to_ns(m.header.stamp) in good_stamps
+                                      for m in waypoints), 120,
+                          'waypoints of a good capture after the fuzzing')
+    rclpy_node.destroy_timer(timer)
+    finish(fuzzer)
+
+
+def _good_depth_info():
+    K = [300.0, 0, 160, 0, 300.0, 120, 0, 0, 1]
+    return CameraInfo(header=make_header(1, OPTICAL_FRAMES['left']), width=320, height=240,
+                      distortion_model='plumb_bob', d=[0.0] * 5, k=K,
+                      r=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], p=K[:3] + [0.0] + K[3:6] + [0.0]
+                      + K[6:] + [0.0])
+
+
+def _trigger_in_thread(fuzzer, service):
+    # The probe node is spun by the test thread; a waiting call only polls its future.
+    client = fuzzer.probe.create_client(Trigger, f'/{fuzzer.node_name}/{service}')
+    deadline = time.monotonic() + 60
+    while not client.service_is_ready() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    future = client.call_async(Trigger.Request())
+    while not future.done() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return future.result() if future.done() else None
+
+
+def test_calib_node(spawn, rclpy_node, small_scene):
+    scenario, _, _, renderer = small_scene
+    fuzzer = start(spawn, rclpy_node, 'calib_node', '-p', 'chart.rows:=6', '-p',
+                   'chart.cols:=9', '-p', f'chart.spacing:={scenario.calibration.spacing}')
+    for service in ('calibrate', 'reset', 'reset', 'calibrate'):
+        fuzzer.cases.append(f'{service} out of order')
+        answer = fuzzer.trigger(service)
+        assert answer is not None and answer.message
+        fuzzer.check_serving(f'{service} out of order')
+    capture = Capture(fuzzer, ('left', 'right', 'aux'), with_target_pose=True)
+    fuzz_images(fuzzer, capture)
+    target = fuzzer.publisher(TARGET_POSE_TOPIC, PoseStamped)
+    for label, msg in bad_messages.poses(capture.next_stamp()):
+        fuzzer.reject(f'{TARGET_POSE_TOPIC}: {label}', lambda m=msg: target.publish(m))
+    fuzz_parameters(fuzzer)
+    flood_images(fuzzer, capture, size=(240, 320))  # a camera keeps its size
+    # A good chart view is taken.
+    views = []
+    rclpy_node.create_subscription(
+        DiagnosticArray, '/diagnostics', lambda m: views.extend(
+            int(v.value) for s in m.status if s.name == 'calib_node: views'
+            for v in s.values if v.key == 'views'), DEFAULT_QOS)
+    fuzzer.trigger('reset')
+    chart = {c: grey(renderer.chart_image(c, 0), scenario, i).round().clip(0, 255)
+             .astype(np.uint8) for i, c in enumerate(('left', 'right', 'aux'))}
+
+    def show_chart():  # as the stage does: the chart in view capture after capture
+        stamp = capture.next_stamp()
+        capture.publish({c: numpy_to_image(chart[c], 'mono8', stamp, OPTICAL_FRAMES[c])
+                         for c in chart}, stamp, scenario.calibration.T_base_chart[0].copy())
+
+    timer = rclpy_node.create_timer(1.0, show_chart)
+    rclpy_node.spin_until(lambda: views and views[-1] >= 1, 120,
+                          'calib_node to take a good chart view after the fuzzing')
+    rclpy_node.destroy_timer(timer)
+    finish(fuzzer)
+
+
+def test_pa10_ik_node(spawn, rclpy_node):
+    fuzzer = start(spawn, rclpy_node, 'pa10_ik_node')
+    joints = fuzzer.publisher('/joint_states', JointState)
+    pressure = fuzzer.publisher('/tool/pressure', WrenchStamped)
+    waypoints = fuzzer.publisher('/curve/waypoints', Path, LATCHED_QOS)
+    tool_poses = collect(rclpy_node, PoseStamped, '/tool_pose')
+    q_home = [0.0, 0.5, 0.0, 1.2, 0.0, 0.8, 0.0]
+    good_state = JointState(name=list(JOINT_NAMES), position=q_home)
+    feed = rclpy_node.create_timer(0.02, lambda: (joints.publish(good_state),
+                                                  pressure.publish(_wrench(0.0))))
+    rclpy_node.spin_until(lambda: tool_poses, 30, 'the tool pose of a good joint state')
+    for service in ('stop', 'start_tracking', 'stop', 'stop'):
+        fuzzer.cases.append(f'{service} out of order')
+        assert fuzzer.trigger(service) is not None
+        fuzzer.check_serving(f'{service} out of order')
+    for label, msg in bad_messages.joint_states(JOINT_NAMES):
+        fuzzer.reject(f'/joint_states: {label}', lambda m=msg: joints.publish(m))
+    for label, msg in bad_messages.wrenches():
+        fuzzer.reject(f'/tool/pressure: {label}', lambda m=msg: pressure.publish(m))
+    for label, msg in bad_messages.paths():
+        fuzzer.reject(f'/curve/waypoints: {label}', lambda m=msg: waypoints.publish(m))
+    # Failure, stop, start, failure, stop: an unreachable path, then an untrackable one.
+    for label, msg in bad_messages.paths():
+        if label not in ('100 m away', 'approach axis along the path'):
+            continue
+        waypoints.publish(msg)
+        for service in ('start_tracking', 'stop', 'start_tracking', 'stop'):
+            fuzzer.cases.append(f'{label}: {service}')
+            assert fuzzer.trigger(service) is not None
+            fuzzer.check_serving(f'{label}: {service}')
+    fuzz_parameters(fuzzer)
+    # Still serving a good joint state: its tool pose.
+    count = len(tool_poses)
+    rclpy_node.spin_until(lambda: len(tool_poses) > count + 5, 30,
+                          'tool poses of good joint states after the fuzzing')
+    rclpy_node.destroy_timer(feed)
+    finish(fuzzer)
+
+
+def _wrench(force):
+    msg = WrenchStamped()
+    msg.header.frame_id = 'tool0'
+    msg.wrench.force.z = force
+    return msg
+
+
+def test_sensor_sim(spawn, rclpy_node, small_scene):
+    _, scenario_path, _, _ = small_scene
+    fuzzer = start(spawn, rclpy_node, 'sensor_sim', '-p', f'scenario:={scenario_path}',
+                   '-p', 'calibration_phase:=false', '-p', 'rate:=1.0')
+    commands = fuzzer.publisher('/pa10_controller/joint_trajectory', JointTrajectory)
+    for label, msg in bad_messages.joint_trajectories(JOINT_NAMES):
+        fuzzer.reject(f'joint_trajectory: {label}', lambda m=msg: commands.publish(m))
+    for label, msg in bad_messages.unusual_joint_trajectories(JOINT_NAMES):
+        fuzzer.survive(f'joint_trajectory: {label}', lambda m=msg: commands.publish(m))
+    fuzz_parameters(fuzzer)
+    # A good command moves the arm.
+    states = collect(rclpy_node, JointState, '/joint_states')
+    rclpy_node.spin_until(lambda: states, 30, 'joint states')
+    q0 = np.array(states[-1].position)
+    good = bad_messages.joint_trajectories(JOINT_NAMES)[2][1]  # NaN positions, fixed:
+    good.points[0].positions = [float(q + 0.05) for q in q0]
+    commands.publish(good)
+    rclpy_node.spin_until(lambda: np.abs(np.array(states[-1].position) - q0).max() > 0.04,
+                          30, 'the arm to follow a good command after the fuzzing')
+    finish(fuzzer)
+
+
+def test_recorder_and_player(spawn, rclpy_node, tmp_path):
+    recorder = start(spawn, rclpy_node, 'recorder', '-p', f'output_dir:={tmp_path}',
+                     '-p', 'bag_name:=fuzz', package='bag_tools')
+    # One topic with two types (from two participants: DDS refuses it within one) is
+    # refused with a warning; a flood is recorded or counted.
+    other = rclpy.Context()
+    rclpy.init(context=other)
+    other_node = rclpy.create_node('other_type', context=other)
+    try:
+        other_node.create_publisher(String, '/fuzz/two_types', DEFAULT_QOS)
+        recorder.reject('a topic with two types', lambda: rclpy_node.create_publisher(
+            JointState, '/fuzz/two_types', DEFAULT_QOS))
+    finally:
+        other_node.destroy_node()
+        rclpy.shutdown(context=other)
+    flood = recorder.publisher('/fuzz/flood', JointState)
+    before = recorder.rss_bytes()
+    recorder.survive('a flood of 5000 joint states', lambda: [
+        flood.publish(JointState(name=['a'], position=[float(i)])) for i in range(5000)])
+    assert recorder.rss_bytes() - before < FLOOD_MEMORY_BOUND
+    fuzz_parameters(recorder)
+    # Nothing changes while recording.
+    recorder.refuse_parameter('topics changed while recording', 'topics', ['/fuzz/flood'])
+    finish_recorder = recorder.process.stop()
+    assert finish_recorder == 0
+
+    with BagWriter(tmp_path / 'tiny') as writer:
+        writer.add_topic('/fuzz/js', 'sensor_msgs/msg/JointState')
+        for i in range(5):
+            writer.write('/fuzz/js', serialize_message(JointState()), 10**9 * (i + 1))
+    player = start(spawn, rclpy_node, 'player', '-p', f'bag:={tmp_path / "tiny"}',
+                   '-p', 'loop:=true', '-p', 'wait_for_subscribers:=0.0', package='bag_tools')
+    fuzz_parameters(player)
+    assert len(set(recorder.cases + player.cases)) >= MIN_CASES
+    assert 'Traceback' not in player.process.output()
+
+
+# -- start-up --------------------------------------------------------------------------
+
+STARTUP_PARAMETER = {'sfs_stereo_node': 'window', 'curve_recon_node': 'degree',
+                     'calib_node': 'min_views', 'pa10_ik_node': 'rate',
+                     'sensor_sim': 'rate', 'recorder': 'flush_period', 'player': 'rate'}
+
+
+def test_bad_start_up_is_one_error_line(spawn, tmp_path):
+    (tmp_path / 'bad.yaml').write_text('node: [\n')
+    (tmp_path / 'list.yaml').write_text('- 1\n- 2\n')
+    runs = {}
+    for name, parameter in STARTUP_PARAMETER.items():
+        package = 'bag_tools' if name in ('recorder', 'player') else name
+        binary = executable(package, name)
+        for label, args in (
+                ('missing params file', ['--params-file', str(tmp_path / 'none.yaml')]),
+                ('params file not YAML', ['--params-file', str(tmp_path / 'bad.yaml')]),
+                ('params file a list', ['--params-file', str(tmp_path / 'list.yaml')]),
+                ('wrong kind', ['-p', f'{parameter}:=[1, 2]'])):
+            runs[(name, label)] = spawn([binary, '--ros-args', *args],
+                                        name=f'{name}-{label.replace(" ", "_")}')
+    for (name, label), process in runs.items():
+        assert wait_gone(process, 90), f'{name} with {label} did not exit'
+        output = process.output()
+        errors = [line for line in output.splitlines() if '[ERROR]' in line]
+        assert process.proc.returncode not in (0, None), (name, label, output)
+        assert len(errors) == 1 and 'Traceback' not in output, (name, label, output)
