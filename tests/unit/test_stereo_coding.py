@@ -3,8 +3,6 @@ ours under JPEG, and no watermark on unmarked or wrong-key images."""
 import cv2
 import numpy as np
 import pytest
-
-from stereo_coding_node import blind, thesis
 from stereo_coding_node.channel import correlation, jpeg, psnr, ssim
 from stereo_coding_node.dfrft import (
     commuting_matrix,
@@ -17,6 +15,8 @@ from stereo_coding_node.dfrft import (
 from stereo_coding_node.errors import CodingError, KeyFileError
 from stereo_coding_node.scenes import generated_scene
 from stereo_coding_node.views import synthesise_right
+
+from stereo_coding_node import blind, thesis
 from vgm_common.sample_data import opencv_sample_dir
 
 ALOE_WIDTH = 1282  # full-size Middlebury Aloe: aloeGT.png holds disparities in pixels
