@@ -168,3 +168,17 @@ def test_synthesised_right_view_of_aloe_beats_the_left_view():
     left, right, disparity = aloe(320)
     synthetic = synthesise_right(left, disparity)
     assert psnr(right, synthetic) > psnr(right, left) + 3.0
+
+
+def test_ours_code_corrects_byte_errors_and_refuses_beyond_its_capacity():
+    _, _, disparity = generated_scene((240, 320), seed=8)
+    bits = blind.disparity_code(disparity)
+    clean = blind.disparity_from_code(bits, disparity.shape)
+    rng = np.random.default_rng(9)
+    correctable = bits.copy()
+    bytes_hit = rng.choice(bits.size // 8, blind.RS_PARITY_BYTES // 2, replace=False)
+    correctable[bytes_hit * 8 + rng.integers(0, 8, bytes_hit.size)] ^= 1
+    np.testing.assert_array_equal(blind.disparity_from_code(correctable, disparity.shape), clean)
+    too_many = bits.copy()
+    too_many[rng.choice(bits.size, bits.size // 4, replace=False)] ^= 1
+    assert blind.disparity_from_code(too_many, disparity.shape) is None
