@@ -182,3 +182,15 @@ def test_ours_code_corrects_byte_errors_and_refuses_beyond_its_capacity():
     too_many = bits.copy()
     too_many[rng.choice(bits.size, bits.size // 4, replace=False)] ^= 1
     assert blind.disparity_from_code(too_many, disparity.shape) is None
+
+
+def test_ours_resynchronises_a_rotation_and_finds_nothing_in_a_rotated_unmarked_image():
+    from stereo_coding_node.channel import rotate
+    left, _, disparity = generated_scene((240, 320), seed=12)
+    coded = blind.encode(left, disparity, key='k')
+    assert not blind.decode(rotate(coded, 7.3), key='k').found  # without resynchronisation
+    detection, angle = blind.decode_rotated(rotate(coded, 7.3), key='k', max_degrees=10.0)
+    assert detection.found and abs(angle + 7.3) < 0.051
+    np.testing.assert_array_equal(detection.bits, blind.disparity_code(disparity))
+    unmarked, _ = blind.decode_rotated(rotate(left, 7.3), key='k', max_degrees=10.0)
+    assert not unmarked.found
