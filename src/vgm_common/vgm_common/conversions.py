@@ -256,3 +256,31 @@ def pointcloud2_to_points(msg):
                       'itemsize': msg.point_step})
     records = np.frombuffer(bytes(msg.data), dtype=dtype, count=count)
     return np.column_stack([records[n] for n in 'xyz']).astype(np.float32)
+
+
+# --- sensor_msgs/CompressedImage (image_transport's compressed plugin) --------------
+
+def grey_to_compressed_jpeg(array, quality, stamp_ns, frame_id):
+    """(H, W) uint8 grey image -> CompressedImage, JPEG at ``quality`` (1..100), with the
+    format string of image_transport's compressed plugin ('mono8; jpeg compressed mono8')."""
+    import cv2  # only the nodes that compress need it
+    from sensor_msgs.msg import CompressedImage
+    array = np.ascontiguousarray(array)
+    if array.ndim != 2 or array.dtype != np.uint8:
+        raise InvalidInput(f'expected an (H, W) uint8 image, got {array.dtype} {array.shape}')
+    ok, data = cv2.imencode('.jpg', array, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise InvalidInput('JPEG encoding failed')
+    return CompressedImage(header=make_header(stamp_ns, frame_id),
+                           format='mono8; jpeg compressed mono8', data=data.tobytes())
+
+
+def compressed_to_grey(msg):
+    """CompressedImage (JPEG or PNG, any channels) -> (H, W) uint8 grey image."""
+    import cv2
+    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
+    if image is None:
+        raise InvalidInput(f'compressed image ({msg.format!r}, {data.size} bytes) does not '
+                           'decode as JPEG or PNG', key='data')
+    return image

@@ -1,0 +1,156 @@
+"""stereo_decoding_node: takes the coded left image (``transport``: raw
+/stereo/coded/image or JPEG /stereo/coded/image/compressed), and where it finds the
+watermark publishes /stereo/decoded/disparity, /stereo/decoded/left/image_rect and the
+right view synthesised from both, /stereo/decoded/right/image_rect.
+
+/diagnostics says whether a watermark was found and how confidently; an unmarked or
+wrong-key image gives "no watermark" and nothing on the decoded topics (method ours: a
+CRC-32 decides). Method thesis is non-blind: it always extracts something, as the
+thesis's scheme does; it needs the encoder's ``key_file``."""
+import os
+import time
+
+import numpy as np
+from rclpy.node import Node
+from sensor_msgs.msg import CompressedImage, Image
+from stereo_msgs.msg import DisparityImage
+
+from stereo_coding_node import blind, thesis
+from stereo_coding_node.encoder_node import GREY_ENCODINGS, common_params, effective_strength
+from stereo_coding_node.errors import CodingError
+from stereo_coding_node.views import synthesise_right
+from stereo_coding_node.worker import LatestWorker
+from vgm_common.conversions import (
+    compressed_to_grey,
+    image_to_numpy,
+    make_header,
+    numpy_to_image,
+    stamp_to_ns,
+)
+from vgm_common.errors import VgmError
+from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
+from vgm_common.qos import DEFAULT_QOS
+
+INVALID_DISPARITY = -1.0  # below min_disparity (0), as stereo_image_proc marks unknown
+
+
+class StereoDecodingNode(Node):
+    node_name = 'stereo_decoding_node'
+
+    def __init__(self):
+        super().__init__(self.node_name)
+        self.diagnostics = Diagnostics(self)
+        self.params = NodeParameters(self, common_params() + [
+            Param('transport', 'raw', 'raw = /stereo/coded/image; compressed = '
+                  '/stereo/coded/image/compressed (JPEG).', choices=('raw', 'compressed'),
+                  read_only=True),
+            Param('focal_px', 0.0, 'f of the decoded DisparityImage [px] (0 = unknown).',
+                  range=(0.0, 1e6)),
+            Param('baseline_m', 0.0, 'T of the decoded DisparityImage [m] (0 = unknown).',
+                  range=(0.0, 1e3)),
+        ], self.diagnostics)
+        self.publishers_ = {
+            key: self.create_publisher(kind, topic, DEFAULT_QOS,
+                                       publisher_class=CountingPublisher)
+            for key, kind, topic in (
+                ('disparity', DisparityImage, '/stereo/decoded/disparity'),
+                ('left', Image, '/stereo/decoded/left/image_rect'),
+                ('right', Image, '/stereo/decoded/right/image_rect'))}
+        self.worker = LatestWorker(self._process, self._on_error, 'stereo decoding')
+        if self.params.transport == 'compressed':
+            self.create_subscription(CompressedImage, '/stereo/coded/image/compressed',
+                                     self.worker.submit, DEFAULT_QOS)
+        else:
+            self.create_subscription(Image, '/stereo/coded/image', self.worker.submit,
+                                     DEFAULT_QOS)
+        self.key_cache = (None, None)  # ((path, mtime, size), ThesisKey)
+        self.decoded = self.unmarked = self.failed = 0
+        self.last = {}
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.get_logger().info(f'method {self.params.method}: waiting for the coded image '
+                               f'({self.params.transport})')
+
+    def _on_error(self, error):
+        self.failed += 1
+        if not isinstance(error, VgmError):
+            error = f'{type(error).__name__}: {error}'
+        self.diagnostics.reject('coded image', error)
+
+    def _thesis_key(self):
+        path = self.params.key_file
+        if not path:
+            raise CodingError('method thesis needs key_file (written by the encoder)',
+                              key='key_file')
+        try:
+            status = os.stat(path)
+            signature = (path, status.st_mtime_ns, status.st_size)
+        except OSError:
+            signature = None
+        if signature is None or self.key_cache[0] != signature:
+            self.key_cache = (signature, thesis.ThesisKey.load(path))
+        return self.key_cache[1]
+
+    def _process(self, msg):
+        if isinstance(msg, CompressedImage):
+            coded = compressed_to_grey(msg)
+        else:
+            if msg.encoding not in GREY_ENCODINGS:
+                raise CodingError(f'/stereo/coded/image must be mono8, got {msg.encoding!r}',
+                                  key='encoding')
+            coded = image_to_numpy(msg)
+        stamp_ns, frame = stamp_to_ns(msg.header.stamp), msg.header.frame_id
+        started = time.perf_counter()
+        p = self.params
+        if p.method == 'thesis':
+            left, disparity, _ = thesis.decode(coded, self._thesis_key())
+            found, confidence, values = True, float('nan'), {}
+        else:
+            detection = blind.decode(coded, p.key, effective_strength(p))
+            left, disparity = coded, detection.disparity_px
+            found, confidence = detection.found, detection.confidence
+            values = {'raw bit error rate': f'{detection.raw_ber:.4f}'}
+        elapsed = time.perf_counter() - started
+        self.last = {'watermark': 'found' if found else 'none',
+                     'confidence': f'{confidence:.3f}', 'decode [ms]': f'{1000 * elapsed:.1f}',
+                     **values}
+        if not found:
+            self.unmarked += 1
+            self.diagnostics.publish('watermark', 'warn', 'no watermark', self.last)
+            return
+        self.decoded += 1
+        self.diagnostics.publish('watermark', 'ok', 'watermark found', self.last)
+        right = synthesise_right(left, disparity)
+        known = np.isfinite(disparity)
+        out = DisparityImage(header=make_header(stamp_ns, frame), f=float(p.focal_px),
+                             T=float(p.baseline_m), min_disparity=0.0,
+                             max_disparity=float(np.max(disparity[known])) if known.any()
+                             else 0.0, delta_d=1.0)
+        out.image = numpy_to_image(np.where(known, disparity, INVALID_DISPARITY)
+                                   .astype(np.float32), '32FC1', stamp_ns, frame)
+        out.valid_window.width, out.valid_window.height = coded.shape[1], coded.shape[0]
+        self.publishers_['disparity'].publish(out)
+        self.publishers_['left'].publish(numpy_to_image(left, 'mono8', stamp_ns, frame))
+        self.publishers_['right'].publish(numpy_to_image(right, 'mono8', stamp_ns, frame))
+
+    def _publish_diagnostics(self):
+        values = {'method': self.params.method, 'decoded': self.decoded,
+                  'no watermark': self.unmarked, 'failed': self.failed,
+                  'dropped (newer input)': self.worker.dropped, **self.last,
+                  **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()}}
+        level = 'ok' if self.decoded else 'warn'
+        message = (f'{self.decoded} images decoded' if self.decoded
+                   else 'no watermarked image decoded yet')
+        self.diagnostics.publish('decoding', level, message, values)
+
+    def close(self):
+        self.worker.close()
+        self.get_logger().info(f'decoded {self.decoded}, no watermark {self.unmarked}, '
+                               f'failed {self.failed}')
+
+
+def main(args=None):
+    return run_node(StereoDecodingNode, args)
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,196 @@
+"""Chapter 6 cores: the DFrFT against its definition, the thesis's coding round trip,
+ours under JPEG, and no watermark on unmarked or wrong-key images."""
+import cv2
+import numpy as np
+import pytest
+from stereo_coding_node.channel import correlation, jpeg, psnr, ssim
+from stereo_coding_node.dfrft import (
+    commuting_matrix,
+    dfrft2,
+    dfrft_matrix,
+    zigzag_degrade,
+    zigzag_order,
+    zigzag_restore,
+)
+from stereo_coding_node.errors import CodingError, KeyFileError
+from stereo_coding_node.scenes import generated_scene
+from stereo_coding_node.views import synthesise_right
+
+from stereo_coding_node import blind, thesis
+from vgm_common.sample_data import opencv_sample_dir
+
+ALOE_WIDTH = 1282  # full-size Middlebury Aloe: aloeGT.png holds disparities in pixels
+
+
+def aloe(width):
+    """Aloe left/right and its ground-truth disparity [px] (NaN unknown), scaled to
+    ``width`` x proportional height."""
+    data = opencv_sample_dir()
+    left = cv2.imread(str(data / 'aloeL.jpg'), cv2.IMREAD_GRAYSCALE)
+    right = cv2.imread(str(data / 'aloeR.jpg'), cv2.IMREAD_GRAYSCALE)
+    truth = cv2.imread(str(data / 'aloeGT.png'), cv2.IMREAD_UNCHANGED)
+    assert left.shape[1] == ALOE_WIDTH == truth.shape[1], 'unexpected Aloe size'
+    size = (width, int(round(left.shape[0] * width / ALOE_WIDTH)))
+    scale = width / ALOE_WIDTH
+    disparity = cv2.resize(truth.astype(np.float32), size,
+                           interpolation=cv2.INTER_NEAREST).astype(float) * scale
+    disparity[disparity == 0] = np.nan
+    return (cv2.resize(left, size, interpolation=cv2.INTER_AREA),
+            cv2.resize(right, size, interpolation=cv2.INTER_AREA), disparity)
+
+
+# --- DFrFT ------------------------------------------------------------------------------
+
+@pytest.mark.parametrize('n', [2, 7, 8, 33, 64])
+def test_dfrft_is_unitary_additive_and_order_one_is_the_dft(n):
+    dft = np.fft.fft(np.eye(n), norm='ortho')
+    assert np.allclose(commuting_matrix(n) @ dft, dft @ commuting_matrix(n), atol=1e-12)
+    assert np.allclose(dfrft_matrix(n, np.pi / 2), dft, atol=1e-12)
+    assert np.allclose(dfrft_matrix(n, 0.0), np.eye(n), atol=1e-12)
+    assert np.allclose(dfrft_matrix(n, np.pi), dft @ dft, atol=1e-12)  # order 2: parity
+    rng = np.random.default_rng(n)
+    for a, b in rng.uniform(-np.pi, np.pi, (3, 2)):
+        K = dfrft_matrix(n, a)
+        assert np.allclose(K.conj().T @ K, np.eye(n), atol=1e-12)
+        assert np.allclose(K @ dfrft_matrix(n, b), dfrft_matrix(n, a + b), atol=1e-11)
+        assert np.allclose(dfrft_matrix(n, -a) @ K, np.eye(n), atol=1e-12)
+
+
+def test_dfrft2_at_quarter_turns_is_the_2d_dft_and_keeps_energy():
+    X = np.random.default_rng(1).random((12, 17))
+    assert np.allclose(dfrft2(X, (np.pi / 2, np.pi / 2)), np.fft.fft2(X, norm='ortho'))
+    Y = dfrft2(X, (0.4, 1.1))
+    assert np.isclose(np.linalg.norm(Y), np.linalg.norm(X))
+    assert np.allclose(dfrft2(Y, (-0.4, -1.1)), X)
+
+
+def test_zigzag_is_jpegs_scan_and_inverts():
+    expected = [0, 1, 4, 8, 5, 2, 3, 6, 9, 12, 13, 10, 7, 11, 14, 15]  # JPEG's 4x4 order
+    assert zigzag_order(4, 4).tolist() == expected
+    X = np.random.default_rng(2).integers(0, 255, (9, 14)).astype(np.uint8)
+    assert np.array_equal(zigzag_restore(zigzag_degrade(X)), X)
+    assert not np.array_equal(zigzag_degrade(X), X)
+
+
+# --- thesis method ------------------------------------------------------------------------
+
+def test_thesis_round_trip_returns_the_disparity_within_quantisation(tmp_path):
+    left, _, disparity = aloe(160)
+    coded, key = thesis.encode(left, disparity)
+    key.save(tmp_path / 'key.npz')
+    restored, decoded, singular = thesis.decode(coded, thesis.ThesisKey.load(tmp_path / 'key.npz'))
+    watermark = np.nan_to_num(disparity)
+    error = decoded - watermark
+    # Only the real part and 8-bit rounding of F* lose information (A6.3): measured
+    # RMS 0.05 px, max 0.29 px.
+    assert np.sqrt(np.mean(error ** 2)) < 0.2
+    assert np.max(np.abs(error)) < 1.0
+    assert correlation(thesis.watermark_singular_values(disparity), singular) > 0.999
+    # A permutation keeps the MSE: Table 6.2's two columns agree here (A6.1).
+    assert np.isclose(psnr(zigzag_degrade(left), coded), psnr(left, restored))
+    assert 25.0 < psnr(left, restored) < 60.0
+
+
+def test_thesis_key_file_errors_name_the_file(tmp_path):
+    with pytest.raises(KeyFileError, match='does not exist'):
+        thesis.ThesisKey.load(tmp_path / 'missing.npz')
+    corrupt = tmp_path / 'corrupt.npz'
+    corrupt.write_bytes(b'not a key at all')
+    with pytest.raises(KeyFileError, match='not a thesis key'):
+        thesis.ThesisKey.load(corrupt)
+    left, _, disparity = generated_scene((24, 32), seed=3)
+    _, key = thesis.encode(left, disparity)
+    with pytest.raises(KeyFileError, match='24x32'):
+        thesis.decode(np.zeros((24, 30), np.uint8), key)
+
+
+# --- ours ---------------------------------------------------------------------------------
+
+def cell_truth(disparity):
+    """The embedded disparity as the code represents it (cell medians, 6 bits)."""
+    return blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
+
+
+@pytest.mark.parametrize('source', ['aloe', 'generated'])
+def test_ours_survives_jpeg_50_with_its_payload_exact(source):
+    if source == 'aloe':
+        left, _, disparity = aloe(640)
+    else:
+        left, _, disparity = generated_scene((480, 640), seed=11)
+    coded = blind.encode(left, disparity, key='k1')
+    assert psnr(left, coded) > 42.0
+    assert ssim(left, coded) > 0.97
+    received, _ = jpeg(coded, 50)
+    detection = blind.decode(received, key='k1')
+    assert detection.found and detection.confidence > 0.5
+    assert np.array_equal(detection.bits, blind.disparity_code(disparity))
+    # The decoded map is the code's cells, upsampled along image edges.
+    error = detection.disparity_px - cell_truth(disparity)
+    known = np.isfinite(error)
+    assert known.mean() > 0.95
+    span = np.nanmax(disparity) - np.nanmin(disparity)
+    assert np.sqrt(np.mean(error[known] ** 2)) < 0.1 * span
+
+
+def test_ours_says_no_watermark_on_unmarked_and_wrong_key_images():
+    left, _, disparity = generated_scene((240, 320), seed=5)
+    coded = blind.encode(left, disparity, key='right key')
+    assert blind.decode(coded, key='right key').found
+    false_positives = 0
+    for trial in range(100):
+        unmarked, _, _ = generated_scene((240, 320), seed=1000 + trial)
+        false_positives += blind.decode(unmarked, key='right key').found
+        false_positives += blind.decode(coded, key=f'wrong key {trial}').found
+    assert false_positives == 0
+    miss = blind.decode(coded, key='wrong key')
+    assert miss.disparity_px is None and miss.confidence < 0.5
+
+
+def test_ours_rejects_bad_input():
+    left, _, disparity = generated_scene((64, 80), seed=6)
+    with pytest.raises(CodingError, match='differ in size'):
+        blind.encode(left, disparity[:, :40], key='k')
+    with pytest.raises(CodingError, match='uint8'):
+        blind.encode(left.astype(float), disparity, key='k')
+    with pytest.raises(CodingError, match='smaller than one'):
+        blind.decode(np.zeros((4, 4), np.uint8), key='k')
+
+
+def test_synthesised_right_view_of_a_constant_shift_is_the_shifted_image():
+    left = np.random.default_rng(7).integers(0, 255, (20, 40)).astype(np.uint8)
+    right = synthesise_right(left, np.full(left.shape, 5.0))
+    assert np.array_equal(right[:, :35], left[:, 5:])
+    # The uncovered right border takes the nearest known pixel on its left.
+    assert np.array_equal(right[:, 35:], np.repeat(left[:, 39:40], 5, axis=1))
+
+
+def test_synthesised_right_view_of_aloe_beats_the_left_view():
+    left, right, disparity = aloe(320)
+    synthetic = synthesise_right(left, disparity)
+    assert psnr(right, synthetic) > psnr(right, left) + 3.0
+
+
+def test_ours_code_corrects_byte_errors_and_refuses_beyond_its_capacity():
+    _, _, disparity = generated_scene((240, 320), seed=8)
+    bits = blind.disparity_code(disparity)
+    clean = blind.disparity_from_code(bits, disparity.shape)
+    rng = np.random.default_rng(9)
+    correctable = bits.copy()
+    bytes_hit = rng.choice(bits.size // 8, blind.RS_PARITY_BYTES // 2, replace=False)
+    correctable[bytes_hit * 8 + rng.integers(0, 8, bytes_hit.size)] ^= 1
+    np.testing.assert_array_equal(blind.disparity_from_code(correctable, disparity.shape), clean)
+    too_many = bits.copy()
+    too_many[rng.choice(bits.size, bits.size // 4, replace=False)] ^= 1
+    assert blind.disparity_from_code(too_many, disparity.shape) is None
+
+
+def test_ours_resynchronises_a_rotation_and_finds_nothing_in_a_rotated_unmarked_image():
+    from stereo_coding_node.channel import rotate
+    left, _, disparity = generated_scene((240, 320), seed=12)
+    coded = blind.encode(left, disparity, key='k')
+    assert not blind.decode(rotate(coded, 7.3), key='k').found  # without resynchronisation
+    detection, angle = blind.decode_rotated(rotate(coded, 7.3), key='k', max_degrees=10.0)
+    assert detection.found and abs(angle + 7.3) < 0.051
+    np.testing.assert_array_equal(detection.bits, blind.disparity_code(disparity))
+    unmarked, _ = blind.decode_rotated(rotate(left, 7.3), key='k', max_degrees=10.0)
+    assert not unmarked.found
