@@ -38,12 +38,13 @@ def small_scenario(tmp_path):
 
 def collect(rclpy_node):
     received = {'disparity': [], 'stereo': [], 'sfs': [], 'fused': [], 'info': [],
-                'diagnostics': []}
+                'left_rect': [], 'diagnostics': []}
     for key, msg_type, topic in (('disparity', DisparityImage, '/stereo/disparity'),
                                  ('stereo', Image, '/depth/stereo'),
                                  ('sfs', Image, '/depth/sfs'),
                                  ('fused', Image, '/depth/fused'),
                                  ('info', CameraInfo, '/depth/camera_info'),
+                                 ('left_rect', Image, '/stereo/left/image_rect'),
                                  ('diagnostics', DiagnosticArray, '/diagnostics')):
         rclpy_node.create_subscription(msg_type, topic, received[key].append, DEFAULT_QOS)
     return received
@@ -72,9 +73,10 @@ def test_fused_depth_of_the_sim_scene_matches_ground_truth(spawn, rclpy_node, tm
 
     def complete_stamp():
         common = stamps(received['fused']) & stamps(received['stereo']) & \
-            stamps(received['sfs']) & stamps(received['disparity']) & stamps(received['info'])
+            stamps(received['sfs']) & stamps(received['disparity']) & stamps(received['info']) \
+            & stamps(received['left_rect'])
         return min(common) if common else None
-    rclpy_node.spin_until(complete_stamp, 90, 'all five outputs of one pair')
+    rclpy_node.spin_until(complete_stamp, 90, 'all six outputs of one pair')
     stamp = complete_stamp()
     pick = {k: next(m for m in v if stamp_to_ns(m.header.stamp) == stamp)
             for k, v in received.items() if k != 'diagnostics'}
@@ -82,6 +84,10 @@ def test_fused_depth_of_the_sim_scene_matches_ground_truth(spawn, rclpy_node, tm
         msg = pick[key]
         assert (msg.encoding, msg.width, msg.height, msg.header.frame_id) == \
             ('32FC1', 320, 240, FRAME), key
+    left_rect = pick['left_rect']  # the stereo coding nodes' host image
+    assert (left_rect.encoding, left_rect.width, left_rect.height,
+            left_rect.header.frame_id) == ('mono8', 320, 240, FRAME)
+    assert image_to_numpy(left_rect).std() > 5  # the scene, not a blank
     info, disparity = pick['info'], pick['disparity']
     assert info.header.frame_id == FRAME and (info.width, info.height) == (320, 240)
     P_left = rig['left'][2]

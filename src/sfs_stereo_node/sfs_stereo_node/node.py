@@ -136,7 +136,8 @@ class SfsStereoNode(Node):
                                      ('stereo', Image, '/depth/stereo'),
                                      ('sfs', Image, '/depth/sfs'),
                                      ('fused', Image, '/depth/fused'),
-                                     ('info', CameraInfo, '/depth/camera_info'))}
+                                     ('info', CameraInfo, '/depth/camera_info'),
+                                     ('left_rect', Image, '/stereo/left/image_rect'))}
         self.sync = ExactTimeSync(('left', 'right'), self._on_pair, queue_size=10,
                                   max_wait=self.params.sync_max_wait)
         self.sync_lock = threading.Lock()
@@ -308,6 +309,9 @@ class SfsStereoNode(Node):
             self.publishers_[key].publish(numpy_to_image(depth, '32FC1', stamp_ns,
                                                          DEPTH_FRAME))
         self.publishers_['info'].publish(info)
+        # The host image of the stereo coding nodes: the disparity's grid and stamp.
+        self.publishers_['left_rect'].publish(numpy_to_image(result.left_rect, 'mono8',
+                                                             stamp_ns, DEPTH_FRAME))
 
     def _publish_diagnostics(self):
         values = {'frames processed': self.processed, 'frames dropped (busy)': self.dropped,

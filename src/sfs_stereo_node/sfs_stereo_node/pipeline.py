@@ -90,6 +90,7 @@ class DepthResult(NamedTuple):
     fusion: str = ''  # the fusion that made depth_fused ('' = none)
     warnings: tuple = ()  # why the result is less than asked for (fallbacks, doubts)
     confidence: dict = {}  # per-frame match quality (README: diagnostics)
+    left_rect: np.ndarray = None  # (h, w) uint8, the rectified left image matched
 
 
 def to_grey(image):
@@ -228,7 +229,8 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
                   depth_stereo=depth_stereo.astype(np.float32), depth_sfs=None,
                   depth_fused=None, surface=surface, focal_px=small.focal_px,
                   baseline_m=small.baseline_m, P=small.P_left, valid_window=_valid_window(valid),
-                  density=density, timings=timings, confidence=confidence)
+                  density=density, timings=timings, confidence=confidence,
+                  left_rect=np.clip(np.rint(left), 0, 255).astype(np.uint8))
     if matched.sum() < 8:
         warnings.append(f'only {int(matched.sum())} confident stereo matches: nothing '
                         'fixes the depth scale, no SFS or fused depth')
