@@ -15,7 +15,6 @@ import bad_messages
 import numpy as np
 import pytest
 import rclpy
-import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from fuzz_tools import Fuzzer, fuzz_parameters, wait_gone
 from geometry_msgs.msg import PoseStamped, WrenchStamped
@@ -27,7 +26,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from bag_tools.bag_writer import BagWriter
-from harness import SCENARIO_DIR, executable, publish_rig
+from harness import executable, publish_rig, small_scenario
 from sensor_sim.render import SceneRenderer, add_noise
 from vgm_common.calibration_io import write_calibration
 from vgm_common.camera_topics import CAMERA_INFO_TOPICS, IMAGE_TOPICS, OPTICAL_FRAMES
@@ -52,15 +51,7 @@ def small_scene(tmp_path_factory):
     """The default scenario at 320x240 (intrinsics halved), its true calibration file,
     and a renderer of it."""
     directory = tmp_path_factory.mktemp('scene')
-    data = yaml.safe_load((SCENARIO_DIR / 'default.yaml').read_text())
-    for camera in data['cameras'].values():
-        camera['width'], camera['height'] = 320, 240
-        for key in ('fx', 'fy'):
-            camera[key] /= 2
-        for key in ('cx', 'cy'):
-            camera[key] = (camera[key] + 0.5) / 2 - 0.5
-    path = directory / 'small.yaml'
-    path.write_text(yaml.safe_dump(data))
+    path = small_scenario(directory)
     scenario = load_scenario(path)
     write_calibration(directory / 'calibration', scenario.cameras, OPTICAL_FRAMES)
     return scenario, path, directory / 'calibration' / 'calibration.yaml', \

@@ -3,12 +3,11 @@ sfs_stereo_node with the true calibration published as calib_node would -> the f
 outputs, fused depth against the simulator's ground truth; and bad input."""
 import numpy as np
 import pytest
-import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import CameraInfo, Image
 from stereo_msgs.msg import DisparityImage
 
-from harness import SCENARIO_DIR, executable, publish_rig, wait_for
+from harness import executable, publish_rig, small_scenario, wait_for
 from sfs_stereo_node.rectify import raw_depth_to_rectified, rectification_maps
 from vgm_common.calibration_io import write_calibration
 from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
@@ -19,21 +18,6 @@ from vgm_common.scenario import load_scenario
 FRAME = 'stereo_left_optical_frame'
 # Disparity search: up to 160 px, narrowed by the default depth band 0.35-1.5 m.
 NODE_ARGS = ['-p', 'downsample:=1', '-p', 'max_disparity:=160', '-p', 'log_every:=0.0']
-
-
-def small_scenario(tmp_path):
-    """The default scenario with 320x240 cameras (intrinsics halved), no calibration."""
-    data = yaml.safe_load((SCENARIO_DIR / 'default.yaml').read_text())
-    for camera in data['cameras'].values():
-        camera['width'], camera['height'] = 320, 240
-        for key in ('fx', 'fy'):
-            camera[key] /= 2
-        # pixel centres: u_small = (u + 0.5) / 2 - 0.5
-        for key in ('cx', 'cy'):
-            camera[key] = (camera[key] + 0.5) / 2 - 0.5
-    path = tmp_path / 'small.yaml'
-    path.write_text(yaml.safe_dump(data))
-    return path
 
 
 def collect(rclpy_node):
