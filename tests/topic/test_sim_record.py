@@ -41,7 +41,10 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
                       '-p', f'output_dir:={tmp_path}', '-p', 'bag_name:=sim'])
     rclpy_node.spin_until(lambda: 'recorder' in rclpy_node.get_node_names(), 30,
                           'the recorder to join the graph')
+    # Publishing waits until this probe and the recorder match every camera (a reliable
+    # publisher drops what it sends before discovery), as make demo runs it.
     sim = spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default',
+                 '-p', 'min_subscribers:=2',
                  '-p', f'rate:={RATE_HZ}', '-p', f'ground_truth_dir:={tmp_path / "truth"}'])
     wanted = chart_captures + 10
     rclpy_node.spin_until(lambda: len(received['/aux/image_raw']) >= wanted, 90,
