@@ -48,7 +48,7 @@ from sensor_sim.surfaces import signed_height_base  # noqa: E402
 from vgm_common.camera_topics import IMAGE_TOPICS, CalibratedCameras  # noqa: E402
 from vgm_common.conversions import image_to_numpy, pose_to_matrix  # noqa: E402
 from vgm_common.launcher import Launch  # noqa: E402
-from vgm_common.node_tools import parse_published_counts  # noqa: E402
+from vgm_common.node_tools import parse_published_counts, use_fastdds_profile  # noqa: E402
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS  # noqa: E402
 from vgm_common.scenario import load_scenario, resolve_scenario_path  # noqa: E402
 
@@ -88,6 +88,7 @@ class GraphProbe:
 
     def __init__(self):
         self.context = rclpy.Context()
+        use_fastdds_profile()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node('demo_probe', context=self.context)
         self.cameras = CalibratedCameras(self.node)

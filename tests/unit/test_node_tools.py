@@ -13,7 +13,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from vgm_common.node_tools import (
-    _FASTDDS_PROFILE_VARIABLES,
     Diagnostics,
     NodeParameters,
     Param,
@@ -24,11 +23,9 @@ from vgm_common.node_tools import (
 
 @pytest.fixture
 def private_domain(ros_env, monkeypatch):
-    """This process on the test's private domain; init_rclpy's profile variables undone."""
+    """This process on the test's private domain."""
     for key in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE'):
         monkeypatch.setenv(key, ros_env[key])
-    for key in _FASTDDS_PROFILE_VARIABLES:
-        monkeypatch.delenv(key, raising=False)
 
 
 @pytest.fixture

@@ -231,8 +231,11 @@ class CalibNode(Node):
             self.create_subscription(Image, IMAGE_TOPICS[name],
                                      lambda msg, n=name: self._offer(n, msg), DEFAULT_QOS,
                                      callback_group=inputs)
+        # The poses get their own group: in one group with the images, rclpy's executor
+        # serves a backlog of images first (subscription order), and under load a
+        # set's pose came later than TARGET_WAIT_S. _on_target only takes self.lock.
         self.create_subscription(PoseStamped, TARGET_POSE_TOPIC, self._on_target, DEFAULT_QOS,
-                                 callback_group=inputs)
+                                 callback_group=MutuallyExclusiveCallbackGroup())
         self.create_timer(1.0, self._publish_status)
         self.get_logger().info(
             f'collecting chart views ({p.method}, {self._param("chart.rows")}x'

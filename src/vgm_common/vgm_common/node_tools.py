@@ -265,26 +265,33 @@ class Diagnostics:
                      {'count': self.rejected[what]})
 
 
+def fastdds_profile():
+    """The graph's Fast DDS profile (config/fastdds.xml: a shared-memory segment large
+    enough for image bursts, 50 ms heartbeats), installed or in the source tree."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        return Path(get_package_share_directory('vgm_common')) / 'config' / 'fastdds.xml'
+    except (ImportError, LookupError):
+        return Path(__file__).resolve().parent.parent / 'config' / 'fastdds.xml'
+
+
+def use_fastdds_profile(environ=os.environ):
+    """Point Fast DDS at fastdds_profile() unless the user chose a profile."""
+    if not any(environ.get(k) for k in FASTDDS_PROFILE_VARIABLES):
+        for variable in FASTDDS_PROFILE_VARIABLES:
+            environ[variable] = str(fastdds_profile())
+
+
 def init_rclpy(args=None):
-    """``rclpy.init`` as every node of the graph does it: with our Fast DDS profile (a
-    shared-memory segment large enough for image bursts; see config/fastdds.xml) unless
-    the user set one, and without rclpy's signal handlers (the caller installs its own,
-    so shutdown code still has a valid context)."""
-    if not any(os.environ.get(k) for k in _FASTDDS_PROFILE_VARIABLES):
-        profile = Path(__file__).resolve().parent.parent / 'config' / 'fastdds.xml'
-        try:
-            from ament_index_python.packages import get_package_share_directory
-            profile = Path(get_package_share_directory('vgm_common')) / 'config' / 'fastdds.xml'
-        except (ImportError, LookupError):
-            pass  # running from the source tree
-        if profile.exists():
-            for variable in _FASTDDS_PROFILE_VARIABLES:
-                os.environ[variable] = str(profile)
+    """``rclpy.init`` as every node of the graph does it: with our Fast DDS profile
+    (use_fastdds_profile) and without rclpy's signal handlers (the caller installs its
+    own, so shutdown code still has a valid context)."""
+    use_fastdds_profile()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
 
 
 # Fast DDS 2.x reads the first, 3.x the second.
-_FASTDDS_PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
+FASTDDS_PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
 
 POLL_PERIOD = 0.1  # [s] how often spinning checks a node's exit request
