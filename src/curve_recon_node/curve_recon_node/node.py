@@ -188,8 +188,10 @@ class CurveReconNode(Node):
             self.create_subscription(Image, IMAGE_TOPICS[name],
                                      lambda msg, n=name: self._on_image(n, msg), DEFAULT_QOS,
                                      callback_group=sensors)
+        # its own group: behind a backlog of images (served first, in subscription
+        # order) a chart pose could come later than CHART_POSE_GRACE
         self.create_subscription(PoseStamped, TARGET_POSE_TOPIC, self._on_target_pose,
-                                 DEFAULT_QOS, callback_group=sensors)
+                                 DEFAULT_QOS, callback_group=MutuallyExclusiveCallbackGroup())
         self.create_subscription(Image, DEPTH_TOPIC, self._on_depth, DEFAULT_QOS,
                                  callback_group=sensors)
         self.create_subscription(CameraInfo, DEPTH_INFO_TOPIC, self._on_depth_info,
@@ -215,11 +217,6 @@ class CurveReconNode(Node):
 
     # --- inputs ----------------------------------------------------------------------
 
-    def _on_calibration_change(self, name):
-        with self.state_lock:
-            self.auto_pending = True
-            self.last_auto_attempt = -np.inf
-
     def _new_sync(self, views):
         keys = CAMERA_NAMES if views == 3 else CAMERA_NAMES[:2]
         self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
@@ -242,7 +239,8 @@ class CurveReconNode(Node):
 
     @guarded(TARGET_POSE_TOPIC)
     def _on_target_pose(self, msg):
-        self.chart_stamps.append(stamp_to_ns(msg.header.stamp))
+        with self.state_lock:
+            self.chart_stamps.append(stamp_to_ns(msg.header.stamp))
 
     @guarded('image')
     def _on_image(self, name, msg):
@@ -431,12 +429,12 @@ class CurveReconNode(Node):
         # The chart's pose, stamped like its images, may arrive after them: give it
         # CHART_POSE_GRACE before taking a capture for one of the scene.
         self.stopping.wait(CHART_POSE_GRACE)
-        if stamp_ns in self.chart_stamps:
-            with self.state_lock:
+        with self.state_lock:
+            if stamp_ns in self.chart_stamps:
                 self.skipped_chart += 1
                 self.service_requests = requests + self.service_requests
-            requests.clear()  # they wait for the next capture
-            return False, 'chart capture'
+                requests.clear()  # they wait for the next capture
+                return False, 'chart capture'
         success, message = self._reconstruct(stamp_ns, messages, names)
         with self.state_lock:
             if success:

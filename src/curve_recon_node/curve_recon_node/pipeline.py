@@ -21,7 +21,9 @@ from curve_recon_node.waypoints import (
     resample,
     smooth_along_curve,
     split_at_gaps,
+    stranded_runs,
     tangents,
+    without_reversals,
 )
 from vgm_common.errors import InvalidInput
 
@@ -207,8 +209,10 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
     # each would otherwise open the loop or split the curve at its two jumps
     _, inlier = smooth_along_curve(points, closed, settings.smoothing_window, sample_index,
                                    period=n_chain if closed else None)
-    stats['outliers'] = int((~inlier).sum())
     points, sample_index = points[inlier], sample_index[inlier]
+    alone = stranded_runs(points, closed, max_gap)
+    stats['outliers'] = int((~inlier).sum() + alone.sum())
+    points, sample_index = points[~alone], sample_index[~alone]
     ordered, closed, parameter = open_at_largest_gap(points, closed, max_gap, sample_index)
     # never bridge a gap with a straight line: keep the longest gap-free run (two views
     # leave gaps where the intersection is ambiguous)
@@ -222,7 +226,7 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
                       'points', key='no curve', value=stats)
     smoothed, kept = smooth_along_curve(ordered, closed, settings.smoothing_window,
                                         parameter, period=n_chain if closed else None)
-    waypoints = resample(smoothed, closed, settings.spacing)
+    waypoints = resample(without_reversals(smoothed, closed), closed, settings.spacing)
     # the published raw points: those that passed the third view and the outlier test
     points = ordered[kept]
     clock.lap('ordering, smoothing, resampling')

@@ -47,6 +47,48 @@ def open_at_largest_gap(points, closed, max_gap_m, parameter=None):
     return np.roll(points, -(widest + 1), axis=0), False, rolled
 
 
+def stranded_runs(points, closed, max_gap_m, min_points=5):
+    """Mask (N,) of the points in runs of fewer than ``min_points`` cut off on both sides
+    by steps longer than ``max_gap_m`` [m] (around the loop if ``closed``): a few points
+    on their own are no evidence of the curve (a wrong root the outlier test could not
+    judge, its neighbours gone), and kept they open a loop or split a curve at their
+    two jumps. Nothing is stranded when all points form one run."""
+    points = _as_points(points)
+    steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    if closed:
+        steps = np.append(steps, np.linalg.norm(points[0] - points[-1]))
+    cuts = np.nonzero(steps > max_gap_m)[0] + 1  # a run starts at each cut
+    stranded = np.zeros(len(points), dtype=bool)
+    if len(cuts) < 2:
+        return stranded  # one run (a closed loop with one gap is one run too)
+    starts = cuts % len(points) if closed else np.concatenate([[0], cuts])
+    ends = np.roll(starts, -1) if closed else np.append(cuts, len(points))
+    for start, end in zip(starts, ends):
+        run = np.arange(start, end if end > start else end + len(points)) % len(points)
+        if len(run) < min_points:
+            stranded[run] = True
+    if stranded.all():
+        return np.zeros(len(points), dtype=bool)  # all runs short: leave the judgement
+    return stranded
+
+
+def without_reversals(points, closed):
+    """The ordered points without those where the path turns back (the steps before and
+    after point i point more than 90 degrees apart): a local fit in a sparse stretch of
+    the curve can overshoot and return, and resampled through, that hairpin gives two
+    waypoints far closer than the spacing. Returns (K, 3)."""
+    points = _as_points(points)
+    while len(points) > 3:
+        loop = np.vstack([points[-1:], points, points[:1]]) if closed else points
+        steps = np.diff(loop, axis=0)
+        turns = np.sum(steps[1:] * steps[:-1], axis=1)  # at points 1..n-2 (open)
+        backwards = np.flatnonzero(turns < 0)
+        if not len(backwards):
+            break
+        points = np.delete(points, backwards[0] + (0 if closed else 1), axis=0)
+    return points
+
+
 def split_at_gaps(points, max_gap_m):
     """Index arrays of the runs of an ordered open sequence between steps longer than
     ``max_gap_m`` [m]."""
