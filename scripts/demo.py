@@ -514,7 +514,10 @@ def main():
         'sfs_stereo_node': {'light_direction': [float(v) for v in light],
                             'albedo': scenario.surface.albedo,
                             'roughness': scenario.surface.roughness},
-        'pa10_ik_node': {'robot': scenario.robot.model,
+        # the recorder and live_view have matched /tool_pose before the loop starts (a
+        # remote arm's endpoints are discovered later than the simulator's)
+        'pa10_ik_node': {'min_subscribers': 2,
+                         'robot': scenario.robot.model,
                          'tool_length': scenario.robot.tool_length,
                          'desired_force': DESIRED_FORCE}})
     log_file = open(work_dir / 'launch.log', 'w')

@@ -5,6 +5,7 @@ import array
 import os
 import signal
 import threading
+import time
 
 import pytest
 import rclpy
@@ -17,6 +18,7 @@ from vgm_common.node_tools import (
     NodeParameters,
     Param,
     ParameterError,
+    SubscriberGate,
     run_node,
 )
 
@@ -162,6 +164,24 @@ class _Ticker(Node):
         self.log.append(('close', self.ticks))
 
 
+def test_subscriber_gate_opens_on_matched_subscribers_or_after_its_timeout(make_node):
+    from std_msgs.msg import String
+
+    from vgm_common.qos import DEFAULT_QOS
+    node = make_node()
+    publisher = node.create_publisher(String, '/gated', DEFAULT_QOS)
+    gate = SubscriberGate(node, [publisher], min_subscribers=1, timeout=60.0)
+    assert not gate.is_open() and not gate.opened.is_set()
+    node.create_subscription(String, '/gated', lambda msg: None, DEFAULT_QOS)
+    deadline = time.monotonic() + 10.0
+    while not gate.is_open():
+        assert time.monotonic() < deadline, 'the gate did not open on a matched subscriber'
+        time.sleep(0.01)
+    assert gate.opened.is_set() and gate.is_open()  # open for good
+    lonely = node.create_publisher(String, '/nobody_listens', DEFAULT_QOS)
+    assert SubscriberGate(node, [lonely], 1, timeout=0.0).is_open()  # waited long enough
+
+
 def test_run_node_ends_on_the_node_s_exit_request_with_its_status(private_domain):
     class Finisher(_Ticker):
         log = []
@@ -219,6 +239,10 @@ def test_run_node_reports_a_bad_parameter_in_one_line(private_domain, capfd):
     (None, 'cannot read params file'),
     ('ticker: [\n', 'is not valid YAML (line 2)'),
     ('- a\n- b\n', 'must map node names'),
+    # YAML that only rcl's parser refuses (rcl's own 'Failed to parse global arguments'
+    # line is held back)
+    ('ticker:\n  rate: 3\n', 'Cannot have a value before ros__parameters'),
+    ('ticker:\n  ros__parameters:\n    names: [1, "a"]\n', 'Sequence should be of same type'),
 ])
 def test_run_node_reports_a_bad_params_file_in_one_line(private_domain, capfd, tmp_path,
                                                         content, reason):

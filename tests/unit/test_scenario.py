@@ -131,14 +131,17 @@ def test_curve_is_inside_every_image(path):
         assert_inside(camera, points, what=f'{name}: curve samples')
 
 
-@pytest.mark.parametrize('path', SHIPPED, ids=ids(SHIPPED))
+# the scenarios whose curve floats in front of a background plane (elsewhere it lies on
+# the surface)
+PLANE_BACKED = [p for p in SHIPPED if load_scenario(p).surface.kind == 'plane']
+
+
+@pytest.mark.parametrize('path', PLANE_BACKED, ids=ids(PLANE_BACKED))
 def test_background_plane_is_behind_the_curve(path):
     """Along every camera ray through a curve sample the plane comes after the sample, inside
     its extent: the curve floats in front of it and is seen against it."""
     scenario = load_scenario(path)
     surface = scenario.surface
-    if surface.kind != 'plane':
-        pytest.skip('the curve lies on this surface')
     points = curve_samples_base(scenario.curve, surface)
     R, origin = surface.T_base_surface[:3, :3], surface.T_base_surface[:3, 3]
     normal = R[:, 2]

@@ -31,7 +31,14 @@ from pa10_ik_node.tracking import (
 )
 from vgm_common.conversions import matrix_to_pose_stamped, path_to_matrices
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import (
+    CountingPublisher,
+    Diagnostics,
+    NodeParameters,
+    Param,
+    SubscriberGate,
+    run_node,
+)
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import load_robot
 
@@ -148,6 +155,12 @@ class Pa10IkNode(Node):
                   'pressure are there.'),
             Param('diagnostics_rate', 2.0, '[Hz] Rate of the tracking diagnostics.',
                   range=(0.1, 50.0), read_only=True),
+            Param('min_subscribers', 0, 'Run the loop (and publish /tool_pose) only once '
+                  '/tool_pose has this many matched subscribers (a recorder), at most '
+                  'subscriber_timeout: a reliable publisher drops what it sends before '
+                  'discovery. 0 = start at once.', range=(0, 100), read_only=True),
+            Param('subscriber_timeout', 30.0, '[s] Longest wait for min_subscribers.',
+                  range=(0.0, 3600.0), read_only=True),
         ], self.diagnostics)
         p = self.params
         try:
@@ -184,6 +197,8 @@ class Pa10IkNode(Node):
             publisher_class=CountingPublisher)
         self.pose_publisher = self.create_publisher(PoseStamped, '/tool_pose', DEFAULT_QOS,
                                                    publisher_class=CountingPublisher)
+        self.pose_gate = SubscriberGate(self, [self.pose_publisher], p.min_subscribers,
+                                        p.subscriber_timeout)
         self.create_subscription(JointState, '/joint_states', self._on_joint_state,
                                  DEFAULT_QOS)
         self.create_subscription(WrenchStamped, '/tool/pressure', self._on_pressure,
@@ -348,7 +363,7 @@ class Pa10IkNode(Node):
 
     @_guarded('control step')
     def _control_step(self):
-        if self.q is None:
+        if self.q is None or not self.pose_gate.is_open():
             return
         controller = self.controller
         if self.params.auto_start and controller.phase == 'idle' and \

@@ -27,7 +27,7 @@ from vgm_common.calibration_io import write_calibration
 from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import Diagnostics, NodeParameters, Param, SubscriberGate, run_node
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.robot_model import load_robot
 from vgm_common.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
@@ -99,8 +99,8 @@ class SensorSim(Node):
             self.chart_frames = len(calibration.T_base_chart) * calibration.captures_per_pose
         self.frame_index = 0
         self.capture_lock, self.arm_lock = threading.Lock(), threading.Lock()
-        self.started = threading.Event()  # set once min_subscribers matched
-        self.created = time.monotonic()
+        self.gate = SubscriberGate(self, self.image_publishers.values(),
+                                   self.params.min_subscribers, self.params.subscriber_timeout)
         self.closed = False
         self.published = {topic: 0 for topic in (*IMAGE_TOPICS.values(), TARGET_POSE_TOPIC,
                                                  '/joint_states', '/tool/pressure')}
@@ -136,22 +136,11 @@ class SensorSim(Node):
 
     def _capture(self):
         """One capture: the three images (and the chart pose) with one stamp."""
-        if not self.started.is_set() and not self._subscribers_ready():
+        if not self.gate.is_open():  # the arm starts publishing too
             return
         with self.capture_lock:
             if not self.closed:
                 self._publish_capture()
-
-    def _subscribers_ready(self):
-        """True (and the arm starts publishing too) once ``min_subscribers`` match, or
-        ``subscriber_timeout`` passed."""
-        matched = min(p.get_subscription_count() for p in self.image_publishers.values())
-        waited = time.monotonic() - self.created
-        if matched >= self.params.min_subscribers or waited > self.params.subscriber_timeout:
-            if self.params.min_subscribers:
-                self.get_logger().info(f'{matched} subscribers matched after {waited:.1f} s')
-            self.started.set()
-        return self.started.is_set()
 
     def _publish_capture(self):
         stamp_ns = self.get_clock().now().nanoseconds
@@ -202,7 +191,7 @@ class SensorSim(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _run_arm(self):
-        self.started.wait()
+        self.gate.opened.wait()
         next_tick = time.monotonic()
         while True:
             with self.arm_lock:
@@ -253,7 +242,7 @@ class SensorSim(Node):
         # so the counts are final.
         with self.capture_lock, self.arm_lock:
             self.closed = True
-        self.started.set()  # releases an arm thread still waiting for subscribers
+        self.gate.opened.set()  # releases an arm thread still waiting for subscribers
         counts = ' '.join(f'{topic}={n}' for topic, n in self.published.items())
         self.get_logger().info(f'published: {counts}')
 

@@ -1,11 +1,13 @@
 """What every node does at its edges: typed parameters with descriptors and validation,
 diagnostics on /diagnostics, throttled rejection of bad input, and a clean ``main``."""
 import array
+import contextlib
 import math
 import os
 import re
 import signal
 import sys
+import tempfile
 import threading
 import time
 from collections import deque
@@ -196,6 +198,32 @@ class CountingPublisher(Publisher):
         self.sent += 1
 
 
+class SubscriberGate:
+    """Holds a stream back until each of ``publishers`` has ``min_subscribers`` matched
+    subscribers (a recorder, the pipeline), or ``timeout`` [s] passed since its creation:
+    a reliable publisher drops what it sends before discovery has matched a reader, so a
+    recorder started alongside would miss a stream's first messages. Thread-safe;
+    ``opened`` is set once open."""
+
+    def __init__(self, node, publishers, min_subscribers, timeout):
+        self._node, self._publishers = node, tuple(publishers)
+        self._min_subscribers, self._timeout = min_subscribers, timeout
+        self._created = time.monotonic()
+        self.opened = threading.Event()
+
+    def is_open(self):
+        if self.opened.is_set():
+            return True
+        matched = min(p.get_subscription_count() for p in self._publishers)
+        waited = time.monotonic() - self._created
+        if matched >= self._min_subscribers or waited > self._timeout:
+            if self._min_subscribers:
+                self._node.get_logger().info(f'{matched} subscribers matched after '
+                                             f'{waited:.1f} s')
+            self.opened.set()
+        return self.opened.is_set()
+
+
 def parse_published_counts(log_text):
     """{topic: messages published} from a node's 'published: /topic=N ...' log lines (a
     node may log several; a topic counted in several lines keeps the last count)."""
@@ -287,7 +315,27 @@ def init_rclpy(args=None):
     (use_fastdds_profile) and without rclpy's signal handlers (the caller installs its
     own, so shutdown code still has a valid context)."""
     use_fastdds_profile()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    with _stderr_kept_on_success():
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+
+
+@contextlib.contextmanager
+def _stderr_kept_on_success():
+    """Hold back what this process writes to stderr (file descriptor 2, so rcl's own C
+    logging too) in the block: written out if the block succeeds, dropped if it raises.
+    rcl logs 'Failed to parse global arguments' before raising the error that says what
+    failed; the caller reports that one in a single line."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        held.seek(0)
+        os.write(2, held.read())  # reached only on success
 
 
 # Fast DDS 2.x reads the first, 3.x the second.
