@@ -12,7 +12,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 SCENARIO ?= default
 PYTEST_ARGS ?=
 
-.PHONY: setup build test demo bench clean distclean
+.PHONY: setup build test test-unit demo bench clean distclean
 
 setup: $(VENV_STAMP)
 
@@ -35,6 +35,11 @@ $(BUILD_STAMP): $(VENV_STAMP) $(SOURCES)
 test: build
 	source ros2_ws/install/setup.bash && \
 	  $(VENV)/bin/python -m pytest tests $(PYTEST_ARGS)
+
+# the quick loop while editing a core: no node processes (about a minute)
+test-unit: build
+	source ros2_ws/install/setup.bash && \
+	  $(VENV)/bin/python -m pytest tests -m unit $(PYTEST_ARGS)
 
 demo: build
 	source ros2_ws/install/setup.bash && \

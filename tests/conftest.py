@@ -14,6 +14,17 @@ from vgm_common.node_tools import use_fastdds_profile
 # image bursts came up to 3 s late under load.
 use_fastdds_profile()
 
+MARKER_OF_DIRECTORY = {'unit': 'unit', 'topic': 'topic', 'bag_tools': 'topic', 'fuzz': 'topic',
+                       'integration': 'integration', 'browser': 'integration',
+                       'multihost': 'integration'}
+
+
+def pytest_collection_modifyitems(items):
+    """Each test marked by its directory (pytest.ini lists the markers)."""
+    for item in items:
+        directory = Path(item.fspath).parent.name
+        item.add_marker(MARKER_OF_DIRECTORY[directory])
+
 
 @pytest.fixture
 def ros_env():

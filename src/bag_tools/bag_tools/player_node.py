@@ -39,6 +39,7 @@ from bag_tools.recorder_node import import_message_type
 from vgm_common.errors import VgmError
 from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.topics import DIAGNOSTICS_TOPIC
 
 _MAX_SLEEP = 0.05  # [s] sleep slices, so a rate change or a stop takes effect promptly
 MATCH_SETTLE = 0.2  # [s] after every publisher has matched a subscriber, before playing
@@ -85,7 +86,7 @@ class PlayerNode(Node):
             Param('loop', False, 'Play the bag again and again.', read_only=True),
             Param('topics', [], 'Topics to play (exact names); empty = every recorded topic.',
                   read_only=True),
-            Param('exclude', ['/rosout', '/parameter_events', '/diagnostics'],
+            Param('exclude', ['/rosout', '/parameter_events', DIAGNOSTICS_TOPIC],
                   'Recorded topics not to play (exact names); [] = none.', read_only=True),
             Param('exit_when_done', True, 'Exit once the bag was played; false keeps latched '
                   'topics available.', read_only=True),

@@ -60,8 +60,8 @@ from vgm_common.node_tools import (
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
+from vgm_common.topics import TARGET_POSE_TOPIC
 
-TARGET_POSE_TOPIC = '/calibration/target_pose'
 CHART_SOURCES = ('auto', 'stage', 'handheld')
 TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
 RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive

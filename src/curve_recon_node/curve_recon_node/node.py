@@ -59,10 +59,15 @@ from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
+from vgm_common.topics import (
+    CURVE_POINTS_TOPIC,
+    DEPTH_INFO_TOPIC,
+    FUSED_DEPTH_TOPIC,
+    TARGET_POSE_TOPIC,
+    WAYPOINTS_TOPIC,
+)
 
-TARGET_POSE_TOPIC = '/calibration/target_pose'
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
-DEPTH_TOPIC, DEPTH_INFO_TOPIC = '/depth/fused', '/depth/camera_info'
 SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are answered
 
 
@@ -192,15 +197,15 @@ class CurveReconNode(Node):
         # order) a chart pose could come later than CHART_POSE_GRACE
         self.create_subscription(PoseStamped, TARGET_POSE_TOPIC, self._on_target_pose,
                                  DEFAULT_QOS, callback_group=MutuallyExclusiveCallbackGroup())
-        self.create_subscription(Image, DEPTH_TOPIC, self._on_depth, DEFAULT_QOS,
+        self.create_subscription(Image, FUSED_DEPTH_TOPIC, self._on_depth, DEFAULT_QOS,
                                  callback_group=sensors)
         self.create_subscription(CameraInfo, DEPTH_INFO_TOPIC, self._on_depth_info,
                                  DEFAULT_QOS, callback_group=sensors)
         self.depth_info = None
         self.waypoint_publisher = self.create_publisher(
-            Path, '/curve/waypoints', LATCHED_QOS, publisher_class=CountingPublisher)
+            Path, WAYPOINTS_TOPIC, LATCHED_QOS, publisher_class=CountingPublisher)
         self.points_publisher = self.create_publisher(
-            PointCloud2, '/curve/points', DEFAULT_QOS, publisher_class=CountingPublisher)
+            PointCloud2, CURVE_POINTS_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher)
         self.reconstruct_service = self.create_service(
             Trigger, '/curve_recon_node/reconstruct',
             DeferredCallback(self._on_reconstruct_request, self._on_reconstruct_blocking),
@@ -312,7 +317,7 @@ class CurveReconNode(Node):
             return
         self.depth_info = (K, int(msg.width), int(msg.height))
 
-    @guarded(DEPTH_TOPIC)
+    @guarded(FUSED_DEPTH_TOPIC)
     def _on_depth(self, msg):
         try:
             if msg.encoding != '32FC1':
@@ -335,12 +340,12 @@ class CurveReconNode(Node):
             if any(removed.values()):
                 # the rest of the image still serves; these pixels never give a normal
                 self.diagnostics.reject(
-                    'depth values', f'{DEPTH_TOPIC}: ignored for approach axes: '
+                    'depth values', f'{FUSED_DEPTH_TOPIC}: ignored for approach axes: '
                     f'{removed["not_positive"]} zero or negative, {removed["too_far"]} '
                     f'beyond {DEPTH_RANGE_M[1]:g} m, {removed["too_near"]} nearer than '
                     f'{DEPTH_RANGE_M[0]:g} m')
         except InvalidInput as error:
-            self.diagnostics.reject(DEPTH_TOPIC, error)
+            self.diagnostics.reject(FUSED_DEPTH_TOPIC, error)
             return
         first = self.depth is None
         self.depth = (depth, K, stamp_to_ns(msg.header.stamp))
@@ -513,7 +518,7 @@ class CurveReconNode(Node):
             normals = normals_from_depth(waypoints, depth, K, T_base_rect,
                                          self.params.normal_window_px)
         except InvalidInput as error:  # checked on arrival: only a changed rig gets here
-            self.diagnostics.reject(DEPTH_TOPIC, error)
+            self.diagnostics.reject(FUSED_DEPTH_TOPIC, error)
             return None
         if not np.any(np.all(np.isfinite(normals), axis=1)):
             return None

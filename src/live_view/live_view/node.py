@@ -43,10 +43,9 @@ from vgm_common.conversions import pose_to_matrix
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.topics import TOOL_FRAME, TOOL_POSE_TOPIC
 
 TRANSFORMS_TOPIC = '/tf'
-TOOL_POSE_TOPIC = '/tool_pose'
-TOOL_FRAME = 'tool0'
 CAMERA_TRANSFORM_PERIOD = 1.0  # [s]
 DIAGNOSTICS_PERIOD = 2.0  # [s]
 

@@ -41,8 +41,15 @@ from vgm_common.node_tools import (
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import load_robot
+from vgm_common.topics import (
+    BASE_FRAME,
+    JOINT_STATES_TOPIC,
+    JOINT_TRAJECTORY_TOPIC,
+    PRESSURE_TOPIC,
+    TOOL_POSE_TOPIC,
+    WAYPOINTS_TOPIC,
+)
 
-BASE_FRAME = 'base_link'
 MAX_FORCE_N = 1e4  # a pressure reading beyond this is a broken sensor, not a contact
 JOINT_LIMIT_SLACK_RAD = 0.1  # a measured joint this far outside its limits is no reading
 THESIS_WEIGHTS = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0]  # §6.6
@@ -193,17 +200,17 @@ class Pa10IkNode(Node):
         self.last_failure_condition = ''
 
         self.command_publisher = self.create_publisher(
-            JointTrajectory, '/pa10_controller/joint_trajectory', DEFAULT_QOS,
+            JointTrajectory, JOINT_TRAJECTORY_TOPIC, DEFAULT_QOS,
             publisher_class=CountingPublisher)
-        self.pose_publisher = self.create_publisher(PoseStamped, '/tool_pose', DEFAULT_QOS,
+        self.pose_publisher = self.create_publisher(PoseStamped, TOOL_POSE_TOPIC, DEFAULT_QOS,
                                                    publisher_class=CountingPublisher)
         self.pose_gate = SubscriberGate(self, [self.pose_publisher], p.min_subscribers,
                                         p.subscriber_timeout)
-        self.create_subscription(JointState, '/joint_states', self._on_joint_state,
+        self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joint_state,
                                  DEFAULT_QOS)
-        self.create_subscription(WrenchStamped, '/tool/pressure', self._on_pressure,
+        self.create_subscription(WrenchStamped, PRESSURE_TOPIC, self._on_pressure,
                                  DEFAULT_QOS)
-        self.create_subscription(Path, '/curve/waypoints', self._on_waypoints, LATCHED_QOS)
+        self.create_subscription(Path, WAYPOINTS_TOPIC, self._on_waypoints, LATCHED_QOS)
         self.create_service(Trigger, '~/start_tracking', self._on_start)
         self.create_service(Trigger, '~/stop', self._on_stop)
         self.dt = 1.0 / p.rate
@@ -235,12 +242,12 @@ class Pa10IkNode(Node):
 
     # --- inputs ----------------------------------------------------------------------
 
-    @_guarded('/joint_states')
+    @_guarded(JOINT_STATES_TOPIC)
     def _on_joint_state(self, msg):
         try:
             q = self._joint_vector(msg)
         except InvalidInput as error:
-            self.diagnostics.reject('/joint_states', error)
+            self.diagnostics.reject(JOINT_STATES_TOPIC, error)
             return
         self.q = q
         self.joint_state_time = time.monotonic()
@@ -277,7 +284,7 @@ class Pa10IkNode(Node):
                 'position', q[i])
         return q
 
-    @_guarded('/tool/pressure')
+    @_guarded(PRESSURE_TOPIC)
     def _on_pressure(self, msg):
         force = msg.wrench.force.z
         frame = msg.header.frame_id
@@ -291,9 +298,9 @@ class Pa10IkNode(Node):
             self.force = float(force)
             self.pressure_time = time.monotonic()
             return
-        self.diagnostics.reject('/tool/pressure', error)
+        self.diagnostics.reject(PRESSURE_TOPIC, error)
 
-    @_guarded('/curve/waypoints')
+    @_guarded(WAYPOINTS_TOPIC)
     def _on_waypoints(self, msg):
         try:
             if msg.header.frame_id != BASE_FRAME:
@@ -301,14 +308,14 @@ class Pa10IkNode(Node):
                                    'frame_id', msg.header.frame_id)
             waypoints = validate_waypoints(path_to_matrices(msg))
         except InvalidInput as error:
-            self.diagnostics.reject('/curve/waypoints', error)
+            self.diagnostics.reject(WAYPOINTS_TOPIC, error)
             return
         if self.controller.phase in ACTIVE_PHASES and self.q is not None:
             tip = self.robot.forward_kinematics(self.q)[:3, 3]
             try:
                 self.controller.update_path(waypoints, tip)
             except InvalidInput as error:
-                self.diagnostics.reject('/curve/waypoints', error)
+                self.diagnostics.reject(WAYPOINTS_TOPIC, error)
                 return
             self.get_logger().info(f'took over a new path of {len(waypoints)} waypoints at '
                                    f'progress {self.controller.progress:.3f}')
@@ -320,11 +327,11 @@ class Pa10IkNode(Node):
     def _missing_inputs(self):
         missing = []
         if self.waypoints is None:
-            missing.append('/curve/waypoints')
+            missing.append(WAYPOINTS_TOPIC)
         if not self._fresh(self.joint_state_time):
-            missing.append('/joint_states')
+            missing.append(JOINT_STATES_TOPIC)
         if not self._fresh(self.pressure_time):
-            missing.append('/tool/pressure')
+            missing.append(PRESSURE_TOPIC)
         return missing
 
     def _fresh(self, stamp):

@@ -31,8 +31,14 @@ from vgm_common.node_tools import Diagnostics, NodeParameters, Param, Subscriber
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.robot_model import load_robot
 from vgm_common.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
-
-TARGET_POSE_TOPIC = '/calibration/target_pose'
+from vgm_common.topics import (
+    BASE_FRAME,
+    JOINT_STATES_TOPIC,
+    JOINT_TRAJECTORY_TOPIC,
+    PRESSURE_TOPIC,
+    TARGET_POSE_TOPIC,
+    TOOL_FRAME,
+)
 
 
 class SensorSim(Node):
@@ -73,9 +79,9 @@ class SensorSim(Node):
                                  for name in CAMERA_NAMES}
         self.target_pose_publisher = self.create_publisher(
             PoseStamped, TARGET_POSE_TOPIC, DEFAULT_QOS)
-        self.joint_state_publisher = self.create_publisher(JointState, '/joint_states',
+        self.joint_state_publisher = self.create_publisher(JointState, JOINT_STATES_TOPIC,
                                                            DEFAULT_QOS)
-        self.pressure_publisher = self.create_publisher(WrenchStamped, '/tool/pressure',
+        self.pressure_publisher = self.create_publisher(WrenchStamped, PRESSURE_TOPIC,
                                                         DEFAULT_QOS)
         started = time.monotonic()
         self.renderer = SceneRenderer(self.scenario)
@@ -103,10 +109,10 @@ class SensorSim(Node):
                                    self.params.min_subscribers, self.params.subscriber_timeout)
         self.closed = False
         self.published = {topic: 0 for topic in (*IMAGE_TOPICS.values(), TARGET_POSE_TOPIC,
-                                                 '/joint_states', '/tool/pressure')}
+                                                 JOINT_STATES_TOPIC, PRESSURE_TOPIC)}
         self.rng_pressure = np.random.default_rng([self.scenario.seed, 1_000_003])
 
-        self.create_subscription(JointTrajectory, '/pa10_controller/joint_trajectory',
+        self.create_subscription(JointTrajectory, JOINT_TRAJECTORY_TOPIC,
                                  self._on_joint_trajectory, DEFAULT_QOS,
                                  callback_group=MutuallyExclusiveCallbackGroup())
         self.arm_period = 1.0 / self.params.joint_state_rate
@@ -151,7 +157,7 @@ class SensorSim(Node):
             calibration = self.scenario.calibration
             pose_index = k // calibration.captures_per_pose
             self.target_pose_publisher.publish(matrix_to_pose_stamped(
-                calibration.T_base_chart[pose_index], stamp_ns, 'base_link'))
+                calibration.T_base_chart[pose_index], stamp_ns, BASE_FRAME))
             self.published[TARGET_POSE_TOPIC] += 1
             if k + 1 == self.chart_frames:
                 self.get_logger().info('calibration phase done: showing the scene')
@@ -185,7 +191,7 @@ class SensorSim(Node):
         except (InvalidInput, ValueError) as error:
             with self.arm_lock:
                 self.arm.hold()
-            self.diagnostics.reject('/pa10_controller/joint_trajectory', error)
+            self.diagnostics.reject(JOINT_TRAJECTORY_TOPIC, error)
 
     def _now(self):
         return self.get_clock().now().nanoseconds * 1e-9
@@ -212,9 +218,9 @@ class SensorSim(Node):
         q, qdot = self.arm.step(now, max(dt, 0.0))
         stamp_ns = int(now * 1e9)
         self.joint_state_publisher.publish(JointState(
-            header=make_header(stamp_ns, 'base_link'), name=list(self.robot.joint_names),
+            header=make_header(stamp_ns, BASE_FRAME), name=list(self.robot.joint_names),
             position=q.tolist(), velocity=qdot.tolist()))
-        self.published['/joint_states'] += 1
+        self.published[JOINT_STATES_TOPIC] += 1
 
         T_base_tool = self.robot.forward_kinematics(q)
         contact = contact_force(T_base_tool[:3, 3], self.scenario.surface,
@@ -223,10 +229,10 @@ class SensorSim(Node):
         if force > 0:
             force = max(0.0, force + self.rng_pressure.normal(
                 0.0, self.scenario.noise.pressure_sigma))
-        wrench = WrenchStamped(header=make_header(stamp_ns, 'tool0'))
+        wrench = WrenchStamped(header=make_header(stamp_ns, TOOL_FRAME))
         wrench.wrench.force.z = float(force)
         self.pressure_publisher.publish(wrench)
-        self.published['/tool/pressure'] += 1
+        self.published[PRESSURE_TOPIC] += 1
 
     def _publish_diagnostics(self):
         phase = 'calibration' if self.frame_index < self.chart_frames else 'scene'

@@ -29,6 +29,14 @@ from vgm_common.node_tools import (
 )
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
+from vgm_common.topics import (
+    DEPTH_INFO_TOPIC,
+    DISPARITY_TOPIC,
+    FUSED_DEPTH_TOPIC,
+    LEFT_RECT_TOPIC,
+    SFS_DEPTH_TOPIC,
+    STEREO_DEPTH_TOPIC,
+)
 
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
@@ -132,12 +140,12 @@ class SfsStereoNode(Node):
         self.publishers_ = {
             key: self.create_publisher(kind, topic, DEFAULT_QOS,
                                        publisher_class=CountingPublisher)
-            for key, kind, topic in (('disparity', DisparityImage, '/stereo/disparity'),
-                                     ('stereo', Image, '/depth/stereo'),
-                                     ('sfs', Image, '/depth/sfs'),
-                                     ('fused', Image, '/depth/fused'),
-                                     ('info', CameraInfo, '/depth/camera_info'),
-                                     ('left_rect', Image, '/stereo/left/image_rect'))}
+            for key, kind, topic in (('disparity', DisparityImage, DISPARITY_TOPIC),
+                                     ('stereo', Image, STEREO_DEPTH_TOPIC),
+                                     ('sfs', Image, SFS_DEPTH_TOPIC),
+                                     ('fused', Image, FUSED_DEPTH_TOPIC),
+                                     ('info', CameraInfo, DEPTH_INFO_TOPIC),
+                                     ('left_rect', Image, LEFT_RECT_TOPIC))}
         self.sync = ExactTimeSync(('left', 'right'), self._on_pair, queue_size=10,
                                   max_wait=self.params.sync_max_wait)
         self.sync_lock = threading.Lock()

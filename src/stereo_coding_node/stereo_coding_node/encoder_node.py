@@ -26,6 +26,7 @@ from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
+from vgm_common.topics import DISPARITY_TOPIC, LEFT_RECT_TOPIC
 
 METHODS = ('ours', 'thesis')
 GREY_ENCODINGS = ('mono8', '8UC1')
@@ -79,9 +80,9 @@ class StereoCodingNode(Node):
                                   max_wait=self.params.sync_max_wait)
         self.sync_dropped_reported = 0
         self.worker = LatestWorker(self._process, self._on_error, 'stereo coding')
-        self.create_subscription(Image, '/stereo/left/image_rect',
+        self.create_subscription(Image, LEFT_RECT_TOPIC,
                                  lambda m: self._on_input('image', m), DEFAULT_QOS)
-        self.create_subscription(DisparityImage, '/stereo/disparity',
+        self.create_subscription(DisparityImage, DISPARITY_TOPIC,
                                  lambda m: self._on_input('disparity', m), DEFAULT_QOS)
         self.coded = self.failed = 0
         self.last = {}

@@ -1,6 +1,6 @@
-"""The cameras' topics and frames (INTERFACES.md), and ``CalibratedCameras``: what a node
-needs to know of the calibrated rig, assembled from the latched CameraInfo and pose
-topics calib_node publishes."""
+"""``CalibratedCameras``: what a node needs to know of the calibrated rig, assembled
+from the latched CameraInfo and pose topics calib_node publishes (the cameras' topic
+names and frames, from ``vgm_common.topics``, are re-exported here)."""
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,15 +15,14 @@ from vgm_common.conversions import (
 )
 from vgm_common.errors import InvalidInput
 from vgm_common.qos import LATCHED_QOS
-
-CAMERA_NAMES = ('left', 'right', 'aux')
-_NAMESPACES = {'left': '/stereo/left', 'right': '/stereo/right', 'aux': '/aux'}
-IMAGE_TOPICS = {name: f'{ns}/image_raw' for name, ns in _NAMESPACES.items()}
-CAMERA_INFO_TOPICS = {name: f'{ns}/camera_info' for name, ns in _NAMESPACES.items()}
-POSE_TOPICS = {name: f'{ns}/pose' for name, ns in _NAMESPACES.items()}
-OPTICAL_FRAMES = {'left': 'stereo_left_optical_frame', 'right': 'stereo_right_optical_frame',
-                  'aux': 'aux_optical_frame'}
-BASE_FRAME = 'base_link'
+from vgm_common.topics import (  # noqa: F401 (re-exported: the cameras' names and frames)
+    BASE_FRAME,
+    CAMERA_INFO_TOPICS,
+    CAMERA_NAMES,
+    IMAGE_TOPICS,
+    OPTICAL_FRAMES,
+    POSE_TOPICS,
+)
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from vgm_common.errors import VgmError
 from vgm_common.qos import DEFAULT_QOS
+from vgm_common.topics import DIAGNOSTICS_TOPIC
 
 
 class ParameterError(VgmError):
@@ -257,7 +258,7 @@ class Diagnostics:
     def __init__(self, node, hardware_id='simulation'):
         self._node = node
         self._hardware_id = hardware_id
-        self._publisher = node.create_publisher(DiagnosticArray, '/diagnostics', DEFAULT_QOS,
+        self._publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DEFAULT_QOS,
                                                 publisher_class=CountingPublisher)
         self._last_log = {}
         self._unsent = deque(maxlen=self.UNSENT_LIMIT)
