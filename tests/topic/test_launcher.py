@@ -3,6 +3,7 @@ lines prefixed, all stopped on Ctrl-C or when one fails, non-zero exit on failur
 import signal
 
 import psutil
+import pytest
 import yaml
 
 from harness import SCENARIO_DIR, executable, wait_for
@@ -18,9 +19,15 @@ def params_file(tmp_path, scenario):
     return path
 
 
-def test_ctrl_c_stops_every_node_cleanly(spawn, tmp_path):
-    launch = spawn([executable('vgm_common', 'vgm_launch'),
-                    params_file(tmp_path, SCENARIO_DIR / 'default.yaml')])
+@pytest.mark.parametrize('sigint_ignored', [False, True])
+def test_ctrl_c_stops_every_node_cleanly(spawn, tmp_path, sigint_ignored):
+    """Also when started as a background job (a script's `&`, nohup): SIGINT comes in
+    ignored, and the launcher once ignored it too."""
+    argv = [str(executable('vgm_common', 'vgm_launch')),
+            str(params_file(tmp_path, SCENARIO_DIR / 'default.yaml'))]
+    if sigint_ignored:
+        argv = ['bash', '-c', 'trap "" INT; exec "$@"', 'vgm_launch', *argv]
+    launch = spawn(argv, name='vgm_launch')
     wait_for(lambda: '[sensor_sim] ' in launch.output() and 'publishing 3 cameras'
              in launch.output(), 60, 'sensor_sim to start publishing')
     wait_for(lambda: 'recording /stereo/left/image_raw' in launch.output(), 30,

@@ -38,6 +38,7 @@ from vgm_common.node_tools import (
     Param,
     SubscriberGate,
     run_node,
+    subscriber_gate_params,
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import load_robot
@@ -162,12 +163,8 @@ class Pa10IkNode(Node):
                   'pressure are there.'),
             Param('diagnostics_rate', 2.0, '[Hz] Rate of the tracking diagnostics.',
                   range=(0.1, 50.0), read_only=True),
-            Param('min_subscribers', 0, 'Run the loop (and publish /tool_pose) only once '
-                  '/tool_pose has this many matched subscribers (a recorder), at most '
-                  'subscriber_timeout: a reliable publisher drops what it sends before '
-                  'discovery. 0 = start at once.', range=(0, 100), read_only=True),
-            Param('subscriber_timeout', 30.0, '[s] Longest wait for min_subscribers.',
-                  range=(0.0, 3600.0), read_only=True),
+            *subscriber_gate_params('Run the loop (and publish /tool_pose) only once '
+                                    '/tool_pose has'),
         ], self.diagnostics)
         p = self.params
         try:

@@ -27,7 +27,14 @@ from vgm_common.calibration_io import write_calibration
 from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, SubscriberGate, run_node
+from vgm_common.node_tools import (
+    Diagnostics,
+    NodeParameters,
+    Param,
+    SubscriberGate,
+    run_node,
+    subscriber_gate_params,
+)
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.robot_model import load_robot
 from vgm_common.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
@@ -57,12 +64,7 @@ class SensorSim(Node):
                   '/tool/pressure rate [Hz].', range=(100.0, 1000.0), read_only=True),
             Param('ground_truth_dir', '', 'Where the true cameras, curve and depth maps are '
                   'written for tests and benchmarks; empty: not written.', read_only=True),
-            Param('min_subscribers', 0, 'Publish only once every camera topic has this many '
-                  'matched subscribers (a recorder, the pipeline), at most '
-                  'subscriber_timeout: a reliable publisher drops what it sends before '
-                  'discovery. 0 = start at once.', range=(0, 100), read_only=True),
-            Param('subscriber_timeout', 30.0, '[s] Longest wait for min_subscribers.',
-                  range=(0.0, 3600.0), read_only=True),
+            *subscriber_gate_params('Publish only once every camera topic has'),
             Param('arm_mode', 'position', "The simulated arm follows the commanded "
                   "'position' (set points) or only the commanded 'velocity'.",
                   choices=ARM_MODES, read_only=True),

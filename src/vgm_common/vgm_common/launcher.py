@@ -193,7 +193,10 @@ def main(argv=None):
     parser.add_argument('--set', action='append', default=[], metavar='NODE:PARAM:=VALUE',
                         help='override one parameter of one node')
     args = parser.parse_args(argv)
-    # SIGTERM stops the nodes as cleanly as Ctrl-C.
+    # SIGTERM stops the nodes as cleanly as Ctrl-C. SIGINT is set too: a shell starts a
+    # background job (`vgm_launch ... &` in a script, nohup) with SIGINT ignored, Python
+    # then installs no handler, and the launcher would ignore the signal it is stopped by.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     try:
         launch = Launch(args.params_file, args.nodes, args.set)

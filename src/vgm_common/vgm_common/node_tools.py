@@ -199,6 +199,19 @@ class CountingPublisher(Publisher):
         self.sent += 1
 
 
+def subscriber_gate_params(what):
+    """The two parameters of a SubscriberGate: ``min_subscribers`` (0 = open at once) and
+    ``subscriber_timeout``; ``what`` says what waits, e.g. 'Publish only once every camera
+    topic has'."""
+    return [
+        Param('min_subscribers', 0, f'{what} this many matched subscribers (a recorder), '
+              'at most subscriber_timeout: a reliable publisher drops what it sends before '
+              'discovery. 0 = start at once.', range=(0, 100), read_only=True),
+        Param('subscriber_timeout', 30.0, '[s] Longest wait for min_subscribers.',
+              range=(0.0, 3600.0), read_only=True),
+    ]
+
+
 class SubscriberGate:
     """Holds a stream back until each of ``publishers`` has ``min_subscribers`` matched
     subscribers (a recorder, the pipeline), or ``timeout`` [s] passed since its creation:

@@ -1,0 +1,3 @@
+import signal
+def test_probe():
+    print('SIGINT in pytest:', signal.getsignal(signal.SIGINT))
