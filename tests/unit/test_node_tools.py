@@ -19,6 +19,7 @@ from vgm_common.node_tools import (
     Param,
     ParameterError,
     SubscriberGate,
+    guarded,
     run_node,
 )
 
@@ -162,6 +163,42 @@ class _Ticker(Node):
 
     def close(self):
         self.log.append(('close', self.ticks))
+
+
+def test_guarded_callbacks_never_raise_and_a_service_answers_failure():
+    from std_srvs.srv import Trigger
+
+    class Rejections:
+        def __init__(self):
+            self.seen = []
+
+        def reject(self, what, reason):
+            self.seen.append((what, reason))
+
+    class Plain:  # reported as rejected input
+        diagnostics = Rejections()
+
+        @guarded('image')
+        def on_image(self, msg):
+            raise ValueError(f'bad {msg}')
+
+    class WithHandler:  # handed to the node's own handler (pa10_ik_node holds the arm)
+        errors = []
+
+        def on_internal_error(self, what, error):
+            self.errors.append((what, str(error)))
+
+        @guarded('start')
+        def on_start(self, request, response):
+            raise RuntimeError('no waypoints')
+
+    plain = Plain()
+    assert plain.on_image('x') is None
+    assert plain.diagnostics.seen == [('image', 'ValueError: bad x')]
+    node = WithHandler()
+    response = node.on_start(Trigger.Request(), Trigger.Response(success=True))
+    assert not response.success and response.message == 'start: no waypoints'
+    assert node.errors == [('start', 'no waypoints')]
 
 
 def test_subscriber_gate_opens_on_matched_subscribers_or_after_its_timeout(make_node):

@@ -10,7 +10,6 @@ the node keeps serving); a worker that died anyway is restarted by the status ti
 ~/reconstruct never blocks an executor thread: its requests are answered later, from the
 worker or the timeout timer (``DeferredServiceExecutor``).
 """
-import functools
 import queue
 import threading
 import time
@@ -20,8 +19,6 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import InvalidHandle
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
@@ -56,7 +53,16 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import (
+    CountingPublisher,
+    DeferredCallback,
+    DeferredServiceExecutor,
+    Diagnostics,
+    NodeParameters,
+    Param,
+    guarded,
+    run_node,
+)
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
@@ -69,57 +75,6 @@ from vgm_common.topics import (
 
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are answered
-
-
-def guarded(what):
-    """Decorate a callback so no exception escapes it: an unexpected one is reported as
-    rejected ``what`` (one throttled log line and a diagnostic) and the callback returns
-    None. Expected bad input is rejected inside the callbacks with a better reason."""
-    def decorate(callback):
-        @functools.wraps(callback)
-        def wrapper(self, *args, **kwargs):
-            try:
-                return callback(self, *args, **kwargs)
-            except Exception as error:  # noqa: BLE001 - the root rule: nothing escapes
-                self.diagnostics.reject(what, f'{type(error).__name__}: {error}')
-                return None
-        return wrapper
-    return decorate
-
-
-class DeferredServiceExecutor(MultiThreadedExecutor):
-    """A MultiThreadedExecutor that hands the requests of services whose callback has a
-    ``deferred_request(request, header)`` attribute to it instead of calling the
-    callback, so the service answers later with ``send_response`` and no executor thread
-    waits (rclpy's coroutine callbacks would busy-spin the executor while they wait)."""
-
-    def _take_service(self, srv):
-        deferred = getattr(srv.callback, 'deferred_request', None)
-        if deferred is None:
-            return super()._take_service(srv)
-        try:
-            with srv.handle:
-                request, header = srv.handle.service_take_request(srv.srv_type.Request)
-        except InvalidHandle:
-            return None
-
-        async def _execute():
-            if header is not None:
-                deferred(request, header)
-        return _execute
-
-
-class DeferredCallback:
-    """A service callback for ``DeferredServiceExecutor``: it hands each request to
-    ``deferred_request(request, header)``; called as a plain callback (by another
-    executor) it runs ``blocking(request, response)``, which waits on the calling thread."""
-
-    def __init__(self, deferred_request, blocking):
-        self.deferred_request = deferred_request
-        self._blocking = blocking
-
-    def __call__(self, request, response):
-        return self._blocking(request, response)
 
 
 class CurveReconNode(Node):

@@ -7,7 +7,6 @@ time_from_start: the joint_trajectory_controller convention), the measured tool 
 ``tracking.TrackingController``; the velocity IK is ``ik.RateSolver``. This file only
 declares parameters, converts messages and calls them.
 """
-import functools
 import time
 from collections import deque
 
@@ -37,6 +36,7 @@ from vgm_common.node_tools import (
     NodeParameters,
     Param,
     SubscriberGate,
+    guarded,
     run_node,
     subscriber_gate_params,
 )
@@ -60,27 +60,6 @@ def _check_weights(values):
     if not values or any(not np.isfinite(v) or v == 0 for v in values):
         return 'every weight must be finite and non-zero'
     return None
-
-
-def _guarded(what):
-    """Decorate a timer, subscription or service callback so that no exception escapes
-    it to the executor (that would end the process): the node stops the arm, logs one
-    throttled line, publishes a diagnostic and keeps serving (``_on_internal_error``).
-    A service then answers success=false with the error."""
-    def decorate(callback):
-        @functools.wraps(callback)
-        def wrapper(self, *args):
-            try:
-                return callback(self, *args)
-            except Exception as error:  # noqa: BLE001 - the last line of defence
-                self._on_internal_error(what, error)
-                if len(args) == 2:  # a service: (request, response)
-                    response = args[1]
-                    response.success, response.message = False, f'{what}: {error}'
-                    return response
-                return None
-        return wrapper
-    return decorate
 
 
 class Pa10IkNode(Node):
@@ -239,7 +218,7 @@ class Pa10IkNode(Node):
 
     # --- inputs ----------------------------------------------------------------------
 
-    @_guarded(JOINT_STATES_TOPIC)
+    @guarded(JOINT_STATES_TOPIC)
     def _on_joint_state(self, msg):
         try:
             q = self._joint_vector(msg)
@@ -281,7 +260,7 @@ class Pa10IkNode(Node):
                 'position', q[i])
         return q
 
-    @_guarded(PRESSURE_TOPIC)
+    @guarded(PRESSURE_TOPIC)
     def _on_pressure(self, msg):
         force = msg.wrench.force.z
         frame = msg.header.frame_id
@@ -297,7 +276,7 @@ class Pa10IkNode(Node):
             return
         self.diagnostics.reject(PRESSURE_TOPIC, error)
 
-    @_guarded(WAYPOINTS_TOPIC)
+    @guarded(WAYPOINTS_TOPIC)
     def _on_waypoints(self, msg):
         try:
             if msg.header.frame_id != BASE_FRAME:
@@ -349,13 +328,13 @@ class Pa10IkNode(Node):
             return False, f'cannot start: {error}'
         return True, f'started on {len(self.waypoints)} waypoints'
 
-    @_guarded('start_tracking')
+    @guarded('start_tracking')
     def _on_start(self, request, response):
         response.success, response.message = self._start()
         self._log_phase_change()
         return response
 
-    @_guarded('stop')
+    @guarded('stop')
     def _on_stop(self, request, response):
         self.controller.stop('stop requested')
         self._hold()
@@ -365,7 +344,7 @@ class Pa10IkNode(Node):
 
     # --- the loop --------------------------------------------------------------------
 
-    @_guarded('control step')
+    @guarded('control step')
     def _control_step(self):
         if self.q is None or not self.pose_gate.is_open():
             return
@@ -434,7 +413,7 @@ class Pa10IkNode(Node):
         if self.q is not None:
             self._command(self.q, np.zeros(self.robot.n_joints), horizon=0.0)
 
-    def _on_internal_error(self, what, error):
+    def on_internal_error(self, what, error):
         """An exception in a callback (a solver, a singular configuration, a bug): stop
         the arm at its measured position, report, keep serving."""
         reason = f'{what}: {type(error).__name__}: {error}'
@@ -472,7 +451,7 @@ class Pa10IkNode(Node):
                 f'+-{force_band:.3f} N of desired ({self.params.desired_force} N)')
         self._publish_diagnostics()
 
-    @_guarded('diagnostics')
+    @guarded('diagnostics')
     def _publish_diagnostics(self):
         controller, info = self.controller, self.last_info
         phase = controller.phase

@@ -2,6 +2,7 @@
 diagnostics on /diagnostics, throttled rejection of bad input, and a clean ``main``."""
 import array
 import contextlib
+import functools
 import math
 import os
 import re
@@ -26,8 +27,16 @@ from rcl_interfaces.msg import (
 )
 from rclpy._rclpy_pybind11 import RCLError
 from rclpy.duration import Duration
-from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.exceptions import (
+    InvalidHandle,
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+)
+from rclpy.executors import (
+    ExternalShutdownException,
+    MultiThreadedExecutor,
+    SingleThreadedExecutor,
+)
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.signals import SignalHandlerOptions
@@ -305,6 +314,69 @@ class Diagnostics:
                                             f'({self.rejected[what]} so far)')
         self.publish(f'rejected {what}', 'warn', str(error),
                      {'count': self.rejected[what]})
+
+
+def guarded(what):
+    """Decorate a node's timer, subscription or service callback so that no exception
+    escapes it to the executor (that would end the process). An unexpected one goes to
+    the node's ``on_internal_error(what, error)`` if it has one (pa10_ik_node stops the
+    arm there), else it is reported as rejected ``what`` (one throttled log line and a
+    diagnostic); a service callback ``(request, response)`` then answers success=false
+    with the error. Expected bad input is rejected inside the callbacks with a better
+    reason."""
+    def decorate(callback):
+        @functools.wraps(callback)
+        def wrapper(self, *args):
+            try:
+                return callback(self, *args)
+            except Exception as error:  # noqa: BLE001 - the root rule: nothing escapes
+                handler = getattr(self, 'on_internal_error', None)
+                if handler is not None:
+                    handler(what, error)
+                else:
+                    self.diagnostics.reject(what, f'{type(error).__name__}: {error}')
+                if len(args) == 2 and hasattr(args[1], 'success'):  # a service response
+                    response = args[1]
+                    response.success, response.message = False, f'{what}: {error}'
+                    return response
+                return None
+        return wrapper
+    return decorate
+
+
+class DeferredServiceExecutor(MultiThreadedExecutor):
+    """A MultiThreadedExecutor that hands the requests of services whose callback has a
+    ``deferred_request(request, header)`` attribute to it instead of calling the
+    callback, so the service answers later with ``send_response`` and no executor thread
+    waits (rclpy's coroutine callbacks would busy-spin the executor while they wait)."""
+
+    def _take_service(self, srv):
+        deferred = getattr(srv.callback, 'deferred_request', None)
+        if deferred is None:
+            return super()._take_service(srv)
+        try:
+            with srv.handle:
+                request, header = srv.handle.service_take_request(srv.srv_type.Request)
+        except InvalidHandle:
+            return None
+
+        async def _execute():
+            if header is not None:
+                deferred(request, header)
+        return _execute
+
+
+class DeferredCallback:
+    """A service callback for ``DeferredServiceExecutor``: it hands each request to
+    ``deferred_request(request, header)``; called as a plain callback (by another
+    executor) it runs ``blocking(request, response)``, which waits on the calling thread."""
+
+    def __init__(self, deferred_request, blocking):
+        self.deferred_request = deferred_request
+        self._blocking = blocking
+
+    def __call__(self, request, response):
+        return self._blocking(request, response)
 
 
 def fastdds_profile():
