@@ -292,3 +292,36 @@ def test_run_node_reports_a_bad_params_file_in_one_line(private_domain, capfd, t
     assert status == 2 and len(output.splitlines()) == 1 and 'Traceback' not in output, output
     assert output.startswith('[ERROR] [ticker]: start-up error: ') and reason in output
     assert str(path) in output
+
+
+def test_latest_worker_takes_the_newest_counts_the_superseded_and_survives_errors():
+    from vgm_common.worker import LatestWorker
+
+    release, done, errors, taken = threading.Event(), threading.Event(), [], []
+
+    def process(item):
+        release.wait(10.0)
+        if item == 'bad':
+            raise ValueError('bad item')
+        taken.append(item)
+        if item == 'last':
+            done.set()
+
+    worker = LatestWorker(process, errors.append, 'probe')
+    worker.submit('first')  # being processed while the next three arrive
+    deadline = time.monotonic() + 10.0
+    while worker._pending is not None:  # 'first' taken by the thread
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    for item in ('a', 'b', 'bad'):
+        worker.submit(item)
+    release.set()
+    deadline = time.monotonic() + 10.0
+    while not errors:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    worker.submit('last')  # still serving after the error
+    assert done.wait(10.0)
+    worker.close()
+    assert taken == ['first', 'last'] and worker.dropped == 2
+    assert [str(e) for e in errors] == ['bad item']

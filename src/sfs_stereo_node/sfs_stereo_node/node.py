@@ -37,6 +37,7 @@ from vgm_common.topics import (
     SFS_DEPTH_TOPIC,
     STEREO_DEPTH_TOPIC,
 )
+from vgm_common.worker import LatestWorker
 
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
@@ -154,7 +155,7 @@ class SfsStereoNode(Node):
                                      lambda msg, n=name: self._on_image(n, msg), DEFAULT_QOS)
         self.maps = None
         self.maps_key = None
-        self.processed = self.dropped = self.failed = self.throttled = 0
+        self.processed = self.failed = self.throttled = 0
         self.last_slot = None  # max_rate: the stamp slot of the last pair taken
         self.sync_dropped_reported = 0
         self.last_timings = {}
@@ -164,11 +165,10 @@ class SfsStereoNode(Node):
         self.last_warnings = ()
         self.last_warned = {}  # kind of warning -> monotonic time of its last log line
         self.last_log = -float('inf')
-        self.pending = None
-        self.wakeup = threading.Condition()
-        self.closed = False
-        self.worker = threading.Thread(target=self._work, name='depth', daemon=True)
-        self.worker.start()
+        # the newest pair only: pairs arriving while one is processed replace the waiting
+        # one (worker.dropped)
+        self.worker = LatestWorker(lambda pair: self._process(*pair), self._on_pair_error,
+                                   'depth')
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info('waiting for calibrated camera_info + pose of left and '
                                'right, and image pairs')
@@ -191,29 +191,12 @@ class SfsStereoNode(Node):
                 self.throttled += 1
                 return
             self.last_slot = slot
-        with self.wakeup:
-            if self.pending is not None:
-                self.dropped += 1  # superseded before it was processed
-            self.pending = (stamp_ns, messages)
-            self.wakeup.notify()
+        self.worker.submit((stamp_ns, messages))
 
-    def _work(self):
-        while True:
-            with self.wakeup:
-                while self.pending is None and not self.closed:
-                    self.wakeup.wait(0.5)
-                if self.closed:
-                    return
-                stamp_ns, messages = self.pending
-                self.pending = None
-            try:
-                self._process(stamp_ns, messages)
-            except InvalidInput as error:
-                self.failed += 1
-                self.diagnostics.reject('stereo pair', error)
-            except Exception as error:  # noqa: BLE001 - keep serving, report it
-                self.failed += 1
-                self.diagnostics.reject('stereo pair', f'{type(error).__name__}: {error}')
+    def _on_pair_error(self, error):
+        self.failed += 1
+        self.diagnostics.reject('stereo pair', error if isinstance(error, InvalidInput)
+                                else f'{type(error).__name__}: {error}')
 
     def _rectified_pair(self, left_shape):
         if not self.cameras.ready:
@@ -289,7 +272,7 @@ class SfsStereoNode(Node):
                 f'frame {self.processed}: {result.depth_stereo.shape[1]}x'
                 f'{result.depth_stereo.shape[0]}, match density {result.density:.3f}, '
                 f'fused by {self.last_fusion}, '
-                f'{result.timings["total"] * 1000:.0f} ms, {self.dropped} dropped')
+                f'{result.timings["total"] * 1000:.0f} ms, {self.worker.dropped} dropped')
 
     def _publish(self, stamp_ns, result):
         h, w = result.depth_stereo.shape
@@ -322,7 +305,7 @@ class SfsStereoNode(Node):
                                                              stamp_ns, DEPTH_FRAME))
 
     def _publish_diagnostics(self):
-        values = {'frames processed': self.processed, 'frames dropped (busy)': self.dropped,
+        values = {'frames processed': self.processed, 'frames dropped (busy)': self.worker.dropped,
                   'frames skipped (max_rate)': self.throttled,
                   'pairs failed': self.failed, 'unpaired images dropped': self.sync.dropped,
                   'match density': f'{self.last_density:.4f}',
@@ -343,11 +326,9 @@ class SfsStereoNode(Node):
         self.diagnostics.publish('depth', level, message, values)
 
     def close(self):
-        with self.wakeup:
-            self.closed = True
-            self.wakeup.notify()
-        self.worker.join(timeout=5.0)
-        self.get_logger().info(f'processed {self.processed} pairs, dropped {self.dropped}, '
+        self.worker.close()
+        self.get_logger().info(f'processed {self.processed} pairs, dropped '
+                               f'{self.worker.dropped}, '
                                f'failed {self.failed}')
 
 

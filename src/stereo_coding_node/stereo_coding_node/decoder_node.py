@@ -19,7 +19,6 @@ from stereo_coding_node import blind, thesis
 from stereo_coding_node.encoder_node import GREY_ENCODINGS, common_params, effective_strength
 from stereo_coding_node.errors import CodingError
 from stereo_coding_node.views import synthesise_right
-from stereo_coding_node.worker import LatestWorker
 from vgm_common.conversions import (
     compressed_to_grey,
     image_to_numpy,
@@ -30,6 +29,7 @@ from vgm_common.conversions import (
 from vgm_common.errors import VgmError
 from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS
+from vgm_common.worker import LatestWorker
 
 INVALID_DISPARITY = -1.0  # below min_disparity (0), as stereo_image_proc marks unknown
 

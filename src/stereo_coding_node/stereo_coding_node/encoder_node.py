@@ -15,7 +15,6 @@ from stereo_msgs.msg import DisparityImage
 
 from stereo_coding_node import blind, thesis
 from stereo_coding_node.errors import CodingError
-from stereo_coding_node.worker import LatestWorker
 from vgm_common.conversions import (
     grey_to_compressed_jpeg,
     image_to_numpy,
@@ -27,6 +26,7 @@ from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import DISPARITY_TOPIC, LEFT_RECT_TOPIC
+from vgm_common.worker import LatestWorker
 
 METHODS = ('ours', 'thesis')
 GREY_ENCODINGS = ('mono8', '8UC1')

@@ -1,5 +1,5 @@
 """The newest input, processed in a worker thread: callbacks stay thin, and inputs that
-arrive while one is being coded replace the waiting one (counted as dropped)."""
+arrive while one is being processed replace the waiting one (counted as dropped)."""
 import threading
 
 
