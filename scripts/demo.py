@@ -503,9 +503,10 @@ def main():
         'recorder': {'output_dir': str(args.bags), 'bag_name': name, 'compression': 'zstd'},
         'live_view': {'port': live_view_port},
         'sensor_sim': {'scenario': str(scenario_path), 'ground_truth_dir': str(truth_dir),
-                       # recorder, calib_node and curve_recon_node see every camera: no
-                       # chart view is lost to discovery
-                       'min_subscribers': 3},
+                       # no message is lost to discovery: the recorder has matched every
+                       # stream, and calib_node and curve_recon_node every camera (a count
+                       # alone was met by the pipeline while the recorder was starting)
+                       'wait_for_nodes': ['recorder'], 'min_subscribers': 3},
         'calib_node': {'min_views': views, 'output_dir': str(calibration_dir),
                        'chart.rows': scenario.calibration.rows,
                        'chart.cols': scenario.calibration.cols,
@@ -516,7 +517,7 @@ def main():
                             'roughness': scenario.surface.roughness},
         # the recorder and live_view have matched /tool_pose before the loop starts (a
         # remote arm's endpoints are discovered later than the simulator's)
-        'pa10_ik_node': {'min_subscribers': 2,
+        'pa10_ik_node': {'wait_for_nodes': ['recorder', 'live_view'],
                          'robot': scenario.robot.model,
                          'tool_length': scenario.robot.tool_length,
                          'desired_force': DESIRED_FORCE}})

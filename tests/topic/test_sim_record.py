@@ -37,15 +37,16 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
         rclpy_node.create_subscription(kind, topic, lambda m, t=topic: received[t].append(m),
                                        DEFAULT_QOS)
 
+    # Publishing waits until this probe matched every camera and the recorder every
+    # stream. The recorder starts last, once the count alone is met: in CI a count met by
+    # the pipeline before the recorder had started lost the first joint states and images.
+    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default',
+                 '-p', 'min_subscribers:=1', '-p', 'wait_for_nodes:=[recorder]',
+                 '-p', f'rate:={RATE_HZ}', '-p', f'ground_truth_dir:={tmp_path / "truth"}'])
+    rclpy_node.spin_until(lambda: all(rclpy_node.count_publishers(t) for t in IMAGE_TOPICS),
+                          30, 'sensor_sim to advertise the cameras')
     recorder = spawn([executable('bag_tools', 'recorder'), '--ros-args',
                       '-p', f'output_dir:={tmp_path}', '-p', 'bag_name:=sim'])
-    rclpy_node.spin_until(lambda: 'recorder' in rclpy_node.get_node_names(), 30,
-                          'the recorder to join the graph')
-    # Publishing waits until this probe and the recorder match every camera (a reliable
-    # publisher drops what it sends before discovery), as make demo runs it.
-    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default',
-                 '-p', 'min_subscribers:=2',
-                 '-p', f'rate:={RATE_HZ}', '-p', f'ground_truth_dir:={tmp_path / "truth"}'])
     wanted = chart_captures + 10
     rclpy_node.spin_until(lambda: len(received['/aux/image_raw']) >= wanted, 90,
                           f'{wanted} captures')

@@ -219,6 +219,39 @@ def test_subscriber_gate_opens_on_matched_subscribers_or_after_its_timeout(make_
     assert SubscriberGate(node, [lonely], 1, timeout=0.0).is_open()  # waited long enough
 
 
+def test_subscriber_gate_waits_for_the_named_node_on_every_stream(make_node):
+    """The demo's failure: sensor_sim's count of camera subscribers was met by the pipeline
+    while the recorder was still starting, and the first joint states were lost."""
+    from std_msgs.msg import String
+
+    from vgm_common.qos import DEFAULT_QOS
+    gated = make_node()  # probe_0
+    camera = gated.create_publisher(String, '/gated/camera', DEFAULT_QOS)
+    stream = gated.create_publisher(String, '/gated/stream', DEFAULT_QOS)
+    gate = SubscriberGate(gated, [camera, stream], 1, 60.0, wait_for_nodes=['probe_2'],
+                          counted=[camera])
+    pipeline, recorder = make_node(), make_node()  # probe_1, probe_2
+    pipeline.create_subscription(String, '/gated/camera', lambda msg: None, DEFAULT_QOS)
+    deadline = time.monotonic() + 10.0
+    while camera.get_subscription_count() < 1:
+        assert time.monotonic() < deadline, 'the pipeline subscriber did not match'
+        time.sleep(0.01)
+    assert not gate.is_open()  # the count is met, the recorder is not there
+    assert 'probe_2 on /gated/stream' in gate.missing()
+    recorder.create_subscription(String, '/gated/camera', lambda msg: None, DEFAULT_QOS)
+    while camera.get_subscription_count() < 2:
+        assert time.monotonic() < deadline, 'the recorder subscriber did not match'
+        time.sleep(0.01)
+    assert not gate.is_open() and gate.missing() == ['probe_2 on /gated/stream']
+    recorder.create_subscription(String, '/gated/stream', lambda msg: None, DEFAULT_QOS)
+    while not gate.is_open():
+        assert time.monotonic() < deadline + 10.0, f'still closed: {gate.missing()}'
+        time.sleep(0.01)
+    assert stream.get_subscription_count() == 1 and gate.missing() == []
+    # A node that never comes: open after the timeout all the same.
+    assert SubscriberGate(gated, [stream], 0, timeout=0.0, wait_for_nodes=['absent']).is_open()
+
+
 def test_run_node_ends_on_the_node_s_exit_request_with_its_status(private_domain):
     class Finisher(_Ticker):
         log = []

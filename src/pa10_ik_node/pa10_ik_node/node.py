@@ -180,8 +180,9 @@ class Pa10IkNode(Node):
             publisher_class=CountingPublisher)
         self.pose_publisher = self.create_publisher(PoseStamped, TOOL_POSE_TOPIC, DEFAULT_QOS,
                                                    publisher_class=CountingPublisher)
-        self.pose_gate = SubscriberGate(self, [self.pose_publisher], p.min_subscribers,
-                                        p.subscriber_timeout)
+        self.pose_gate = SubscriberGate(self, [self.pose_publisher, self.command_publisher],
+                                        p.min_subscribers, p.subscriber_timeout,
+                                        p.wait_for_nodes, counted=[self.pose_publisher])
         self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joint_state,
                                  DEFAULT_QOS)
         self.create_subscription(WrenchStamped, PRESSURE_TOPIC, self._on_pressure,

@@ -107,8 +107,11 @@ class SensorSim(Node):
             self.chart_frames = len(calibration.T_base_chart) * calibration.captures_per_pose
         self.frame_index = 0
         self.capture_lock, self.arm_lock = threading.Lock(), threading.Lock()
-        self.gate = SubscriberGate(self, self.image_publishers.values(),
-                                   self.params.min_subscribers, self.params.subscriber_timeout)
+        self.gate = SubscriberGate(
+            self, [*self.image_publishers.values(), self.target_pose_publisher,
+                   self.joint_state_publisher, self.pressure_publisher],
+            self.params.min_subscribers, self.params.subscriber_timeout,
+            self.params.wait_for_nodes, counted=self.image_publishers.values())
         self.closed = False
         self.published = {topic: 0 for topic in (*IMAGE_TOPICS.values(), TARGET_POSE_TOPIC,
                                                  JOINT_STATES_TOPIC, PRESSURE_TOPIC)}
