@@ -327,8 +327,8 @@ def test_run_node_reports_a_bad_params_file_in_one_line(private_domain, capfd, t
     assert str(path) in output
 
 
-def test_latest_worker_takes_the_newest_counts_the_superseded_and_survives_errors():
-    from vgm_common.worker import LatestWorker
+def test_worker_takes_the_newest_counts_the_superseded_and_survives_errors():
+    from vgm_common.worker import Worker
 
     release, done, errors, taken = threading.Event(), threading.Event(), [], []
 
@@ -340,10 +340,11 @@ def test_latest_worker_takes_the_newest_counts_the_superseded_and_survives_error
         if item == 'last':
             done.set()
 
-    worker = LatestWorker(process, errors.append, 'probe')
+    dropped = []
+    worker = Worker(process, errors.append, 'probe', on_drop=dropped.append)
     worker.submit('first')  # being processed while the next three arrive
     deadline = time.monotonic() + 10.0
-    while worker._pending is not None:  # 'first' taken by the thread
+    while worker._waiting:  # 'first' taken by the thread
         assert time.monotonic() < deadline
         time.sleep(0.01)
     for item in ('a', 'b', 'bad'):
@@ -356,5 +357,33 @@ def test_latest_worker_takes_the_newest_counts_the_superseded_and_survives_error
     worker.submit('last')  # still serving after the error
     assert done.wait(10.0)
     worker.close()
-    assert taken == ['first', 'last'] and worker.dropped == 2
+    assert taken == ['first', 'last'] and worker.dropped == 2 and dropped == ['a', 'b']
     assert [str(e) for e in errors] == ['bad item']
+
+
+def test_worker_keeping_the_oldest_refuses_when_full_and_idle_work_yields():
+    from vgm_common.worker import Worker
+
+    release, taken = threading.Event(), []
+
+    def process(item):
+        release.wait(10.0)
+        taken.append(item)
+
+    worker = Worker(process, lambda error: None, 'probe', capacity=2, keep='oldest')
+    assert worker.submit('first')
+    deadline = time.monotonic() + 10.0
+    while worker._waiting:  # 'first' taken by the thread
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert worker.submit_if_idle('tidy up')  # nothing waits: queued
+    assert not worker.submit_if_idle('tidy up again')  # something waits: not needed
+    assert worker.submit('second') and not worker.submit('third')  # full: refused
+    release.set()
+    while len(taken) < 3:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    worker.close()
+    assert taken == ['first', 'tidy up', 'second'] and worker.dropped == 1
+    with pytest.raises(ValueError, match='keep'):
+        Worker(process, lambda error: None, 'probe', keep='random')

@@ -6,7 +6,6 @@ pose). Chart detection and calibration run in a worker thread, so the executor k
 taking images while a view is processed. With ``calibration_file`` set, the saved
 calibration is published at start instead and no chart is needed.
 """
-import queue
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -61,10 +60,12 @@ from vgm_common.node_tools import (
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import TARGET_POSE_TOPIC
+from vgm_common.worker import Worker
 
 CHART_SOURCES = ('auto', 'stage', 'handheld')
 TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
 RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
+VIEW_BACKLOG = 30  # image sets waiting for chart detection
 
 
 def _rig_pose_check(value):
@@ -153,9 +154,6 @@ class CalibNode(Node):
                   range=(1, 1000)),
             Param('ga.elitism', 1, 'Best individuals carried over each generation [C] '
                   '(A4.6).', range=(0, 1000)),
-            Param('ga.mutation_sign', 'corrected', 'Power mutation sign: y = x + s (xu - x) '
-                  'upward, the correction of the printed x - s (xl - xu) (A4.4); the '
-                  'only variant that stays in the bounds.', choices=('corrected',)),
             Param('ga.max_distance', 3.0, 'Bound of the GA translation genes: camera to '
                   'chart-centroid distance [m].', range=(0.01, 1000.0)),
             Param('network.epochs', 3000, 'Gradient-descent epochs of the thesis network '
@@ -219,9 +217,9 @@ class CalibNode(Node):
         if self.file_mode:
             self._publish_file(p.calibration_file)
             return
-        self.work = queue.Queue(maxsize=30)
-        self.worker = threading.Thread(target=self._work, name='calibration', daemon=True)
-        self.worker.start()
+        # Every stage view counts: when VIEW_BACKLOG wait, a new one is refused and reported.
+        self.worker = Worker(lambda view: self._process_view(*view), self._on_worker_error,
+                             'calibration', capacity=VIEW_BACKLOG, keep='oldest')
         # Images are paired by stamp; the target pose of a set is looked up by its stamp
         # (it may come a little before or after the images, or never: handheld).
         self.sync = ExactTimeSync(self.names, self._on_capture, queue_size=10,
@@ -266,9 +264,7 @@ class CalibNode(Node):
             self.target_arrived.notify_all()
 
     def _on_capture(self, stamp_ns, messages):
-        try:
-            self.work.put_nowait(('view', stamp_ns, messages, time.monotonic()))
-        except queue.Full:
+        if not self.worker.submit((stamp_ns, messages, time.monotonic())):
             with self.lock:
                 posed = stamp_ns in self.targets
                 if not posed:  # a handheld stream outruns detection: take what it can
@@ -277,17 +273,8 @@ class CalibNode(Node):
                 self.diagnostics.reject('view', 'the calibration worker is behind: view '
                                         'dropped')
 
-    def _work(self):
-        while not self.stopping.is_set():
-            try:
-                job = self.work.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            try:
-                if job[0] == 'view':
-                    self._process_view(*job[1:])
-            except Exception as error:  # noqa: BLE001 - keep serving, report it
-                self.diagnostics.reject('view', f'{type(error).__name__}: {error}')
+    def _on_worker_error(self, error):
+        self.diagnostics.reject('view', f'{type(error).__name__}: {error}')
 
     def _target_of(self, stamp_ns, completed):
         """The target pose message of ``stamp_ns``, waiting for it as the source asks
@@ -564,6 +551,8 @@ class CalibNode(Node):
 
     def close(self):
         self.stopping.set()
+        if not self.file_mode:
+            self.worker.close()
 
 
 def main(args=None):

@@ -4,16 +4,16 @@ views and publish tool waypoints (INTERFACES.md; ALGORITHMS.md §2; issue 4).
 Inputs: the three images (exact-time sync), the calibrated rig (latched camera_info and
 pose topics), optionally /depth/fused + /depth/camera_info for surface normals.
 Outputs: /curve/waypoints (latched Path), /curve/points (PointCloud2), diagnostics.
-The work runs on a worker thread; callbacks only check and hand over. No exception
-escapes a callback or the worker (each is reported once, throttled, with a diagnostic, and
-the node keeps serving); a worker that died anyway is restarted by the status timer.
+The work runs on a worker thread (``vgm_common.worker.Worker``); callbacks only check and
+hand over. No exception escapes a callback or the worker (each is reported once,
+throttled, with a diagnostic, and the node keeps serving).
 ~/reconstruct never blocks an executor thread: its requests are answered later, from the
 worker or the timeout timer (``DeferredServiceExecutor``).
 """
-import queue
 import threading
 import time
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -72,9 +72,23 @@ from vgm_common.topics import (
     TARGET_POSE_TOPIC,
     WAYPOINTS_TOPIC,
 )
+from vgm_common.worker import Worker
 
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are answered
+
+
+@dataclass
+class _Capture:
+    """A synchronized capture for the worker, with the ~/reconstruct calls it answers."""
+    stamp_ns: int
+    messages: dict  # camera name -> Image
+    names: tuple  # the cameras to use
+    requests: list  # [(reply(success, message), deadline)]
+
+
+# The worker's other job: publish the last waypoints again, now with depth normals.
+_REPUBLISH_WITH_NORMALS = object()
 
 
 class CurveReconNode(Node):
@@ -135,8 +149,6 @@ class CurveReconNode(Node):
         # ~/reconstruct calls waiting for the next capture: [(reply(success, message),
         # deadline)] (see _on_reconstruct_request)
         self.service_requests = []
-        self.work = queue.Queue(maxsize=1)
-        self.dropped_work = 0
         self.depth = None  # (depth (H, W) with unusable values NaN, K (3, 3), stamp_ns)
         self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
         self.normals_published = False
@@ -168,9 +180,10 @@ class CurveReconNode(Node):
         self.create_timer(1.0, self._publish_status, callback_group=sensors)
         self.create_timer(SERVICE_POLL_PERIOD, self._answer_timed_out_requests,
                           callback_group=sensors)
-        self.worker = None
-        self.worker_restarts = 0
-        self._start_worker()
+        # The newest capture waits while one is reconstructed; one it replaces hands its
+        # service calls on to the next.
+        self.worker = Worker(self._serve, self._on_worker_error, 'reconstruction',
+                             on_drop=self._requests_wait_for_the_next)
         self.get_logger().info(
             f'ready: method {p.method}, degree {p.degree}, {p.views} views, spacing '
             f'{p.spacing} m; waiting for the calibration and a capture')
@@ -246,18 +259,7 @@ class CurveReconNode(Node):
             if wanted_auto:
                 self.last_auto_attempt = now
             requests, self.service_requests = self.service_requests, []
-        job = (stamp_ns, messages, names, requests)
-        try:
-            self.work.put_nowait(job)
-        except queue.Full:  # the worker is busy: keep the newest capture
-            try:
-                old = self.work.get_nowait()
-                self.dropped_work += 1
-                with self.state_lock:
-                    self.service_requests = old[3] + self.service_requests
-            except queue.Empty:
-                pass
-            self.work.put_nowait(job)
+        self.worker.submit(_Capture(stamp_ns, messages, names, requests))
 
     @guarded(DEPTH_INFO_TOPIC)
     def _on_depth_info(self, msg):
@@ -306,10 +308,8 @@ class CurveReconNode(Node):
         self.depth = (depth, K, stamp_to_ns(msg.header.stamp))
         if first and self.last_result is not None and self.params.use_depth_normals \
                 and not self.normals_published:
-            try:
-                self.work.put_nowait(('republish', None, None, []))
-            except queue.Full:
-                pass  # a reconstruction is queued: it will use the depth anyway
+            # (a capture that is waiting will use the depth anyway)
+            self.worker.submit_if_idle(_REPUBLISH_WITH_NORMALS)
 
     @guarded('reconstruct request')
     def _on_reconstruct_request(self, request, header):
@@ -360,42 +360,41 @@ class CurveReconNode(Node):
 
     # --- work ------------------------------------------------------------------------
 
-    def _start_worker(self):
-        self.worker = threading.Thread(target=self._run_worker, name='reconstruction',
-                                       daemon=True)
-        self.worker.start()
-
-    def _run_worker(self):
-        while not self.stopping.is_set():
-            try:
-                job = self.work.get(timeout=0.2)
-            except queue.Empty:
-                continue
-            requests = job[3]
-            try:
-                success, message = self._run_job(*job)
-            except Exception as error:  # noqa: BLE001 - the worker must never die
-                self.diagnostics.reject('reconstruction', f'{type(error).__name__}: {error}')
-                success, message = False, f'reconstruction failed: {error}'
-            for reply, _ in requests:
-                reply(success, message)
-
-    def _run_job(self, stamp_ns, messages, names, requests):
-        """One job of the worker; returns (success, message) for the requests it serves
-        (a chart capture puts its requests back to wait for the next one)."""
-        if stamp_ns == 'republish':
+    def _serve(self, job):
+        """The worker's job: a capture to reconstruct (its service calls answered with the
+        outcome), or the waypoints to republish with depth normals."""
+        if job is _REPUBLISH_WITH_NORMALS:
             self._republish_with_normals()
-            return True, 'republished'
+            return
+        try:
+            success, message = self._run_capture(job)
+        except Exception as error:  # noqa: BLE001 - the calls must get an answer
+            self._on_worker_error(error)
+            success, message = False, f'reconstruction failed: {error}'
+        for reply, _ in job.requests:
+            reply(success, message)
+
+    def _on_worker_error(self, error):
+        self.diagnostics.reject('reconstruction', f'{type(error).__name__}: {error}')
+
+    def _requests_wait_for_the_next(self, job):
+        if job is not _REPUBLISH_WITH_NORMALS:
+            with self.state_lock:
+                self.service_requests = job.requests + self.service_requests
+
+    def _run_capture(self, job):
+        """Reconstruct one capture; returns (success, message) for the requests it serves
+        (a chart capture puts its requests back to wait for the next one)."""
         # The chart's pose, stamped like its images, may arrive after them: give it
         # CHART_POSE_GRACE before taking a capture for one of the scene.
         self.stopping.wait(CHART_POSE_GRACE)
         with self.state_lock:
-            if stamp_ns in self.chart_stamps:
+            if job.stamp_ns in self.chart_stamps:
                 self.skipped_chart += 1
-                self.service_requests = requests + self.service_requests
-                requests.clear()  # they wait for the next capture
+                self.service_requests = job.requests + self.service_requests
+                job.requests = []  # they wait for the next capture
                 return False, 'chart capture'
-        success, message = self._reconstruct(stamp_ns, messages, names)
+        success, message = self._reconstruct(job.stamp_ns, job.messages, job.names)
         with self.state_lock:
             if success:
                 self.auto_pending = False
@@ -502,16 +501,10 @@ class CurveReconNode(Node):
 
     @guarded('status')
     def _publish_status(self):
-        if not self.worker.is_alive() and not self.stopping.is_set():
-            # cannot happen (the worker catches everything); if it does, serve on
-            self.worker_restarts += 1
-            self.diagnostics.reject('worker', 'the reconstruction thread stopped: '
-                                    'restarted')
-            self._start_worker()
         missing = self.cameras.missing()
         values = {'matched': self.sync.matched, 'dropped': self.sync.dropped,
                   'pending': self.sync.pending, 'skipped_chart_captures': self.skipped_chart,
-                  'dropped_work': self.dropped_work, 'worker_restarts': self.worker_restarts,
+                  'dropped_work': self.worker.dropped,
                   'waiting_requests': len(self.service_requests),
                   'depth': 'yes' if self.depth is not None else 'no'}
         needed = [n for n in missing if n in ('left', 'right')
@@ -531,7 +524,7 @@ class CurveReconNode(Node):
 
     def close(self):
         self.stopping.set()
-        self.worker.join(timeout=5.0)
+        self.worker.close()
         with self.state_lock:
             waiting, self.service_requests = self.service_requests, []
         for reply, _ in waiting:

@@ -37,7 +37,7 @@ from vgm_common.topics import (
     SFS_DEPTH_TOPIC,
     STEREO_DEPTH_TOPIC,
 )
-from vgm_common.worker import LatestWorker
+from vgm_common.worker import Worker
 
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
@@ -167,7 +167,7 @@ class SfsStereoNode(Node):
         self.last_log = -float('inf')
         # the newest pair only: pairs arriving while one is processed replace the waiting
         # one (worker.dropped)
-        self.worker = LatestWorker(lambda pair: self._process(*pair), self._on_pair_error,
+        self.worker = Worker(lambda pair: self._process(*pair), self._on_pair_error,
                                    'depth')
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info('waiting for calibrated camera_info + pose of left and '

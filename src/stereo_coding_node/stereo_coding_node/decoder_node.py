@@ -29,7 +29,7 @@ from vgm_common.conversions import (
 from vgm_common.errors import VgmError
 from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS
-from vgm_common.worker import LatestWorker
+from vgm_common.worker import Worker
 
 INVALID_DISPARITY = -1.0  # below min_disparity (0), as stereo_image_proc marks unknown
 
@@ -56,7 +56,7 @@ class StereoDecodingNode(Node):
                 ('disparity', DisparityImage, '/stereo/decoded/disparity'),
                 ('left', Image, '/stereo/decoded/left/image_rect'),
                 ('right', Image, '/stereo/decoded/right/image_rect'))}
-        self.worker = LatestWorker(self._process, self._on_error, 'stereo decoding')
+        self.worker = Worker(self._process, self._on_error, 'stereo decoding')
         if self.params.transport == 'compressed':
             self.create_subscription(CompressedImage, '/stereo/coded/image/compressed',
                                      self.worker.submit, DEFAULT_QOS)

@@ -26,7 +26,7 @@ from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import DISPARITY_TOPIC, LEFT_RECT_TOPIC
-from vgm_common.worker import LatestWorker
+from vgm_common.worker import Worker
 
 METHODS = ('ours', 'thesis')
 GREY_ENCODINGS = ('mono8', '8UC1')
@@ -79,7 +79,7 @@ class StereoCodingNode(Node):
         self.sync = ExactTimeSync(('image', 'disparity'), self._on_pair, queue_size=10,
                                   max_wait=self.params.sync_max_wait)
         self.sync_dropped_reported = 0
-        self.worker = LatestWorker(self._process, self._on_error, 'stereo coding')
+        self.worker = Worker(self._process, self._on_error, 'stereo coding')
         self.create_subscription(Image, LEFT_RECT_TOPIC,
                                  lambda m: self._on_input('image', m), DEFAULT_QOS)
         self.create_subscription(DisparityImage, DISPARITY_TOPIC,
