@@ -14,9 +14,10 @@ several types is skipped with a warning.
 
 QoS (rosbag2's ``adapt_request_to_offers``): reliable if every publisher is reliable, else
 best effort; transient local if every publisher is transient local (so a latched value
-published before the recorder started is recorded), else volatile; keep last 100 so a burst
-is not dropped. The publishers' offered profiles when the topic is first subscribed are
-stored in the bag (both ``metadata.yaml`` and the MCAP channel, which must agree).
+published before the recorder started is recorded), else volatile; keep last
+``SUBSCRIPTION_DEPTH`` (1000) so a burst is not dropped. The publishers' offered profiles
+when the topic is first subscribed are stored in the bag (both ``metadata.yaml`` and the
+MCAP channel, which must agree).
 
 Times: log time = the middleware's receive time (the node clock under ``use_sim_time``);
 publish time = the message's ``header.stamp`` when its first field is a ``std_msgs/Header``
