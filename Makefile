@@ -12,7 +12,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 SCENARIO ?= default
 PYTEST_ARGS ?=
 
-.PHONY: setup build test test-unit demo bench clean distclean
+.PHONY: setup build lint test test-unit demo bench clean distclean
 
 setup: $(VENV_STAMP)
 
@@ -32,12 +32,18 @@ $(BUILD_STAMP): $(VENV_STAMP) $(SOURCES)
 	tail -n 2 ros2_ws/build.log
 	touch $@
 
-test: build
+# ruff (rules in ruff.toml) and mypy (mypy.ini: vgm_common fully typed, the cores'
+# public functions); `make test` runs it first
+lint: $(VENV_STAMP)
+	$(VENV)/bin/ruff check --output-format concise src tests bench scripts
+	$(VENV)/bin/mypy
+
+test: lint build
 	source ros2_ws/install/setup.bash && \
 	  $(VENV)/bin/python -m pytest tests $(PYTEST_ARGS)
 
 # the quick loop while editing a core: no node processes (about a minute)
-test-unit: build
+test-unit: lint build
 	source ros2_ws/install/setup.bash && \
 	  $(VENV)/bin/python -m pytest tests -m unit $(PYTEST_ARGS)
 

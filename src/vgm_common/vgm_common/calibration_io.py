@@ -11,25 +11,38 @@ Two formats:
   ``pose_in_base_link: {position: [x, y, z], orientation: [x, y, z, w]}`` (the optical
   frame in base_link), and optional ``quality`` (e.g. reprojection RMS per camera).
 """
+from __future__ import annotations
+
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import yaml
 
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
-from vgm_common.geometry import make_transform, matrix_to_quaternion, quaternion_to_matrix
+from vgm_common.geometry import (
+    FloatArray,
+    make_transform,
+    matrix_to_quaternion,
+    quaternion_to_matrix,
+)
 
 RIG_FILE = 'calibration.yaml'
 CAMERA_NAMES_IN_FILES = {'left': 'stereo_left', 'right': 'stereo_right', 'aux': 'aux'}
+CameraEntry = tuple[PinholeCamera, FloatArray, FloatArray]  # (camera, R 3x3, P 3x4) as read
+Rectification = tuple[npt.ArrayLike, npt.ArrayLike]  # (R 3x3, P 3x4) to write
 
 
-def _matrix(rows, cols, values):
+def _matrix(rows: int, cols: int, values: npt.ArrayLike) -> dict[str, int | list[float]]:
     return {'rows': rows, 'cols': cols, 'data': [float(v) for v in np.ravel(values)]}
 
 
-def camera_yaml_dict(camera, camera_name, R=None, P=None):
+def camera_yaml_dict(camera: PinholeCamera, camera_name: str, R: npt.ArrayLike | None = None,
+                     P: npt.ArrayLike | None = None) -> dict[str, object]:
     """The camera_calibration_parsers mapping of a plumb_bob PinholeCamera."""
     if camera.distortion_model != 'plumb_bob':
         raise InvalidInput(f'{camera_name}: only plumb_bob cameras can be written, got '
@@ -43,7 +56,8 @@ def camera_yaml_dict(camera, camera_name, R=None, P=None):
             'rectification_matrix': _matrix(3, 3, R), 'projection_matrix': _matrix(3, 4, P)}
 
 
-def _read_matrix(entry, key, shape):
+def _read_matrix(entry: Mapping[str, Any], key: str,
+                 shape: tuple[int, ...] | None) -> FloatArray:
     try:
         value = entry[key]
         data = np.array(value['data'], dtype=float)
@@ -57,7 +71,7 @@ def _read_matrix(entry, key, shape):
     return data
 
 
-def camera_from_yaml_dict(entry, T_base_camera=None):
+def camera_from_yaml_dict(entry: object, T_base_camera: FloatArray | None = None) -> CameraEntry:
     """camera_calibration_parsers mapping -> (PinholeCamera, R (3x3), P (3x4))."""
     if not isinstance(entry, dict):
         raise InvalidInput('camera entry must be a mapping', key='camera')
@@ -82,17 +96,21 @@ def camera_from_yaml_dict(entry, T_base_camera=None):
     return PinholeCamera(width, height, K, D, T), R, P
 
 
-def write_camera_yaml(path, camera, camera_name, R=None, P=None):
+def write_camera_yaml(path: str | Path, camera: PinholeCamera, camera_name: str,
+                      R: npt.ArrayLike | None = None, P: npt.ArrayLike | None = None) -> None:
     Path(path).write_text(yaml.safe_dump(camera_yaml_dict(camera, camera_name, R, P),
                                          sort_keys=False))
 
 
-def read_camera_yaml(path):
+def read_camera_yaml(path: str | Path) -> CameraEntry:
     """camera_calibration_parsers file -> (PinholeCamera (pose = identity), R, P)."""
     return camera_from_yaml_dict(yaml.safe_load(Path(path).read_text()))
 
 
-def write_calibration(directory, cameras, frame_ids, rectification=None, quality=None):
+def write_calibration(directory: str | Path, cameras: Mapping[str, PinholeCamera],
+                      frame_ids: Mapping[str, str],
+                      rectification: Mapping[str, Rectification] | None = None,
+                      quality: Mapping[str, Mapping[str, float]] | None = None) -> Path:
     """Write ``calibration.yaml`` and one camera_calibration_parsers file per camera.
 
     Args:
@@ -108,7 +126,7 @@ def write_calibration(directory, cameras, frame_ids, rectification=None, quality
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     rectification = rectification or {}
-    rig = {}
+    rig: dict[str, dict[str, object]] = {}
     for name, camera in cameras.items():
         R, P = rectification.get(name, (None, None))
         camera_name = CAMERA_NAMES_IN_FILES.get(name, name)
@@ -127,7 +145,7 @@ def write_calibration(directory, cameras, frame_ids, rectification=None, quality
     return path
 
 
-def read_calibration(path):
+def read_calibration(path: str | Path) -> dict[str, CameraEntry]:
     """``calibration.yaml`` (or the directory holding it) -> {name: (PinholeCamera with
     pose, R, P)}. Raises InvalidInput naming what is wrong."""
     path = Path(path)
@@ -141,7 +159,7 @@ def read_calibration(path):
     if not isinstance(document, dict) or not isinstance(document.get('cameras'), dict):
         raise InvalidInput(f'{path}: expected a top-level "cameras" mapping',
                            key='calibration_file')
-    rig = {}
+    rig: dict[str, CameraEntry] = {}
     for name, entry in document['cameras'].items():
         try:
             pose = entry['pose_in_base_link']
@@ -163,7 +181,8 @@ def read_calibration(path):
     return rig
 
 
-def stereo_rectification(left, right, alpha=0.0):
+def stereo_rectification(left: PinholeCamera, right: PinholeCamera, alpha: float = 0.0
+                         ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The rectified stereo pair of two plumb_bob PinholeCameras with poses (ROS
     convention, as cv2.stereoRectify computes it): {'left': (R1, P1), 'right': (R2, P2)}
     where R rotates the camera's optical frame into the rectified frame and the right P

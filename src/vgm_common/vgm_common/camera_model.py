@@ -14,19 +14,24 @@ x = (X/Z, Y/Z):
   projecting solves a cubic and undistorting is explicit, x_u = x_d (1 + kappa |x_d|^2).
   The thesis's k (focal-plane units) gives kappa = k f^2.
 """
+from __future__ import annotations
+
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
-from vgm_common.geometry import invert_transform, transform_points
+from vgm_common.geometry import FloatArray, invert_transform, transform_points
 
 DISTORTION_MODELS = ('plumb_bob', 'division')
 DISTORTION_SIZES = {'plumb_bob': 5, 'division': 1}  # len(D) each model takes
 
 
-def distort_normalized(xy, D):
+def distort_normalized(xy: FloatArray, D: Iterable[float]) -> FloatArray:
     """Apply plumb_bob distortion D = (k1, k2, p1, p2, k3) to (N, 2) normalised points.
 
     Same formula as OpenCV's projectPoints, so the two agree to rounding error.
@@ -40,7 +45,7 @@ def distort_normalized(xy, D):
     return np.column_stack([x_d, y_d])
 
 
-def division_distorted_radius(r_u, kappa):
+def division_distorted_radius(r_u: npt.ArrayLike, kappa: float) -> FloatArray:
     """Distorted radius r >= 0 of the division model: the root of kappa r^3 + r = r_u.
 
     ``r_u`` (N,) undistorted radii, ``kappa`` the normalised coefficient. For kappa > 0
@@ -62,7 +67,7 @@ def division_distorted_radius(r_u, kappa):
     return r - (kappa * r ** 3 + r - r_u) / (3 * kappa * r ** 2 + 1)
 
 
-def distort_division(xy, kappa):
+def distort_division(xy: npt.ArrayLike, kappa: float) -> FloatArray:
     """Apply the division model to (N, 2) undistorted normalised points."""
     xy = np.asarray(xy, dtype=float)
     r_d = division_distorted_radius(np.hypot(xy[:, 0], xy[:, 1]), kappa)
@@ -84,7 +89,7 @@ class PinholeCamera:
     T_base_camera: np.ndarray
     distortion_model: str = 'plumb_bob'
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ('K', 'D', 'T_base_camera'):
             array = np.array(getattr(self, name), dtype=float)
             array.setflags(write=False)
@@ -98,19 +103,19 @@ class PinholeCamera:
                                key='D', value=self.D)
 
     @property
-    def T_camera_base(self):
+    def T_camera_base(self) -> FloatArray:
         return invert_transform(self.T_base_camera)
 
     @property
-    def centre_base(self):
+    def centre_base(self) -> FloatArray:
         """Optical centre in base_link [m]."""
         return self.T_base_camera[:3, 3].copy()
 
-    def to_camera(self, points_base):
+    def to_camera(self, points_base: npt.ArrayLike) -> FloatArray:
         """(N, 3) base_link points -> (N, 3) optical-frame points."""
         return transform_points(self.T_camera_base, points_base)
 
-    def project(self, points_base):
+    def project(self, points_base: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Project (N, 3) base_link points.
 
         Returns (pixels (N, 2) [px], depth (N,) [m] along the optical axis). Points with
@@ -128,7 +133,7 @@ class PinholeCamera:
                                   K[1, 1] * xy_d[:, 1] + K[1, 2]])
         return pixels, depth
 
-    def undistort_pixels(self, pixels):
+    def undistort_pixels(self, pixels: npt.ArrayLike) -> FloatArray:
         """(N, 2) pixels -> (N, 2) normalised undistorted coordinates (x/z, y/z)."""
         if self.distortion_model == 'division':  # explicit in this direction: exact
             pixels = np.asarray(pixels, dtype=float).reshape(-1, 2)
@@ -141,10 +146,10 @@ class PinholeCamera:
         # OpenCV 5 folded undistortPointsIter into undistortPoints: with these criteria the
         # iteration runs to ~1e-15 instead of its default 5 fixed steps (~1e-5 at k1 = -0.3).
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        return cv2.undistortPoints(pts, self.K, self.D, None, None, None,
-                                   criteria).reshape(-1, 2)
+        undistorted = cv2.undistortPoints(pts, self.K, self.D, None, None, None, criteria)
+        return cast(FloatArray, undistorted.reshape(-1, 2))  # float64 in, float64 out
 
-    def pixel_rays_base(self, pixels):
+    def pixel_rays_base(self, pixels: npt.ArrayLike) -> FloatArray:
         """Unit ray directions in base_link (N, 3) through the given (N, 2) pixels."""
         xy = self.undistort_pixels(pixels)
         rays_camera = np.column_stack([xy, np.ones(len(xy))])

@@ -1,7 +1,12 @@
 """``CalibratedCameras``: what a node needs to know of the calibrated rig, assembled
 from the latched CameraInfo and pose topics calib_node publishes (the cameras' topic
 names and frames, from ``vgm_common.topics``, are re-exported here)."""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from functools import partial
+from typing import TYPE_CHECKING
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -14,6 +19,7 @@ from vgm_common.conversions import (
     pose_to_matrix,
 )
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 from vgm_common.qos import LATCHED_QOS
 from vgm_common.topics import (  # noqa: F401 (re-exported: the cameras' names and frames)
     BASE_FRAME,
@@ -23,6 +29,11 @@ from vgm_common.topics import (  # noqa: F401 (re-exported: the cameras' names a
     OPTICAL_FRAMES,
     POSE_TOPICS,
 )
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+
+    from vgm_common.node_tools import Diagnostics
 
 
 @dataclass(frozen=True)
@@ -41,35 +52,37 @@ class CalibratedCameras:
     previous calibration stays). ``version`` increases whenever a camera changes, so
     users can rebuild cached maps; ``on_change(name)`` is called then, if given."""
 
-    def __init__(self, node, names=CAMERA_NAMES, diagnostics=None, on_change=None):
+    def __init__(self, node: Node, names: Iterable[str] = CAMERA_NAMES,
+                 diagnostics: Diagnostics | None = None,
+                 on_change: Callable[[str], None] | None = None) -> None:
         self.names = tuple(names)
         self._diagnostics = diagnostics
         self._on_change = on_change
-        self._infos = {}
-        self._poses = {}
-        self._cameras = {}
+        self._infos: dict[str, CameraInfo] = {}
+        self._poses: dict[str, FloatArray] = {}  # T_base_camera
+        self._cameras: dict[str, CalibratedCamera] = {}
         self.version = 0
         for name in self.names:
             node.create_subscription(CameraInfo, CAMERA_INFO_TOPICS[name],
-                                     lambda msg, n=name: self._on_info(n, msg), LATCHED_QOS)
+                                     partial(self._on_info, name), LATCHED_QOS)
             node.create_subscription(PoseStamped, POSE_TOPICS[name],
-                                     lambda msg, n=name: self._on_pose(n, msg), LATCHED_QOS)
+                                     partial(self._on_pose, name), LATCHED_QOS)
 
     @property
-    def ready(self):
+    def ready(self) -> bool:
         return all(name in self._cameras for name in self.names)
 
-    def missing(self):
+    def missing(self) -> list[str]:
         """Names of the cameras not yet calibrated (for diagnostics)."""
         return [name for name in self.names if name not in self._cameras]
 
-    def __getitem__(self, name):
+    def __getitem__(self, name: str) -> CalibratedCamera:
         return self._cameras[name]
 
-    def get(self, name):
+    def get(self, name: str) -> CalibratedCamera | None:
         return self._cameras.get(name)
 
-    def _on_info(self, name, msg):
+    def _on_info(self, name: str, msg: CameraInfo) -> None:
         try:
             camera_info_to_camera(msg)  # validates
             camera_info_rectification(msg)
@@ -79,7 +92,7 @@ class CalibratedCameras:
         self._infos[name] = msg
         self._update(name)
 
-    def _on_pose(self, name, msg):
+    def _on_pose(self, name: str, msg: PoseStamped) -> None:
         try:
             if msg.header.frame_id != BASE_FRAME:
                 raise InvalidInput(f'camera pose must be in {BASE_FRAME}, got '
@@ -91,7 +104,7 @@ class CalibratedCameras:
         self._poses[name] = T
         self._update(name)
 
-    def _update(self, name):
+    def _update(self, name: str) -> None:
         if name not in self._infos or name not in self._poses:
             return
         info = self._infos[name]
@@ -101,6 +114,6 @@ class CalibratedCameras:
         if self._on_change is not None:
             self._on_change(name)
 
-    def _reject(self, what, error):
+    def _reject(self, what: str, error: Exception) -> None:
         if self._diagnostics is not None:
             self._diagnostics.reject(what, error)

@@ -4,16 +4,23 @@ Every ``*_to_numpy`` / ``*_from_msg`` function validates its message and raises
 ``InvalidInput`` naming the problem; every ``*_to_msg`` function copies the caller's
 data (messages never alias numpy arrays the caller may change).
 """
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import cast
+
 import numpy as np
+import numpy.typing as npt
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Pose, PoseStamped
 from nav_msgs.msg import Path
-from sensor_msgs.msg import CameraInfo, Image, PointCloud2, PointField
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
 
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import (
+    FloatArray,
     is_rotation,
     make_transform,
     matrix_to_quaternion,
@@ -21,7 +28,7 @@ from vgm_common.geometry import (
 )
 
 # encoding -> (numpy dtype, channels), REP 118 and sensor_msgs/image_encodings.
-IMAGE_ENCODINGS = {
+IMAGE_ENCODINGS: dict[str, tuple[type[np.generic], int]] = {
     'mono8': (np.uint8, 1), 'mono16': (np.uint16, 1),
     'rgb8': (np.uint8, 3), 'bgr8': (np.uint8, 3), 'rgba8': (np.uint8, 4), 'bgra8': (np.uint8, 4),
     '8UC1': (np.uint8, 1), '8UC3': (np.uint8, 3), '16UC1': (np.uint16, 1),
@@ -29,29 +36,29 @@ IMAGE_ENCODINGS = {
 }
 
 
-def stamp_to_ns(stamp):
+def stamp_to_ns(stamp: Time) -> int:
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
-def ns_to_stamp(ns):
+def ns_to_stamp(ns: int) -> Time:
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
-def make_header(stamp_ns, frame_id):
+def make_header(stamp_ns: int, frame_id: str) -> Header:
     return Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
 
 
 # --- sensor_msgs/Image -------------------------------------------------------------
 
-def check_image(msg):
+def check_image(msg: Image) -> tuple[np.dtype, int, int]:
     """Raise InvalidInput unless ``msg`` is a well-formed Image (known encoding, non-empty,
     step and data length consistent); returns (dtype, channels, row bytes). Cheap: the
     pixels are not touched, so a node can check every image as it arrives."""
     if msg.encoding not in IMAGE_ENCODINGS:
         raise InvalidInput(f'unsupported image encoding {msg.encoding!r}', key='encoding',
                            value=msg.encoding)
-    dtype, channels = IMAGE_ENCODINGS[msg.encoding]
-    dtype = np.dtype(dtype).newbyteorder('>' if msg.is_bigendian else '<')
+    scalar_type, channels = IMAGE_ENCODINGS[msg.encoding]
+    dtype = np.dtype(scalar_type).newbyteorder('>' if msg.is_bigendian else '<')
     row_bytes = msg.width * channels * dtype.itemsize
     if msg.width == 0 or msg.height == 0:
         raise InvalidInput('empty image (width or height is 0)', key='size')
@@ -64,7 +71,7 @@ def check_image(msg):
     return dtype, channels, row_bytes
 
 
-def image_to_numpy(msg):
+def image_to_numpy(msg: Image) -> np.ndarray:
     """Image -> array of shape (H, W) or (H, W, C), a copy, in the message's dtype."""
     dtype, channels, row_bytes = check_image(msg)
     rows = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)
@@ -80,7 +87,7 @@ _GREY_WEIGHTS = {'rgb8': (0.299, 0.587, 0.114), 'rgba8': (0.299, 0.587, 0.114),
 GREY_ENCODINGS = ('mono8', 'mono16', '8UC1', '16UC1', *_GREY_WEIGHTS)
 
 
-def check_grey_image(msg):
+def check_grey_image(msg: Image) -> None:
     """``check_image``, and an encoding ``image_to_grey`` converts; raises InvalidInput."""
     check_image(msg)
     if msg.encoding not in GREY_ENCODINGS:
@@ -89,7 +96,7 @@ def check_grey_image(msg):
                            value=msg.encoding)
 
 
-def image_to_grey(msg):
+def image_to_grey(msg: Image) -> npt.NDArray[np.float32]:
     """Image (mono8/16, 8UC1/16UC1, rgb8, bgr8, rgba8, bgra8) -> (H, W) float32 grey
     levels on the 0..255 scale (16-bit images scaled down, colour by ITU-R BT.601)."""
     check_grey_image(msg)
@@ -102,7 +109,7 @@ def image_to_grey(msg):
             @ np.array(_GREY_WEIGHTS[msg.encoding], dtype=np.float32))
 
 
-def numpy_to_image(array, encoding, stamp_ns, frame_id):
+def numpy_to_image(array: npt.ArrayLike, encoding: str, stamp_ns: int, frame_id: str) -> Image:
     """(H, W) or (H, W, C) array -> Image (little-endian, no row padding)."""
     if encoding not in IMAGE_ENCODINGS:
         raise InvalidInput(f'unsupported image encoding {encoding!r}', key='encoding')
@@ -119,7 +126,8 @@ def numpy_to_image(array, encoding, stamp_ns, frame_id):
 
 # --- sensor_msgs/CameraInfo ----------------------------------------------------------
 
-def camera_info_to_camera(msg, T_base_camera=None):
+def camera_info_to_camera(msg: CameraInfo,
+                          T_base_camera: FloatArray | None = None) -> PinholeCamera:
     """CameraInfo -> PinholeCamera (raw, unrectified intrinsics K and plumb_bob D).
 
     K must be upper-triangular with positive focal lengths and K[2, 2] = 1. The model
@@ -150,7 +158,7 @@ def camera_info_to_camera(msg, T_base_camera=None):
     return PinholeCamera(int(msg.width), int(msg.height), K, D, T)
 
 
-def camera_info_rectification(msg):
+def camera_info_rectification(msg: CameraInfo) -> tuple[FloatArray, FloatArray]:
     """(R 3x3, P 3x4) of a CameraInfo, validated: R a rotation (an all-zero R, "not
     set", is taken as the identity), P finite with positive focal lengths and last row
     (0, 0, 1, 0)."""
@@ -168,7 +176,9 @@ def camera_info_rectification(msg):
     return R, P
 
 
-def camera_to_camera_info(camera, stamp_ns, frame_id, R=None, P=None):
+def camera_to_camera_info(camera: PinholeCamera, stamp_ns: int, frame_id: str,
+                          R: npt.ArrayLike | None = None,
+                          P: npt.ArrayLike | None = None) -> CameraInfo:
     """PinholeCamera -> CameraInfo. R (3x3) and P (3x4) default to the unrectified
     identity and [K | 0]."""
     R = np.eye(3) if R is None else np.asarray(R, dtype=float)
@@ -183,7 +193,7 @@ def camera_to_camera_info(camera, stamp_ns, frame_id, R=None, P=None):
 
 # --- geometry_msgs/Pose, nav_msgs/Path -------------------------------------------------
 
-def pose_to_matrix(pose):
+def pose_to_matrix(pose: Pose) -> FloatArray:
     """geometry_msgs/Pose -> 4x4; rejects non-finite values and non-unit quaternions."""
     q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z,
                   pose.orientation.w])
@@ -196,7 +206,7 @@ def pose_to_matrix(pose):
     return make_transform(quaternion_to_matrix(q), t)
 
 
-def matrix_to_pose(T):
+def matrix_to_pose(T: FloatArray) -> Pose:
     if not is_rotation(T[:3, :3]):
         raise InvalidInput('transform rotation is not orthonormal', key='rotation')
     x, y, z, w = matrix_to_quaternion(T[:3, :3])
@@ -207,18 +217,19 @@ def matrix_to_pose(T):
     return pose
 
 
-def matrix_to_pose_stamped(T, stamp_ns, frame_id):
+def matrix_to_pose_stamped(T: FloatArray, stamp_ns: int, frame_id: str) -> PoseStamped:
     return PoseStamped(header=make_header(stamp_ns, frame_id), pose=matrix_to_pose(T))
 
 
-def path_to_matrices(msg):
+def path_to_matrices(msg: Path) -> FloatArray:
     """nav_msgs/Path -> (N, 4, 4) poses in the path's frame; rejects empty paths."""
     if not msg.poses:
         raise InvalidInput('path is empty', key='poses')
     return np.stack([pose_to_matrix(p.pose) for p in msg.poses])
 
 
-def matrices_to_path(T_frame_poses, stamp_ns, frame_id):
+def matrices_to_path(T_frame_poses: Iterable[FloatArray], stamp_ns: int,
+                     frame_id: str) -> Path:
     header = make_header(stamp_ns, frame_id)
     return Path(header=header, poses=[PoseStamped(header=header, pose=matrix_to_pose(T))
                                       for T in T_frame_poses])
@@ -230,7 +241,7 @@ _XYZ_FIELDS = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, cou
                for i, n in enumerate('xyz')]
 
 
-def points_to_pointcloud2(points, stamp_ns, frame_id):
+def points_to_pointcloud2(points: npt.ArrayLike, stamp_ns: int, frame_id: str) -> PointCloud2:
     """(N, 3) points [m] -> unorganised PointCloud2 with float32 x, y, z."""
     points = np.ascontiguousarray(points, dtype='<f4').reshape(-1, 3)
     msg = PointCloud2(header=make_header(stamp_ns, frame_id), height=1, width=len(points),
@@ -240,7 +251,7 @@ def points_to_pointcloud2(points, stamp_ns, frame_id):
     return msg
 
 
-def pointcloud2_to_points(msg):
+def pointcloud2_to_points(msg: PointCloud2) -> npt.NDArray[np.float32]:
     """PointCloud2 with float32 x, y, z fields (any layout) -> (N, 3) float32 array."""
     offsets = {f.name: f for f in msg.fields}
     for name in 'xyz':
@@ -260,11 +271,11 @@ def pointcloud2_to_points(msg):
 
 # --- sensor_msgs/CompressedImage (image_transport's compressed plugin) --------------
 
-def grey_to_compressed_jpeg(array, quality, stamp_ns, frame_id):
+def grey_to_compressed_jpeg(array: npt.ArrayLike, quality: int, stamp_ns: int,
+                            frame_id: str) -> CompressedImage:
     """(H, W) uint8 grey image -> CompressedImage, JPEG at ``quality`` (1..100), with the
     format string of image_transport's compressed plugin ('mono8; jpeg compressed mono8')."""
     import cv2  # only the nodes that compress need it
-    from sensor_msgs.msg import CompressedImage
     array = np.ascontiguousarray(array)
     if array.ndim != 2 or array.dtype != np.uint8:
         raise InvalidInput(f'expected an (H, W) uint8 image, got {array.dtype} {array.shape}')
@@ -275,7 +286,7 @@ def grey_to_compressed_jpeg(array, quality, stamp_ns, frame_id):
                            format='mono8; jpeg compressed mono8', data=data.tobytes())
 
 
-def compressed_to_grey(msg):
+def compressed_to_grey(msg: CompressedImage) -> npt.NDArray[np.uint8]:
     """CompressedImage (JPEG or PNG, any channels) -> (H, W) uint8 grey image."""
     import cv2
     data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
@@ -283,4 +294,4 @@ def compressed_to_grey(msg):
     if image is None:
         raise InvalidInput(f'compressed image ({msg.format!r}, {data.size} bytes) does not '
                            'decode as JPEG or PNG', key='data')
-    return image
+    return cast(npt.NDArray[np.uint8], image)  # IMREAD_GRAYSCALE decodes to 8 bits

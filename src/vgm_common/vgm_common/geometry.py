@@ -5,10 +5,17 @@ Conventions: a pose ``T_a_b`` is a 4x4 homogeneous matrix mapping coordinates in
 ROS (REP 103): ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``. Quaternions are ``(x, y, z, w)``
 as in geometry_msgs.
 """
+from __future__ import annotations
+
+from typing import Literal
+
 import numpy as np
+import numpy.typing as npt
+
+FloatArray = npt.NDArray[np.float64]  # the float64 arrays these functions return
 
 
-def _rotation(angle, axis):
+def _rotation(angle: npt.ArrayLike, axis: Literal['x', 'y', 'z']) -> FloatArray:
     """Rotation(s) by ``angle`` [rad] (scalar or any shape S) about a coordinate axis:
     (3, 3), or (*S, 3, 3) for arrays of angles."""
     c, s = np.cos(angle), np.sin(angle)
@@ -19,25 +26,26 @@ def _rotation(angle, axis):
     return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
-def rot_x(angle):
+def rot_x(angle: npt.ArrayLike) -> FloatArray:
     return _rotation(angle, 'x')
 
 
-def rot_y(angle):
+def rot_y(angle: npt.ArrayLike) -> FloatArray:
     return _rotation(angle, 'y')
 
 
-def rot_z(angle):
+def rot_z(angle: npt.ArrayLike) -> FloatArray:
     return _rotation(angle, 'z')
 
 
-def rpy_to_matrix(roll, pitch, yaw):
+def rpy_to_matrix(roll: npt.ArrayLike, pitch: npt.ArrayLike,
+                  yaw: npt.ArrayLike) -> FloatArray:
     """Rotation of fixed-axis roll, pitch, yaw [rad]: (3, 3), or (*S, 3, 3) for arrays of
     angles (a whole population of cameras at once)."""
     return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
 
 
-def quaternion_to_matrix(q_xyzw):
+def quaternion_to_matrix(q_xyzw: npt.ArrayLike) -> FloatArray:
     """3x3 rotation of a quaternion (x, y, z, w); it is normalised first."""
     x, y, z, w = np.asarray(q_xyzw, dtype=float) / np.linalg.norm(q_xyzw)
     return np.array([
@@ -47,26 +55,27 @@ def quaternion_to_matrix(q_xyzw):
     ])
 
 
-def matrix_to_quaternion(R):
+def matrix_to_quaternion(R: npt.ArrayLike) -> FloatArray:
     """Quaternion (x, y, z, w) with w >= 0 of a 3x3 rotation matrix (Shepperd's method)."""
     R = np.asarray(R, dtype=float)
     trace = np.trace(R)
     if trace > 0:
         s = 2.0 * np.sqrt(trace + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
+        xyzw = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
     else:
         i = int(np.argmax(np.diag(R)))
         j, k = (i + 1) % 3, (i + 2) % 3
         s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
-        q[i] = s / 4
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-    q = np.array(q)
+        xyzw = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
+        xyzw[i] = s / 4
+        xyzw[j] = (R[j, i] + R[i, j]) / s
+        xyzw[k] = (R[k, i] + R[i, k]) / s
+    q = np.array(xyzw)
     return q if q[3] >= 0 else -q
 
 
-def look_at_rotation(position, target, up=(0.0, 0.0, 1.0)):
+def look_at_rotation(position: npt.ArrayLike, target: npt.ArrayLike,
+                     up: npt.ArrayLike = (0.0, 0.0, 1.0)) -> FloatArray:
     """Rotation of a camera optical frame (z forward, x right, y down) at ``position``
     looking at ``target``, with image 'up' as close to ``up`` as possible."""
     z = np.asarray(target, dtype=float) - np.asarray(position, dtype=float)
@@ -80,7 +89,7 @@ def look_at_rotation(position, target, up=(0.0, 0.0, 1.0)):
     return np.column_stack([x, y, z])
 
 
-def make_transform(R, t):
+def make_transform(R: npt.ArrayLike, t: npt.ArrayLike) -> FloatArray:
     """4x4 homogeneous transform from a 3x3 rotation and a translation."""
     T = np.eye(4)
     T[:3, :3] = R
@@ -88,18 +97,18 @@ def make_transform(R, t):
     return T
 
 
-def invert_transform(T):
+def invert_transform(T: FloatArray) -> FloatArray:
     R, t = T[:3, :3], T[:3, 3]
     return make_transform(R.T, -R.T @ t)
 
 
-def transform_points(T, points):
+def transform_points(T: FloatArray, points: npt.ArrayLike) -> FloatArray:
     """Apply a 4x4 transform to (N, 3) points."""
     points = np.asarray(points, dtype=float)
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def is_rotation(R, tol=1e-6):
+def is_rotation(R: npt.ArrayLike, tol: float = 1e-6) -> bool:
     """True if R is a finite proper orthonormal 3x3 matrix."""
     R = np.asarray(R, dtype=float)
     return (R.shape == (3, 3) and bool(np.all(np.isfinite(R)))

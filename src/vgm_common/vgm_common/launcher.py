@@ -11,6 +11,8 @@ exit status is non-zero if any node failed.
     vgm_launch graph.yaml [--nodes sensor_sim recorder] [--duration 30]
                [--set sensor_sim:scenario:=S1.yaml]
 """
+from __future__ import annotations
+
 import argparse
 import ctypes
 import os
@@ -19,7 +21,9 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
+from typing import IO, TextIO
 
 import yaml
 
@@ -32,7 +36,7 @@ class LaunchError(Exception):
     pass
 
 
-def find_executable(name, prefixes=None):
+def find_executable(name: str, prefixes: Iterable[str] | None = None) -> Path:
     """``<prefix>/lib/<package>/<name>`` from AMENT_PREFIX_PATH (first match)."""
     if prefixes is None:
         prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
@@ -44,7 +48,7 @@ def find_executable(name, prefixes=None):
                       '(did you source ros2_ws/install/setup.bash?)')
 
 
-def node_names(params_file):
+def node_names(params_file: str | Path) -> list[str]:
     data = yaml.safe_load(Path(params_file).read_text()) or {}
     if not isinstance(data, dict):
         raise LaunchError(f'{params_file}: expected node names as top-level keys')
@@ -54,8 +58,9 @@ def node_names(params_file):
 class Launch:
     """Runs nodes as process groups; ``run()`` returns 0 if none failed."""
 
-    def __init__(self, params_file, nodes=None, overrides=(), out=sys.stdout,
-                 command_prefixes=None):
+    def __init__(self, params_file: str | Path, nodes: Iterable[str] | None = None,
+                 overrides: Iterable[str] = (), out: TextIO = sys.stdout,
+                 command_prefixes: Mapping[str, Sequence[str]] | None = None) -> None:
         """``command_prefixes``: {node: argv} run before a node's executable, e.g.
         ``['ip', 'netns', 'exec', 'host_b']`` to start it on a simulated second host."""
         self.params_file = Path(params_file).resolve()
@@ -64,7 +69,7 @@ class Launch:
         unknown = [n for n in self.nodes if n not in available]
         if unknown:
             raise LaunchError(f'{params_file} has no section for {", ".join(unknown)}')
-        self.overrides = {n: [] for n in self.nodes}
+        self.overrides: dict[str, list[str]] = {n: [] for n in self.nodes}
         for item in overrides:
             node, sep, assignment = item.partition(':')
             if not sep or ':=' not in assignment or node not in self.overrides:
@@ -73,24 +78,25 @@ class Launch:
             self.overrides[node] += ['-p', assignment]
         self.command_prefixes = dict(command_prefixes or {})
         self.out = out
-        self.processes = {}
-        self.logs = {name: [] for name in self.nodes}  # every line each node printed
+        self.processes: dict[str, subprocess.Popen[str]] = {}
+        # every line each node printed
+        self.logs: dict[str, list[str]] = {name: [] for name in self.nodes}
         self._lock = threading.Lock()
         self._stopping = False
-        self._pumps = []
+        self._pumps: list[threading.Thread] = []
         self._width = max(len(n) for n in self.nodes)
 
-    def _print(self, name, line):
+    def _print(self, name: str, line: str) -> None:
         with self._lock:
             self.out.write(f'[{name.ljust(self._width)}] {line}')
             self.out.flush()
 
-    def _pump(self, name, stream):
+    def _pump(self, name: str, stream: IO[str]) -> None:
         for line in iter(stream.readline, ''):
             self.logs[name].append(line)
             self._print(name, line)
 
-    def start(self):
+    def start(self) -> None:
         for name in self.nodes:
             argv = [*self.command_prefixes.get(name, []), str(find_executable(name)),
                     '--ros-args', '-r', f'__node:={name}',
@@ -105,10 +111,10 @@ class Launch:
             pump.start()
             self._pumps.append(pump)
 
-    def log_text(self, name):
+    def log_text(self, name: str) -> str:
         return ''.join(self.logs[name])
 
-    def stop(self, timeout=10.0):
+    def stop(self, timeout: float = 10.0) -> None:
         """Stop the nodes in reverse start order, so a recorder started first records
         everything the others published: SIGINT to each process group, SIGKILL after
         ``timeout`` [s]."""
@@ -124,13 +130,14 @@ class Launch:
         for thread in self._pumps:
             thread.join(timeout=1.0)  # the last lines a node printed are in self.logs
 
-    def failed(self):
+    def failed(self) -> list[str]:
         """Names of nodes that exited with an error (not because we stopped them)."""
         return [name for name, p in self.processes.items()
                 if p.returncode is not None and p.returncode != 0
                 and not (self._stopping and p.returncode in _CLEAN_STOP)]
 
-    def run(self, duration=None, until=None):
+    def run(self, duration: float | None = None,
+            until: Callable[[], bool] | None = None) -> int:
         """Start, wait until Ctrl-C, ``duration`` [s], ``until()`` is true, a node
         failing, or all nodes exiting; then stop everything."""
         self.start()
@@ -156,7 +163,7 @@ class Launch:
         return 1 if failed_before_stop or self.failed() else 0
 
 
-def _node_environment():
+def _node_environment() -> dict[str, str]:
     """The nodes' environment: unbuffered output (log lines in order) and, unless the
     user chose otherwise, one BLAS/OpenMP thread per node: a graph of several processes
     on a few cores stalls when each numpy spins up a thread per core."""
@@ -166,7 +173,7 @@ def _node_environment():
     return env
 
 
-def _own_group_die_with_parent():
+def _own_group_die_with_parent() -> None:
     """In the child before exec: its own process group, so a terminal's Ctrl-C reaches
     only the launcher, which stops the nodes in order; and SIGTERM when the launcher dies,
     even by SIGKILL, so no node outlives it (Linux prctl PR_SET_PDEATHSIG)."""
@@ -178,14 +185,14 @@ _PR_SET_PDEATHSIG = 1
 _LIBC = ctypes.CDLL(None, use_errno=True)
 
 
-def _signal_group(process, sig):
+def _signal_group(process: subprocess.Popen[str], sig: signal.Signals) -> None:
     try:
         os.killpg(process.pid, sig)
     except ProcessLookupError:
         pass
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='vgm_launch', description=__doc__.split('\n\n')[0])
     parser.add_argument('params_file', help='ROS 2 params file; top-level keys = nodes')
     parser.add_argument('--nodes', nargs='+', help='start only these nodes')

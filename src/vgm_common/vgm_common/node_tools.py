@@ -1,5 +1,7 @@
 """What every node does at its edges: typed parameters with descriptors and validation,
 diagnostics on /diagnostics, throttled rejection of bad input, and a clean ``main``."""
+from __future__ import annotations
+
 import array
 import contextlib
 import functools
@@ -12,9 +14,19 @@ import tempfile
 import threading
 import time
 from collections import deque
+from collections.abc import (
+    Callable,
+    Coroutine,
+    Iterable,
+    Iterator,
+    Mapping,
+    MutableMapping,
+    Sequence,
+)
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence
+from types import FrameType
+from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
 
 import rclpy
 import yaml
@@ -33,6 +45,7 @@ from rclpy.exceptions import (
     InvalidParameterValueException,
 )
 from rclpy.executors import (
+    Executor,
     ExternalShutdownException,
     MultiThreadedExecutor,
     SingleThreadedExecutor,
@@ -44,6 +57,10 @@ from rclpy.signals import SignalHandlerOptions
 from vgm_common.errors import VgmError
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.topics import DIAGNOSTICS_TOPIC
+
+if TYPE_CHECKING:
+    from rclpy.node import Node
+    from rclpy.service import Service
 
 
 class ParameterError(VgmError):
@@ -58,20 +75,20 @@ class Param:
     name: str
     default: Any
     description: str
-    range: Optional[tuple] = None  # (min, max) for numbers, inclusive
-    choices: Optional[Sequence[str]] = None
-    check: Optional[Callable[[Any], Optional[str]]] = None  # returns a reason if bad
+    range: tuple[float, float] | None = None  # (min, max) for numbers, inclusive
+    choices: Sequence[str] | None = None
+    check: Callable[[Any], str | None] | None = None  # returns a reason if bad
     read_only: bool = False
-    on_change: Optional[Callable[[Any], None]] = None  # called with the new value once set
+    on_change: Callable[[Any], None] | None = None  # called with the new value once set
     kind: type = field(init=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         self.kind = type(self.default)
 
-    def _error(self, reason, value):
+    def _error(self, reason: str, value: Any) -> ParameterError:
         return ParameterError(f'parameter {self.name!r}: {reason}', key=self.name, value=value)
 
-    def coerce(self, value):
+    def coerce(self, value: Any) -> Any:
         """The value in this parameter's kind, or ParameterError with a reason."""
         if self.kind is float and _is_kind(value, int):
             value = float(value)  # `rate:=100` for a float parameter is what users type
@@ -90,7 +107,7 @@ class Param:
             raise self._error(reason, value)
         return value
 
-    def _coerce_list(self, value):
+    def _coerce_list(self, value: Any) -> list[Any]:
         if isinstance(value, array.array):  # how rclpy hands a numeric array at run time
             value = value.tolist()
         if not isinstance(value, (list, tuple)):
@@ -105,7 +122,7 @@ class Param:
                                   value)
         return value
 
-    def descriptor(self):
+    def descriptor(self) -> ParameterDescriptor:
         text = self.description + (f' One of: {", ".join(self.choices)}.' if self.choices else '')
         # Dynamic typing lets coerce() give the one-line error (and accept an integer
         # for a float) instead of rclpy raising a traceback at declaration.
@@ -130,11 +147,12 @@ class NodeParameters:
     attributes: ``self.params.rate``; a Param's ``on_change`` is called once a change is
     set."""
 
-    def __init__(self, node, params, diagnostics=None):
+    def __init__(self, node: Node, params: Sequence[Param],
+                 diagnostics: Diagnostics | None = None) -> None:
         self._node = node
         self._params = {p.name: p for p in params}
         self._diagnostics = diagnostics
-        values = {}
+        values: dict[str, Any] = {}
         for p in params:
             # rclpy cannot infer an array type from an empty default.
             default = Parameter.Type.STRING_ARRAY if p.default == [] else p.default
@@ -152,13 +170,13 @@ class NodeParameters:
         node.add_on_set_parameters_callback(self._on_set)
         node.add_post_set_parameters_callback(self._on_changed)
 
-    def __getattr__(self, name):
+    def __getattr__(self, name: str) -> Any:
         try:
             return self._values[name]
         except KeyError:
             raise AttributeError(name) from None
 
-    def _on_set(self, parameters):
+    def _on_set(self, parameters: list[Parameter]) -> SetParametersResult:
         for parameter in parameters:
             spec = self._params.get(parameter.name)
             if spec is None:
@@ -174,7 +192,7 @@ class NodeParameters:
                 return SetParametersResult(successful=False, reason=str(error))
         return SetParametersResult(successful=True)
 
-    def _on_changed(self, parameters):
+    def _on_changed(self, parameters: list[Parameter]) -> None:
         # After every set-parameters callback accepted the change: only now is it real.
         for parameter in parameters:
             spec = self._params.get(parameter.name)
@@ -185,12 +203,12 @@ class NodeParameters:
                 spec.on_change(value)
 
 
-def _coerce(spec, value):
+def _coerce(spec: Param, value: Any) -> Any:
     # An empty list given on the command line (`topics:=[]`) arrives unset.
     return spec.coerce([] if value is None and spec.kind is list else value)
 
 
-def _is_kind(value, kind):
+def _is_kind(value: object, kind: type) -> bool:
     """``isinstance``, except that a bool is no int (ROS keeps them apart)."""
     return isinstance(value, kind) and not (kind is int and isinstance(value, bool))
 
@@ -203,12 +221,12 @@ class CountingPublisher(Publisher):
 
     sent = 0
 
-    def publish(self, msg):
+    def publish(self, msg: Any) -> None:
         super().publish(msg)
         self.sent += 1
 
 
-def subscriber_gate_params(what):
+def subscriber_gate_params(what: str) -> list[Param]:
     """The three parameters of a SubscriberGate: ``min_subscribers`` (0 = open at once),
     ``wait_for_nodes`` and ``subscriber_timeout``; ``what`` says what waits and on which
     topics the count applies, e.g. 'Publish only once every camera topic has'."""
@@ -225,13 +243,13 @@ def subscriber_gate_params(what):
     ]
 
 
-def _node_names(names):
+def _node_names(names: Iterable[object]) -> str | None:
     """A reason if ``names`` holds anything but non-empty strings, else None."""
     bad = [name for name in names if not isinstance(name, str) or not name]
     return f'must hold node names, got {bad}' if bad else None
 
 
-def _full_node_name(namespace, name):
+def _full_node_name(namespace: str, name: str) -> str:
     return f'{namespace.rstrip("/")}/{name}'
 
 
@@ -246,8 +264,9 @@ class SubscriberGate:
     of ``publishers`` with every discovered subscription matched (the graph lists a
     subscription when it is discovered, the count says when it is matched)."""
 
-    def __init__(self, node, publishers, min_subscribers, timeout, wait_for_nodes=(),
-                 counted=None):
+    def __init__(self, node: Node, publishers: Iterable[Publisher], min_subscribers: int,
+                 timeout: float, wait_for_nodes: Iterable[str] = (),
+                 counted: Iterable[Publisher] | None = None) -> None:
         self._node, self._publishers = node, tuple(publishers)
         self._counted = self._publishers if counted is None else tuple(counted)
         self._min_subscribers, self._timeout = min_subscribers, timeout
@@ -255,7 +274,7 @@ class SubscriberGate:
         self._created = time.monotonic()
         self.opened = threading.Event()
 
-    def missing(self):
+    def missing(self) -> list[str]:
         """What the gate still waits for, as 'node on topic' / 'N of M on topic' texts."""
         missing = [f'{p.get_subscription_count()} of {self._min_subscribers} subscribers '
                    f'on {p.topic_name}' for p in self._counted
@@ -272,7 +291,7 @@ class SubscriberGate:
                 missing.append(f'matching on {publisher.topic_name}')
         return missing
 
-    def is_open(self):
+    def is_open(self) -> bool:
         if self.opened.is_set():
             return True
         missing = self.missing()
@@ -288,7 +307,7 @@ class SubscriberGate:
         return True
 
 
-def parse_published_counts(log_text):
+def parse_published_counts(log_text: str) -> dict[str, int]:
     """{topic: messages published} from a node's 'published: /topic=N ...' log lines (a
     node may log several; a topic counted in several lines keeps the last count)."""
     lines = re.findall(r'published: (.*)', log_text)
@@ -297,8 +316,8 @@ def parse_published_counts(log_text):
     return {topic: int(n) for line in lines for topic, n in re.findall(r'(\S+)=(\d+)', line)}
 
 
-def _log_published_counts(node):
-    counts = {}
+def _log_published_counts(node: Node) -> None:
+    counts: dict[str, int] = {}
     for publisher in node.publishers:
         if isinstance(publisher, CountingPublisher):
             counts[publisher.topic_name] = counts.get(publisher.topic_name, 0) + publisher.sent
@@ -318,17 +337,18 @@ class Diagnostics:
     LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN,
               'error': DiagnosticStatus.ERROR, 'stale': DiagnosticStatus.STALE}
 
-    def __init__(self, node, hardware_id='simulation'):
+    def __init__(self, node: Node, hardware_id: str = 'simulation') -> None:
         self._node = node
         self._hardware_id = hardware_id
         self._publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DEFAULT_QOS,
                                                 publisher_class=CountingPublisher)
-        self._last_log = {}
-        self._unsent = deque(maxlen=self.UNSENT_LIMIT)
+        self._last_log: dict[str, float] = {}  # what -> time.monotonic() of its last log
+        self._unsent: deque[DiagnosticArray] = deque(maxlen=self.UNSENT_LIMIT)
         self._lock = threading.Lock()  # nodes publish from worker threads too
-        self.rejected = {}  # reason key -> count
+        self.rejected: dict[str, int] = {}  # reason key -> count
 
-    def publish(self, name, level, message, values=None):
+    def publish(self, name: str, level: str, message: str,
+                values: Mapping[str, object] | None = None) -> None:
         status = DiagnosticStatus(level=self.LEVELS[level],
                                   name=f'{self._node.get_name()}: {name}', message=message,
                                   hardware_id=self._hardware_id,
@@ -344,7 +364,7 @@ class Diagnostics:
                 self._publisher.publish(self._unsent.popleft())
             self._publisher.publish(array)
 
-    def reject(self, what, error, throttle_s=2.0):
+    def reject(self, what: str, error: Exception | str, throttle_s: float = 2.0) -> None:
         """Count and report bad input ``what`` (e.g. a topic); log at most every
         ``throttle_s`` [s] per kind of input."""
         self.rejected[what] = self.rejected.get(what, 0) + 1
@@ -357,7 +377,10 @@ class Diagnostics:
                      {'count': self.rejected[what]})
 
 
-def guarded(what):
+_R = TypeVar('_R')
+
+
+def guarded(what: str) -> Callable[[Callable[..., _R]], Callable[..., _R | None]]:
     """Decorate a node's timer, subscription or service callback so that no exception
     escapes it to the executor (that would end the process). An unexpected one goes to
     the node's ``on_internal_error(what, error)`` if it has one (pa10_ik_node stops the
@@ -365,9 +388,9 @@ def guarded(what):
     diagnostic); a service callback ``(request, response)`` then answers success=false
     with the error. Expected bad input is rejected inside the callbacks with a better
     reason."""
-    def decorate(callback):
+    def decorate(callback: Callable[..., _R]) -> Callable[..., _R | None]:
         @functools.wraps(callback)
-        def wrapper(self, *args):
+        def wrapper(self: Any, *args: Any) -> _R | None:  # self: the node, duck-typed
             try:
                 return callback(self, *args)
             except Exception as error:  # noqa: BLE001 - the root rule: nothing escapes
@@ -391,17 +414,19 @@ class DeferredServiceExecutor(MultiThreadedExecutor):
     callback, so the service answers later with ``send_response`` and no executor thread
     waits (rclpy's coroutine callbacks would busy-spin the executor while they wait)."""
 
-    def _take_service(self, srv):
+    def _take_service(self, srv: Service) -> Callable[[], Coroutine[None, None, None]] | None:
         deferred = getattr(srv.callback, 'deferred_request', None)
         if deferred is None:
             return super()._take_service(srv)
         try:
             with srv.handle:
-                request, header = srv.handle.service_take_request(srv.srv_type.Request)
+                # rclpy annotates srv_type with an unbound TypeVar; it is a service type.
+                request, header = srv.handle.service_take_request(
+                    srv.srv_type.Request)  # type: ignore[attr-defined]
         except InvalidHandle:
             return None
 
-        async def _execute():
+        async def _execute() -> None:
             if header is not None:
                 deferred(request, header)
         return _execute
@@ -412,15 +437,16 @@ class DeferredCallback:
     ``deferred_request(request, header)``; called as a plain callback (by another
     executor) it runs ``blocking(request, response)``, which waits on the calling thread."""
 
-    def __init__(self, deferred_request, blocking):
+    def __init__(self, deferred_request: Callable[[Any, Any], None],
+                 blocking: Callable[[Any, Any], Any]) -> None:  # ROS requests of any type
         self.deferred_request = deferred_request
         self._blocking = blocking
 
-    def __call__(self, request, response):
+    def __call__(self, request: Any, response: Any) -> Any:
         return self._blocking(request, response)
 
 
-def fastdds_profile():
+def fastdds_profile() -> Path:
     """The graph's Fast DDS profile (config/fastdds.xml: a shared-memory segment large
     enough for image bursts, 50 ms heartbeats), installed or in the source tree."""
     try:
@@ -430,14 +456,14 @@ def fastdds_profile():
         return Path(__file__).resolve().parent.parent / 'config' / 'fastdds.xml'
 
 
-def use_fastdds_profile(environ=os.environ):
+def use_fastdds_profile(environ: MutableMapping[str, str] = os.environ) -> None:
     """Point Fast DDS at fastdds_profile() unless the user chose a profile."""
     if not any(environ.get(k) for k in FASTDDS_PROFILE_VARIABLES):
         for variable in FASTDDS_PROFILE_VARIABLES:
             environ[variable] = str(fastdds_profile())
 
 
-def init_rclpy(args=None):
+def init_rclpy(args: list[str] | None = None) -> None:
     """``rclpy.init`` as every node of the graph does it: with our Fast DDS profile
     (use_fastdds_profile) and without rclpy's signal handlers (the caller installs its
     own, so shutdown code still has a valid context)."""
@@ -447,7 +473,7 @@ def init_rclpy(args=None):
 
 
 @contextlib.contextmanager
-def _stderr_kept_on_success():
+def _stderr_kept_on_success() -> Iterator[None]:
     """Hold back what this process writes to stderr (file descriptor 2, so rcl's own C
     logging too) in the block: written out if the block succeeds, dropped if it raises.
     rcl logs 'Failed to parse global arguments' before raising the error that says what
@@ -471,8 +497,12 @@ FASTDDS_PROFILE_VARIABLES = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_
 
 POLL_PERIOD = 0.1  # [s] how often spinning checks a node's exit request
 
+# What signal.signal takes and returns: a function, SIG_DFL / SIG_IGN, or None.
+_SignalHandler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 
-def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
+
+def run_node(node_class: Callable[[], Node], args: list[str] | None = None,
+             executor_class: Callable[[], Executor] = SingleThreadedExecutor) -> int:
     """Construct and spin ``node_class`` until Ctrl-C, SIGTERM, external shutdown or the
     node's own exit request; returns the process exit status.
 
@@ -506,7 +536,8 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
         print(f'[ERROR] [{name}]: start-up error: {first_line}', file=sys.stderr, flush=True)
         return 2
     previous_handlers = _set_stop_signal_handler(_raise_keyboard_interrupt)
-    node = executor = None
+    node: Node | None = None
+    executor: Executor | None = None
     status = 0
     try:
         node = node_class()
@@ -551,7 +582,7 @@ def run_node(node_class, args=None, executor_class=SingleThreadedExecutor):
     return status
 
 
-def check_params_files(argv):
+def check_params_files(argv: Sequence[str]) -> None:
     """Raise VgmError naming the file if a ``--params-file`` in ``argv`` is missing or is
     not a YAML mapping (rcl would fail with a traceback-length message)."""
     for flag, path in zip(argv, argv[1:]):
@@ -574,13 +605,13 @@ def check_params_files(argv):
 NAME_CHECK_PERIOD = 2.0  # [s]
 
 
-def _name_clash_check(node):
+def _name_clash_check(node: Node) -> Callable[[], None]:
     """A timer callback that logs an error (once per clash) when another node with the
     same fully qualified name runs on the domain: ROS 2 allows it, but parameters and
     services of the two then answer for each other."""
     state = {'clashing': False}
 
-    def check():
+    def check() -> None:
         me = (node.get_name(), node.get_namespace())
         count = sum(1 for entry in node.get_node_names_and_namespaces() if entry == me)
         clashing = count > 1
@@ -597,7 +628,8 @@ def _name_clash_check(node):
     return check
 
 
-def _spin_until(executor, done, timeout=None):
+def _spin_until(executor: Executor, done: Callable[[], bool],
+                timeout: float | None = None) -> None:
     """Spin ``executor`` until ``done()`` is true, its context is shut down, or ``timeout``
     [s] passed (None: no limit)."""
     deadline = math.inf if timeout is None else time.monotonic() + timeout
@@ -608,13 +640,13 @@ def _spin_until(executor, done, timeout=None):
         executor.spin_once(timeout_sec=min(remaining, POLL_PERIOD))
 
 
-def _set_stop_signal_handler(handler):
+def _set_stop_signal_handler(handler: _SignalHandler) -> dict[signal.Signals, _SignalHandler]:
     """Handle SIGINT and SIGTERM with ``handler``; returns the previous handlers."""
     return {signum: signal.signal(signum, handler)
             for signum in (signal.SIGINT, signal.SIGTERM)}
 
 
-def wait_for_delivery(node, timeout=2.0):
+def wait_for_delivery(node: Node, timeout: float = 2.0) -> bool:
     """Wait (at most ``timeout`` [s] in all) until every reliable subscriber has
     acknowledged what ``node`` published: destroying a publisher drops samples still in
     flight, and a recorder would miss the last few messages before shutdown."""
@@ -628,5 +660,5 @@ def wait_for_delivery(node, timeout=2.0):
     return True
 
 
-def _raise_keyboard_interrupt(signum, frame):
+def _raise_keyboard_interrupt(signum: int, frame: FrameType | None) -> NoReturn:
     raise KeyboardInterrupt

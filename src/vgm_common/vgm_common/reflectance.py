@@ -7,14 +7,20 @@ alpha = max(theta_i, theta_r), beta = min(theta_i, theta_r); f = tan (``'oren_na
 the published model) or sin (``'thesis'``, as the thesis prints it). Lambert's
 cos(theta_i) when the roughness is 0. Albedo and source radiance are the caller's.
 """
+from __future__ import annotations
+
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 
 VARIANTS = ('oren_nayar', 'thesis')
 
 
-def oren_nayar_terms(normals, light, views, roughness, variant='oren_nayar'):
+def oren_nayar_terms(normals: npt.ArrayLike, light: npt.ArrayLike, views: npt.ArrayLike,
+                     roughness: float, variant: str = 'oren_nayar'
+                     ) -> tuple[FloatArray, FloatArray]:
     """(M, cos_theta_i) on broadcast arrays of unit vectors (..., 3).
 
     ``cos_theta_i`` is not clamped (Tsai-Shah's residual uses it as is); ``M`` is the
@@ -46,7 +52,8 @@ def oren_nayar_terms(normals, light, views, roughness, variant='oren_nayar'):
     return A + B * np.maximum(0.0, cos_phi) * np.sin(alpha) * f_beta, cos_i
 
 
-def oren_nayar(normals, light, views, roughness, variant='oren_nayar'):
+def oren_nayar(normals: npt.ArrayLike, light: npt.ArrayLike, views: npt.ArrayLike,
+               roughness: float, variant: str = 'oren_nayar') -> FloatArray:
     """Reflectance factor M cos(theta_i), without albedo; 0 where the light or the
     viewer is behind the surface."""
     M, cos_i = oren_nayar_terms(normals, light, views, roughness, variant)

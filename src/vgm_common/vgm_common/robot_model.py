@@ -13,23 +13,30 @@ and the geometric Jacobian.
 Regenerate the committed URDFs from the repository root with
 ``PYTHONPATH=src/vgm_common python -m vgm_common.robot_model``.
 """
+from __future__ import annotations
+
 import os
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from xml.etree import ElementTree
 
 import numpy as np
+import numpy.typing as npt
 import pinocchio as pin
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 from vgm_common.topics import BASE_FRAME, TOOL_FRAME
 
 N_JOINTS = 7
 JOINT_NAMES = tuple(f'pa10_joint{i}' for i in range(1, N_JOINTS + 1))
 AXES = ('z', 'y', 'z', 'y', 'z', 'y', 'z')  # S1, S2, S3, E1, E2, W1, W2
+JointValues = FloatArray | Sequence[float]  # one value per joint, (n,)
 
 
-def _read_only(values):
+def _read_only(values: npt.ArrayLike) -> FloatArray:
     array = np.array(values, dtype=float)
     array.flags.writeable = False
     return array
@@ -63,7 +70,7 @@ PARAMETER_SETS = {
 }
 
 
-def pa10_urdf(name, tool_length=0.0):
+def pa10_urdf(name: str, tool_length: float = 0.0) -> str:
     """URDF text of a PA-10 parameter set.
 
     Args:
@@ -84,9 +91,11 @@ def pa10_urdf(name, tool_length=0.0):
                                   f'tool_length={_num(tool_length)})')
 
 
-def pa10_like_urdf(params, tool_length=0.0, lower=PA10_LOWER_LIMITS_RAD,
-                   upper=PA10_UPPER_LIMITS_RAD, velocity=PA10_VELOCITY_LIMITS_RAD_S,
-                   name='pa10_like', comment=None):
+def pa10_like_urdf(params: Pa10Parameters, tool_length: float = 0.0,
+                   lower: JointValues = PA10_LOWER_LIMITS_RAD,
+                   upper: JointValues = PA10_UPPER_LIMITS_RAD,
+                   velocity: JointValues = PA10_VELOCITY_LIMITS_RAD_S,
+                   name: str = 'pa10_like', comment: str | None = None) -> str:
     """URDF text of an arm with the PA-10's joint axes and other link offsets / limits.
 
     Args:
@@ -135,7 +144,8 @@ def pa10_like_urdf(params, tool_length=0.0, lower=PA10_LOWER_LIMITS_RAD,
     return '\n'.join(lines) + '\n'
 
 
-def urdf_with_tool0(urdf_text, parent_link, xyz=(0.0, 0.0, 0.0), rpy=(0.0, 0.0, 0.0)):
+def urdf_with_tool0(urdf_text: str, parent_link: str, xyz: Iterable[float] = (0.0, 0.0, 0.0),
+                    rpy: Iterable[float] = (0.0, 0.0, 0.0)) -> str:
     """``urdf_text`` with a ``tool0`` link fixed to ``parent_link`` at ``xyz`` [m] /
     ``rpy`` [rad] (e.g. the Panda of example-robot-data, whose tip is ``panda_hand_tcp``).
 
@@ -161,7 +171,7 @@ def urdf_with_tool0(urdf_text, parent_link, xyz=(0.0, 0.0, 0.0), rpy=(0.0, 0.0, 
     return ElementTree.tostring(root, encoding='unicode')
 
 
-def _link_xml(name, mass_kg, length_m):
+def _link_xml(name: str, mass_kg: float, length_m: float) -> list[str]:
     """A link modelled as a solid cylinder of ``length_m`` along its z axis."""
     r = _LINK_RADIUS_M
     i_xx = mass_kg * (3 * r**2 + length_m**2) / 12
@@ -186,12 +196,12 @@ def _link_xml(name, mass_kg, length_m):
     return lines + ['  </link>']
 
 
-def _num(value):
+def _num(value: float) -> str:
     """Shortest text that parses back to the same double."""
     return repr(float(value))
 
 
-def write_urdfs(directory):
+def write_urdfs(directory: str | Path) -> None:
     """Write ``<name>.urdf`` (tool_length 0) for every parameter set into ``directory``."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -209,28 +219,28 @@ class RobotModel:
 
     model: pin.Model
     data: pin.Data
-    joint_names: tuple
+    joint_names: tuple[str, ...]
     lower_limits: np.ndarray  # [rad], (n,)
     upper_limits: np.ndarray  # [rad], (n,)
     velocity_limits: np.ndarray  # [rad/s], (n,)
     tool_frame_id: int
 
     @property
-    def n_joints(self):
+    def n_joints(self) -> int:
         """Number of joints n."""
         return len(self.joint_names)
 
-    def check_q(self, q):
+    def check_q(self, q: npt.ArrayLike) -> FloatArray:
         """``q`` as a new float array of shape (n,); raises ``InvalidInput`` otherwise."""
         return as_joint_vector(q, self.n_joints, 'q')
 
-    def forward_kinematics(self, q):
+    def forward_kinematics(self, q: npt.ArrayLike) -> FloatArray:
         """T_base_tool: 4x4 pose of the tool frame in ``base_link`` at joints ``q`` (n,)."""
         q = self.check_q(q)
         pin.forwardKinematics(self.model, self.data, q)
         return pin.updateFramePlacement(self.model, self.data, self.tool_frame_id).homogeneous
 
-    def jacobian(self, q):
+    def jacobian(self, q: npt.ArrayLike) -> FloatArray:
         """6 x n geometric Jacobian of the tool frame at ``q``, base-aligned axes.
 
         Rows 0-2 map qdot to the tool origin's linear velocity [m/s] and rows 3-5 to the
@@ -242,7 +252,8 @@ class RobotModel:
             self.model, self.data, q, self.tool_frame_id, pin.LOCAL_WORLD_ALIGNED))
 
 
-def load_robot(robot, tool_length=0.0, tip_frame=TOOL_FRAME, n_joints=N_JOINTS):
+def load_robot(robot: str | os.PathLike[str], tool_length: float = 0.0,
+               tip_frame: str = TOOL_FRAME, n_joints: int | None = N_JOINTS) -> RobotModel:
     """Build the kinematic model of ``robot``.
 
     Args:
@@ -263,57 +274,11 @@ def load_robot(robot, tool_length=0.0, tip_frame=TOOL_FRAME, n_joints=N_JOINTS):
             names the joint or frame.
     """
     tool_length = _finite_float(tool_length, 'tool_length')
-    if not isinstance(robot, (str, os.PathLike)):
-        raise InvalidInput(f'robot must be a model name or a path, got {robot!r}', 'robot', robot)
-    if robot in PARAMETER_SETS:
-        model = pin.buildModelFromXML(pa10_urdf(robot, tool_length))
-        tool_length = 0.0  # already in the URDF
-    elif Path(robot).is_file():
-        try:
-            text = Path(robot).read_text()
-        except (OSError, UnicodeDecodeError) as err:
-            raise InvalidInput(f'cannot read URDF {robot}: {err}', 'robot', robot) from err
-        _check_urdf_joints(text, robot)
-        try:
-            model = pin.buildModelFromXML(text)
-        except (RuntimeError, ValueError) as err:
-            raise InvalidInput(f'cannot parse URDF {robot}: {err}', 'robot', robot) from err
-    else:
-        raise InvalidInput(
-            f"robot must be one of {sorted(PARAMETER_SETS)} or a URDF file, got {robot!r}",
-            'robot', robot)
-
-    if not model.existFrame(tip_frame):
-        raise InvalidInput(f'{robot} has no frame {tip_frame!r} (the tool tip, z = approach '
-                           'axis)', 'tip_frame', tip_frame)
-    chain = set(model.supports[model.frames[model.getFrameId(tip_frame)].parentJoint])
-    off_chain = [j for j in range(1, model.njoints) if j not in chain]
-    if off_chain:
-        model = pin.buildReducedModel(model, off_chain, pin.neutral(model))
-    if model.nq != model.njoints - 1 or model.nv != model.nq:
-        # Continuous (nq=2) or free joints would break "one entry per joint name".
-        raise InvalidInput(f'{robot}: every joint must have exactly one coordinate',
-                           'robot', robot)
-    names = tuple(model.names[1:])
-    if n_joints is not None and len(names) != n_joints:
-        raise InvalidInput(f'{robot}: {len(names)} joints move {tip_frame!r} '
-                           f'({", ".join(names) or "none"}); a {n_joints}-DOF serial arm '
-                           'is needed', 'robot', robot)
-    lower, upper = model.lowerPositionLimit, model.upperPositionLimit
-    for i, name in enumerate(names):
-        if not (np.isfinite(lower[i]) and np.isfinite(upper[i]) and lower[i] < upper[i]):
-            raise InvalidInput(f'{robot}: joint {name} has no usable position limits '
-                               f'[{lower[i]}, {upper[i]}] (need finite lower < upper)',
-                               'robot', name)
-        if not (np.isfinite(model.velocityLimit[i]) and model.velocityLimit[i] > 0):
-            raise InvalidInput(f'{robot}: joint {name} has no velocity limit '
-                               f'({model.velocityLimit[i]}; need > 0)', 'robot', name)
-
-    tool_frame_id = model.getFrameId(tip_frame)
-    if tool_length != 0.0:
-        frame = model.frames[tool_frame_id]
-        frame.placement = frame.placement * pin.SE3(np.eye(3), np.array([0, 0, tool_length]))
-        model.frames[tool_frame_id] = frame
+    model, tool_length = _build_model(robot, tool_length)
+    model = _reduce_to_tip_chain(model, robot, tip_frame)
+    names = _joint_names(model, robot, tip_frame, n_joints)
+    _check_joint_limits(model, robot, names)
+    tool_frame_id = _extend_tip(model, tip_frame, tool_length)
     return RobotModel(
         model=model,
         data=model.createData(),
@@ -325,7 +290,83 @@ def load_robot(robot, tool_length=0.0, tip_frame=TOOL_FRAME, n_joints=N_JOINTS):
     )
 
 
-def _check_urdf_joints(text, robot):
+def _build_model(robot: str | os.PathLike[str], tool_length: float) -> tuple[pin.Model, float]:
+    """Pinocchio model of a parameter set (its URDF carries the tool) or a URDF file, and
+    the tool length [m] still to add at the tip (0 for a parameter set)."""
+    if not isinstance(robot, (str, os.PathLike)):
+        raise InvalidInput(f'robot must be a model name or a path, got {robot!r}', 'robot', robot)
+    if isinstance(robot, str) and robot in PARAMETER_SETS:
+        return pin.buildModelFromXML(pa10_urdf(robot, tool_length)), 0.0
+    if not Path(robot).is_file():
+        raise InvalidInput(
+            f"robot must be one of {sorted(PARAMETER_SETS)} or a URDF file, got {robot!r}",
+            'robot', robot)
+    try:
+        text = Path(robot).read_text()
+    except (OSError, UnicodeDecodeError) as err:
+        raise InvalidInput(f'cannot read URDF {robot}: {err}', 'robot', robot) from err
+    _check_urdf_joints(text, robot)
+    try:
+        return pin.buildModelFromXML(text), tool_length
+    except (RuntimeError, ValueError) as err:
+        raise InvalidInput(f'cannot parse URDF {robot}: {err}', 'robot', robot) from err
+
+
+def _reduce_to_tip_chain(model: pin.Model, robot: str | os.PathLike[str],
+                         tip_frame: str) -> pin.Model:
+    """``model`` with every joint that does not move ``tip_frame`` locked at neutral."""
+    if not model.existFrame(tip_frame):
+        raise InvalidInput(f'{robot} has no frame {tip_frame!r} (the tool tip, z = approach '
+                           'axis)', 'tip_frame', tip_frame)
+    chain = set(model.supports[model.frames[model.getFrameId(tip_frame)].parentJoint])
+    off_chain = [j for j in range(1, model.njoints) if j not in chain]
+    if off_chain:
+        model = pin.buildReducedModel(model, off_chain, pin.neutral(model))
+    return model
+
+
+def _joint_names(model: pin.Model, robot: str | os.PathLike[str], tip_frame: str,
+                 n_joints: int | None) -> tuple[str, ...]:
+    """The joint names of ``model``; raises unless each joint has one coordinate and there
+    are ``n_joints`` of them (None: any number)."""
+    if model.nq != model.njoints - 1 or model.nv != model.nq:
+        # Continuous (nq=2) or free joints would break "one entry per joint name".
+        raise InvalidInput(f'{robot}: every joint must have exactly one coordinate',
+                           'robot', robot)
+    names = tuple(model.names[1:])
+    if n_joints is not None and len(names) != n_joints:
+        raise InvalidInput(f'{robot}: {len(names)} joints move {tip_frame!r} '
+                           f'({", ".join(names) or "none"}); a {n_joints}-DOF serial arm '
+                           'is needed', 'robot', robot)
+    return names
+
+
+def _check_joint_limits(model: pin.Model, robot: str | os.PathLike[str],
+                        names: tuple[str, ...]) -> None:
+    """Every joint needs finite position limits lower < upper and a velocity limit > 0."""
+    lower, upper = model.lowerPositionLimit, model.upperPositionLimit
+    for i, name in enumerate(names):
+        if not (np.isfinite(lower[i]) and np.isfinite(upper[i]) and lower[i] < upper[i]):
+            raise InvalidInput(f'{robot}: joint {name} has no usable position limits '
+                               f'[{lower[i]}, {upper[i]}] (need finite lower < upper)',
+                               'robot', name)
+        if not (np.isfinite(model.velocityLimit[i]) and model.velocityLimit[i] > 0):
+            raise InvalidInput(f'{robot}: joint {name} has no velocity limit '
+                               f'({model.velocityLimit[i]}; need > 0)', 'robot', name)
+
+
+def _extend_tip(model: pin.Model, tip_frame: str, tool_length: float) -> int:
+    """Move ``tip_frame`` of ``model`` (in place) ``tool_length`` [m] along its z axis;
+    returns its frame id."""
+    tool_frame_id: int = model.getFrameId(tip_frame)
+    if tool_length != 0.0:
+        frame = model.frames[tool_frame_id]
+        frame.placement = frame.placement * pin.SE3(np.eye(3), np.array([0, 0, tool_length]))
+        model.frames[tool_frame_id] = frame
+    return tool_frame_id
+
+
+def _check_urdf_joints(text: str, robot: str | os.PathLike[str]) -> None:
     """Name a moving joint without ``<limit>`` (urdfdom only says the XML is invalid)."""
     try:
         root = ElementTree.fromstring(text)
@@ -346,7 +387,7 @@ def _check_urdf_joints(text, robot):
                                    'missing in <limit>)', 'robot', name)
 
 
-def workspace_reach(robot):
+def workspace_reach(robot: RobotModel) -> tuple[FloatArray, float]:
     """(shoulder (3,), reach [m]) of a ``RobotModel``: the tip stays within ``reach`` of
     the second joint's origin (the sum of the link offsets beyond it, tool included)."""
     data = robot.model.createData()
@@ -360,7 +401,7 @@ def workspace_reach(robot):
     return shoulder, float(reach)
 
 
-def as_joint_vector(q, n, key='q'):
+def as_joint_vector(q: npt.ArrayLike, n: int, key: str = 'q') -> FloatArray:
     """``q`` as a new finite float array of shape (n,); raises ``InvalidInput`` otherwise."""
     try:
         array = np.array(q, dtype=float)
@@ -373,7 +414,7 @@ def as_joint_vector(q, n, key='q'):
     return array
 
 
-def _parameters(name):
+def _parameters(name: str) -> Pa10Parameters:
     try:
         return PARAMETER_SETS[name]
     except (KeyError, TypeError):
@@ -381,7 +422,8 @@ def _parameters(name):
                            f'{sorted(PARAMETER_SETS)}', 'robot', name) from None
 
 
-def _finite_float(value, key):
+def _finite_float(value: Any, key: str) -> float:
+    """``value`` (a parameter: anything) as a finite float, else InvalidInput."""
     try:
         value = float(value)
     except (TypeError, ValueError):

@@ -6,6 +6,8 @@ outside the repository.
 ``opencv_sample_dir()`` returns the directory holding the files; it raises
 SampleDataError with the reason when they cannot be fetched (a test that needs them
 fails with that reason rather than skipping)."""
+from __future__ import annotations
+
 import os
 import shutil
 import subprocess
@@ -28,13 +30,13 @@ class SampleDataError(VgmError):
     """The sample data could not be fetched or is incomplete."""
 
 
-def cache_dir():
+def cache_dir() -> Path:
     """Where the files are kept: $VGM_DATA_CACHE, else ~/.cache/vgm/opencv-doc."""
     root = os.environ.get('VGM_DATA_CACHE') or Path.home() / '.cache' / 'vgm'
     return Path(root) / PACKAGE
 
 
-def opencv_sample_dir():
+def opencv_sample_dir() -> Path:
     """The directory with the Aloe pair and the stereo calibration photographs,
     downloading them with `apt-get download` + `dpkg-deb -x` on first use."""
     target = cache_dir()
@@ -45,8 +47,8 @@ def opencv_sample_dir():
         if shutil.which(tool) is None:
             raise SampleDataError(f'cannot fetch {PACKAGE}: {tool} is not on PATH '
                                   '(a Debian machine is needed for the real-image data)')
-    with tempfile.TemporaryDirectory(prefix='vgm-opencv-doc-') as work:
-        work = Path(work)
+    with tempfile.TemporaryDirectory(prefix='vgm-opencv-doc-') as work_dir:
+        work = Path(work_dir)
         _run(['apt-get', 'download', PACKAGE], cwd=work)
         debs = sorted(work.glob(f'{PACKAGE}_*.deb'))
         if not debs:
@@ -66,7 +68,7 @@ def opencv_sample_dir():
     return target
 
 
-def _run(argv, cwd):
+def _run(argv: list[str], cwd: Path) -> None:
     try:
         result = subprocess.run(argv, cwd=cwd, capture_output=True, text=True, timeout=600)
     except (OSError, subprocess.TimeoutExpired) as error:

@@ -6,10 +6,13 @@
 in docs/SCENARIO.md; units are SI (metres, radians, newtons, seconds) unless a key says
 otherwise.
 """
+from __future__ import annotations
+
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import Any
 
 import numpy as np
 import yaml
@@ -17,6 +20,7 @@ import yaml
 from vgm_common.camera_model import DISTORTION_MODELS, DISTORTION_SIZES, PinholeCamera
 from vgm_common.errors import ScenarioError
 from vgm_common.geometry import (
+    FloatArray,
     look_at_rotation,
     make_transform,
     quaternion_to_matrix,
@@ -28,6 +32,7 @@ CURVE_TYPES = ('parabola', 'ellipse', 'circle', 'line_pair', 'cubic', 'surface_l
                'points')
 CAMERA_NAMES = ('left', 'right', 'aux')
 CHART_PATTERNS = ('chessboard',)
+CurveParameter = FloatArray | float | bool  # a value of Curve.params
 
 
 @dataclass(frozen=True)
@@ -45,7 +50,7 @@ class Surface:
     albedo: float
     roughness: float  # Oren-Nayar sigma [rad]; 0 = Lambertian
     radius: float = 1.0  # sphere only [surface units]
-    heights: Optional[np.ndarray] = None  # heightmap only: z grid, rows along y
+    heights: np.ndarray | None = None  # heightmap only: z grid, rows along y
     cell: float = 1.0  # heightmap only: grid spacing [surface units]
 
 
@@ -57,7 +62,7 @@ class Curve:
     line_width_px: float
     contrast: float  # fraction of the brightness removed on the line, in (0, 1]
     samples: int
-    params: dict = field(default_factory=dict)
+    params: dict[str, CurveParameter] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -80,7 +85,7 @@ class Calibration:
     cols: int
     spacing: float  # [m]
     captures_per_pose: int
-    T_base_chart: tuple  # one 4x4 pose per stage position
+    T_base_chart: tuple[FloatArray, ...]  # one 4x4 pose per stage position
 
 
 @dataclass(frozen=True)
@@ -98,10 +103,10 @@ class Scenario:
     rate: float  # camera frame rate [Hz]
     surface: Surface
     curve: Curve
-    cameras: dict  # 'left' | 'right' | 'aux' -> PinholeCamera (the true cameras)
+    cameras: dict[str, PinholeCamera]  # 'left' | 'right' | 'aux' -> the true cameras
     lighting: Lighting
     noise: Noise
-    calibration: Optional[Calibration]
+    calibration: Calibration | None
     robot: Robot
     contact_stiffness: float  # [N/m]
 
@@ -109,18 +114,21 @@ class Scenario:
 class _Section:
     """A mapping being validated, which knows its dotted key path for error messages."""
 
-    def __init__(self, data, key):
+    data: dict[str, Any]  # parsed YAML: values of any type
+    key: str
+
+    def __init__(self, data: object, key: str) -> None:
         if not isinstance(data, dict):
             raise ScenarioError(f'{key}: expected a mapping, got {data!r}', key=key)
         self.data, self.key = data, key
 
-    def path(self, name):
+    def path(self, name: str) -> str:
         return f'{self.key}.{name}' if self.key else name
 
-    def has(self, name):
+    def has(self, name: str) -> bool:
         return name in self.data
 
-    def raw(self, name, default=...):
+    def raw(self, name: str, default: object = ...) -> Any:
         if name not in self.data:
             if default is ...:
                 raise ScenarioError(f'{self.path(name)}: required key is missing',
@@ -128,10 +136,11 @@ class _Section:
             return default
         return self.data[name]
 
-    def section(self, name, default=...):
+    def section(self, name: str, default: object = ...) -> _Section:
         return _Section(self.raw(name, default), self.path(name))
 
-    def number(self, name, default=..., minimum=None, maximum=None, positive=False):
+    def number(self, name: str, default: object = ..., minimum: float | None = None,
+               maximum: float | None = None, positive: bool = False) -> float:
         value = self.raw(name, default)
         key = self.path(name)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -147,7 +156,7 @@ class _Section:
             raise ScenarioError(f'{key}: must be <= {maximum}, got {value!r}', key=key)
         return value
 
-    def integer(self, name, default=..., minimum=None):
+    def integer(self, name: str, default: object = ..., minimum: int | None = None) -> int:
         value = self.raw(name, default)
         key = self.path(name)
         if isinstance(value, bool) or not isinstance(value, int):
@@ -156,14 +165,15 @@ class _Section:
             raise ScenarioError(f'{key}: must be >= {minimum}, got {value!r}', key=key)
         return value
 
-    def boolean(self, name, default=...):
+    def boolean(self, name: str, default: object = ...) -> bool:
         value = self.raw(name, default)
         if not isinstance(value, bool):
             key = self.path(name)
             raise ScenarioError(f'{key}: expected true or false, got {value!r}', key=key)
         return value
 
-    def string(self, name, default=..., choices=None):
+    def string(self, name: str, default: object = ...,
+               choices: Sequence[str] | None = None) -> str:
         value = self.raw(name, default)
         key = self.path(name)
         if not isinstance(value, str):
@@ -173,7 +183,8 @@ class _Section:
                                 key=key)
         return value
 
-    def vector(self, name, length=None, default=..., shape=None):
+    def vector(self, name: str, length: int | None = None, default: object = ...,
+               shape: tuple[int, ...] | None = None) -> FloatArray:
         value = self.raw(name, default)
         key = self.path(name)
         try:
@@ -191,7 +202,7 @@ class _Section:
             raise ScenarioError(f'{key}: expected finite numbers, got {value!r}', key=key)
         return array
 
-    def pose(self, name, default=...):
+    def pose(self, name: str, default: object = ...) -> FloatArray:
         """A pose in base_link: {xyz, rpy} | {xyz, quaternion: [x, y, z, w]} |
         {position, look_at[, up]} (camera optical frame looking at a point)."""
         pose = self.section(name, default)
@@ -213,7 +224,7 @@ class _Section:
         return make_transform(rpy_to_matrix(*pose.vector('rpy', 3, default=[0, 0, 0])), xyz)
 
 
-def load_scenario(path):
+def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario YAML file. Raises ScenarioError naming the bad key."""
     path = Path(path)
     try:
@@ -225,7 +236,7 @@ def load_scenario(path):
     return parse_scenario(data, path)
 
 
-def parse_scenario(data, path=Path('scenario.yaml')):
+def parse_scenario(data: object, path: str | Path = Path('scenario.yaml')) -> Scenario:
     """Validate an already parsed scenario mapping; relative files resolve beside ``path``."""
     root = _Section(data, '')
     base_dir = Path(path).parent
@@ -260,7 +271,7 @@ def parse_scenario(data, path=Path('scenario.yaml')):
     return scenario
 
 
-def _parse_robot(section, base_dir):
+def _parse_robot(section: _Section, base_dir: Path) -> Robot:
     """robot: the model ('pa10', 'pa10_thesis' or a URDF path, relative to the scenario
     file), loaded here so that a URDF that is no 7-DOF arm with ``tool0`` and joint
     limits, or start joints outside them, is a scenario error naming robot.model."""
@@ -287,7 +298,7 @@ def _parse_robot(section, base_dir):
     return Robot(model, initial_joints, tool_length)
 
 
-def _parse_surface(section, base_dir):
+def _parse_surface(section: _Section, base_dir: Path) -> Surface:
     kind = section.string('type', choices=SURFACE_TYPES)
     extent = section.vector('extent', shape=(2, 2), default=[[-1, 1], [-1, 1]])
     for axis, (low, high) in zip('xy', extent):
@@ -321,9 +332,9 @@ def _parse_surface(section, base_dir):
     )
 
 
-def _parse_curve(section, base_dir):
+def _parse_curve(section: _Section, base_dir: Path) -> Curve:
     kind = section.string('type', choices=CURVE_TYPES)
-    params = {}
+    params: dict[str, CurveParameter] = {}
     if kind in ('parabola', 'cubic'):
         degree = 2 if kind == 'parabola' else 3
         coefficients = section.vector('coefficients', shape=(3, degree + 1))
@@ -365,7 +376,7 @@ def _parse_curve(section, base_dir):
                  params=params)
 
 
-def _read_csv(file):
+def _read_csv(file: str | Path) -> FloatArray:
     """Comma-separated numbers as an (N, M) array; '#' comments and one leading header
     line of column names (e.g. ``x,y,z``) are skipped. Raises OSError / ValueError."""
     lines = [line.split('#')[0].strip() for line in Path(file).read_text().splitlines()]
@@ -378,7 +389,7 @@ def _read_csv(file):
     return np.loadtxt(lines, delimiter=',', ndmin=2)
 
 
-def _is_number(text):
+def _is_number(text: str) -> bool:
     try:
         float(text)
     except ValueError:
@@ -386,7 +397,7 @@ def _is_number(text):
     return True
 
 
-def _parse_camera(section):
+def _parse_camera(section: _Section) -> PinholeCamera:
     width = section.integer('width', minimum=1)
     height = section.integer('height', minimum=1)
     fx = section.number('fx', positive=True)
@@ -400,7 +411,7 @@ def _parse_camera(section):
     return PinholeCamera(width, height, K, D, section.pose('pose'), model)
 
 
-def _parse_calibration(section):
+def _parse_calibration(section: _Section) -> Calibration:
     rows = section.integer('rows', minimum=2)
     cols = section.integer('cols', minimum=2)
     if (rows + cols) % 2 == 0:
@@ -420,14 +431,14 @@ def _parse_calibration(section):
     )
 
 
-def surface_centre_base(surface):
+def surface_centre_base(surface: Surface) -> FloatArray:
     """The surface frame origin lifted by nothing: where the scene is, in base_link."""
     (x0, x1), (y0, y1) = surface.extent
     centre_surface = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0]) * surface.scale
     return surface.T_base_surface[:3, :3] @ centre_surface + surface.T_base_surface[:3, 3]
 
 
-def _check_cameras_see_surface(scenario):
+def _check_cameras_see_surface(scenario: Scenario) -> None:
     """A camera that cannot see the surface's centre is a scenario mistake: say which."""
     centre = surface_centre_base(scenario.surface)
     for name, camera in scenario.cameras.items():
@@ -440,7 +451,7 @@ def _check_cameras_see_surface(scenario):
                                 'its image)', key=key)
 
 
-def resolve_scenario_path(name_or_path):
+def resolve_scenario_path(name_or_path: str | Path) -> Path:
     """A scenario file path, or the name of one shipped with sensor_sim ('default',
     'S1', 'ch3_parabola_perfect', ...), found through the ament index."""
     path = Path(name_or_path).expanduser()

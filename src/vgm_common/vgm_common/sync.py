@@ -6,22 +6,31 @@ A set is complete when every key has a message with the same stamp. Incomplete s
 are dropped once they are older than ``max_wait`` [s] (by the caller's clock) or when
 more than ``queue_size`` stamps are pending, and counted in ``dropped``.
 """
+from __future__ import annotations
+
 from collections import OrderedDict
+from collections.abc import Callable, Iterable
+from typing import Any
+
+# A complete set: ``callback(stamp_ns, {key: msg})``; messages of any type.
+SetCallback = Callable[[int, dict[str, Any]], None]
 
 
 class ExactTimeSync:
     """Pair messages of ``keys`` by identical stamp (int nanoseconds)."""
 
-    def __init__(self, keys, callback, queue_size=10, max_wait=1.0):
+    def __init__(self, keys: Iterable[str], callback: SetCallback, queue_size: int = 10,
+                 max_wait: float = 1.0) -> None:
         self.keys = tuple(keys)
         self._callback = callback
         self._queue_size = queue_size
         self._max_wait = max_wait
-        self._pending = OrderedDict()  # stamp_ns -> (arrival time [s], {key: msg})
+        # stamp_ns -> (arrival time [s], {key: msg})
+        self._pending: OrderedDict[int, tuple[float, dict[str, Any]]] = OrderedDict()
         self.matched = 0
         self.dropped = 0  # messages discarded without a complete set
 
-    def add(self, key, stamp_ns, msg, now):
+    def add(self, key: str, stamp_ns: int, msg: Any, now: float) -> None:
         """Offer one message; calls ``callback(stamp_ns, {key: msg})`` when its set
         completes. ``now`` [s] is the caller's monotonic clock."""
         if key not in self.keys:
@@ -37,12 +46,12 @@ class ExactTimeSync:
             self._callback(stamp_ns, messages)
         self._expire(now)
 
-    def _drop_older_than(self, stamp_ns):
+    def _drop_older_than(self, stamp_ns: int) -> None:
         # Stamps are monotonic per topic, so an older incomplete set can never complete.
         for stale in [s for s in self._pending if s < stamp_ns]:
             self.dropped += len(self._pending.pop(stale)[1])
 
-    def _expire(self, now):
+    def _expire(self, now: float) -> None:
         while self._pending:
             stamp, (arrived, messages) = next(iter(self._pending.items()))
             if now - arrived <= self._max_wait and len(self._pending) <= self._queue_size:
@@ -51,5 +60,5 @@ class ExactTimeSync:
             self.dropped += len(messages)
 
     @property
-    def pending(self):
+    def pending(self) -> int:
         return len(self._pending)
