@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """make demo: the closed loop on a scenario. sensor_sim, calib_node, curve_recon_node,
-sfs_stereo_node, pa10_ik_node and the recorder run as separate processes; the chart is
-shown and the rig calibrated, the curve reconstructed, the depth fused, and the arm
-follows the curve pressing on the surface. Then the bag is read back with two
+sfs_stereo_node, pa10_ik_node, live_view and the recorder run as separate processes; the
+chart is shown and the rig calibrated, the curve reconstructed, the depth fused, and the
+arm follows the curve pressing on the surface. Then the bag is read back with two
 independent readers, everything is compared with the simulator's ground truth, and a
 report (markdown + PNG) and a summary table are written. Exit status 1 if a stage misses
 its tolerance, a node fails or a message is lost.
@@ -154,50 +154,70 @@ class ClosedLoop:
         chatty = now - self.last_print > 3.0
         if chatty:
             self.last_print = now
+        finished = None  # None: the step goes on (within its timeout)
         if self.step == 'calibrated':
-            if self.probe.cameras.ready:
-                self.probe.watch_diagnostics()
-                self._next('reconstructed', 3, 'reconstructing the curve and fusing depth')
-            elif chatty:
-                views = re.findall(r'view (\d+): chart found', self.launch.log_text('calib_node'))
-                print(f'   ... {views[-1] if views else 0} chart views', flush=True)
+            self._wait_for_calibration(chatty)
         elif self.step == 'reconstructed' and self.probe.waypoints is not None:
-            self.curve_at = self.curve_at or now
-            depth_frames = self.probe.received['/depth/fused']
-            # Tracking needs the depth (approach directions); the vision stages alone
-            # report a missing depth as a failed stage rather than waiting for it forever.
-            if depth_frames or (not self.track and now - self.curve_at > DEPTH_GRACE):
-                why_no_depth = '' if depth_frames else ' ({})'.format(self.probe.status.get(
-                    'sfs_stereo_node: rejected stereo pair', ('no reason given',))[0])
-                print(f'   curve: {len(self.probe.waypoints.poses)} waypoints; fused depth '
-                      f'frames: {depth_frames}{why_no_depth}', flush=True)
-                if not self.track:
-                    self._next('done', 4, 'no tracking: the curve does not lie on the '
-                               'surface, there is nothing to press on')
-                    return True
-                self._next('tracking', 4, 'tracking the curve under force control')
+            finished = self._wait_for_depth(now)
         elif self.step == 'tracking':
-            if self.probe.start_tracking() and self.probe.start_future.result() is not None:
-                response = self.probe.start_future.result()
-                if not response.success:
-                    self.failure = f'start_tracking refused: {response.message}'
-                    return True
-            values = self.probe.values('pa10_ik_node: tracking')
-            phase = values.get('phase', '?')
-            if chatty:
-                print(f'   ... {phase}: {float(values.get("progress", 0)):.0%} of the curve, '
-                      f'force {float(values.get("force_N", "nan")):.2f} N, path error '
-                      f'{float(values.get("position_error_m", "nan")) * 1e3:.2f} mm', flush=True)
-            if phase == 'done':  # give the arm a moment to lift off the surface
-                self.done_at = self.done_at or now
-                return now - self.done_at > LIFT_OFF_TIME
-            if phase in ('stopped', 'failed'):
-                self.failure = f'the arm {phase}: {self.probe.status["pa10_ik_node: tracking"][0]}'
-                return True
+            finished = self._watch_tracking(now, chatty)
+        if finished is not None:
+            return finished
         if elapsed > STAGE_TIMEOUTS.get(self.step, np.inf):
             self.failure = f'timed out after {elapsed:.0f} s waiting until {self.step}'
             return True
         return False
+
+    def _wait_for_calibration(self, chatty):
+        """On to reconstruction once the rig's camera info is in."""
+        if self.probe.cameras.ready:
+            self.probe.watch_diagnostics()
+            self._next('reconstructed', 3, 'reconstructing the curve and fusing depth')
+        elif chatty:
+            views = re.findall(r'view (\d+): chart found', self.launch.log_text('calib_node'))
+            print(f'   ... {views[-1] if views else 0} chart views', flush=True)
+
+    def _wait_for_depth(self, now):
+        """The curve is known: on to tracking once fused depth came; without tracking,
+        done then (or after DEPTH_GRACE without depth). True: the run is over."""
+        self.curve_at = self.curve_at or now
+        depth_frames = self.probe.received['/depth/fused']
+        # Tracking needs the depth (approach directions); the vision stages alone
+        # report a missing depth as a failed stage rather than waiting for it forever.
+        if depth_frames or (not self.track and now - self.curve_at > DEPTH_GRACE):
+            why_no_depth = '' if depth_frames else ' ({})'.format(self.probe.status.get(
+                'sfs_stereo_node: rejected stereo pair', ('no reason given',))[0])
+            print(f'   curve: {len(self.probe.waypoints.poses)} waypoints; fused depth '
+                  f'frames: {depth_frames}{why_no_depth}', flush=True)
+            if not self.track:
+                self._next('done', 4, 'no tracking: the curve does not lie on the '
+                           'surface, there is nothing to press on')
+                return True
+            self._next('tracking', 4, 'tracking the curve under force control')
+        return None
+
+    def _watch_tracking(self, now, chatty):
+        """Start tracking and follow the arm's phase: True once it is done and lifted off
+        or it stopped or failed (``failure`` says why), False while it lifts off, None
+        otherwise (the step goes on)."""
+        if self.probe.start_tracking() and self.probe.start_future.result() is not None:
+            response = self.probe.start_future.result()
+            if not response.success:
+                self.failure = f'start_tracking refused: {response.message}'
+                return True
+        values = self.probe.values('pa10_ik_node: tracking')
+        phase = values.get('phase', '?')
+        if chatty:
+            print(f'   ... {phase}: {float(values.get("progress", 0)):.0%} of the curve, '
+                  f'force {float(values.get("force_N", "nan")):.2f} N, path error '
+                  f'{float(values.get("position_error_m", "nan")) * 1e3:.2f} mm', flush=True)
+        if phase == 'done':  # give the arm a moment to lift off the surface
+            self.done_at = self.done_at or now
+            return now - self.done_at > LIFT_OFF_TIME
+        if phase in ('stopped', 'failed'):
+            self.failure = f'the arm {phase}: {self.probe.status["pa10_ik_node: tracking"][0]}'
+            return True
+        return None
 
     def _next(self, step, number, text):
         print(f'   done in {time.monotonic() - self.step_started:.1f} s', flush=True)

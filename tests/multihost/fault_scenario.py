@@ -13,6 +13,7 @@ from host a, so every tool pose is a round trip over the link.
 
 Prints progress, then one JSON line of figures; exit status 1 if a step timed out."""
 import argparse
+import functools
 import json
 import os
 import shlex
@@ -50,21 +51,112 @@ def waypoints_of_true_curve(truth_dir):
     return np.array(poses)
 
 
-def main():
+def parse_args():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--host-b-prefix', required=True)
     parser.add_argument('--link', required=True, help="host a's end of the veth")
     parser.add_argument('--work', type=Path, required=True)
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+class Processes:
+    """The processes this script starts, each in its own session logging into ``work``."""
+
+    def __init__(self, work):
+        self.work, self.started = work, []
+
+    def start(self, argv, name):
+        log = open(self.work / f'{name}-{len(self.started)}.log', 'w')
+        self.started.append(subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
+                                             start_new_session=True))
+        return self.started[-1]
+
+    def stop_all(self):
+        """SIGINT to those still running, newest first; SIGKILL after 10 s."""
+        for process in reversed(self.started):
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGINT)
+                try:
+                    process.wait(10)
+                except subprocess.TimeoutExpired:
+                    os.killpg(process.pid, signal.SIGKILL)
+
+
+def spin_until(spin, condition, timeout, what):
+    """``spin()`` until ``condition()``; TimeoutError after ``timeout`` [s]."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f'timed out after {timeout:.0f} s waiting for {what}')
+        spin()
+
+
+def spin_for(spin, seconds):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        spin()
+
+
+def start_tracking(spin, probe, trigger):
+    """The answer of /pa10_ik_node/start_tracking (service type ``trigger``)."""
+    # The killed server's endpoints stay in the graph until their lease ends, so the
+    # service can look ready while a request reaches only the dead one: ask again.
+    client = probe.create_client(trigger, '/pa10_ik_node/start_tracking')
+    for _ in range(6):
+        spin_until(spin, client.service_is_ready, 30, 'the start_tracking service')
+        future = client.call_async(trigger.Request())
+        try:
+            spin_until(spin, future.done, 5, 'the start_tracking answer')
+            return future.result()
+        except TimeoutError:
+            client.remove_pending_request(future)
+    raise TimeoutError('start_tracking never answered')
+
+
+def measure_tool_pose_rate(spin, arrivals):
+    """Wait for host b's tool poses, then count them for 2 s: figures."""
+    print('waiting for tool poses from host b', flush=True)
+    spin_until(spin, lambda: len(arrivals) > 50, 90, 'tool poses from host b')
+    count, started = len(arrivals), time.monotonic()
+    spin_for(spin, 2.0)
+    rate = (len(arrivals) - count) / (time.monotonic() - started)
+    return dict(tool_poses_before_outage=len(arrivals), tool_pose_rate=rate)
+
+
+def measure_link_outage(spin, arrivals, link, rate):
+    """Fault 1: ``link`` down for OUTAGE s, then up; ``rate`` [1/s] of tool poses before
+    it. Returns figures: the outage, the recovery and the tool poses lost."""
+    print(f'link down for {OUTAGE} s ({rate:.0f} tool poses/s before)', flush=True)
+    subprocess.run(['ip', 'link', 'set', link, 'down'], check=True)
+    down = time.monotonic()
+    spin_for(spin, OUTAGE)
+    subprocess.run(['ip', 'link', 'set', link, 'up'], check=True)
+    up = time.monotonic()
+    during = sum(1 for t in arrivals if down < t)
+    spin_until(spin, lambda: arrivals[-1] > up, 60, 'tool poses after the link came back')
+    back = next(t for t in arrivals if t > up)
+    print(f'data again {back - up:.2f} s after link up', flush=True)
+    return dict(outage_s=up - down, recovery_s=back - up,
+                lost_tool_poses=max(0, round(rate * (back - down)) - during))
+
+
+def restart_pa10(spin, arrivals, node, pa10):
+    """Fault 2: SIGKILL ``node`` (pa10_ik_node on host b) and ``pa10()`` it again. Returns
+    the time [s] from the restart to its first tool pose."""
+    print('killing pa10_ik_node on host b and starting it again', flush=True)
+    os.killpg(node.pid, signal.SIGKILL)
+    node.wait()
+    restarted = time.monotonic()
+    pa10()
+    spin_until(spin, lambda: arrivals[-1] > restarted, 60, 'tool poses of the restarted node')
+    return next(t for t in arrivals if t > restarted) - restarted
+
+
+def main():
+    args = parse_args()
     b_prefix = shlex.split(args.host_b_prefix)
     truth = args.work / 'truth'
-    processes = []
-
-    def start(argv, name):
-        log = open(args.work / f'{name}-{len(processes)}.log', 'w')
-        processes.append(subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
-                                          start_new_session=True))
-        return processes[-1]
+    processes = Processes(args.work)
 
     import rclpy
     from geometry_msgs.msg import PoseStamped
@@ -80,86 +172,32 @@ def main():
     arrivals = []
     probe.create_subscription(PoseStamped, '/tool_pose',
                               lambda msg: arrivals.append(time.monotonic()), DEFAULT_QOS)
-
-    def spin_until(condition, timeout, what):
-        deadline = time.monotonic() + timeout
-        while not condition():
-            if time.monotonic() > deadline:
-                raise TimeoutError(f'timed out after {timeout:.0f} s waiting for {what}')
-            rclpy.spin_once(probe, timeout_sec=0.02)
-
-    def spin_for(seconds):
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            rclpy.spin_once(probe, timeout_sec=0.02)
-
-    def start_tracking():
-        # The killed server's endpoints stay in the graph until their lease ends, so the
-        # service can look ready while a request reaches only the dead one: ask again.
-        client = probe.create_client(Trigger, '/pa10_ik_node/start_tracking')
-        for _ in range(6):
-            spin_until(client.service_is_ready, 30, 'the start_tracking service')
-            future = client.call_async(Trigger.Request())
-            try:
-                spin_until(future.done, 5, 'the start_tracking answer')
-                return future.result()
-            except TimeoutError:
-                client.remove_pending_request(future)
-        raise TimeoutError('start_tracking never answered')
+    spin = functools.partial(rclpy.spin_once, probe, timeout_sec=0.02)
 
     def pa10():
-        return start([*b_prefix, str(executable('pa10_ik_node'))], 'pa10_ik_node')
+        return processes.start([*b_prefix, str(executable('pa10_ik_node'))], 'pa10_ik_node')
 
     figures = {}
     try:
-        start([str(executable('sensor_sim')), '--ros-args', '-p',
-               f'scenario:={SCENARIO_DIR / "quick.yaml"}', '-p', 'calibration_phase:=false',
-               '-p', 'rate:=1.0', '-p', f'ground_truth_dir:={truth}'], 'sensor_sim')
-        spin_until(lambda: (truth / 'curve_base.npz').exists(), 90, 'the ground truth')
+        processes.start([str(executable('sensor_sim')), '--ros-args', '-p',
+                         f'scenario:={SCENARIO_DIR / "quick.yaml"}', '-p',
+                         'calibration_phase:=false', '-p', 'rate:=1.0', '-p',
+                         f'ground_truth_dir:={truth}'], 'sensor_sim')
+        spin_until(spin, lambda: (truth / 'curve_base.npz').exists(), 90, 'the ground truth')
         path_publisher = probe.create_publisher(PathMsg, '/curve/waypoints', LATCHED_QOS)
         path_publisher.publish(matrices_to_path(waypoints_of_true_curve(truth), 1, 'base_link'))
         node = pa10()
-        print('waiting for tool poses from host b', flush=True)
-        spin_until(lambda: len(arrivals) > 50, 90, 'tool poses from host b')
-        count, started = len(arrivals), time.monotonic()
-        spin_for(2.0)
-        rate = (len(arrivals) - count) / (time.monotonic() - started)
-        figures.update(tool_poses_before_outage=len(arrivals), tool_pose_rate=rate)
-
-        print(f'link down for {OUTAGE} s ({rate:.0f} tool poses/s before)', flush=True)
-        subprocess.run(['ip', 'link', 'set', args.link, 'down'], check=True)
-        down = time.monotonic()
-        spin_for(OUTAGE)
-        subprocess.run(['ip', 'link', 'set', args.link, 'up'], check=True)
-        up = time.monotonic()
-        during = sum(1 for t in arrivals if down < t)
-        spin_until(lambda: arrivals[-1] > up, 60, 'tool poses after the link came back')
-        back = next(t for t in arrivals if t > up)
-        figures.update(outage_s=up - down, recovery_s=back - up,
-                       lost_tool_poses=max(0, round(rate * (back - down)) - during))
-        print(f'data again {back - up:.2f} s after link up', flush=True)
-
-        print('killing pa10_ik_node on host b and starting it again', flush=True)
-        os.killpg(node.pid, signal.SIGKILL)
-        node.wait()
-        restarted = time.monotonic()
-        node = pa10()
-        spin_until(lambda: arrivals[-1] > restarted, 60, 'tool poses of the restarted node')
-        figures['restart_to_tool_pose_s'] = next(t for t in arrivals if t > restarted) - restarted
-        answer = start_tracking()
+        figures.update(measure_tool_pose_rate(spin, arrivals))
+        figures.update(measure_link_outage(spin, arrivals, args.link, figures['tool_pose_rate']))
+        figures['restart_to_tool_pose_s'] = restart_pa10(spin, arrivals, node, pa10)
+        answer = start_tracking(spin, probe, Trigger)
         figures['start_tracking_after_restart'] = bool(answer.success)
         figures['start_tracking_message'] = answer.message
     except TimeoutError as error:
         print(f'FAILED: {error}', flush=True)
         return 1
     finally:
-        for process in reversed(processes):
-            if process.poll() is None:
-                os.killpg(process.pid, signal.SIGINT)
-                try:
-                    process.wait(10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(process.pid, signal.SIGKILL)
+        processes.stop_all()
         probe.destroy_node()
         rclpy.try_shutdown()
     print(json.dumps(figures), flush=True)

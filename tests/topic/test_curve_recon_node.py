@@ -10,6 +10,9 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
+from rcl_interfaces.msg import Parameter as ParameterMsg
+from rcl_interfaces.msg import ParameterType, ParameterValue
+from rcl_interfaces.srv import GetParameters, SetParameters
 from scipy.spatial import cKDTree
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
@@ -360,87 +363,90 @@ def test_bad_parameter_is_refused_at_start_up(spawn, rclpy_node):
 
 
 
-def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_setup,
-                                                                   rclpy_node):
-    """Issue 18, wedges 3-6 and depth sanity, each of which killed or blocked the node:
-    ~/reconstruct calls waiting for a capture leave the executor free (get_parameters
-    answers at once, every call is answered when a capture comes); /depth/camera_info
-    with P of 1e308 and fused depth that is negative, zero or 1e30 m are rejected with a
-    reason and never give approach axes; `spacing` 0.5 and 1.0 (the loop is 0.4 m long)
-    and `views` 3 -> 2 -> 3 at run time still give waypoints with proper rotations."""
-    from rcl_interfaces.msg import Parameter as ParameterMsg
-    from rcl_interfaces.msg import ParameterType, ParameterValue
-    from rcl_interfaces.srv import GetParameters, SetParameters
+class WedgeSession:
+    """The test node's handles on a curve_recon_node fed good captures: its ~/reconstruct
+    and parameter services, and the probe of what it publishes."""
 
-    cameras, calibration, probe, publishers, node = bad_input_setup
-    rig_publishers, _ = publish_rig(rclpy_node, calibration)
-    good, ellipse = ellipse_images(cameras, ('left', 'right', 'aux'))
-    stamp = [2_000_000_000]
+    def __init__(self, rclpy_node, probe, publishers, good):
+        self.rclpy_node, self.probe, self.publishers, self.good = (rclpy_node, probe,
+                                                                    publishers, good)
+        self.stamp = 2_000_000_000
+        self.client = rclpy_node.create_client(Trigger, '/curve_recon_node/reconstruct')
+        self.get_client = rclpy_node.create_client(GetParameters,
+                                                   '/curve_recon_node/get_parameters')
+        self.set_client = rclpy_node.create_client(SetParameters,
+                                                   '/curve_recon_node/set_parameters')
 
-    def publish_capture():
-        stamp[0] += 100_000_000
-        for name, image in good.items():
-            publishers[name].publish(numpy_to_image(image, 'mono8', stamp[0],
-                                                    OPTICAL_FRAMES[name]))
+    def publish_capture(self):
+        self.stamp += 100_000_000
+        for name, image in self.good.items():
+            self.publishers[name].publish(numpy_to_image(image, 'mono8', self.stamp,
+                                                         OPTICAL_FRAMES[name]))
 
-    client = rclpy_node.create_client(Trigger, '/curve_recon_node/reconstruct')
-    get_client = rclpy_node.create_client(GetParameters, '/curve_recon_node/get_parameters')
-    set_client = rclpy_node.create_client(SetParameters, '/curve_recon_node/set_parameters')
-    for c in (client, get_client, set_client):
-        assert c.wait_for_service(timeout_sec=20)
-
-    def call(c, request, timeout, what):
+    def call(self, c, request, timeout, what):
         future = c.call_async(request)
-        rclpy_node.spin_until(future.done, timeout, what)
+        self.rclpy_node.spin_until(future.done, timeout, what)
         return future.result()
 
-    def pause(seconds, condition=lambda: False):
+    def pause(self, seconds, condition=lambda: False):
         """Spin for up to ``seconds`` [s] (between publications), less if ``condition``."""
         end = time.monotonic() + seconds
-        rclpy_node.spin_until(lambda: condition() or time.monotonic() > end, seconds + 2,
-                              'a pause')
+        self.rclpy_node.spin_until(lambda: condition() or time.monotonic() > end,
+                                   seconds + 2, 'a pause')
 
-    def reconstruct(what, must_succeed=True):
+    def reconstruct(self, what, must_succeed=True):
         """A call answered by the next capture (published until it is answered)."""
-        future = client.call_async(Trigger.Request())
+        future = self.client.call_async(Trigger.Request())
         deadline = time.monotonic() + 40
         while not future.done():
             assert time.monotonic() < deadline, f'no answer: {what}'
-            publish_capture()
-            pause(0.3, future.done)
+            self.publish_capture()
+            self.pause(0.3, future.done)
         if must_succeed:
             assert future.result().success, (what, future.result().message)
         return future.result()
 
-    def set_parameter(name, value, kind):
+    def set_parameter(self, name, value, kind):
         field = {ParameterType.PARAMETER_DOUBLE: 'double_value',
                  ParameterType.PARAMETER_INTEGER: 'integer_value'}[kind]
         value_msg = ParameterValue(type=kind, **{field: value})
-        result = call(set_client, SetParameters.Request(
+        result = self.call(self.set_client, SetParameters.Request(
             parameters=[ParameterMsg(name=name, value=value_msg)]), 20, f'set {name}')
         assert result.results[0].successful, result.results[0].reason
 
-    # wedge 6: four waiting calls (more than the executor's three threads), no capture
-    waiting = [client.call_async(Trigger.Request()) for _ in range(4)]
-    rclpy_node.spin_until(lambda: (s := probe.diagnostic('status')) is not None
-                          and values(s).get('waiting_requests') == '4', 20,
-                          'the four calls waiting')
+
+def check_waiting_calls_leave_the_executor_free(session):
+    """Four waiting ~/reconstruct calls: get_parameters answers at once, and every call is
+    answered once captures come."""
+    probe = session.probe
+    waiting = [session.client.call_async(Trigger.Request()) for _ in range(4)]
+    session.rclpy_node.spin_until(lambda: (s := probe.diagnostic('status')) is not None
+                                  and values(s).get('waiting_requests') == '4', 20,
+                                  'the four calls waiting')
     started = time.monotonic()
-    answer = call(get_client, GetParameters.Request(names=['spacing']), 20, 'get_parameters')
+    answer = session.call(session.get_client, GetParameters.Request(names=['spacing']), 20,
+                          'get_parameters')
     assert time.monotonic() - started < 3.0 and answer.values[0].double_value == SPACING
     deadline = time.monotonic() + 40
     while not all(f.done() for f in waiting):
         assert time.monotonic() < deadline, 'the waiting calls were not all answered'
-        publish_capture()
-        pause(0.3, lambda: all(f.done() for f in waiting))
+        session.publish_capture()
+        session.pause(0.3, lambda: all(f.done() for f in waiting))
     assert all(f.result().success for f in waiting), [f.result().message for f in waiting]
 
-    # wedge 3: huge P entries in /depth/camera_info
-    left = cameras['left']
+
+def depth_publishers(rclpy_node):
+    """Publishers of /depth/camera_info and /depth/fused, once the node subscribed."""
     info_pub = rclpy_node.create_publisher(CameraInfo, '/depth/camera_info', DEFAULT_QOS)
     depth_pub = rclpy_node.create_publisher(Image, '/depth/fused', DEFAULT_QOS)
     rclpy_node.spin_until(lambda: depth_pub.get_subscription_count() > 0
                           and info_pub.get_subscription_count() > 0, 10, 'depth subs')
+    return info_pub, depth_pub
+
+
+def check_huge_depth_projection_is_rejected(session, left, info_pub, depth_pub):
+    """/depth/camera_info with P of 1e308: rejected, and the approach axes stay base -z."""
+    probe = session.probe
     huge = camera_to_camera_info(left, 1, OPTICAL_FRAMES['left'])
     huge.p = [1e308] * 12
     plane = np.full((left.height, left.width), 0.5, np.float32)
@@ -449,11 +455,14 @@ def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_se
         assert time.monotonic() < deadline, 'huge P not rejected'
         info_pub.publish(huge)
         depth_pub.publish(numpy_to_image(plane, '32FC1', 1, OPTICAL_FRAMES['left']))
-        pause(0.3)
-    reconstruct('after the huge P')
+        session.pause(0.3)
+    session.reconstruct('after the huge P')
     assert values(probe.diagnostic('reconstruction'))['normals'].startswith('base -z')
 
-    # fused depth negative, zero or 1e30 m: rejected, never used for approach axes
+
+def check_bad_fused_depth_is_rejected(session, left, info_pub, depth_pub):
+    """Fused depth negative, zero or 1e30 m: rejected, never used for approach axes."""
+    probe = session.probe
     info = camera_to_camera_info(left, 1, OPTICAL_FRAMES['left'])
     for bad_value, count in ((-0.5, 1), (0.0, 2), (1e30, 3)):
         bad = np.full((left.height, left.width), bad_value, np.float32)
@@ -463,36 +472,75 @@ def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_se
             assert time.monotonic() < deadline, f'depth {bad_value} not rejected'
             info_pub.publish(info)
             depth_pub.publish(numpy_to_image(bad, '32FC1', 1, OPTICAL_FRAMES['left']))
-            pause(0.3)
-        reconstruct(f'after depth {bad_value}')
+            session.pause(0.3)
+        session.reconstruct(f'after depth {bad_value}')
         assert values(probe.diagnostic('reconstruction'))['normals'].startswith('base -z')
 
-    # wedge 4: spacing 0.5 and 1.0 on a loop 0.4 m long
+
+def check_spacing_longer_than_the_loop(session):
+    """`spacing` 0.5 and 1.0 on a loop 0.4 m long: at least 3 waypoints with proper
+    rotations; then the default spacing again."""
+    probe = session.probe
     for spacing in (0.5, 1.0):
-        set_parameter('spacing', spacing, ParameterType.PARAMETER_DOUBLE)
+        session.set_parameter('spacing', spacing, ParameterType.PARAMETER_DOUBLE)
         count = len(probe.paths)
-        reconstruct(f'spacing {spacing}')
-        rclpy_node.spin_until(lambda count=count: len(probe.paths) > count, 10, 'a path')
+        session.reconstruct(f'spacing {spacing}')
+        session.rclpy_node.spin_until(lambda count=count: len(probe.paths) > count, 10,
+                                      'a path')
         poses = path_to_matrices(probe.paths[-1])
         assert len(poses) >= 3
         R = poses[:, :3, :3]
         np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.tile(np.eye(3), (len(R), 1, 1)),
                                    atol=1e-6)
-    set_parameter('spacing', SPACING, ParameterType.PARAMETER_DOUBLE)
+    session.set_parameter('spacing', SPACING, ParameterType.PARAMETER_DOUBLE)
 
-    # wedge 5: views 3 -> 2 -> 3 at run time. Two views of this ellipse are ambiguous
-    # almost everywhere (it lies near the epipolar plane's direction): a clear 'no curve'
-    # answer is right then; what matters is an answer from a reconstruction, not a wedge
-    set_parameter('views', 2, ParameterType.PARAMETER_INTEGER)
-    answer = reconstruct('views 2', must_succeed=False)
+
+def check_views_changed_at_run_time(session, ellipse):
+    """`views` 3 -> 2 -> 3 at run time: an answer each time, and with 3 views again
+    waypoints on the drawn ellipse."""
+    probe = session.probe
+    # Two views of this ellipse are ambiguous almost everywhere (it lies near the
+    # epipolar plane's direction): a clear 'no curve' answer is right then; what matters
+    # is an answer from a reconstruction, not a wedge
+    session.set_parameter('views', 2, ParameterType.PARAMETER_INTEGER)
+    answer = session.reconstruct('views 2', must_succeed=False)
     assert answer.success or 'ambiguous' in answer.message, answer.message
     if answer.success:
         assert values(probe.diagnostic('reconstruction'))['views'] == '2'
-    set_parameter('views', 3, ParameterType.PARAMETER_INTEGER)
-    reconstruct('views 3 again')
+    session.set_parameter('views', 3, ParameterType.PARAMETER_INTEGER)
+    session.reconstruct('views 3 again')
     assert values(probe.diagnostic('reconstruction'))['views'] == '3'
     points = path_to_matrices(probe.paths[-1])[:, :3, 3]
     assert np.sqrt(np.mean(cKDTree(ellipse).query(points)[0]**2)) < 1e-3
+
+
+def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_setup,
+                                                                   rclpy_node):
+    """Issue 18, wedges 3-6 and depth sanity, each of which killed or blocked the node:
+    ~/reconstruct calls waiting for a capture leave the executor free (get_parameters
+    answers at once, every call is answered when a capture comes); /depth/camera_info
+    with P of 1e308 and fused depth that is negative, zero or 1e30 m are rejected with a
+    reason and never give approach axes; `spacing` 0.5 and 1.0 (the loop is 0.4 m long)
+    and `views` 3 -> 2 -> 3 at run time still give waypoints with proper rotations."""
+    cameras, calibration, probe, publishers, node = bad_input_setup
+    rig_publishers, _ = publish_rig(rclpy_node, calibration)
+    good, ellipse = ellipse_images(cameras, ('left', 'right', 'aux'))
+    session = WedgeSession(rclpy_node, probe, publishers, good)
+    for c in (session.client, session.get_client, session.set_client):
+        assert c.wait_for_service(timeout_sec=20)
+
+    # wedge 6: four waiting calls (more than the executor's three threads), no capture
+    check_waiting_calls_leave_the_executor_free(session)
+    # wedge 3: huge P entries in /depth/camera_info
+    left = cameras['left']
+    info_pub, depth_pub = depth_publishers(rclpy_node)
+    check_huge_depth_projection_is_rejected(session, left, info_pub, depth_pub)
+    # fused depth negative, zero or 1e30 m: rejected, never used for approach axes
+    check_bad_fused_depth_is_rejected(session, left, info_pub, depth_pub)
+    # wedge 4: spacing 0.5 and 1.0 on a loop 0.4 m long
+    check_spacing_longer_than_the_loop(session)
+    # wedge 5: views 3 -> 2 -> 3 at run time
+    check_views_changed_at_run_time(session, ellipse)
     assert node.alive() and 'Traceback' not in node.output()
 
 

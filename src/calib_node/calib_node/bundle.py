@@ -123,23 +123,95 @@ def bundle_adjust(chart, views, image_sizes, T_ref_chart_known=None, names=None,
     has_known = any(T is not None for T in known)
     reference = 'base_link' if has_known else names[0]
     # Start of T_camera_ref and T_ref_chart from the Zhang poses.
-    T_camera_ref = {}
     if has_known:
-        for name in names:
-            samples = [T_camera_chart[i][name] @ invert_transform(known[i])
-                       for i in range(len(views)) if known[i] is not None and name in views[i]]
-            if not samples:
-                raise CalibrationError(f'{name} never saw the chart in a view with a target '
-                                       'pose')
-            T_camera_ref[name] = _mean_transform(samples)
+        T_camera_ref = _start_camera_poses_from_known_charts(names, views, known,
+                                                              T_camera_chart)
     else:
-        T_camera_ref[reference] = np.eye(4)
-        for name in names[1:]:
-            samples = [T_camera_chart[i][name] @ invert_transform(T_camera_chart[i][reference])
-                       for i in range(len(views)) if name in views[i] and reference in views[i]]
-            if not samples:
-                raise CalibrationError(f'{name} never saw the chart together with {reference}')
-            T_camera_ref[name] = _mean_transform(samples)
+        T_camera_ref = _start_camera_poses_from_reference(names, views, T_camera_chart)
+    T_ref_chart = _start_chart_poses(views, known, T_camera_ref, T_camera_chart)
+    layout = _Layout(len(names), len(views))
+    x0 = _parameter_vector(names, intrinsics, T_camera_ref, T_ref_chart)
+    free = _free_parameters(len(x0), layout, known, has_known, fit_tangential, fit_k3)
+    pairs = [(c, i) for i in range(layout.views) for c, name in enumerate(names)
+             if name in views[i]]
+    observed = np.concatenate([np.asarray(views[i][names[c]], dtype=float).ravel()
+                               for c, i in pairs])
+    evaluate = _reprojection(chart, x0, free, pairs, observed, layout)
+    result = least_squares(lambda xf: evaluate(xf)[0], x0[free], jac=lambda xf: evaluate(xf)[1],
+                           method='lm', x_scale='jac', xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                           max_nfev=max_nfev)
+    x = x0.copy()
+    x[free] = result.x
+    if not np.all(np.isfinite(x)):
+        raise CalibrationError('bundle adjustment diverged')
+    residual_pairs = result.fun.reshape(len(pairs), -1, 2)
+    fits = _camera_fits(x, names, pairs, residual_pairs, layout)
+    charts = [_T(x[layout.chart(i)][:3], x[layout.chart(i)][3:]) for i in range(layout.views)]
+    rms = float(np.sqrt(np.mean(np.sum(residual_pairs ** 2, axis=2))))
+    return BundleResult(fits, charts, reference, rms, int(result.nfev))
+
+
+# --- stages of bundle_adjust ---------------------------------------------------------
+
+
+class _Layout(NamedTuple):
+    """Where each block sits in the parameter vector: intrinsics (INTRINSICS per camera),
+    then camera poses (6 each: Rodrigues vector, translation), then chart poses (6 per
+    view)."""
+
+    cameras: int
+    views: int
+
+    @property
+    def camera_offset(self):
+        return INTRINSICS * self.cameras
+
+    @property
+    def chart_offset(self):
+        return self.camera_offset + 6 * self.cameras
+
+    def intrinsics(self, c):
+        return INTRINSICS * c
+
+    def camera(self, c):
+        """Slice of camera ``c``'s T_camera_ref (rvec, tvec)."""
+        return slice(self.camera_offset + 6 * c, self.camera_offset + 6 * c + 6)
+
+    def chart(self, i):
+        """Slice of view ``i``'s T_ref_chart (rvec, tvec)."""
+        return slice(self.chart_offset + 6 * i, self.chart_offset + 6 * i + 6)
+
+
+def _start_camera_poses_from_known_charts(names, views, known, T_camera_chart):
+    """{name: T_camera_ref} with ref = base_link: the mean over the views with a known
+    chart pose that the camera saw."""
+    T_camera_ref = {}
+    for name in names:
+        samples = [T_camera_chart[i][name] @ invert_transform(known[i])
+                   for i in range(len(views)) if known[i] is not None and name in views[i]]
+        if not samples:
+            raise CalibrationError(f'{name} never saw the chart in a view with a target '
+                                   'pose')
+        T_camera_ref[name] = _mean_transform(samples)
+    return T_camera_ref
+
+
+def _start_camera_poses_from_reference(names, views, T_camera_chart):
+    """{name: T_camera_ref} with ref = the first camera (identity): the mean over the views
+    that the camera saw together with the reference."""
+    reference = names[0]
+    T_camera_ref = {reference: np.eye(4)}
+    for name in names[1:]:
+        samples = [T_camera_chart[i][name] @ invert_transform(T_camera_chart[i][reference])
+                   for i in range(len(views)) if name in views[i] and reference in views[i]]
+        if not samples:
+            raise CalibrationError(f'{name} never saw the chart together with {reference}')
+        T_camera_ref[name] = _mean_transform(samples)
+    return T_camera_ref
+
+
+def _start_chart_poses(views, known, T_camera_ref, T_camera_chart):
+    """[T_ref_chart] per view: the known pose, else the mean over the cameras that saw it."""
     T_ref_chart = []
     for i, view in enumerate(views):
         if known[i] is not None:
@@ -147,9 +219,11 @@ def bundle_adjust(chart, views, image_sizes, T_ref_chart_known=None, names=None,
             continue
         samples = [invert_transform(T_camera_ref[n]) @ T_camera_chart[i][n] for n in view]
         T_ref_chart.append(_mean_transform(samples))
+    return T_ref_chart
 
-    # Parameter vector: intrinsics (9 per camera), camera poses (6 each), chart poses.
-    C, V = len(names), len(views)
+
+def _parameter_vector(names, intrinsics, T_camera_ref, T_ref_chart):
+    """The start x0 in the order of :class:`_Layout`."""
     x0 = []
     for name in names:
         K, D = intrinsics[name]
@@ -158,21 +232,28 @@ def bundle_adjust(chart, views, image_sizes, T_ref_chart_known=None, names=None,
         x0 += [*np.concatenate(_rt(T_camera_ref[name]))]
     for T in T_ref_chart:
         x0 += [*np.concatenate(_rt(T))]
-    x0 = np.array(x0, dtype=float)
-    free = np.ones(len(x0), dtype=bool)
-    for c in range(C):
-        free[INTRINSICS * c + 6:INTRINSICS * c + 8] = fit_tangential
-        free[INTRINSICS * c + 8] = fit_k3
-    camera_offset = INTRINSICS * C
-    chart_offset = camera_offset + 6 * C
+    return np.array(x0, dtype=float)
+
+
+def _free_parameters(size, layout, known, has_known, fit_tangential, fit_k3):
+    """(size,) bool: the parameters the adjustment moves."""
+    free = np.ones(size, dtype=bool)
+    for c in range(layout.cameras):
+        a = layout.intrinsics(c)
+        free[a + 6:a + 8] = fit_tangential  # p1, p2
+        free[a + 8] = fit_k3
     if not has_known:
-        free[camera_offset:camera_offset + 6] = False  # the reference camera is the frame
-    for i in range(V):
+        free[layout.camera(0)] = False  # the reference camera is the frame
+    for i in range(layout.views):
         if known[i] is not None:
-            free[chart_offset + 6 * i:chart_offset + 6 * i + 6] = False
-    pairs = [(c, i) for i in range(V) for c, name in enumerate(names) if name in views[i]]
-    observed = np.concatenate([np.asarray(views[i][names[c]], dtype=float).ravel()
-                               for c, i in pairs])
+            free[layout.chart(i)] = False
+    return free
+
+
+def _reprojection(chart, x0, free, pairs, observed, layout):
+    """evaluate(xf) -> (residuals [px], Jacobian w.r.t. the free parameters) over every
+    (camera, view) pair's corners; the last evaluation is cached, as least_squares asks
+    for the residuals and the Jacobian at the same point."""
     n2 = 2 * len(chart)
     cache = {}
 
@@ -185,48 +266,53 @@ def bundle_adjust(chart, views, image_sizes, T_ref_chart_known=None, names=None,
         residuals = np.empty(len(pairs) * n2)
         J = np.zeros((len(pairs) * n2, len(x)))
         for row, (c, i) in enumerate(pairs):
-            a = INTRINSICS * c
-            fx, fy, cx, cy = x[a:a + 4]
-            K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-            cam = x[camera_offset + 6 * c:camera_offset + 6 * c + 6]
-            board = x[chart_offset + 6 * i:chart_offset + 6 * i + 6]
-            r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = \
-                cv2.composeRT(board[:3], board[3:], cam[:3], cam[3:])
-            uv, Jp = cv2.projectPoints(chart, r3, t3, K, x[a + 4:a + 9])
             rows = slice(row * n2, (row + 1) * n2)
-            residuals[rows] = uv.ravel() - observed[rows]
-            J_rt = Jp[:, :6]
-            J[rows, a:a + 4] = Jp[:, 6:10]
-            J[rows, a + 4:a + 9] = Jp[:, 10:15]
-            J[rows, chart_offset + 6 * i:chart_offset + 6 * i + 6] = J_rt @ np.block(
-                [[dr3dr1, dr3dt1], [dt3dr1, dt3dt1]])
-            J[rows, camera_offset + 6 * c:camera_offset + 6 * c + 6] = J_rt @ np.block(
-                [[dr3dr2, dr3dt2], [dt3dr2, dt3dt2]])
+            residuals[rows] = _pair_reprojection(chart, x, c, i, layout, observed[rows],
+                                                 J[rows])
         cache.clear()
         cache[key] = (residuals, J[:, free])
         return cache[key]
 
-    result = least_squares(lambda xf: evaluate(xf)[0], x0[free], jac=lambda xf: evaluate(xf)[1],
-                           method='lm', x_scale='jac', xtol=1e-12, ftol=1e-12, gtol=1e-12,
-                           max_nfev=max_nfev)
-    x = x0.copy()
-    x[free] = result.x
-    if not np.all(np.isfinite(x)):
-        raise CalibrationError('bundle adjustment diverged')
-    residual_pairs = result.fun.reshape(len(pairs), -1, 2)
+    return evaluate
+
+
+def _pair_reprojection(chart, x, c, i, layout, observed, J):
+    """Residuals (2N,) [px] of camera ``c`` in view ``i``; fills their Jacobian rows ``J``
+    (2N, len(x), zero on entry) in place: ``cv2.projectPoints``' derivatives chained
+    through ``cv2.composeRT``'s."""
+    a = layout.intrinsics(c)
+    fx, fy, cx, cy = x[a:a + 4]
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    cam = x[layout.camera(c)]
+    board = x[layout.chart(i)]
+    r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = \
+        cv2.composeRT(board[:3], board[3:], cam[:3], cam[3:])
+    uv, Jp = cv2.projectPoints(chart, r3, t3, K, x[a + 4:a + 9])
+    residuals = uv.ravel() - observed
+    J_rt = Jp[:, :6]
+    J[:, a:a + 4] = Jp[:, 6:10]
+    J[:, a + 4:a + 9] = Jp[:, 10:15]
+    J[:, layout.chart(i)] = J_rt @ np.block([[dr3dr1, dr3dt1], [dt3dr1, dt3dt1]])
+    J[:, layout.camera(c)] = J_rt @ np.block([[dr3dr2, dr3dt2], [dt3dr2, dt3dt2]])
+    return residuals
+
+
+def _camera_fits(x, names, pairs, residual_pairs, layout):
+    """{name: CameraFit} from the adjusted x; ``residual_pairs`` (pairs, N, 2) [px].
+
+    Raises:
+        CalibrationError: a camera's focal length came out negative.
+    """
     fits = {}
     for c, name in enumerate(names):
-        a = INTRINSICS * c
+        a = layout.intrinsics(c)
         K = np.array([[x[a], 0, x[a + 2]], [0, x[a + 1], x[a + 3]], [0, 0, 1.0]])
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise CalibrationError(f'{name}: bundle adjustment gave a negative focal length')
-        T_camera = _T(x[camera_offset + 6 * c:camera_offset + 6 * c + 3],
-                      x[camera_offset + 6 * c + 3:camera_offset + 6 * c + 6])
+        pose = x[layout.camera(c)]
+        T_camera = _T(pose[:3], pose[3:])
         mine = np.concatenate([residual_pairs[k] for k, (cc, _) in enumerate(pairs) if cc == c])
         fits[name] = CameraFit(K, x[a + 4:a + 9].copy(), invert_transform(T_camera),
                                float(np.sqrt(np.mean(np.sum(mine ** 2, axis=1)))), len(mine),
                                {})
-    charts = [_T(x[chart_offset + 6 * i:chart_offset + 6 * i + 3],
-                 x[chart_offset + 6 * i + 3:chart_offset + 6 * i + 6]) for i in range(V)]
-    rms = float(np.sqrt(np.mean(np.sum(residual_pairs ** 2, axis=2))))
-    return BundleResult(fits, charts, reference, rms, int(result.nfev))
+    return fits

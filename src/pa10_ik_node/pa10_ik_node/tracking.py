@@ -397,96 +397,143 @@ class TrackingController:
     def _reference(self, T, force, dt, info):
         """(T_desired, feed-forward twist (6,), free_move) of the current phase; None
         if the phase machine stopped."""
+        if self.phase == 'approach':
+            return self._approach_reference(T, force, dt, info)
+        if self.phase == 'contact':
+            return self._contact_reference(T, force, dt)
+        if self.phase == 'tracking':
+            return self._tracking_reference(T, force, dt, info)
+        return self._lift(T, dt)  # done: lift off along the approach axis and hold
+
+    def _approach_reference(self, T, force, dt, info):
+        """Approach: a free-space move to the pre-contact pose ``standoff`` above the first
+        waypoint, then the descent (``_descend``)."""
+        c = self.config
+        tip = T[:3, 3]
+        P0, z0, _ = self._sample(0.0)
+        if self.stage == 'free':
+            T_d = self._frame(0.0, P0 - c.standoff * z0)
+            distance = np.linalg.norm(T_d[:3, 3] - tip)
+            angle = np.linalg.norm(tilt_error(T[:3, :3], z0))
+            if distance < 0.001 and angle < 0.01:
+                self.stage = 'descend'
+                self.reference_depth = float(np.dot(tip - P0, z0))
+                self.best_distance, self.stall_time = np.inf, 0.0
+            elif not self._progressing(distance + 0.05 * angle, dt):
+                self.fail(f'cannot reach the pre-contact pose: {distance * 1e3:.1f} mm '
+                          f'away, no progress for {c.error_timeout * 2:.1f} s')
+                return None
+            else:
+                return T_d, np.zeros(6), True
+        return self._descend(T, P0, z0, force, dt, info)
+
+    def _contact_reference(self, T, force, dt):
+        """Contact: hold the first waypoint at the force law's depth until the force has
+        settled in its band (or ``contact_timeout``), then start tracking."""
+        c = self.config
+        depth, self.integral = approach_correction(
+            self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
+            c.max_depth)
+        P0, z0, _ = self._sample(0.0)
+        in_band = abs(force - c.desired_force) <= c.force_tolerance * c.desired_force
+        self.settled_time = self.settled_time + dt if in_band else 0.0
+        self.depth = depth  # the tilt law starts tracking from the settled depth
+        if self.settled_time >= c.settle_time or self.time_in_phase > c.contact_timeout:
+            self._enter('tracking')
+            self.s_start = self.s_ref = self.travelled = 0.0
+        T_d = self._frame(0.0, P0 + depth * z0)
+        return self._checked(T, T_d, np.zeros(6), dt)
+
+    def _tracking_reference(self, T, force, dt, info):
+        """Tracking: the reference runs along the path at the ramped ``speed`` (waiting
+        for a lagging tip) at the force law's depth; done once the path is travelled."""
         c = self.config
         path = self.path
         tip = T[:3, 3]
-        if self.phase == 'approach':
-            P0, z0, _ = self._sample(0.0)
-            if self.stage == 'free':
-                T_d = self._frame(0.0, P0 - c.standoff * z0)
-                distance = np.linalg.norm(T_d[:3, 3] - tip)
-                angle = np.linalg.norm(tilt_error(T[:3, :3], z0))
-                if distance < 0.001 and angle < 0.01:
-                    self.stage = 'descend'
-                    self.reference_depth = float(np.dot(tip - P0, z0))
-                    self.best_distance, self.stall_time = np.inf, 0.0
-                elif not self._progressing(distance + 0.05 * angle, dt):
-                    self.fail(f'cannot reach the pre-contact pose: {distance * 1e3:.1f} mm '
-                              f'away, no progress for {c.error_timeout * 2:.1f} s')
-                    return None
-                else:
-                    return T_d, np.zeros(6), True
-            return self._descend(T, P0, z0, force, dt, info)
-        if self.phase == 'contact':
-            depth, self.integral = approach_correction(
+        if c.force_law != 'tilt':
+            self.depth, self.integral = approach_correction(
                 self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
                 c.max_depth)
-            P0, z0, _ = self._sample(0.0)
-            in_band = abs(force - c.desired_force) <= c.force_tolerance * c.desired_force
-            self.settled_time = self.settled_time + dt if in_band else 0.0
-            self.depth = depth  # the tilt law starts tracking from the settled depth
-            if self.settled_time >= c.settle_time or self.time_in_phase > c.contact_timeout:
-                self._enter('tracking')
-                self.s_start = self.s_ref = self.travelled = 0.0
-            T_d = self._frame(0.0, P0 + depth * z0)
-            return self._checked(T, T_d, np.zeros(6), dt)
-        if self.phase == 'tracking':
-            tilt = c.force_law == 'tilt'
-            if not tilt:
-                self.depth, self.integral = approach_correction(
-                    self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
-                    c.max_depth)
-            remaining = path.length - self.travelled
-            speed = c.speed * min(1.0, max(self.time_in_phase / c.ramp_time, 0.05))
-            P, z, _ = self._sample(self.s_ref)
-            lag = np.linalg.norm(P + self.depth * z - tip)
-            # Direction of motion in E: (along x_E, along z_E) per unit path step.
-            direction = (1.0, 0.0)
-            advanced = lag < c.governor_distance
-            self.wait_time = 0.0 if advanced else self.wait_time + dt
-            if self.wait_time > 2 * c.error_timeout:
-                self.fail(f'the tool tip lags its reference by {lag * 1e3:.1f} mm (measured) '
-                          f'for {self.wait_time:.1f} s: the arm does not follow')
-                return None
-            if advanced:  # the reference waits for a lagging tip
-                advance = min(speed * dt, remaining)
-                if tilt:  # the thesis: PQ' tilted by phi into / out of the surface
-                    phi, advance, deeper = tilted_motion(force, c.desired_force, advance)
-                    direction = (np.cos(phi), -np.sin(phi))
-                    self.depth = float(np.clip(self.depth + deeper, 0.0, c.max_depth))
-                    if remaining - advance < 1e-6:  # no endless creep towards the end
-                        advance = remaining
-                self.s_ref += advance
-                self.travelled += advance
-            self.progress = self.travelled / path.length
-            P, z, tangent = self._sample(self.s_ref)
-            T_d = self._frame(self.s_ref, P + self.depth * z)
-            moving = self.travelled < path.length and advanced
-            self.reference_moving = moving
-            # Feed-forward no faster than the reference can still go (the path's end),
-            # along the path itself: x_E points at the marker Q ahead (a chord), which
-            # on a curve would push the tip inwards.
-            speed = min(speed, remaining / dt) if dt > 0 else speed
-            along = tangent - z * np.dot(z, tangent)
-            along_norm = np.linalg.norm(along)
-            along = along / along_norm if along_norm > 1e-9 else T_d[:3, 0]
-            velocity = speed * (direction[0] * along + direction[1] * z)
-            feed_forward = np.concatenate([velocity if moving else np.zeros(3),
-                                           np.zeros(3)])
-            s_near, _ = path.nearest(tip, self.s_ref % path.length if path.closed
-                                     else self.s_ref, window=0.05)
-            lateral = path.lateral_distance(tip, s_near)
-            info['position_error'] = lateral
-            self.stats.position_errors.append(lateral)
-            self.stats.force_errors.append(force - c.desired_force)
-            if self.travelled >= path.length:
-                self.end_time += dt
-                if np.linalg.norm(T_d[:3, 3] - tip) < 0.0005 or self.end_time > 1.0:
-                    self._enter('done', 'lifting')
-                    self.lift_reference = 0.0
-                self.T_end = T_d.copy()
-            return self._checked(T, T_d, feed_forward, dt)
-        return self._lift(T, dt)  # done: lift off along the approach axis and hold
+        remaining = path.length - self.travelled
+        speed = c.speed * min(1.0, max(self.time_in_phase / c.ramp_time, 0.05))
+        motion = self._advance_reference(tip, force, speed, remaining, dt)
+        if motion is None:
+            return None
+        direction, advanced = motion
+        self.progress = self.travelled / path.length
+        P, z, tangent = self._sample(self.s_ref)
+        T_d = self._frame(self.s_ref, P + self.depth * z)
+        moving = self.travelled < path.length and advanced
+        self.reference_moving = moving
+        # Feed-forward no faster than the reference can still go (the path's end),
+        # along the path itself: x_E points at the marker Q ahead (a chord), which
+        # on a curve would push the tip inwards.
+        speed = min(speed, remaining / dt) if dt > 0 else speed
+        along = self._along_path(tangent, z, T_d)
+        velocity = speed * (direction[0] * along + direction[1] * z)
+        feed_forward = np.concatenate([velocity if moving else np.zeros(3),
+                                       np.zeros(3)])
+        self._record_tracking_errors(tip, force, info)
+        self._finish_when_travelled(T_d, tip, dt)
+        return self._checked(T, T_d, feed_forward, dt)
+
+    def _advance_reference(self, tip, force, speed, remaining, dt):
+        """Move the reference ``s_ref`` on by ``speed`` [m/s] unless the tip lags it by
+        ``governor_distance`` or more; under the tilt law the step is tilted into / out of
+        the surface. Returns (direction of motion in E, advanced), or None after failing
+        on a tip that lagged for 2 error_timeouts."""
+        c = self.config
+        tilt = c.force_law == 'tilt'
+        P, z, _ = self._sample(self.s_ref)
+        lag = np.linalg.norm(P + self.depth * z - tip)
+        # Direction of motion in E: (along x_E, along z_E) per unit path step.
+        direction = (1.0, 0.0)
+        advanced = lag < c.governor_distance
+        self.wait_time = 0.0 if advanced else self.wait_time + dt
+        if self.wait_time > 2 * c.error_timeout:
+            self.fail(f'the tool tip lags its reference by {lag * 1e3:.1f} mm (measured) '
+                      f'for {self.wait_time:.1f} s: the arm does not follow')
+            return None
+        if advanced:  # the reference waits for a lagging tip
+            advance = min(speed * dt, remaining)
+            if tilt:  # the thesis: PQ' tilted by phi into / out of the surface
+                phi, advance, deeper = tilted_motion(force, c.desired_force, advance)
+                direction = (np.cos(phi), -np.sin(phi))
+                self.depth = float(np.clip(self.depth + deeper, 0.0, c.max_depth))
+                if remaining - advance < 1e-6:  # no endless creep towards the end
+                    advance = remaining
+            self.s_ref += advance
+            self.travelled += advance
+        return direction, advanced
+
+    @staticmethod
+    def _along_path(tangent, z, T_d):
+        """The unit path tangent across the approach axis ``z``; x_E of ``T_d`` where the
+        tangent is along z."""
+        along = tangent - z * np.dot(z, tangent)
+        along_norm = np.linalg.norm(along)
+        return along / along_norm if along_norm > 1e-9 else T_d[:3, 0]
+
+    def _record_tracking_errors(self, tip, force, info):
+        """The tip's lateral distance [m] to the path near the reference (into ``info``
+        and the stats) and the force error [N]."""
+        path = self.path
+        s_near, _ = path.nearest(tip, self.s_ref % path.length if path.closed
+                                 else self.s_ref, window=0.05)
+        lateral = path.lateral_distance(tip, s_near)
+        info['position_error'] = lateral
+        self.stats.position_errors.append(lateral)
+        self.stats.force_errors.append(force - self.config.desired_force)
+
+    def _finish_when_travelled(self, T_d, tip, dt):
+        """Once the path is travelled: done (lift-off) when the tip is at the end pose, or
+        a second after the end at the latest."""
+        if self.travelled >= self.path.length:
+            self.end_time += dt
+            if np.linalg.norm(T_d[:3, 3] - tip) < 0.0005 or self.end_time > 1.0:
+                self._enter('done', 'lifting')
+                self.lift_reference = 0.0
+            self.T_end = T_d.copy()
 
     def _descend(self, T, P0, z0, force, dt, info):
         """Descent along the first approach axis until the measured force reaches the

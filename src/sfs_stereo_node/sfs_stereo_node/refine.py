@@ -373,6 +373,60 @@ def _gauss_newton(level, z, model, sigma_i, sigma_z, curvature_sigma, steps, cau
     return z, rms
 
 
+def _checked_refine_inputs(image, Z_stereo, surface, K):
+    """``image``, ``Z_stereo`` as float and ``surface`` as bool arrays of one (H, W) shape.
+
+    Raises:
+        InvalidInput: on mismatched shapes, or a ``K`` that is not finite with fx, fy > 0.
+    """
+    image = np.asarray(image, dtype=float)
+    Z_stereo = np.asarray(Z_stereo, dtype=float)
+    surface = np.asarray(surface, dtype=bool)
+    if image.ndim != 2 or image.shape != Z_stereo.shape or image.shape != surface.shape:
+        raise InvalidInput(f'image {image.shape}, Z_stereo {Z_stereo.shape} and surface '
+                           f'{surface.shape}: expected one (H, W) shape', key='image')
+    if not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise InvalidInput('K must be finite with fx, fy > 0', key='K')
+    return image, Z_stereo, surface
+
+
+def _without_false_matches(Z_stereo, surface, sigma_z):
+    """``Z_stereo`` [m] with NaN where a depth is more than 6 robust standard deviations
+    (+ 3 ``sigma_z``) from the median of the surface's depths."""
+    # Global gate: depths more than 6 robust standard deviations from the median match
+    # are false matches (a lone one in a corner would otherwise bend the whole corner).
+    finite = Z_stereo[np.isfinite(Z_stereo) & surface]
+    if len(finite):
+        centre = np.median(finite)
+        spread = 6 * 1.4826 * np.median(np.abs(finite - centre)) + 3 * sigma_z
+        with np.errstate(invalid='ignore'):
+            Z_stereo = np.where(np.abs(Z_stereo - centre) <= spread, Z_stereo, np.nan)
+    return Z_stereo
+
+
+def _without_matches_beside_cuts(Z_stereo, cuts):
+    """``Z_stereo`` [m] with NaN within 2 px of the step-edge pixels ``cuts``."""
+    near_cut = cv2.dilate(cuts.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    return np.where(near_cut, np.nan, Z_stereo)
+
+
+def _upsampled_start(Z, prev, level):
+    """Start depths (unknowns,) on ``level`` from the depth map ``Z`` (H, W) [m] of the
+    coarser level ``prev``: filled off its surface, doubled bilinearly, edge rows and
+    columns repeated where the finer grid is larger."""
+    Zfill = _fill(np.nan_to_num(Z), prev.surface)
+    up = cv2.resize(Zfill, (prev.surface.shape[1] * 2, prev.surface.shape[0] * 2),
+                    interpolation=cv2.INTER_LINEAR)
+    H, W = level.surface.shape
+    Zfull = np.empty((H, W))
+    Zfull[:up.shape[0], :up.shape[1]] = up[:H, :W]
+    if up.shape[0] < H:
+        Zfull[up.shape[0]:] = Zfull[up.shape[0] - 1]
+    if up.shape[1] < W:
+        Zfull[:, up.shape[1]:] = Zfull[:, up.shape[1] - 1:up.shape[1]]
+    return Zfull[level.surface]
+
+
 def refine_depth(image, Z_stereo, surface, K, model, sigma_i=2.0, sigma_z=0.002,
                  curvature_sigma=1e-4, steps=(12, 6, 3), min_width=40, cauchy=3.0,
                  max_step=0.02, finest_steps=1, min_stereo_gradient=5.0, edge_threshold=15.0,
@@ -392,31 +446,16 @@ def refine_depth(image, Z_stereo, surface, K, model, sigma_i=2.0, sigma_z=0.002,
     (H, W) bool pixels left out of the shading term (default ``dark_line_mask``).
     Returns ``RefineResult``.
     """
-    image = np.asarray(image, dtype=float)
-    Z_stereo = np.asarray(Z_stereo, dtype=float)
-    surface = np.asarray(surface, dtype=bool)
-    if image.ndim != 2 or image.shape != Z_stereo.shape or image.shape != surface.shape:
-        raise InvalidInput(f'image {image.shape}, Z_stereo {Z_stereo.shape} and surface '
-                           f'{surface.shape}: expected one (H, W) shape', key='image')
-    if not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
-        raise InvalidInput('K must be finite with fx, fy > 0', key='K')
+    image, Z_stereo, surface = _checked_refine_inputs(image, Z_stereo, surface, K)
     if lines is None:
         lines = dark_line_mask(image, surface)
     if min_stereo_gradient > 0:
         Z_stereo = np.where(horizontal_texture(image, search_axis) >= min_stereo_gradient,
                             Z_stereo, np.nan)
-    # Global gate: depths more than 6 robust standard deviations from the median match
-    # are false matches (a lone one in a corner would otherwise bend the whole corner).
-    finite = Z_stereo[np.isfinite(Z_stereo) & surface]
-    if len(finite):
-        centre = np.median(finite)
-        spread = 6 * 1.4826 * np.median(np.abs(finite - centre)) + 3 * sigma_z
-        with np.errstate(invalid='ignore'):
-            Z_stereo = np.where(np.abs(Z_stereo - centre) <= spread, Z_stereo, np.nan)
+    Z_stereo = _without_false_matches(Z_stereo, surface, sigma_z)
     cuts = step_edges(image, surface, lines, edge_threshold) if edge_threshold > 0 else None
     if cuts is not None:  # matches beside an occlusion take the foreground's depth
-        near_cut = cv2.dilate(cuts.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-        Z_stereo = np.where(near_cut, np.nan, Z_stereo)
+        Z_stereo = _without_matches_beside_cuts(Z_stereo, cuts)
     levels = _levels(image, Z_stereo, surface, np.asarray(K, dtype=float), lines, min_width,
                      cuts)
     z = _initial_depth(levels[0], sigma_z, curvature_sigma * levels[0].factor**2)
@@ -425,18 +464,7 @@ def refine_depth(image, Z_stereo, surface, K, model, sigma_i=2.0, sigma_z=0.002,
     report, rms = [], float('nan')
     for i, level in enumerate(levels):
         if i > 0:
-            prev = levels[i - 1]
-            Zfill = _fill(np.nan_to_num(Z), prev.surface)
-            up = cv2.resize(Zfill, (prev.surface.shape[1] * 2, prev.surface.shape[0] * 2),
-                            interpolation=cv2.INTER_LINEAR)
-            H, W = level.surface.shape
-            Zfull = np.empty((H, W))
-            Zfull[:up.shape[0], :up.shape[1]] = up[:H, :W]
-            if up.shape[0] < H:
-                Zfull[up.shape[0]:] = Zfull[up.shape[0] - 1]
-            if up.shape[1] < W:
-                Zfull[:, up.shape[1]:] = Zfull[:, up.shape[1] - 1:up.shape[1]]
-            z = Zfull[level.surface]
+            z = _upsampled_start(Z, levels[i - 1], level)
         n_steps = finest_steps if level.factor == 1 else steps[min(i, len(steps) - 1)]
         z, rms = _gauss_newton(level, z, model, sigma_i, sigma_z,
                                curvature_sigma * level.factor**2, n_steps, cauchy,
