@@ -109,6 +109,30 @@ def test_a_bad_start_up_value_is_one_line_naming_the_parameter(make_node, overri
     assert '\n' not in message and raised.value.key == name
 
 
+def one_weight_per_count(values):
+    if len(values['weights']) != values['count']:
+        return f"'weights' needs {values['count']} values"
+    return None
+
+
+def test_values_that_must_go_together_are_checked_at_start_up_and_on_change(make_node):
+    with pytest.raises(ParameterError, match="parameters: 'weights' needs 3 values"):
+        NodeParameters(make_node(), probe_params()).add_check(one_weight_per_count)
+    node = make_node(count=2)
+    diagnostics = Diagnostics(node)
+    params = NodeParameters(node, probe_params(), diagnostics=diagnostics)
+    params.add_check(one_weight_per_count)
+    assert "'weights' needs 2 values" in refusal(node, 'weights', [1.0, 2.0, 3.0])
+    assert "'weights' needs 3 values" in refusal(node, 'count', 3)
+    assert (params.weights, params.count) == ([1.0, 2.0], 2)  # nothing changed
+    # Both at once: judged together.
+    result = node.set_parameters_atomically([Parameter('count', value=3),
+                                             Parameter('weights', value=[1.0, 2.0, 3.0])])
+    assert result.successful, result.reason
+    assert (params.weights, params.count) == ([1.0, 2.0, 3.0], 3)
+    assert diagnostics.rejected == {'parameter change': 2}
+
+
 def test_changes_are_checked_then_applied_and_reported(make_node):
     node = make_node()
     changes = []

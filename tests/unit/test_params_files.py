@@ -1,10 +1,12 @@
-"""Each package's ``params/<node>.yaml`` lists exactly the parameters its node declares,
-with the node's defaults: the file users copy must not drift from the code.
+"""Each package's ``params/<node>.yaml`` and README parameter tables list exactly the
+parameters its node declares, with the node's defaults: what users copy and read must not
+drift from the code.
 
 Each node is constructed in this process (its parameters are declared in ``__init__``) on
 the test's private domain, read, closed and destroyed."""
 import importlib
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -25,6 +27,9 @@ NODES = {  # params file -> {node name in the file: 'module:Class'}
         'stereo_decoding_node': 'stereo_coding_node.decoder_node:StereoDecodingNode'},
 }
 NOT_LISTED = {'use_sim_time', 'start_type_description_service'}  # every rclpy node's
+# live_view binds its port as it is constructed: any free one here, so only the name of
+# this parameter is compared.
+OVERRIDDEN = {'live_view': {'port': 0}}
 
 
 def flatten(section, prefix=''):
@@ -51,7 +56,9 @@ def same(a, b):
 def default_context(ros_env, monkeypatch):
     for key in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE'):
         monkeypatch.setenv(key, ros_env[key])
-    rclpy.init()
+    rclpy.init(args=['--ros-args', *(arg for node, values in OVERRIDDEN.items()
+                                      for name, value in values.items()
+                                      for arg in ('-p', f'{node}:{name}:={value}'))])
     yield
     rclpy.shutdown()
 
@@ -80,6 +87,71 @@ def test_params_file_lists_what_the_node_declares(params_file, default_context):
         differ = {name: (listed[name], declared[name]) for name in listed
                   if not same(listed[name], declared[name])}
         assert differ == {}, f'{node_name}: (file, node default) differ'
+
+
+def readme_tables(readme):
+    """{name: default cell} of the README's `| name | default | meaning |` tables; a row
+    naming several (`a`, `b` or `a` / `b`) gives each name the row's whole default cell,
+    and each value in turn when there are as many."""
+    rows, in_table = {}, False
+    for line in readme.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip('|').split('|')] if \
+            line.startswith('|') else []
+        if cells[:2] in (['name', 'default'], ['parameter', 'default']):
+            in_table = True
+        elif not cells:
+            in_table = False
+        elif in_table and not set(cells[0]) <= set('-: '):
+            names = re.findall(r'`([^`]+)`', cells[0]) or re.split(r'\s*(?:,|/)\s*', cells[0])
+            defaults = re.split(r'\s*(?:,|/)\s*', cells[1]) if len(names) > 1 else [cells[1]]
+            for i, name in enumerate(names):
+                rows[name] = defaults[i] if len(defaults) == len(names) else None
+    return rows
+
+
+def same_as_written(cell, value):
+    """The README's default cell (`text`, 0.8, [1, 2], true) against the declared value,
+    numbers to the README's rounding."""
+    quoted = re.fullmatch(r'`([^`]*)`.*', cell)  # `0.5` s: the value, then its unit
+    text = quoted.group(1) if quoted else cell
+    try:
+        written = float(text) if re.fullmatch(r'[-+]?[\d.]+e[-+]?\d+', text) else \
+            yaml.safe_load(text)  # (YAML 1.1 reads 1e-4 as a string)
+    except yaml.YAMLError:
+        return False
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and \
+            isinstance(written, (int, float)):
+        return math.isclose(written, value, rel_tol=0.01, abs_tol=1e-12)
+    if isinstance(value, list) and isinstance(written, list) and len(value) == len(written):
+        return all(same_as_written(str(w), v) for w, v in zip(written, value))
+    return written == value or (written is None and value == '') or text == str(value)
+
+
+READMES = {  # README -> the nodes whose parameters its tables list
+    'calib_node/README.md': ['calib_node.node:CalibNode'],
+    'curve_recon_node/README.md': ['curve_recon_node.node:CurveReconNode'],
+    'sfs_stereo_node/README.md': ['sfs_stereo_node.node:SfsStereoNode'],
+    'pa10_ik_node/README.md': ['pa10_ik_node.node:Pa10IkNode'],
+    'stereo_coding_node/README.md': ['stereo_coding_node.encoder_node:StereoCodingNode',
+                                     'stereo_coding_node.decoder_node:StereoDecodingNode'],
+    'live_view/README.md': ['live_view.node:LiveViewNode'],
+    '../README.md': ['sensor_sim.sensor_sim_node:SensorSim'],  # the simulator's table
+}
+
+
+@pytest.mark.parametrize('readme', sorted(READMES))
+def test_readme_tables_list_what_the_node_declares(readme, default_context):
+    written = readme_tables(REPO_ROOT / 'src' / readme)
+    declared = {}
+    for class_path in READMES[readme]:
+        declared.update(declared_defaults(class_path))
+    assert sorted(set(declared) - set(written)) == [], f'not in the tables of {readme}'
+    assert sorted(set(written) - set(declared)) == [], f'in {readme} but not declared'
+    overridden = {name for values in OVERRIDDEN.values() for name in values}
+    differ = {name: (cell, declared[name]) for name, cell in written.items()
+              if cell is not None and name not in overridden
+              and not same_as_written(cell, declared[name])}
+    assert differ == {}, f'{readme}: (README, node default) differ'
 
 
 def test_every_params_file_is_checked():

@@ -150,9 +150,7 @@ class Pa10IkNode(Node):
             self.robot = load_robot(p.robot, p.tool_length, p.tip_frame)
         except InvalidInput as error:
             raise InvalidInput(f'parameter robot: {error}', 'robot', p.robot) from None
-        if len(p.weights) != self.robot.n_joints:
-            raise InvalidInput(f"parameter 'weights': needs {self.robot.n_joints} values, "
-                               f'got {len(p.weights)}', 'weights', p.weights)
+        self.params.add_check(self._one_weight_per_joint)
         self.controller = TrackingController(
             self.robot, self._make_solver(), TrackingConfig(
                 desired_force=p.desired_force, stiffness=p.contact_stiffness,
@@ -205,12 +203,13 @@ class Pa10IkNode(Node):
         p = self.params
         return RateSolver(p.method, p.weights, K=p.K, damping=p.damping)
 
+    def _one_weight_per_joint(self, values):
+        if len(values['weights']) != self.robot.n_joints:
+            return f"'weights' needs {self.robot.n_joints} values, got {len(values['weights'])}"
+        return None
+
     def _rebuild_solver(self):
         if hasattr(self, 'controller'):
-            if len(self.params.weights) != self.robot.n_joints:
-                self.diagnostics.reject('parameter change', InvalidInput(
-                    f'weights needs {self.robot.n_joints} values; kept the old solver'))
-                return
             self.controller.solver = self._make_solver()
 
     def _configure(self, **changes):

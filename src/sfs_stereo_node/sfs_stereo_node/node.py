@@ -17,7 +17,7 @@ from stereo_msgs.msg import DisparityImage
 
 from sfs_stereo_node.pipeline import FUSIONS, STEREOS, DepthConfig, process_pair
 from sfs_stereo_node.rectify import rectification_maps
-from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES, CalibratedCameras
+from vgm_common.camera_topics import CalibratedCameras
 from vgm_common.conversions import image_to_grey, make_header, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
 from vgm_common.node_tools import (
@@ -33,7 +33,9 @@ from vgm_common.topics import (
     DEPTH_INFO_TOPIC,
     DISPARITY_TOPIC,
     FUSED_DEPTH_TOPIC,
+    IMAGE_TOPICS,
     LEFT_RECT_TOPIC,
+    OPTICAL_FRAMES,
     SFS_DEPTH_TOPIC,
     STEREO_DEPTH_TOPIC,
 )
@@ -49,6 +51,15 @@ def _check_light(value):
         return 'expected 3 finite numbers, not all zero'
     if value[2] >= 0:
         return 'z must be < 0 (the light must be on the camera side of the surface)'
+    return None
+
+
+def _ordered_ranges(values):
+    """A reason if a searched range is empty (every pair would then fail), else None."""
+    if values['min_disparity'] >= values['max_disparity']:
+        return 'min_disparity must be below max_disparity'
+    if values['max_depth'] and values['min_depth'] >= values['max_depth']:
+        return 'min_depth must be below max_depth (or max_depth 0: no limit)'
     return None
 
 
@@ -137,6 +148,7 @@ class SfsStereoNode(Node):
                   'as they come. Frees the CPU for other nodes; chosen by stamps, a replayed '
                   'bag gives the same frames.', range=(0.0, 100.0)),
         ], self.diagnostics)
+        self.params.add_check(_ordered_ranges)
         self.cameras = CalibratedCameras(self, ('left', 'right'), self.diagnostics)
         self.publishers_ = {
             key: self.create_publisher(kind, topic, DEFAULT_QOS,
@@ -247,10 +259,6 @@ class SfsStereoNode(Node):
             refine_stereo_sigma=p.refine_stereo_sigma,
             refine_curvature_sigma=p.refine_curvature_sigma,
             refine_finest_steps=p.refine_finest_steps)
-        if config.min_disparity >= config.max_disparity:
-            raise InvalidInput('min_disparity must be below max_disparity', key='min_disparity')
-        if config.max_depth and config.min_depth >= config.max_depth:
-            raise InvalidInput('min_depth must be below max_depth', key='min_depth')
         result = process_pair(left, right, pair, (left.shape[1], left.shape[0]), config)
         self._publish(stamp_ns, result)
         self.processed += 1

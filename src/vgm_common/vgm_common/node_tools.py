@@ -145,7 +145,8 @@ class NodeParameters:
     ParameterError naming the parameter) and later changes (refused with a reason, and
     reported as rejected input to ``diagnostics`` if given). Current values are
     attributes: ``self.params.rate``; a Param's ``on_change`` is called once a change is
-    set."""
+    set. Values that must go together (a minimum below its maximum, one weight per joint)
+    are checked by ``add_check``."""
 
     def __init__(self, node: Node, params: Sequence[Param],
                  diagnostics: Diagnostics | None = None) -> None:
@@ -167,6 +168,7 @@ class NodeParameters:
                 node.set_parameters([Parameter(p.name, Parameter.Type.STRING_ARRAY, [])])
             values[p.name] = _coerce(p, value)
         self._values = values
+        self._checks: list[Callable[[Mapping[str, Any]], str | None]] = []
         node.add_on_set_parameters_callback(self._on_set)
         node.add_post_set_parameters_callback(self._on_changed)
 
@@ -176,20 +178,33 @@ class NodeParameters:
         except KeyError:
             raise AttributeError(name) from None
 
+    def add_check(self, check: Callable[[Mapping[str, Any]], str | None]) -> None:
+        """``check(values)`` (name -> value) returns a reason if the values do not go
+        together. It is run now, raising ParameterError (a start-up error), and on every
+        change, which it refuses with the reason."""
+        reason = check(self._values)
+        if reason:
+            raise ParameterError(f'parameters: {reason}')
+        self._checks.append(check)
+
     def _on_set(self, parameters: list[Parameter]) -> SetParametersResult:
-        for parameter in parameters:
-            spec = self._params.get(parameter.name)
-            if spec is None:
-                continue
-            if spec.read_only:
-                return SetParametersResult(successful=False,
-                                           reason=f'{spec.name} is read-only')
-            try:
-                _coerce(spec, parameter.value)
-            except ParameterError as error:
-                if self._diagnostics is not None:
-                    self._diagnostics.reject('parameter change', error)
-                return SetParametersResult(successful=False, reason=str(error))
+        proposed = dict(self._values)
+        try:
+            for parameter in parameters:
+                spec = self._params.get(parameter.name)
+                if spec is None:
+                    continue
+                if spec.read_only:
+                    return SetParametersResult(successful=False,
+                                               reason=f'{spec.name} is read-only')
+                proposed[spec.name] = _coerce(spec, parameter.value)
+            reasons = [reason for check in self._checks if (reason := check(proposed))]
+            if reasons:
+                raise ParameterError(f'parameters: {"; ".join(reasons)}')
+        except ParameterError as error:
+            if self._diagnostics is not None:
+                self._diagnostics.reject('parameter change', error)
+            return SetParametersResult(successful=False, reason=str(error))
         return SetParametersResult(successful=True)
 
     def _on_changed(self, parameters: list[Parameter]) -> None:
