@@ -19,7 +19,8 @@ from sensor_msgs.msg import Image, JointState
 
 from bag_tools.bag_writer import BagReader, BagWriter
 from bag_tools.player_node import PlayerNode
-from bag_tools.recorder_node import SUBSCRIPTION_DEPTH, qos_to_dict, subscription_qos
+from bag_tools.recorder_node import qos_to_dict
+from bag_tools.topic_discovery import SUBSCRIPTION_DEPTH, subscription_qos
 from harness import executable, wait_for
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 

@@ -35,7 +35,7 @@ from rclpy.node import Node
 
 from bag_tools.bag_writer import BagError, BagReader
 from bag_tools.message_definitions import DefinitionNotFoundError, type_hash
-from bag_tools.recorder_node import import_message_type
+from bag_tools.topic_discovery import import_message_type
 from vgm_common.errors import VgmError
 from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS

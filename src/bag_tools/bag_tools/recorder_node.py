@@ -34,22 +34,18 @@ recorded, messages written per topic, messages dropped, bytes written; WARN once
 was dropped or a topic could not be recorded, ERROR once writing failed.
 """
 import collections
-import importlib
 import os
 import sys
 import threading
 import time
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from bag_tools.bag_writer import BagError, BagWriter, header_stamp_ns, qos_profile
-from bag_tools.message_definitions import DefinitionNotFoundError, definition
+from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
 from vgm_common.errors import VgmError
 from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 
-SUBSCRIPTION_DEPTH = 1000  # keep-last depth of every recording subscription: 5 s of
-# 200 Hz joint states, so a recorder stalled by a loaded machine catches up without loss
 # After a stop request, keep taking the messages the middleware already holds until none
 # came for QUIET_PERIOD (a recorder behind the publishers must not lose its backlog), at
 # most MAX_DRAIN_PERIOD.
@@ -67,23 +63,6 @@ class RecorderStartupError(VgmError):
 def default_bag_name(now=None):
     """``rosbag2_YYYY_MM_DD-HH_MM_SS`` in local time, the name ``ros2 bag record`` picks."""
     return time.strftime('rosbag2_%Y_%m_%d-%H_%M_%S', time.localtime(now))
-
-
-def import_message_type(type_name):
-    """The Python class of ``pkg/msg/Type``. Raises ImportError/AttributeError if absent."""
-    package, interface, name = type_name.split('/')
-    return getattr(importlib.import_module(f'{package}.{interface}'), name)
-
-
-def topic_is_hidden(name):
-    """rclpy's rule (and rosbag2's): any name token starting with ``_``."""
-    return any(token.startswith('_') for token in name.split('/'))
-
-
-def _absolute_names(names):
-    """A reason if a topic list holds a name that is not absolute, else None."""
-    relative = [name for name in names if not name.startswith('/')]
-    return f'must hold absolute topic names, got {relative}' if relative else None
 
 
 def _plain_directory_name(name):
@@ -112,24 +91,6 @@ def qos_to_dict(qos):
         liveliness=qos.liveliness.name.lower(),
         liveliness_lease_duration=_duration_dict(qos.liveliness_lease_duration),
         avoid_ros_namespace_conventions=qos.avoid_ros_namespace_conventions)
-
-
-def subscription_qos(publisher_qos_profiles):
-    """The QoS that receives from all the given publishers (rosbag2's adapt_request_to_offers).
-
-    Latched values are only received if every publisher is transient local (a transient
-    local subscription does not match a volatile publisher).
-    """
-    profiles = list(publisher_qos_profiles)
-    reliable = bool(profiles) and all(
-        p.reliability == ReliabilityPolicy.RELIABLE for p in profiles)
-    transient_local = bool(profiles) and all(
-        p.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in profiles)
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=SUBSCRIPTION_DEPTH,
-        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=(DurabilityPolicy.TRANSIENT_LOCAL if transient_local
-                    else DurabilityPolicy.VOLATILE))
 
 
 class _MessageQueue:
@@ -194,14 +155,7 @@ class RecorderNode(Node):
                   read_only=True),
             Param('output_dir', 'bags', 'Directory the bag directory is created in (relative '
                   'to the working directory).', read_only=True),
-            Param('topics', [], 'Topics to record (exact names); empty = every published topic.',
-                  check=_absolute_names, read_only=True),
-            Param('exclude', [], 'Topics never recorded (exact names), e.g. [/rosout].',
-                  check=_absolute_names, read_only=True),
-            Param('include_hidden_topics', False, 'Also record hidden topics (a name token '
-                  'starting with _).', read_only=True),
-            Param('discovery_period', 0.1, '[s] How often the graph is polled for new topics.',
-                  range=(0.01, 60.0), read_only=True),
+            *topic_selection_params('record', 'recorded', 0.1, ', e.g. [/rosout]'),
             Param('flush_period', 1.0, '[s] The chunk being filled is written at least this '
                   'often (bounds what a crash loses); 0 = only when full (768 KiB).',
                   range=(0.0, 3600.0), read_only=True),
@@ -215,9 +169,7 @@ class RecorderNode(Node):
                   'beyond this the oldest are dropped (counted). 0 = unbounded.',
                   range=(0, 2**62), read_only=True),
         ])
-        self._topics_wanted = set(self.params.topics)
-        self._excluded = set(self.params.exclude)
-        self._include_hidden = self.params.include_hidden_topics
+        self._discovery = TopicDiscovery(self, self.params, 'recording')
         self._flush_period = self.params.flush_period  # [s]
         self._use_sim_time = self.get_parameter('use_sim_time').value
         self.bag_path = os.path.join(self.params.output_dir or '.',
@@ -231,7 +183,6 @@ class RecorderNode(Node):
         self._bag_lock = threading.Lock()  # BagWriter is used by the executor and writer threads
         self._queue = _MessageQueue(self.params.max_cache_size)
         self._recorded = {}  # topic -> subscription
-        self._skipped = set()  # topics warned about once and not recorded
         self._mixed_types = set()  # recorded topics that gained a publisher of another type
         self._bytes_written = 0  # serialized message bytes handed to the bag (writer thread)
         self.write_error = None
@@ -244,10 +195,10 @@ class RecorderNode(Node):
         self._last_message_time = time.monotonic()  # [s] for drained()
         self._discovery_timer = self.create_timer(self.params.discovery_period, self._discover)
         self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD, self._publish_status)
-        scope = ('topics ' + ', '.join(sorted(self._topics_wanted)) if self._topics_wanted
-                 else 'all topics')
-        if self._excluded:
-            scope += '; excluding ' + ', '.join(sorted(self._excluded))
+        wanted, excluded = self._discovery.wanted_topics, self._discovery.excluded
+        scope = 'topics ' + ', '.join(sorted(wanted)) if wanted else 'all topics'
+        if excluded:
+            scope += '; excluding ' + ', '.join(sorted(excluded))
         self.get_logger().info(f'recording to {self.bag_path} ({scope})')
         self._discover()
 
@@ -257,58 +208,33 @@ class RecorderNode(Node):
 
     # -- discovery (executor thread) -----------------------------------------------------
 
-    def _wanted(self, name):
-        if name in self._excluded:
-            return False
-        if self._topics_wanted:
-            return name in self._topics_wanted
-        return self._include_hidden or not topic_is_hidden(name)
-
-    def _skip(self, name, reason):
-        self._skipped.add(name)
-        self.get_logger().warning(f'not recording {name}: {reason}')
-
     def _discover(self):
         if self._closed:
             return
-        for name, types in self.get_topic_names_and_types():
-            if name in self._recorded:
-                if len(types) > 1 and name not in self._mixed_types:
-                    # Recorded with its first type; the others' messages cannot be.
-                    self._mixed_types.add(name)
-                    self.diagnostics.reject(name, f'now published with several types {types}: '
-                                            f'only {self._bag.topic_type(name)} is recorded')
-                continue
-            if name in self._skipped or not self._wanted(name):
-                continue
-            if len(types) != 1:
-                self._skip(name, f'published with several types {types}')
-                continue
-            publishers = self.get_publishers_info_by_topic(name)
-            if not publishers:
-                continue  # only subscribed so far: nothing to record (as rosbag2)
-            self._subscribe(name, types[0], publishers)
+        for topic in self._discovery.poll(self._recorded, self._check_types):
+            self._subscribe(topic)
 
-    def _subscribe(self, name, type_name, publishers):
-        try:
-            message_type = import_message_type(type_name)
-            definition(type_name)
-        except (ImportError, AttributeError, ValueError, DefinitionNotFoundError) as error:
-            self._skip(name, f'type {type_name} is not installed ({error})')
-            return
-        offered = [qos_to_dict(p.qos_profile) for p in publishers]
+    def _check_types(self, name, types):
+        if len(types) > 1 and name not in self._mixed_types:
+            # Recorded with its first type; the others' messages cannot be.
+            self._mixed_types.add(name)
+            self.diagnostics.reject(name, f'now published with several types {types}: '
+                                    f'only {self._bag.topic_type(name)} is recorded')
+
+    def _subscribe(self, topic):
+        offered = [qos_to_dict(p.qos_profile) for p in topic.publishers]
         with self._bag_lock:
-            self._bag.add_topic(name, type_name, offered)
-        fields = message_type.get_fields_and_field_types()
+            self._bag.add_topic(topic.name, topic.type_name, offered)
+        fields = topic.message_type.get_fields_and_field_types()
         has_header = next(iter(fields.values()), None) == HEADER_TYPE
-        qos = subscription_qos(p.qos_profile for p in publishers)
-        self._recorded[name] = self.create_subscription(
-            message_type, name,
-            lambda data, info, topic=name, stamped=has_header:
-                self._on_message(topic, stamped, data, info),
+        qos = subscription_qos(p.qos_profile for p in topic.publishers)
+        self._recorded[topic.name] = self.create_subscription(
+            topic.message_type, topic.name,
+            lambda data, info, name=topic.name, stamped=has_header:
+                self._on_message(name, stamped, data, info),
             qos, raw=True)
         self.get_logger().info(
-            f'recording {name} [{type_name}] ({qos.reliability.name.lower()}, '
+            f'recording {topic.name} [{topic.type_name}] ({qos.reliability.name.lower()}, '
             f'{qos.durability.name.lower()})')
 
     def _on_message(self, topic, stamped, data, info):
@@ -357,7 +283,7 @@ class RecorderNode(Node):
         if self.write_error is not None:
             level, message = 'error', f'writing failed: {self.write_error}'
         else:
-            level = 'warn' if sum(dropped.values()) or self._skipped else 'ok'
+            level = 'warn' if sum(dropped.values()) or self._discovery.skipped else 'ok'
             message = 'closed' if self._closed else 'recording'
         values = {'bag': self.bag_path, 'topics recorded': len(topics),
                   'messages': sum(t.message_count for t in topics),
@@ -365,8 +291,8 @@ class RecorderNode(Node):
         for topic in topics:
             values[topic.name] = f'{topic.message_count}' + (
                 f' ({dropped[topic.name]} dropped)' if dropped.get(topic.name) else '')
-        if self._skipped:
-            values['not recorded'] = ', '.join(sorted(self._skipped))
+        if self._discovery.skipped:
+            values['not recorded'] = ', '.join(sorted(self._discovery.skipped))
         self.diagnostics.publish('bag', level, message, values)
 
     # -- shutdown ------------------------------------------------------------------------
@@ -420,7 +346,7 @@ class RecorderNode(Node):
             self.get_logger().info(
                 f'  {topic.name}: {topic.message_count}'
                 + (f' ({dropped} dropped: writer too slow)' if dropped else ''))
-        never_seen = sorted(self._topics_wanted - {t.name for t in topics})
+        never_seen = sorted(self._discovery.wanted_topics - {t.name for t in topics})
         if never_seen:
             self.get_logger().warning(f'never published, not recorded: {", ".join(never_seen)}')
 

@@ -36,16 +36,20 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
 
-from bag_tools.message_definitions import DefinitionNotFoundError, definition
-from bag_tools.recorder_node import import_message_type, subscription_qos, topic_is_hidden
-from vgm_common.camera_topics import BASE_FRAME, OPTICAL_FRAMES, POSE_TOPICS
+from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
 from vgm_common.conversions import pose_to_matrix
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
-from vgm_common.topics import TOOL_FRAME, TOOL_POSE_TOPIC
+from vgm_common.topics import (
+    BASE_FRAME,
+    OPTICAL_FRAMES,
+    POSE_TOPICS,
+    TOOL_FRAME,
+    TOOL_POSE_TOPIC,
+    TRANSFORMS_TOPIC,
+)
 
-TRANSFORMS_TOPIC = '/tf'
 CAMERA_TRANSFORM_PERIOD = 1.0  # [s]
 DIAGNOSTICS_PERIOD = 2.0  # [s]
 
@@ -53,11 +57,6 @@ DIAGNOSTICS_PERIOD = 2.0  # [s]
 class LiveViewStartupError(VgmError):
     """The server cannot listen where asked (address in use, not an address of this
     machine)."""
-
-
-def _absolute_names(names):
-    relative = [name for name in names if not name.startswith('/')]
-    return f'must hold absolute topic names, got {relative}' if relative else None
 
 
 def frame_transform(pose_stamped, child_frame_id):
@@ -126,23 +125,14 @@ class LiveViewNode(Node):
                   read_only=True),
             Param('port', 8765, 'TCP port of the WebSocket server (foxglove_bridge\'s); 0 = '
                   'any free port (logged).', range=(0, 65535), read_only=True),
-            Param('topics', [], 'Topics to serve (exact names); empty = every published topic.',
-                  check=_absolute_names, read_only=True),
-            Param('exclude', [], 'Topics never served (exact names).', check=_absolute_names,
-                  read_only=True),
-            Param('include_hidden_topics', False, 'Also serve hidden topics (a name token '
-                  'starting with _).', read_only=True),
-            Param('discovery_period', 0.5, '[s] How often the graph is polled for new topics.',
-                  range=(0.01, 60.0), read_only=True),
+            *topic_selection_params('serve', 'served', 0.5),
             Param('message_backlog_size', 300, 'Messages queued per client at most; a slow '
                   'client loses the oldest beyond this (10 s of three 30 Hz cameras).',
                   range=(1, 100000), read_only=True),
         ], self.diagnostics)
-        self._topics_wanted = set(self.params.topics)
-        self._excluded = set(self.params.exclude)
+        self._discovery = TopicDiscovery(self, self.params, 'serving')
         self._lock = threading.Lock()  # the server's threads and the executor's
         self._forwarded = {}  # topic -> _Forwarded
-        self._skipped = set()
         self._client_topics = {}  # client id -> set of topics
         self._transforms_sent = 0
         self._camera_transforms = {}  # camera frame -> FrameTransform
@@ -176,43 +166,20 @@ class LiveViewNode(Node):
 
     # -- topics (executor thread) ------------------------------------------------------
 
-    def _wanted(self, name):
-        if name in self._excluded:
-            return False
-        if self._topics_wanted:
-            return name in self._topics_wanted
-        return self.params.include_hidden_topics or not topic_is_hidden(name)
-
     def _discover(self):
-        for name, types in self.get_topic_names_and_types():
-            if name in self._forwarded or name in self._skipped or not self._wanted(name):
-                continue
-            if len(types) != 1:
-                self._skip(name, f'published with several types {types}')
-                continue
-            publishers = self.get_publishers_info_by_topic(name)
-            if publishers:  # only subscribed so far: nothing to forward
-                self._advertise(name, types[0], publishers)
+        for topic in self._discovery.poll(self._forwarded):
+            self._advertise(topic)
 
-    def _skip(self, name, reason):
-        self._skipped.add(name)
-        self.get_logger().warning(f'not serving {name}: {reason}')
-
-    def _advertise(self, name, type_name, publishers):
-        try:
-            message_type = import_message_type(type_name)
-            encoding, text = definition(type_name)
-        except (ImportError, AttributeError, ValueError, DefinitionNotFoundError) as error:
-            self._skip(name, f'type {type_name} is not installed ({error})')
-            return
+    def _advertise(self, topic):
+        encoding, text = topic.definition
         channel = foxglove.Channel(
-            name, message_encoding='cdr',
-            schema=foxglove.Schema(name=type_name, encoding=encoding, data=text.encode()))
-        forwarded = _Forwarded(channel, message_type,
-                               subscription_qos(p.qos_profile for p in publishers))
+            topic.name, message_encoding='cdr',
+            schema=foxglove.Schema(name=topic.type_name, encoding=encoding, data=text.encode()))
+        forwarded = _Forwarded(channel, topic.message_type,
+                               subscription_qos(p.qos_profile for p in topic.publishers))
         with self._lock:
-            self._forwarded[name] = forwarded
-        self.get_logger().info(f'serving {name} [{type_name}]')
+            self._forwarded[topic.name] = forwarded
+        self.get_logger().info(f'serving {topic.name} [{topic.type_name}]')
 
     def _update_subscriptions(self):
         """Subscribe in ROS to what some client subscribed to, and only that (as
@@ -307,10 +274,10 @@ class LiveViewNode(Node):
                   'backlog per client': self.params.message_backlog_size}
         for topic, f in sorted(forwarded.items()):
             values[topic] = f'{f.forwarded} forwarded of {f.received}'
-        if self._skipped:
-            values['not served'] = ', '.join(sorted(self._skipped))
+        if self._discovery.skipped:
+            values['not served'] = ', '.join(sorted(self._discovery.skipped))
         rejected = sum(self.diagnostics.rejected.values())
-        level = 'warn' if self._skipped or rejected else 'ok'
+        level = 'warn' if self._discovery.skipped or rejected else 'ok'
         message = f'{clients} client(s), {len(forwarded)} topics'
         self.diagnostics.publish('server', level, message, values)
 
