@@ -91,14 +91,9 @@ def publish_rig(node, calibration_path, stamp_ns=1):
     from sensor_msgs.msg import CameraInfo
 
     from vgm_common.calibration_io import read_calibration, stereo_rectification
-    from vgm_common.camera_topics import (
-        BASE_FRAME,
-        CAMERA_INFO_TOPICS,
-        OPTICAL_FRAMES,
-        POSE_TOPICS,
-    )
     from vgm_common.conversions import camera_to_camera_info, matrix_to_pose_stamped
     from vgm_common.qos import LATCHED_QOS
+    from vgm_common.topics import BASE_FRAME, CAMERA_INFO_TOPICS, OPTICAL_FRAMES, POSE_TOPICS
 
     rig = read_calibration(calibration_path)
     rectified = stereo_rectification(rig['left'][0], rig['right'][0])

@@ -10,9 +10,9 @@ from vgm_common.calibration_io import (
     write_calibration,
 )
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.camera_topics import OPTICAL_FRAMES
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import make_transform, rpy_to_matrix
+from vgm_common.topics import OPTICAL_FRAMES
 
 
 def _rig():

@@ -32,14 +32,6 @@ from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS
 from calib_node.refine import NETWORK_ACCEPT, NETWORK_WEIGHTS
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.camera_topics import (
-    BASE_FRAME,
-    CAMERA_INFO_TOPICS,
-    CAMERA_NAMES,
-    IMAGE_TOPICS,
-    OPTICAL_FRAMES,
-    POSE_TOPICS,
-)
 from vgm_common.conversions import (
     camera_to_camera_info,
     image_to_grey,
@@ -59,7 +51,15 @@ from vgm_common.node_tools import (
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
-from vgm_common.topics import TARGET_POSE_TOPIC
+from vgm_common.topics import (
+    BASE_FRAME,
+    CAMERA_INFO_TOPICS,
+    CAMERA_NAMES,
+    IMAGE_TOPICS,
+    OPTICAL_FRAMES,
+    POSE_TOPICS,
+    TARGET_POSE_TOPIC,
+)
 from vgm_common.worker import Worker
 
 CHART_SOURCES = ('auto', 'stage', 'handheld')

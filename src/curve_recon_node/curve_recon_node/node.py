@@ -36,12 +36,7 @@ from curve_recon_node.waypoints import (
     usable_depth,
     waypoint_frames,
 )
-from vgm_common.camera_topics import (
-    BASE_FRAME,
-    CAMERA_NAMES,
-    IMAGE_TOPICS,
-    CalibratedCameras,
-)
+from vgm_common.camera_topics import CalibratedCameras
 from vgm_common.conversions import (
     camera_info_rectification,
     camera_info_to_camera,
@@ -66,9 +61,12 @@ from vgm_common.node_tools import (
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
+    BASE_FRAME,
+    CAMERA_NAMES,
     CURVE_POINTS_TOPIC,
     DEPTH_INFO_TOPIC,
     FUSED_DEPTH_TOPIC,
+    IMAGE_TOPICS,
     TARGET_POSE_TOPIC,
     WAYPOINTS_TOPIC,
 )

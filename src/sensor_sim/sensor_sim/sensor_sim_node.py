@@ -24,7 +24,6 @@ from sensor_sim.contact import contact_force
 from sensor_sim.curves import curve_polylines
 from sensor_sim.render import SceneRenderer, add_noise
 from vgm_common.calibration_io import write_calibration
-from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
 from vgm_common.node_tools import (
@@ -40,8 +39,10 @@ from vgm_common.robot_model import load_robot
 from vgm_common.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
 from vgm_common.topics import (
     BASE_FRAME,
+    IMAGE_TOPICS,
     JOINT_STATES_TOPIC,
     JOINT_TRAJECTORY_TOPIC,
+    OPTICAL_FRAMES,
     PRESSURE_TOPIC,
     TARGET_POSE_TOPIC,
     TOOL_FRAME,

@@ -29,6 +29,13 @@ from vgm_common.conversions import (
 from vgm_common.errors import VgmError
 from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS
+from vgm_common.topics import (
+    CODED_COMPRESSED_TOPIC,
+    CODED_IMAGE_TOPIC,
+    DECODED_DISPARITY_TOPIC,
+    DECODED_LEFT_TOPIC,
+    DECODED_RIGHT_TOPIC,
+)
 from vgm_common.worker import Worker
 
 INVALID_DISPARITY = -1.0  # below min_disparity (0), as stereo_image_proc marks unknown
@@ -53,15 +60,15 @@ class StereoDecodingNode(Node):
             key: self.create_publisher(kind, topic, DEFAULT_QOS,
                                        publisher_class=CountingPublisher)
             for key, kind, topic in (
-                ('disparity', DisparityImage, '/stereo/decoded/disparity'),
-                ('left', Image, '/stereo/decoded/left/image_rect'),
-                ('right', Image, '/stereo/decoded/right/image_rect'))}
+                ('disparity', DisparityImage, DECODED_DISPARITY_TOPIC),
+                ('left', Image, DECODED_LEFT_TOPIC),
+                ('right', Image, DECODED_RIGHT_TOPIC))}
         self.worker = Worker(self._process, self._on_error, 'stereo decoding')
         if self.params.transport == 'compressed':
-            self.create_subscription(CompressedImage, '/stereo/coded/image/compressed',
+            self.create_subscription(CompressedImage, CODED_COMPRESSED_TOPIC,
                                      self.worker.submit, DEFAULT_QOS)
         else:
-            self.create_subscription(Image, '/stereo/coded/image', self.worker.submit,
+            self.create_subscription(Image, CODED_IMAGE_TOPIC, self.worker.submit,
                                      DEFAULT_QOS)
         self.key_cache = (None, None)  # ((path, mtime, size), ThesisKey)
         self.decoded = self.unmarked = self.failed = 0
@@ -95,7 +102,7 @@ class StereoDecodingNode(Node):
             coded = compressed_to_grey(msg)
         else:
             if msg.encoding not in GREY_ENCODINGS:
-                raise CodingError(f'/stereo/coded/image must be mono8, got {msg.encoding!r}',
+                raise CodingError(f'{CODED_IMAGE_TOPIC} must be mono8, got {msg.encoding!r}',
                                   key='encoding')
             coded = image_to_numpy(msg)
         stamp_ns, frame = stamp_to_ns(msg.header.stamp), msg.header.frame_id

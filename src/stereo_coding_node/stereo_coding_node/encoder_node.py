@@ -25,7 +25,12 @@ from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
-from vgm_common.topics import DISPARITY_TOPIC, LEFT_RECT_TOPIC
+from vgm_common.topics import (
+    CODED_COMPRESSED_TOPIC,
+    CODED_IMAGE_TOPIC,
+    DISPARITY_TOPIC,
+    LEFT_RECT_TOPIC,
+)
 from vgm_common.worker import Worker
 
 METHODS = ('ours', 'thesis')
@@ -72,9 +77,9 @@ class StereoCodingNode(Node):
                   'stamp [s].', range=(0.01, 60.0), read_only=True),
         ], self.diagnostics)
         self.coded_publisher = self.create_publisher(
-            Image, '/stereo/coded/image', DEFAULT_QOS, publisher_class=CountingPublisher)
+            Image, CODED_IMAGE_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher)
         self.compressed_publisher = self.create_publisher(
-            CompressedImage, '/stereo/coded/image/compressed', DEFAULT_QOS,
+            CompressedImage, CODED_COMPRESSED_TOPIC, DEFAULT_QOS,
             publisher_class=CountingPublisher)
         self.sync = ExactTimeSync(('image', 'disparity'), self._on_pair, queue_size=10,
                                   max_wait=self.params.sync_max_wait)
@@ -88,7 +93,7 @@ class StereoCodingNode(Node):
         self.last = {}
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f'method {self.params.method}: waiting for '
-                               '/stereo/left/image_rect + /stereo/disparity')
+                               f'{LEFT_RECT_TOPIC} + {DISPARITY_TOPIC}')
 
     def _on_input(self, key, msg):
         stamp = stamp_to_ns(msg.header.stamp)
@@ -112,10 +117,10 @@ class StereoCodingNode(Node):
         stamp_ns, messages = item
         image_msg, disparity_msg = messages['image'], messages['disparity']
         if image_msg.encoding not in GREY_ENCODINGS:
-            raise CodingError(f'/stereo/left/image_rect must be mono8, got '
+            raise CodingError(f'{LEFT_RECT_TOPIC} must be mono8, got '
                               f'{image_msg.encoding!r}', key='encoding')
         if disparity_msg.image.encoding != '32FC1':
-            raise CodingError(f'/stereo/disparity image must be 32FC1, got '
+            raise CodingError(f'{DISPARITY_TOPIC} image must be 32FC1, got '
                               f'{disparity_msg.image.encoding!r}', key='encoding')
         left = image_to_numpy(image_msg)
         disparity = image_to_numpy(disparity_msg.image).astype(float)

@@ -1,6 +1,6 @@
 """``CalibratedCameras``: what a node needs to know of the calibrated rig, assembled
-from the latched CameraInfo and pose topics calib_node publishes (the cameras' topic
-names and frames, from ``vgm_common.topics``, are re-exported here)."""
+from the latched CameraInfo and pose topics calib_node publishes (their names and frames
+are in ``vgm_common.topics``)."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
@@ -21,14 +21,7 @@ from vgm_common.conversions import (
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 from vgm_common.qos import LATCHED_QOS
-from vgm_common.topics import (  # noqa: F401 (re-exported: the cameras' names and frames)
-    BASE_FRAME,
-    CAMERA_INFO_TOPICS,
-    CAMERA_NAMES,
-    IMAGE_TOPICS,
-    OPTICAL_FRAMES,
-    POSE_TOPICS,
-)
+from vgm_common.topics import BASE_FRAME, CAMERA_INFO_TOPICS, CAMERA_NAMES, POSE_TOPICS
 
 if TYPE_CHECKING:
     from rclpy.node import Node

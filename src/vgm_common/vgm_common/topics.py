@@ -27,6 +27,16 @@ FUSED_DEPTH_TOPIC = '/depth/fused'
 DEPTH_INFO_TOPIC = '/depth/camera_info'
 LEFT_RECT_TOPIC = '/stereo/left/image_rect'
 
+# --- stereo_coding_node, stereo_decoding_node -----------------------------------------
+CODED_IMAGE_TOPIC = '/stereo/coded/image'
+CODED_COMPRESSED_TOPIC = '/stereo/coded/image/compressed'
+DECODED_DISPARITY_TOPIC = '/stereo/decoded/disparity'
+DECODED_LEFT_TOPIC = '/stereo/decoded/left/image_rect'
+DECODED_RIGHT_TOPIC = '/stereo/decoded/right/image_rect'
+
+# --- live_view: Foxglove FrameTransforms (tf2_msgs is not in the wheels) -----------------
+TRANSFORMS_TOPIC = '/tf'
+
 # --- the arm (sensor_sim, pa10_ik_node) ------------------------------------------------
 PRESSURE_TOPIC = '/tool/pressure'
 JOINT_STATES_TOPIC = '/joint_states'
