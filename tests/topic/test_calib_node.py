@@ -16,7 +16,6 @@ from std_srvs.srv import Trigger
 
 from harness import executable
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.camera_topics import CAMERA_INFO_TOPICS, CAMERA_NAMES, IMAGE_TOPICS, POSE_TOPICS
 from vgm_common.conversions import (
     camera_info_to_camera,
     matrix_to_pose_stamped,
@@ -25,6 +24,7 @@ from vgm_common.conversions import (
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sample_data import opencv_sample_dir
+from vgm_common.topics import CAMERA_INFO_TOPICS, CAMERA_NAMES, IMAGE_TOPICS, POSE_TOPICS
 
 TARGET_POSE_TOPIC = '/calibration/target_pose'
 # Tolerances against the default scenario's true cameras (image noise sigma 1 grey level,

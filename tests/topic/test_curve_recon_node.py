@@ -23,7 +23,6 @@ from vgm_common.calibration_io import (
     stereo_rectification,
     write_calibration,
 )
-from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
 from vgm_common.conversions import (
     camera_to_camera_info,
     numpy_to_image,
@@ -33,6 +32,7 @@ from vgm_common.conversions import (
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.scenario import load_scenario
+from vgm_common.topics import IMAGE_TOPICS, OPTICAL_FRAMES
 
 SPACING = 0.005  # [m] the default
 

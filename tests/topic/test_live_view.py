@@ -18,9 +18,9 @@ from sensor_msgs.msg import Image, JointState
 from bag_tools.bag_writer import header_stamp_ns
 from bag_tools.message_definitions import full_definition
 from harness import executable, publish_rig, wait_for
-from vgm_common.camera_topics import OPTICAL_FRAMES, POSE_TOPICS
 from vgm_common.conversions import make_header, pose_to_matrix
 from vgm_common.qos import DEFAULT_QOS
+from vgm_common.topics import OPTICAL_FRAMES, POSE_TOPICS
 
 EXPECTED = {  # topic -> schema name
     '/stereo/left/image_raw': 'sensor_msgs/msg/Image',

@@ -10,10 +10,10 @@ from stereo_msgs.msg import DisparityImage
 from harness import executable, publish_rig, small_scenario, wait_for
 from sfs_stereo_node.rectify import raw_depth_to_rectified, rectification_maps
 from vgm_common.calibration_io import write_calibration
-from vgm_common.camera_topics import IMAGE_TOPICS, OPTICAL_FRAMES
 from vgm_common.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.scenario import load_scenario
+from vgm_common.topics import IMAGE_TOPICS, OPTICAL_FRAMES
 
 FRAME = 'stereo_left_optical_frame'
 # Disparity search: up to 160 px, narrowed by the default depth band 0.35-1.5 m.
@@ -208,9 +208,9 @@ def test_aloe_as_a_rectified_pair_with_a_cx_offset_then_a_textureless_pair(spawn
     from geometry_msgs.msg import PoseStamped
 
     from sfs_stereo_node.stereo import sgbm_disparity
-    from vgm_common.camera_topics import CAMERA_INFO_TOPICS, POSE_TOPICS
     from vgm_common.qos import LATCHED_QOS
     from vgm_common.sample_data import opencv_sample_dir
+    from vgm_common.topics import CAMERA_INFO_TOPICS, POSE_TOPICS
     directory = opencv_sample_dir()  # raises with the reason when it cannot be fetched
     left, right = (cv2.imread(str(directory / n), cv2.IMREAD_GRAYSCALE)
                    for n in ('aloeL.jpg', 'aloeR.jpg'))
@@ -310,8 +310,8 @@ def publish_rectified_rig(rclpy_node, K_left, K_right, size, baseline, publisher
     P = [K | 0] and [K_right | (-fx b, 0, 0)]; poses 1 cm apart are not used for depth."""
     from geometry_msgs.msg import PoseStamped
 
-    from vgm_common.camera_topics import CAMERA_INFO_TOPICS, POSE_TOPICS
     from vgm_common.qos import LATCHED_QOS
+    from vgm_common.topics import CAMERA_INFO_TOPICS, POSE_TOPICS
     width, height = size
     for name, k, tx in (('left', K_left, 0.0), ('right', K_right, -K_left[0, 0] * baseline)):
         info = CameraInfo(width=width, height=height, distortion_model='plumb_bob',
