@@ -25,17 +25,22 @@ killed recording's files are valid MCAP that streaming readers read whole; ``rei
 (bag_tools.reindex) adds the summary and ``metadata.yaml`` that indexed readers and
 rosbags need. ``BagReader`` reads such a bag without either.
 """
+from __future__ import annotations
+
 import heapq
 import os
 import re
 import struct
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
+from typing import Any, Literal, Self
 
 import yaml
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
+from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from bag_tools.message_definitions import definition, type_hash
@@ -75,6 +80,9 @@ _POLICY_NAMES = {
     'liveliness': ('system_default', 'automatic', 'manual_by_node', 'manual_by_topic', 'unknown',
                    'best_available'),
 }
+# One offered QoS profile as metadata version 9 stores it (``qos_profile``): policy names,
+# depth, durations {sec, nsec} and a flag; values read from a bag are parsed YAML.
+QosProfileDict = dict[str, Any]
 _QOS_KEYS = ('history', 'depth', 'reliability', 'durability', 'deadline', 'lifespan',
              'liveliness', 'liveliness_lease_duration', 'avoid_ros_namespace_conventions')
 
@@ -82,7 +90,7 @@ _QOS_KEYS = ('history', 'depth', 'reliability', 'durability', 'deadline', 'lifes
 class BagError(Exception):
     """Base of the bag errors; ``path`` is the offending bag or file."""
 
-    def __init__(self, message, path=None):
+    def __init__(self, message: str, path: str | os.PathLike[str] | None = None) -> None:
         super().__init__(message)
         self.path = path
 
@@ -95,9 +103,11 @@ class BagReaderError(BagError):
     """The path is not a readable rosbag2 MCAP bag."""
 
 
-def qos_profile(history='keep_last', depth=10, reliability='reliable', durability='volatile',
-                deadline=None, lifespan=None, liveliness='automatic',
-                liveliness_lease_duration=None, avoid_ros_namespace_conventions=False):
+def qos_profile(history: str = 'keep_last', depth: int = 10, reliability: str = 'reliable',
+                durability: str = 'volatile', deadline: Mapping[str, int] | None = None,
+                lifespan: Mapping[str, int] | None = None, liveliness: str = 'automatic',
+                liveliness_lease_duration: Mapping[str, int] | None = None,
+                avoid_ros_namespace_conventions: bool = False) -> QosProfileDict:
     """One offered QoS profile as metadata version 9 stores it (a plain dict).
 
     Policies are rmw's strings (``keep_last``, ``reliable``, ``transient_local``, ``automatic``,
@@ -117,7 +127,7 @@ def qos_profile(history='keep_last', depth=10, reliability='reliable', durabilit
     }
 
 
-def normalize_qos_profiles(profiles):
+def normalize_qos_profiles(profiles: object) -> list[QosProfileDict]:
     """Offered QoS profiles from any metadata version as a list of version 9 dicts.
 
     Accepts the version 9 list, the version 4-8 YAML string, integer policy values, or None.
@@ -148,7 +158,7 @@ def normalize_qos_profiles(profiles):
     return result
 
 
-def header_stamp_ns(data):
+def header_stamp_ns(data: bytes) -> int | None:
     """``header.stamp`` [ns since epoch] of a CDR message whose first field is a
     ``std_msgs/Header``, or None if it is zero, negative or unreadable.
 
@@ -167,7 +177,7 @@ class _YamlCppStyleDumper(yaml.SafeDumper):
     """Emit YAML the way yaml-cpp (hence rosbag2) does: sequences indented under their key,
     ``""`` for empty strings, ``~`` for null. Only cosmetic; any YAML parser reads both."""
 
-    def increase_indent(self, flow=False, indentless=False):
+    def increase_indent(self, flow: bool = False, indentless: bool = False) -> None:
         return super().increase_indent(flow, False)
 
 
@@ -178,14 +188,14 @@ _YamlCppStyleDumper.add_representer(
     type(None), lambda dumper, _data: dumper.represent_scalar('tag:yaml.org,2002:null', '~'))
 
 
-def dump_yaml(data):
+def dump_yaml(data: object) -> str:
     """YAML text of ``data`` in yaml-cpp's block style, keys in insertion order, no final
     newline (``YAML::Dump`` does not write one)."""
     return yaml.dump(data, Dumper=_YamlCppStyleDumper, default_flow_style=False,
                      sort_keys=False, allow_unicode=True, width=float('inf')).rstrip('\n')
 
 
-def serialize_qos_profiles(profiles):
+def serialize_qos_profiles(profiles: Sequence[Mapping[str, Any]]) -> str:
     """The ``offered_qos_profiles`` channel metadata string (``serialize_rclcpp_qos_vector``)."""
     return dump_yaml([dict(p) for p in profiles]) if profiles else '[]'
 
@@ -196,12 +206,12 @@ class TopicInfo:
 
     name: str
     type: str
-    offered_qos_profiles: list = field(default_factory=list)
+    offered_qos_profiles: list[QosProfileDict] = field(default_factory=list)
     type_description_hash: str = ''
     serialization_format: str = 'cdr'
     message_count: int = 0
 
-    def as_metadata(self):
+    def as_metadata(self) -> dict[str, Any]:
         return {
             'topic_metadata': {
                 'name': self.name,
@@ -221,7 +231,7 @@ class _FileInfo:
     end_time: int = 0  # [ns since epoch]
     message_count: int = 0
 
-    def as_metadata(self):
+    def as_metadata(self) -> dict[str, Any]:
         return {
             'path': self.path,
             'starting_time': {'nanoseconds_since_epoch': self.starting_time},
@@ -247,11 +257,11 @@ class _SealedFile:
     its seeking reader, which falls back to streaming) read every chunk written.
     ``close`` cuts the last seal off behind the Writer's own footer."""
 
-    def __init__(self, path):
+    def __init__(self, path: str | os.PathLike[str]) -> None:
         self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         self._position = 0
 
-    def write(self, data):
+    def write(self, data: bytes) -> int:
         # One call: the seal moves with the data, the file is never left without one
         # (unless the kernel cuts the write itself short).
         view = memoryview(bytes(data) + _SEAL)
@@ -263,13 +273,13 @@ class _SealedFile:
         self._position += len(data)
         return len(data)
 
-    def tell(self):
+    def tell(self) -> int:
         return self._position
 
-    def flush(self):
+    def flush(self) -> None:
         pass
 
-    def close(self):
+    def close(self) -> None:
         if self._fd >= 0:
             os.ftruncate(self._fd, self._position)
             os.close(self._fd)
@@ -291,8 +301,9 @@ class BagWriter:
         BagWriterError: the directory exists or cannot be created.
     """
 
-    def __init__(self, path, *, max_file_size=0, chunk_size=DEFAULT_CHUNK_SIZE, compression='',
-                 custom_data=None):
+    def __init__(self, path: str | os.PathLike[str], *, max_file_size: int = 0,
+                 chunk_size: int = DEFAULT_CHUNK_SIZE, compression: str = '',
+                 custom_data: Mapping[str, str] | None = None) -> None:
         self.path = Path(path)
         if compression not in _COMPRESSION:
             raise BagWriterError(f'unknown compression {compression!r}', self.path)
@@ -310,41 +321,43 @@ class BagWriter:
         self._chunk_size = int(chunk_size)
         self._compression = _COMPRESSION[compression]
         self._custom_data = dict(custom_data) if custom_data else None
-        self._topics = {}  # name -> TopicInfo, in creation order
-        self._files = []  # _FileInfo per file, the last one open
-        self._channel_ids = {}  # topic name -> channel id in the open file
-        self._schema_ids = {}  # type -> schema id in the open file
-        self._stream = None
-        self._writer = None
+        self._topics: dict[str, TopicInfo] = {}  # name -> TopicInfo, in creation order
+        self._files: list[_FileInfo] = []  # _FileInfo per file, the last one open
+        self._channel_ids: dict[str, int] = {}  # topic name -> channel id in the open file
+        self._schema_ids: dict[str, int] = {}  # type -> schema id in the open file
+        self._stream: _SealedFile  # the open file's, set by _open_file
+        self._writer: Writer
         self._closed = False
         self._open_file()
 
     # -- public API ----------------------------------------------------------------------
 
     @property
-    def topics(self):
+    def topics(self) -> list[TopicInfo]:
         """Copies of the topics added so far, with their message counts."""
         return [TopicInfo(**vars(t)) for t in self._topics.values()]
 
     @property
-    def message_count(self):
+    def message_count(self) -> int:
         return sum(t.message_count for t in self._topics.values())
 
-    def topic_type(self, name):
+    def topic_type(self, name: str) -> str | None:
         """The type ``name`` is recorded with, or None."""
         topic = self._topics.get(name)
         return None if topic is None else topic.type
 
     @property
-    def file_paths(self):
+    def file_paths(self) -> list[Path]:
         """Paths of the data files written so far (the last one may still be open)."""
         return [self.path / f.path for f in self._files]
 
     @property
-    def closed(self):
+    def closed(self) -> bool:
         return self._closed
 
-    def add_topic(self, name, type_name, offered_qos_profiles=(), type_description_hash=None):
+    def add_topic(self, name: str, type_name: str,
+                  offered_qos_profiles: Iterable[Mapping[str, Any]] = (),
+                  type_description_hash: str | None = None) -> None:
         """Create the topic's schema and channel. Adding an existing topic is a no-op.
 
         Args:
@@ -374,7 +387,8 @@ class BagWriter:
         self._topics[name] = topic
         self._register(topic)
 
-    def write(self, topic, data, log_time_ns, publish_time_ns=None):
+    def write(self, topic: str, data: bytes, log_time_ns: int,
+              publish_time_ns: int | None = None) -> None:
         """Append one serialized (CDR) message.
 
         Args:
@@ -406,12 +420,12 @@ class BagWriter:
         current.starting_time = min(current.starting_time, log_time_ns)
         current.end_time = max(current.end_time, log_time_ns)
 
-    def flush(self):
+    def flush(self) -> None:
         """Write the chunk being filled now (if it holds messages), so a crash cannot lose it."""
         if not self._closed:
             self._writer.flush()
 
-    def metadata(self):
+    def metadata(self) -> dict[str, Any]:
         """The ``rosbag2_bagfile_information`` mapping as it stands now."""
         counted = [f for f in self._files if f.message_count]
         start = min((f.starting_time for f in counted), default=MAX_TIME_NS)
@@ -431,7 +445,7 @@ class BagWriter:
             'ros_distro': ROS_DISTRO,
         }
 
-    def close(self):
+    def close(self) -> None:
         """Finish the open file (metadata record, summary, footer) and write
         ``metadata.yaml``. Idempotent."""
         if self._closed:
@@ -443,29 +457,31 @@ class BagWriter:
         temporary.write_text(text, encoding='utf-8')
         temporary.replace(self.path / METADATA_FILENAME)
 
-    def split(self):
+    def split(self) -> None:
         """Finish the open file and go on in ``<name>_<n+1>.mcap``."""
         self._check_open()
         self._split()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc_info):
+    def __exit__(self, *exc_info: object) -> Literal[False]:
         self.close()
         return False
 
     # -- internals ------------------------------------------------------------------------
 
-    def _check_open(self):
+    def _check_open(self) -> None:
         if self._closed:
             raise BagWriterError(f'bag {self.path} is closed', self.path)
 
-    def _open_file(self):
+    def _open_file(self) -> None:
         name = f'{self.path.name}_{len(self._files)}.mcap'
         self._files.append(_FileInfo(path=name))
         self._stream = _SealedFile(self.path / name)
-        self._writer = Writer(self._stream, chunk_size=self._chunk_size,
+        # mcap's Writer calls only write() and tell() of a stream it did not open; its
+        # annotation asks for a whole IO.
+        self._writer = Writer(self._stream, chunk_size=self._chunk_size,  # type: ignore[arg-type]
                               compression=self._compression)
         self._writer.start(profile=MCAP_PROFILE, library=LIBRARY)
         self._channel_ids.clear()
@@ -476,7 +492,7 @@ class BagWriter:
         for topic in self._topics.values():
             self._register(topic)
 
-    def _register(self, topic):
+    def _register(self, topic: TopicInfo) -> None:
         schema_id = self._schema_ids.get(topic.type)
         if schema_id is None:
             encoding, text = definition(topic.type)
@@ -488,16 +504,16 @@ class BagWriter:
             metadata={'offered_qos_profiles': serialize_qos_profiles(topic.offered_qos_profiles),
                       'topic_type_hash': topic.type_description_hash})
 
-    def _write_metadata_record(self):
+    def _write_metadata_record(self) -> None:
         self._writer.add_metadata('rosbag2', {'serialized_metadata': dump_yaml(self.metadata())})
 
-    def _finish_file(self):
+    def _finish_file(self) -> None:
         self._writer.flush()  # the last chunk goes before the final metadata record
         self._write_metadata_record()
         self._writer.finish()
         self._stream.close()
 
-    def _split(self):
+    def _split(self) -> None:
         self._finish_file()
         self._open_file()
 
@@ -520,7 +536,7 @@ class BagMessage:
 _FILE_INDEX_RE = re.compile(r'_(\d+)\.mcap$')
 
 
-def _has_footer(path):
+def _has_footer(path: Path) -> bool:
     """True if the file ends in the MCAP magic, i.e. it was closed (summary written)."""
     size = path.stat().st_size
     if size < 2 * len(MCAP_MAGIC):
@@ -530,7 +546,8 @@ def _has_footer(path):
         return stream.read(len(MCAP_MAGIC)) == MCAP_MAGIC
 
 
-def _stream_records_tolerant(path, topics):
+def _stream_records_tolerant(path: Path, topics: Iterable[str] | None
+                             ) -> Iterator[tuple[Schema | None, Channel, Message]]:
     """(schema, channel, message) of a file read front to back, stopping quietly where a
     crash cut it short."""
     with open(path, 'rb') as stream:
@@ -558,8 +575,11 @@ class BagReader:
             version, or missing data files.
     """
 
-    def __init__(self, path):
+    def __init__(self, path: str | os.PathLike[str]) -> None:
         self.path = Path(path)
+        self.files: list[Path]  # the data files, in order
+        self.metadata: dict[str, Any] | None  # rosbag2_bagfile_information; None if recovered
+        self.topics: list[TopicInfo]
         if not self.path.is_dir():
             raise BagReaderError(f'bag directory {self.path} does not exist', self.path)
         metadata_path = self.path / METADATA_FILENAME
@@ -569,7 +589,7 @@ class BagReader:
         else:
             self._read_metadata(metadata_path)
 
-    def _read_metadata(self, metadata_path):
+    def _read_metadata(self, metadata_path: Path) -> None:
         try:
             document = yaml.safe_load(metadata_path.read_text(encoding='utf-8'))
             info = document['rosbag2_bagfile_information']
@@ -605,14 +625,15 @@ class BagReader:
         self.metadata = info
         self.topics = topics
 
-    def _recover_metadata(self):
-        files = [p for p in self.path.glob('*.mcap') if _FILE_INDEX_RE.search(p.name)]
-        if not files:
+    def _recover_metadata(self) -> None:
+        indices = {p: int(match.group(1)) for p in self.path.glob('*.mcap')
+                   if (match := _FILE_INDEX_RE.search(p.name))}  # file -> its n
+        if not indices:
             raise BagReaderError(
                 f'{self.path} is not a bag: no {METADATA_FILENAME} and no <name>_<n>.mcap files',
                 self.path)
-        self.files = sorted(files, key=lambda p: int(_FILE_INDEX_RE.search(p.name).group(1)))
-        topics = {}
+        self.files = sorted(indices, key=indices.__getitem__)
+        topics: dict[str, TopicInfo] = {}
         for path in self.files:
             for schema, channel, _message in _stream_records_tolerant(path, None):
                 topic = topics.get(channel.topic)
@@ -628,14 +649,15 @@ class BagReader:
         self.metadata = None
 
     @property
-    def message_count(self):
+    def message_count(self) -> int:
         return sum(t.message_count for t in self.topics)
 
-    def topic(self, name):
+    def topic(self, name: str) -> TopicInfo | None:
         """The ``TopicInfo`` of ``name``, or None."""
         return next((t for t in self.topics if t.name == name), None)
 
-    def file_messages(self, path, topics=None):
+    def file_messages(self, path: Path,
+                      topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
         """Iterate ``BagMessage`` of one of ``files`` in log-time order (``topics``: names
         to keep; None = all)."""
         if _has_footer(path):
@@ -651,7 +673,7 @@ class BagReader:
             yield BagMessage(channel.topic, schema.name if schema else '', message.data,
                              message.log_time, message.publish_time)
 
-    def messages(self, topics=None):
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
         """Iterate ``BagMessage`` in log-time order over all files.
 
         Args:

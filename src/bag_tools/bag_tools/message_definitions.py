@@ -17,11 +17,14 @@ yield the same text. Where a package ships no ``.msg`` for a type, rosbag2 falls
 ``ros2idl`` encoding (every definition, the root included, behind ``IDL: pkg/msg/Type``);
 ``definition`` does the same.
 """
+from __future__ import annotations
+
 import functools
 import importlib.util
 import json
 import re
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 DELIMITER = '=' * 80 + '\n'
@@ -41,13 +44,13 @@ _MAX_RECURSION_DEPTH = 50
 class DefinitionNotFoundError(LookupError):
     """No installed definition for ``type_name`` (unknown package, type or file)."""
 
-    def __init__(self, type_name, detail=''):
+    def __init__(self, type_name: str, detail: str = '') -> None:
         self.type_name = type_name
         super().__init__(f'no message definition found for {type_name!r}'
                          + (f': {detail}' if detail else ''))
 
 
-def split_type_name(type_name):
+def split_type_name(type_name: str) -> tuple[str, str]:
     """Split ``pkg/msg/Type`` (or ``pkg/Type``) into ``(pkg, Type)``.
 
     Raises:
@@ -59,14 +62,14 @@ def split_type_name(type_name):
     return match.group(1), match.group(2)
 
 
-def normalize_type_name(type_name):
+def normalize_type_name(type_name: str) -> str:
     """``sensor_msgs/Image`` or ``sensor_msgs/msg/Image`` -> ``sensor_msgs/msg/Image``."""
     package, name = split_type_name(type_name)
     return f'{package}/msg/{name}'
 
 
 @functools.lru_cache(maxsize=None)
-def package_share_directory(package):
+def package_share_directory(package: str) -> Path:
     """The ``share/<package>`` directory of an installed interface package.
 
     Looks in the ament index first (what rosbag2 does), then next to the Python prefix
@@ -96,7 +99,7 @@ def package_share_directory(package):
     raise DefinitionNotFoundError(package, 'package share directory not found')
 
 
-def _read_interface_file(package, name, extension):
+def _read_interface_file(package: str, name: str, extension: str) -> str:
     path = package_share_directory(package) / 'msg' / (name + extension)
     try:
         # Bytes, decoded without newline translation: rosbag2 copies the file verbatim.
@@ -105,8 +108,8 @@ def _read_interface_file(package, name, extension):
         raise DefinitionNotFoundError(f'{package}/msg/{name}', f'{path} does not exist') from None
 
 
-def _msg_dependencies(text, package):
-    dependencies = set()
+def _msg_dependencies(text: str, package: str) -> list[str]:
+    dependencies: set[str] = set()
     for match in _MSG_FIELD_TYPE_RE.finditer(text):
         field_type = match.group(1)
         if field_type in _PRIMITIVE_TYPES:
@@ -115,14 +118,18 @@ def _msg_dependencies(text, package):
     return sorted(dependencies)  # std::set<std::string> order
 
 
-def _idl_dependencies(text):
+def _idl_dependencies(text: str) -> list[str]:
     return sorted({match.group(1) for match in _IDL_INCLUDE_RE.finditer(text)})
 
 
-def _full_text(root, extension, dependencies_of, header):
-    seen = set()
+def _full_text(root: str, extension: str,
+               dependencies_of: Callable[[str, str], list[str]],
+               header: Callable[[str], str]) -> str:
+    """The text of ``root`` and, behind ``header(name)`` each, of its dependencies
+    (``dependencies_of(text, package)``), depth first, each once."""
+    seen: set[str] = set()
 
-    def append_recursive(type_name, depth):
+    def append_recursive(type_name: str, depth: int) -> str:
         if depth <= 0:
             raise DefinitionNotFoundError(root, 'maximum recursion depth reached')
         package, name = split_type_name(type_name)
@@ -138,7 +145,7 @@ def _full_text(root, extension, dependencies_of, header):
 
 
 @functools.lru_cache(maxsize=None)
-def definition(type_name):
+def definition(type_name: str) -> tuple[str, str]:
     """``(encoding, text)`` of the complete definition of ``type_name`` as rosbag2 stores it.
 
     ``encoding`` is ``'ros2msg'`` (the ``.msg`` files exist) or ``'ros2idl'`` (fallback).
@@ -159,7 +166,7 @@ def definition(type_name):
         lambda dep: f'{DELIMITER}IDL: {dep}\n')
 
 
-def full_definition(type_name):
+def full_definition(type_name: str) -> str:
     """The complete ``ros2msg`` definition text of ``type_name`` (e.g. ``sensor_msgs/msg/Image``).
 
     Raises:
@@ -172,7 +179,7 @@ def full_definition(type_name):
 
 
 @functools.lru_cache(maxsize=None)
-def type_hash(type_name):
+def type_hash(type_name: str) -> str:
     """The RIHS01 type description hash of ``type_name`` (``'RIHS01_<64 hex digits>'``).
 
     Read from the ``share/<pkg>/msg/<Type>.json`` type description that rosidl installs:

@@ -173,7 +173,7 @@ class PlayerNode(Node):
 
     def _set_rate(self, rate):
         with self._clock_lock:
-            if self._anchor_wall is not None:
+            if self._anchor_wall is not None and self._anchor_bag is not None:  # set together
                 # Re-anchor at the current bag time so a rate change does not jump.
                 now = time.monotonic()
                 self._anchor_bag += int((now - self._anchor_wall) * self._rate * 1e9)

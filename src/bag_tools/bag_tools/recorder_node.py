@@ -98,12 +98,12 @@ class _MessageQueue:
     oldest messages are dropped and counted per topic. Thread-safe."""
 
     def __init__(self, max_bytes):
-        self._items = collections.deque()
+        self._items: collections.deque[tuple[str, bytes, int, int]] = collections.deque()
         self._bytes = 0
         self._max_bytes = max_bytes
         self._condition = threading.Condition()
         self._closed = False
-        self.dropped = collections.Counter()
+        self.dropped: collections.Counter[str] = collections.Counter()
 
     def put(self, item):
         with self._condition:
@@ -228,11 +228,15 @@ class RecorderNode(Node):
         fields = topic.message_type.get_fields_and_field_types()
         has_header = next(iter(fields.values()), None) == HEADER_TYPE
         qos = subscription_qos(p.qos_profile for p in topic.publishers)
+
+        def on_message(data: bytes, info: dict[str, int]) -> None:
+            self._on_message(topic.name, has_header, data, info)
+
+        # rclpy passes the message info to a callback that takes two arguments (it inspects
+        # the signature), though it annotates the callback Callable[[message], None].
         self._recorded[topic.name] = self.create_subscription(
-            topic.message_type, topic.name,
-            lambda data, info, name=topic.name, stamped=has_header:
-                self._on_message(name, stamped, data, info),
-            qos, raw=True)
+            topic.message_type, topic.name, on_message, qos,  # type: ignore[arg-type]
+            raw=True)
         self.get_logger().info(
             f'recording {topic.name} [{topic.type_name}] ({qos.reliability.name.lower()}, '
             f'{qos.durability.name.lower()})')

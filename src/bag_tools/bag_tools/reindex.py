@@ -12,10 +12,13 @@ What the crash cut off (the chunk being filled) is gone; everything flushed is k
 
 Usage: ``reindex <bag directory>`` (exit status 0 = reindexed, 1 = not a bag or failed).
 """
+from __future__ import annotations
+
 import argparse
 import os
 import shutil
 import sys
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from mcap.exceptions import McapError
@@ -25,7 +28,7 @@ from mcap.stream_reader import StreamReader
 from bag_tools.bag_writer import METADATA_FILENAME, BagError, BagReader, BagWriter
 
 
-def reindex(bag_path):
+def reindex(bag_path: str | os.PathLike[str]) -> BagReader:
     """Rewrite ``bag_path``'s data files with summaries and write its ``metadata.yaml``;
     returns the new BagReader. Raises BagError if it is no bag or cannot be written."""
     bag_path = Path(bag_path)
@@ -58,7 +61,7 @@ def reindex(bag_path):
     return BagReader(bag_path)
 
 
-def _chunk_compression(paths):
+def _chunk_compression(paths: Iterable[Path]) -> str:
     """The compression of the first chunk of the first of ``paths`` that has one ('' if
     none), read front to back as far as a crash left it."""
     for path in paths:
@@ -72,7 +75,7 @@ def _chunk_compression(paths):
     return ''
 
 
-def main(argv=None):
+def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog='reindex', description='Rebuild the summary and metadata.yaml of a bag whose '
         'recording was killed (as ros2 bag reindex).')

@@ -5,37 +5,42 @@ A topic is taken once it has a publisher (one only subscribed has nothing to giv
 wanted (``topics`` / ``exclude`` / ``include_hidden_topics``: every topic but hidden ones by
 default, exactly as ``ros2 bag record -a``), has one type, and that type's Python class and
 definition are installed. One that fails a check is skipped for good, with a warning."""
+from __future__ import annotations
+
 import importlib
-from typing import Any, Callable, NamedTuple, Optional
+from collections.abc import Callable, Container, Iterable
+from typing import Any, NamedTuple
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from bag_tools.message_definitions import DefinitionNotFoundError, definition
-from vgm_common.node_tools import Param
+from vgm_common.node_tools import NodeParameters, Param
 
 SUBSCRIPTION_DEPTH = 1000  # keep-last depth of every subscription: 5 s of 200 Hz joint
 # states, so a recorder stalled by a loaded machine catches up without loss
 
 
-def import_message_type(type_name):
+def import_message_type(type_name: str) -> Any:
     """The Python class of ``pkg/msg/Type``. Raises ImportError/AttributeError if absent."""
     package, interface, name = type_name.split('/')
     return getattr(importlib.import_module(f'{package}.{interface}'), name)
 
 
-def topic_is_hidden(name):
+def topic_is_hidden(name: str) -> bool:
     """rclpy's rule (and rosbag2's): any name token starting with ``_``."""
     return any(token.startswith('_') for token in name.split('/'))
 
 
-def _absolute_names(names):
+def _absolute_names(names: Iterable[str]) -> str | None:
     """A reason if a topic list holds a name that is not absolute, else None."""
     relative = [name for name in names if not name.startswith('/')]
     return f'must hold absolute topic names, got {relative}' if relative else None
 
 
-def topic_selection_params(verb, done, discovery_period, exclude_example=''):
+def topic_selection_params(verb: str, done: str, discovery_period: float,
+                           exclude_example: str = '') -> list[Param]:
     """The parameters of a TopicDiscovery: ``topics``, ``exclude``,
     ``include_hidden_topics``, ``discovery_period`` [s]; ``verb`` / ``done`` say what is
     done with a topic ('record' / 'recorded')."""
@@ -51,7 +56,7 @@ def topic_selection_params(verb, done, discovery_period, exclude_example=''):
     ]
 
 
-def subscription_qos(publisher_qos_profiles):
+def subscription_qos(publisher_qos_profiles: Iterable[QoSProfile]) -> QoSProfile:
     """The QoS that receives from all the given publishers (rosbag2's adapt_request_to_offers):
     reliable if every publisher is, else best effort; transient local if every publisher is
     (a transient local subscription does not match a volatile publisher), else volatile;
@@ -72,8 +77,8 @@ class DiscoveredTopic(NamedTuple):
     name: str
     type_name: str
     message_type: Any  # the message class
-    definition: tuple  # (encoding, text) of message_definitions.definition
-    publishers: list  # rclpy TopicEndpointInfo of its publishers when found
+    definition: tuple[str, str]  # (encoding, text) of message_definitions.definition
+    publishers: list[TopicEndpointInfo]  # its publishers when found
 
 
 class TopicDiscovery:
@@ -81,26 +86,28 @@ class TopicDiscovery:
     values of ``topic_selection_params``; ``doing`` names what is done in the warnings
     ('recording': 'not recording /x: ...'). ``skipped``: the topics skipped for good."""
 
-    def __init__(self, node: Node, params, doing: str) -> None:
+    def __init__(self, node: Node, params: NodeParameters, doing: str) -> None:
         self._node = node
-        self.wanted_topics = set(params.topics)
-        self.excluded = set(params.exclude)
-        self._include_hidden = params.include_hidden_topics
+        self.wanted_topics: set[str] = set(params.topics)
+        self.excluded: set[str] = set(params.exclude)
+        self._include_hidden: bool = params.include_hidden_topics
         self._doing = doing
-        self.skipped = set()
+        self.skipped: set[str] = set()
 
-    def wanted(self, name):
+    def wanted(self, name: str) -> bool:
         if name in self.excluded:
             return False
         if self.wanted_topics:
             return name in self.wanted_topics
         return self._include_hidden or not topic_is_hidden(name)
 
-    def skip(self, name, reason):
+    def skip(self, name: str, reason: str) -> None:
         self.skipped.add(name)
         self._node.get_logger().warning(f'not {self._doing} {name}: {reason}')
 
-    def poll(self, taken, on_types_of_taken: Optional[Callable[[str, list], None]] = None):
+    def poll(self, taken: Container[str],
+             on_types_of_taken: Callable[[str, list[str]], None] | None = None
+             ) -> list[DiscoveredTopic]:
         """The DiscoveredTopics new since the last poll: not in ``taken`` (the caller's)
         nor skipped. ``on_types_of_taken(name, types)`` sees each taken topic's types."""
         found = []

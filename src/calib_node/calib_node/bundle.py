@@ -13,20 +13,31 @@ chart pose: T_ref_chart. Residuals: every detected corner's reprojection error [
 unweighted (the corners' errors are alike, ~0.05-0.1 px). The Jacobian is analytic:
 ``cv2.projectPoints``' derivatives chained through ``cv2.composeRT``'s.
 """
-from typing import NamedTuple
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import NamedTuple, cast
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from scipy.optimize import least_squares
 
 from calib_node.calibrate import CalibrationError, CameraFit, tangential_pays
-from vgm_common.geometry import invert_transform, make_transform
+from vgm_common.geometry import FloatArray, invert_transform, make_transform
 
 INTRINSICS = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
 
+Views = Sequence[Mapping[str, npt.ArrayLike]]  # [{name: (N, 2) pixels}] per view
+Intrinsics = dict[str, tuple[np.ndarray, list[float]]]  # {name: (K (3, 3), D (5,))}
+BoolArray = npt.NDArray[np.bool_]
 
-def bundle_adjust_selected(chart, views, image_sizes, T_ref_chart_known=None, names=None,
-                           fit_tangential=True, fit_k3=False, select_model=True):
+
+def bundle_adjust_selected(chart: npt.ArrayLike, views: Views,
+                           image_sizes: Mapping[str, tuple[int, int]],
+                           T_ref_chart_known: Sequence[FloatArray | None] | None = None,
+                           names: Sequence[str] | None = None, fit_tangential: bool = True,
+                           fit_k3: bool = False, select_model: bool = True) -> BundleResult:
     """:func:`bundle_adjust`, and with ``select_model`` also without p1, p2: the simpler
     rig is kept unless p1, p2 pay (``calibrate.tangential_pays``, BIC over the rig)."""
     full = bundle_adjust(chart, views, image_sizes, T_ref_chart_known, names,
@@ -42,29 +53,31 @@ def bundle_adjust_selected(chart, views, image_sizes, T_ref_chart_known=None, na
 
 
 class BundleResult(NamedTuple):
-    fits: dict  # {name: CameraFit}, T_base_camera = T_ref_camera
-    T_ref_chart: list  # [(4, 4)] chart pose of every view in the reference frame
+    fits: dict[str, CameraFit]  # T_base_camera = T_ref_camera
+    T_ref_chart: list[FloatArray]  # (4, 4) chart pose of every view in the reference frame
     reference: str  # 'base_link' or the name of the reference camera
     rms_px: float  # over every corner of every camera
     iterations: int
 
 
-def _rt(T):
+def _rt(T: FloatArray) -> tuple[np.ndarray, FloatArray]:
     return cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))[0].ravel(), T[:3, 3].copy()
 
 
-def _T(rvec, tvec):
+def _T(rvec: npt.ArrayLike, tvec: npt.ArrayLike) -> FloatArray:
     return make_transform(cv2.Rodrigues(np.asarray(rvec, dtype=float))[0], tvec)
 
 
-def _mean_transform(transforms):
+def _mean_transform(transforms: Sequence[FloatArray]) -> FloatArray:
     """Chordal mean of rotations (SVD projection of the sum) and mean translation."""
     U, _, Vt = np.linalg.svd(np.sum([T[:3, :3] for T in transforms], axis=0))
     R = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
     return make_transform(R, np.mean([T[:3, 3] for T in transforms], axis=0))
 
 
-def zhang_start(chart, views, image_sizes, fit_tangential=True, fit_k3=False):
+def zhang_start(chart: npt.ArrayLike, views: Views, image_sizes: Mapping[str, tuple[int, int]],
+                fit_tangential: bool = True, fit_k3: bool = False
+                ) -> tuple[Intrinsics, list[dict[str, FloatArray]]]:
     """Per camera ``cv2.calibrateCamera`` (Zhang) on the views that saw the chart.
 
     Returns:
@@ -76,7 +89,8 @@ def zhang_start(chart, views, image_sizes, fit_tangential=True, fit_k3=False):
     flags = (0 if fit_tangential else cv2.CALIB_ZERO_TANGENT_DIST) | \
         (0 if fit_k3 else cv2.CALIB_FIX_K3)
     objects = np.asarray(chart, dtype=np.float32).reshape(-1, 1, 3)
-    intrinsics, poses = {}, [dict() for _ in views]
+    intrinsics: Intrinsics = {}
+    poses: list[dict[str, FloatArray]] = [dict() for _ in views]
     for name, size in image_sizes.items():
         seen = [i for i, view in enumerate(views) if name in view]
         if len(seen) < 3:
@@ -89,14 +103,17 @@ def zhang_start(chart, views, image_sizes, fit_tangential=True, fit_k3=False):
                 tuple(int(s) for s in size), None, None, flags=flags)
         except cv2.error as error:
             raise CalibrationError(f'{name}: Zhang start failed: {error}') from None
-        intrinsics[name] = (K, (list(np.ravel(D)) + [0.0] * 5)[:5])
+        # float64 out, and np.float64 is a float (the stub's MatLike allows integers too)
+        intrinsics[name] = (K, cast(list[float], (list(np.ravel(D)) + [0.0] * 5)[:5]))
         for i, rvec, tvec in zip(seen, rvecs, tvecs):
             poses[i][name] = _T(rvec.ravel(), tvec.ravel())
     return intrinsics, poses
 
 
-def bundle_adjust(chart, views, image_sizes, T_ref_chart_known=None, names=None,
-                  fit_tangential=True, fit_k3=False, max_nfev=200):
+def bundle_adjust(chart: npt.ArrayLike, views: Views, image_sizes: Mapping[str, tuple[int, int]],
+                  T_ref_chart_known: Sequence[FloatArray | None] | None = None,
+                  names: Sequence[str] | None = None, fit_tangential: bool = True,
+                  fit_k3: bool = False, max_nfev: int = 200) -> BundleResult:
     """Calibrate the rig from chessboard views jointly.
 
     Args:
@@ -163,32 +180,36 @@ class _Layout(NamedTuple):
     views: int
 
     @property
-    def camera_offset(self):
+    def camera_offset(self) -> int:
         return INTRINSICS * self.cameras
 
     @property
-    def chart_offset(self):
+    def chart_offset(self) -> int:
         return self.camera_offset + 6 * self.cameras
 
-    def intrinsics(self, c):
+    def intrinsics(self, c: int) -> int:
         return INTRINSICS * c
 
-    def camera(self, c):
+    def camera(self, c: int) -> slice:
         """Slice of camera ``c``'s T_camera_ref (rvec, tvec)."""
         return slice(self.camera_offset + 6 * c, self.camera_offset + 6 * c + 6)
 
-    def chart(self, i):
+    def chart(self, i: int) -> slice:
         """Slice of view ``i``'s T_ref_chart (rvec, tvec)."""
         return slice(self.chart_offset + 6 * i, self.chart_offset + 6 * i + 6)
 
 
-def _start_camera_poses_from_known_charts(names, views, known, T_camera_chart):
+def _start_camera_poses_from_known_charts(names: Sequence[str], views: Views,
+                                          known: Sequence[FloatArray | None],
+                                          T_camera_chart: Sequence[Mapping[str, FloatArray]]
+                                          ) -> dict[str, FloatArray]:
     """{name: T_camera_ref} with ref = base_link: the mean over the views with a known
     chart pose that the camera saw."""
     T_camera_ref = {}
     for name in names:
-        samples = [T_camera_chart[i][name] @ invert_transform(known[i])
-                   for i in range(len(views)) if known[i] is not None and name in views[i]]
+        samples = [T_camera_chart[i][name] @ invert_transform(T_ref_chart)
+                   for i in range(len(views))
+                   if (T_ref_chart := known[i]) is not None and name in views[i]]
         if not samples:
             raise CalibrationError(f'{name} never saw the chart in a view with a target '
                                    'pose')
@@ -196,7 +217,9 @@ def _start_camera_poses_from_known_charts(names, views, known, T_camera_chart):
     return T_camera_ref
 
 
-def _start_camera_poses_from_reference(names, views, T_camera_chart):
+def _start_camera_poses_from_reference(names: Sequence[str], views: Views,
+                                       T_camera_chart: Sequence[Mapping[str, FloatArray]]
+                                       ) -> dict[str, FloatArray]:
     """{name: T_camera_ref} with ref = the first camera (identity): the mean over the views
     that the camera saw together with the reference."""
     reference = names[0]
@@ -210,7 +233,9 @@ def _start_camera_poses_from_reference(names, views, T_camera_chart):
     return T_camera_ref
 
 
-def _start_chart_poses(views, known, T_camera_ref, T_camera_chart):
+def _start_chart_poses(views: Views, known: Sequence[FloatArray | None],
+                       T_camera_ref: Mapping[str, FloatArray],
+                       T_camera_chart: Sequence[Mapping[str, FloatArray]]) -> list[FloatArray]:
     """[T_ref_chart] per view: the known pose, else the mean over the cameras that saw it."""
     T_ref_chart = []
     for i, view in enumerate(views):
@@ -222,9 +247,11 @@ def _start_chart_poses(views, known, T_camera_ref, T_camera_chart):
     return T_ref_chart
 
 
-def _parameter_vector(names, intrinsics, T_camera_ref, T_ref_chart):
+def _parameter_vector(names: Sequence[str], intrinsics: Intrinsics,
+                      T_camera_ref: Mapping[str, FloatArray],
+                      T_ref_chart: Sequence[FloatArray]) -> FloatArray:
     """The start x0 in the order of :class:`_Layout`."""
-    x0 = []
+    x0: list[float] = []
     for name in names:
         K, D = intrinsics[name]
         x0 += [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *D[:4], D[4]]
@@ -235,7 +262,8 @@ def _parameter_vector(names, intrinsics, T_camera_ref, T_ref_chart):
     return np.array(x0, dtype=float)
 
 
-def _free_parameters(size, layout, known, has_known, fit_tangential, fit_k3):
+def _free_parameters(size: int, layout: _Layout, known: Sequence[FloatArray | None],
+                     has_known: bool, fit_tangential: bool, fit_k3: bool) -> BoolArray:
     """(size,) bool: the parameters the adjustment moves."""
     free = np.ones(size, dtype=bool)
     for c in range(layout.cameras):
@@ -250,14 +278,16 @@ def _free_parameters(size, layout, known, has_known, fit_tangential, fit_k3):
     return free
 
 
-def _reprojection(chart, x0, free, pairs, observed, layout):
+def _reprojection(chart: FloatArray, x0: FloatArray, free: BoolArray,
+                  pairs: Sequence[tuple[int, int]], observed: FloatArray, layout: _Layout
+                  ) -> Callable[[FloatArray], tuple[FloatArray, FloatArray]]:
     """evaluate(xf) -> (residuals [px], Jacobian w.r.t. the free parameters) over every
     (camera, view) pair's corners; the last evaluation is cached, as least_squares asks
     for the residuals and the Jacobian at the same point."""
     n2 = 2 * len(chart)
-    cache = {}
+    cache: dict[bytes, tuple[FloatArray, FloatArray]] = {}
 
-    def evaluate(xf):
+    def evaluate(xf: FloatArray) -> tuple[FloatArray, FloatArray]:
         key = xf.tobytes()
         if key in cache:
             return cache[key]
@@ -276,7 +306,8 @@ def _reprojection(chart, x0, free, pairs, observed, layout):
     return evaluate
 
 
-def _pair_reprojection(chart, x, c, i, layout, observed, J):
+def _pair_reprojection(chart: FloatArray, x: FloatArray, c: int, i: int, layout: _Layout,
+                       observed: FloatArray, J: FloatArray) -> np.ndarray:
     """Residuals (2N,) [px] of camera ``c`` in view ``i``; fills their Jacobian rows ``J``
     (2N, len(x), zero on entry) in place: ``cv2.projectPoints``' derivatives chained
     through ``cv2.composeRT``'s."""
@@ -297,13 +328,14 @@ def _pair_reprojection(chart, x, c, i, layout, observed, J):
     return residuals
 
 
-def _camera_fits(x, names, pairs, residual_pairs, layout):
+def _camera_fits(x: FloatArray, names: Sequence[str], pairs: Sequence[tuple[int, int]],
+                 residual_pairs: FloatArray, layout: _Layout) -> dict[str, CameraFit]:
     """{name: CameraFit} from the adjusted x; ``residual_pairs`` (pairs, N, 2) [px].
 
     Raises:
         CalibrationError: a camera's focal length came out negative.
     """
-    fits = {}
+    fits: dict[str, CameraFit] = {}
     for c, name in enumerate(names):
         a = layout.intrinsics(c)
         K = np.array([[x[a], 0, x[a + 2]], [0, x[a + 1], x[a + 3]], [0, 0, 1.0]])

@@ -16,20 +16,29 @@ Methods (``METHODS``):
 - ``opencv``: ``cv2.calibrateCamera`` on the same points as one non-planar view, from the
   DLT intrinsic guess (the reference).
 """
+from __future__ import annotations
+
 import time
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from scipy.optimize import least_squares
 
 from calib_node.lxpm_ga import lxpm_ga, rig_objective
 from calib_node.refine import dlt_camera, network_refine
 from calib_node.seed_camera import identifiable
-from vgm_common.geometry import make_transform
+from vgm_common.geometry import FloatArray, make_transform
 
 METHODS = ('lm', 'lxpm_ga', 'opencv')
 LM_STARTS = ('dlt', 'ga')
+
+# {name: (points_base (N, 3) [m], pixels (N, 2) [px], (width, height) [px])}
+Observations = Mapping[str, tuple[FloatArray, FloatArray, tuple[int, int]]]
+# (K (3, 3), D (5,), R (3, 3), t (3,)): a camera's world->camera start
+CameraStart = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 class CalibrationError(ValueError):
@@ -42,7 +51,7 @@ class CameraFit(NamedTuple):
     T_base_camera: np.ndarray  # (4, 4) optical frame in base_link
     rms_px: float  # reprojection RMS per point (sqrt of the mean squared distance) [px]
     points: int
-    std: dict  # standard errors of fx, fy, cx, cy [px] (LM and OpenCV; empty for the GA)
+    std: dict[str, float]  # standard errors of fx, fy, cx, cy [px] (LM, OpenCV; empty for the GA)
 
 
 class GAOptions(NamedTuple):
@@ -61,7 +70,8 @@ class GAOptions(NamedTuple):
     network_accept: str = 'if_better'  # keep the network's camera only if its RMS is lower
 
 
-def degeneracy(points_base, min_points=12, min_thickness=0.02):
+def degeneracy(points_base: npt.ArrayLike, min_points: int = 12,
+               min_thickness: float = 0.02) -> str:
     """Reason why (N, 3) points cannot calibrate a camera, or '' if they can.
 
     The non-coplanar calibration needs the points to span 3D: the smallest principal
@@ -79,16 +89,17 @@ def degeneracy(points_base, min_points=12, min_thickness=0.02):
     return ''
 
 
-def _rms(residuals):
+def _rms(residuals: FloatArray) -> float:
     return float(np.sqrt(np.mean(np.sum(residuals.reshape(-1, 2) ** 2, axis=1))))
 
 
-def _pose(R, t):
+def _pose(R: np.ndarray, t: npt.ArrayLike) -> FloatArray:
     """World->camera (R, t) -> T_base_camera."""
     return make_transform(R.T, -R.T @ np.asarray(t, dtype=float).ravel())
 
 
-def _dlt_start(points_base, pixels, image_size):
+def _dlt_start(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
+               image_size: tuple[int, int]) -> CameraStart:
     K, R, t = dlt_camera(points_base, pixels)
     K[0, 1] = 0.0  # no skew in plumb_bob
     if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
@@ -96,8 +107,9 @@ def _dlt_start(points_base, pixels, image_size):
     return K, np.zeros(5), R, t
 
 
-def calibrate_camera_lm(points_base, pixels, image_size, start=None, fit_tangential=True,
-                        fit_k3=False):
+def calibrate_camera_lm(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
+                        image_size: tuple[int, int], start: CameraStart | None = None,
+                        fit_tangential: bool = True, fit_k3: bool = False) -> CameraFit:
     """LM calibration of one camera from (N, 3) base_link points and (N, 2) pixels.
 
     Args:
@@ -118,14 +130,14 @@ def calibrate_camera_lm(points_base, pixels, image_size, start=None, fit_tangent
     free[12:14] = fit_tangential
     free[14] = fit_k3
     x0[~free] = 0.0
-    cache = {}
+    cache: dict[bytes, tuple[FloatArray, np.ndarray]] = {}  # residuals, Jacobian
 
-    def full(xf):
+    def full(xf: FloatArray) -> FloatArray:
         x = x0.copy()
         x[free] = xf
         return x
 
-    def evaluate(xf):
+    def evaluate(xf: FloatArray) -> tuple[FloatArray, np.ndarray]:
         key = xf.tobytes()
         if key not in cache:
             x = full(xf)
@@ -154,8 +166,9 @@ def calibrate_camera_lm(points_base, pixels, image_size, start=None, fit_tangent
     return CameraFit(K, x[10:15].copy(), _pose(R, x[3:6]), _rms(result.fun), len(pixels), std)
 
 
-def calibrate_camera_opencv(points_base, pixels, image_size, fit_tangential=True,
-                            fit_k3=False):
+def calibrate_camera_opencv(points_base: npt.ArrayLike, pixels: FloatArray,
+                            image_size: tuple[int, int], fit_tangential: bool = True,
+                            fit_k3: bool = False) -> CameraFit:
     """``cv2.calibrateCamera`` on the points as one non-planar view (DLT intrinsic guess)."""
     points_base = np.asarray(points_base, dtype=float)
     K0 = _dlt_start(points_base, pixels, image_size)[0]
@@ -174,7 +187,8 @@ def calibrate_camera_opencv(points_base, pixels, image_size, fit_tangential=True
     return CameraFit(K, D, _pose(R, tvecs[0]), float(rms), len(pixels), std)
 
 
-def division_to_plumb_bob(kappa, max_radius, fit_k3=False, samples=200):
+def division_to_plumb_bob(kappa: float, max_radius: float, fit_k3: bool = False,
+                          samples: int = 200) -> tuple[FloatArray, float]:
     """plumb_bob radial coefficients closest to the seed's division model (A4.2).
 
     The division model x_d = x_u / (1 + kappa |x_d|^2) (normalised coordinates) maps the
@@ -200,7 +214,8 @@ def division_to_plumb_bob(kappa, max_radius, fit_k3=False, samples=200):
     return D, float(residual)
 
 
-def _ga_bounds(points_base, image_size, max_distance):
+def _ga_bounds(points_base: FloatArray, image_size: tuple[int, int],
+               max_distance: float) -> FloatArray:
     """Seed-model bounds [C] for a camera of ``image_size`` seeing points centred at 0."""
     width, height = image_size
     return np.array([[0, width], [0, height], [0.25 * width, 4 * width],
@@ -210,7 +225,10 @@ def _ga_bounds(points_base, image_size, max_distance):
                      [0, max_distance]], dtype=float)
 
 
-def calibrate_rig_ga(observations, rng, options=None, fit_k3=False):
+def calibrate_rig_ga(observations: Observations, rng: np.random.Generator,
+                     options: GAOptions | None = None, fit_k3: bool = False
+                     ) -> tuple[dict[str, CameraFit], dict[str, FloatArray],
+                                dict[str, FloatArray]]:
     """The thesis's method on the rig: {name: (points (N, 3), pixels (N, 2), (w, h))} ->
     ({name: CameraFit}, {name: seed params after the GA}, {name: after the network}).
 
@@ -224,7 +242,9 @@ def calibrate_rig_ga(observations, rng, options=None, fit_k3=False):
     centre = np.mean(np.concatenate([observations[n][0] for n in names]), axis=0)
     groups = [[n for n in ('left', 'right') if n in observations]]
     groups = [g for g in groups if g] + [[n] for n in names if n not in ('left', 'right')]
-    fits, after_ga, after_network = {}, {}, {}
+    fits: dict[str, CameraFit] = {}
+    after_ga: dict[str, FloatArray] = {}
+    after_network: dict[str, FloatArray] = {}
     for group in groups:
         data = [(observations[n][0] - centre, observations[n][1]) for n in group]
         bounds = np.concatenate([_ga_bounds(p, observations[n][2], options.max_distance)
@@ -258,7 +278,8 @@ def calibrate_rig_ga(observations, rng, options=None, fit_k3=False):
     return fits, after_ga, after_network
 
 
-def tangential_pays(rss_with, rss_without, residuals, cameras=1):
+def tangential_pays(rss_with: float, rss_without: float, residuals: int,
+                    cameras: int = 1) -> bool | np.bool_:
     """Whether fitting p1, p2 lowers the residual enough to be kept (BIC, Schwarz).
 
     Fitting p1, p2 to a lens without tangential distortion leaves the RMS where it was but
@@ -276,13 +297,15 @@ def tangential_pays(rss_with, rss_without, residuals, cameras=1):
 
 
 class RigResult(NamedTuple):
-    fits: dict  # {name: CameraFit}
+    fits: dict[str, CameraFit]
     method: str
     seconds: float
 
 
-def calibrate_rig(observations, method='lm', seed=0, lm_start='dlt', ga=None,
-                  fit_tangential=True, fit_k3=False, select_model=True):
+def calibrate_rig(observations: Observations, method: str = 'lm', seed: int = 0,
+                  lm_start: str = 'dlt', ga: GAOptions | None = None,
+                  fit_tangential: bool = True, fit_k3: bool = False,
+                  select_model: bool = True) -> RigResult:
     """Calibrate every camera of ``observations`` = {name: (points_base (N, 3),
     pixels (N, 2), (width, height))} with ``method`` (``METHODS``). ``select_model``
     (``lm``): p1, p2 are kept per camera only where they pay (:func:`tangential_pays`).
@@ -304,7 +327,7 @@ def calibrate_rig(observations, method='lm', seed=0, lm_start='dlt', ga=None,
         fits = {name: calibrate_camera_opencv(p, uv, size, fit_tangential, fit_k3)
                 for name, (p, uv, size) in observations.items()}
     else:
-        starts = {name: None for name in observations}
+        starts: dict[str, CameraStart | None] = {name: None for name in observations}
         if lm_start == 'ga':
             for name, fit in calibrate_rig_ga(observations, rng, ga, fit_k3)[0].items():
                 T_camera_base = np.linalg.inv(fit.T_base_camera)

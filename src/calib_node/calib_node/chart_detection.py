@@ -12,10 +12,15 @@ image of chart x cross chart y must point along the optical axis, i.e. be positi
 (u right, v down) pixel coordinates), then the colours (the darker end is corner (0, 0)).
 No rclpy.
 """
+from __future__ import annotations
+
 from typing import NamedTuple, Optional
 
 import cv2
 import numpy as np
+import numpy.typing as npt
+
+from vgm_common.geometry import FloatArray
 
 SHARPNESS_FAILED = 9999.0  # what estimateChessboardSharpness returns when it cannot measure
 
@@ -26,18 +31,18 @@ class Detection(NamedTuple):
     sharpness: float  # OpenCV's edge width estimate [px] (nan when not measured)
 
 
-def chart_points(rows, cols, spacing):
+def chart_points(rows: int, cols: int, spacing: float) -> FloatArray:
     """Inner corners (rows * cols, 3) in the chart frame [m]: index r * cols + c is
     (c spacing, r spacing, 0)."""
     r, c = np.divmod(np.arange(rows * cols), cols)
     return np.column_stack([c * spacing, r * spacing, np.zeros(rows * cols)])
 
 
-def _mean_grey(grey, points, radius):
+def _mean_grey(grey: np.ndarray, points: npt.ArrayLike, radius: int) -> float:
     """Mean grey level in (2 radius + 1)^2 windows around (K, 2) points, averaged."""
     height, width = grey.shape
     values = []
-    for u, v in np.round(points).astype(int):
+    for u, v in np.round(np.asarray(points)).astype(int):
         u0, u1 = max(u - radius, 0), min(u + radius + 1, width)
         v0, v1 = max(v - radius, 0), min(v + radius + 1, height)
         if u1 > u0 and v1 > v0:
@@ -45,7 +50,7 @@ def _mean_grey(grey, points, radius):
     return float(np.mean(values)) if values else np.nan
 
 
-def _end_squares(grid):
+def _end_squares(grid: FloatArray) -> tuple[FloatArray, float]:
     """Centres [px] of the inner and the outer diagonal square at corner (0, 0) of a
     (rows, cols, 2) corner grid, by the local affine map of the neighbouring corners."""
     g00, g01, g10, g11 = grid[0, 0], grid[0, 1], grid[1, 0], grid[1, 1]
@@ -54,7 +59,7 @@ def _end_squares(grid):
     return np.array([inner, outer]), np.linalg.norm(g11 - g00) / np.sqrt(2)
 
 
-def cells_alternate(grey, corners, rows, cols):
+def cells_alternate(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: int) -> bool:
     """Whether the (rows - 1) x (cols - 1) cells between the corners alternate black and
     white: every cell of one colour darker than every cell of the other. OpenCV now and
     then returns a sheared grid on a strongly slanted board, whose corners fit a
@@ -70,7 +75,8 @@ def cells_alternate(grey, corners, rows, cols):
     return bool(even.max() < odd.min() or odd.max() < even.min())
 
 
-def orient_corners(grey, corners, rows, cols, min_contrast=0.2):
+def orient_corners(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: int,
+                   min_contrast: float = 0.2) -> tuple[Optional[FloatArray], str]:
     """Reorder OpenCV's (rows * cols, 2) corners into the chart order.
 
     Returns (corners (rows * cols, 2) or None, reason). None when the two ends of the board
@@ -105,7 +111,7 @@ SADDLE_SIGMA_FRACTION = 0.15  # smoothing of the saddle fit / the smallest squar
 SADDLE_HALF_WIDTH = 2.0  # half-width of the fitted patch [smoothing sigmas]
 
 
-def refine_corners(grey, corners, rows, cols):
+def refine_corners(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: int) -> FloatArray:
     """Sub-pixel corners: ``cv2.cornerSubPix`` (half-window ``REFINE_WINDOW_FRACTION`` of
     the smallest square side, clipped to ``REFINE_WINDOW_RANGE``), then
     :func:`saddle_points`.
@@ -124,7 +130,8 @@ def refine_corners(grey, corners, rows, cols):
     return saddle_points(grey, refined.reshape(-1, 2).astype(float), side)
 
 
-def saddle_points(grey, corners, side, iterations=8):
+def saddle_points(grey: np.ndarray, corners: npt.ArrayLike, side: float,
+                  iterations: int = 8) -> FloatArray:
     """Each (K, 2) corner moved to the saddle point of the smoothed image.
 
     A chessboard corner (two straight edges crossing at any angle, opposite sectors of one
@@ -165,7 +172,8 @@ def saddle_points(grey, corners, side, iterations=8):
     return out
 
 
-def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
+def detect_chessboard(grey: np.ndarray, rows: int, cols: int, max_blur_px: float = 4.0,
+                      min_contrast: float = 0.2) -> Detection:
     """Find the rows x cols inner corners of the chart in a grey image (0..255).
 
     OpenCV's sector-based detector (``findChessboardCornersSB``, robust) first, the
@@ -193,8 +201,10 @@ def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
         if not found:
             return Detection(None, f'no {rows}x{cols} chessboard found', np.nan)
     corners = refine_corners(grey, corners, rows, cols)
-    sharpness = float(cv2.estimateChessboardSharpness(grey, size, corners.astype(np.float32)
-                                                      .reshape(-1, 1, 2))[0][0])
+    retval = cv2.estimateChessboardSharpness(grey, size,
+                                             corners.astype(np.float32).reshape(-1, 1, 2))[0]
+    # retval is a 4-element Scalar (edge width first); the stub's Scalar also allows a float
+    sharpness = float(retval[0])  # type: ignore[index]
     if sharpness >= SHARPNESS_FAILED:  # OpenCV could not measure it (e.g. tiny squares)
         sharpness = np.nan
     if np.isfinite(sharpness) and sharpness > max_blur_px:
@@ -210,7 +220,7 @@ def detect_chessboard(grey, rows, cols, max_blur_px=4.0, min_contrast=0.2):
     return Detection(ordered, reason, sharpness)
 
 
-def second_board(grey, corners, rows, cols):
+def second_board(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: int) -> bool:
     """Whether another rows x cols board is in the image once the found one (its corners'
     hull grown by two squares) is painted over with the image's median grey
     (``findChessboardCorners`` with the fast check: cheap when there is none)."""

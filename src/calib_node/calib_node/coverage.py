@@ -9,7 +9,12 @@ is kept only when its parameters differ from every kept view's by ``min_distance
 of absolute differences); progress per parameter is the spread of the kept views over
 ``RANGES`` (camera_calibration's x 0.7, y 0.7, size 0.4, skew 0.5), capped at 100 %.
 """
+from __future__ import annotations
+
 import numpy as np
+import numpy.typing as npt
+
+from vgm_common.geometry import FloatArray
 
 PARAMETERS = ('x', 'y', 'size', 'skew')
 RANGES = (0.7, 0.7, 0.4, 0.5)
@@ -17,7 +22,8 @@ HINTS = {'x': 'move the chart left and right', 'y': 'move the chart up and down'
          'size': 'move the chart nearer and farther', 'skew': 'tilt the chart'}
 
 
-def view_parameters(corners, rows, cols, image_size):
+def view_parameters(corners: npt.ArrayLike, rows: int, cols: int,
+                    image_size: tuple[int, int]) -> FloatArray:
     """(4,) x, y, size, skew in [0, 1] of a board's corners (rows * cols, 2) [px]."""
     width, height = image_size
     grid = np.asarray(corners, dtype=float).reshape(rows, cols, 2)
@@ -38,22 +44,22 @@ def view_parameters(corners, rows, cols, image_size):
 class Coverage:
     """The kept views' parameters and the progress per parameter."""
 
-    def __init__(self, min_distance=0.2):
+    def __init__(self, min_distance: float = 0.2) -> None:
         self.min_distance = float(min_distance)
-        self.kept = []
+        self.kept: list[FloatArray] = []
 
-    def is_new(self, parameters):
+    def is_new(self, parameters: npt.ArrayLike) -> bool:
         """Whether a view with ``parameters`` (4,) adds to the kept ones."""
         return all(np.sum(np.abs(np.asarray(parameters) - p)) > self.min_distance
                    for p in self.kept)
 
-    def add(self, parameters):
+    def add(self, parameters: npt.ArrayLike) -> None:
         self.kept.append(np.asarray(parameters, dtype=float).copy())
 
-    def clear(self):
+    def clear(self) -> None:
         self.kept.clear()
 
-    def progress(self):
+    def progress(self) -> dict[str, float]:
         """{parameter: fraction in [0, 1]} of the ranges covered."""
         if not self.kept:
             return dict.fromkeys(PARAMETERS, 0.0)
@@ -63,11 +69,11 @@ class Coverage:
         spread[3] = kept[:, 3].max()  # skew from fronto-parallel (0) up
         return {name: float(min(s / r, 1.0)) for name, s, r in zip(PARAMETERS, spread, RANGES)}
 
-    def summary(self):
+    def summary(self) -> str:
         """'x 80 %, y 60 %, size 40 %, skew 30 %'."""
         return ', '.join(f'{name} {100 * value:.0f} %' for name, value in self.progress().items())
 
-    def missing(self, required=1.0):
+    def missing(self, required: float = 1.0) -> str:
         """What to do to reach ``required`` in every parameter ('' when covered)."""
         return '; '.join(f'{name} {100 * value:.0f} %: {HINTS[name]}'
                          for name, value in self.progress().items() if value < required)

@@ -5,14 +5,21 @@ The whole population is evaluated in one call of the objective, (P, D) -> (P,); 
 generations are a Python loop. Every random draw comes from the caller's
 ``numpy.random.Generator``, so a seed fixes the result.
 """
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
 from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
 from calib_node.seed_camera import PopulationCost
+from vgm_common.geometry import FloatArray
 
 LX_VARIANTS = ('printed', 'symmetric')
 LX_DRAWS = ('gene', 'pair')  # one phi per gene (A4.5's resolution) or one per parent pair
+
+Objective = Callable[[FloatArray], npt.ArrayLike]  # (P, D) population -> (P,) costs
 
 
 class GAResult(NamedTuple):
@@ -21,32 +28,35 @@ class GAResult(NamedTuple):
     history: np.ndarray  # (generations,) best cost after each generation, non-increasing
 
 
-def laplace_phi(u, a=0.0, b=0.15, variant='printed'):
+def laplace_phi(u: npt.ArrayLike, a: float = 0.0, b: float = 0.15,
+                variant: str = 'printed') -> FloatArray:
     """Laplace crossover spread phi for uniform draws u in (0, 1) (4.4.1, A4.5).
 
     ``'printed'``: a - b ln u for u <= 1/2, else a + b ln u (half the draws >= a + b ln 2,
     the rest in (a - b ln 2, a]). ``'symmetric'``: the Laplace quantile a + b ln 2u for
     u <= 1/2, else a - b ln(2 - 2u).
     """
-    u = np.maximum(np.asarray(u, dtype=float), np.finfo(float).tiny)  # never ln 0
-    low = u <= 0.5
+    draws = np.maximum(np.asarray(u, dtype=float), np.finfo(float).tiny)  # never ln 0
+    low = draws <= 0.5
     if variant == 'printed':
-        return np.where(low, a - b * np.log(u), a + b * np.log(u))
+        return np.where(low, a - b * np.log(draws), a + b * np.log(draws))
     if variant == 'symmetric':
         with np.errstate(divide='ignore'):
-            return np.where(low, a + b * np.log(2 * u), a - b * np.log(2 - 2 * u))
+            return np.where(low, a + b * np.log(2 * draws), a - b * np.log(2 - 2 * draws))
     raise ValueError(f'lx_variant: expected one of {LX_VARIANTS}, got {variant!r}')
 
 
-def laplace_crossover(x1, x2, rng, probability=0.9, a=0.0, b=0.15, variant='printed',
-                      draw='gene'):
+def laplace_crossover(x1: FloatArray, x2: FloatArray, rng: np.random.Generator,
+                      probability: float = 0.9, a: float = 0.0, b: float = 0.15,
+                      variant: str = 'printed', draw: str = 'gene'
+                      ) -> tuple[FloatArray, FloatArray]:
     """Children of the (M, D) parent pairs: y_i = x_i + phi |x1 - x2|, one phi per gene
     (``draw='gene'``, A4.5) or one per pair (``'pair'``).
 
     Each pair crosses with ``probability``, otherwise its children are copies.
     Returns (y1, y2), each (M, D), not clipped.
     """
-    cross = rng.random(x1.shape[0]) < probability
+    cross = rng.random(int(x1.shape[0])) < probability  # int(): else the stub's float overload
     if draw not in LX_DRAWS:
         raise ValueError(f'lx_draw: expected one of {LX_DRAWS}, got {draw!r}')
     shape = x1.shape if draw == 'gene' else (x1.shape[0], 1)
@@ -55,7 +65,9 @@ def laplace_crossover(x1, x2, rng, probability=0.9, a=0.0, b=0.15, variant='prin
     return x1 + spread, x2 + spread
 
 
-def power_mutation(x, lower, upper, rng, probability=0.005, index=0.25):
+def power_mutation(x: FloatArray, lower: FloatArray, upper: FloatArray,
+                   rng: np.random.Generator, probability: float = 0.005,
+                   index: float = 0.25) -> FloatArray:
     """Power mutation of each gene of (M, D) ``x`` with ``probability`` (A4.4).
 
     s = s1^(1/index), t = (x - xl) / (xu - xl), r ~ U[0, 1]: y = x - s (x - xl) if t < r,
@@ -70,13 +82,14 @@ def power_mutation(x, lower, upper, rng, probability=0.005, index=0.25):
     return np.where(mutate, y, x)
 
 
-def tournament_select(cost, count, rng, size=3):
+def tournament_select(cost: FloatArray, count: int, rng: np.random.Generator,
+                      size: int = 3) -> npt.NDArray[np.int64]:
     """Indices (count,) of the winners of ``count`` tournaments of ``size`` (lowest cost)."""
     entrants = rng.integers(0, cost.shape[0], size=(count, size))
     return entrants[np.arange(count), np.argmin(cost[entrants], axis=1)]
 
 
-def _evaluate(objective, population):
+def _evaluate(objective: Objective, population: FloatArray) -> FloatArray:
     cost = np.asarray(objective(population), dtype=float)
     if cost.shape != (population.shape[0],):
         raise ValueError(f'objective: expected shape ({population.shape[0]},), '
@@ -84,10 +97,13 @@ def _evaluate(objective, population):
     return np.where(np.isnan(cost), np.inf, cost)
 
 
-def lxpm_ga(objective, lower, upper, rng, population=240, generations=200,
-            crossover_probability=0.9, mutation_probability=0.005, laplace_a=0.0,
-            laplace_b=0.15, pm_index=0.25, lx_variant='printed', tournament=3, elitism=1,
-            progress=None, lx_draw='gene'):
+def lxpm_ga(objective: Objective, lower: npt.ArrayLike, upper: npt.ArrayLike,
+            rng: np.random.Generator, population: int = 240, generations: int = 200,
+            crossover_probability: float = 0.9, mutation_probability: float = 0.005,
+            laplace_a: float = 0.0, laplace_b: float = 0.15, pm_index: float = 0.25,
+            lx_variant: str = 'printed', tournament: int = 3, elitism: int = 1,
+            progress: Callable[[int, float], object] | None = None,
+            lx_draw: str = 'gene') -> GAResult:
     """Minimise ``objective`` over the box [lower, upper] with the LX-PM GA (§3.4).
 
     Uniform initialisation in the box; each generation: ``tournament`` selection, Laplace
@@ -143,7 +159,9 @@ def lxpm_ga(objective, lower, upper, rng, population=240, generations=200,
     return GAResult(best=x[best].copy(), best_cost=float(cost[best]), history=history)
 
 
-def stereo_objective(points_world, pixels_left, pixels_right, distortion='implicit'):
+def stereo_objective(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
+                     pixels_right: npt.ArrayLike, distortion: str = 'implicit'
+                     ) -> Callable[[npt.ArrayLike], FloatArray]:
     """The calibration cost (4.3.2) with the full §3.2 model (A4.3): (P, 24) -> (P,).
 
     Columns 0..11 are the left camera, 12..23 the right, each in ``PARAM_NAMES`` order.
@@ -165,7 +183,7 @@ def stereo_objective(points_world, pixels_left, pixels_right, distortion='implic
 
     costs = [PopulationCost(points_world, pixels, distortion) for pixels in observed]
 
-    def cost(q):
+    def cost(q: npt.ArrayLike) -> FloatArray:
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != 24:
             raise ValueError(f'q: expected shape (P, 24), got {q.shape}')
@@ -174,7 +192,8 @@ def stereo_objective(points_world, pixels_left, pixels_right, distortion='implic
     return cost
 
 
-def rig_objective(observations, distortion='implicit'):
+def rig_objective(observations: Iterable[tuple[npt.ArrayLike, npt.ArrayLike]],
+                  distortion: str = 'implicit') -> Callable[[npt.ArrayLike], FloatArray]:
     """The cost (4.3.2) of M cameras with their own point sets: (P, 12 M) -> (P,).
 
     ``observations``: list of (points_world (N_c, 3), pixels (N_c, 2)) per camera; genes
@@ -182,7 +201,7 @@ def rig_objective(observations, distortion='implicit'):
     residuals over every camera [px^2]; +inf where a point is at Z <= 0. With the same
     points in two cameras it is :func:`stereo_objective`.
     """
-    cameras = []
+    cameras: list[tuple[FloatArray, FloatArray]] = []
     for points_world, pixels in observations:
         points_world = np.array(points_world, dtype=float)
         pixels = np.array(pixels, dtype=float)
@@ -195,7 +214,7 @@ def rig_objective(observations, distortion='implicit'):
     costs = [PopulationCost(points_world, pixels, distortion)
              for points_world, pixels in cameras]
 
-    def cost(q):
+    def cost(q: npt.ArrayLike) -> FloatArray:
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != 12 * len(cameras):
             raise ValueError(f'q: expected shape (P, {12 * len(cameras)}), got {q.shape}')

@@ -9,6 +9,7 @@ calibration is published at start instead and no chart is needed.
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -201,7 +202,8 @@ class CalibNode(Node):
         self.targets = {}  # stamp_ns -> PoseStamped, the most recent RECENT_TARGETS
         self.target_seen = False  # auto: a target pose arrived (the stage is in use)
         self.target_arrived = threading.Condition(self.lock)
-        self.image_sizes = {}  # name -> (width, height), fixed by the first good image
+        # name -> (width, height), fixed by the first good image
+        self.image_sizes: dict[str, tuple[int, int]] = {}
         self.rejected_views = 0
         self.similar_views = 0  # handheld views like a kept one (select_views)
         self.unposed_sets = 0  # stage: image sets without a target pose of their stamp
@@ -226,9 +228,8 @@ class CalibNode(Node):
                                   max_wait=p.sync_max_wait)
         inputs = MutuallyExclusiveCallbackGroup()  # the sync is not thread-safe
         for name in self.names:
-            self.create_subscription(Image, IMAGE_TOPICS[name],
-                                     lambda msg, n=name: self._offer(n, msg), DEFAULT_QOS,
-                                     callback_group=inputs)
+            self.create_subscription(Image, IMAGE_TOPICS[name], partial(self._offer, name),
+                                     DEFAULT_QOS, callback_group=inputs)
         # The poses get their own group: in one group with the images, rclpy's executor
         # serves a backlog of images first (subscription order), and under load a
         # set's pose came later than TARGET_WAIT_S. _on_target only takes self.lock.
@@ -527,12 +528,13 @@ class CalibNode(Node):
 
     def _publish_status(self):
         with self.lock:
-            values = {'views': len(self.views), 'rejected views': self.rejected_views,
-                      'calibrations': self.calibrations,
-                      'similar views skipped': self.similar_views,
-                      'image sets without a target pose': self.unposed_sets,
-                      'incomplete capture sets (messages)': self.sync.dropped,
-                      'matched capture sets': self.sync.matched}
+            values: dict[str, object] = {
+                'views': len(self.views), 'rejected views': self.rejected_views,
+                'calibrations': self.calibrations,
+                'similar views skipped': self.similar_views,
+                'image sets without a target pose': self.unposed_sets,
+                'incomplete capture sets (messages)': self.sync.dropped,
+                'matched capture sets': self.sync.matched}
             if self.last_result:  # the latest calibration's quality, repeated at 1 Hz
                 values.update({k: v for k, v in self.last_result.items()
                                if k.startswith('rms_px')})

@@ -6,10 +6,13 @@ Both cameras use the seed conventions: X = R x + T maps world to camera, pixels 
 [px], lengths in the thesis's unit. The DLT is the standard 3x4 projection estimate with
 Hartley normalisation and an RQ decomposition.
 """
+from __future__ import annotations
+
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 from scipy.linalg import rq
 from scipy.optimize import least_squares
 
@@ -19,6 +22,7 @@ from calib_node.seed_camera import (
     identifiable,
     project_seed,
 )
+from vgm_common.geometry import FloatArray
 
 IDENTIFIABLE_NAMES = ('u0', 'v0', 'fx', 'fy', 'kappa', 'alpha', 'beta', 'gamma', 'Tx', 'Ty',
                       'Tz')
@@ -50,18 +54,19 @@ class OpenCVReference(NamedTuple):
     rms_stereo: float  # stereoCalibrate RMS over both images [px]
 
 
-def _to_identifiable(params):
+def _to_identifiable(params: FloatArray) -> FloatArray:
     """(12,) seed params -> (11,) z = (u0, v0, fx, fy, kappa, alpha, beta, gamma, T)."""
     f = params[4]
     return np.concatenate([params[0:2], params[2:4] * f, [params[5] * f ** 2], params[6:12]])
 
 
-def _from_identifiable(z, f):
+def _from_identifiable(z: FloatArray, f: float) -> FloatArray:
     """Inverse of :func:`_to_identifiable` with the focal length f held fixed."""
     return np.concatenate([z[0:2], z[2:4] / f, [f], [z[4] / f ** 2], z[5:11]])
 
 
-def _check_points(points_world, *pixels):
+def _check_points(points_world: npt.ArrayLike,
+                  *pixels: npt.ArrayLike) -> tuple[FloatArray, list[FloatArray]]:
     points_world = np.asarray(points_world, dtype=float)
     if points_world.ndim != 2 or points_world.shape[1] != 3:
         raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')
@@ -73,7 +78,9 @@ def _check_points(points_world, *pixels):
     return points_world, out
 
 
-def refine_seed_lm(params_left, params_right, points_world, pixels_left, pixels_right):
+def refine_seed_lm(params_left: npt.ArrayLike, params_right: npt.ArrayLike,
+                   points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
+                   pixels_right: npt.ArrayLike) -> tuple[FloatArray, FloatArray, RefineInfo]:
     """Minimise the stereo reprojection error (4.3.2, full model) from a starting guess.
 
     The 11 identifiable parameters per camera (u0, v0, fx = f Nx, fy = f Ny, kappa = k f^2,
@@ -101,14 +108,14 @@ def refine_seed_lm(params_left, params_right, points_world, pixels_left, pixels_
     points_world, observed = _check_points(points_world, pixels_left, pixels_right)
     focal = [p[4] for p in start]
 
-    def cameras(x):
+    def cameras(x: FloatArray) -> list[FloatArray]:
         return [_from_identifiable(x[11 * c:11 * c + 11], focal[c]) for c in range(2)]
 
-    def residuals(x):
+    def residuals(x: FloatArray) -> FloatArray:
         return np.concatenate([(project_seed(p[None], points_world)[0] - obs).ravel()
                                for p, obs in zip(cameras(x), observed)])
 
-    def jacobian(x):
+    def jacobian(x: FloatArray) -> FloatArray:
         # Central differences, every perturbed camera projected in one population call
         # (the block of each camera; the two cameras share no parameter).
         J = np.zeros((4 * len(points_world), 22))
@@ -141,7 +148,7 @@ def refine_seed_lm(params_left, params_right, points_world, pixels_left, pixels_
     return left, right, info
 
 
-def _normalise(points):
+def _normalise(points: FloatArray) -> FloatArray:
     """Similarity T (d+1, d+1) moving (N, d) points to centroid 0, mean distance sqrt(d)."""
     d = points.shape[1]
     centre = points.mean(axis=0)
@@ -151,7 +158,8 @@ def _normalise(points):
     return T
 
 
-def dlt_camera(points_world, pixels):
+def dlt_camera(points_world: npt.ArrayLike,
+               pixels: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Pinhole camera (K, R, t) with pixels ~ K (R x + t), from >= 6 non-coplanar points.
 
     Normalised DLT of the 3x4 P (SVD null vector), then P[:, :3] = K R by RQ, with the
@@ -176,7 +184,7 @@ def dlt_camera(points_world, pixels):
     return decompose_projection(P)
 
 
-def decompose_projection(P):
+def decompose_projection(P: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
     """3x4 projection P ~ K [R | t] (any scale and sign) -> K (3, 3) upper triangular with
     a positive diagonal and K[2, 2] = 1, R (3, 3) with det +1, t (3,), by RQ."""
     P = np.asarray(P, dtype=float)
@@ -189,8 +197,9 @@ def decompose_projection(P):
     return K / K[2, 2], R, t
 
 
-def opencv_reference(points_world, pixels_left, pixels_right, image_size_left,
-                     image_size_right):
+def opencv_reference(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
+                     pixels_right: npt.ArrayLike, image_size_left: tuple[int, int],
+                     image_size_right: tuple[int, int]) -> OpenCVReference:
     """OpenCV calibration of the same single non-planar view, as a reference.
 
     Each camera: DLT intrinsic guess, then ``calibrateCamera`` with
@@ -237,7 +246,7 @@ class NetworkInfo(NamedTuple):
 NETWORK_ACCEPT = ('if_better', 'always')
 
 
-def undistort_seed_pixels(params, pixels):
+def undistort_seed_pixels(params: FloatArray, pixels: npt.ArrayLike) -> FloatArray:
     """Remove the seed's division distortion from (N, 2) pixels of camera ``params`` (12,):
     X_u = X_d (1 + k |X_d|^2) with X_d = ((u - u0) / Nx, (v - v0) / Ny) (4.2.3, explicit
     in this direction)."""
@@ -250,8 +259,10 @@ def undistort_seed_pixels(params, pixels):
 NETWORK_WEIGHTS = ('structured', 'free')
 
 
-def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_B=0.05,
-                   rate_gamma=0.5, weights='structured', accept='if_better'):
+def network_refine(params: npt.ArrayLike, points_world: npt.ArrayLike, pixels: npt.ArrayLike,
+                   epochs: int = 3000, rate_D: float = 0.05, rate_B: float = 0.05,
+                   rate_gamma: float = 0.5, weights: str = 'structured',
+                   accept: str = 'if_better') -> tuple[FloatArray, NetworkInfo]:
     """The seed's neural refinement of one camera (ALGORITHMS.md §3.5, 4.5.1-4.5.7).
 
     A linear network: hidden h_i = B W_i (B 4x4, the extrinsics [R T; 0 1]), output
@@ -328,7 +339,8 @@ def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_
     loss = np.empty(epochs)
     rate = 1.0  # backtracking factor on the three rates [C]: halve when a step raises E
 
-    def error(D, B, gamma):
+    def error(D: FloatArray, B: FloatArray,
+              gamma: FloatArray) -> tuple[float, FloatArray, FloatArray, FloatArray]:
         h = W @ B.T
         Dh = h @ D.T
         e = d - gamma[:, None] * Dh
@@ -372,18 +384,18 @@ def network_refine(params, points_world, pixels, epochs=3000, rate_D=0.05, rate_
                                                                  accepted)
 
 
-def _null_vector(rows):
+def _null_vector(rows: FloatArray) -> FloatArray:
     """Unit vector minimising |rows @ x| (last right singular vector)."""
     return np.linalg.svd(rows, full_matrices=False)[2][-1]
 
 
-def _orthonormal_rows(rows):
+def _orthonormal_rows(rows: FloatArray) -> FloatArray:
     """Nearest (in Frobenius norm) matrix with orthonormal rows to (2, 3) ``rows``."""
     U, _, Vt = np.linalg.svd(rows, full_matrices=False)
     return U @ Vt
 
 
-def radial_division_init(points_world, pixels):
+def radial_division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike) -> FloatArray:
     """Closed-form seed camera (12,) with f = 1 for the division model (§3.2), no start.
 
     Radial distortion about the principal point c keeps each image point on the line
@@ -459,7 +471,8 @@ def radial_division_init(points_world, pixels):
     return np.r_[u0, v0, fx, aspect * fx, 1.0, kappa, angles, t12, t3]
 
 
-def _rac_pose(points_world, pixels, centre):
+def _rac_pose(points_world: FloatArray, pixels: FloatArray,
+              centre: FloatArray) -> tuple[FloatArray, FloatArray, float]:
     """Tsai's radial alignment constraint with the centre known: (r1, r2) orthonormal rows
     (2, 3), (t1, t2) and the aspect fy / fx from m_x (B X~) - m_y (A X~) = 0 with
     A ~ fx [r1 t1], B ~ fy [r2 t2] (8 unknowns, SVD null vector; exact without noise
@@ -474,7 +487,8 @@ def _rac_pose(points_world, pixels, centre):
     return _orthonormal_rows(AB[:, :3] / norms[:, None]), AB[:, 3] / norms, norms[1] / norms[0]
 
 
-def division_init(points_world, pixels, grid=9, depths=48, keep=3):
+def division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike, grid: int = 9,
+                  depths: int = 48, keep: int = 3) -> list[FloatArray]:
     """Closed-form start candidates (seed params (12,) with f = 1) for the division model
     (§3.2), best first by their full-model reprojection RMS.
 
@@ -544,12 +558,15 @@ def division_init(points_world, pixels, grid=9, depths=48, keep=3):
     return [params for _, params in candidates[:keep]]
 
 
-def calibrate_seed_stereo(points_world, pixels_left, pixels_right):
+def calibrate_seed_stereo(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
+                          pixels_right: npt.ArrayLike
+                          ) -> tuple[FloatArray, FloatArray, RefineInfo]:
     """Ours on the thesis's setting: :func:`division_init` per camera, then
     :func:`refine_seed_lm` over both cameras (full implicit division model).
 
     Returns:
         (left (12,), right (12,), :class:`RefineInfo`) as :func:`refine_seed_lm`.
     """
-    starts = [division_init(points_world, uv)[0] for uv in (pixels_left, pixels_right)]
-    return refine_seed_lm(*starts, points_world, pixels_left, pixels_right)
+    start_left, start_right = [division_init(points_world, uv)[0]
+                               for uv in (pixels_left, pixels_right)]
+    return refine_seed_lm(start_left, start_right, points_world, pixels_left, pixels_right)

@@ -6,30 +6,49 @@ from a seeded generator. No rclpy.
 The chart is the one of INTERFACES.md ("The calibration chart", ``sensor_sim.chart``):
 ``rows`` x ``cols`` inner corners, a white margin, corner (0, 0) at the black end.
 """
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
 from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
 from calib_node.chart_detection import chart_points
 from vgm_common.camera_model import PinholeCamera, distort_normalized
-from vgm_common.geometry import look_at_rotation, make_transform, rot_x, rot_y, rot_z
+from vgm_common.geometry import (
+    FloatArray,
+    look_at_rotation,
+    make_transform,
+    rot_x,
+    rot_y,
+    rot_z,
+)
 
 BACKGROUND_GREY = 70.0  # a dark wall behind the chart [grey level]
 BLACK_GREY, WHITE_GREY = 15.0, 230.0  # the print under the light [grey level]
 CHARTS = ((6, 9, 0.025), (5, 8, 0.03), (7, 10, 0.02), (6, 7, 0.035), (8, 11, 0.018))
 
+GreyImage = npt.NDArray[np.uint8]
+Lens = tuple[FloatArray, FloatArray, tuple[int, int]]  # K (3, 3), D (5,), (width, height)
+# vgm_common.calibration_io.stereo_rectification: (left, right) -> {name: (R, P)}
+Rectification = Callable[[PinholeCamera, PinholeCamera],
+                         Mapping[str, tuple[np.ndarray, np.ndarray]]]
+
 
 class Rig(NamedTuple):
-    cameras: dict  # {name: PinholeCamera} the truth, poses in base_link
-    T_base_chart: list  # [(4, 4)] chart frame in base_link, one per view
+    cameras: dict[str, PinholeCamera]  # the truth, poses in base_link
+    T_base_chart: list[FloatArray]  # (4, 4) chart frame in base_link, one per view
     rows: int
     cols: int
     spacing: float  # [m]
     noise: float  # image noise sigma [grey levels]
-    params: dict  # what was drawn (for the bench's tables)
+    params: dict[str, int | float | str]  # what was drawn (for the bench's tables)
 
 
-def _lens(rng, width, focal_range=(400.0, 1400.0), k1_range=(-0.4, 0.1)):
+def _lens(rng: np.random.Generator, width: int,
+          focal_range: tuple[float, float] = (400.0, 1400.0),
+          k1_range: tuple[float, float] = (-0.4, 0.1)) -> Lens:
     """K and plumb_bob D of a lens: square pixels up to 0.5 % aspect, principal point
     within 4 % of the centre, k1 drawn, k2 of the opposite sign as real lenses have."""
     f = rng.uniform(*focal_range) * width / 1280 * rng.uniform(1.0, 1.4)
@@ -43,7 +62,8 @@ def _lens(rng, width, focal_range=(400.0, 1400.0), k1_range=(-0.4, 0.1)):
     return K, D, (width, height)
 
 
-def board_in_view(camera, corners_base, margin_px=8.0, max_angle_deg=65.0, T_base_chart=None):
+def board_in_view(camera: PinholeCamera, corners_base: FloatArray, margin_px: float = 8.0,
+                  max_angle_deg: float = 65.0, T_base_chart: FloatArray | None = None) -> bool:
     """Whether the whole board (corners padded by one square) is inside the image with
     ``margin_px``, in front of the camera, seen from the printed side at most
     ``max_angle_deg`` from its normal."""
@@ -62,7 +82,7 @@ def board_in_view(camera, corners_base, margin_px=8.0, max_angle_deg=65.0, T_bas
     return True
 
 
-def _outline_points(rows, cols, spacing):
+def _outline_points(rows: int, cols: int, spacing: float) -> FloatArray:
     """The board's outer squares' corners (padded by one square) in the chart frame."""
     xs = np.array([-spacing, cols * spacing])
     ys = np.array([-spacing, rows * spacing])
@@ -71,7 +91,8 @@ def _outline_points(rows, cols, spacing):
     return grid
 
 
-def draw_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None):
+def draw_rig(seed: int, cameras: Sequence[str] = ('left', 'right', 'aux'),
+             views: int | None = None, noise: float | None = None) -> Rig:
     """A random rig and chart poses (issue 12's ranges), from an integer ``seed``.
 
     Left: width 640..1280 (4:3), f 400..1400 px, k1 in [-0.4, 0.1], k2 = -0.4 k1 * U(0, 1).
@@ -122,7 +143,8 @@ def draw_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None):
         truth[name] = PinholeCamera(size[0], size[1], K, D, T_base_rig @ poses[name])
     outline = _outline_points(rows, cols, spacing)
     centre_chart = np.array([(cols - 1) * spacing / 2, (rows - 1) * spacing / 2, 0.0])
-    charts, attempts = [], 0
+    charts: list[FloatArray] = []
+    attempts = 0
     while len(charts) < views:
         attempts += 1
         if attempts > 20000:
@@ -138,17 +160,18 @@ def draw_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None):
         if all(board_in_view(camera, outline_base, T_base_chart=T_base_chart)
                for camera in truth.values()):
             charts.append(T_base_chart)
-    params = {'width': width, 'baseline_m': baseline, 'vergence_deg': float(np.degrees(vergence)),
-              'views': views, 'noise': noise, 'chart': f'{rows}x{cols} @ {spacing * 1000:g} mm',
-              'f_left': float(lenses['left'][0][0, 0]),
-              'k1_left': float(lenses['left'][1][0]), 'k1_right': float(lenses['right'][1][0])}
+    params: dict[str, int | float | str] = {
+        'width': width, 'baseline_m': baseline, 'vergence_deg': float(np.degrees(vergence)),
+        'views': views, 'noise': noise, 'chart': f'{rows}x{cols} @ {spacing * 1000:g} mm',
+        'f_left': float(lenses['left'][0][0, 0]),
+        'k1_left': float(lenses['left'][1][0]), 'k1_right': float(lenses['right'][1][0])}
     if 'aux' in cameras:
         params.update(aux_oblique_deg=float(np.degrees(oblique)),
                       aux_width=int(lenses['aux'][2][0]), f_aux=float(lenses['aux'][0][0, 0]))
     return Rig(truth, charts, int(rows), int(cols), float(spacing), noise, params)
 
 
-def _undistortion_map(camera):
+def _undistortion_map(camera: PinholeCamera) -> FloatArray:
     """Normalised undistorted (x, y) at the pixel centres -1..W, -1..H: (H + 2, W + 2, 2)."""
     u, v = np.meshgrid(np.arange(-1, camera.width + 1, dtype=float),
                        np.arange(-1, camera.height + 1, dtype=float))
@@ -156,7 +179,7 @@ def _undistortion_map(camera):
     return xy.reshape(camera.height + 2, camera.width + 2, 2)
 
 
-def _bilinear(grid, u, v):
+def _bilinear(grid: FloatArray, u: FloatArray, v: FloatArray) -> FloatArray:
     """Bilinear interpolation of a (H + 2, W + 2, 2) map of pixel centres -1.. at (u, v)."""
     gu, gv = u + 1.0, v + 1.0
     rows, cols = grid.shape[:2]
@@ -172,12 +195,14 @@ class ChartRenderer:
     rays (box filter: the sensor's pixel area), the distortion applied exactly through the
     camera's undistortion map (interpolated between pixel centres, ~1e-4 px)."""
 
-    def __init__(self, rows, cols, spacing, supersample=4):
+    def __init__(self, rows: int, cols: int, spacing: float, supersample: int = 4) -> None:
         self.rows, self.cols, self.spacing = rows, cols, spacing
         self.supersample = int(supersample)
-        self._maps = {}
+        # id(camera) -> (camera, its undistortion map); holding the camera keeps its id unique
+        self._maps: dict[int, tuple[PinholeCamera, FloatArray]] = {}
 
-    def render(self, camera, T_base_chart, rng=None, noise=0.0):
+    def render(self, camera: PinholeCamera, T_base_chart: FloatArray,
+               rng: np.random.Generator | None = None, noise: float = 0.0) -> GreyImage:
         """(H, W) uint8 image of the chart at ``T_base_chart``; Gaussian noise ``noise``
         grey levels from ``rng``, then rounding (the camera's quantisation)."""
         from sensor_sim.chart import chart_plate_extent
@@ -221,14 +246,14 @@ class ChartRenderer:
         image[v0:v1, u0:u1] = block
         return self._quantise(image, rng, noise)
 
-    def _sampler(self, T_camera_chart):
+    def _sampler(self, T_camera_chart: FloatArray) -> Callable[[FloatArray], FloatArray]:
         """(..., 2) normalised undistorted rays -> (...) grey level of what they hit."""
         from sensor_sim.chart import chart_albedo
 
         R, origin = T_camera_chart[:3, :3], T_camera_chart[:3, 3]
         normal = R[:, 2]
 
-        def sample(xy):
+        def sample(xy: FloatArray) -> FloatArray:
             x, y = xy[..., 0], xy[..., 1]
             with np.errstate(divide='ignore', invalid='ignore'):
                 depth = (normal @ origin) / (normal[0] * x + normal[1] * y + normal[2])
@@ -242,13 +267,14 @@ class ChartRenderer:
         return sample
 
     @staticmethod
-    def _quantise(image, rng, noise):
+    def _quantise(image: FloatArray, rng: np.random.Generator | None, noise: float) -> GreyImage:
         if noise > 0:
+            assert rng is not None, 'noise > 0 needs an rng'
             image = image + rng.normal(0.0, noise, image.shape)
         return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
-def render_rig(rig, seed=0, supersample=4):
+def render_rig(rig: Rig, seed: int = 0, supersample: int = 4) -> list[dict[str, GreyImage]]:
     """Every view of every camera: [{name: (H, W) uint8}], noise from ``seed``."""
     rng = np.random.default_rng(seed)
     renderer = ChartRenderer(rig.rows, rig.cols, rig.spacing, supersample)
@@ -256,18 +282,19 @@ def render_rig(rig, seed=0, supersample=4):
              for name, camera in rig.cameras.items()} for T in rig.T_base_chart]
 
 
-def true_corners(rig):
+def true_corners(rig: Rig) -> list[dict[str, FloatArray]]:
     """[{name: (rows * cols, 2)}] true corner pixels of every view and camera."""
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     return [{name: camera.project(chart @ T[:3, :3].T + T[:3, 3])[0]
              for name, camera in rig.cameras.items()} for T in rig.T_base_chart]
 
 
-def _angle_deg(R):
+def _angle_deg(R: FloatArray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
-def score_rig(truth, estimate, absolute=False, reference='left'):
+def score_rig(truth: Mapping[str, PinholeCamera], estimate: Mapping[str, PinholeCamera],
+              absolute: bool = False, reference: str = 'left') -> dict[str, float]:
     """Errors of a calibrated rig against the truth, worst camera per figure.
 
     Args:
@@ -310,12 +337,14 @@ def score_rig(truth, estimate, absolute=False, reference='left'):
     if 'left' in truth and 'right' in truth:
         b_true = np.linalg.norm(truth['left'].centre_base - truth['right'].centre_base)
         b_est = np.linalg.norm(estimate['left'].centre_base - estimate['right'].centre_base)
-        out['baseline'] = abs(b_est / b_true - 1)
+        out['baseline'] = float(abs(b_est / b_true - 1))
         out['rect_rows'] = rectified_row_error(truth, estimate, stereo_rectification)
     return out
 
 
-def rectified_row_error(truth, estimate, stereo_rectification):
+def rectified_row_error(truth: Mapping[str, PinholeCamera],
+                        estimate: Mapping[str, PinholeCamera],
+                        stereo_rectification: Rectification) -> float:
     """RMS |v_left - v_right| [px] of true correspondences (points 1..3 m in front of the
     true left camera, seen by both) rectified with the estimated pair."""
     rng = np.random.default_rng(0)
@@ -330,7 +359,7 @@ def rectified_row_error(truth, estimate, stereo_rectification):
     uv_r, d_r = right.project(points)
     keep = (d_r > 0) & np.all((uv_r >= 0) & (uv_r < [right.width, right.height]), axis=1)
     rect = stereo_rectification(estimate['left'], estimate['right'])
-    rows = []
+    rows: list[FloatArray] = []
     for name, uv in (('left', uv_l[keep]), ('right', uv_r[keep])):
         camera = estimate[name]
         R, P = rect[name]

@@ -9,11 +9,14 @@ yaw, pitch, roll [rad] with R = Rz(alpha) Ry(beta) Rx(gamma) [C], and the transl
 [unit], where R, T map world to camera: X = R x + T. Units are the thesis's (1 unit = 1 mm
 in the ch4_calibration scenario). Images are non-inverted: Xu = f X / Z.
 """
+from __future__ import annotations
+
 from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
-from vgm_common.geometry import rpy_to_matrix
+from vgm_common.geometry import FloatArray, rpy_to_matrix
 
 PARAM_NAMES = ('u0', 'v0', 'Nx', 'Ny', 'f', 'k', 'alpha', 'beta', 'gamma', 'Tx', 'Ty', 'Tz')
 DISTORTIONS = ('implicit', 'explicit')
@@ -47,7 +50,7 @@ class Identifiable(NamedTuple):
     T: np.ndarray  # (..., 3) [unit]
 
 
-def seed_control_points(spacing=10.0):
+def seed_control_points(spacing: float = 10.0) -> FloatArray:
     """The §3.6 control points: x_w, y_w, z_w each in {0, s, ..., 7 s}, (512, 3) [unit].
 
     Ordered z slowest, then y, then x (x fastest), one 8 x 8 chart per depth. The grid
@@ -59,14 +62,14 @@ def seed_control_points(spacing=10.0):
     return np.column_stack([x.ravel(), y.ravel(), z.ravel()])
 
 
-def seed_stereo_observations():
+def seed_stereo_observations() -> tuple[FloatArray, FloatArray]:
     """The thesis's calibration experiment: the 512 control points (N, 3) [unit] and their
     noise-free pixels in the Table 4.1 left and right cameras, (2, N, 2)."""
     points = seed_control_points()
     return points, project_seed(np.stack([LEFT_TRUTH, RIGHT_TRUTH]), points)
 
 
-def distorted_radius(r_u, k):
+def distorted_radius(r_u: npt.ArrayLike, k: npt.ArrayLike) -> FloatArray:
     """Root r >= 0 of k r^3 + r - r_u = 0 for k >= 0 (unique), elementwise by broadcasting.
 
     Closed form r = 2/s sinh(asinh(1.5 s r_u)/3) with s = sqrt(3k), r = r_u where k = 0,
@@ -79,7 +82,7 @@ def distorted_radius(r_u, k):
     return r - (k * r ** 3 + r - r_u) / (3 * k * r ** 2 + 1)
 
 
-def camera_points(params, points_world):
+def camera_points(params: FloatArray, points_world: FloatArray) -> FloatArray:
     """World points (N, 3) into each camera of a population (P, 12) -> (P, N, 3)."""
     # R = Rz(alpha) Ry(beta) Rx(gamma): roll gamma, pitch beta, yaw alpha.
     R = rpy_to_matrix(params[:, 8], params[:, 7], params[:, 6])
@@ -89,7 +92,8 @@ def camera_points(params, points_world):
     return X
 
 
-def _check(params, points_world, distortion):
+def _check(params: npt.ArrayLike, points_world: npt.ArrayLike,
+           distortion: str) -> tuple[FloatArray, FloatArray]:
     params = np.asarray(params, dtype=float)
     points_world = np.asarray(points_world, dtype=float)
     if params.ndim != 2 or params.shape[1] != 12:
@@ -103,7 +107,8 @@ def _check(params, points_world, distortion):
     return params, points_world
 
 
-def project_with_depth(params, points_world, distortion='implicit'):
+def project_with_depth(params: npt.ArrayLike, points_world: npt.ArrayLike,
+                       distortion: str = 'implicit') -> tuple[FloatArray, FloatArray]:
     """Like :func:`project_seed`, also returning the camera depths Z (P, N) [unit]."""
     params, points_world = _check(params, points_world, distortion)
     X = camera_points(params, points_world)
@@ -121,7 +126,8 @@ def project_with_depth(params, points_world, distortion='implicit'):
     return uv, Z
 
 
-def project_seed(params, points_world, distortion='implicit'):
+def project_seed(params: npt.ArrayLike, points_world: npt.ArrayLike,
+                 distortion: str = 'implicit') -> FloatArray:
     """Pixels of N world points in each of P cameras (§3.2, 4.2.1-4.2.4).
 
     Args:
@@ -139,7 +145,7 @@ def project_seed(params, points_world, distortion='implicit'):
     return project_with_depth(params, points_world, distortion)[0]
 
 
-def identifiable(params):
+def identifiable(params: npt.ArrayLike) -> Identifiable:
     """The combinations the images fix (A4.1) of (12,) or (P, 12) params."""
     params = np.asarray(params, dtype=float)
     if params.shape[-1] != 12:
@@ -165,7 +171,8 @@ class PopulationCost:
     +inf. ``distortion='explicit'`` (r = r_u) falls back to :func:`project_with_depth`.
     """
 
-    def __init__(self, points_world, pixels, distortion='implicit'):
+    def __init__(self, points_world: npt.ArrayLike, pixels: npt.ArrayLike,
+                 distortion: str = 'implicit') -> None:
         self.points_t = np.ascontiguousarray(np.asarray(points_world, dtype=float).T)  # 3 N
         pixels = np.asarray(pixels, dtype=float)
         if self.points_t.shape[0] != 3 or pixels.shape != (self.points_t.shape[1], 2):
@@ -179,7 +186,7 @@ class PopulationCost:
         self.pixels = pixels
         self.distortion = distortion
 
-    def __call__(self, params):
+    def __call__(self, params: npt.ArrayLike) -> FloatArray:
         params = np.asarray(params, dtype=float)
         if self.distortion != 'implicit':
             uv, Z = project_with_depth(params, self.points_world, self.distortion)

@@ -9,15 +9,21 @@ decreasing power of X, i.e. for n = 2: 1, X, Y, X^2, XY, Y^2 and for n = 3 then
 X^3, X^2 Y, X Y^2, Y^3. The thesis's conic (3.4.1) A X^2 + B Y^2 + C XY + D X + E Y + F is
 a = (F, D, E, A, C, B) in this order.
 """
+from __future__ import annotations
+
 from functools import lru_cache
 from math import comb
 
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
+
+IntArray = npt.NDArray[np.int64]  # exponents and index arrays
 
 
-def monomial_exponents(degree):
+def monomial_exponents(degree: int) -> IntArray:
     """(M, 2) int exponents (j, l) of X^j Y^l, j + l <= degree, in the module's order;
     M = (degree + 1)(degree + 2) / 2."""
     if int(degree) != degree or degree < 1:
@@ -27,14 +33,14 @@ def monomial_exponents(degree):
 
 
 @lru_cache(maxsize=None)
-def _exponents(degree):
+def _exponents(degree: int) -> IntArray:
     """``monomial_exponents`` built once per degree (read-only: it is shared)."""
     exponents = np.array([(j, d - j) for d in range(degree + 1) for j in range(d, -1, -1)])
     exponents.setflags(write=False)
     return exponents
 
 
-def _as_xy(xy):
+def _as_xy(xy: npt.ArrayLike) -> FloatArray:
     xy = np.asarray(xy, dtype=float)
     if xy.ndim != 2 or xy.shape[1] != 2:
         raise InvalidInput(f'xy: expected shape (N, 2), got {xy.shape}', key='xy',
@@ -42,14 +48,14 @@ def _as_xy(xy):
     return xy
 
 
-def monomials(xy, degree):
+def monomials(xy: npt.ArrayLike, degree: int) -> FloatArray:
     """Monomial matrix (N, M) with rows mu_n(X, Y) for (N, 2) points ``xy``."""
     xy = _as_xy(xy)
     jx, jy = monomial_exponents(degree).T
     return powers(xy[:, 0], degree)[:, jx] * powers(xy[:, 1], degree)[:, jy]
 
 
-def powers(values, degree):
+def powers(values: FloatArray, degree: int) -> FloatArray:
     """(N, degree + 1) matrix of values^k, k = 0..degree, by repeated products (faster
     and exact for negative bases, unlike float exponents)."""
     result = np.ones((len(values), int(degree) + 1))
@@ -58,7 +64,7 @@ def powers(values, degree):
     return result
 
 
-def check_coefficients(a, degree):
+def check_coefficients(a: npt.ArrayLike, degree: int) -> FloatArray:
     """``a`` as a float (M,) array; ``InvalidInput`` if its length does not match degree."""
     a = np.asarray(a, dtype=float)
     size = len(monomial_exponents(degree))
@@ -68,7 +74,7 @@ def check_coefficients(a, degree):
     return a
 
 
-def _shift_scale_matrix(mean, scale, degree):
+def _shift_scale_matrix(mean: FloatArray, scale: float, degree: int) -> FloatArray:
     """(M, M) matrix T with mu(scale * (p - mean)) = T mu(p) for every point p."""
     rows, columns, total, binomial, power_x, power_y = _shift_scale_terms(int(degree))
     size = len(monomial_exponents(degree))
@@ -79,7 +85,7 @@ def _shift_scale_matrix(mean, scale, degree):
 
 
 @lru_cache(maxsize=None)
-def _shift_scale_terms(degree):
+def _shift_scale_terms(degree: int) -> tuple[IntArray, ...]:
     """The binomial expansion of (scale (X - mx))^jx (scale (Y - my))^jy for each monomial
     (row) into monomials X^p Y^q (column), once per degree: arrays of row, column, jx + jy,
     comb(jx, p) comb(jy, q), jx - p and jy - q (one entry per term; each (row, column)
@@ -95,7 +101,7 @@ def _shift_scale_terms(degree):
 FITS = ('taubin', 'algebraic')
 
 
-def fit_implicit_curve(xy, degree, fit='taubin'):
+def fit_implicit_curve(xy: npt.ArrayLike, degree: int, fit: str = 'taubin') -> FloatArray:
     """Fit a degree-n curve to (N, 2) points.
 
     ``fit='algebraic'`` (the thesis): min ||M a|| subject to ||a|| = 1. ``'taubin'``
@@ -128,7 +134,7 @@ def fit_implicit_curve(xy, degree, fit='taubin'):
     return a / np.linalg.norm(a)
 
 
-def _taubin(M, xy, degree):
+def _taubin(M: FloatArray, xy: FloatArray, degree: int) -> FloatArray:
     """Taubin's fit: min a^T M^T M a subject to a^T (Dx^T Dx + Dy^T Dy) a = 1. The
     constant term (column 0 of M, no gradient) is eliminated first, a_0 = -mean(M_rest)
     a_rest, which leaves the symmetric-definite problem (M_c^T M_c) a = lambda N a with
@@ -149,12 +155,12 @@ def _taubin(M, xy, degree):
     return np.concatenate([[-rest_mean @ rest], rest])
 
 
-def evaluate_curve(a, xy, degree):
+def evaluate_curve(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int) -> FloatArray:
     """Algebraic value g(X, Y) = a^T mu_n(X, Y), shape (N,)."""
     return monomials(xy, degree) @ check_coefficients(a, degree)
 
 
-def curve_gradient(a, xy, degree):
+def curve_gradient(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int) -> FloatArray:
     """Gradient (dg/dX, dg/dY) at (N, 2) points, shape (N, 2)."""
     a = check_coefficients(a, degree)
     xy = _as_xy(xy)
@@ -166,7 +172,7 @@ def curve_gradient(a, xy, degree):
     return np.column_stack([d_dx @ a, d_dy @ a])
 
 
-def sampson_distance(a, xy, degree):
+def sampson_distance(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int) -> FloatArray:
     """First-order geometric distance |g| / ||grad g|| of (N, 2) points to the curve, (N,),
     in the units of ``xy`` (normalised image units: pixels / f)."""
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -174,7 +180,8 @@ def sampson_distance(a, xy, degree):
                 / np.linalg.norm(curve_gradient(a, xy, degree), axis=1))
 
 
-def project_to_curve(a, xy, degree, iterations=5):
+def project_to_curve(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int,
+                     iterations: int = 5) -> FloatArray:
     """Move (N, 2) points onto the curve by repeated first-order (Sampson) steps
     xy <- xy - g grad g / ||grad g||^2; returns (N, 2). Use it on noisy image-1 samples so
     that their rays lie on cone 1. Points where the gradient vanishes are left as they are.

@@ -19,17 +19,23 @@ Both select among candidates with a third view (Sampson distance to its curve, `
 normalised image units = pixels / f). With two views a conic's ray meets the second cone at
 the true point and at a point of a 'ghost' conic (A3.17), so only unambiguous rays are kept.
 """
-from typing import NamedTuple
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple, TypedDict
 
 import numpy as np
+import numpy.typing as npt
 from scipy.optimize import least_squares
 
 from curve_recon_node.algebraic_curves import (
+    IntArray,
     check_coefficients,
     monomial_exponents,
     sampson_distance,
 )
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 
 
 class CurveView(NamedTuple):
@@ -40,13 +46,29 @@ class CurveView(NamedTuple):
     centre_base: np.ndarray  # (3,) [m]
 
 
-def _homogeneous_exponents(degree):
+# A CurveView, or a plain (coefficients, R_camera_base, centre_base) tuple of array-likes
+ViewLike = tuple[npt.ArrayLike, npt.ArrayLike, npt.ArrayLike]
+
+
+class SelectionInfo(TypedDict):
+    """The info dict of the reconstructions (see ``reconstruct_ray_roots``)."""
+
+    sample_index: IntArray  # (K,) the image-1 sample of each point
+    n_samples: int
+    n_candidates: int
+    n_without_candidates: int
+    n_rejected_view3: int
+    n_ambiguous: int
+
+
+def _homogeneous_exponents(degree: int) -> IntArray:
     """(M, 3) exponents (j, l, n - j - l) of x1^j x2^l x3^k, in the order of the 2D ones."""
     jl = monomial_exponents(degree)
     return np.column_stack([jl, degree - jl.sum(axis=1)])
 
 
-def _to_camera(R_camera_base, centre_base, points_base):
+def _to_camera(R_camera_base: npt.ArrayLike, centre_base: npt.ArrayLike,
+               points_base: npt.ArrayLike) -> FloatArray:
     points_base = np.asarray(points_base, dtype=float)
     if points_base.ndim != 2 or points_base.shape[1] != 3:
         raise InvalidInput(f'points_base: expected shape (N, 3), got {points_base.shape}',
@@ -54,14 +76,16 @@ def _to_camera(R_camera_base, centre_base, points_base):
     return (points_base - np.asarray(centre_base, dtype=float)) @ np.asarray(R_camera_base).T
 
 
-def cone_value(a, degree, R_camera_base, centre_base, points_base):
+def cone_value(a: npt.ArrayLike, degree: int, R_camera_base: npt.ArrayLike,
+               centre_base: npt.ArrayLike, points_base: npt.ArrayLike) -> FloatArray:
     """Cone polynomial G at (N, 3) base points, shape (N,) [m^degree]."""
     a = check_coefficients(a, degree)
     x = _to_camera(R_camera_base, centre_base, points_base)
     return np.prod(x[:, None, :] ** _homogeneous_exponents(degree), axis=2) @ a
 
 
-def cone_gradient(a, degree, R_camera_base, centre_base, points_base):
+def cone_gradient(a: npt.ArrayLike, degree: int, R_camera_base: npt.ArrayLike,
+                  centre_base: npt.ArrayLike, points_base: npt.ArrayLike) -> FloatArray:
     """Gradient of G with respect to the base point, shape (N, 3) [m^(degree - 1)]."""
     a = check_coefficients(a, degree)
     x = _to_camera(R_camera_base, centre_base, points_base)
@@ -75,7 +99,7 @@ def cone_gradient(a, degree, R_camera_base, centre_base, points_base):
     return grad_camera @ np.asarray(R_camera_base)
 
 
-def _view(view, degree):
+def _view(view: ViewLike, degree: int) -> CurveView:
     a, R, c = view
     R = np.asarray(R, dtype=float)
     c = np.asarray(c, dtype=float)
@@ -85,14 +109,15 @@ def _view(view, degree):
     return CurveView(check_coefficients(a, degree), R, c)
 
 
-def _camera_xy_depth(view, points_base):
+def _camera_xy_depth(view: CurveView,
+                     points_base: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Normalised image coordinates (N, 2) and depth (N,) [m] of base points in a view."""
     x = _to_camera(view.R_camera_base, view.centre_base, points_base)
     with np.errstate(divide='ignore', invalid='ignore'):
         return x[:, :2] / x[:, 2:], x[:, 2]
 
 
-def _third_view_distance(view3, degree, points_base):
+def _third_view_distance(view3: CurveView, degree: int, points_base: FloatArray) -> FloatArray:
     """Sampson distance of the points' projections to view 3's curve; inf behind it."""
     xy, depth = _camera_xy_depth(view3, points_base)
     distance = np.full(len(points_base), np.inf)
@@ -101,7 +126,7 @@ def _third_view_distance(view3, degree, points_base):
     return np.nan_to_num(distance, nan=np.inf)
 
 
-def _rays_base(view1, samples_xy1):
+def _rays_base(view1: CurveView, samples_xy1: npt.ArrayLike) -> FloatArray:
     """Unit-depth ray directions R1^T (X, Y, 1) of (N, 2) image-1 samples, (N, 3)."""
     samples_xy1 = np.asarray(samples_xy1, dtype=float)
     if samples_xy1.ndim != 2 or samples_xy1.shape[1] != 2:
@@ -110,11 +135,13 @@ def _rays_base(view1, samples_xy1):
     return np.column_stack([samples_xy1, np.ones(len(samples_xy1))]) @ view1.R_camera_base
 
 
-def _select(candidates, view3, degree, tol3):
+def _select(candidates: Sequence[FloatArray], view3: CurveView | None, degree: int,
+            tol3: float) -> tuple[FloatArray, SelectionInfo]:
     """Pick one point per sample from ``candidates`` (list of (K_i, 3) arrays).
 
     Returns (points (K, 3), info dict)."""
-    points, index = [], []
+    points: list[FloatArray] = []
+    index: list[int] = []
     n_rejected = n_ambiguous = 0
     for i, cands in enumerate(candidates):
         if len(cands) == 0:
@@ -132,17 +159,18 @@ def _select(candidates, view3, degree, tol3):
             index.append(i)
         else:
             n_ambiguous += 1
-    info = {'sample_index': np.array(index, dtype=int),
-            'n_samples': len(candidates),
-            'n_candidates': sum(len(c) for c in candidates),
-            'n_without_candidates': sum(len(c) == 0 for c in candidates),
-            'n_rejected_view3': n_rejected,
-            'n_ambiguous': n_ambiguous}
+    info: SelectionInfo = {'sample_index': np.array(index, dtype=int),
+                           'n_samples': len(candidates),
+                           'n_candidates': sum(len(c) for c in candidates),
+                           'n_without_candidates': sum(len(c) == 0 for c in candidates),
+                           'n_rejected_view3': n_rejected,
+                           'n_ambiguous': n_ambiguous}
     return np.array(points).reshape(-1, 3), info
 
 
-def reconstruct_ray_roots(view1, view2, view3=None, *, degree, samples_xy1, tol3=1e-3,
-                          imag_tol=1e-7):
+def reconstruct_ray_roots(view1: ViewLike, view2: ViewLike, view3: ViewLike | None = None,
+                          *, degree: int, samples_xy1: npt.ArrayLike, tol3: float = 1e-3,
+                          imag_tol: float = 1e-7) -> tuple[FloatArray, SelectionInfo]:
     """Reconstruct curve points from the real roots of G2 along image-1 rays.
 
     For each image-1 sample (X, Y) the ray x(s) = c1 + s R1^T (X, Y, 1) lies on cone 1 and s
@@ -184,9 +212,11 @@ def reconstruct_ray_roots(view1, view2, view3=None, *, degree, samples_xy1, tol3
     return _select(candidates, view3, degree, tol3)
 
 
-def reconstruct_cone_lsq(view1, view2, view3=None, *, degree, samples_xy1,
-                         seed_depths=(0.5, 1.0, 2.0, 4.0), eps_F=1e-20, dedup_tol=1e-6,
-                         tol3=1e-3):
+def reconstruct_cone_lsq(view1: ViewLike, view2: ViewLike, view3: ViewLike | None = None,
+                         *, degree: int, samples_xy1: npt.ArrayLike,
+                         seed_depths: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
+                         eps_F: float = 1e-20, dedup_tol: float = 1e-6,
+                         tol3: float = 1e-3) -> tuple[FloatArray, SelectionInfo]:
     """Reconstruct curve points by minimising F = G1^2 + G2^2 (the thesis's ``f_min``).
 
     Seeds are s R1^T (X, Y, 1) + c1 for each image-1 sample and each depth s in
@@ -209,18 +239,18 @@ def reconstruct_cone_lsq(view1, view2, view3=None, *, degree, samples_xy1,
 
     # (G1, G2, 0): the zero row lets MINPACK's Levenberg-Marquardt (which needs as many
     # residuals as unknowns) take minimum-norm steps towards S1 ∩ S2 from the seed
-    def residual(x):
+    def residual(x: FloatArray) -> FloatArray:
         return np.array([cone_value(v.coefficients, degree, v.R_camera_base, v.centre_base,
                                     x[None])[0] for v in cones] + [0.0])
 
-    def jacobian(x):
+    def jacobian(x: FloatArray) -> FloatArray:
         return np.vstack([cone_gradient(v.coefficients, degree, v.R_camera_base,
                                         v.centre_base, x[None]) for v in cones]
                          + [np.zeros((1, 3))])
 
     candidates = []
     for ray in rays:
-        kept = []
+        kept: list[FloatArray] = []
         for s in seed_depths:
             result = least_squares(residual, view1.centre_base + s * ray, jac=jacobian,
                                    method='lm', xtol=1e-15, ftol=1e-15, gtol=1e-15)
@@ -234,7 +264,7 @@ def reconstruct_cone_lsq(view1, view2, view3=None, *, degree, samples_xy1,
     return _select(candidates, view3, degree, tol3)
 
 
-def fit_plane(points):
+def fit_plane(points: npt.ArrayLike) -> tuple[FloatArray, float]:
     """Unit normal (3,) and offset d of the SVD plane n.x + d = 0 through (N, 3) points."""
     points = np.asarray(points, dtype=float)
     centroid = points.mean(axis=0)
@@ -242,9 +272,9 @@ def fit_plane(points):
     return normal, -normal @ centroid
 
 
-def plane_angle_error_deg(true_points, reconstructed):
+def plane_angle_error_deg(true_points: npt.ArrayLike, reconstructed: npt.ArrayLike) -> float:
     """Angle [deg] between the SVD planes of (N, 3) true and (K, 3) reconstructed points
     (§2.5, |cos delta|, computed as atan2(|n1 x n2|, |n1 . n2|) for accuracy near 0)."""
     n1, _ = fit_plane(true_points)
     n2, _ = fit_plane(reconstructed)
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(n1, n2)), abs(n1 @ n2)))
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(n1, n2)), abs(n1 @ n2))))

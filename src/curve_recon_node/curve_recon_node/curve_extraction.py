@@ -11,11 +11,14 @@ is the chain (spurs and double responses fall off it); a chain whose two ends ar
 
 Pixels are (u, v) = (column, row), pixel centres at integers (OpenCV convention).
 """
+from __future__ import annotations
+
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.sparse import coo_matrix
+import numpy.typing as npt
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import (
     connected_components,
     dijkstra,
@@ -24,6 +27,7 @@ from scipy.sparse.csgraph import (
 from scipy.spatial import cKDTree
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 
 
 @dataclass(frozen=True)
@@ -35,20 +39,20 @@ class Chain:
     closed: bool
 
     @property
-    def length_px(self):
+    def length_px(self) -> float:
         steps = np.linalg.norm(np.diff(self.pixels, axis=0), axis=1).sum()
         if self.closed:
             steps += np.linalg.norm(self.pixels[0] - self.pixels[-1])
         return float(steps)
 
 
-def line_sigma(line_width_px):
+def line_sigma(line_width_px: float) -> float:
     """Steger's scale for a bar profile of width w: sigma >= w / (2 sqrt 3) keeps the
     centre a single maximum; a little more smooths noise [px]."""
     return max(0.8, 1.0 * float(line_width_px) / (2.0 * np.sqrt(3.0)) + 0.4)
 
 
-def line_response(contrast_grey, line_width_px, sigma):
+def line_response(contrast_grey: float, line_width_px: float, sigma: float) -> float:
     """Second derivative [grey / px^2] that a dark bar of depth ``contrast_grey`` and width
     ``line_width_px`` gives at its centre after Gaussian smoothing with ``sigma`` [px]:
     the difference of G' at the two bar edges."""
@@ -57,7 +61,8 @@ def line_response(contrast_grey, line_width_px, sigma):
     return contrast_grey * 2.0 * g_prime
 
 
-def ridge_points(image, line_width_px=3.0, min_contrast_grey=8.0):
+def ridge_points(image: npt.ArrayLike, line_width_px: float = 3.0,
+                 min_contrast_grey: float = 8.0) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Subpixel centre points of thin dark lines (Steger).
 
     Args:
@@ -85,8 +90,9 @@ def ridge_points(image, line_width_px=3.0, min_contrast_grey=8.0):
     # near lines for the exact test lam > threshold (it is compared with a slightly lower
     # value so that rounding cannot drop a pixel the exact test keeps)
     threshold = line_response(min_contrast_grey, line_width_px, sigma)
-    bound = cv2.add(cv2.max(hxx, hyy), cv2.absdiff(hxy, 0.0))
-    near_line = cv2.compare(bound, 0.999 * threshold, cv2.CMP_GT)
+    # (the ignores: OpenCV takes a scalar second operand, its stubs list only arrays)
+    bound = cv2.add(cv2.max(hxx, hyy), cv2.absdiff(hxy, 0.0))  # type: ignore[call-overload]
+    near_line = cv2.compare(bound, 0.999 * threshold, cv2.CMP_GT)  # type: ignore[call-overload]
     near_line[:2, :] = near_line[-2:, :] = near_line[:, :2] = near_line[:, -2:] = 0
     found = cv2.findNonZero(near_line)  # row by row, as np.nonzero
     if found is None:
@@ -116,7 +122,8 @@ def ridge_points(image, line_width_px=3.0, min_contrast_grey=8.0):
     return points.astype(float), strength.astype(float), normal[inside]
 
 
-def link_chains(points, link_radius_px=2.0, min_points=20):
+def link_chains(points: npt.ArrayLike, link_radius_px: float = 2.0,
+                min_points: int = 20) -> list[Chain]:
     """Order (N, 2) subpixel points into chains (list of ``Chain``, longest first).
 
     Each connected group of points (neighbours within ``link_radius_px``) becomes the
@@ -158,7 +165,7 @@ def link_chains(points, link_radius_px=2.0, min_points=20):
     return chains
 
 
-def _farthest(tree_graph, source):
+def _farthest(tree_graph: csr_matrix, source: int) -> tuple[int, np.ndarray]:
     """Vertex of a tree (symmetric sparse matrix) farthest (by path length) from
     ``source``, and predecessors."""
     distance, predecessors = dijkstra(tree_graph, directed=True, indices=source,
@@ -167,7 +174,7 @@ def _farthest(tree_graph, source):
     return int(np.argmax(distance)), predecessors
 
 
-def resample_chain(chain, step_px=1.0):
+def resample_chain(chain: Chain, step_px: float = 1.0) -> Chain:
     """Chain resampled at (about) equal arc-length steps [px] along its polyline."""
     pixels = chain.pixels
     if chain.closed:
@@ -182,7 +189,7 @@ def resample_chain(chain, step_px=1.0):
     return Chain(resampled, chain.closed)
 
 
-def trim_chain(chain, trim_px):
+def trim_chain(chain: Chain, trim_px: float) -> Chain | None:
     """An open chain without ``trim_px`` [px] of arc length at each end (closed chains are
     returned as they are); None if nothing is left."""
     if chain.closed or trim_px <= 0:
@@ -193,8 +200,9 @@ def trim_chain(chain, trim_px):
     return Chain(chain.pixels[keep], False) if keep.sum() >= 2 else None
 
 
-def extract_chains(image, line_width_px=3.0, min_contrast_grey=8.0, min_chain_px=40.0,
-                   link_radius_px=2.0):
+def extract_chains(image: npt.ArrayLike, line_width_px: float = 3.0,
+                   min_contrast_grey: float = 8.0, min_chain_px: float = 40.0,
+                   link_radius_px: float = 2.0) -> list[Chain]:
     """The dark curve chains of one image: ridge points linked into chains at least
     ``min_chain_px`` long [px], longest first.
 
@@ -203,5 +211,5 @@ def extract_chains(image, line_width_px=3.0, min_contrast_grey=8.0, min_chain_px
     3 px lines)."""
     points, _, _ = ridge_points(image, line_width_px, min_contrast_grey)
     chains = link_chains(points, link_radius_px, min_points=max(5, int(min_chain_px / 2)))
-    chains = [trim_chain(c, 3.0 * line_width_px) for c in chains]
-    return [c for c in chains if c is not None and c.length_px >= min_chain_px]
+    trimmed = [trim_chain(c, 3.0 * line_width_px) for c in chains]
+    return [c for c in trimmed if c is not None and c.length_px >= min_chain_px]

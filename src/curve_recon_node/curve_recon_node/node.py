@@ -14,6 +14,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -138,7 +139,7 @@ class CurveReconNode(Node):
         self.sync_lock = threading.Lock()
         self.sync = self._new_sync(p.views)
         self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
-        self.chart_stamps = deque(maxlen=200)
+        self.chart_stamps: deque[int] = deque(maxlen=200)  # [ns] stamps of chart poses
         self.skipped_chart = 0
         self.state_lock = threading.Lock()
         self.auto_pending = False  # set when the calibration becomes ready or changes
@@ -155,9 +156,8 @@ class CurveReconNode(Node):
         sensors = MutuallyExclusiveCallbackGroup()
         # all three cameras, so `views` can change at run time; the sync takes the used ones
         for name in CAMERA_NAMES:
-            self.create_subscription(Image, IMAGE_TOPICS[name],
-                                     lambda msg, n=name: self._on_image(n, msg), DEFAULT_QOS,
-                                     callback_group=sensors)
+            self.create_subscription(Image, IMAGE_TOPICS[name], partial(self._on_image, name),
+                                     DEFAULT_QOS, callback_group=sensors)
         # its own group: behind a backlog of images (served first, in subscription
         # order) a chart pose could come later than CHART_POSE_GRACE
         self.create_subscription(PoseStamped, TARGET_POSE_TOPIC, self._on_target_pose,
@@ -330,7 +330,7 @@ class CurveReconNode(Node):
     def _on_reconstruct_blocking(self, request, response):
         """~/reconstruct under an executor without deferred services: wait here."""
         done = threading.Event()
-        result = {}
+        result: dict[str, bool | str] = {}
 
         def reply(success, message):
             result.update(success=success, message=message)
@@ -421,12 +421,12 @@ class CurveReconNode(Node):
             for name in names:
                 camera = cameras[name]
                 if images[name].shape != (camera.height, camera.width):
-                    error = InvalidInput(
+                    size_error = InvalidInput(
                         f'{name} image is {images[name].shape[1]}x{images[name].shape[0]}'
                         f' but its camera_info says {camera.width}x{camera.height}',
                         key='size')
-                    self.diagnostics.reject(IMAGE_TOPICS[name], error)
-                    return False, str(error)
+                    self.diagnostics.reject(IMAGE_TOPICS[name], size_error)
+                    return False, str(size_error)
             result = reconstruct_capture(images, cameras, self._settings(), names)
             normals_source = self._publish(stamp_ns, result)
         except NoCurve as error:

@@ -27,18 +27,25 @@ point to minimise its summed squared distances to the curves of all views, in pi
 (ALGORITHMS §8: the geometric reprojection error), which removes the bad conditioning
 of the two-view intersection where the curve runs along the epipolar lines.
 """
+from __future__ import annotations
+
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NotRequired, TypedDict
 
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from curve_recon_node.algebraic_curves import (
     FITS,
+    IntArray,
     fit_implicit_curve,
     monomial_exponents,
     powers,
 )
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 
 
 @dataclass(frozen=True)
@@ -65,8 +72,9 @@ class PiecewiseCurve:
         overlap: fraction of a piece's length shared with each neighbour.
     """
 
-    def __init__(self, xy, closed, degree, focal_px, fit_tolerance_px=0.1,
-                 min_piece_points=30, overlap=0.25):
+    def __init__(self, xy: npt.ArrayLike, closed: bool, degree: int, focal_px: float,
+                 fit_tolerance_px: float = 0.1, min_piece_points: int = 30,
+                 overlap: float = 0.25) -> None:
         xy = np.asarray(xy, dtype=float)
         size = len(monomial_exponents(degree))
         if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) < max(size, 3):
@@ -79,7 +87,7 @@ class PiecewiseCurve:
         self.fit_tolerance_px = float(fit_tolerance_px)
         self.min_piece_points = max(int(min_piece_points), size + 2)
         self.overlap = float(overlap)
-        self.pieces = []
+        self.pieces: list[CurvePiece] = []
         n = len(xy)
         # each piece's residual is measured on these (a chain point is in several fits):
         # monomials (N, M) and their X and Y derivatives (N, M) each
@@ -104,11 +112,11 @@ class PiecewiseCurve:
 
     # --- fitting ---------------------------------------------------------------------
 
-    def _indices(self, start, length):
+    def _indices(self, start: int, length: int) -> IntArray:
         idx = np.arange(start, start + length)
         return idx % len(self.xy) if self.closed else idx
 
-    def _fit(self, indices):
+    def _fit(self, indices: IntArray) -> tuple[FloatArray, float]:
         """The piece's coefficients and RMS Sampson residual [px]: of Taubin's and the
         algebraic fit, the one nearer its points. Taubin's avoids the algebraic fit's
         near-singular solutions on long gentle pieces (pixels of residual where the
@@ -116,7 +124,7 @@ class PiecewiseCurve:
         a piece that no degree-n curve fits (a sharp turn too short to split). Both are
         always tried: stopping at a Taubin fit within the tolerance took a helix's
         coverage at noise 4 from 0.97 to 0.78 (a single cubic piece, systematic error)."""
-        best = None
+        best: tuple[FloatArray, float] | None = None
         for fit in FITS:
             a = fit_implicit_curve(self.xy[indices], self.degree, fit)
             # Sampson distances |g| / ||grad g|| of the piece's chain points
@@ -127,9 +135,10 @@ class PiecewiseCurve:
             rms = float(np.sqrt(np.mean(residual**2)) * self.focal_px)
             if best is None or rms < best[1]:
                 best = (a, rms)
+        assert best is not None  # FITS is not empty
         return best
 
-    def _split(self, start, length, depth):
+    def _split(self, start: int, length: int, depth: int) -> None:
         indices = self._indices(start, length)
         a, rms = self._fit(indices)
         too_short = length < 2 * self.min_piece_points
@@ -149,12 +158,12 @@ class PiecewiseCurve:
 
     # --- queries ---------------------------------------------------------------------
 
-    def nearest(self, xy):
+    def nearest(self, xy: npt.ArrayLike) -> tuple[IntArray, FloatArray]:
         """Nearest chain point index (Q,) and distance to it (Q,) [normalised]."""
         distance, index = self._tree.query(np.asarray(xy, dtype=float).reshape(-1, 2))
         return index, distance
 
-    def distance(self, xy):
+    def distance(self, xy: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Signed Sampson distance of (Q, 2) points to the curve [normalised units],
         (Q,), and the unit gradient direction of g (Q, 2), using the piece that owns the
         nearest chain point. NaN inputs give NaN."""
@@ -175,11 +184,11 @@ class PiecewiseCurve:
             return np.einsum('qm,qm->q', mono, a) / norm, gradient / norm[:, None]
 
     @property
-    def rms_px(self):
+    def rms_px(self) -> float:
         return float(np.sqrt(np.mean([p.rms_px**2 for p in self.pieces])))
 
 
-def _monomials_and_gradients(xy, degree):
+def _monomials_and_gradients(xy: FloatArray, degree: int) -> tuple[FloatArray, FloatArray]:
     """(Q, M) monomials of (Q, 2) points and (Q, M, 2) their derivatives with respect to X
     and Y, from one set of powers."""
     jx, jy = monomial_exponents(degree).T
@@ -198,7 +207,7 @@ class View:
     R_camera_base: np.ndarray
     centre_base: np.ndarray
 
-    def project(self, points_base):
+    def project(self, points_base: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Normalised image points (N, 2) and depth (N,) [m]; NaN behind the camera."""
         x = (np.asarray(points_base, dtype=float) - self.centre_base) @ self.R_camera_base.T
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -206,13 +215,14 @@ class View:
         xy[x[:, 2] <= 0] = np.nan
         return xy, x[:, 2]
 
-    def distance_px(self, points_base):
+    def distance_px(self, points_base: npt.ArrayLike) -> FloatArray:
         """Unsigned distance [px] of the points' projections to the curve; inf behind."""
         xy, _ = self.project(points_base)
         distance, _ = self.curve.distance(xy)
         return np.nan_to_num(np.abs(distance) * self.curve.focal_px, nan=np.inf)
 
-    def in_support(self, points_base, pieces, support_px):
+    def in_support(self, points_base: npt.ArrayLike, pieces: npt.ArrayLike,
+                   support_px: float) -> npt.NDArray[np.bool_]:
         """(N,) bool: each point's projection has its nearest chain point in piece
         ``pieces[i]``'s support and within ``support_px`` of the chain."""
         xy, _ = self.project(points_base)
@@ -231,7 +241,7 @@ class View:
         return result
 
 
-def _cone_monomials(x_camera, degree):
+def _cone_monomials(x_camera: FloatArray, degree: int) -> FloatArray:
     """(Q, M) homogeneous monomials x1^j x2^l x3^(n - j - l) of camera points (Q, 3), in
     the order of the coefficients (products of powers: exact for negative coordinates and
     faster than float exponents)."""
@@ -240,13 +250,14 @@ def _cone_monomials(x_camera, degree):
     return px[:, jx] * py[:, jy] * pz[:, degree - jx - jy]
 
 
-def _cone_values(coefficients, degree, x_camera):
+def _cone_values(coefficients: FloatArray, degree: int, x_camera: FloatArray) -> FloatArray:
     """Cone polynomial of each row's piece at each row's camera point: (Q,) for
     coefficients (Q, M) and x_camera (Q, 3)."""
     return np.einsum('qm,qm->q', _cone_monomials(x_camera, degree), coefficients)
 
 
-def _cone_gradients(coefficients, degree, x_camera, R_camera_base):
+def _cone_gradients(coefficients: FloatArray, degree: int, x_camera: FloatArray,
+                    R_camera_base: np.ndarray) -> FloatArray:
     """Gradient (Q, 3) in base coordinates of each row's cone at its camera point."""
     jl = monomial_exponents(degree)
     exponents = np.column_stack([jl, degree - jl.sum(axis=1)])
@@ -260,12 +271,13 @@ def _cone_gradients(coefficients, degree, x_camera, R_camera_base):
     return grad @ R_camera_base
 
 
-def _real_positive_roots(poly):
+def _real_positive_roots(poly: FloatArray) -> tuple[IntArray, FloatArray]:
     """Real roots > 0 of polynomials with coefficients (Q, n + 1) in increasing order:
     returns (row index (K,), root (K,)). Leading coefficients near zero lower the degree
     (handled per degree: in closed form up to quadratics, else by the eigenvalues of the
     trimmed polynomial's companion matrix)."""
-    rows, roots = [], []
+    rows: list[IntArray] = []
+    roots: list[FloatArray] = []
     scale = np.abs(poly).max(axis=1)
     scale[scale == 0] = 1.0
     p = poly / scale[:, None]
@@ -287,7 +299,8 @@ def _real_positive_roots(poly):
             companion[:, np.arange(1, d), np.arange(d - 1)] = 1.0
             eig = np.linalg.eigvals(companion)  # (S, d)
             r, k = np.nonzero(np.abs(eig.imag) <= 1e-7 * (1 + np.abs(eig.real)))
-            real_roots = eig.real[r, k]
+            # (eigvals of float64 matrices is complex128; numpy's stubs say any precision)
+            real_roots = eig.real[r, k]  # type: ignore[assignment]
         positive = real_roots > 0
         rows.append(sel[r[positive]])
         roots.append(real_roots[positive])
@@ -296,7 +309,7 @@ def _real_positive_roots(poly):
     return np.concatenate(rows), np.concatenate(roots)
 
 
-def _real_roots_up_to_quadratic(c):
+def _real_roots_up_to_quadratic(c: FloatArray) -> tuple[IntArray, FloatArray]:
     """Real roots of the rows of c (S, 2) or (S, 3) (increasing order, leading coefficient
     nonzero): (row (K,), root (K,)). As for the companion matrices' eigenvalues, a complex
     pair whose imaginary part is within 1e-7 (1 + |real part|) counts as a double root."""
@@ -316,14 +329,30 @@ def _real_roots_up_to_quadratic(c):
     return np.concatenate([real, real]), np.concatenate([first, second])
 
 
-def _rays(view1, samples):
+class CandidateInfo(TypedDict):
+    """The info of ``select_candidates`` (see there); ``n_second_pair`` only where a
+    second camera pair recovered samples (``pipeline``)."""
+
+    sample_index: IntArray  # (K,) view-1 chain indices
+    third_view_px: FloatArray  # (K,) [px]
+    n_samples: int
+    n_candidates: int
+    n_without_candidates: int
+    n_rejected_view3: int
+    n_ambiguous: int
+    n_second_pair: NotRequired[int]
+
+
+def _rays(view1: View, samples: IntArray) -> FloatArray:
     """Unit-depth rays R1^T (X, Y, 1) of view-1 chain points ``samples`` (indices)."""
     xy = view1.curve.xy[samples]
     return np.column_stack([xy, np.ones(len(xy))]) @ view1.R_camera_base
 
 
-def reconstruct_ray_roots(view1, view2, view3=None, *, samples=None, tol3_px=2.0,
-                          support_px=3.0, distinct_m=2e-3, max_depth=np.inf):
+def reconstruct_ray_roots(view1: View, view2: View, view3: View | None = None, *,
+                          samples: npt.ArrayLike | None = None, tol3_px: float = 2.0,
+                          support_px: float = 3.0, distinct_m: float = 2e-3,
+                          max_depth: float = np.inf) -> tuple[FloatArray, CandidateInfo]:
     """Candidates from the real roots of each view-2 piece's cone along view-1 rays.
 
     Args:
@@ -365,10 +394,13 @@ def reconstruct_ray_roots(view1, view2, view3=None, *, samples=None, tol3_px=2.0
                              view3, tol3_px, distinct_m)
 
 
-def reconstruct_cone_lsq(view1, view2, view3=None, *, samples=None, tol3_px=2.0,
-                         support_px=3.0, on_curve_px=0.5, distinct_m=2e-3,
-                         seed_depths=(0.25, 0.5, 1.0, 2.0, 4.0), iterations=25,
-                         max_depth=np.inf):
+def reconstruct_cone_lsq(view1: View, view2: View, view3: View | None = None, *,
+                         samples: npt.ArrayLike | None = None, tol3_px: float = 2.0,
+                         support_px: float = 3.0, on_curve_px: float = 0.5,
+                         distinct_m: float = 2e-3,
+                         seed_depths: Sequence[float] | FloatArray = (0.25, 0.5, 1.0, 2.0, 4.0),
+                         iterations: int = 25,
+                         max_depth: float = np.inf) -> tuple[FloatArray, CandidateInfo]:
     """The thesis's method: minima of F = G1^2 + G2^2 from seeds on the view-1 rays.
 
     For each view-1 chain point, its owning view-1 piece's cone G1 and every view-2
@@ -395,7 +427,7 @@ def reconstruct_cone_lsq(view1, view2, view3=None, *, samples=None, tol3_px=2.0,
     a1, a2 = c1.coefficient_matrix[piece1], c2.coefficient_matrix[piece2]
     x = view1.centre_base + seeds[:, None] * rays[ray_index]
 
-    def residual_and_jacobian(x):
+    def residual_and_jacobian(x: FloatArray) -> tuple[FloatArray, FloatArray]:
         x1 = (x - view1.centre_base) @ view1.R_camera_base.T
         x2 = (x - view2.centre_base) @ view2.R_camera_base.T
         r = np.column_stack([_cone_values(a1, degree, x1), _cone_values(a2, degree, x2)])
@@ -438,10 +470,10 @@ def reconstruct_cone_lsq(view1, view2, view3=None, *, samples=None, tol3_px=2.0,
                              view3, tol3_px, distinct_m)
 
 
-def _epipolar_distance_px(view1, view2, rays):
+def _epipolar_distance_px(view1: View, view2: View, rays: FloatArray) -> FloatArray:
     """Distance [px] of every view-2 chain point to the epipolar line of every view-1
     ray (R, 3): (R, N2)."""
-    def homogeneous(points_base):
+    def homogeneous(points_base: FloatArray) -> FloatArray:
         x = (points_base - view2.centre_base) @ view2.R_camera_base.T
         return x  # homogeneous image point (x, y, z) of view 2
 
@@ -452,8 +484,9 @@ def _epipolar_distance_px(view1, view2, rays):
     return np.abs(lines @ xy1.T) * view2.curve.focal_px
 
 
-def select_candidates(ray_of_candidate, candidates, n_samples, samples, view3, tol3_px,
-                      distinct_m):
+def select_candidates(ray_of_candidate: IntArray, candidates: FloatArray, n_samples: int,
+                      samples: IntArray, view3: View | None, tol3_px: float,
+                      distinct_m: float) -> tuple[FloatArray, CandidateInfo]:
     """One point per view-1 sample from its candidates.
 
     With ``view3``: the candidate nearest view 3's curve, if within ``tol3_px``. Without:
@@ -491,14 +524,16 @@ def select_candidates(ray_of_candidate, candidates, n_samples, samples, view3, t
         ambiguous = int((~accepted).sum())
         points, d3 = group_mean[accepted], np.zeros(int(accepted.sum()))
     index = samples[ray_of_candidate[first[accepted]]]
-    info = {'sample_index': np.asarray(index, dtype=int), 'third_view_px': d3,
-            'n_samples': n_samples, 'n_candidates': len(candidates),
-            'n_without_candidates': empty, 'n_rejected_view3': rejected,
-            'n_ambiguous': ambiguous}
+    info: CandidateInfo = {'sample_index': np.asarray(index, dtype=int), 'third_view_px': d3,
+                           'n_samples': n_samples, 'n_candidates': len(candidates),
+                           'n_without_candidates': empty, 'n_rejected_view3': rejected,
+                           'n_ambiguous': ambiguous}
     return np.asarray(points, dtype=float).reshape(-1, 3), info
 
 
-def refine_points(points_base, views, tangents=None, iterations=3, max_step_m=0.01):
+def refine_points(points_base: npt.ArrayLike, views: Sequence[View],
+                  tangents: FloatArray | None = None, iterations: int = 3,
+                  max_step_m: float = 0.01) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Move each point to minimise sum_k (f_k d_k)^2, its squared distances [px] to the
     curves of all ``views`` (d_k the signed Sampson distance in view k, f_k its focal
     length): minimum-norm Gauss-Newton steps, batched. The along-curve direction is
@@ -528,7 +563,7 @@ def refine_points(points_base, views, tangents=None, iterations=3, max_step_m=0.
     return x, residuals, residuals if initial_residuals is None else initial_residuals
 
 
-def _distance_jacobian(x, views):
+def _distance_jacobian(x: FloatArray, views: Sequence[View]) -> tuple[FloatArray, FloatArray]:
     """Signed distances [px] (N, V) and their Jacobians (N, V, 3) [px/m]."""
     residuals = np.empty((len(x), len(views)))
     J = np.empty((len(x), len(views), 3))
@@ -549,7 +584,7 @@ def _distance_jacobian(x, views):
     return residuals, J
 
 
-def pinv_solve(J, r, rcond):
+def pinv_solve(J: FloatArray, r: FloatArray, rcond: float) -> FloatArray:
     """pinv(J, rcond) @ r for a batch of (Q, V, 3) J and (Q, V) r: the minimum-norm least-
     squares solution that drops singular values at or below ``rcond`` times the largest,
     as ``np.linalg.pinv`` does, but in closed form from the eigenvalues of the 3 x 3 normal
@@ -574,7 +609,7 @@ def pinv_solve(J, r, rcond):
     return x
 
 
-def _symmetric_eigenvalues_3x3(A):
+def _symmetric_eigenvalues_3x3(A: FloatArray) -> FloatArray:
     """Eigenvalues (Q, 3), descending, of symmetric (Q, 3, 3) matrices (trigonometric
     closed form)."""
     q = np.trace(A, axis1=1, axis2=2) / 3.0
@@ -588,7 +623,7 @@ def _symmetric_eigenvalues_3x3(A):
     return np.column_stack([largest, 3.0 * q - largest - smallest, smallest])
 
 
-def _eigenvector_3x3(A, eigenvalue):
+def _eigenvector_3x3(A: FloatArray, eigenvalue: FloatArray) -> FloatArray:
     """Unit eigenvectors (S, 3) of symmetric (S, 3, 3) matrices for simple eigenvalues
     (S,): the longest cross product of two rows of A - eigenvalue I."""
     M = A - eigenvalue[:, None, None] * np.eye(3)
@@ -600,7 +635,7 @@ def _eigenvector_3x3(A, eigenvalue):
     return candidates[rows, best] / np.maximum(lengths[rows, best], 1e-300)[:, None]
 
 
-def _solve_3x3(M, b):
+def _solve_3x3(M: FloatArray, b: FloatArray) -> FloatArray:
     """Solutions (S, 3) of (S, 3, 3) M x = b by Cramer's rule (batched, no LAPACK)."""
     c0, c1, c2 = M[:, :, 0], M[:, :, 1], M[:, :, 2]
     cofactors = np.stack([_cross(c1, c2), _cross(c2, c0), _cross(c0, c1)], axis=1)
@@ -608,11 +643,11 @@ def _solve_3x3(M, b):
     return np.einsum('sij,sj->si', cofactors, b) / determinant[:, None]
 
 
-def _determinant_3x3(M):
+def _determinant_3x3(M: FloatArray) -> FloatArray:
     return np.sum(M[:, :, 0] * _cross(M[:, :, 1], M[:, :, 2]), axis=1)
 
 
-def _cross(a, b):
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     """Row-wise cross products of (S, 3) arrays (np.cross costs more on small batches)."""
     return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
                             a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],

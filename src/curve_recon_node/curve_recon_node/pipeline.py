@@ -2,13 +2,19 @@
 third-view selection, refinement, smoothing and resampling. Plain numpy, no ROS: the node
 converts messages and calls ``reconstruct_capture``.
 """
+from __future__ import annotations
+
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from curve_recon_node.curve_extraction import extract_chains
 from curve_recon_node.piecewise import (
+    CandidateInfo,
     PiecewiseCurve,
     View,
     reconstruct_cone_lsq,
@@ -25,7 +31,9 @@ from curve_recon_node.waypoints import (
     tangents,
     without_reversals,
 )
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 
 METHODS = ('ray_roots', 'cone_lsq')
 REFINED_RESIDUAL_PX = 1.0  # [px] a refined point must come this near every view's curve
@@ -52,7 +60,7 @@ class ReconstructionSettings:
     refine: bool = True
     smoothing_window: float = 0.02  # [m]
     min_fraction: float = 0.5  # of view-1 samples that must be reconstructed
-    depth_range: tuple = (0.005, 5.0)  # [m] where the curve may be (view-1 depth)
+    depth_range: tuple[float, float] = (0.005, 5.0)  # [m] where the curve may be (view-1 depth)
     seeds: int = 12  # cone_lsq seeds per view-1 ray, log-spaced over depth_range
 
 
@@ -65,24 +73,25 @@ class Reconstruction:
     waypoints_base: np.ndarray
     closed: bool
     points_base: np.ndarray
-    stats: dict = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)  # diagnostic values of mixed types
 
 
 class StageClock:
     """Wall time [ms] spent in each named stage of a reconstruction (summed over calls)."""
 
-    def __init__(self):
-        self.stage_ms = {}
+    def __init__(self) -> None:
+        self.stage_ms: dict[str, float] = {}
         self._last = time.perf_counter()
 
-    def lap(self, stage):
+    def lap(self, stage: str) -> None:
         """Charge the time since the previous lap (or the start) to ``stage``."""
         now = time.perf_counter()
         self.stage_ms[stage] = self.stage_ms.get(stage, 0.0) + 1e3 * (now - self._last)
         self._last = now
 
 
-def view_curve(image, camera, settings, clock=None):
+def view_curve(image: npt.ArrayLike, camera: PinholeCamera, settings: ReconstructionSettings,
+               clock: StageClock | None = None) -> tuple[View | None, int]:
     """The longest curve chain of one image as a ``View`` (undistorted with the camera),
     or None if there is none. ``clock`` (a ``StageClock``) gets the stages' times."""
     clock = StageClock() if clock is None else clock
@@ -102,7 +111,8 @@ def view_curve(image, camera, settings, clock=None):
     return View(curve, T_camera_base[:3, :3], camera.centre_base), len(chains)
 
 
-def _second_pair(views, points, info, tol3_px, settings):
+def _second_pair(views: Sequence[View], points: FloatArray, info: CandidateInfo, tol3_px: float,
+                 settings: ReconstructionSettings) -> tuple[FloatArray, CandidateInfo]:
     """Samples that views 1 and 2 left unreconstructed (where the curve runs along
     their epipolar lines the two cones meet at a grazing angle, so the root is off and
     view 3 rejects it) get a second chance from views 1 and 3, checked by view 2: with
@@ -119,15 +129,17 @@ def _second_pair(views, points, info, tol3_px, settings):
         return points, info
     index = np.concatenate([info['sample_index'], more_info['sample_index']])
     order = np.argsort(index, kind='stable')
-    merged = dict(info, sample_index=index[order],
-                  third_view_px=np.concatenate([info['third_view_px'],
-                                                more_info['third_view_px']])[order],
-                  n_candidates=info['n_candidates'] + more_info['n_candidates'],
-                  n_second_pair=len(more))
+    merged: CandidateInfo = {**info, 'sample_index': index[order],
+                             'third_view_px': np.concatenate([info['third_view_px'],
+                                                              more_info['third_view_px']])[order],
+                             'n_candidates': info['n_candidates'] + more_info['n_candidates'],
+                             'n_second_pair': len(more)}
     return np.vstack([points, more])[order], merged
 
 
-def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux')):
+def reconstruct_capture(images: Mapping[str, npt.ArrayLike], cameras: Mapping[str, PinholeCamera],
+                        settings: ReconstructionSettings,
+                        names: Sequence[str] = ('left', 'right', 'aux')) -> Reconstruction:
     """Reconstruct the curve seen in ``images`` {name: (H, W) grey} by ``cameras`` {name:
     PinholeCamera with pose}; ``names`` are the views used, view 1 first (2 or 3).
 
@@ -162,13 +174,14 @@ def reconstruct_capture(images, cameras, settings, names=('left', 'right', 'aux'
                                             max_depth=settings.depth_range[1])
     clock.lap(settings.method)
     fraction = len(points) / max(info['n_samples'], 1)
-    stats = {'views': len(views), 'pieces': '/'.join(str(len(v.curve.pieces)) for v in views),
-             'samples': info['n_samples'], 'candidates': info['n_candidates'],
-             'rejected_by_third_view': info['n_rejected_view3'],
-             'ambiguous': info['n_ambiguous'],
-             'from_views_1_3': info.get('n_second_pair', 0),
-             'without_candidates': info['n_without_candidates'],
-             'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views)}
+    stats: dict[str, Any] = {
+        'views': len(views), 'pieces': '/'.join(str(len(v.curve.pieces)) for v in views),
+        'samples': info['n_samples'], 'candidates': info['n_candidates'],
+        'rejected_by_third_view': info['n_rejected_view3'],
+        'ambiguous': info['n_ambiguous'],
+        'from_views_1_3': info.get('n_second_pair', 0),
+        'without_candidates': info['n_without_candidates'],
+        'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views)}
     # two views: reconstruct where the intersection is unique and report the rest as
     # ambiguous (stats), so only the three-view case needs most samples to succeed
     if (view3 is not None and fraction < settings.min_fraction) or len(points) < 10:

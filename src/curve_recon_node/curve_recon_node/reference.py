@@ -3,16 +3,29 @@ matching of view-1 chain points along view 2's chain polyline, cv2.triangulatePo
 and view 3 to choose among several crossings (and to reject points off its chain), on
 the same extracted chains and calibration the node uses (issue 14).
 """
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import TYPE_CHECKING
+
 import cv2
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial import cKDTree
 
+from curve_recon_node.algebraic_curves import IntArray
+from vgm_common.geometry import FloatArray
 
-def _closed_polyline(xy, closed):
+if TYPE_CHECKING:
+    from curve_recon_node.piecewise import View
+
+
+def _closed_polyline(xy: FloatArray, closed: bool) -> FloatArray:
     return np.vstack([xy, xy[:1]]) if closed else xy
 
 
-def densify_polyline(xy, breaks=None, per=20):
+def densify_polyline(xy: FloatArray, breaks: Iterable[int] | None = None,
+                     per: int = 20) -> FloatArray:
     """``per`` points per segment of a polyline (N, 2); no segment ends at an index in
     ``breaks`` (the polyline jumps there)."""
     breaks = set() if breaks is None else set(int(b) for b in breaks)
@@ -23,8 +36,11 @@ def densify_polyline(xy, breaks=None, per=20):
     return np.vstack([dense.reshape(-1, 2), xy[-1:]])
 
 
-def triangulate_chains(xy_views, R_camera_base, centre_base, closed, focal_px,
-                       tol3_px=2.0, breaks=None):
+def triangulate_chains(xy_views: Sequence[npt.ArrayLike], R_camera_base: Sequence[np.ndarray],
+                       centre_base: Sequence[npt.ArrayLike], closed: Sequence[bool],
+                       focal_px: float, tol3_px: float = 2.0,
+                       breaks: Sequence[int] | np.ndarray | None = None
+                       ) -> tuple[FloatArray, IntArray]:
     """Point-based reconstruction of a curve from its chains in two or three views.
 
     Args:
@@ -87,7 +103,7 @@ def triangulate_chains(xy_views, R_camera_base, centre_base, closed, focal_px,
     return X[keep], point[keep]
 
 
-def triangulate_views(views, tol3_px=2.0):
+def triangulate_views(views: Sequence[View], tol3_px: float = 2.0) -> tuple[FloatArray, IntArray]:
     """``triangulate_chains`` on the node's ``piecewise.View`` objects (their chains as
     extracted and undistorted)."""
     return triangulate_chains([v.curve.xy for v in views], [v.R_camera_base for v in views],

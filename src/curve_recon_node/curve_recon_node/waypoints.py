@@ -4,12 +4,20 @@ surface normals from a depth image.
 
 Points arrive ordered along the curve (by the view-1 chain point they came from).
 """
+from __future__ import annotations
+
+from typing import cast
+
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
+
+BoolArray = npt.NDArray[np.bool_]
 
 
-def _as_points(points):
+def _as_points(points: npt.ArrayLike) -> FloatArray:
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InvalidInput(f'points: expected shape (N, 3), got {points.shape}',
@@ -17,7 +25,7 @@ def _as_points(points):
     return points
 
 
-def arc_length(points, closed):
+def arc_length(points: npt.ArrayLike, closed: bool) -> tuple[FloatArray, float]:
     """Cumulative arc length (N,) [m] of an ordered polyline, and its total length (with
     the closing segment if ``closed``)."""
     points = _as_points(points)
@@ -27,7 +35,9 @@ def arc_length(points, closed):
     return s, total
 
 
-def open_at_largest_gap(points, closed, max_gap_m, parameter=None):
+def open_at_largest_gap(points: npt.ArrayLike, closed: bool, max_gap_m: float,
+                        parameter: npt.ArrayLike | None = None
+                        ) -> tuple[FloatArray, bool, FloatArray]:
     """A closed sequence with a gap wider than ``max_gap_m`` [m] cannot be trusted as a
     loop: roll it to start after its widest gap and open it. Returns (points, closed,
     parameter) with ``parameter`` (N,) (default: the index) rolled alike and made
@@ -47,7 +57,8 @@ def open_at_largest_gap(points, closed, max_gap_m, parameter=None):
     return np.roll(points, -(widest + 1), axis=0), False, rolled
 
 
-def stranded_runs(points, closed, max_gap_m, min_points=5):
+def stranded_runs(points: npt.ArrayLike, closed: bool, max_gap_m: float,
+                  min_points: int = 5) -> BoolArray:
     """Mask (N,) of the points in runs of fewer than ``min_points`` cut off on both sides
     by steps longer than ``max_gap_m`` [m] (around the loop if ``closed``): a few points
     on their own are no evidence of the curve (a wrong root the outlier test could not
@@ -72,7 +83,7 @@ def stranded_runs(points, closed, max_gap_m, min_points=5):
     return stranded
 
 
-def without_reversals(points, closed):
+def without_reversals(points: npt.ArrayLike, closed: bool) -> FloatArray:
     """The ordered points without those where the path turns back (the steps before and
     after point i point more than 90 degrees apart): a local fit in a sparse stretch of
     the curve can overshoot and return, and resampled through, that hairpin gives two
@@ -89,7 +100,7 @@ def without_reversals(points, closed):
     return points
 
 
-def split_at_gaps(points, max_gap_m):
+def split_at_gaps(points: npt.ArrayLike, max_gap_m: float) -> list[npt.NDArray[np.intp]]:
     """Index arrays of the runs of an ordered open sequence between steps longer than
     ``max_gap_m`` [m]."""
     points = _as_points(points)
@@ -98,8 +109,10 @@ def split_at_gaps(points, max_gap_m):
     return np.split(np.arange(len(points)), cuts)
 
 
-def smooth_along_curve(points, closed, window_m, parameter=None, period=None,
-                       reject_sigma=4.0, passes=2):
+def smooth_along_curve(points: npt.ArrayLike, closed: bool, window_m: float,
+                       parameter: npt.ArrayLike | None = None, period: float | None = None,
+                       reject_sigma: float = 4.0,
+                       passes: int = 2) -> tuple[FloatArray, BoolArray]:
     """Local quadratic regression of each coordinate against a curve parameter (tricube
     weights over a window of about ``window_m`` [m]); points whose residual exceeds
     ``reject_sigma`` robust standard deviations (and 0.5 mm) are dropped between passes.
@@ -120,6 +133,7 @@ def smooth_along_curve(points, closed, window_m, parameter=None, period=None,
     if closed and period is None:
         step = np.median(np.diff(parameter)) if len(parameter) > 1 else 1.0
         period = parameter[-1] - parameter[0] + step
+    period_if_closed = period if closed else None  # never None for a closed curve here
     kept = np.ones(len(points), dtype=bool)
     smoothed = points.copy()
     for p in range(passes):
@@ -128,9 +142,9 @@ def smooth_along_curve(points, closed, window_m, parameter=None, period=None,
             return current, kept
         # window in parameter units: window_m over the mean length per parameter unit
         _, length = arc_length(current, closed)
-        span = period if closed else t[-1] - t[0]
+        span = t[-1] - t[0] if period_if_closed is None else period_if_closed
         half = 0.5 * float(window_m) * span / max(length, 1e-12)
-        fitted = _local_quadratic(current, t, half, period if closed else None)
+        fitted = _local_quadratic(current, t, half, period_if_closed)
         smoothed = fitted
         if p == passes - 1:
             break
@@ -144,7 +158,8 @@ def smooth_along_curve(points, closed, window_m, parameter=None, period=None,
     return smoothed, kept
 
 
-def _local_quadratic(values, t, half, period):
+def _local_quadratic(values: FloatArray, t: FloatArray, half: float,
+                     period: float | None) -> FloatArray:
     """Value at each t of the tricube-weighted quadratic fit of ``values`` (N, C) over
     |dt| < ``half``; ``period`` for a periodic parameter (else None). Points are sorted by
     t, so each window is a band of neighbours: all fits at once from weighted moments."""
@@ -175,14 +190,15 @@ def _local_quadratic(values, t, half, period):
     # in it is that row applied to its (w, w dt, w dt^2)
     first_row = np.cross(normal[:, :, 1], normal[:, :, 2])
     determinant = np.sum(normal[:, :, 0] * first_row, axis=1)
-    weight = sum(first_row[:, p, None] * weighted_powers[p] for p in range(3))
+    # (the cast: a sum of arrays is an array; its start, 0, only adds to them)
+    weight = cast(FloatArray, sum(first_row[:, p, None] * weighted_powers[p] for p in range(3)))
     with np.errstate(divide='ignore', invalid='ignore'):
         fitted = (weight[:, None, :] @ values[index])[:, 0, :] / determinant[:, None]
     enough = (w > 0).sum(axis=1) >= 4
     return np.where(enough[:, None], fitted, values)
 
 
-def resample(points, closed, spacing_m):
+def resample(points: npt.ArrayLike, closed: bool, spacing_m: float) -> FloatArray:
     """Evenly spaced points along the polyline: L / round(L / spacing) apart [m], so the
     spacing is within half a step's share of ``spacing_m``; a closed curve's first point
     is not repeated. Returns (M, 3)."""
@@ -202,7 +218,7 @@ def resample(points, closed, spacing_m):
     return np.column_stack([np.interp(targets, s, points[:, k]) for k in range(3)])
 
 
-def tangents(points, closed):
+def tangents(points: npt.ArrayLike, closed: bool) -> FloatArray:
     """Unit tangents (N, 3) by central differences (one-sided at open ends). Where the
     difference vanishes (repeated points, a loop of two points) the nearest non-zero
     tangent along the curve is taken; raises InvalidInput if all points coincide."""
@@ -227,7 +243,8 @@ def tangents(points, closed):
     return t / norm[:, None]
 
 
-def waypoint_frames(points, closed, approach_base=None):
+def waypoint_frames(points: npt.ArrayLike, closed: bool,
+                    approach_base: npt.ArrayLike | None = None) -> FloatArray:
     """Poses (N, 4, 4) in base: origin at the point, x along the tangent, z the approach
     direction made orthogonal to x, y = z x x.
 
@@ -258,7 +275,7 @@ def waypoint_frames(points, closed, approach_base=None):
     return T
 
 
-def depth_points_rect(depth_m, K_rect):
+def depth_points_rect(depth_m: npt.ArrayLike, K_rect: npt.ArrayLike) -> FloatArray:
     """Back-project a depth image (H, W) [m, z along the rectified optical axis; NaN where
     unknown] with the rectified intrinsics K (3, 3): (H, W, 3) points in the rectified
     frame [m]."""
@@ -276,7 +293,8 @@ def depth_points_rect(depth_m, K_rect):
 DEPTH_RANGE_M = (1e-3, 100.0)  # [m] depths outside are not a surface seen by a camera
 
 
-def usable_depth(depth_m, depth_range=DEPTH_RANGE_M):
+def usable_depth(depth_m: npt.ArrayLike, depth_range: tuple[float, float] = DEPTH_RANGE_M
+                 ) -> tuple[FloatArray, dict[str, int]]:
     """The depth image (H, W) with every value that cannot be a seen surface set to NaN
     (NaN stays unknown, REP 118), and the counts of what was removed: {'not_positive':
     zero or negative, 'too_far': beyond ``depth_range[1]`` [m] or infinite, 'too_near':
@@ -291,7 +309,7 @@ def usable_depth(depth_m, depth_range=DEPTH_RANGE_M):
                      'too_near': int(too_near.sum())}
 
 
-def check_depth_intrinsics(K_rect, width, height):
+def check_depth_intrinsics(K_rect: npt.ArrayLike, width: int, height: int) -> None:
     """InvalidInput unless K (3, 3) is a plausible pinhole matrix for a ``width`` x
     ``height`` image: finite, positive focal lengths under 1e6 px, the principal point
     within an image size of the image, zero bottom row but K[2, 2] = 1."""
@@ -312,8 +330,9 @@ def check_depth_intrinsics(K_rect, width, height):
                            key='K', value=K.tolist())
 
 
-def normals_from_depth(points_base, depth_m, K_rect, T_base_rect, window_px=9,
-                       min_valid=12, max_depth_mismatch=0.1):
+def normals_from_depth(points_base: npt.ArrayLike, depth_m: npt.ArrayLike,
+                       K_rect: npt.ArrayLike, T_base_rect: npt.ArrayLike, window_px: int = 9,
+                       min_valid: int = 12, max_depth_mismatch: float = 0.1) -> FloatArray:
     """Surface normals (N, 3) in base at ``points_base`` from a depth image.
 
     Each point is projected into the rectified frame (pose ``T_base_rect`` (4, 4), the

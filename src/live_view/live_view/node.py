@@ -28,10 +28,12 @@ forwarded per topic, transforms sent and rejected inputs.
 import sys
 import threading
 import time
+from functools import partial
 
 import foxglove
 from foxglove.channels import FrameTransformsChannel
 from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
+from foxglove.websocket import ServerListener
 from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
@@ -93,8 +95,9 @@ class _Forwarded:
         self.forwarded = 0
 
 
-class _Listener:
-    """foxglove-sdk's ServerListener: called on the server's threads."""
+class _Listener(ServerListener):
+    """foxglove-sdk's ServerListener: called on the server's threads (the callbacks not
+    defined here are the protocol's no-ops)."""
 
     def __init__(self, live_view):
         self._live_view = live_view
@@ -152,9 +155,8 @@ class LiveViewNode(Node):
         self._transforms = FrameTransformsChannel(TRANSFORMS_TOPIC)
         for name, topic in POSE_TOPICS.items():
             self.create_subscription(
-                PoseStamped, topic,
-                lambda msg, frame=OPTICAL_FRAMES[name], t=topic: self._on_camera_pose(
-                    t, frame, msg), LATCHED_QOS)
+                PoseStamped, topic, partial(self._on_camera_pose, topic, OPTICAL_FRAMES[name]),
+                LATCHED_QOS)
         self.create_subscription(PoseStamped, TOOL_POSE_TOPIC, self._on_tool_pose, DEFAULT_QOS)
         self.create_timer(self.params.discovery_period, self._discover)
         self.create_timer(CAMERA_TRANSFORM_PERIOD, self._send_camera_transforms)
@@ -192,8 +194,7 @@ class LiveViewNode(Node):
             if topic in watched and f.subscription is None:
                 # A transient-local subscription receives the latched value again.
                 f.subscription = self.create_subscription(
-                    f.message_type, topic,
-                    lambda data, info, f=f: self._on_message(f, data, info), f.qos, raw=True)
+                    f.message_type, topic, partial(self._on_message, f), f.qos, raw=True)
             elif topic not in watched and f.subscription is not None:
                 self.destroy_subscription(f.subscription)
                 f.subscription = None

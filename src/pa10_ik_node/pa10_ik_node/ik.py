@@ -16,13 +16,18 @@ primal-dual network integrated exactly (``primal_dual_velocity``), its literal
 fixed-step rules (``primal_dual_velocity_fixed_step``, which diverge at the thesis's
 values, A7.4) and damped least squares as the reference (``dls_velocity``). No ROS here.
 """
+from __future__ import annotations
+
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 
 TWIST_DIM = 6
 
@@ -55,7 +60,8 @@ class PrimalDualInfo:
     t_final: float
 
 
-def _check_problem(J, W=None, rdot_d=None):
+def _check_problem(J: npt.ArrayLike, W: npt.ArrayLike | None = None,
+                   rdot_d: npt.ArrayLike | None = None) -> list[FloatArray]:
     """Float copies of the problem data; raises ``InvalidInput`` naming the expected shape."""
     J = np.array(J, dtype=float)
     if J.ndim != 2 or J.shape[0] != TWIST_DIM:
@@ -79,7 +85,7 @@ def _check_problem(J, W=None, rdot_d=None):
     return arrays
 
 
-def _initial(value, size, key):
+def _initial(value: npt.ArrayLike | None, size: int, key: str) -> FloatArray:
     if value is None:
         return np.zeros(size)
     value = np.array(value, dtype=float)
@@ -88,7 +94,8 @@ def _initial(value, size, key):
     return value
 
 
-def kkt_velocity(J, W, rdot_d, rcond=1e-10):
+def kkt_velocity(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLike,
+                 rcond: float = 1e-10) -> tuple[FloatArray, FloatArray]:
     """Solve the KKT system of min 1/2 qdot^T W qdot s.t. J qdot = rdot_d directly.
 
     Solves ``[[W, J^T], [J, 0]] [qdot; lam] = [0; rdot_d]`` in the minimum-norm least-
@@ -116,7 +123,8 @@ def kkt_velocity(J, W, rdot_d, rcond=1e-10):
     return solution[:n], solution[n:]
 
 
-def null_space_positive(J, W, tol=1e-9, rcond=None):
+def null_space_positive(J: npt.ArrayLike, W: npt.ArrayLike, tol: float = 1e-9,
+                        rcond: float | None = None) -> tuple[bool, float]:
     """Whether ``W`` is positive definite on null(J) (Finsler's condition, A7.3).
 
     Args:
@@ -138,7 +146,7 @@ def null_space_positive(J, W, tol=1e-9, rcond=None):
     return min_eig > tol, min_eig
 
 
-def absolute_weights(W):
+def absolute_weights(W: FloatArray) -> FloatArray:
     """The matrix absolute value |W| = V |Lambda| V^T of a symmetric (n, n) ``W``.
 
     For the thesis's diagonal W this is the elementwise absolute value; unlike that, it
@@ -148,8 +156,12 @@ def absolute_weights(W):
     return (V * np.abs(eigenvalues)) @ V.T
 
 
-def primal_dual_velocity(J, W, rdot_d, K=100.0, v0=None, u0=None, t_final=1e5, tol=1e-6,
-                         weights_fallback=None, null_space_tol=1e-9, max_gain=1e6):
+def primal_dual_velocity(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLike,
+                         K: float = 100.0, v0: npt.ArrayLike | None = None,
+                         u0: npt.ArrayLike | None = None, t_final: float = 1e5,
+                         tol: float = 1e-6, weights_fallback: npt.ArrayLike | None = None,
+                         null_space_tol: float = 1e-9, max_gain: float = 1e6
+                         ) -> tuple[FloatArray, FloatArray, PrimalDualInfo]:
     """The thesis's continuous primal-dual network (7.4.9-7.4.12), integrated exactly.
 
     With ``H = W + K J^T J`` the network is
@@ -223,7 +235,8 @@ def primal_dual_velocity(J, W, rdot_d, K=100.0, v0=None, u0=None, t_final=1e5, t
     return v, u, info
 
 
-def fixed_step_matrix(J, W, K=100.0, mu=0.02, eta=0.02):
+def fixed_step_matrix(J: npt.ArrayLike, W: npt.ArrayLike, K: float = 100.0, mu: float = 0.02,
+                      eta: float = 0.02) -> FloatArray:
     """The (n+6, n+6) linear part of the literal learning rules of §6.5 on ``(qdot, lam)``.
 
     Its spectral radius decides whether ``primal_dual_velocity_fixed_step`` converges
@@ -235,8 +248,11 @@ def fixed_step_matrix(J, W, K=100.0, mu=0.02, eta=0.02):
                      [eta * J, np.eye(TWIST_DIM)]])
 
 
-def primal_dual_velocity_fixed_step(J, W, rdot_d, K=100.0, mu=0.02, eta=0.02,
-                                    iterations=100, v0=None, u0=None):
+def primal_dual_velocity_fixed_step(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLike,
+                                    K: float = 100.0, mu: float = 0.02, eta: float = 0.02,
+                                    iterations: int = 100, v0: npt.ArrayLike | None = None,
+                                    u0: npt.ArrayLike | None = None
+                                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The thesis's discrete learning rules of §6.5, taken literally.
 
         qdot_{k+1} = qdot_k - mu [W qdot_k + J^T lam_k + K J^T (J qdot_k - rdot_d)]
@@ -266,7 +282,7 @@ def primal_dual_velocity_fixed_step(J, W, rdot_d, K=100.0, mu=0.02, eta=0.02,
     return qdot, lam, np.array(norms)
 
 
-def dls_velocity(J, twist, damping):
+def dls_velocity(J: npt.ArrayLike, twist: npt.ArrayLike, damping: float) -> FloatArray:
     """Damped least squares: qdot = J^T (J J^T + damping^2 I)^-1 twist.
 
     Args:
@@ -283,7 +299,7 @@ def dls_velocity(J, twist, damping):
     return J.T @ np.linalg.solve(gram, twist)
 
 
-def pose_error(T_current, T_desired):
+def pose_error(T_current: npt.ArrayLike, T_desired: npt.ArrayLike) -> FloatArray:
     """Pose error in base_link (A7.7): position and rotation-vector orientation error.
 
     Args:
@@ -311,7 +327,8 @@ def pose_error(T_current, T_desired):
 METHODS = ('ours', 'primal_dual', 'dls')
 
 
-def closed_form_velocity(J, W_inverse, twist, damping=0.0):
+def closed_form_velocity(J: FloatArray, W_inverse: FloatArray, twist: FloatArray,
+                         damping: float = 0.0) -> FloatArray:
     """Closed-form KKT point for a positive definite W, with optional damping.
 
         qdot = W^-1 J^T (J W^-1 J^T + damping^2 I)^-1 twist
@@ -336,7 +353,8 @@ def closed_form_velocity(J, W_inverse, twist, damping=0.0):
     return JWinv.T @ np.linalg.solve(gram, twist)
 
 
-def adaptive_damping(J, W_inverse, sigma_threshold, max_damping):
+def adaptive_damping(J: FloatArray, W_inverse: FloatArray, sigma_threshold: float,
+                     max_damping: float) -> tuple[float, float]:
     """Damping that is 0 while the smallest singular value of J W^-1/2 exceeds
     ``sigma_threshold`` and grows smoothly to ``max_damping`` at a singularity
     (Nakamura and Hanafusa's rule): lambda^2 = (1 - (sigma/threshold)^2) max_damping^2.
@@ -351,7 +369,7 @@ def adaptive_damping(J, W_inverse, sigma_threshold, max_damping):
     return float(max_damping * np.sqrt(1.0 - (sigma_min / sigma_threshold) ** 2)), sigma_min
 
 
-def _pad_to_twist(J, twist):
+def _pad_to_twist(J: FloatArray, twist: FloatArray) -> tuple[FloatArray, FloatArray]:
     """(6, n) and (6,) from an (m, n) task with m <= 6 (zero rows for the free ones)."""
     m, n = J.shape
     if m == TWIST_DIM:
@@ -384,8 +402,9 @@ class RateSolver:
         sigma_threshold: smallest singular value below which ``ours`` damps.
     """
 
-    def __init__(self, method, weights, K=100.0, damping=0.05, sigma_threshold=0.05,
-                 network_time=1e4):
+    def __init__(self, method: str, weights: npt.ArrayLike, K: float = 100.0,
+                 damping: float = 0.05, sigma_threshold: float = 0.05,
+                 network_time: float = 1e4) -> None:
         if method not in METHODS:
             raise InvalidInput(f'method must be one of {METHODS}, got {method!r}', 'method',
                                method)
@@ -397,16 +416,17 @@ class RateSolver:
         self.positive_definite = bool(np.all(weights > 0))
         self.K, self.damping, self.sigma_threshold = K, damping, sigma_threshold
         self.network_time = network_time
-        self._network_state = None  # warm start (v, u) of primal_dual
+        # warm start (v, u) of primal_dual
+        self._network_state: tuple[FloatArray, FloatArray] | None = None
 
-    def reset(self):
+    def reset(self) -> None:
         self._network_state = None
 
-    def solve(self, J, twist):
+    def solve(self, J: FloatArray, twist: FloatArray) -> tuple[FloatArray, dict[str, Any]]:
         """qdot (n,) [rad/s] and an info dict ('sigma_min', 'damping', and for
         primal_dual 'null_space_positive', 'min_null_eigenvalue', 'fallback_used',
         'converged', 'gain') for an (m, n) task J, m <= 6."""
-        info = {}
+        info: dict[str, Any] = {}  # diagnostics: floats, bools
         if self.method == 'dls':
             J6, twist6 = _pad_to_twist(J, twist)
             info['damping'] = self.damping
@@ -432,7 +452,8 @@ class RateSolver:
             return qdot, info
         return self._ours(J, twist, self.weights, info), info
 
-    def _ours(self, J, twist, weights, info):
+    def _ours(self, J: FloatArray, twist: FloatArray, weights: FloatArray,
+              info: dict[str, Any]) -> FloatArray:
         if np.all(weights > 0):
             W_inverse = np.diag(1.0 / weights)
             damping, sigma_min = adaptive_damping(J, W_inverse, self.sigma_threshold,
@@ -447,8 +468,10 @@ class RateSolver:
             return self._ours(J, twist, np.abs(weights), info)
         return kkt_velocity(J6, W, twist6)[0]
 
-    def solve_limited(self, J, twist, q, lower, upper, velocity_limits, limit_horizon=0.1,
-                      margin=0.02):
+    def solve_limited(self, J: FloatArray, twist: FloatArray, q: FloatArray, lower: FloatArray,
+                      upper: FloatArray, velocity_limits: FloatArray,
+                      limit_horizon: float = 0.1, margin: float = 0.02
+                      ) -> tuple[FloatArray, dict[str, Any]]:
         """``solve`` within position limits (``ours``: clamp and re-solve; the others:
         uniform scaling) and velocity limits (uniform scaling).
 

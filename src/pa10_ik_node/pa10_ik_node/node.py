@@ -166,7 +166,7 @@ class Pa10IkNode(Node):
         self.force = 0.0  # [N]
         self.joint_state_time = self.pressure_time = None  # monotonic receive times [s]
         self.waypoints = None  # (N, 4, 4) base_link
-        self.step_times = deque(maxlen=500)  # [s]
+        self.step_times: deque[float] = deque(maxlen=500)  # [s]
         self.last_phase = self.controller.phase
         self.last_info = {}
         self.null_space_failures = 0
@@ -316,17 +316,18 @@ class Pa10IkNode(Node):
     def _start(self):
         """(success, message)."""
         missing = self._missing_inputs()
-        if missing:
+        waypoints = self.waypoints
+        if missing or waypoints is None:  # None: WAYPOINTS_TOPIC is among the missing
             return False, f'cannot start: no recent {", ".join(missing)}'
         try:
-            self.controller.start(self.waypoints)
+            self.controller.start(waypoints)
         except Unreachable as error:
             self.controller.fail(f'unreachable waypoints: {error}')
             self._hold()
             return False, self.controller.reason
         except VgmError as error:
             return False, f'cannot start: {error}'
-        return True, f'started on {len(self.waypoints)} waypoints'
+        return True, f'started on {len(waypoints)} waypoints'
 
     @guarded('start_tracking')
     def _on_start(self, request, response):

@@ -5,16 +5,20 @@ surface, x along the tangent, z the approach direction into the surface. A path 
 ends meet (closer than ``closed_tolerance``) is a loop and is followed once around, back
 to its start.
 """
+from __future__ import annotations
+
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 
 # A step between waypoints closer than ~18 deg to their approach axis does not lie on a
 # surface (INTERFACES.md: x along the tangent, z into the surface): no tool frame.
 MAX_APPROACH_COSINE = 0.95
 
 
-def validate_waypoints(waypoints, min_spacing=1e-6):
+def validate_waypoints(waypoints: npt.ArrayLike, min_spacing: float = 1e-6) -> FloatArray:
     """The waypoints as a finite (N, 4, 4) float array with orthonormal rotations.
 
     Consecutive duplicates (closer than ``min_spacing`` [m]) are dropped.
@@ -62,7 +66,7 @@ class WaypointPath:
         length [m], closed (bool).
     """
 
-    def __init__(self, waypoints, closed_tolerance=0.01):
+    def __init__(self, waypoints: npt.ArrayLike, closed_tolerance: float = 0.01) -> None:
         T = validate_waypoints(waypoints)
         points, approach = T[:, :3, 3], T[:, :3, 2]
         gap = np.linalg.norm(points[-1] - points[0])
@@ -78,7 +82,7 @@ class WaypointPath:
         self.length = float(self.arc[-1])
         self.T = T
 
-    def sample(self, s):
+    def sample(self, s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(point (3,), approach (3,) unit, tangent (3,) unit) at arc length ``s`` [m]
         (clamped to the path)."""
         s = float(np.clip(s, 0.0, self.length))
@@ -93,7 +97,8 @@ class WaypointPath:
             [1.0, 0.0, 0.0])
         return point, approach, tangent
 
-    def nearest(self, point, around=None, window=None):
+    def nearest(self, point: FloatArray, around: float | None = None,
+                window: float | None = None) -> tuple[float, float]:
         """Arc length [m] of the path point nearest to ``point`` (3,) and its distance [m].
 
         With ``around`` and ``window`` [m], only segments within ``window`` of arc length
@@ -112,7 +117,7 @@ class WaypointPath:
         i = int(np.argmin(distances))
         return float(s[i]), float(distances[i])
 
-    def lateral_distance(self, point, s):
+    def lateral_distance(self, point: FloatArray, s: float) -> float:
         """Distance [m] from ``point`` to the path at ``s`` across the approach axis:
         the in-surface tracking error, leaving out the indentation along the approach."""
         p, z, _ = self.sample(s)

@@ -12,17 +12,22 @@ tangent-plane construction of §6.4; the depth along the approach axis from the 
 reference pose and its feed-forward twist into joint velocities through ``RateSolver``
 (pose feedback, so no drift accumulates).
 """
+from __future__ import annotations
+
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from pa10_ik_node.ik import pose_error
+from pa10_ik_node.ik import RateSolver, pose_error
 from pa10_ik_node.path import WaypointPath
 from vgm_common.errors import InvalidInput
-from vgm_common.robot_model import workspace_reach
+from vgm_common.geometry import FloatArray
+from vgm_common.robot_model import RobotModel, workspace_reach
 
 
-def _unit(v, key):
+def _unit(v: npt.ArrayLike, key: str) -> FloatArray:
     v = np.asarray(v, dtype=float)
     norm = np.linalg.norm(v)
     if v.shape != (3,) or not np.isfinite(norm) or norm < 1e-12:
@@ -30,14 +35,15 @@ def _unit(v, key):
     return v / norm
 
 
-def perpendicular(v):
+def perpendicular(v: npt.ArrayLike) -> FloatArray:
     """A unit vector (3,) orthogonal to the non-zero (3,) ``v``."""
     v = _unit(v, 'v')
     other = np.eye(3)[int(np.argmin(np.abs(v)))]
     return _unit(np.cross(v, other), 'v x e')
 
 
-def next_target_on_tangent_plane(P, normal, Q):
+def next_target_on_tangent_plane(P: npt.ArrayLike, normal: npt.ArrayLike, Q: npt.ArrayLike
+                                 ) -> tuple[FloatArray, FloatArray]:
     """Next target Q' on the tangent plane at P and the tool frame E there (§6.4 steps 1-4).
 
     Simplification of step 3: Q is projected orthogonally onto the plane
@@ -66,15 +72,16 @@ def next_target_on_tangent_plane(P, normal, Q):
     return Q_plane, T
 
 
-def force_tilt_angle(measured_force, desired_force):
+def force_tilt_angle(measured_force: float, desired_force: float) -> float:
     """The thesis's tilt phi = pi (lambda_n - lambda_d) / (2 lambda_d) [rad] (7.3.15, A7.9)."""
     if not desired_force > 0:
         raise InvalidInput('desired_force must be > 0', 'desired_force', desired_force)
     return np.pi * (measured_force - desired_force) / (2.0 * desired_force)
 
 
-def approach_correction(integral, measured_force, desired_force, stiffness, dt, gain=5.0,
-                        max_depth=0.01):
+def approach_correction(integral: float, measured_force: float, desired_force: float,
+                        stiffness: float, dt: float, gain: float = 5.0, max_depth: float = 0.01
+                        ) -> tuple[float, float]:
     """Commanded depth [m] beyond the surface along the approach axis (PI force law).
 
     depth = desired_force / stiffness (feed-forward from the stiffness estimate) + integral,
@@ -95,7 +102,8 @@ def approach_correction(integral, measured_force, desired_force, stiffness, dt, 
     return depth, integral
 
 
-def tilted_motion(measured_force, desired_force, advance):
+def tilted_motion(measured_force: float, desired_force: float, advance: float
+                  ) -> tuple[float, float, float]:
     """The thesis's force rule (7.3.15, §6.4 step 7) applied to one step of the motion PQ'.
 
     At each new contact point the thesis rotates the tool frame E about its y axis by
@@ -124,6 +132,9 @@ RESPONSE_WINDOW = 1.0  # [s] forgetting time of the response estimate
 MAX_INTEGRAL_SPEEDS = 1.0  # see TrackingConfig.pose_integral_gain
 PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
 ACTIVE_PHASES = ('approach', 'contact', 'tracking')
+
+# (T_desired (4, 4), feed-forward twist (6,) [m/s, rad/s], free_move) of a control step
+_Reference = tuple[FloatArray, FloatArray, bool]
 
 
 class Unreachable(InvalidInput):
@@ -171,10 +182,10 @@ class TrackingConfig:
 class TrackingStats:
     """Lateral position errors [m] and force errors [N] over the tracking phase."""
 
-    position_errors: list = field(default_factory=list)
-    force_errors: list = field(default_factory=list)
+    position_errors: list[float] = field(default_factory=list)
+    force_errors: list[float] = field(default_factory=list)
 
-    def summary(self):
+    def summary(self) -> tuple[float, float]:
         """(rms position error [m], largest |force error| [N]); NaN when empty."""
         if not self.position_errors:
             return float('nan'), float('nan')
@@ -182,7 +193,8 @@ class TrackingStats:
                 float(np.max(np.abs(self.force_errors))))
 
 
-def spin_free_task(J, twist, T_desired):
+def spin_free_task(J: FloatArray, twist: FloatArray, T_desired: FloatArray
+                   ) -> tuple[FloatArray, FloatArray]:
     """The 5 constraints that leave the spin about the desired approach axis free.
 
     The angular rows are expressed in the desired frame's (x, y, z) and the z row is
@@ -193,7 +205,7 @@ def spin_free_task(J, twist, T_desired):
     return J5, np.concatenate([twist[:3], R[:, :2].T @ twist[3:]])
 
 
-def tilt_error(R_current, approach_desired):
+def tilt_error(R_current: FloatArray, approach_desired: FloatArray) -> FloatArray:
     """Rotation vector (3,) [rad] turning the tool's z axis onto ``approach_desired``."""
     z = R_current[:, 2]
     axis = np.cross(z, approach_desired)
@@ -218,7 +230,8 @@ class TrackingController:
         progress: 0..1 along the path (tracking); stats: ``TrackingStats``.
     """
 
-    def __init__(self, robot, solver, config=None, max_joint_velocity=None):
+    def __init__(self, robot: RobotModel, solver: RateSolver, config: TrackingConfig | None = None,
+                 max_joint_velocity: float | None = None) -> None:
         self.robot, self.solver = robot, solver
         self.config = TrackingConfig() if config is None else config
         self.configure()  # validates force_law
@@ -227,10 +240,11 @@ class TrackingController:
             limits = np.minimum(limits, max_joint_velocity)
         self.velocity_limits = limits
         self.shoulder, self.reach = workspace_reach(robot)
-        self.phase, self.reason, self.path = 'idle', '', None
+        self.phase, self.reason = 'idle', ''
+        self.path: WaypointPath | None = None
         self._reset_state()
 
-    def _reset_state(self):
+    def _reset_state(self) -> None:
         self.stage = ''  # approach: 'free' or 'descend'; done: lifting
         self.integral, self.time_in_phase, self.settled_time = 0.0, 0.0, 0.0
         self.depth = 0.0  # [m] commanded indentation along the approach axis
@@ -238,17 +252,19 @@ class TrackingController:
         self.error_time = 0.0
         self.best_distance, self.stall_time = np.inf, 0.0
         self.progress, self.stats = 0.0, TrackingStats()
-        self.T_hold, self.T_end = None, None
+        self.T_hold: FloatArray | None = None
+        self.T_end: FloatArray | None = None
         self.reference_depth = 0.0  # [m] descent reference along the approach axis
         self.lift_reference, self.wait_time, self.end_time = 0.0, 0.0, 0.0
         self.pose_integral = np.zeros(3)  # [m s] see TrackingConfig.pose_integral_gain
         self.reference_moving = False
         self.response = 1.0  # fraction of the commanded motion the arm makes (estimated)
         self.response_sums = np.zeros(2)  # [m] (made, commanded), see _update_response
-        self.last_tip = self.last_tip_velocity = None
+        self.last_tip: FloatArray | None = None
+        self.last_tip_velocity: FloatArray | None = None
         self.solver.reset()
 
-    def configure(self, **changes):
+    def configure(self, **changes: Any) -> None:
         """Change settings (between or during runs)."""
         law = changes.get('force_law', self.config.force_law)
         if law not in FORCE_LAWS:
@@ -257,7 +273,7 @@ class TrackingController:
 
     # --- commands --------------------------------------------------------------------
 
-    def check_reachable(self, path):
+    def check_reachable(self, path: WaypointPath) -> None:
         """Raises ``Unreachable`` if a waypoint or the pre-contact pose is out of reach."""
         c = self.config
         points = np.vstack([path.points, path.points[:1] - c.standoff * path.approach[:1]])
@@ -269,7 +285,7 @@ class TrackingController:
                 f'{distances[worst]:.3f} m from the shoulder, beyond the reach '
                 f'{self.reach:.3f} m - {c.reach_margin} m margin', 'waypoints', points[worst])
 
-    def start(self, waypoints):
+    def start(self, waypoints: npt.ArrayLike) -> None:
         """Begin the task on ``waypoints`` (N, 4, 4). Raises ``InvalidInput`` /
         ``Unreachable`` and stays as it was if they cannot be followed."""
         path = WaypointPath(waypoints, self.config.closed_tolerance)
@@ -278,7 +294,7 @@ class TrackingController:
         self._reset_state()
         self._enter('approach', 'free')
 
-    def update_path(self, waypoints, tip):
+    def update_path(self, waypoints: npt.ArrayLike, tip: FloatArray) -> None:
         """Take over a new path while running: continue from its point nearest to the tip
         (``tip`` (3,)), keeping the fraction of a loop already travelled."""
         path = WaypointPath(waypoints, self.config.closed_tolerance)
@@ -296,7 +312,7 @@ class TrackingController:
         self.s_start = s_near - self.travelled if path.closed else 0.0
         self.s_ref = s_near if not path.closed else self.s_start + self.travelled
 
-    def stop(self, reason='stop requested'):
+    def stop(self, reason: str = 'stop requested') -> None:
         """Hold still. A failed task becomes stopped (the stop acknowledges the failure;
         its reason is kept in the new one); a stopped one stays as it is."""
         if self.phase == 'stopped':
@@ -305,21 +321,22 @@ class TrackingController:
             reason = f'{reason} (after: {self.reason})'
         self.phase, self.reason = 'stopped', reason
 
-    def fail(self, reason):
+    def fail(self, reason: str) -> None:
         self.phase, self.reason = 'failed', reason
 
-    def _enter(self, phase, stage=''):
+    def _enter(self, phase: str, stage: str = '') -> None:
         self.phase, self.stage, self.time_in_phase = phase, stage, 0.0
         self.best_distance, self.stall_time, self.error_time = np.inf, 0.0, 0.0
         self.pose_integral = np.zeros(3)
 
     # --- the control step ------------------------------------------------------------
 
-    def _sample(self, s):
+    def _sample(self, s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         path = self.path
+        assert path is not None  # set by start() before any phase that samples it
         return path.sample(s % path.length if path.closed else s)
 
-    def _frame(self, s, position):
+    def _frame(self, s: float, position: FloatArray) -> FloatArray:
         """The tool frame E at arc length ``s`` (§6.4 steps 1-4): z = approach, x towards
         the next marker Q projected on the tangent plane; origin ``position``."""
         P, z, tangent = self._sample(s)
@@ -337,7 +354,8 @@ class TrackingController:
         T[:3, 3] = position
         return T
 
-    def step(self, q, measured_force, dt):
+    def step(self, q: npt.ArrayLike, measured_force: float, dt: float
+             ) -> tuple[FloatArray, dict[str, Any]]:
         """One control step at joints ``q`` (n,) [rad] with the measured force [N] over
         ``dt`` [s]. Returns (qdot (n,) [rad/s], info dict)."""
         q = self.robot.check_q(q)
@@ -345,10 +363,10 @@ class TrackingController:
         c = self.config
         self.time_in_phase += dt
         self.last_dt = dt
-        info = {'phase': self.phase, 'phi': force_tilt_angle(measured_force,
-                                                             c.desired_force),
-                'force_error': measured_force - c.desired_force, 'T': T,
-                'position_error': float('nan')}
+        info: dict[str, Any] = {  # str, floats and (4, 4) poses, the solver's info
+            'phase': self.phase, 'phi': force_tilt_angle(measured_force, c.desired_force),
+            'force_error': measured_force - c.desired_force, 'T': T,
+            'position_error': float('nan')}
         if self.phase not in ACTIVE_PHASES and self.phase != 'done':
             return np.zeros(self.robot.n_joints), info
         target = self._reference(T, measured_force, dt, info)
@@ -366,7 +384,7 @@ class TrackingController:
         info['response'] = self.response
         return qdot, info
 
-    def _update_response(self, tip, dt):
+    def _update_response(self, tip: FloatArray, dt: float) -> None:
         """Estimate how much of the commanded tip motion the arm makes (1: all of it; an
         arm slower than commanded less): the measured tip's displacement along the
         velocity commanded a step before, over the commanded distance, both summed with
@@ -386,7 +404,7 @@ class TrackingController:
         if commanded > 0.3 * c.speed * RESPONSE_WINDOW / 2:  # enough motion to judge
             self.response = float(np.clip(made / commanded, MIN_RESPONSE, 1.0))
 
-    def _compensated(self, qdot):
+    def _compensated(self, qdot: FloatArray) -> FloatArray:
         """qdot scaled up by 1 / response, within the velocity limits."""
         if self.response >= 1.0:
             return qdot
@@ -394,7 +412,8 @@ class TrackingController:
         over = np.max(np.abs(scaled) / self.velocity_limits)
         return scaled / over if over > 1.0 else scaled
 
-    def _reference(self, T, force, dt, info):
+    def _reference(self, T: FloatArray, force: float, dt: float, info: dict[str, Any]
+                   ) -> _Reference | None:
         """(T_desired, feed-forward twist (6,), free_move) of the current phase; None
         if the phase machine stopped."""
         if self.phase == 'approach':
@@ -405,7 +424,8 @@ class TrackingController:
             return self._tracking_reference(T, force, dt, info)
         return self._lift(T, dt)  # done: lift off along the approach axis and hold
 
-    def _approach_reference(self, T, force, dt, info):
+    def _approach_reference(self, T: FloatArray, force: float, dt: float,
+                            info: dict[str, Any]) -> _Reference | None:
         """Approach: a free-space move to the pre-contact pose ``standoff`` above the first
         waypoint, then the descent (``_descend``)."""
         c = self.config
@@ -413,8 +433,8 @@ class TrackingController:
         P0, z0, _ = self._sample(0.0)
         if self.stage == 'free':
             T_d = self._frame(0.0, P0 - c.standoff * z0)
-            distance = np.linalg.norm(T_d[:3, 3] - tip)
-            angle = np.linalg.norm(tilt_error(T[:3, :3], z0))
+            distance = float(np.linalg.norm(T_d[:3, 3] - tip))
+            angle = float(np.linalg.norm(tilt_error(T[:3, :3], z0)))
             if distance < 0.001 and angle < 0.01:
                 self.stage = 'descend'
                 self.reference_depth = float(np.dot(tip - P0, z0))
@@ -427,7 +447,7 @@ class TrackingController:
                 return T_d, np.zeros(6), True
         return self._descend(T, P0, z0, force, dt, info)
 
-    def _contact_reference(self, T, force, dt):
+    def _contact_reference(self, T: FloatArray, force: float, dt: float) -> _Reference | None:
         """Contact: hold the first waypoint at the force law's depth until the force has
         settled in its band (or ``contact_timeout``), then start tracking."""
         c = self.config
@@ -444,11 +464,13 @@ class TrackingController:
         T_d = self._frame(0.0, P0 + depth * z0)
         return self._checked(T, T_d, np.zeros(6), dt)
 
-    def _tracking_reference(self, T, force, dt, info):
+    def _tracking_reference(self, T: FloatArray, force: float, dt: float,
+                            info: dict[str, Any]) -> _Reference | None:
         """Tracking: the reference runs along the path at the ramped ``speed`` (waiting
         for a lagging tip) at the force law's depth; done once the path is travelled."""
         c = self.config
         path = self.path
+        assert path is not None  # tracking runs on the started path
         tip = T[:3, 3]
         if c.force_law != 'tilt':
             self.depth, self.integral = approach_correction(
@@ -477,7 +499,8 @@ class TrackingController:
         self._finish_when_travelled(T_d, tip, dt)
         return self._checked(T, T_d, feed_forward, dt)
 
-    def _advance_reference(self, tip, force, speed, remaining, dt):
+    def _advance_reference(self, tip: FloatArray, force: float, speed: float, remaining: float,
+                           dt: float) -> tuple[tuple[float, float], bool] | None:
         """Move the reference ``s_ref`` on by ``speed`` [m/s] unless the tip lags it by
         ``governor_distance`` or more; under the tilt law the step is tilted into / out of
         the surface. Returns (direction of motion in E, advanced), or None after failing
@@ -485,7 +508,7 @@ class TrackingController:
         c = self.config
         tilt = c.force_law == 'tilt'
         P, z, _ = self._sample(self.s_ref)
-        lag = np.linalg.norm(P + self.depth * z - tip)
+        lag = float(np.linalg.norm(P + self.depth * z - tip))
         # Direction of motion in E: (along x_E, along z_E) per unit path step.
         direction = (1.0, 0.0)
         advanced = lag < c.governor_distance
@@ -507,17 +530,19 @@ class TrackingController:
         return direction, advanced
 
     @staticmethod
-    def _along_path(tangent, z, T_d):
+    def _along_path(tangent: FloatArray, z: FloatArray, T_d: FloatArray) -> FloatArray:
         """The unit path tangent across the approach axis ``z``; x_E of ``T_d`` where the
         tangent is along z."""
         along = tangent - z * np.dot(z, tangent)
         along_norm = np.linalg.norm(along)
         return along / along_norm if along_norm > 1e-9 else T_d[:3, 0]
 
-    def _record_tracking_errors(self, tip, force, info):
+    def _record_tracking_errors(self, tip: FloatArray, force: float, info: dict[str, Any]
+                                ) -> None:
         """The tip's lateral distance [m] to the path near the reference (into ``info``
         and the stats) and the force error [N]."""
         path = self.path
+        assert path is not None  # tracking runs on the started path
         s_near, _ = path.nearest(tip, self.s_ref % path.length if path.closed
                                  else self.s_ref, window=0.05)
         lateral = path.lateral_distance(tip, s_near)
@@ -525,9 +550,10 @@ class TrackingController:
         self.stats.position_errors.append(lateral)
         self.stats.force_errors.append(force - self.config.desired_force)
 
-    def _finish_when_travelled(self, T_d, tip, dt):
+    def _finish_when_travelled(self, T_d: FloatArray, tip: FloatArray, dt: float) -> None:
         """Once the path is travelled: done (lift-off) when the tip is at the end pose, or
         a second after the end at the latest."""
+        assert self.path is not None  # tracking runs on the started path
         if self.travelled >= self.path.length:
             self.end_time += dt
             if np.linalg.norm(T_d[:3, 3] - tip) < 0.0005 or self.end_time > 1.0:
@@ -535,7 +561,8 @@ class TrackingController:
                 self.lift_reference = 0.0
             self.T_end = T_d.copy()
 
-    def _descend(self, T, P0, z0, force, dt, info):
+    def _descend(self, T: FloatArray, P0: FloatArray, z0: FloatArray, force: float, dt: float,
+                 info: dict[str, Any]) -> _Reference | None:
         """Descent along the first approach axis until the measured force reaches the
         desired one, judged on the measured tip: the reference runs at most
         ``governor_distance`` ahead of it (an arm slower than commanded is waited for),
@@ -568,11 +595,12 @@ class TrackingController:
         feed_forward = np.concatenate([rate * z0, np.zeros(3)])
         return self._checked(T, T_d, feed_forward, dt)
 
-    def _lift(self, T, dt):
+    def _lift(self, T: FloatArray, dt: float) -> _Reference | None:
         """Lift-off along the last approach axis by ``lift_height``, on the measured tip:
         the reference leads it by at most ``governor_distance``; stage 'lifted' once the
         tip is there, a failure if it stalls."""
         c = self.config
+        assert self.T_end is not None  # set by _finish_when_travelled on entering 'done'
         T_d = self.T_end.copy()
         z = T_d[:3, 2]
         lifted = float(np.dot(self.T_end[:3, 3] - T[:3, 3], z))  # [m] measured
@@ -594,7 +622,7 @@ class TrackingController:
             feed_forward[:3] = -(self.lift_reference - previous) / dt * z
         return T_d, feed_forward, False
 
-    def _progressing(self, distance, dt):
+    def _progressing(self, distance: float, dt: float) -> bool:
         """False once ``distance`` has not dropped by 1 mm for 2 error_timeouts."""
         if distance < self.best_distance - 0.001:
             self.best_distance, self.stall_time = distance, 0.0
@@ -602,7 +630,8 @@ class TrackingController:
             self.stall_time += dt
         return self.stall_time < 2 * self.config.error_timeout
 
-    def _checked(self, T, T_d, feed_forward, dt):
+    def _checked(self, T: FloatArray, T_d: FloatArray, feed_forward: FloatArray, dt: float
+                 ) -> _Reference | None:
         """The reference, unless the tip has been farther than max_position_error from it
         for error_timeout (the arm cannot follow: out of reach, at its limits)."""
         error = np.linalg.norm(T_d[:3, 3] - T[:3, 3])
@@ -615,7 +644,8 @@ class TrackingController:
             return None
         return T_d, feed_forward, False
 
-    def _solve(self, q, T, T_d, feed_forward, free_move):
+    def _solve(self, q: FloatArray, T: FloatArray, T_d: FloatArray, feed_forward: FloatArray,
+               free_move: bool) -> tuple[FloatArray, dict[str, Any]]:
         c = self.config
         error = pose_error(T, T_d)
         if not c.track_spin:

@@ -14,9 +14,19 @@ than commanded: ``speed_scale`` < 1 scales the commanded velocity (velocity mode
 makes the position follow its set point with a first-order lag (position mode: each step
 closes only that fraction of the gap).
 """
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Self
+
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
+
+if TYPE_CHECKING:  # pinocchio, imported only for the type
+    from vgm_common.robot_model import RobotModel
 
 ARM_MODES = ('position', 'velocity')
 # A commanded velocity beyond this multiple of a joint's limit is a broken controller's,
@@ -41,8 +51,9 @@ class SimulatedArm:
             mode or a speed_scale outside (0, 1].
     """
 
-    def __init__(self, joint_names, lower_limits, upper_limits, velocity_limits, q0,
-                 mode='position', speed_scale=1.0):
+    def __init__(self, joint_names: Iterable[str], lower_limits: npt.ArrayLike,
+                 upper_limits: npt.ArrayLike, velocity_limits: npt.ArrayLike,
+                 q0: npt.ArrayLike, mode: str = 'position', speed_scale: float = 1.0) -> None:
         if mode not in ARM_MODES:
             raise InvalidInput(f'mode must be one of {ARM_MODES}, got {mode!r}', 'mode', mode)
         if not (isinstance(speed_scale, (int, float)) and 0.0 < speed_scale <= 1.0):
@@ -67,27 +78,29 @@ class SimulatedArm:
         self.hold()
 
     @classmethod
-    def from_robot_model(cls, robot, q0, mode='position', speed_scale=1.0):
+    def from_robot_model(cls, robot: RobotModel, q0: npt.ArrayLike, mode: str = 'position',
+                         speed_scale: float = 1.0) -> Self:
         """An arm with the joints and limits of a ``vgm_common.robot_model.RobotModel``."""
         return cls(robot.joint_names, robot.lower_limits, robot.upper_limits,
                    robot.velocity_limits, q0, mode, speed_scale)
 
     @property
-    def q(self):
+    def q(self) -> FloatArray:
         """(n,) current positions [rad] (a copy)."""
         return self._q.copy()
 
     @property
-    def qdot(self):
+    def qdot(self) -> FloatArray:
         """(n,) velocities [rad/s] over the last step (a copy)."""
         return self._qdot.copy()
 
-    def hold(self):
+    def hold(self) -> None:
         """Replace the command by holding the current position."""
         self._set_command(np.zeros(1), self._q[np.newaxis], None, start_time=-np.inf)
 
-    def set_trajectory(self, joint_names, times_from_start, positions, velocities=None,
-                       start_time=0.0):
+    def set_trajectory(self, joint_names: str | Iterable[str], times_from_start: npt.ArrayLike,
+                       positions: npt.ArrayLike, velocities: npt.ArrayLike | None = None,
+                       start_time: float = 0.0) -> None:
         """Replace the command by a trajectory.
 
         Args:
@@ -135,13 +148,13 @@ class SimulatedArm:
                     f'velocities up to {np.abs(velocities).max():.3g} rad/s: beyond '
                     f'{IMPLAUSIBLE_SPEED:g} times the joint limits, not a command to follow',
                     'velocities', velocities)
-        start_time = _array(start_time, 'start_time')
-        if start_time.shape != ():
-            raise InvalidInput(f'start_time must be a number, got {start_time}',
-                               'start_time', start_time)
-        self._set_command(times, positions[:, order], velocities, start_time)
+        start = _array(start_time, 'start_time')
+        if start.shape != ():
+            raise InvalidInput(f'start_time must be a number, got {start}',
+                               'start_time', start)
+        self._set_command(times, positions[:, order], velocities, start)
 
-    def step(self, t, dt):
+    def step(self, t: float, dt: float) -> tuple[FloatArray, FloatArray]:
         """Advance the arm by ``dt`` [s] toward the set point at time ``t`` [s].
 
         Each joint moves at most ``velocity_limit * dt`` and stops at its position limits.
@@ -162,19 +175,21 @@ class SimulatedArm:
         self._q = q_new
         return self.q, self.qdot
 
-    def follow_velocity(self, joint_names, qdot, t, period, horizon=0.05, substeps=2):
+    def follow_velocity(self, joint_names: str | Iterable[str], qdot: npt.ArrayLike, t: float,
+                        period: float, horizon: float = 0.05, substeps: int = 2) -> float:
         """One control period of a velocity controller in an offline closed loop (tests,
         bench): the command pa10_ik_node sends (q + qdot * horizon at ``horizon`` [s] with
         velocity qdot, from time ``t``), followed in ``substeps`` steps as sensor_sim's
         faster loop does. Returns the time after the period [s]."""
-        self.set_trajectory(joint_names, [horizon], [self._q + horizon * np.asarray(qdot)],
-                            [qdot], start_time=t)
+        velocity = np.asarray(qdot)
+        self.set_trajectory(joint_names, [horizon], [self._q + horizon * velocity],
+                            [velocity], start_time=t)
         for _ in range(substeps):
             t += period / substeps
             self.step(t, period / substeps)
         return t
 
-    def commanded_velocity(self, t):
+    def commanded_velocity(self, t: float) -> FloatArray:
         """(n,) velocity command [rad/s] at time ``t`` [s] (velocity mode): the velocity of
         the point the trajectory is heading for (its positions' slope where it has no
         velocities), zero before the start and after the last point."""
@@ -187,7 +202,7 @@ class SimulatedArm:
             return velocities[i + 1].copy()
         return (positions[i + 1] - positions[i]) / (times[i + 1] - times[i])
 
-    def desired(self, t):
+    def desired(self, t: float) -> FloatArray:
         """(n,) set point [rad] of the current command at time ``t`` [s]."""
         times, positions, velocities = self._times, self._positions, self._velocities
         tau = t - self._start_time
@@ -208,7 +223,8 @@ class SimulatedArm:
         return (h00 * positions[i] + h10 * h * velocities[i]
                 + h01 * positions[i + 1] + h11 * h * velocities[i + 1])
 
-    def _set_command(self, times, positions, velocities, start_time):
+    def _set_command(self, times: FloatArray, positions: FloatArray,
+                     velocities: FloatArray | None, start_time: float | FloatArray) -> None:
         if times[0] > 0:
             # As joint_trajectory_controller does: start from where the arm is.
             times = np.concatenate([[0.0], times])
@@ -219,7 +235,7 @@ class SimulatedArm:
         self._start_time = float(start_time)
         self._q_at_command = self._q.copy()  # held until start_time
 
-    def _column_order(self, joint_names):
+    def _column_order(self, joint_names: str | Iterable[str]) -> npt.NDArray[np.intp]:
         """Indices that put columns given in ``joint_names`` order into the arm's order."""
         names = [joint_names] if isinstance(joint_names, str) else list(joint_names)
         unknown = sorted(set(names) - set(self.joint_names))
@@ -234,7 +250,7 @@ class SimulatedArm:
         return np.array([names.index(name) for name in self.joint_names])
 
 
-def _array(value, key):
+def _array(value: npt.ArrayLike, key: str) -> FloatArray:
     """``value`` as a new finite float array; raises ``InvalidInput`` otherwise."""
     try:
         array = np.array(value, dtype=float)
@@ -245,13 +261,13 @@ def _array(value, key):
     return array
 
 
-def _vector(value, n, key):
+def _vector(value: npt.ArrayLike, n: int, key: str) -> FloatArray:
     array = _array(value, key)
     if array.shape != (n,):
         raise InvalidInput(f'{key} must have shape ({n},), got {array.shape}', key, value)
     return array
 
 
-def _read_only(array):
+def _read_only(array: FloatArray) -> FloatArray:
     array.flags.writeable = False
     return array

@@ -9,28 +9,34 @@ The print: (rows + 1) x (cols + 1) squares, the square diagonally outside corner
 (negative x and y) black, alternating; a white margin one square wide all round. The
 chart is a finite plate exactly as large as the print.
 """
+from __future__ import annotations
+
 import numpy as np
+import numpy.typing as npt
+
+from vgm_common.geometry import FloatArray
 
 BLACK_ALBEDO = 0.05
 WHITE_ALBEDO = 0.9
 MARGIN_SQUARES = 1  # white border around the squares [squares]
 
 
-def chart_corners_chart(rows, cols, spacing):
+def chart_corners_chart(rows: int, cols: int, spacing: float) -> FloatArray:
     """Inner corners (rows * cols, 3) in the chart frame [m], row-major: index r * cols + c
     is corner (r, c) at (c * spacing, r * spacing, 0)."""
     r, c = np.divmod(np.arange(rows * cols), cols)
     return np.column_stack([c * spacing, r * spacing, np.zeros(rows * cols)])
 
 
-def chart_plate_extent(rows, cols, spacing):
+def chart_plate_extent(rows: int, cols: int,
+                       spacing: float) -> tuple[tuple[float, float], tuple[float, float]]:
     """The plate ((x_min, x_max), (y_min, y_max)) in the chart frame [m]."""
     border = (1 + MARGIN_SQUARES) * spacing
     return ((-border, (cols - 1) * spacing + border),
             (-border, (rows - 1) * spacing + border))
 
 
-def chart_albedo(xy_chart, rows, cols, spacing):
+def chart_albedo(xy_chart: npt.ArrayLike, rows: int, cols: int, spacing: float) -> FloatArray:
     """Albedo of the printed face at (N, 2) chart-frame points [m]; NaN off the plate.
 
     Square (i, j) spans x in [i, i+1) * spacing and y in [j, j+1) * spacing, for

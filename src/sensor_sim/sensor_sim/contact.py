@@ -5,21 +5,30 @@ penetration is the tip's depth below the surface along the normal
 (``surfaces.signed_height_base``: first order in the distance, exact for planes). The
 pressure sensor's noise is added by the caller.
 """
+from __future__ import annotations
+
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
 from sensor_sim import surfaces
+from vgm_common.geometry import FloatArray
+from vgm_common.scenario import Surface
+
+if TYPE_CHECKING:  # pinocchio, imported only for the type
+    from vgm_common.robot_model import RobotModel
 
 
 @dataclass(frozen=True)
 class ContactState:
     force: float  # [N] >= 0, along the surface normal
     penetration: float  # [m] >= 0: depth of the tip below the surface, 0 when not in contact
-    normal_base: np.ndarray  # (3,) unit surface normal under the tip (+z side); NaN off the domain
+    normal_base: FloatArray  # (3,) unit surface normal under the tip (+z side); NaN off the domain
 
 
-def contact_force(tip_base, surface, stiffness):
+def contact_force(tip_base: npt.ArrayLike, surface: Surface, stiffness: float) -> ContactState:
     """Contact state of a tool tip.
 
     Args:
@@ -40,7 +49,9 @@ def contact_force(tip_base, surface, stiffness):
                         normal_base=normal)
 
 
-def joint_vector_pressing(robot, surface, q_start, q_end, penetration, iterations=60):
+def joint_vector_pressing(robot: RobotModel, surface: Surface, q_start: npt.ArrayLike,
+                          q_end: npt.ArrayLike, penetration: float,
+                          iterations: int = 60) -> FloatArray:
     """The joint vector on the straight joint-space line ``q_start -> q_end`` whose tool tip
     is ``penetration`` [m] below the surface (bisection; for demos and tests that need a
     known contact without an IK solver).
@@ -49,7 +60,7 @@ def joint_vector_pressing(robot, surface, q_start, q_end, penetration, iteration
     """
     q_start, q_end = np.asarray(q_start, dtype=float), np.asarray(q_end, dtype=float)
 
-    def depth(s):
+    def depth(s: float) -> float:
         tip = robot.forward_kinematics(q_start + s * (q_end - q_start))[:3, 3]
         return contact_force(tip, surface, 1.0).penetration
 

@@ -21,35 +21,50 @@ plumb_bob k1 in [-0.4, 0.1], a baseline of 0.04-0.3 m (at most half the viewing
 distance), toed in on the curve; the aux camera oblique, 20-45 deg off the left view and
 off the baseline's line. Every curve point is inside every image with a margin.
 """
+from __future__ import annotations
+
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from sensor_sim.curves import curve_polylines
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
-from vgm_common.geometry import look_at_rotation, make_transform
-from vgm_common.scenario import Curve, Noise, Surface, load_scenario, resolve_scenario_path
+from vgm_common.geometry import FloatArray, look_at_rotation, make_transform
+from vgm_common.scenario import (
+    Curve,
+    CurveParameter,
+    Noise,
+    Scenario,
+    Surface,
+    load_scenario,
+    resolve_scenario_path,
+)
 
 WIDTH, HEIGHT = 640, 480
 IMAGE_MARGIN_PX = 25  # every curve point at least this far inside every image
 SAMPLES = 4000  # points of the true curve (the renderer subdivides further)
 
+# A family: (rng, size [m]) -> (points (N, 3) [m] in a local frame, closed)
+Family = Callable[[np.random.Generator, float], tuple[FloatArray, bool]]
 
-def _ellipse(rng, size):
+
+def _ellipse(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     t = np.linspace(0, 2 * np.pi, SAMPLES, endpoint=False)
     a, b = 0.5 * size, 0.5 * size * rng.uniform(0.45, 0.95)
     return np.column_stack([a * np.cos(t), b * np.sin(t), 0 * t]), True
 
 
-def _parabola(rng, size):
+def _parabola(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     x = np.linspace(-0.5, 0.5, SAMPLES) * size
     k = rng.uniform(1.0, 3.0) / size
     return np.column_stack([x, k * x**2 - k * size**2 / 12, 0 * x]), False
 
 
-def _hyperbola(rng, size):
+def _hyperbola(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     t = np.linspace(-1.0, 1.0, SAMPLES) * rng.uniform(1.0, 1.6)
     a = 0.25 * size * rng.uniform(0.5, 1.0)
     b = 0.5 * size / np.sinh(np.abs(t).max())
@@ -57,7 +72,7 @@ def _hyperbola(rng, size):
     return points - points.mean(axis=0), False
 
 
-def _planar_cubic(rng, size):
+def _planar_cubic(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     x = np.linspace(-1, 1, SAMPLES)
     a, b = rng.uniform(0.6, 1.2) * rng.choice([-1, 1]), rng.uniform(-0.4, 0.4)
     y = a * x**3 + b * x**2 - 0.6 * a * x
@@ -65,7 +80,7 @@ def _planar_cubic(rng, size):
     return np.column_stack([0.5 * x, y, 0 * x]) * size, False
 
 
-def _helix(rng, size):
+def _helix(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     turns = rng.uniform(0.6, 1.0)  # more turns cross themselves in every view
     t = np.linspace(0, 2 * np.pi * turns, SAMPLES)
     r, pitch = 0.3 * size, size / (2 * np.pi * turns)
@@ -73,14 +88,14 @@ def _helix(rng, size):
     return np.column_stack([r * np.cos(t), r * np.sin(t), z - z.mean()]), False
 
 
-def _twisted_cubic(rng, size):
+def _twisted_cubic(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     t = np.linspace(-1, 1, SAMPLES)
     c = rng.uniform(0.6, 1.0, 3)
     points = np.column_stack([c[0] * t, c[1] * t**2, c[2] * t**3]) * 0.5 * size
     return points - points.mean(axis=0), False
 
 
-def _torus_knot(rng, size):
+def _torus_knot(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     t = np.linspace(0, 2 * np.pi, SAMPLES, endpoint=False)
     p, q = 2, 3
     R, r = 0.3 * size, 0.12 * size * rng.uniform(0.8, 1.2)
@@ -89,7 +104,7 @@ def _torus_knot(rng, size):
                             r * np.sin(q * t)]), True
 
 
-def _sphere_loop(rng, size):
+def _sphere_loop(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     t = np.linspace(0, 2 * np.pi, SAMPLES, endpoint=False)
     radius = 0.5 * size
     lobes = int(rng.integers(2, 4))
@@ -99,7 +114,7 @@ def _sphere_loop(rng, size):
     return points - points.mean(axis=0), True
 
 
-def _saddle_loop(rng, size):
+def _saddle_loop(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     t = np.linspace(0, 2 * np.pi, SAMPLES, endpoint=False)
     r = 0.45 * size
     k = rng.uniform(0.8, 1.6) / size
@@ -107,14 +122,14 @@ def _saddle_loop(rng, size):
     return np.column_stack([x, y, k * (x**2 - y**2)]), True
 
 
-def _inflection(rng, size):
+def _inflection(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     s = np.linspace(-1, 1, SAMPLES)
     sway = rng.uniform(0.1, 0.25)
     return np.column_stack([0.5 * s, 0.2 * np.sin(np.pi * s),
                             sway * (s**2 - 1 / 3)]) * size, False
 
 
-def _near_straight(rng, size):
+def _near_straight(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     """Straight, a bend of a quarter to half a turn, straight again."""
     bend = rng.uniform(0.5, 1.5)  # [rad]
     radius = 0.15 * size
@@ -132,7 +147,7 @@ def _near_straight(rng, size):
     return points - points.mean(axis=0), False
 
 
-def _self_approaching(rng, size):
+def _self_approaching(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     """A closed loop pinched at the middle: its two halves pass within ~a fifth of the
     size of each other."""
     t = np.linspace(0, 2 * np.pi, SAMPLES, endpoint=False)
@@ -143,7 +158,7 @@ def _self_approaching(rng, size):
     return points, True
 
 
-FAMILIES = {
+FAMILIES: dict[str, Family | None] = {
     'ellipse': _ellipse, 'parabola': _parabola, 'hyperbola': _hyperbola,
     'planar_cubic': _planar_cubic, 'helix': _helix, 'twisted_cubic': _twisted_cubic,
     'torus_knot': _torus_knot, 'sphere_loop': _sphere_loop, 'saddle_loop': _saddle_loop,
@@ -164,8 +179,8 @@ class CurveCase:
 
     family: str
     seed: int
-    scenario: object
-    truth_base: np.ndarray
+    scenario: Scenario
+    truth_base: FloatArray
     closed: bool
     degree: int
     line_width_px: float
@@ -174,7 +189,7 @@ class CurveCase:
     size_m: float
 
 
-def random_rotation(rng):
+def random_rotation(rng: np.random.Generator) -> FloatArray:
     """A uniformly random rotation matrix (3, 3)."""
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
@@ -184,7 +199,8 @@ def random_rotation(rng):
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
-def _camera(rng, position, target, up):
+def _camera(rng: np.random.Generator, position: npt.ArrayLike, target: npt.ArrayLike,
+            up: npt.ArrayLike) -> PinholeCamera:
     f = rng.uniform(400.0, 1400.0)
     K = np.array([[f, 0, WIDTH / 2 + rng.uniform(-8, 8)],
                   [0, f * rng.uniform(0.995, 1.005), HEIGHT / 2 + rng.uniform(-8, 8)],
@@ -195,7 +211,9 @@ def _camera(rng, position, target, up):
     return PinholeCamera(WIDTH, HEIGHT, K, D, T)
 
 
-def generate_rig(rng, points_base, closed, min_gap_px=None, fill=(0.45, 0.7), tries=300):
+def generate_rig(rng: np.random.Generator, points_base: FloatArray, closed: bool,
+                 min_gap_px: float | None = None, fill: tuple[float, float] = (0.45, 0.7),
+                 tries: int = 300) -> dict[str, PinholeCamera]:
     """Three cameras {'left', 'right', 'aux'} seeing ``points_base`` (N, 3) from above,
     each filling ``fill`` of its image's width with the curve, every point inside every
     image by IMAGE_MARGIN_PX, and, given ``min_gap_px``, the curve's image nowhere
@@ -244,14 +262,14 @@ def generate_rig(rng, points_base, closed, min_gap_px=None, fill=(0.45, 0.7), tr
     raise InvalidInput(f'no rig within {tries} draws sees the whole curve', key='rig')
 
 
-def _scaled_focal(K, f):
+def _scaled_focal(K: npt.ArrayLike, f: float) -> FloatArray:
     K = np.array(K, dtype=float)
     ratio = K[1, 1] / K[0, 0]
     K[0, 0], K[1, 1] = f, f * ratio
     return K
 
 
-def _inside(camera, points_base):
+def _inside(camera: PinholeCamera, points_base: FloatArray) -> bool:
     pixels, depth = camera.project(points_base)
     if not np.all(depth > 0) or not np.all(np.isfinite(pixels)):
         return False
@@ -260,7 +278,8 @@ def _inside(camera, points_base):
                        & (pixels[:, 1] > m) & (pixels[:, 1] < camera.height - m)))
 
 
-def _simple_in_image(camera, points_base, closed, min_gap_px):
+def _simple_in_image(camera: PinholeCamera, points_base: FloatArray, closed: bool,
+                     min_gap_px: float) -> bool:
     """True unless two parts of the projected curve more than 4 ``min_gap_px`` apart
     along it come within ``min_gap_px`` of each other."""
     pixels, _ = camera.project(points_base)
@@ -277,7 +296,9 @@ def _simple_in_image(camera, points_base, closed, min_gap_px):
     return not np.any(along > 4 * min_gap_px)
 
 
-def generate_case(family, seed, noise_grey=None, line_width_px=None, contrast_grey=None):
+def generate_case(family: str, seed: int, noise_grey: float | None = None,
+                  line_width_px: float | None = None,
+                  contrast_grey: float | None = None) -> CurveCase:
     """The draw ``seed`` of ``family`` (see FAMILIES): curve, rig, backdrop, line width
     (1.5-5 px), contrast (10-80 grey levels) and image noise (0-4 grey levels); give
     ``noise_grey`` / ``line_width_px`` / ``contrast_grey`` to fix one."""
@@ -292,27 +313,29 @@ def generate_case(family, seed, noise_grey=None, line_width_px=None, contrast_gr
     width = width if line_width_px is None else float(line_width_px)
     contrast = contrast if contrast_grey is None else float(contrast_grey)
     noise = noise if noise_grey is None else float(noise_grey)
-    if family == 'surface_loop':
-        params = {'center': rng.uniform(-0.08, 0.08, 2), 'radii':
-                  np.array([rng.uniform(0.2, 0.34), rng.uniform(0.12, 0.22)]),
-                  'angle': rng.uniform(-np.pi, np.pi)}
+    surface: Surface | None  # None: a backdrop, placed once the rig is drawn
+    draw = FAMILIES[family]
+    if draw is None:  # 'surface_loop'
+        params: dict[str, CurveParameter] = {
+            'center': rng.uniform(-0.08, 0.08, 2), 'radii':
+            np.array([rng.uniform(0.2, 0.34), rng.uniform(0.12, 0.22)]),
+            'angle': rng.uniform(-np.pi, np.pi)}
         curve = Curve('surface_loop', width, 1.0, SAMPLES, params)
         truth = curve_polylines(curve, base.surface)[0][:-1]
         surface, closed = base.surface, True
     else:
         size = rng.uniform(0.1, 0.25)  # [m] across
-        local, closed = FAMILIES[family](rng, size)
+        local, closed = draw(rng, size)
         centre = np.array([0.6, 0.0, 0.3]) + rng.uniform(-0.05, 0.05, 3)
         truth = centre + local @ random_rotation(rng).T
-        curve = None
+        curve = Curve('points', width, 1.0, len(truth),
+                      {'points': truth, 'closed': closed})
         surface = None
     # the gap the image curve keeps to itself: two line widths and the blur around them
     min_gap = None if family == 'torus_knot' else 2 * width + 4
     cameras = generate_rig(rng, truth, closed, min_gap)
     if surface is None:
         surface = _backdrop(truth, cameras['left'], rng)
-        curve = Curve('points', width, 1.0, len(truth),
-                      {'points': truth, 'closed': closed})
     albedo = surface.albedo
     # contrast as a fraction of the local brightness, from the grey levels asked for
     # (the surface reads about 255 albedo (0.6 + ambient) where the curve is)
@@ -327,7 +350,8 @@ def generate_case(family, seed, noise_grey=None, line_width_px=None, contrast_gr
                      width, contrast, noise, size_m)
 
 
-def _backdrop(points_base, camera, rng):
+def _backdrop(points_base: FloatArray, camera: PinholeCamera,
+              rng: np.random.Generator) -> Surface:
     """A plane behind the curve, facing the camera, wide enough for every view."""
     centre = points_base.mean(axis=0)
     toward_camera = camera.centre_base - centre

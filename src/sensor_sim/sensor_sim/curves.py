@@ -21,22 +21,33 @@ Kinds (see ``vgm_common.scenario._parse_curve`` for the keys):
   base_link; closed.
 - ``points``: the file's points in base_link, in order; closed if ``closed``.
 """
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import cast
+
 import numpy as np
 
 from sensor_sim import surfaces
 from vgm_common.errors import ScenarioError
+from vgm_common.geometry import FloatArray
+from vgm_common.scenario import Curve, CurveParameter, Surface
 
 _DENSE_FACTOR = 16  # parameter samples per output sample when measuring arc length
 
+CurveFunction = Callable[[FloatArray], FloatArray]  # parameters t (M,) -> points (M, 3) [m]
+Piece = tuple[CurveFunction, float, float]  # (evaluate, t_start, t_end) of one piece
 
-def curve_is_closed(curve):
+
+def curve_is_closed(curve: Curve) -> bool:
     """True if the curve's pieces are closed loops (``line_pair`` and polynomials are open)."""
     if curve.kind == 'points':
-        return curve.params['closed']
+        return cast(bool, curve.params['closed'])  # the parser made it a bool
     return curve.kind in ('ellipse', 'circle', 'surface_loop')
 
 
-def curve_polylines(curve, surface, samples=None):
+def curve_polylines(curve: Curve, surface: Surface,
+                    samples: int | None = None) -> list[FloatArray]:
     """The curve's pieces as polylines in base_link.
 
     Args:
@@ -66,7 +77,7 @@ def curve_polylines(curve, surface, samples=None):
             for (evaluate, t0, t1), n in zip(pieces, counts)]
 
 
-def curve_points_base(curve, surface):
+def curve_points_base(curve: Curve, surface: Surface) -> FloatArray:
     """All samples of the curve (N, 3) in base_link [m], pieces one after another.
 
     N = ``curve.samples`` (the file's row count for ``points``); closed pieces are not
@@ -78,13 +89,13 @@ def curve_points_base(curve, surface):
                       for piece in curve_polylines(curve, surface)])
 
 
-def _pieces(curve, surface):
+def _pieces(curve: Curve, surface: Surface) -> list[Piece]:
     """(evaluate(t (M,)) -> (M, 3) base_link points, t_start, t_end) for each piece."""
     params = curve.params
     kind = curve.kind
     if kind in ('parabola', 'cubic'):
         coefficients = np.asarray(params['coefficients'], dtype=float)
-        t0, t1 = params['t_range']
+        t0, t1 = _array_param(params, 't_range')
         # coefficients[:, k] multiplies t^k.
         return [(lambda t: np.vander(t, coefficients.shape[1], increasing=True)
                  @ coefficients.T, t0, t1)]
@@ -102,29 +113,41 @@ def _pieces(curve, surface):
         return [(lambda t: center + radius * (np.outer(np.cos(t), u) + np.outer(np.sin(t), v)),
                  0.0, 2 * np.pi)]
     if kind == 'line_pair':
-        return [(lambda t, a=start, b=end: a + np.outer(t, b - a), 0.0, 1.0)
-                for start, end in params['segments']]
+        return [(_segment(start, end), 0.0, 1.0)
+                for start, end in _array_param(params, 'segments')]
     if kind == 'surface_loop':
         return [(lambda t: _surface_loop(params, surface, t), 0.0, 2 * np.pi)]
     raise ScenarioError(f'curve.type: unknown curve kind {kind!r}', key='curve.type',
                         value=kind)
 
 
-def _surface_loop(params, surface, t):
+def _segment(a: FloatArray, b: FloatArray) -> CurveFunction:
+    """The straight segment a -> b, t in [0, 1]."""
+    return lambda t: a + np.outer(t, b - a)
+
+
+def _surface_loop(params: Mapping[str, CurveParameter], surface: Surface,
+                  t: FloatArray) -> FloatArray:
     c, s = np.cos(params['angle']), np.sin(params['angle'])
-    radii = params['radii']
+    center, radii = _array_param(params, 'center'), _array_param(params, 'radii')
     local = np.column_stack([radii[0] * np.cos(t), radii[1] * np.sin(t)])
-    xy = params['center'] + local @ np.array([[c, s], [-s, c]])
+    xy = center + local @ np.array([[c, s], [-s, c]])
     points = surfaces.surface_points_base(surface, xy)
     if not np.all(np.isfinite(points)):
         raise ScenarioError('curve: the surface_loop leaves the surface\'s domain '
-                            f'(center {params["center"].tolist()}, radii '
+                            f'(center {center.tolist()}, radii '
                             f'{radii.tolist()}, surface extent {surface.extent})',
                             key='curve.radii', value=radii)
     return points
 
 
-def _arc_length(evaluate, t0, t1, n):
+def _array_param(params: Mapping[str, CurveParameter], key: str) -> FloatArray:
+    """``params[key]`` of a curve kind whose parser made it an array (vectors, matrices)."""
+    return cast(FloatArray, params[key])
+
+
+def _arc_length(evaluate: CurveFunction, t0: float, t1: float,
+                n: int) -> tuple[FloatArray, FloatArray]:
     """Parameters (n,) from t0 to t1 and the cumulative chord length (n,) [m] at each."""
     t = np.linspace(t0, t1, n)
     points = evaluate(t)
@@ -132,18 +155,19 @@ def _arc_length(evaluate, t0, t1, n):
     return t, np.concatenate([[0.0], np.cumsum(steps)])
 
 
-def _split(samples, lengths):
+def _split(samples: int, lengths: Sequence[float]) -> list[int]:
     """Split ``samples`` between pieces in proportion to length, at least 2 each."""
-    lengths = np.asarray(lengths, dtype=float)
-    if len(lengths) == 1:
+    lengths_m = np.asarray(lengths, dtype=float)
+    if len(lengths_m) == 1:
         return [max(samples, 2)]
-    share = lengths / lengths.sum() if lengths.sum() > 0 else np.full(len(lengths), 0.5)
+    share = lengths_m / lengths_m.sum() if lengths_m.sum() > 0 else np.full(len(lengths_m), 0.5)
     counts = np.maximum(np.round(share * samples).astype(int), 2)
     counts[-1] = max(samples - counts[:-1].sum(), 2)
     return counts.tolist()
 
 
-def _sample_uniform_arc_length(evaluate, t0, t1, n, closed):
+def _sample_uniform_arc_length(evaluate: CurveFunction, t0: float, t1: float, n: int,
+                               closed: bool) -> FloatArray:
     """n samples evenly spaced in arc length (a closed piece gets its first point appended)."""
     t_dense, s_dense = _arc_length(evaluate, t0, t1, _DENSE_FACTOR * n + 1)
     total = s_dense[-1]

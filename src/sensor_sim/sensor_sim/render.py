@@ -30,15 +30,23 @@ pixels around it); a segment is drawn when both its ends are visible.
 ``add_noise`` turns a clean image into the published uint8 image; randomness comes only
 from the generator the caller passes.
 """
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
+import numpy.typing as npt
 from scipy.special import ndtri
 
 from sensor_sim import chart, curves, surfaces
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 from vgm_common.reflectance import VARIANTS as ON_VARIANTS
 from vgm_common.reflectance import oren_nayar
+from vgm_common.scenario import Calibration, Curve, Scenario
 
 BACKGROUND_GREY = 20.0
 CHART_BACK_ALBEDO = 0.3  # the unprinted back of the chart plate
@@ -47,6 +55,12 @@ MAX_CURVE_SAMPLES = 400_000
 DEPTH_TOLERANCE = (1e-3, 1e-3)  # (absolute [m], relative) slack of the curve depth test
 _STENCIL_ELEMENTS = 2_000_000  # pixel candidates handled at once when drawing the curve
 
+# ((u0, u1), (v0, v1)): pixel index ranges, ends excluded
+PixelBox = tuple[tuple[int, int], tuple[int, int]]
+# (x, y) of optical-frame rays (x, y, 1), any shape S -> (grey, depth [m]), each of shape S
+ChartSampler = Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray]]
+_Array = TypeVar('_Array', bound=np.ndarray)
+
 
 # Standard normal quantiles at 65536 equiprobable levels: indexing it with uniform 16-bit
 # integers draws Gaussian noise ~4x faster than rng.normal, which keeps three 640x480
@@ -54,7 +68,8 @@ _STENCIL_ELEMENTS = 2_000_000  # pixel candidates handled at once when drawing t
 _NORMAL_QUANTILES = ndtri((np.arange(65536) + 0.5) / 65536).astype(np.float32)
 
 
-def add_noise(clean, sigma, rng):
+def add_noise(clean: npt.ArrayLike, sigma: float,
+              rng: np.random.Generator) -> npt.NDArray[np.uint8]:
     """Camera image from a clean render: clean + N(0, sigma^2), rounded, clipped.
 
     Args:
@@ -77,10 +92,10 @@ def add_noise(clean, sigma, rng):
 class _View:
     """What is cached per camera. Arrays are read-only."""
 
-    normalized: np.ndarray  # (H + 2, W + 2, 2) undistorted x/z, y/z at pixel centres -1..W
-    hit_base: np.ndarray  # (H, W, 3) [m], NaN where the ray misses
-    depth: np.ndarray  # (H, W) float32 [m]
-    image: np.ndarray  # (H, W) float64 grey levels, curve drawn
+    normalized: FloatArray  # (H + 2, W + 2, 2) undistorted x/z, y/z at pixel centres -1..W
+    hit_base: FloatArray  # (H, W, 3) [m], NaN where the ray misses
+    depth: npt.NDArray[np.float32]  # (H, W) [m]
+    image: FloatArray  # (H, W) grey levels, curve drawn
 
 
 class SceneRenderer:
@@ -96,7 +111,8 @@ class SceneRenderer:
     renderer from one thread.
     """
 
-    def __init__(self, scenario, variant='oren_nayar', supersample=4):
+    def __init__(self, scenario: Scenario, variant: str = 'oren_nayar',
+                 supersample: int = 4) -> None:
         if variant not in ON_VARIANTS:
             raise InvalidInput(f'variant must be one of {ON_VARIANTS}, got {variant!r}',
                                key='variant', value=variant)
@@ -106,36 +122,36 @@ class SceneRenderer:
         self.scenario = scenario
         self.variant = variant
         self.supersample = int(supersample)
-        self._views = {}
-        self._charts = {}
-        self._curve_pieces = None
+        self._views: dict[str, _View] = {}
+        self._charts: dict[tuple[str, int], FloatArray] = {}
+        self._curve_pieces: list[FloatArray] | None = None
 
     @property
-    def camera_names(self):
+    def camera_names(self) -> tuple[str, ...]:
         return tuple(self.scenario.cameras)
 
-    def scene_image(self, name):
+    def scene_image(self, name: str) -> FloatArray:
         """Clean image of camera ``name``: (H, W) float64 grey levels in [0, 255]."""
         return self._view(name).image
 
-    def depth(self, name):
+    def depth(self, name: str) -> npt.NDArray[np.float32]:
         """Depth map of camera ``name``: (H, W) float32 [m] along its optical axis, NaN
         where the pixel's ray misses the surface."""
         return self._view(name).depth
 
-    def hit_points_base(self, name):
+    def hit_points_base(self, name: str) -> FloatArray:
         """Surface point seen at each pixel centre of camera ``name``: (H, W, 3) base_link
         [m], NaN where the ray misses."""
         return self._view(name).hit_base
 
-    def curve_polylines_base(self):
+    def curve_polylines_base(self) -> list[FloatArray]:
         """The curve's pieces as drawn: list of (N_i, 3) base_link polylines [m] (closed
         pieces end with their first point), dense enough for every camera."""
         if self._curve_pieces is None:
             self._curve_pieces = _dense_curve(self.scenario)
         return self._curve_pieces
 
-    def chart_image(self, name, pose_index):
+    def chart_image(self, name: str, pose_index: int) -> FloatArray:
         """Clean image of camera ``name`` with the calibration chart at stage pose
         ``pose_index`` in front of the scene: (H, W) float64 grey levels.
 
@@ -149,9 +165,7 @@ class SceneRenderer:
         Raises:
             InvalidInput: the scenario has no calibration, or ``pose_index`` is out of range.
         """
-        calibration = self.scenario.calibration
-        if calibration is None:
-            raise InvalidInput('the scenario has no calibration section', key='calibration')
+        calibration = _calibration(self.scenario)
         if not 0 <= pose_index < len(calibration.T_base_chart):
             raise InvalidInput(f'chart pose index {pose_index} out of range '
                                f'0..{len(calibration.T_base_chart) - 1}',
@@ -163,13 +177,13 @@ class SceneRenderer:
             self._charts[key] = _read_only(image)
         return self._charts[key]
 
-    def _camera(self, name):
+    def _camera(self, name: str) -> PinholeCamera:
         if name not in self.scenario.cameras:
             raise InvalidInput(f'unknown camera {name!r}; expected one of '
                                f'{self.camera_names}', key='camera', value=name)
         return self.scenario.cameras[name]
 
-    def _view(self, name):
+    def _view(self, name: str) -> _View:
         camera = self._camera(name)
         if name not in self._views:
             self._views[name] = _render_view(self.scenario, camera,
@@ -177,12 +191,20 @@ class SceneRenderer:
         return self._views[name]
 
 
-def _read_only(array):
+def _calibration(scenario: Scenario) -> Calibration:
+    """The scenario's calibration section; raises InvalidInput if it has none."""
+    if scenario.calibration is None:
+        raise InvalidInput('the scenario has no calibration section', key='calibration')
+    return scenario.calibration
+
+
+def _read_only(array: _Array) -> _Array:
     array.setflags(write=False)
     return array
 
 
-def _render_view(scenario, camera, curve_pieces, variant):
+def _render_view(scenario: Scenario, camera: PinholeCamera, curve_pieces: Sequence[FloatArray],
+                 variant: str) -> _View:
     height, width = camera.height, camera.width
     # Undistorted normalised coordinates at pixel centres -1..W, -1..H: the inner part
     # gives the pixel rays, the border lets chart supersamples interpolate at the edges.
@@ -194,20 +216,21 @@ def _render_view(scenario, camera, curve_pieces, variant):
     # With rays of unit optical-axis component, the ray parameter t is the depth.
     directions_base = rays_camera @ camera.T_base_camera[:3, :3].T
     origin = camera.centre_base
-    depth = surfaces.intersect_rays(scenario.surface, origin, directions_base)
-    hit_base = origin + depth[:, None] * directions_base
-    image = np.full(height * width, BACKGROUND_GREY)
-    hit = np.isfinite(depth)
+    ray_depth = surfaces.intersect_rays(scenario.surface, origin, directions_base)  # (H * W,)
+    hit_base = origin + ray_depth[:, None] * directions_base
+    image: FloatArray = np.full(height * width, BACKGROUND_GREY)
+    hit = np.isfinite(ray_depth)
     image[hit] = _shade_surface(scenario, hit_base[hit], origin, variant)
     image = image.reshape(height, width)
-    depth = depth.reshape(height, width).astype(np.float32)
+    depth = ray_depth.reshape(height, width).astype(np.float32)
     _draw_curve(image, depth, camera, curve_pieces, scenario.curve)
     return _View(normalized=_read_only(normalized),
                  hit_base=_read_only(hit_base.reshape(height, width, 3)),
                  depth=_read_only(depth), image=_read_only(image))
 
 
-def _shade_surface(scenario, points_base, camera_centre, variant):
+def _shade_surface(scenario: Scenario, points_base: FloatArray, camera_centre: FloatArray,
+                   variant: str) -> FloatArray:
     """Grey levels (N,) of surface points seen from ``camera_centre``."""
     surface, lighting = scenario.surface, scenario.lighting
     views = camera_centre - points_base
@@ -220,7 +243,7 @@ def _shade_surface(scenario, points_base, camera_centre, variant):
     return np.clip(grey, 0.0, 255.0)
 
 
-def _dense_curve(scenario):
+def _dense_curve(scenario: Scenario) -> list[FloatArray]:
     """Curve pieces sampled so that no projected segment exceeds MAX_SEGMENT_PX in any
     camera; analytic curves are re-sampled exactly, ``points`` curves are subdivided
     linearly (their polyline is the curve)."""
@@ -237,14 +260,14 @@ def _dense_curve(scenario):
     return [_read_only(piece) for piece in pieces]
 
 
-def _longest_projected_segment(camera, points_base):
+def _longest_projected_segment(camera: PinholeCamera, points_base: FloatArray) -> float:
     pixels, _ = camera.project(points_base)
     lengths = np.linalg.norm(np.diff(pixels, axis=0), axis=1)
     lengths = lengths[np.isfinite(lengths)]
     return lengths.max() if len(lengths) else 0.0
 
 
-def _subdivide(camera, points_base):
+def _subdivide(camera: PinholeCamera, points_base: FloatArray) -> FloatArray:
     """Split segments whose projection is longer than MAX_SEGMENT_PX, linearly in 3D."""
     pixels, _ = camera.project(points_base)
     lengths = np.linalg.norm(np.diff(pixels, axis=0), axis=1)
@@ -261,7 +284,8 @@ def _subdivide(camera, points_base):
     return np.vstack([start + fraction[:, None] * (end - start), points_base[-1:]])
 
 
-def _draw_curve(image, depth, camera, pieces, curve):
+def _draw_curve(image: FloatArray, depth: npt.NDArray[np.float32], camera: PinholeCamera,
+                pieces: Sequence[FloatArray], curve: Curve) -> None:
     """Darken ``image`` (H, W) in place along the visible curve."""
     height, width = image.shape
     # Nothing in front where the ray missed: treat as infinitely far.
@@ -269,7 +293,7 @@ def _draw_curve(image, depth, camera, pieces, curve):
     padded = np.pad(far_depth, 1, mode='edge')
     neighbourhood_max = np.max([padded[dv:dv + height, du:du + width]
                                 for dv in range(3) for du in range(3)], axis=0)
-    starts, ends = [], []
+    piece_starts, piece_ends = [], []
     for piece in pieces:
         pixels, point_depth = camera.project(piece)
         visible = np.isfinite(pixels).all(axis=1) & (point_depth > 0)
@@ -284,9 +308,9 @@ def _draw_curve(image, depth, camera, pieces, curve):
         # subdivision was capped); they are not drawn rather than drawn as straight lines.
         short = np.linalg.norm(np.diff(pixels, axis=0), axis=1) <= 4 * MAX_SEGMENT_PX
         drawn = visible[:-1] & visible[1:] & short
-        starts.append(pixels[:-1][drawn])
-        ends.append(pixels[1:][drawn])
-    starts, ends = np.concatenate(starts), np.concatenate(ends)
+        piece_starts.append(pixels[:-1][drawn])
+        piece_ends.append(pixels[1:][drawn])
+    starts, ends = np.concatenate(piece_starts), np.concatenate(piece_ends)
     if not len(starts):
         return
     half_width = curve.line_width_px / 2
@@ -311,7 +335,8 @@ def _draw_curve(image, depth, camera, pieces, curve):
     image *= 1.0 - curve.contrast * coverage
 
 
-def _point_segment_distance(cols, rows, starts, ends):
+def _point_segment_distance(cols: npt.NDArray[np.int_], rows: npt.NDArray[np.int_],
+                            starts: FloatArray, ends: FloatArray) -> FloatArray:
     """Distance [px] of pixel centres (M, K) to the M segments starts -> ends (M, 2)."""
     direction = ends - starts
     length2 = np.sum(direction * direction, axis=1)
@@ -322,14 +347,15 @@ def _point_segment_distance(cols, rows, starts, ends):
     return np.hypot(px - s * direction[:, :1], py - s * direction[:, 1:])
 
 
-def _render_chart(scenario, camera, view, T_base_chart, supersample):
+def _render_chart(scenario: Scenario, camera: PinholeCamera, view: _View,
+                  T_base_chart: FloatArray, supersample: int) -> FloatArray:
     """Chart-over-scene image; see ``SceneRenderer.chart_image``.
 
     Only pixels that can be mixed are supersampled: a pixel that no edge of the print
     crosses and whose four corners see the same thing (the same print colour in front of
     the surface, or no chart) is uniform.
     """
-    calibration = scenario.calibration
+    calibration = _calibration(scenario)
     rows, cols, spacing = calibration.rows, calibration.cols, calibration.spacing
     image = view.image.copy()
     box = _chart_pixel_box(camera, T_base_chart, rows, cols, spacing)
@@ -369,11 +395,12 @@ def _render_chart(scenario, camera, view, T_base_chart, supersample):
     return image
 
 
-def _chart_sampler(scenario, camera, T_base_chart):
+def _chart_sampler(scenario: Scenario, camera: PinholeCamera,
+                   T_base_chart: FloatArray) -> ChartSampler:
     """A function (x, y) -> (grey, depth) for rays (x, y, 1) of ``camera``'s optical
     frame: the chart's grey level where the ray meets the plate, and the hit's depth [m]
     (+inf off the plate or behind the camera)."""
-    calibration, lighting = scenario.calibration, scenario.lighting
+    calibration, lighting = _calibration(scenario), scenario.lighting
     rows, cols, spacing = calibration.rows, calibration.cols, calibration.spacing
     T_camera_chart = camera.T_camera_base @ T_base_chart
     R, origin = T_camera_chart[:3, :3], T_camera_chart[:3, 3]
@@ -383,7 +410,7 @@ def _chart_sampler(scenario, camera, T_base_chart):
     irradiance = (lighting.intensity * max(0.0, face_normal_base @ lighting.direction_base)
                   + lighting.ambient)
 
-    def sample(x, y):
+    def sample(x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
         # Plate plane n . p = n . origin; with rays (x, y, 1) the ray parameter is depth.
         with np.errstate(divide='ignore', invalid='ignore'):
             depth = (normal @ origin) / (normal[0] * x + normal[1] * y + normal[2])
@@ -401,7 +428,8 @@ def _chart_sampler(scenario, camera, T_base_chart):
     return sample
 
 
-def _pixels_on_print_edges(camera, T_base_chart, rows, cols, spacing, box):
+def _pixels_on_print_edges(camera: PinholeCamera, T_base_chart: FloatArray, rows: int,
+                           cols: int, spacing: float, box: PixelBox) -> npt.NDArray[np.bool_]:
     """Boolean mask of ``box``: pixels within one pixel of the projection of an edge of the
     print (square sides, plate outline), sampled every half pixel."""
     (u0, u1), (v0, v1) = box
@@ -430,12 +458,13 @@ def _pixels_on_print_edges(camera, T_base_chart, rows, cols, spacing, box):
     return mask
 
 
-def _chart_to_base(T_base_chart, xy_chart):
+def _chart_to_base(T_base_chart: FloatArray, xy_chart: FloatArray) -> FloatArray:
     """(N, 2) points of the chart plane [m] -> (N, 3) base_link points."""
     return xy_chart @ T_base_chart[:3, :2].T + T_base_chart[:3, 3]
 
 
-def _chart_pixel_box(camera, T_base_chart, rows, cols, spacing):
+def _chart_pixel_box(camera: PinholeCamera, T_base_chart: FloatArray, rows: int, cols: int,
+                     spacing: float) -> PixelBox | None:
     """((u0, u1), (v0, v1)) pixel index ranges holding the plate's image, the whole image
     if the plate reaches behind the camera, None if it is entirely behind or outside."""
     (x0, x1), (y0, y1) = chart.chart_plate_extent(rows, cols, spacing)
@@ -461,7 +490,8 @@ def _chart_pixel_box(camera, T_base_chart, rows, cols, spacing):
     return (u0, u1), (v0, v1)
 
 
-def _interpolate_normalized(normalized, u, v):
+def _interpolate_normalized(normalized: FloatArray, u: FloatArray,
+                            v: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Undistorted coordinates (x (N,), y (N,)) at pixel positions (u, v) (N,), by
     bilinear interpolation of the map of pixel centres -1..W, -1..H.
 
@@ -475,7 +505,7 @@ def _interpolate_normalized(normalized, u, v):
     fu, fv = gu - i, gv - j
     flat = j * cols + i
 
-    def interpolate(channel):
+    def interpolate(channel: int) -> FloatArray:
         values = np.ascontiguousarray(normalized[..., channel]).ravel()
         top = values.take(flat) * (1 - fu) + values.take(flat + 1) * fu
         bottom = values.take(flat + cols) * (1 - fu) + values.take(flat + cols + 1) * fu

@@ -104,7 +104,7 @@ class SensorSim(Node):
 
         calibration = self.scenario.calibration
         self.chart_frames = 0
-        if self.calibration_phase:
+        if self.calibration_phase and calibration is not None:
             self.chart_frames = len(calibration.T_base_chart) * calibration.captures_per_pose
         self.frame_index = 0
         self.capture_lock, self.arm_lock = threading.Lock(), threading.Lock()
@@ -140,10 +140,11 @@ class SensorSim(Node):
 
     def _render_everything(self):
         """Render every clean image now, so captures keep their rate from the first."""
+        calibration = self.scenario.calibration
         for name in CAMERA_NAMES:
             self.renderer.scene_image(name)
-            if self.calibration_phase:
-                for pose_index in range(len(self.scenario.calibration.T_base_chart)):
+            if self.calibration_phase and calibration is not None:
+                for pose_index in range(len(calibration.T_base_chart)):
                     self.renderer.chart_image(name, pose_index)
 
     def _capture(self):
@@ -159,8 +160,8 @@ class SensorSim(Node):
         k = self.frame_index
         self.frame_index += 1
         pose_index = None
-        if k < self.chart_frames:
-            calibration = self.scenario.calibration
+        calibration = self.scenario.calibration
+        if k < self.chart_frames and calibration is not None:  # the calibration phase
             pose_index = k // calibration.captures_per_pose
             self.target_pose_publisher.publish(matrix_to_pose_stamped(
                 calibration.T_base_chart[pose_index], stamp_ns, BASE_FRAME))

@@ -23,10 +23,20 @@ Kinds (ALGORITHMS.md §6.6 for S1-S3):
 - ``heightmap``: bilinear interpolation of ``Surface.heights`` (rows along y, grid spacing
   ``cell``, node (row 0, col 0) at the extent's minimum corner).
 """
+from __future__ import annotations
+
+from collections.abc import Callable
+
 import numpy as np
+import numpy.typing as npt
 from numpy.polynomial import Polynomial
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
+from vgm_common.scenario import Surface
+
+Box = tuple[tuple[float, float], tuple[float, float]]  # ((x_min, x_max), (y_min, y_max))
+BoolArray = npt.NDArray[np.bool_]
 
 # Vase profile f(y) = 0.15 - 0.1 y (6y+1)^2 (y-1)^2 (3y-2) as a polynomial, so that its
 # derivative is exact.
@@ -46,7 +56,7 @@ _MAX_REFINE_STEPS = 100
 _DOMAIN_SLACK = 1e-12
 
 
-def domain_box(surface):
+def domain_box(surface: Surface) -> Box:
     """The surface's domain bounding box ((x_min, x_max), (y_min, y_max)) [surface units]:
     the extent intersected with the kind's own domain."""
     (x0, x1), (y0, y1) = surface.extent
@@ -56,7 +66,7 @@ def domain_box(surface):
     elif surface.kind == 'vase':
         x0, x1, y0, y1 = max(x0, -0.5), min(x1, 0.5), max(y0, 0.0), min(y1, 1.0)
     elif surface.kind == 'heightmap':
-        rows, cols = surface.heights.shape
+        rows, cols = _height_grid(surface).shape
         x1 = min(x1, x0 + (cols - 1) * surface.cell)
         y1 = min(y1, y0 + (rows - 1) * surface.cell)
     if not (x0 < x1 and y0 < y1):
@@ -66,7 +76,7 @@ def domain_box(surface):
     return (x0, x1), (y0, y1)
 
 
-def in_domain(surface, xy_units):
+def in_domain(surface: Surface, xy_units: npt.ArrayLike) -> BoolArray:
     """Boolean (N,): which (N, 2) surface-unit points lie on the surface's domain.
 
     The boundary is widened by ``_DOMAIN_SLACK`` of the domain's size, so that points on
@@ -82,17 +92,18 @@ def in_domain(surface, xy_units):
     return inside
 
 
-def height(surface, xy_units):
+def height(surface: Surface, xy_units: npt.ArrayLike) -> FloatArray:
     """h(x, y) [surface units] at (N, 2) surface-unit points; NaN outside the domain."""
     return height_and_gradient(surface, xy_units)[0]
 
 
-def gradient(surface, xy_units):
+def gradient(surface: Surface, xy_units: npt.ArrayLike) -> FloatArray:
     """(dh/dx, dh/dy) (N, 2) at (N, 2) surface-unit points; NaN outside the domain."""
     return height_and_gradient(surface, xy_units)[1]
 
 
-def height_and_gradient(surface, xy_units):
+def height_and_gradient(surface: Surface,
+                        xy_units: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     """h (N,) and its gradient (N, 2) at (N, 2) surface-unit points; NaN outside."""
     xy = np.asarray(xy_units, dtype=float).reshape(-1, 2)
     inside = in_domain(surface, xy)
@@ -104,7 +115,7 @@ def height_and_gradient(surface, xy_units):
     return h, grad
 
 
-def _heights(surface, x, y):
+def _heights(surface: Surface, x: FloatArray, y: FloatArray) -> FloatArray:
     """h (N,) of ``surface.kind`` at points known to be in the domain."""
     kind = surface.kind
     if kind == 'plane':
@@ -127,7 +138,7 @@ def _heights(surface, x, y):
     raise InvalidInput(f'unknown surface kind {kind!r}', key='surface.type', value=kind)
 
 
-def _gradients(surface, x, y, h):
+def _gradients(surface: Surface, x: FloatArray, y: FloatArray, h: FloatArray) -> FloatArray:
     """(dh/dx, dh/dy) (N, 2) of ``surface.kind`` at points in the domain, heights h."""
     kind = surface.kind
     if kind == 'plane':
@@ -153,7 +164,7 @@ def _gradients(surface, x, y, h):
     raise InvalidInput(f'unknown surface kind {kind!r}', key='surface.type', value=kind)
 
 
-def _divide_or_zero(numerator, h):
+def _divide_or_zero(numerator: FloatArray, h: FloatArray) -> FloatArray:
     """numerator (N, 2) / h (N,), 0 where h == 0 (the rim of a sphere or vase)."""
     with np.errstate(divide='ignore', invalid='ignore'):
         out = numerator / h[:, None]
@@ -161,8 +172,15 @@ def _divide_or_zero(numerator, h):
     return out
 
 
-def _bilinear(surface, x, y):
-    heights = surface.heights
+def _height_grid(surface: Surface) -> FloatArray:
+    """``surface.heights`` of a heightmap (the scenario parser always sets it)."""
+    if surface.heights is None:
+        raise InvalidInput(f'surface {surface.kind}: no heights grid', key='surface.heights')
+    return surface.heights
+
+
+def _bilinear(surface: Surface, x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+    heights = _height_grid(surface)
     rows, cols = heights.shape
     (x0, _), (y0, _) = surface.extent
     gx, gy = (x - x0) / surface.cell, (y - y0) / surface.cell
@@ -177,14 +195,14 @@ def _bilinear(surface, x, y):
     return h, np.column_stack([dh_dx, dh_dy])
 
 
-def to_surface_units(surface, points_base):
+def to_surface_units(surface: Surface, points_base: npt.ArrayLike) -> FloatArray:
     """(N, 3) base_link points [m] -> (N, 3) surface-frame points [surface units]."""
     points = np.asarray(points_base, dtype=float).reshape(-1, 3)
     R, t = surface.T_base_surface[:3, :3], surface.T_base_surface[:3, 3]
     return (points - t) @ R / surface.scale
 
 
-def surface_points_base(surface, xy_units):
+def surface_points_base(surface: Surface, xy_units: npt.ArrayLike) -> FloatArray:
     """Lift (N, 2) surface-unit points onto the surface: (N, 3) base_link points [m],
     NaN outside the domain."""
     xy = np.asarray(xy_units, dtype=float).reshape(-1, 2)
@@ -192,7 +210,7 @@ def surface_points_base(surface, xy_units):
     return local @ surface.T_base_surface[:3, :3].T + surface.T_base_surface[:3, 3]
 
 
-def normal_base(surface, points_base):
+def normal_base(surface: Surface, points_base: npt.ArrayLike) -> FloatArray:
     """Unit surface normals (N, 3) in base_link under (N, 3) base_link points.
 
     The normal is that of the surface at the point's (x, y) in the surface frame (the
@@ -206,7 +224,7 @@ def normal_base(surface, points_base):
     return normal_surface @ surface.T_base_surface[:3, :3].T
 
 
-def signed_height_base(surface, points_base):
+def signed_height_base(surface: Surface, points_base: npt.ArrayLike) -> FloatArray:
     """Approximate signed distance [m] (N,) of (N, 3) base_link points above the surface.
 
     First order: (z - h(x, y)) * scale / sqrt(1 + |grad h|^2) in the surface frame, exact
@@ -218,7 +236,8 @@ def signed_height_base(surface, points_base):
     return (local[:, 2] - h) * surface.scale / np.sqrt(1 + np.sum(grad * grad, axis=1))
 
 
-def intersect_rays(surface, origin_base, directions_base):
+def intersect_rays(surface: Surface, origin_base: npt.ArrayLike,
+                   directions_base: npt.ArrayLike) -> FloatArray:
     """First intersection of rays from one origin with the surface.
 
     Args:
@@ -255,7 +274,7 @@ def intersect_rays(surface, origin_base, directions_base):
     return t_units * surface.scale / lengths
 
 
-def _intersect_plane(surface, o, d):
+def _intersect_plane(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
     with np.errstate(divide='ignore', invalid='ignore'):
         t = -o[2] / d[:, 2]
     t[~(t > 0)] = np.nan
@@ -264,7 +283,7 @@ def _intersect_plane(surface, o, d):
     return t
 
 
-def _intersect_sphere(surface, o, d):
+def _intersect_sphere(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
     # |o + t d|^2 = r^2 with unit d: t = -b -+ sqrt(b^2 - c).
     b = d @ o
     c = o @ o - surface.radius ** 2
@@ -282,7 +301,7 @@ def _intersect_sphere(surface, o, d):
     return t
 
 
-def _march_bounds(surface):
+def _march_bounds(surface: Surface) -> tuple[FloatArray, FloatArray, tuple[float, float]]:
     """Per-tile slope ranges and the height range of the surface, from a fine grid.
 
     The domain box is cut into ``_BOUND_TILES`` x ``_BOUND_TILES`` tiles. Returns
@@ -311,7 +330,7 @@ def _march_bounds(surface):
     return ranges[0], ranges[1], (np.nanmin(h) - margin, np.nanmax(h) + margin)
 
 
-def _with_neighbours(tiles, reduce):
+def _with_neighbours(tiles: FloatArray, reduce: np.ufunc) -> FloatArray:
     """Reduce each tile's value with its eight neighbours' (edges replicated)."""
     rows, cols = tiles.shape
     padded = np.pad(tiles, 1, mode='edge')
@@ -322,7 +341,8 @@ def _with_neighbours(tiles, reduce):
     return out
 
 
-def _tile_and_exit(position, direction, tile_size):
+def _tile_and_exit(position: FloatArray, direction: FloatArray,
+                   tile_size: float) -> tuple[npt.NDArray[np.int_], FloatArray]:
     """Along one axis: the tile (N,) a ray at ``position`` (N,) [from the domain's min]
     is moving through, and the ray length (N,) to that tile's far edge."""
     cell = position / tile_size
@@ -334,7 +354,7 @@ def _tile_and_exit(position, direction, tile_size):
     return index.astype(int), np.maximum(length, 0.0)
 
 
-def _slab(o, d, low, high):
+def _slab(o: float, d: FloatArray, low: float, high: float) -> tuple[FloatArray, FloatArray]:
     """Ray parameters where o + t d lies within [low, high] along one axis (N,) each."""
     with np.errstate(divide='ignore', invalid='ignore'):
         t_a, t_b = (low - o) / d, (high - o) / d
@@ -346,7 +366,7 @@ def _slab(o, d, low, high):
     return t_in, t_out
 
 
-def _march(surface, o, d):
+def _march(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
     (x0, x1), (y0, y1) = domain_box(surface)
     slope_x, slope_y, (z_lo, z_hi) = _march_bounds(surface)
     tile_w, tile_h = (x1 - x0) / _BOUND_TILES, (y1 - y0) / _BOUND_TILES
@@ -356,7 +376,8 @@ def _march(surface, o, d):
         t_enter, t_exit = np.maximum(t_enter, t_in), np.minimum(t_exit, t_out)
     min_step = _MIN_STEP_FRACTION * max(x1 - x0, y1 - y0, z_hi - z_lo)
 
-    def closing_rate(direction, g, range_x, range_y):
+    def closing_rate(direction: FloatArray, g: FloatArray, range_x: FloatArray,
+                     range_y: FloatArray) -> FloatArray:
         """Fastest rate (N,) at which the gap g = z - h can close along unit rays.
 
         Along a ray z - h changes at d_z - h_x d_x - h_y d_y; over slope ranges (N, 2)
@@ -372,7 +393,7 @@ def _march(surface, o, d):
     whole_x = np.array([slope_x[..., 0].min(), slope_x[..., 1].max()])
     whole_y = np.array([slope_y[..., 0].min(), slope_y[..., 1].max()])
 
-    def safe_step(t, g, index):
+    def safe_step(t: FloatArray, g: FloatArray, index: npt.NDArray[np.intp]) -> FloatArray:
         """Longest step from t along rays ``index`` that cannot jump over the surface:
         the larger of the step safe under the whole domain's slope bounds and the step
         safe under the current tile's, which must stay in the tile."""
@@ -385,7 +406,7 @@ def _march(surface, o, d):
         anywhere = np.abs(g) / closing_rate(direction, g, whole_x[None], whole_y[None])
         return np.maximum(in_tile, anywhere)
 
-    def gap(t, index):
+    def gap(t: FloatArray, index: npt.NDArray[np.intp]) -> FloatArray:
         """z - h along rays ``index`` at parameters t."""
         point = o + t[:, None] * d[index]
         # The marched kinds' domain is the whole box; clipping only undoes rounding at its
@@ -407,8 +428,10 @@ def _march(surface, o, d):
         t_next = np.minimum(t + step, t_exit[active])
         g_next = gap(t_next, active)
         crossed = (np.sign(g_next) != np.sign(g)) | (g == 0)
-        lo.append(t[crossed]), hi.append(t_next[crossed])
-        g_lo.append(g[crossed]), g_hi.append(g_next[crossed])
+        lo.append(t[crossed])
+        hi.append(t_next[crossed])
+        g_lo.append(g[crossed])
+        g_hi.append(g_next[crossed])
         bracketed.append(active[crossed])
         keep = ~crossed & (t_next < t_exit[active])
         active, t, g = active[keep], t_next[keep], g_next[keep]
@@ -418,7 +441,9 @@ def _march(surface, o, d):
     return result
 
 
-def _refine(gap, index, a, b, g_a, g_b):
+def _refine(gap: Callable[[FloatArray, npt.NDArray[np.intp]], FloatArray],
+            index: npt.NDArray[np.intp], a: FloatArray, b: FloatArray, g_a: FloatArray,
+            g_b: FloatArray) -> FloatArray:
     """Root of ``gap`` on brackets [a, b] (g_a, g_b of opposite signs or g_a == 0) by the
     Illinois variant of regula falsi, all rays at once."""
     root = np.where(g_a == 0, a, b)

@@ -13,25 +13,36 @@ orientation). No ROS. Every random choice takes a ``numpy.random.Generator``.
   elbow opened to 60 % of its angle), as waypoints (origin on the surface, x along
   the tangent, z into the surface: INTERFACES.md /curve/waypoints).
 """
+from __future__ import annotations
+
 import importlib.metadata
+import os
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
 from sensor_sim.surfaces import height, normal_base, surface_points_base
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 from vgm_common.robot_model import (
     PA10_LOWER_LIMITS_RAD,
     PA10_UPPER_LIMITS_RAD,
     PA10_VELOCITY_LIMITS_RAD_S,
     PARAMETER_SETS,
     Pa10Parameters,
+    RobotModel,
     load_robot,
     pa10_like_urdf,
     urdf_with_tool0,
 )
 from vgm_common.scenario import Surface
+
+if TYPE_CHECKING:  # imported lazily by BuiltCase.simulated_arm
+    from sensor_sim.arm_sim import SimulatedArm
 
 LINK_SPREAD = 0.4  # link offsets within +-40 % of the real PA-10's
 TOOL_RANGE_M = (0.05, 0.2)
@@ -51,13 +62,13 @@ class GeneratedArm:
 
     name: str
     urdf: str
-    start_joints: np.ndarray
+    start_joints: FloatArray
     description: str
-    link_offsets_m: tuple = ()  # PA-10-like arms: (d1, d3, d5, d7)
+    link_offsets_m: tuple[float, ...] = ()  # PA-10-like arms: (d1, d3, d5, d7)
     tool_length_m: float = float('nan')  # PA-10-like arms
 
 
-def random_pa10_like_arm(rng, name='pa10_random'):
+def random_pa10_like_arm(rng: np.random.Generator, name: str = 'pa10_random') -> GeneratedArm:
     """A PA-10-like 7-DOF arm: link offsets d1, d3, d5, d7 each the real arm's times
     U(0.6, 1.4), joint limits each the real arm's times U(0.6, 1.0) (widened to keep
     0.5 rad beyond the start pose), velocity limits times U(0.5, 1.5), a tool of
@@ -78,7 +89,7 @@ def random_pa10_like_arm(rng, name='pa10_random'):
                         (params.d1, params.d3, params.d5, params.d7), tool)
 
 
-def panda_arm():
+def panda_arm() -> GeneratedArm:
     """The Franka Panda of example-robot-data with ``tool0`` at its ``panda_hand_tcp``.
 
     Raises:
@@ -95,7 +106,8 @@ def panda_arm():
                         'tool0 at panda_hand_tcp')
 
 
-def stretched_joints(start_joints, elbow_index=3, factor=0.6):
+def stretched_joints(start_joints: npt.ArrayLike, elbow_index: int = 3,
+                     factor: float = 0.6) -> FloatArray:
     """The start pose with the elbow (joint 4 of the PA-10 and the Panda) opened to
     ``factor`` of its angle: a pose within the limits near the arm's reach."""
     q = np.array(start_joints, dtype=float)
@@ -103,7 +115,8 @@ def stretched_joints(start_joints, elbow_index=3, factor=0.6):
     return q
 
 
-def posed_surface(kind, robot, placement_joints, tilt_rad, rng, ahead_m=0.1):
+def posed_surface(kind: str, robot: RobotModel, placement_joints: npt.ArrayLike,
+                  tilt_rad: float, rng: np.random.Generator, ahead_m: float = 0.1) -> Surface:
     """A surface of ``kind`` whose normal under its centre (surface units (0, 0)) is
     tilted by ``tilt_rad`` from the tool's axis at ``placement_joints`` (about a random
     axis across it, random spin about the normal), the centre ``ahead_m`` [m] ahead of
@@ -142,7 +155,7 @@ def posed_surface(kind, robot, placement_joints, tilt_rad, rng, ahead_m=0.1):
     return replace(surface, T_base_surface=T)
 
 
-def path_xy_m(shape, rng):
+def path_xy_m(shape: str, rng: np.random.Generator) -> tuple[FloatArray, bool]:
     """(M, 2) dense points [m] of a path shape around (0, 0), and whether it is closed."""
     t = np.linspace(0.0, 1.0, 2001)
     if shape == 'line':
@@ -168,7 +181,8 @@ def path_xy_m(shape, rng):
     raise InvalidInput(f'shape must be one of {PATH_SHAPES}', 'shape', shape)
 
 
-def surface_waypoints(surface, xy_m, closed, spacing_m=WAYPOINT_SPACING_M):
+def surface_waypoints(surface: Surface, xy_m: npt.ArrayLike, closed: bool,
+                      spacing_m: float = WAYPOINT_SPACING_M) -> FloatArray:
     """Waypoints (N, 4, 4) about every ``spacing_m`` [m] along the dense surface-frame
     path ``xy_m`` [m] (divided by the surface's scale into surface units): origin on the
     surface, z = -normal, x along the path across z. A closed path's first point is not
@@ -199,18 +213,33 @@ def surface_waypoints(surface, xy_m, closed, spacing_m=WAYPOINT_SPACING_M):
 class LoopLog:
     """What an offline closed loop recorded, one entry per control step."""
 
-    phases: list
-    tips: list  # (3,) measured tool tip [m]
-    forces: list  # [N] true contact force
-    qdot_commanded: list  # (n,) [rad/s]
-    q: list  # (n,) measured joints [rad]
-    step_times: list  # [s] controller.step wall time
+    phases: list[str]
+    tips: list[FloatArray]  # (3,) measured tool tip [m]
+    forces: list[float]  # [N] true contact force
+    qdot_commanded: list[FloatArray]  # (n,) [rad/s]
+    q: list[FloatArray]  # (n,) measured joints [rad]
+    step_times: list[float]  # [s] controller.step wall time
     stop_latency: float = float('nan')  # [s] from a stop to zero joint velocity
 
 
-def run_closed_loop(controller, robot, arm, surface, stiffness, dt=0.01, max_time=120.0,
-                    stop_at_progress=None, pressure_sigma=0.0, rng=None, hold_time=0.5,
-                    substeps=2):
+class TrackingControllerLike(Protocol):
+    """What ``run_closed_loop`` uses of pa10_ik_node's TrackingController."""
+
+    progress: float  # fraction of the path tracked
+    phase: str  # 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed', ...
+    stage: str  # within the phase, e.g. 'lifted' once done
+
+    def stop(self, reason: str = ...) -> None: ...
+
+    def step(self, q: FloatArray, measured_force: float,
+             dt: float) -> tuple[FloatArray, Mapping[str, Any]]: ...
+
+
+def run_closed_loop(controller: TrackingControllerLike, robot: RobotModel, arm: SimulatedArm,
+                    surface: Surface, stiffness: float, dt: float = 0.01,
+                    max_time: float = 120.0, stop_at_progress: float | None = None,
+                    pressure_sigma: float = 0.0, rng: np.random.Generator | None = None,
+                    hold_time: float = 0.5, substeps: int = 2) -> LoopLog:
     """``controller`` (a pa10_ik_node TrackingController, started) against ``arm`` (a
     ``SimulatedArm``) and the spring contact on ``surface``: control every ``dt`` [s], the
     arm stepped ``substeps`` times per period, the command as pa10_ik_node sends it (a
@@ -262,7 +291,8 @@ def run_closed_loop(controller, robot, arm, surface, stiffness, dt=0.01, max_tim
     return log
 
 
-def path_errors(tips, surface, path_base, within_m=0.002):
+def path_errors(tips: npt.ArrayLike, surface: Surface, path_base: FloatArray,
+                within_m: float = 0.002) -> tuple[FloatArray, float]:
     """Distances [m] (K,) of the tips' (K, 3) foot points on the surface (along the
     normal) to the dense path polyline ``path_base`` (M, 3), and the fraction of the
     path's points that some foot point came within ``within_m`` [m] of."""
@@ -281,7 +311,9 @@ def path_errors(tips, surface, path_base, within_m=0.002):
     return distances, float(np.mean(near < within_m))
 
 
-def tracking_metrics(log, surface, path_base, desired_force, robot, within_m=0.002):
+def tracking_metrics(log: LoopLog, surface: Surface, path_base: FloatArray,
+                     desired_force: float, robot: RobotModel,
+                     within_m: float = 0.002) -> dict[str, float]:
     """The issue-13 goals of one run, measured on the true state while tracking.
 
     Args:
@@ -298,7 +330,7 @@ def tracking_metrics(log, surface, path_base, desired_force, robot, within_m=0.0
     tracking = np.array([phase == 'tracking' for phase in log.phases])
     tips = np.array(log.tips)[tracking] if tracking.any() else np.zeros((0, 3))
     forces = np.array(log.forces)[tracking]
-    result = {'tracking_steps': int(tracking.sum())}
+    result: dict[str, float] = {'tracking_steps': int(tracking.sum())}
     if len(tips):
         distances, passed = path_errors(tips, surface, path_base, within_m)
         result.update(rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3),
@@ -336,7 +368,7 @@ class CaseSpec:
     seed: int
 
     @property
-    def label(self):
+    def label(self) -> str:
         return (f'{self.arm.name} / {self.surface_kind} {np.degrees(self.tilt_rad):.0f} deg / '
                 f'{self.path_shape} / {self.arm_mode} x{self.speed_scale:g}')
 
@@ -347,20 +379,20 @@ class BuiltCase:
     path (M, 3) [m] and a fresh simulated arm at the start pose."""
 
     spec: CaseSpec
-    robot: object
+    robot: RobotModel
     surface: Surface
-    waypoints: np.ndarray
-    path_base: np.ndarray
+    waypoints: FloatArray
+    path_base: FloatArray
     closed: bool
 
-    def simulated_arm(self):
+    def simulated_arm(self) -> SimulatedArm:
         from sensor_sim.arm_sim import SimulatedArm
 
         return SimulatedArm.from_robot_model(self.robot, self.spec.arm.start_joints,
                                              self.spec.arm_mode, self.spec.speed_scale)
 
 
-def generate_cases(seed, random_arms=3, with_panda=True):
+def generate_cases(seed: int, random_arms: int = 3, with_panda: bool = True) -> list[CaseSpec]:
     """Every arm (``random_arms`` PA-10-like ones and the Panda) on every surface kind, the
     path shapes and arm simulations cycling, tilts 0-45 deg (the first case of each arm
     untilted, the last one at 45 deg). Returns a list of ``CaseSpec``."""
@@ -379,7 +411,7 @@ def generate_cases(seed, random_arms=3, with_panda=True):
     return cases
 
 
-def build_case(spec, directory):
+def build_case(spec: CaseSpec, directory: str | os.PathLike[str]) -> BuiltCase:
     """Write the arm's URDF into ``directory`` and build the case (``BuiltCase``)."""
     from pathlib import Path
 

@@ -3,21 +3,28 @@ chapter's error metrics (§4.5).
 
 Depth maps are (H, W) float arrays; sparse stereo depth is NaN where absent.
 """
-from typing import NamedTuple
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple, cast
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
+
+BoolArray = npt.NDArray[np.bool_]
 
 
 class RowFusion(NamedTuple):
-    depth: np.ndarray  # (H, W) fused depth, in the stereo depth's unit
-    trained_rows: np.ndarray  # (H,) bool, rows with at least one stereo point
-    loss_initial: np.ndarray  # (H,) scaled mean squared error before training, NaN if untrained
-    loss_final: np.ndarray  # (H,) the same after training
+    depth: FloatArray  # (H, W) fused depth, in the stereo depth's unit
+    trained_rows: BoolArray  # (H,) rows with at least one stereo point
+    loss_initial: FloatArray  # (H,) scaled mean squared error before training, NaN if untrained
+    loss_final: FloatArray  # (H,) the same after training
 
 
 class DepthErrors(NamedTuple):
@@ -26,7 +33,8 @@ class DepthErrors(NamedTuple):
     rms: float  # sqrt(mean (Z' - G)^2)
 
 
-def _check_pair(Z_sfs, Z_stereo):
+def _check_pair(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike
+                ) -> tuple[FloatArray, FloatArray, BoolArray]:
     Z_sfs, Z_stereo = np.asarray(Z_sfs, dtype=float), np.asarray(Z_stereo, dtype=float)
     if Z_sfs.ndim != 2 or Z_sfs.shape != Z_stereo.shape:
         raise InvalidInput(f'Z_sfs {Z_sfs.shape} and Z_stereo {Z_stereo.shape}: expected '
@@ -37,11 +45,12 @@ def _check_pair(Z_sfs, Z_stereo):
     return Z_sfs, Z_stereo, mask
 
 
-def _sigmoid(a):
+def _sigmoid(a: FloatArray) -> FloatArray:
     return 1.0 / (1.0 + np.exp(-a))
 
 
-def _forward(params, x):
+def _forward(params: Sequence[FloatArray], x: FloatArray
+             ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Batched 1-6-3-1 network: x (R, N) -> output (R, N) and the hidden activations."""
     W1, b1, W2, b2, W3, b3 = params  # (R,6), (R,6), (R,3,6), (R,3), (R,3), (R,)
     h1 = _sigmoid(x[..., None] * W1[:, None, :] + b1[:, None, :])  # (R, N, 6)
@@ -49,7 +58,9 @@ def _forward(params, x):
     return np.einsum('rnk,rk->rn', h2, W3) + b3[:, None], h1, h2
 
 
-def train_row_networks(x, t, mask, rng, hidden=(6, 3), learning_rate=0.5, epochs=2000):
+def train_row_networks(x: FloatArray, t: FloatArray, mask: BoolArray, rng: np.random.Generator,
+                       hidden: tuple[int, int] = (6, 3), learning_rate: float = 0.5,
+                       epochs: int = 2000) -> tuple[list[FloatArray], FloatArray, FloatArray]:
     """Train one network per row at once by full-batch back-propagation (§4.4).
 
     ``x``, ``t`` (R, N) scaled inputs and targets, ``mask`` (R, N) bool training points
@@ -62,7 +73,7 @@ def train_row_networks(x, t, mask, rng, hidden=(6, 3), learning_rate=0.5, epochs
               rng.normal(0, n1**-0.5, (R, n2, n1)), np.zeros((R, n2)),
               rng.normal(0, n2**-0.5, (R, n2)), np.zeros(R)]
     weight = mask / np.maximum(mask.sum(axis=1, keepdims=True), 1)  # per-row mean
-    losses = []
+    losses: list[FloatArray] = []
     for _ in range(epochs + 1):
         y, h1, h2 = _forward(params, x)
         err = np.where(mask, y - t, 0.0)
@@ -79,7 +90,9 @@ def train_row_networks(x, t, mask, rng, hidden=(6, 3), learning_rate=0.5, epochs
     return params, losses[0], losses[-1]
 
 
-def fuse_mlp_rows(Z_sfs, Z_stereo, rng, hidden=(6, 3), learning_rate=0.5, epochs=2000):
+def fuse_mlp_rows(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, rng: np.random.Generator,
+                  hidden: tuple[int, int] = (6, 3), learning_rate: float = 0.5,
+                  epochs: int = 2000) -> RowFusion:
     """The seed's ``mlp_rows`` fusion: per image row, a network maps Z_sfs to Z_stereo.
 
     Each row is min-max scaled to [0, 1] (inputs over the whole row of ``Z_sfs``, targets
@@ -88,7 +101,7 @@ def fuse_mlp_rows(Z_sfs, Z_stereo, rng, hidden=(6, 3), learning_rate=0.5, epochs
     scaling. ``rng`` a numpy Generator (deterministic for a seed). Returns ``RowFusion``.
     """
     Z_sfs, Z_stereo, mask = _check_pair(Z_sfs, Z_stereo)
-    trained = mask.any(axis=1)
+    trained = cast(BoolArray, mask.any(axis=1))  # (H,); numpy's stubs also allow a scalar
     rows = np.flatnonzero(trained)
     x_lo, x_hi = Z_sfs.min(axis=1), Z_sfs.max(axis=1)
     masked_t = np.where(mask, Z_stereo, np.nan)[rows]
@@ -107,14 +120,15 @@ def fuse_mlp_rows(Z_sfs, Z_stereo, rng, hidden=(6, 3), learning_rate=0.5, epochs
                      loss_final)
 
 
-def _difference_operators(H, W):
+def _difference_operators(H: int, W: int) -> tuple[sp.spmatrix, sp.spmatrix]:
     """Sparse forward differences along x (columns) and y (rows) of a row-major (H, W)."""
-    def diff(n):
+    def diff(n: int) -> sp.spmatrix:
         return sp.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], shape=(n - 1, n))
     return sp.kron(sp.eye(H), diff(W)), sp.kron(diff(H), sp.eye(W))
 
 
-def fuse_least_squares(Z_sfs, Z_stereo, weight=1.0):
+def fuse_least_squares(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, weight: float = 1.0
+                       ) -> FloatArray:
     """Dense depth Z minimising sum_stereo (Z - Z_s)^2 + weight ||grad Z - grad(a Z_sfs + b)||^2.
 
     (a, b) is the least-squares affine fit of Z_sfs to the stereo points, made first;
@@ -133,7 +147,8 @@ def fuse_least_squares(Z_sfs, Z_stereo, weight=1.0):
     return spsolve(lhs.tocsc(), rhs).reshape(Z_sfs.shape)
 
 
-def depth_error_stats(Z, G, mask=None):
+def depth_error_stats(Z: npt.ArrayLike, G: npt.ArrayLike, mask: BoolArray | None = None
+                      ) -> DepthErrors:
     """§4.5 errors of an estimate ``Z`` against ground truth ``G``, both (H, W), over the
     bool ``mask`` (default: where both are finite). Z is first mapped linearly so that its
     range over the mask becomes G's. Returns ``DepthErrors``."""
@@ -149,7 +164,8 @@ def depth_error_stats(Z, G, mask=None):
                        float(np.sqrt(np.mean(err**2))))
 
 
-def _normalized_blur(values, weights, sigma):
+def _normalized_blur(values: np.ndarray, weights: np.ndarray, sigma: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian-weighted local mean of ``values`` where ``weights`` > 0 (normalised
     convolution); also returns the local weight (the blurred weights)."""
     ksize = int(2 * np.ceil(3 * sigma) + 1)
@@ -160,7 +176,8 @@ def _normalized_blur(values, weights, sigma):
         return blur(values * weights) / w, w
 
 
-def fuse_local_affine(Z_sfs, Z_stereo, sigma=12.0, prior=0.5, residual_sigma=4.0):
+def fuse_local_affine(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, sigma: float = 12.0,
+                      prior: float = 0.5, residual_sigma: float = 4.0) -> FloatArray:
     """Our fusion: SFS shape mapped onto the stereo points by a spatially varying affine
     map, then the remaining residual interpolated (all by Gaussian normalised
     convolution, O(HW), no solver).
@@ -187,7 +204,7 @@ def fuse_local_affine(Z_sfs, Z_stereo, sigma=12.0, prior=0.5, residual_sigma=4.0
     ts = np.where(mask, Z_stereo, 0.0).astype(np.float32)
     ksize = int(2 * np.ceil(3 * sigma) + 1)
 
-    def blur(a):
+    def blur(a: np.ndarray) -> FloatArray:
         return cv2.GaussianBlur(a, (ksize, ksize), sigma,
                                 borderType=cv2.BORDER_CONSTANT).astype(float)
 

@@ -9,6 +9,7 @@ backlog, whatever the per-frame time.
 """
 import threading
 import time
+from functools import partial
 
 import numpy as np
 from rclpy.node import Node
@@ -163,8 +164,8 @@ class SfsStereoNode(Node):
                                   max_wait=self.params.sync_max_wait)
         self.sync_lock = threading.Lock()
         for name in ('left', 'right'):
-            self.create_subscription(Image, IMAGE_TOPICS[name],
-                                     lambda msg, n=name: self._on_image(n, msg), DEFAULT_QOS)
+            self.create_subscription(Image, IMAGE_TOPICS[name], partial(self._on_image, name),
+                                     DEFAULT_QOS)
         self.maps = None
         self.maps_key = None
         self.processed = self.failed = self.throttled = 0
@@ -174,7 +175,7 @@ class SfsStereoNode(Node):
         self.last_density = float('nan')
         self.last_confidence = {}
         self.last_fusion = ''
-        self.last_warnings = ()
+        self.last_warnings: tuple[str, ...] = ()
         self.last_warned = {}  # kind of warning -> monotonic time of its last log line
         self.last_log = -float('inf')
         # the newest pair only: pairs arriving while one is processed replace the waiting

@@ -5,15 +5,19 @@ Everything lives in the rectified LEFT frame (ROS convention; the thesis's choic
 right image as reference is internal to it), at the processing resolution: the rectified
 full-resolution images averaged over ``downsample`` x ``downsample`` blocks.
 """
+from __future__ import annotations
+
 import time
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from sfs_stereo_node import fusion as fusion_cores
 from sfs_stereo_node.rectify import (
+    RectifiedPair,
     light_in_rectified_frame,
     rectified_valid_mask,
     rectify,
@@ -29,6 +33,7 @@ from sfs_stereo_node.stereo import (
     sgbm_disparity,
 )
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 
 FUSIONS = ('shading_refine', 'local_affine', 'least_squares', 'mlp_rows')
 STEREOS = ('ssd', 'sgbm')
@@ -48,7 +53,8 @@ class DepthConfig:
     min_texture: float = 0.0  # [grey levels] window std floor (texture_snr scales)
     uniqueness: float = 0.02
     left_right_check: bool = True
-    light_direction: tuple = (-0.23, -0.70, -0.67)  # left optical frame, surface -> light
+    # left optical frame, surface -> light
+    light_direction: tuple[float, float, float] = (-0.23, -0.70, -0.67)
     albedo: float = 0.8
     ambient: float = 0.08
     roughness: float = 0.3
@@ -73,27 +79,30 @@ class DepthConfig:
     max_pixels: int = 4_194_304  # larger images are refused before any work (memory)
 
 
+Float32Array = npt.NDArray[np.float32]
+
+
 class DepthResult(NamedTuple):
-    disparity: np.ndarray  # (h, w) float32 [px at processing resolution], NaN = no match;
+    disparity: Float32Array  # (h, w) [px at processing resolution], NaN = no match;
     # the offset-corrected disparity of /stereo/disparity: Z = focal b / disparity
-    depth_stereo: np.ndarray  # (h, w) float32 [m], NaN where no confident match
-    depth_sfs: np.ndarray  # (h, w) float32 [m], SFS mapped affinely onto the stereo
+    depth_stereo: Float32Array  # (h, w) [m], NaN where no confident match
+    depth_sfs: Float32Array | None  # (h, w) [m], SFS mapped affinely onto the stereo
     # depths; None when there are too few matches to scale it
-    depth_fused: np.ndarray  # (h, w) float32 [m], NaN where no surface; None: no fusion
-    surface: np.ndarray  # (h, w) bool, where the surface is seen
+    depth_fused: Float32Array | None  # (h, w) [m], NaN where no surface; None: no fusion
+    surface: npt.NDArray[np.bool_]  # (h, w), where the surface is seen
     focal_px: float  # at processing resolution
     baseline_m: float
-    P: np.ndarray  # (3, 4) rectified left projection at processing resolution
-    valid_window: tuple  # (x, y, w, h) of fully valid rectified pixels
+    P: FloatArray  # (3, 4) rectified left projection at processing resolution
+    valid_window: tuple[int, int, int, int]  # (x, y, w, h) of fully valid rectified pixels
     density: float  # confident matches / surface pixels
-    timings: dict  # stage -> seconds
+    timings: dict[str, float]  # stage -> seconds
     fusion: str = ''  # the fusion that made depth_fused ('' = none)
-    warnings: tuple = ()  # why the result is less than asked for (fallbacks, doubts)
-    confidence: dict = {}  # per-frame match quality (README: diagnostics)
-    left_rect: np.ndarray = None  # (h, w) uint8, the rectified left image matched
+    warnings: tuple[str, ...] = ()  # why the result is less than asked for (fallbacks, doubts)
+    confidence: dict[str, float] = {}  # per-frame match quality (README: diagnostics)
+    left_rect: npt.NDArray[np.uint8] | None = None  # (h, w), the rectified left image matched
 
 
-def to_grey(image):
+def to_grey(image: npt.ArrayLike) -> Float32Array:
     """(H, W) or (H, W, 3) image -> float32 grey levels scaled to 0..255."""
     image = np.asarray(image)
     scale = 255.0 / 65535.0 if image.dtype == np.uint16 else 1.0
@@ -102,7 +111,7 @@ def to_grey(image):
     return image.astype(np.float32) * scale
 
 
-def _valid_window(mask):
+def _valid_window(mask: npt.NDArray[np.bool_]) -> tuple[int, int, int, int]:
     rows, cols = np.flatnonzero(mask.all(axis=1)), np.flatnonzero(mask.all(axis=0))
     if not len(rows) or not len(cols):
         return (0, 0, 0, 0)
@@ -110,7 +119,7 @@ def _valid_window(mask):
             int(rows[-1] - rows[0] + 1))
 
 
-def _oriented(image, pair):
+def _oriented(image: np.ndarray, pair: RectifiedPair) -> np.ndarray:
     """The image seen so that the baseline runs along the rows with the right camera
     on the right (``RectifiedPair.transpose``, ``mirror``); its own inverse swapped:
     ``_unoriented``."""
@@ -118,12 +127,12 @@ def _oriented(image, pair):
     return np.ascontiguousarray(image[:, ::-1] if pair.mirror else image)
 
 
-def _unoriented(image, pair):
+def _unoriented(image: np.ndarray, pair: RectifiedPair) -> np.ndarray:
     image = image[:, ::-1] if pair.mirror else image
     return np.ascontiguousarray(image.T if pair.transpose else image)
 
 
-def disparity_band(pair, config, factor):
+def disparity_band(pair: RectifiedPair, config: DepthConfig, factor: int) -> tuple[int, int]:
     """Integer raw disparities (lo, hi) to search at processing resolution: the
     offset-corrected [min_disparity, max_disparity] narrowed to the depth band
     [min_depth, max_depth] (Z = f b / (d - offset)), one layer of margin each side."""
@@ -141,7 +150,7 @@ def disparity_band(pair, config, factor):
     return int(np.floor(offset + d_min)) - 1, int(np.ceil(offset + d_max)) + 1
 
 
-def check_size(width, height, config):
+def check_size(width: int, height: int, config: DepthConfig) -> None:
     """Refuses, before any work, images whose pixels or whose matching memory (a few
     float32 images per pixel plus the coarsest level's band) exceed the bounds."""
     if width * height > config.max_pixels:
@@ -150,7 +159,9 @@ def check_size(width, height, config):
                            value=(width, height))
 
 
-def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
+def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: RectifiedPair,
+                 raw_size: tuple[int, int], config: DepthConfig,
+                 rng: np.random.Generator | None = None) -> DepthResult:
     """Run the pipeline on one raw pair of grey images (2-D arrays, 0..255).
 
     ``pair`` a full-resolution ``RectifiedPair``; ``raw_size`` (width, height) of the raw
@@ -159,13 +170,14 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     None, and when the chosen fusion cannot start a fallback fills depth_fused; each
     such case adds its reason to ``warnings``.
     """
-    timings, warnings = {}, []
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
     started = time.perf_counter()
     check_size(*raw_size, config)
     factor = int(config.downsample)
     small = scaled_pair(pair, factor)
     w, h = small.size
-    images = []
+    images: list[Float32Array] = []
     for raw, maps in ((left_raw, pair.maps_left), (right_raw, pair.maps_right)):
         rect = rectify(to_grey(raw), maps)
         if factor > 1:
@@ -188,7 +200,7 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     t = time.perf_counter()
     d_lo, d_hi = disparity_band(small, config, factor)
     left_o, right_o = _oriented(left, small), _oriented(right, small)
-    confidence = {}
+    confidence: dict[str, float] = {}
     if config.stereo == 'sgbm':
         raw_disparity = sgbm_disparity(left_o, right_o, d_hi, window=max(config.window, 3),
                                        min_disparity=d_lo)
@@ -225,17 +237,18 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
         warnings.append(f'pair looks unmatched (noise, or not a pair of one scene): only '
                         f'{100 * support:.0f} % of the matches are backed by their '
                         f'neighbours (min_support {100 * config.min_support:.0f} %)')
-    result = dict(disparity=disparity.astype(np.float32),
-                  depth_stereo=depth_stereo.astype(np.float32), depth_sfs=None,
-                  depth_fused=None, surface=surface, focal_px=small.focal_px,
-                  baseline_m=small.baseline_m, P=small.P_left, valid_window=_valid_window(valid),
-                  density=density, timings=timings, confidence=confidence,
-                  left_rect=np.clip(np.rint(left), 0, 255).astype(np.uint8))
+    result = DepthResult(disparity=disparity.astype(np.float32),
+                         depth_stereo=depth_stereo.astype(np.float32), depth_sfs=None,
+                         depth_fused=None, surface=surface, focal_px=small.focal_px,
+                         baseline_m=small.baseline_m, P=small.P_left,
+                         valid_window=_valid_window(valid), density=density, timings=timings,
+                         confidence=confidence,
+                         left_rect=np.clip(np.rint(left), 0, 255).astype(np.uint8))
     if matched.sum() < 8:
         warnings.append(f'only {int(matched.sum())} confident stereo matches: nothing '
                         'fixes the depth scale, no SFS or fused depth')
         timings['total'] = time.perf_counter() - started
-        return DepthResult(**result, warnings=tuple(warnings))
+        return result._replace(warnings=tuple(warnings))
 
     t = time.perf_counter()
     light = light_in_rectified_frame(config.light_direction, pair.R_left)
@@ -251,10 +264,10 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
         E_small = cv2.resize(E[:hs * k, :ws * k], (ws, hs), interpolation=cv2.INTER_AREA)
         mask_small = cv2.resize(surface[:hs * k, :ws * k].astype(np.float32), (ws, hs),
                                 interpolation=cv2.INTER_AREA) > 0.5
-        height = sfs_depth(E_small, light_gradient(light), config.albedo, config.roughness,
-                           config.sfs_iterations, tol=1e-4, max_step=max_step,
-                           mask=mask_small)
-        height = k * cv2.resize(height, (w, h), interpolation=cv2.INTER_LINEAR)
+        height_small = sfs_depth(E_small, light_gradient(light), config.albedo,
+                                 config.roughness, config.sfs_iterations, tol=1e-4,
+                                 max_step=max_step, mask=mask_small)
+        height = k * cv2.resize(height_small, (w, h), interpolation=cv2.INTER_LINEAR)
     else:
         height = sfs_depth(E, light_gradient(light), config.albedo, config.roughness,
                            config.sfs_iterations, tol=1e-4, max_step=max_step,
@@ -287,12 +300,15 @@ def process_pair(left_raw, right_raw, pair, raw_size, config, rng=None):
     confidence['fused backed by stereo'] = float((distance[surface] <= reach).mean())
     timings['fusion'] = time.perf_counter() - t
     timings['total'] = time.perf_counter() - started
-    result.update(depth_sfs=depth_sfs.astype(np.float32), depth_fused=fused.astype(np.float32))
-    return DepthResult(**result, fusion=fusion, warnings=tuple(warnings))
+    return result._replace(depth_sfs=depth_sfs.astype(np.float32),
+                           depth_fused=fused.astype(np.float32), fusion=fusion,
+                           warnings=tuple(warnings))
 
 
-def _fuse(fusion, left, stereo_on_surface, surface, depth_sfs, filled, small, light, config,
-          rng):
+def _fuse(fusion: str, left: Float32Array, stereo_on_surface: FloatArray,
+          surface: npt.NDArray[np.bool_], depth_sfs: FloatArray, filled: FloatArray,
+          small: RectifiedPair, light: FloatArray, config: DepthConfig,
+          rng: np.random.Generator | None) -> FloatArray:
     if fusion == 'shading_refine':
         model = ShadingModel(light, config.albedo, config.ambient, config.roughness)
         return refine_depth(left, stereo_on_surface, surface, small.P_left[:3, :3], model,

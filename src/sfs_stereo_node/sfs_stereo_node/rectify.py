@@ -5,23 +5,30 @@ the left CameraInfo's R (x_rect = R x_optical), with intrinsics P_left[:3, :3]; 
 P carries Tx = P[0, 3] = -fx * baseline. Maps come from cv2.initUndistortRectifyMap, as
 ROS's image_geometry / stereo_image_proc do.
 """
+from __future__ import annotations
+
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
+
+Maps = tuple[np.ndarray, np.ndarray]  # (map_x, map_y) float32 (H, W) remap tables
 
 
 class RectifiedPair(NamedTuple):
     """Remap tables of both cameras and the rectified geometry."""
 
-    maps_left: tuple  # (map_x, map_y) float32 (H, W): raw pixel seen at each rectified
-    maps_right: tuple  # pixel; None: the images are rectified already (used as they are)
-    size: tuple  # (width, height) of the rectified images [px]
-    K: np.ndarray  # (3, 3) rectified intrinsics = P_left[:3, :3]
-    P_left: np.ndarray  # (3, 4)
-    R_left: np.ndarray  # (3, 3) left optical -> rectified frame
+    maps_left: Maps | None  # (map_x, map_y): raw pixel seen at each rectified pixel;
+    maps_right: Maps | None  # None: the images are rectified already (used as they are)
+    size: tuple[int, int]  # (width, height) of the rectified images [px]
+    K: FloatArray  # (3, 3) rectified intrinsics = P_left[:3, :3]
+    P_left: FloatArray  # (3, 4)
+    R_left: FloatArray  # (3, 3) left optical -> rectified frame
     focal_px: float  # focal length along the baseline [px]
     baseline_m: float  # [m] > 0
     # Principal point of the left minus the right image along the matching direction
@@ -43,7 +50,7 @@ class PairGeometry(NamedTuple):
     mirror: bool
 
 
-def _check_rotation(R, name):
+def _check_rotation(R: npt.ArrayLike, name: str) -> FloatArray:
     R = np.asarray(R, dtype=float)
     if R.shape != (3, 3) or not np.all(np.isfinite(R)):
         raise InvalidInput(f'{name}: expected a finite 3x3 rotation', key=name)
@@ -55,7 +62,7 @@ def _check_rotation(R, name):
     return R
 
 
-def _check_projection(P, name):
+def _check_projection(P: npt.ArrayLike, name: str) -> FloatArray:
     P = np.asarray(P, dtype=float)
     if P.shape != (3, 4) or not np.all(np.isfinite(P)):
         raise InvalidInput(f'{name}: expected a finite 3x4 projection', key=name)
@@ -65,7 +72,7 @@ def _check_projection(P, name):
     return P
 
 
-def pair_geometry(P_left, P_right):
+def pair_geometry(P_left: npt.ArrayLike, P_right: npt.ArrayLike) -> PairGeometry:
     """``PairGeometry`` of a rectified pair from its two P matrices (ROS convention,
     as cv2.stereoRectify makes them for any baseline direction): equal fx, fy and skew;
     the right P translates along x only (Tx = -fx b: horizontal pair, right camera on
@@ -97,13 +104,14 @@ def pair_geometry(P_left, P_right):
     return PairGeometry(focal, baseline, offset, bool(transpose), bool(mirror))
 
 
-def rectified_geometry(P_left, P_right):
+def rectified_geometry(P_left: npt.ArrayLike, P_right: npt.ArrayLike) -> tuple[float, float]:
     """(focal_px, baseline_m) of a rectified pair (``pair_geometry``)."""
     geometry = pair_geometry(P_left, P_right)
     return geometry.focal_px, geometry.baseline_m
 
 
-def is_rectified_already(K, D, R, P):
+def is_rectified_already(K: npt.ArrayLike, D: npt.ArrayLike, R: npt.ArrayLike,
+                         P: npt.ArrayLike) -> bool:
     """True when a camera's images need no resampling: D zero, R identity (or empty)
     and K equal to the rectified intrinsics P[:3, :3] (a rectified driver, a dataset
     pair)."""
@@ -114,8 +122,10 @@ def is_rectified_already(K, D, R, P):
                             rtol=1e-9, atol=1e-9))
 
 
-def rectification_maps(K_left, D_left, R_left, P_left, K_right, D_right, R_right, P_right,
-                       size):
+def rectification_maps(K_left: npt.ArrayLike, D_left: npt.ArrayLike, R_left: npt.ArrayLike,
+                       P_left: npt.ArrayLike, K_right: npt.ArrayLike, D_right: npt.ArrayLike,
+                       R_right: npt.ArrayLike, P_right: npt.ArrayLike, size: tuple[int, int]
+                       ) -> RectifiedPair:
     """Remap tables of a calibrated pair for images of ``size`` (width, height).
 
     Validates every matrix (finite, R proper rotations, P a rectified pair) and raises
@@ -128,7 +138,7 @@ def rectification_maps(K_left, D_left, R_left, P_left, K_right, D_right, R_right
         raise InvalidInput(f'image size {size} too small', key='size', value=size)
     R_left, R_right = _check_rotation(R_left, 'R_left'), _check_rotation(R_right, 'R_right')
     geometry = pair_geometry(P_left, P_right)
-    cameras = []
+    cameras: list[tuple[FloatArray, FloatArray, FloatArray, FloatArray]] = []  # K, D, R, P
     for K, D, R, P, name in ((K_left, D_left, R_left, P_left, 'left'),
                              (K_right, D_right, R_right, P_right, 'right')):
         K, D = np.asarray(K, dtype=float), np.asarray(D, dtype=float).ravel()
@@ -139,17 +149,17 @@ def rectification_maps(K_left, D_left, R_left, P_left, K_right, D_right, R_right
             raise InvalidInput(f'D_{name} has non-finite values', key=f'D_{name}')
         cameras.append((K, D, R, np.asarray(P, dtype=float)))
     if all(is_rectified_already(*camera) for camera in cameras):
-        maps = [None, None]
+        maps: list[Maps | None] = [None, None]
     else:
-        maps = [tuple(cv2.initUndistortRectifyMap(K, D, R, P, (width, height),
-                                                  cv2.CV_32FC1))
+        maps = [cv2.initUndistortRectifyMap(K, D, R, P, (width, height), cv2.CV_32FC1)
                 for K, D, R, P in cameras]
     P_left = np.asarray(P_left, dtype=float)
     return RectifiedPair(maps[0], maps[1], (width, height), P_left[:3, :3].copy(),
                          P_left.copy(), R_left, *geometry)
 
 
-def rectify(image, maps, interpolation=cv2.INTER_LINEAR):
+def rectify(image: npt.ArrayLike, maps: Maps | None, interpolation: int = cv2.INTER_LINEAR
+            ) -> np.ndarray:
     """Rectified copy of ``image`` (H, W) by ``maps`` (map_x, map_y); pixels that map
     outside the raw image are 0 (cv2.BORDER_CONSTANT). ``maps`` None: ``image`` itself."""
     if maps is None:
@@ -158,7 +168,8 @@ def rectify(image, maps, interpolation=cv2.INTER_LINEAR):
                      borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
 
-def rectified_valid_mask(maps, raw_size):
+def rectified_valid_mask(maps: Maps | None, raw_size: tuple[int, int]
+                         ) -> npt.NDArray[np.bool_]:
     """(H, W) bool: rectified pixels whose raw source lies inside the raw image."""
     width, height = raw_size
     if maps is None:
@@ -167,7 +178,7 @@ def rectified_valid_mask(maps, raw_size):
     return (x >= 0) & (x <= width - 1) & (y >= 0) & (y <= height - 1)
 
 
-def raw_depth_to_rectified(depth_raw, pair):
+def raw_depth_to_rectified(depth_raw: npt.ArrayLike, pair: RectifiedPair) -> np.ndarray:
     """Depth [m] along the rectified left optical axis at every rectified pixel, from a
     depth map along the RAW left optical axis (e.g. sensor_sim's depth_left.npy).
 
@@ -180,6 +191,7 @@ def raw_depth_to_rectified(depth_raw, pair):
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     rays = np.linalg.solve(pair.K, np.stack([u.ravel(), v.ravel(), np.ones(u.size)]))
     raw_z = (pair.R_left.T @ rays)[2].reshape(height, width)
+    sampled: np.ndarray  # float32 [m] along the raw optical axis
     if pair.maps_left is None:
         sampled = np.asarray(depth_raw, dtype=np.float32)[:height, :width]
     else:
@@ -189,7 +201,8 @@ def raw_depth_to_rectified(depth_raw, pair):
     return sampled / raw_z
 
 
-def light_in_rectified_frame(light_optical, R_left):
+def light_in_rectified_frame(light_optical: Sequence[float] | np.ndarray, R_left: npt.ArrayLike
+                             ) -> FloatArray:
     """Unit light direction (surface -> light) rotated from the left optical frame into
     the rectified frame (x right, y down, z forward)."""
     light = np.asarray(light_optical, dtype=float).ravel()
@@ -200,7 +213,7 @@ def light_in_rectified_frame(light_optical, R_left):
     return np.asarray(R_left, dtype=float) @ (light / norm)
 
 
-def scaled_pair(pair, factor):
+def scaled_pair(pair: RectifiedPair, factor: int) -> RectifiedPair:
     """``pair`` downsampled by an integer ``factor``: maps sampled at every rectified
     pixel of the coarse grid (pixel centres, the cv2.resize INTER_AREA convention), K and
     P scaled; the baseline is unchanged."""
@@ -211,12 +224,13 @@ def scaled_pair(pair, factor):
     centres = (np.arange(max(w, h)) + 0.5) * factor - 0.5
     cols, rows = centres[:w], centres[:h]
 
-    def sample(map_xy):
+    def sample(map_xy: Maps | None) -> Maps | None:
         if map_xy is None:
             return None
-        return tuple(cv2.remap(m, np.tile(cols.astype(np.float32), (h, 1)),
-                               np.tile(rows.astype(np.float32)[:, None], (1, w)),
-                               cv2.INTER_LINEAR) for m in map_xy)
+        map_x, map_y = (cv2.remap(m, np.tile(cols.astype(np.float32), (h, 1)),
+                                  np.tile(rows.astype(np.float32)[:, None], (1, w)),
+                                  cv2.INTER_LINEAR) for m in map_xy)
+        return map_x, map_y
 
     S = np.diag([1.0 / factor, 1.0 / factor, 1.0])
     shift = np.array([[1, 0, 0.5 / factor - 0.5], [0, 1, 0.5 / factor - 0.5], [0, 0, 1]])

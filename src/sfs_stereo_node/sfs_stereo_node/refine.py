@@ -30,15 +30,23 @@ Coarse to fine: the start is a robust (IRLS) thin-plate interpolation of the ste
 depths (block medians) on the coarsest grid; each finer level starts from the coarser
 solution (bilinear) and takes a few Gauss-Newton steps.
 """
+from __future__ import annotations
+
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 from vgm_common.reflectance import oren_nayar
+
+BoolArray = npt.NDArray[np.bool_]
+IndexArray = npt.NDArray[np.int64]  # unknown index of each grid pixel, -1 off the surface
 
 # Levels with more unknowns than this take conjugate-gradient steps instead of a sparse
 # direct solve (SuperLU fill-in grows fast with the grid; the coarser levels have fixed
@@ -51,7 +59,7 @@ STEP_TOLERANCE = 5e-5  # [m] median update of a converged Gauss-Newton level
 class ShadingModel(NamedTuple):
     """Known photometry, as the renderer makes the images."""
 
-    light: np.ndarray  # (3,) unit, surface -> light, in the depth map's camera frame
+    light: FloatArray  # (3,) unit, surface -> light, in the depth map's camera frame
     albedo: float
     ambient: float  # fraction of the source (grey = 255 albedo (intensity R + ambient))
     roughness: float  # Oren-Nayar sigma [rad]
@@ -59,12 +67,13 @@ class ShadingModel(NamedTuple):
 
 
 class RefineResult(NamedTuple):
-    depth: np.ndarray  # (H, W) [m], NaN off the surface
+    depth: FloatArray  # (H, W) [m], NaN off the surface
     shading_rms: float  # RMS shading residual at the end [grey levels], shading pixels
-    levels: list  # per level: (width, unknowns, Gauss-Newton steps)
+    levels: list[tuple[int, int, int]]  # per level: (width, unknowns, Gauss-Newton steps)
 
 
-def predicted_grey(Z, Zu, Zv, u, v, K, model):
+def predicted_grey(Z: FloatArray, Zu: FloatArray, Zv: FloatArray, u: FloatArray, v: FloatArray,
+                   K: FloatArray, model: ShadingModel) -> FloatArray:
     """Grey levels the renderer gives a surface point of depth ``Z`` with image-plane
     depth derivatives ``Zu``, ``Zv`` [m/px] at pixel (``u``, ``v``) of the camera ``K``
     (all broadcast arrays); clipped to [0, 255] as the renderer does."""
@@ -78,13 +87,14 @@ def predicted_grey(Z, Zu, Zv, u, v, K, model):
     return np.clip(255.0 * model.albedo * (model.intensity * R + model.ambient), 0.0, 255.0)
 
 
-def _grid_index(mask):
+def _grid_index(mask: BoolArray) -> IndexArray:
     index = np.full(mask.shape, -1, dtype=np.int64)
     index[mask] = np.arange(int(mask.sum()))
     return index
 
 
-def _first_derivative(mask, index, axis):
+def _first_derivative(mask: BoolArray, index: IndexArray, axis: int
+                      ) -> tuple[sp.csr_matrix, BoolArray]:
     """Sparse derivative along ``axis`` (1 = u, columns; 0 = v, rows) of the unknowns
     (the ``mask`` pixels): central where both neighbours are unknowns, one-sided where
     one is; ``has`` marks rows with a derivative."""
@@ -118,7 +128,7 @@ def _first_derivative(mask, index, axis):
     return D, f | b
 
 
-def _second_differences(mask, index):
+def _second_differences(mask: BoolArray, index: IndexArray) -> sp.csr_matrix:
     """Sparse Z_uu, Z_vv and Z_uv (forward cross difference) rows wherever all their
     pixels are unknowns: the thin-plate smoothness operator."""
     H, W = mask.shape
@@ -143,7 +153,8 @@ def _second_differences(mask, index):
     return sp.vstack(blocks).tocsr()
 
 
-def dark_line_mask(image, surface, size=7, threshold=8.0):
+def dark_line_mask(image: npt.ArrayLike, surface: BoolArray, size: int = 7,
+                   threshold: float = 8.0) -> BoolArray:
     """Pixels on thin dark lines (the drawn curve): black-hat of a ``size`` square
     structuring element above ``threshold`` grey levels, dilated by one pixel."""
     kernel = np.ones((size, size), np.uint8)
@@ -154,7 +165,7 @@ def dark_line_mask(image, surface, size=7, threshold=8.0):
     return cv2.dilate(lines, np.ones((3, 3), np.uint8)).astype(bool)
 
 
-def horizontal_texture(image, axis=1):
+def horizontal_texture(image: npt.ArrayLike, axis: int = 1) -> FloatArray:
     """Mean |dI/du| over the 3 x 3 neighbourhood [grey levels/px]: what a horizontal
     disparity search can lock onto. Along edges near the rows (the aperture problem)
     it is small, and matches there slide along the edge. ``axis`` 0: |dI/dv|, for a
@@ -165,7 +176,7 @@ def horizontal_texture(image, axis=1):
     return cv2.blur(gradient, (3, 3)).astype(float)
 
 
-def _fill(Z, mask):
+def _fill(Z: FloatArray, mask: BoolArray) -> FloatArray:
     """``Z`` with every pixel outside ``mask`` set to its nearest mask pixel's value."""
     if mask.all():
         return Z
@@ -176,7 +187,8 @@ def _fill(Z, mask):
     return values[labels]
 
 
-def _downsample(array, factor, interpolation=cv2.INTER_AREA):
+def _downsample(array: np.ndarray, factor: int, interpolation: int = cv2.INTER_AREA
+                ) -> FloatArray:
     H, W = array.shape
     h, w = H // factor, W // factor
     return cv2.resize(np.ascontiguousarray(array[:h * factor, :w * factor],
@@ -184,7 +196,8 @@ def _downsample(array, factor, interpolation=cv2.INTER_AREA):
                       interpolation=interpolation).astype(float)
 
 
-def _block_median(Z, valid, factor):
+def _block_median(Z: FloatArray, valid: BoolArray, factor: int
+                  ) -> tuple[FloatArray, FloatArray]:
     """Median of the ``valid`` values of ``Z`` in each ``factor`` x ``factor`` block (a
     median, so one wrong match does not drag its block) and their count."""
     H, W = Z.shape
@@ -206,29 +219,30 @@ def _block_median(Z, valid, factor):
     return median.reshape(h, w), count.reshape(h, w)
 
 
-def _robust_scale(residual, floor):
+def _robust_scale(residual: FloatArray, floor: float) -> float:
     """Cauchy scale from the residuals' median absolute value, at least ``floor``."""
     return max(floor, 2.0 * 1.4826 * float(np.median(np.abs(residual)))) \
         if len(residual) else floor
 
 
-def _level_K(K, factor):
+def _level_K(K: FloatArray, factor: int) -> FloatArray:
     S = np.array([[1.0 / factor, 0, 0.5 / factor - 0.5], [0, 1.0 / factor, 0.5 / factor - 0.5],
                   [0, 0, 1]])
     return S @ K
 
 
 class _Level(NamedTuple):
-    image: np.ndarray
-    surface: np.ndarray  # unknowns
-    shade: np.ndarray  # pixels whose shading is modelled
-    stereo: np.ndarray  # (H, W) mean stereo depth of the block, NaN where none
-    stereo_count: np.ndarray  # matches in the block
-    K: np.ndarray
+    image: FloatArray
+    surface: BoolArray  # unknowns
+    shade: BoolArray  # pixels whose shading is modelled
+    stereo: FloatArray  # (H, W) mean stereo depth of the block, NaN where none
+    stereo_count: FloatArray  # matches in the block
+    K: FloatArray
     factor: int
 
 
-def step_edges(image, surface, lines, threshold=15.0):
+def step_edges(image: npt.ArrayLike, surface: BoolArray, lines: BoolArray,
+               threshold: float = 15.0) -> BoolArray:
     """Likely occlusion boundaries inside the surface: a 3 x 3 morphological gradient
     above ``threshold`` [grey levels] that is not a drawn dark line and not the
     surface's own outline (3 px). Depth is not tied across them."""
@@ -240,7 +254,8 @@ def step_edges(image, surface, lines, threshold=15.0):
     return (gradient > threshold) & interior & ~near_line
 
 
-def _levels(image, Z_stereo, surface, K, lines, min_width, cuts=None):
+def _levels(image: FloatArray, Z_stereo: FloatArray, surface: BoolArray, K: FloatArray,
+            lines: BoolArray, min_width: int, cuts: BoolArray | None = None) -> list[_Level]:
     H, W = image.shape
     factors = [1]
     while W // (factors[-1] * 2) >= min_width:
@@ -269,7 +284,8 @@ def _levels(image, Z_stereo, surface, K, lines, min_width, cuts=None):
     return out[::-1]
 
 
-def _initial_depth(level, sigma_z, curvature_sigma, robust_iterations=6):
+def _initial_depth(level: _Level, sigma_z: float, curvature_sigma: float,
+                   robust_iterations: int = 6) -> FloatArray:
     """Thin-plate interpolation of the stereo depths on the level's surface."""
     index = _grid_index(level.surface)
     has = np.isfinite(level.stereo[level.surface])
@@ -293,7 +309,8 @@ def _initial_depth(level, sigma_z, curvature_sigma, robust_iterations=6):
     return z
 
 
-def _jacobi_cg(A, b, iterations, rtol=1e-4):
+def _jacobi_cg(A: sp.csr_matrix, b: FloatArray, iterations: int, rtol: float = 1e-4
+               ) -> FloatArray:
     """x ~ A^-1 b for a symmetric positive definite sparse ``A`` by Jacobi-preconditioned
     conjugate gradients from x = 0. Own loop with plain numpy reductions: scipy's cg
     calls BLAS dot products, whose threads stall on a loaded machine."""
@@ -317,15 +334,16 @@ def _jacobi_cg(A, b, iterations, rtol=1e-4):
     return x
 
 
-def _gauss_newton(level, z, model, sigma_i, sigma_z, curvature_sigma, steps, cauchy,
-                  max_step):
+def _gauss_newton(level: _Level, z: FloatArray, model: ShadingModel, sigma_i: float,
+                  sigma_z: float, curvature_sigma: float, steps: int, cauchy: float,
+                  max_step: float | None) -> tuple[FloatArray, float]:
     mask = level.surface
     index = _grid_index(mask)
     Du, has_u = _first_derivative(mask, index, axis=1)
     Dv, has_v = _first_derivative(mask, index, axis=0)
     D2 = _second_differences(mask, index) / curvature_sigma
-    v_grid, u_grid = np.nonzero(mask)
-    u_grid, v_grid = u_grid.astype(float), v_grid.astype(float)
+    rows, cols = np.nonzero(mask)
+    u_grid, v_grid = cols.astype(float), rows.astype(float)
     shade = level.shade[mask] & has_u & has_v
     observed = level.image[mask][shade]
     u_s, v_s = u_grid[shade], v_grid[shade]
@@ -373,7 +391,9 @@ def _gauss_newton(level, z, model, sigma_i, sigma_z, curvature_sigma, steps, cau
     return z, rms
 
 
-def _checked_refine_inputs(image, Z_stereo, surface, K):
+def _checked_refine_inputs(image: npt.ArrayLike, Z_stereo: npt.ArrayLike,
+                          surface: npt.ArrayLike, K: np.ndarray
+                          ) -> tuple[FloatArray, FloatArray, BoolArray]:
     """``image``, ``Z_stereo`` as float and ``surface`` as bool arrays of one (H, W) shape.
 
     Raises:
@@ -390,7 +410,8 @@ def _checked_refine_inputs(image, Z_stereo, surface, K):
     return image, Z_stereo, surface
 
 
-def _without_false_matches(Z_stereo, surface, sigma_z):
+def _without_false_matches(Z_stereo: FloatArray, surface: BoolArray, sigma_z: float
+                           ) -> FloatArray:
     """``Z_stereo`` [m] with NaN where a depth is more than 6 robust standard deviations
     (+ 3 ``sigma_z``) from the median of the surface's depths."""
     # Global gate: depths more than 6 robust standard deviations from the median match
@@ -404,13 +425,13 @@ def _without_false_matches(Z_stereo, surface, sigma_z):
     return Z_stereo
 
 
-def _without_matches_beside_cuts(Z_stereo, cuts):
+def _without_matches_beside_cuts(Z_stereo: FloatArray, cuts: BoolArray) -> FloatArray:
     """``Z_stereo`` [m] with NaN within 2 px of the step-edge pixels ``cuts``."""
     near_cut = cv2.dilate(cuts.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     return np.where(near_cut, np.nan, Z_stereo)
 
 
-def _upsampled_start(Z, prev, level):
+def _upsampled_start(Z: FloatArray, prev: _Level, level: _Level) -> FloatArray:
     """Start depths (unknowns,) on ``level`` from the depth map ``Z`` (H, W) [m] of the
     coarser level ``prev``: filled off its surface, doubled bilinearly, edge rows and
     columns repeated where the finer grid is larger."""
@@ -427,10 +448,13 @@ def _upsampled_start(Z, prev, level):
     return Zfull[level.surface]
 
 
-def refine_depth(image, Z_stereo, surface, K, model, sigma_i=2.0, sigma_z=0.002,
-                 curvature_sigma=1e-4, steps=(12, 6, 3), min_width=40, cauchy=3.0,
-                 max_step=0.02, finest_steps=1, min_stereo_gradient=5.0, edge_threshold=15.0,
-                 lines=None, search_axis=1):
+def refine_depth(image: npt.ArrayLike, Z_stereo: npt.ArrayLike, surface: npt.ArrayLike,
+                 K: np.ndarray, model: ShadingModel, sigma_i: float = 2.0,
+                 sigma_z: float = 0.002, curvature_sigma: float = 1e-4,
+                 steps: Sequence[int] = (12, 6, 3), min_width: int = 40, cauchy: float = 3.0,
+                 max_step: float | None = 0.02, finest_steps: int = 1,
+                 min_stereo_gradient: float = 5.0, edge_threshold: float = 15.0,
+                 lines: BoolArray | None = None, search_axis: int = 1) -> RefineResult:
     """Shading-refined metric depth (module docstring) of one image.
 
     ``image`` (H, W) grey levels 0..255 of the reference camera (rectified);
@@ -461,7 +485,8 @@ def refine_depth(image, Z_stereo, surface, K, model, sigma_i=2.0, sigma_z=0.002,
     z = _initial_depth(levels[0], sigma_z, curvature_sigma * levels[0].factor**2)
     Z = np.full(levels[0].surface.shape, np.nan)
     Z[levels[0].surface] = z
-    report, rms = [], float('nan')
+    report: list[tuple[int, int, int]] = []
+    rms = float('nan')
     for i, level in enumerate(levels):
         if i > 0:
             z = _upsampled_start(Z, levels[i - 1], level)

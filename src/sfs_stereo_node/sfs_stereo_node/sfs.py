@@ -5,13 +5,21 @@ Gradients are per pixel: p = dZ/dx along columns, q = dZ/dy along rows, surface 
 (-p, -q, 1), light (-ps, -qs, 1), viewer (0, 0, 1); Z is the height towards the viewer.
 The source radiance E0 is taken as pi, so R = albedo cos(theta_i) when roughness = 0.
 """
+from __future__ import annotations
+
+from collections.abc import Sequence
+
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
 from vgm_common.reflectance import oren_nayar_terms
 
 
-def reflectance_terms(p, q, ps, qs, albedo, roughness, variant='thesis'):
+def reflectance_terms(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: float, albedo: float,
+                      roughness: float, variant: str = 'thesis'
+                      ) -> tuple[FloatArray, FloatArray]:
     """(M, cos_theta_i) of (5.3.5), R = M cos_theta_i, on broadcast arrays p, q: the
     shared Oren-Nayar model with normal (-p, -q, 1), light (-ps, -qs, 1), viewer (0, 0, 1).
 
@@ -26,7 +34,9 @@ def reflectance_terms(p, q, ps, qs, albedo, roughness, variant='thesis'):
     return albedo * M, cos_i
 
 
-def reflectance_terms_fast(p, q, ps, qs, albedo, roughness, variant='thesis'):
+def reflectance_terms_fast(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: float,
+                           albedo: float, roughness: float, variant: str = 'thesis'
+                           ) -> tuple[FloatArray, FloatArray]:
     """``reflectance_terms`` in closed form for the fixed viewer (0, 0, 1): the same
     Oren-Nayar values (equal to rounding, unit-tested) without building normal vectors
     or calling arccos, ~4x faster; sfs_depth's inner loop uses it.
@@ -61,13 +71,14 @@ def reflectance_terms_fast(p, q, ps, qs, albedo, roughness, variant='thesis'):
     return albedo * (A + B * np.maximum(0.0, cos_phi) * sin_alpha * f_beta), cos_i
 
 
-def reflectance(p, q, ps, qs, albedo, roughness, variant='thesis'):
+def reflectance(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: float, albedo: float,
+                roughness: float, variant: str = 'thesis') -> FloatArray:
     """Image irradiance R(p, q) = M max(0, cos_theta_i) (5.3.5), attached shadows at 0."""
     M, cos_i = reflectance_terms(p, q, ps, qs, albedo, roughness, variant)
     return M * np.maximum(cos_i, 0.0)
 
 
-def light_gradient(light_optical):
+def light_gradient(light_optical: Sequence[float] | np.ndarray) -> tuple[float, float]:
     """(ps, qs) of a unit light direction (surface -> light) given in an optical frame (x
     right, y down, z forward): the SFS frame has the same x, y and z toward the viewer,
     so (-ps, -qs, 1) ~ (lx, ly, -lz), ps = lx / lz, qs = ly / lz. The light must be on
@@ -79,7 +90,7 @@ def light_gradient(light_optical):
     return lx / lz, ly / lz
 
 
-def upwind_signs(light):
+def upwind_signs(light: tuple[float, float]) -> tuple[float, float]:
     """(sx, sy) in {-1, +1}: the difference direction along each axis facing the light.
 
     With p = sx (Z(x) - Z(x - sx)) (backward differences for sx = +1, forward for -1),
@@ -93,7 +104,8 @@ def upwind_signs(light):
     return (1.0 if ps >= 0 else -1.0), (1.0 if qs >= 0 else -1.0)
 
 
-def _gradients(Z, sx=1.0, sy=1.0):
+def _gradients(Z: FloatArray, sx: float = 1.0, sy: float = 1.0
+               ) -> tuple[FloatArray, FloatArray]:
     """p = sx (Z(x, y) - Z(x - sx, y)), q = sy (Z(x, y) - Z(x, y - sy)); missing
     neighbours count as 0. sx = sy = 1 are the thesis's backward differences."""
     if sx > 0:
@@ -107,8 +119,10 @@ def _gradients(Z, sx=1.0, sy=1.0):
     return p, q
 
 
-def sfs_depth(E, light, albedo=1.0, roughness=0.0, iterations=200, tol=1e-4, eps_c=1e-3,
-              variant='thesis', mask=None, upwind=True, max_step=None):
+def sfs_depth(E: npt.ArrayLike, light: tuple[float, float], albedo: float = 1.0,
+              roughness: float = 0.0, iterations: int = 200, tol: float = 1e-4,
+              eps_c: float = 1e-3, variant: str = 'thesis', mask: npt.ArrayLike | None = None,
+              upwind: bool = True, max_step: float | None = None) -> FloatArray:
     """Relative height map from one image by the Jacobi-Newton iteration (5.3.11).
 
     ``E`` (H, W) irradiance scaled to [0, 1]; ``light`` (ps, qs). Starts from Z = 0 and

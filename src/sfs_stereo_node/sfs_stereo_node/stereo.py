@@ -3,15 +3,22 @@
 Images are (H, W) float arrays of a rectified pair, x = column, y = row. The right image
 is the reference (A5.5): right pixel x matches left pixel x + d, d >= 0 [px].
 """
+from __future__ import annotations
+
+from collections.abc import Iterator
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray
+
+Float32Array = npt.NDArray[np.float32]  # the matcher's working images and cost layers
 
 
-def _check_image(image, name):
+def _check_image(image: npt.ArrayLike, name: str) -> FloatArray:
     image = np.asarray(image, dtype=float)
     if image.ndim != 2:
         raise InvalidInput(f'{name}: expected an (H, W) image, got shape {image.shape}',
@@ -19,7 +26,8 @@ def _check_image(image, name):
     return image
 
 
-def histogram_line_fit(I_ref, I_other, quantiles=256):
+def histogram_line_fit(I_ref: npt.ArrayLike, I_other: npt.ArrayLike, quantiles: int = 256
+                       ) -> tuple[float, float]:
     """Line alpha, beta with alpha * I_other + beta ~ I_ref in distribution (5.2.2, A5.7).
 
     Grey levels of equal cumulative-histogram value (``quantiles`` levels at (k + 1/2) / n)
@@ -33,14 +41,15 @@ def histogram_line_fit(I_ref, I_other, quantiles=256):
     return float(alpha), float(beta)
 
 
-def _box_sum(image, window):
+def _box_sum(image: FloatArray, window: int) -> np.ndarray:
     """Sums over the window x window patch centred on every pixel of a 2-D float64 image,
     zeros outside (cv2.boxFilter, unnormalised, constant border)."""
     return cv2.boxFilter(image, cv2.CV_64F, (window, window), normalize=False,
                          borderType=cv2.BORDER_CONSTANT)
 
 
-def normalized_ssd_volume(I_left, I_right, max_disparity, window=3, min_disparity=0):
+def normalized_ssd_volume(I_left: npt.ArrayLike, I_right: npt.ArrayLike, max_disparity: int,
+                          window: int = 3, min_disparity: int = 0) -> FloatArray:
     """Normalised SSD cost (5.2.3 with A5.5, A5.6) for d = 0..max_disparity.
 
     C(x, y, d) = sum_w (I_r(x+i, y+j) - I_l(x+d+i, y+j))^2
@@ -81,7 +90,8 @@ def normalized_ssd_volume(I_left, I_right, max_disparity, window=3, min_disparit
     return cost
 
 
-def left_reference_volume(I_left, I_right, max_disparity, window=3, min_disparity=0):
+def left_reference_volume(I_left: npt.ArrayLike, I_right: npt.ArrayLike, max_disparity: int,
+                          window: int = 3, min_disparity: int = 0) -> FloatArray:
     """The same normalised SSD with the LEFT image as reference (ROS convention):
     C_L(x, y, d) compares left pixel x with right pixel x - d. Mirroring both images
     swaps their roles, so this is ``normalized_ssd_volume`` on the mirrored pair."""
@@ -91,7 +101,7 @@ def left_reference_volume(I_left, I_right, max_disparity, window=3, min_disparit
     return np.ascontiguousarray(cost[:, :, ::-1])
 
 
-def window_std(image, window):
+def window_std(image: npt.ArrayLike, window: int) -> np.ndarray:
     """Standard deviation of the grey levels in the window x window patch around each
     pixel (edge-replicated), a texture measure [grey levels]."""
     image = _check_image(image, 'image')
@@ -100,8 +110,10 @@ def window_std(image, window):
     return np.sqrt(np.maximum(mean_sq - mean**2, 0.0))
 
 
-def confident_disparity(cost, threshold, texture=None, min_texture=0.0, uniqueness=0.0,
-                        left_right_check=True, lr_tolerance=1, subpixel=True):
+def confident_disparity(cost: npt.ArrayLike, threshold: float,
+                        texture: npt.ArrayLike | None = None, min_texture: float = 0.0,
+                        uniqueness: float = 0.0, left_right_check: bool = True,
+                        lr_tolerance: float = 1, subpixel: bool = True) -> FloatArray:
     """Left-reference disparity from a left-reference cost volume (``left_reference_volume``):
     the thesis's selection (C(d0) < threshold, d0 > 0) made confident.
 
@@ -159,7 +171,8 @@ def confident_disparity(cost, threshold, texture=None, min_texture=0.0, uniquene
     return np.where(keep, disparity, np.nan)
 
 
-def sgbm_disparity(I_left, I_right, max_disparity, window=5, min_disparity=0):
+def sgbm_disparity(I_left: npt.ArrayLike, I_right: npt.ArrayLike, max_disparity: int,
+                   window: int = 5, min_disparity: int = 0) -> FloatArray:
     """Reference dense matcher: OpenCV's StereoSGBM on the rectified pair (left
     reference), P1 = 8 w^2, P2 = 32 w^2 as OpenCV's sample suggests. Inputs are grey
     levels (any range; rescaled to uint8). Returns (H, W) float [px], NaN where invalid."""
@@ -170,7 +183,7 @@ def sgbm_disparity(I_left, I_right, max_disparity, window=5, min_disparity=0):
     right8 = np.clip((I_right - lo) * scale, 0, 255).astype(np.uint8)
     count = max_disparity - min_disparity + 1
     count = int(np.ceil(count / 16) * 16)  # SGBM wants a multiple of 16
-    matcher = cv2.StereoSGBM_create(minDisparity=int(min_disparity), numDisparities=count,
+    matcher = cv2.StereoSGBM.create(minDisparity=int(min_disparity), numDisparities=count,
                                     blockSize=int(window), P1=8 * window**2,
                                     P2=32 * window**2, uniquenessRatio=10,
                                     speckleWindowSize=50, speckleRange=2, disp12MaxDiff=1,
@@ -180,7 +193,8 @@ def sgbm_disparity(I_left, I_right, max_disparity, window=5, min_disparity=0):
     return np.where(disparity > min_disparity - 1, disparity, np.nan)
 
 
-def sparse_disparity(cost, threshold, left_right_check=False, lr_tolerance=0):
+def sparse_disparity(cost: npt.ArrayLike, threshold: float, left_right_check: bool = False,
+                     lr_tolerance: float = 0) -> FloatArray:
     """Confident right-image disparity from a (D+1, H, W) cost volume (§4.2 step 5).
 
     d0 = argmin_d C; a pixel is kept where C(d0) < threshold and d0 > 0. With
@@ -207,7 +221,8 @@ def sparse_disparity(cost, threshold, left_right_check=False, lr_tolerance=0):
     return np.where(keep, d0.astype(float), np.nan)
 
 
-def depth_from_disparity(disparity, f_px, baseline_m):
+def depth_from_disparity(disparity: npt.ArrayLike, f_px: float, baseline_m: float
+                         ) -> FloatArray:
     """Depth Z = f b / d (5.2.5) in the unit of ``baseline_m`` [m]; NaN where d is NaN or
     d <= 0. ``disparity`` [px] of any shape, ``f_px`` the focal length [px]."""
     disparity = np.asarray(disparity, dtype=float)
@@ -217,7 +232,7 @@ def depth_from_disparity(disparity, f_px, baseline_m):
 
 # --- the fast matcher: band-limited cost volume with OpenCV box filters --------------
 
-def noise_sigma(image, flat_fraction=0.25):
+def noise_sigma(image: npt.ArrayLike, flat_fraction: float = 0.25) -> float:
     """Robust estimate of the image noise std [grey levels] (Immerkaer 1996: the
     Laplacian-difference mask cancels smooth shading to second order), taken over the
     ``flat_fraction`` of pixels with the weakest smoothed gradient (texture and edges
@@ -236,12 +251,12 @@ def noise_sigma(image, flat_fraction=0.25):
 
 
 class Matches(NamedTuple):
-    disparity: np.ndarray  # (H, W) float raw disparity [px], NaN where not confident
-    cost: np.ndarray  # (H, W) best cost c0 (inf where nothing was searched)
-    distinctiveness: np.ndarray  # (H, W) 1 - c0 / c1, c1 the best cost > 1 px away
+    disparity: FloatArray  # (H, W) raw disparity [px], NaN where not confident
+    cost: FloatArray  # (H, W) best cost c0 (inf where nothing was searched)
+    distinctiveness: FloatArray  # (H, W) 1 - c0 / c1, c1 the best cost > 1 px away
 
 
-def _inverse_energy(image, size):
+def _inverse_energy(image: Float32Array, size: tuple[int, int]) -> Float32Array:
     energy = cv2.boxFilter(image * image, cv2.CV_32F, size, normalize=False,
                            borderType=cv2.BORDER_REFLECT)
     with np.errstate(divide='ignore'):
@@ -249,12 +264,13 @@ def _inverse_energy(image, size):
                         np.inf).astype(np.float32)
 
 
-def _columns(d, W):
+def _columns(d: int, W: int) -> tuple[slice, slice]:
     """(left columns, right columns) that disparity d pairs: right x = left x - d."""
     return ((slice(d, W), slice(0, W - d)) if d >= 0 else (slice(0, W + d), slice(-d, W)))
 
 
-def cost_layers(I_left, I_right, d_lo, d_hi, window=3):
+def cost_layers(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int,
+                window: int = 3) -> Iterator[tuple[int, int, Float32Array]]:
     """Yield (k, d, layer) for the integer raw disparities d = d_lo + k up to d_hi (any
     sign): the left-reference normalised SSD (the thesis's cost, 5.2.3) comparing left
     pixel x with right pixel x - d, float32 (H, W), +inf where x - d leaves the image
@@ -284,16 +300,19 @@ def cost_layers(I_left, I_right, d_lo, d_hi, window=3):
         yield k, d, layer
 
 
-def band_cost_volume(I_left, I_right, d_lo, d_hi, window=3):
+def band_cost_volume(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int,
+                     window: int = 3) -> Float32Array:
     """The (d_hi - d_lo + 1, H, W) float32 stack of ``cost_layers`` (for tests and
     inspection; the matcher streams the layers instead of storing them)."""
     return np.stack([layer for _, _, layer in cost_layers(I_left, I_right, d_lo, d_hi,
                                                            window)])
 
 
-def match_band(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, texture=None,
-               min_texture=0.0, uniqueness=0.0, left_right_check=True, lr_tolerance=1,
-               subpixel=True):
+def match_band(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int,
+               window: int = 3, threshold: float = np.inf,
+               texture: npt.ArrayLike | None = None, min_texture: float = 0.0,
+               uniqueness: float = 0.0, left_right_check: bool = True,
+               lr_tolerance: float = 1, subpixel: bool = True) -> Matches:
     """Confident left-reference raw disparity over the band d_lo..d_hi: the thesis's
     selection (best normalised SSD cost below ``threshold``) made confident as
     ``confident_disparity`` describes (texture, uniqueness against the best cost more
@@ -338,10 +357,10 @@ def match_band(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, texture=
             np.copyto(best, part, where=won)
             np.copyto(d_right[:, right_cols], np.int32(k), where=won)
     n = d_hi - d_lo + 1
-    c0, c1 = c0.astype(float), c1.astype(float)
+    cost0, cost1 = c0.astype(float), c1.astype(float)  # float64 c0, c1
     with np.errstate(invalid='ignore', divide='ignore'):
-        distinct = np.where(np.isfinite(c1) & (c1 > 0), 1.0 - c0 / c1, 0.0)
-    keep = np.isfinite(c0) & (c0 < threshold) & (d0 > 0) & (d0 < n - 1)
+        distinct = np.where(np.isfinite(cost1) & (cost1 > 0), 1.0 - cost0 / cost1, 0.0)
+    keep = np.isfinite(cost0) & (cost0 < threshold) & (d0 > 0) & (d0 < n - 1)
     if texture is not None and min_texture > 0:
         keep &= np.asarray(texture) >= min_texture
     if uniqueness > 0:
@@ -352,15 +371,16 @@ def match_band(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, texture=
     disparity = (d0 + d_lo).astype(float)
     if subpixel:
         with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
-            lo, hi = lo.astype(float), hi.astype(float)
-            curvature = lo - 2 * c0 + hi
+            cost_lo, cost_hi = lo.astype(float), hi.astype(float)
+            curvature = cost_lo - 2 * cost0 + cost_hi
             offset = np.where(np.isfinite(curvature) & (curvature > 0),
-                              0.5 * (lo - hi) / curvature, 0.0)
+                              0.5 * (cost_lo - cost_hi) / curvature, 0.0)
         disparity += np.clip(np.nan_to_num(offset), -0.5, 0.5)
-    return Matches(np.where(keep, disparity, np.nan), c0, distinct)
+    return Matches(np.where(keep, disparity, np.nan), cost0, distinct)
 
 
-def coherent_matches(disparity, radius=2, tolerance=1.0, min_support=2):
+def coherent_matches(disparity: npt.ArrayLike, radius: int = 2, tolerance: float = 1.0,
+                     min_support: int = 2) -> tuple[FloatArray, float]:
     """``disparity`` with the matches that no neighbour backs removed: a match is kept
     when at least ``min_support`` other matches within ``radius`` px lie within
     ``tolerance`` px of its disparity (false matches are isolated; on a surface,
@@ -386,8 +406,10 @@ def coherent_matches(disparity, radius=2, tolerance=1.0, min_support=2):
     return np.where(backed, disparity, np.nan), float(backed.sum() / valid.sum())
 
 
-def _match_tiles(I_left, I_right, centre, have, window, threshold, texture, min_texture,
-                 uniqueness, left_right_check, radius, tile=64):
+def _match_tiles(I_left: Float32Array, I_right: Float32Array, centre: FloatArray,
+                 have: npt.NDArray[np.bool_], window: int, threshold: float,
+                 texture: np.ndarray, min_texture: float, uniqueness: float,
+                 left_right_check: bool, radius: int, tile: int = 64) -> Matches:
     """``match_band`` tile by tile, each ``tile`` x ``tile`` block searching only the
     disparities its predicted ``centre`` (where ``have``) spans, +- ``radius``: exact
     constant-disparity windows, left-right check and band-edge rejection as on the
@@ -416,15 +438,17 @@ def _match_tiles(I_left, I_right, centre, have, window, threshold, texture, min_
     return Matches(disparity, cost, distinct)
 
 
-def _half(image):
+def _half(image: np.ndarray) -> np.ndarray:
     H, W = image.shape
     return cv2.resize(np.ascontiguousarray(image[:H // 2 * 2, :W // 2 * 2], dtype=np.float32),
                       (W // 2, H // 2), interpolation=cv2.INTER_AREA)
 
 
-def match_pyramid(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, texture_snr=0.0,
-                  min_texture=0.0, uniqueness=0.0, left_right_check=True,
-                  max_full_band=24, min_width=96, radius=2):
+def match_pyramid(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int,
+                  window: int = 3, threshold: float = np.inf, texture_snr: float = 0.0,
+                  min_texture: float = 0.0, uniqueness: float = 0.0,
+                  left_right_check: bool = True, max_full_band: int = 24,
+                  min_width: int = 96, radius: int = 2) -> tuple[Matches, int]:
     """``match_band`` made fast for wide bands: while the band has more than
     ``max_full_band`` layers (and the half image keeps ``min_width`` px), the whole
     band is searched on the image halved (INTER_AREA; disparities halve), and the
@@ -438,7 +462,7 @@ def match_pyramid(I_left, I_right, d_lo, d_hi, window=3, threshold=np.inf, textu
     I_right = np.asarray(_check_image(I_right, 'I_right'), dtype=np.float32)
     H, W = I_left.shape
 
-    def texture_floor(image):
+    def texture_floor(image: np.ndarray) -> float:
         return max(min_texture, texture_snr * noise_sigma(image))
 
     texture = window_std(I_left, window)

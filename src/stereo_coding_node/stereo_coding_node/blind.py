@@ -13,15 +13,21 @@ marked image from an unmarked or wrong-key one (false alarm 2^-32 per image).
 Nothing but the key and the step is shared: the decoder needs neither the original
 image nor the disparity (blind).
 """
+from __future__ import annotations
+
 import hashlib
 import zlib
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 import reedsolo
 
 from stereo_coding_node.errors import CodingError
+from vgm_common.geometry import FloatArray
+
+Bits = npt.NDArray[np.uint8]  # (n,) bits, 0 or 1
 
 CELL_PX = 48  # grid cell of the disparity code [px]: the code grows with the image
 LEVEL_BITS = 6  # per cell; level 0 marks an unknown cell
@@ -48,31 +54,31 @@ class Detection:
     found: bool
     confidence: float
     raw_ber: float
-    disparity_px: object = None
-    bits: object = None
+    disparity_px: FloatArray | None = None
+    bits: Bits | None = None
 
 
-def code_grid(shape):
+def code_grid(shape: tuple[int, ...]) -> tuple[int, int]:
     """(rows, cols) of the disparity code for an image of ``shape`` (H, W)."""
     return max(1, int(np.ceil(shape[0] / CELL_PX))), max(1, int(np.ceil(shape[1] / CELL_PX)))
 
 
-def payload_bits(shape):
+def payload_bits(shape: tuple[int, ...]) -> int:
     """Number of bits carried in an image of ``shape``, CRC included."""
     return 8 * len(_RS.encode(bytes(_message_bytes(shape))))
 
 
-def _body_bits(shape):
+def _body_bits(shape: tuple[int, ...]) -> int:
     rows, cols = code_grid(shape)
     return HEADER_BITS + rows * cols * LEVEL_BITS
 
 
-def _message_bytes(shape):
+def _message_bytes(shape: tuple[int, ...]) -> int:
     """Bytes of the body (padded to whole bytes) and its CRC-32."""
     return (_body_bits(shape) + 7) // 8 + CRC_BITS // 8
 
 
-def disparity_code(disparity_px):
+def disparity_code(disparity_px: npt.ArrayLike) -> Bits:
     """(H, W) disparity [px] (NaN or < 0 unknown) -> payload bits (uint8 0/1), CRC included."""
     d = np.asarray(disparity_px, dtype=float)
     rows, cols = code_grid(d.shape)
@@ -107,7 +113,7 @@ def disparity_code(disparity_px):
     return np.unpackbits(np.frombuffer(bytes(_RS.encode(message)), np.uint8))
 
 
-def disparity_from_code(bits, shape):
+def disparity_from_code(bits: npt.ArrayLike, shape: tuple[int, ...]) -> FloatArray | None:
     """Inverse of ``disparity_code``: (H, W) float64 disparity [px], NaN where unknown;
     None if the CRC fails or the header is inconsistent. The cells are interpolated
     bilinearly (weighting cells by the decoded image's grey levels, a joint bilateral
@@ -126,7 +132,8 @@ def disparity_from_code(bits, shape):
     return _upsample_cells(cells, shape)
 
 
-def encode(image, disparity_px, key, step=DEFAULT_STEP):
+def encode(image: npt.ArrayLike, disparity_px: npt.ArrayLike, key: str,
+           step: float = DEFAULT_STEP) -> npt.NDArray[np.uint8]:
     """Embed the disparity code of ``disparity_px`` (H, W) [px] in ``image`` (H, W)
     uint8. Returns the coded (H, W) uint8 image."""
     image = _check_grey(image)
@@ -149,13 +156,13 @@ def encode(image, disparity_px, key, step=DEFAULT_STEP):
     return np.clip(np.rint(marked), 0, 255).astype(np.uint8)
 
 
-def decode(image, key, step=DEFAULT_STEP):
+def decode(image: npt.ArrayLike, key: str, step: float = DEFAULT_STEP) -> Detection:
     """Look for the watermark of ``key`` in ``image`` (H, W) uint8; returns a Detection."""
     image = _check_grey(image)
     n_bits = payload_bits(image.shape)
     _, values = _band_coefficients(image)
     slots = _slot_layout(values.shape[:2], n_bits, key)
-    best = None
+    best: tuple[float, Bits, FloatArray] | None = None  # (confidence, bits, soft)
     for sigma in BLUR_SIGMAS_PX:
         gains = np.exp(-0.5 * (sigma * _BAND_FREQUENCIES) ** 2)
         phase = 2.0 * np.pi * ((values / gains).reshape(-1) / step - slots.dither)
@@ -169,6 +176,7 @@ def decode(image, key, step=DEFAULT_STEP):
         if _checked_body(bits, image.shape) is not None:
             best = (confidence, bits, soft)
             break
+    assert best is not None  # BLUR_SIGMAS_PX is not empty
     confidence, bits, soft = best
     raw_ber = float(np.mean((soft < 0) != bits[slots.bit_of_slot]))
     disparity = disparity_from_code(bits, image.shape)
@@ -176,7 +184,9 @@ def decode(image, key, step=DEFAULT_STEP):
                      disparity_px=disparity, bits=bits)
 
 
-def decode_rotated(image, key, step=DEFAULT_STEP, max_degrees=15.0, step_degrees=0.1):
+def decode_rotated(image: npt.ArrayLike, key: str, step: float = DEFAULT_STEP,
+                   max_degrees: float = 15.0,
+                   step_degrees: float = 0.1) -> tuple[Detection, float]:
     """Resynchronisation for a rotated image: rotate back by every angle of a grid over
     +-``max_degrees`` (the copies only agree within ~0.1 deg of the true angle), keep the
     angle where the copies agree best, and decode there (Reed-Solomon and the CRC still
@@ -198,13 +208,13 @@ def decode_rotated(image, key, step=DEFAULT_STEP, max_degrees=15.0, step_degrees
     return decode(_rotate(image, best[1]), key, step), best[1]
 
 
-def _rotate(image, degrees):
+def _rotate(image: np.ndarray, degrees: float) -> np.ndarray:
     H, W = image.shape
     M = cv2.getRotationMatrix2D(((W - 1) / 2, (H - 1) / 2), degrees, 1.0)
     return cv2.warpAffine(image, M, (W, H), flags=cv2.INTER_LINEAR, borderValue=0)
 
 
-def copies_per_bit(shape):
+def copies_per_bit(shape: tuple[int, ...]) -> int:
     """Copies of each payload bit an (H, W) image carries (the smallest count)."""
     slots = (shape[0] // BLOCK) * (shape[1] // BLOCK) * len(BANDS)
     return slots // payload_bits(shape)
@@ -218,7 +228,7 @@ _BAND_COLS = np.array([b[1] for b in BANDS])
 _BAND_FREQUENCIES = np.pi / BLOCK * np.hypot(_BAND_ROWS, _BAND_COLS)
 
 
-def _dct_matrix(n=BLOCK):
+def _dct_matrix(n: int = BLOCK) -> FloatArray:
     k = np.arange(n)
     D = np.sqrt(2.0 / n) * np.cos(np.pi * (2 * k[None, :] + 1) * k[:, None] / (2 * n))
     D[0] /= np.sqrt(2.0)
@@ -231,7 +241,7 @@ _DCT = _dct_matrix()
 _BAND_BASIS = np.stack([np.outer(_DCT[u], _DCT[v]) for u, v in BANDS])  # (bands, 8, 8)
 
 
-def _band_coefficients(image):
+def _band_coefficients(image: np.ndarray) -> tuple[FloatArray, FloatArray]:
     """(blocks (rows, 8, cols, 8) float64 of the whole 8x8 blocks, their orthonormal DCT
     coefficients of ``BANDS``, (rows, cols, bands))."""
     rows, cols = image.shape[0] // BLOCK, image.shape[1] // BLOCK
@@ -248,10 +258,11 @@ class _Slots:
     dither: np.ndarray  # (slots,) float64 in [0, 1): the keyed lattice shift, in steps
 
 
-_SLOT_CACHE = {}
+# (block grid, number of bits, key) -> slots
+_SLOT_CACHE: dict[tuple[tuple[int, ...], int, str], _Slots] = {}
 
 
-def _slot_layout(block_grid, n_bits, key):
+def _slot_layout(block_grid: tuple[int, ...], n_bits: int, key: str) -> _Slots:
     """The keyed assignment of coefficients to bits, and the dither (cached)."""
     cache_key = (block_grid, n_bits, key)
     if cache_key not in _SLOT_CACHE:
@@ -270,12 +281,12 @@ def _slot_layout(block_grid, n_bits, key):
     return _SLOT_CACHE[cache_key]
 
 
-def _to_bits(values, width):
+def _to_bits(values: npt.ArrayLike, width: int) -> Bits:
     values = np.asarray(values, dtype=np.int64)
     return ((values[:, None] >> np.arange(width - 1, -1, -1)) & 1).astype(np.uint8).ravel()
 
 
-def _from_bits(bits, width):
+def _from_bits(bits: npt.ArrayLike, width: int) -> npt.NDArray[np.int64]:
     bits = np.asarray(bits, dtype=np.int64).reshape(-1, width)
     return bits @ (1 << np.arange(width - 1, -1, -1))
 
@@ -283,7 +294,7 @@ def _from_bits(bits, width):
 _RS = reedsolo.RSCodec(RS_PARITY_BYTES)
 
 
-def _checked_body(bits, shape):
+def _checked_body(bits: npt.ArrayLike, shape: tuple[int, ...]) -> Bits | None:
     """The body bits of a received code word after Reed-Solomon correction, or None if
     it cannot be corrected or its CRC-32 does not match."""
     bits = np.asarray(bits, dtype=np.uint8)
@@ -299,7 +310,7 @@ def _checked_body(bits, shape):
     return np.unpackbits(np.frombuffer(body, np.uint8))[:_body_bits(shape)]
 
 
-def _upsample_cells(cells, shape):
+def _upsample_cells(cells: FloatArray, shape: tuple[int, ...]) -> FloatArray:
     """Cell values (rows, cols) -> (H, W), NaN where the nearest cell is unknown."""
     H, W = shape
     y = (np.arange(H) + 0.5) / CELL_PX - 0.5
@@ -312,7 +323,7 @@ def _upsample_cells(cells, shape):
     return np.where(nearest_known, dense.astype(float), np.nan)
 
 
-def _check_grey(image):
+def _check_grey(image: npt.ArrayLike) -> npt.NDArray[np.uint8]:
     image = np.asarray(image)
     if image.ndim != 2 or image.dtype != np.uint8:
         raise CodingError(f'expected an (H, W) uint8 grey image, got {image.dtype} '

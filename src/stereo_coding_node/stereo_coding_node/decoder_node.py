@@ -66,16 +66,20 @@ class StereoDecodingNode(Node):
         self.worker = Worker(self._process, self._on_error, 'stereo decoding')
         if self.params.transport == 'compressed':
             self.create_subscription(CompressedImage, CODED_COMPRESSED_TOPIC,
-                                     self.worker.submit, DEFAULT_QOS)
+                                     self._on_coded, DEFAULT_QOS)
         else:
-            self.create_subscription(Image, CODED_IMAGE_TOPIC, self.worker.submit,
-                                     DEFAULT_QOS)
-        self.key_cache = (None, None)  # ((path, mtime, size), ThesisKey)
+            self.create_subscription(Image, CODED_IMAGE_TOPIC, self._on_coded, DEFAULT_QOS)
+        # ((path, mtime, size), ThesisKey)
+        self.key_cache: tuple[tuple[str, int, int] | None, thesis.ThesisKey | None] = (
+            None, None)
         self.decoded = self.unmarked = self.failed = 0
         self.last = {}
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f'method {self.params.method}: waiting for the coded image '
                                f'({self.params.transport})')
+
+    def _on_coded(self, msg):
+        self.worker.submit(msg)
 
     def _on_error(self, error):
         self.failed += 1
@@ -108,6 +112,7 @@ class StereoDecodingNode(Node):
         stamp_ns, frame = stamp_to_ns(msg.header.stamp), msg.header.frame_id
         started = time.perf_counter()
         p = self.params
+        disparity: np.ndarray | None  # None: no watermark found
         if p.method == 'thesis':
             left, disparity, _ = thesis.decode(coded, self._thesis_key())
             found, confidence, values = True, float('nan'), {}
@@ -124,6 +129,7 @@ class StereoDecodingNode(Node):
             self.unmarked += 1
             self.diagnostics.publish('watermark', 'warn', 'no watermark', self.last)
             return
+        assert disparity is not None  # found: the watermark carried a disparity
         self.decoded += 1
         self.diagnostics.publish('watermark', 'ok', 'watermark found', self.last)
         right = synthesise_right(left, disparity)

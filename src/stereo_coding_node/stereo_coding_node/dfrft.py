@@ -7,12 +7,20 @@ sorted by descending eigenvalue, are discrete Hermite-Gauss vectors of orders 0,
 N - 2 and then N - 1 (odd N) or N (even N). ``K_a = sum_j exp(-i o_j a) v_j v_j^T`` is
 unitary, ``K_a K_b = K_(a+b)`` and ``K_(pi/2)`` is the unitary DFT.
 """
+from __future__ import annotations
+
+from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
+import numpy.typing as npt
+
+from vgm_common.geometry import FloatArray
+
+ComplexArray = npt.NDArray[np.complex128]
 
 
-def commuting_matrix(n):
+def commuting_matrix(n: int) -> FloatArray:
     """The N x N matrix S of ALGORITHMS.md §5.2 (float64, symmetric)."""
     k = np.arange(n)
     S = np.diag(2.0 * np.cos(2.0 * np.pi * k / n))
@@ -23,7 +31,7 @@ def commuting_matrix(n):
 
 
 @lru_cache(maxsize=16)
-def _hermite_basis(n):
+def _hermite_basis(n: int) -> tuple[FloatArray, FloatArray]:
     """(eigenvectors (N, N) as columns, orders (N,)); read-only, cached per N.
 
     S has (near-)degenerate eigenvalues, so a plain ``eigh`` of S mixes an even and an
@@ -63,13 +71,13 @@ def _hermite_basis(n):
     return vectors, orders
 
 
-def dfrft_matrix(n, angle):
+def dfrft_matrix(n: int, angle: float) -> ComplexArray:
     """K_a: the (N, N) complex128 DFrFT matrix for ``angle`` a [rad] (order 2a/pi)."""
     vectors, orders = _hermite_basis(int(n))
     return (vectors * np.exp(-1j * orders * angle)) @ vectors.T
 
 
-def dfrft2(image, angles):
+def dfrft2(image: npt.ArrayLike, angles: Sequence[float]) -> ComplexArray:
     """2-D separable DFrFT ``K_a X K_b^T`` of an (M, N) array; ``angles`` = (a, b) [rad],
     a along the rows' index (M), b along the columns' (N)."""
     a, b = angles
@@ -78,7 +86,7 @@ def dfrft2(image, angles):
 
 
 @lru_cache(maxsize=16)
-def zigzag_order(rows, cols):
+def zigzag_order(rows: int, cols: int) -> npt.NDArray[np.intp]:
     """Flat indices of an (rows, cols) array in JPEG zig-zag order: anti-diagonals from
     (0, 0), alternately up-right and down-left (read-only int64 array)."""
     r, c = np.indices((rows, cols))
@@ -90,13 +98,13 @@ def zigzag_order(rows, cols):
     return order
 
 
-def zigzag_degrade(image):
+def zigzag_degrade(image: npt.ArrayLike) -> np.ndarray:
     """Pi: the pixels read in zig-zag order, written back in row-major order."""
     X = np.asarray(image)
     return X.ravel()[zigzag_order(*X.shape)].reshape(X.shape)
 
 
-def zigzag_restore(image):
+def zigzag_restore(image: npt.ArrayLike) -> np.ndarray:
     """Pi^-1 ("d-ZIG-ZAG"), the inverse of ``zigzag_degrade``."""
     X = np.asarray(image)
     out = np.empty(X.size, dtype=X.dtype)

@@ -1,12 +1,17 @@
 """Generated rectified stereo scenes with known disparity, seeded: a textured slanted
 plane with fronto-parallel blobs in front (for tests and the bench)."""
+from __future__ import annotations
+
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from stereo_coding_node.views import synthesise_right
+from vgm_common.geometry import FloatArray
 
 
-def generated_scene(shape, seed, max_disparity_px=None):
+def generated_scene(shape: tuple[int, int], seed: int, max_disparity_px: float | None = None
+                    ) -> tuple[npt.NDArray[np.uint8], np.ndarray, FloatArray]:
     """(left (H, W) uint8, right (H, W) uint8, disparity [px] (H, W) float64) for a
     random scene; disparities up to about ``max_disparity_px`` (default W / 10)."""
     H, W = shape

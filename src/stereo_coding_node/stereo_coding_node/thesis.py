@@ -6,13 +6,19 @@ writes to a ``key_file``.
 The transmitted image is the *degraded* (zig-zag scrambled) marked image, 8 bits, as
 the thesis sends F*; the receiver restores the left image by the inverse scan.
 """
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import numpy.typing as npt
 
 from stereo_coding_node.dfrft import dfrft2, zigzag_degrade, zigzag_restore
 from stereo_coding_node.errors import CodingError, KeyFileError
+from vgm_common.geometry import FloatArray
 
 THESIS_STRENGTH = 0.45  # alpha_w of (6.5.3)
 DEFAULT_ANGLES = (0.6 * np.pi / 2, 0.8 * np.pi / 2)  # (a, b) [rad]: not given (A6.2)
@@ -28,16 +34,16 @@ class ThesisKey:
     V_w (N, r), and how the disparity was scaled into the watermark (value = offset +
     gain * disparity [px])."""
 
-    angles: tuple
+    angles: tuple[float, ...]
     strength: float
     S_f: np.ndarray
     U_w: np.ndarray
     V_w: np.ndarray
-    shape: tuple
+    shape: tuple[int, ...]
     gain: float
     offset: float
 
-    def save(self, path):
+    def save(self, path: str | os.PathLike[str]) -> None:
         """Write the key as .npz (``numpy.savez``) to ``path``."""
         with open(path, 'wb') as f:
             np.savez(f, angles=np.asarray(self.angles, float), strength=self.strength,
@@ -45,7 +51,7 @@ class ThesisKey:
                      shape=np.asarray(self.shape, int), gain=self.gain, offset=self.offset)
 
     @classmethod
-    def load(cls, path):
+    def load(cls, path: str | os.PathLike[str]) -> ThesisKey:
         """Read a key written by ``save``; KeyFileError names what is wrong."""
         path = Path(path)
         try:
@@ -71,7 +77,8 @@ class ThesisKey:
                    gain=float(fields['gain']), offset=float(fields['offset']))
 
 
-def disparity_to_watermark(disparity_px, scale):
+def disparity_to_watermark(disparity_px: FloatArray,
+                           scale: str) -> tuple[FloatArray, float, float]:
     """(watermark (M, N) float64, gain, offset): invalid (NaN or < 0) pixels become 0."""
     d = np.where(np.isfinite(disparity_px) & (disparity_px >= 0), disparity_px, 0.0)
     if scale == 'pixels':
@@ -84,8 +91,9 @@ def disparity_to_watermark(disparity_px, scale):
     return (d - low) * gain, gain, -low * gain
 
 
-def encode(left, disparity_px, angles=DEFAULT_ANGLES, strength=THESIS_STRENGTH,
-           scale='pixels'):
+def encode(left: npt.ArrayLike, disparity_px: npt.ArrayLike,
+           angles: Sequence[float] = DEFAULT_ANGLES, strength: float = THESIS_STRENGTH,
+           scale: str = 'pixels') -> tuple[npt.NDArray[np.uint8], ThesisKey]:
     """Thesis coding, §5.3. ``left``: (M, N) uint8 rectified left image;
     ``disparity_px``: (M, N) disparity [px], NaN or negative where unknown.
 
@@ -106,7 +114,7 @@ def encode(left, disparity_px, angles=DEFAULT_ANGLES, strength=THESIS_STRENGTH,
     return np.clip(np.rint(coded), 0, 255).astype(np.uint8), key
 
 
-def decode(coded, key):
+def decode(coded: npt.ArrayLike, key: ThesisKey) -> tuple[np.ndarray, FloatArray, FloatArray]:
     """Thesis decoding, §5.4. Returns (left (M, N) uint8 restored by the inverse scan,
     disparity [px] (M, N) float64, extracted singular values S_w^ext (r,))."""
     coded = _check_grey(coded)
@@ -120,13 +128,14 @@ def decode(coded, key):
     return zigzag_restore(coded), disparity, S_extracted
 
 
-def watermark_singular_values(disparity_px, scale='pixels'):
+def watermark_singular_values(disparity_px: npt.ArrayLike, scale: str = 'pixels') -> FloatArray:
     """S_w of the watermark made from ``disparity_px`` (the w of (6.6.1))."""
+    # (the ignore: float64 in, float64 out; numpy's stubs say any float precision)
     return np.linalg.svd(disparity_to_watermark(np.asarray(disparity_px, float), scale)[0],
-                         compute_uv=False)
+                         compute_uv=False)  # type: ignore[return-value]
 
 
-def _check_grey(image):
+def _check_grey(image: npt.ArrayLike) -> npt.NDArray[np.uint8]:
     image = np.asarray(image)
     if image.ndim != 2 or image.dtype != np.uint8 or min(image.shape) < 2:
         raise CodingError(f'expected an (M, N) uint8 grey image, got {image.dtype} '

@@ -1,9 +1,12 @@
 """The right view synthesised from the left image and its disparity (left reference, a
 left pixel at column x appears at x - d in the right image)."""
+from __future__ import annotations
+
 import numpy as np
+import numpy.typing as npt
 
 
-def synthesise_right(left, disparity_px):
+def synthesise_right(left: npt.ArrayLike, disparity_px: npt.ArrayLike) -> np.ndarray:
     """Forward-warp ``left`` (H, W) uint8 by ``disparity_px`` (H, W) [px], NaN unknown.
 
     Where several left pixels land on one right pixel the nearer (larger disparity)
