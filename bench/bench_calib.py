@@ -47,7 +47,7 @@ from calib_node.seed_camera import (
     project_seed,
     seed_stereo_observations,
 )
-from vgm_common.scenario import load_scenario, resolve_scenario_path
+from sensor_sim.scenario import load_scenario, resolve_scenario_path
 
 RESULTS = Path(__file__).resolve().parent / 'results' / 'calib'
 POINTS, CLEAN_PIXELS = seed_stereo_observations()  # noise-free

@@ -236,7 +236,7 @@ def run_thesis_experiments():
 def render(scenario_name, sigma=None, seed=0):
     from sensor_sim.curves import curve_polylines
     from sensor_sim.render import SceneRenderer, add_noise
-    from vgm_common.scenario import load_scenario, resolve_scenario_path
+    from sensor_sim.scenario import load_scenario, resolve_scenario_path
     scenario = load_scenario(resolve_scenario_path(scenario_name))
     renderer = SceneRenderer(scenario)
     noise = scenario.noise.image_sigma if sigma is None else sigma

@@ -53,9 +53,9 @@ from sensor_sim import task_generator  # noqa: E402
 from sensor_sim.arm_sim import SimulatedArm  # noqa: E402
 from sensor_sim.contact import contact_force  # noqa: E402
 from sensor_sim.curves import curve_polylines  # noqa: E402
+from sensor_sim.scenario import load_scenario  # noqa: E402
 from sensor_sim.surfaces import normal_base  # noqa: E402
 from vgm_common.robot_model import load_robot  # noqa: E402
-from vgm_common.scenario import load_scenario  # noqa: E402
 
 OUT = REPO / 'bench' / 'results' / 'pa10_ik'
 W_THESIS = np.array([1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0])

@@ -30,11 +30,11 @@ import numpy as np
 import yaml
 
 from sensor_sim.render import SceneRenderer, add_noise
+from sensor_sim.scenario import load_scenario
 from sfs_stereo_node.fusion import depth_error_stats
 from sfs_stereo_node.pipeline import DepthConfig, process_pair
 from sfs_stereo_node.rectify import raw_depth_to_rectified, rectification_maps, scaled_pair
 from vgm_common.calibration_io import stereo_rectification
-from vgm_common.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / 'bench' / 'results' / 'sfs_stereo'

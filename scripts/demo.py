@@ -44,13 +44,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import demo_evaluation as evaluation  # noqa: E402
 
 from sensor_sim.curves import curve_points_base  # noqa: E402
+from sensor_sim.scenario import load_scenario, resolve_scenario_path  # noqa: E402
 from sensor_sim.surfaces import signed_height_base  # noqa: E402
 from vgm_common.camera_topics import CalibratedCameras  # noqa: E402
 from vgm_common.conversions import image_to_numpy, pose_to_matrix  # noqa: E402
 from vgm_common.launcher import Launch  # noqa: E402
 from vgm_common.node_tools import parse_published_counts, use_fastdds_profile  # noqa: E402
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS  # noqa: E402
-from vgm_common.scenario import load_scenario, resolve_scenario_path  # noqa: E402
 from vgm_common.topics import IMAGE_TOPICS
 
 REPO_ROOT = Path(__file__).resolve().parents[1]

@@ -28,6 +28,7 @@ from trajectory_msgs.msg import JointTrajectory
 from bag_tools.bag_writer import BagWriter
 from harness import executable, publish_rig, small_scenario
 from sensor_sim.render import SceneRenderer, add_noise
+from sensor_sim.scenario import load_scenario
 from vgm_common.calibration_io import write_calibration
 from vgm_common.conversions import (
     make_header,
@@ -37,7 +38,6 @@ from vgm_common.conversions import (
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import JOINT_NAMES
-from vgm_common.scenario import load_scenario
 from vgm_common.topics import CAMERA_INFO_TOPICS, IMAGE_TOPICS, OPTICAL_FRAMES
 
 MIN_CASES = 20  # kinds of bad input per node, at least

@@ -178,7 +178,7 @@ def chart_images():
     """Clean images of the default scenario's first chart pose in the three cameras, and
     the chart pose (rendered here: the test publishes its own captures)."""
     from sensor_sim.render import SceneRenderer
-    from vgm_common.scenario import load_scenario, resolve_scenario_path
+    from sensor_sim.scenario import load_scenario, resolve_scenario_path
 
     scenario = load_scenario(resolve_scenario_path('default'))
     renderer = SceneRenderer(scenario)

@@ -18,6 +18,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from harness import SCENARIO_DIR, executable, publish_rig, wait_for
+from sensor_sim.scenario import load_scenario
 from vgm_common.calibration_io import (
     read_calibration,
     stereo_rectification,
@@ -31,7 +32,6 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
-from vgm_common.scenario import load_scenario
 from vgm_common.topics import IMAGE_TOPICS, OPTICAL_FRAMES
 
 SPACING = 0.005  # [m] the default

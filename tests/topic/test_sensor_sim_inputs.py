@@ -11,10 +11,10 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from harness import SCENARIO_DIR, executable
 from sensor_sim.contact import joint_vector_pressing
+from sensor_sim.scenario import load_scenario
 from vgm_common.conversions import stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.robot_model import JOINT_NAMES, load_robot
-from vgm_common.scenario import load_scenario
 
 SCENARIO = SCENARIO_DIR / 'default.yaml'
 # From the default scenario's initial pose, this joint step lowers the tool into the surface.

@@ -8,11 +8,11 @@ from sensor_msgs.msg import CameraInfo, Image
 from stereo_msgs.msg import DisparityImage
 
 from harness import executable, publish_rig, small_scenario, wait_for
+from sensor_sim.scenario import load_scenario
 from sfs_stereo_node.rectify import raw_depth_to_rectified, rectification_maps
 from vgm_common.calibration_io import write_calibration
 from vgm_common.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS
-from vgm_common.scenario import load_scenario
 from vgm_common.topics import IMAGE_TOPICS, OPTICAL_FRAMES
 
 FRAME = 'stereo_left_optical_frame'

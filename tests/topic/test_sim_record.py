@@ -15,10 +15,10 @@ from sensor_msgs.msg import Image, JointState
 
 from bag_tools.bag_writer import header_stamp_ns
 from harness import SCENARIO_DIR, executable
+from sensor_sim.scenario import load_scenario
 from vgm_common.conversions import stamp_to_ns
 from vgm_common.node_tools import parse_published_counts
 from vgm_common.qos import DEFAULT_QOS
-from vgm_common.scenario import load_scenario
 
 IMAGE_TOPICS = {'/stereo/left/image_raw': 'stereo_left_optical_frame',
                 '/stereo/right/image_raw': 'stereo_right_optical_frame',

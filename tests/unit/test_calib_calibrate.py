@@ -13,8 +13,8 @@ from calib_node.calibrate import (
     division_to_plumb_bob,
 )
 from calib_node.chart_detection import chart_points
+from sensor_sim.scenario import load_scenario, resolve_scenario_path
 from vgm_common.camera_model import distort_division, distort_normalized
-from vgm_common.scenario import load_scenario, resolve_scenario_path
 
 SCENARIO = load_scenario(resolve_scenario_path('default'))
 CAMERAS = SCENARIO.cameras

@@ -6,8 +6,8 @@ import pytest
 
 from sensor_sim import surfaces
 from sensor_sim.contact import contact_force
+from sensor_sim.scenario import Surface, load_scenario
 from vgm_common.geometry import make_transform, rpy_to_matrix
-from vgm_common.scenario import Surface, load_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / 'src' / 'sensor_sim' / 'scenarios'
 STIFFNESS = 2000.0  # [N/m]

@@ -114,7 +114,7 @@ def test_noise_draws_that_opened_the_quick_loop_give_one_closed_curve(frame):
     from curve_recon_node.pipeline import ReconstructionSettings, reconstruct_capture
     from sensor_sim.curves import curve_polylines
     from sensor_sim.render import SceneRenderer, add_noise
-    from vgm_common.scenario import load_scenario, resolve_scenario_path
+    from sensor_sim.scenario import load_scenario, resolve_scenario_path
 
     scenario = load_scenario(resolve_scenario_path('quick'))
     renderer = SceneRenderer(scenario)

@@ -9,8 +9,8 @@ import pytest
 
 from sensor_sim import chart, curves, surfaces
 from sensor_sim.render import SceneRenderer, add_noise
+from sensor_sim.scenario import Curve, load_scenario
 from vgm_common.geometry import make_transform, rot_y, rpy_to_matrix, transform_points
-from vgm_common.scenario import Curve, load_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / 'src' / 'sensor_sim' / 'scenarios'
 SHIPPED = sorted(SCENARIOS.glob('*.yaml'))

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
+from sensor_sim.scenario import load_scenario, parse_scenario
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput, ScenarioError
 from vgm_common.geometry import (
@@ -23,7 +24,6 @@ from vgm_common.geometry import (
     rot_z,
     rpy_to_matrix,
 )
-from vgm_common.scenario import load_scenario, parse_scenario
 
 SCENARIO_DIR = Path(__file__).resolve().parents[2] / 'src' / 'sensor_sim' / 'scenarios'
 SHIPPED = sorted(SCENARIO_DIR.glob('*.yaml'))

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sensor_sim import surfaces
+from sensor_sim.scenario import Surface, surface_centre_base
 from vgm_common.geometry import make_transform, rpy_to_matrix
-from vgm_common.scenario import Surface, surface_centre_base
 
 T_TILTED = make_transform(rpy_to_matrix(0.2, -0.3, 0.4), [0.6, -0.1, 0.25])
 HEIGHTS = np.random.default_rng(5).normal(size=(7, 9))  # rows along y

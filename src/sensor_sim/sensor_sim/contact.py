@@ -14,8 +14,8 @@ import numpy as np
 import numpy.typing as npt
 
 from sensor_sim import surfaces
+from sensor_sim.scenario import Surface
 from vgm_common.geometry import FloatArray
-from vgm_common.scenario import Surface
 
 if TYPE_CHECKING:  # pinocchio, imported only for the type
     from vgm_common.robot_model import RobotModel

@@ -31,10 +31,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from sensor_sim.curves import curve_polylines
-from vgm_common.camera_model import PinholeCamera
-from vgm_common.errors import InvalidInput
-from vgm_common.geometry import FloatArray, look_at_rotation, make_transform
-from vgm_common.scenario import (
+from sensor_sim.scenario import (
     Curve,
     CurveParameter,
     Noise,
@@ -43,6 +40,9 @@ from vgm_common.scenario import (
     load_scenario,
     resolve_scenario_path,
 )
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray, look_at_rotation, make_transform
 
 WIDTH, HEIGHT = 640, 480
 IMAGE_MARGIN_PX = 25  # every curve point at least this far inside every image

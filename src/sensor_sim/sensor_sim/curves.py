@@ -9,7 +9,7 @@ sampled 16 times more densely, the chord lengths give the arc length as a functi
 parameter, and the curve is then evaluated exactly at the parameters of evenly spaced arc
 lengths, so every sample lies on the true curve). ``points`` curves are returned as given.
 
-Kinds (see ``vgm_common.scenario._parse_curve`` for the keys):
+Kinds (see ``sensor_sim.scenario._parse_curve`` for the keys):
 
 - ``parabola`` / ``cubic``: p(t) = sum_k c[:, k] t^k over ``t_range``, c of shape
   (3, degree + 1) in base_link metres; open.
@@ -29,9 +29,9 @@ from typing import cast
 import numpy as np
 
 from sensor_sim import surfaces
+from sensor_sim.scenario import Curve, CurveParameter, Surface
 from vgm_common.errors import ScenarioError
 from vgm_common.geometry import FloatArray
-from vgm_common.scenario import Curve, CurveParameter, Surface
 
 _DENSE_FACTOR = 16  # parameter samples per output sample when measuring arc length
 

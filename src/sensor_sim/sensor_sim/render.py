@@ -41,12 +41,12 @@ import numpy.typing as npt
 from scipy.special import ndtri
 
 from sensor_sim import chart, curves, surfaces
+from sensor_sim.scenario import Calibration, Curve, Scenario
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 from vgm_common.reflectance import VARIANTS as ON_VARIANTS
 from vgm_common.reflectance import oren_nayar
-from vgm_common.scenario import Calibration, Curve, Scenario
 
 BACKGROUND_GREY = 20.0
 CHART_BACK_ALBEDO = 0.3  # the unprinted back of the chart plate
@@ -102,7 +102,7 @@ class SceneRenderer:
     """Renders a scenario's cameras; see the module docstring for the model.
 
     Args:
-        scenario: a ``vgm_common.scenario.Scenario``.
+        scenario: a ``sensor_sim.scenario.Scenario``.
         variant: Oren-Nayar form, ``'oren_nayar'`` (default) or ``'thesis'``.
         supersample: chart images average supersample x supersample rays per pixel.
 

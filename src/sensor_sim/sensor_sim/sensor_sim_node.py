@@ -23,6 +23,7 @@ from sensor_sim.arm_sim import ARM_MODES, SimulatedArm
 from sensor_sim.contact import contact_force
 from sensor_sim.curves import curve_polylines
 from sensor_sim.render import SceneRenderer, add_noise
+from sensor_sim.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
 from vgm_common.calibration_io import write_calibration
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
@@ -36,7 +37,6 @@ from vgm_common.node_tools import (
 )
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.robot_model import load_robot
-from vgm_common.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
 from vgm_common.topics import (
     BASE_FRAME,
     IMAGE_TOPICS,

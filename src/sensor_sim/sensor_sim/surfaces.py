@@ -31,9 +31,9 @@ import numpy as np
 import numpy.typing as npt
 from numpy.polynomial import Polynomial
 
+from sensor_sim.scenario import Surface
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
-from vgm_common.scenario import Surface
 
 Box = tuple[tuple[float, float], tuple[float, float]]  # ((x_min, x_max), (y_min, y_max))
 BoolArray = npt.NDArray[np.bool_]

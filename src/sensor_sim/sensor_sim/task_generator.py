@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial.transform import Rotation
 
+from sensor_sim.scenario import Surface
 from sensor_sim.surfaces import height, normal_base, surface_points_base
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
@@ -39,7 +40,6 @@ from vgm_common.robot_model import (
     pa10_like_urdf,
     urdf_with_tool0,
 )
-from vgm_common.scenario import Surface
 
 if TYPE_CHECKING:  # imported lazily by BuiltCase.simulated_arm
     from sensor_sim.arm_sim import SimulatedArm
@@ -128,7 +128,7 @@ def posed_surface(kind: str, robot: RobotModel, placement_joints: npt.ArrayLike,
             ``stretched_joints`` of it for a path near the reach).
 
     Returns:
-        A ``vgm_common.scenario.Surface``.
+        A ``sensor_sim.scenario.Surface``.
     """
     if kind not in SURFACE_KINDS:
         raise InvalidInput(f'kind must be one of {SURFACE_KINDS}', 'kind', kind)
