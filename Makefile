@@ -32,10 +32,12 @@ $(BUILD_STAMP): $(VENV_STAMP) $(SOURCES)
 	tail -n 2 ros2_ws/build.log
 	touch $@
 
-# ruff (rules in ruff.toml) and mypy (mypy.ini: vgm_common fully typed, the cores'
-# public functions); `make test` runs it first
+# ruff's rules and format (ruff.toml) and mypy (mypy.ini: vgm_common and every core
+# module fully typed); `make test` runs it first. `ruff format src tests bench scripts`
+# formats what it reports.
 lint: $(VENV_STAMP)
 	$(VENV)/bin/ruff check --output-format concise src tests bench scripts
+	$(VENV)/bin/ruff format --check src tests bench scripts
 	$(VENV)/bin/mypy
 
 test: lint build

@@ -18,9 +18,10 @@
     (options: --trials 20 --ga-trials 3 --sigmas 0 0.5 1 1.5 2 2.5 3 --rigs 10)
 Writes bench/results/calib/calib.md, calib.json and PNG plots.
 """
+
 import os
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # see calib_node/__init__.py
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')  # see calib_node/__init__.py
 import argparse  # noqa: E402
 import json
 import time
@@ -56,29 +57,106 @@ IMAGE_SIZES = ((320, 240), (512, 384))  # the ch4_calibration scenario's cameras
 QUANTITIES = ('fx', 'fy', 'kappa', 'u0', 'v0', 'R', 'T')
 # Table 4.3 [T] as identifiable products (ALGORITHMS.md §3.7): GA, GA-ANN per camera.
 THESIS = {
-    'left': {'GA': {'fx': 1825.8, 'fy': 1798.9, 'kappa': 11.526, 'u0': 21.0, 'v0': 19.0,
-                    'T': (64.7812, 34.7845, 1249.9474), 'angles': (0.0003, 0.0052, 0.0005)},
-             'GA+network': {'fx': 1798.9, 'fy': 1798.9, 'kappa': 11.526, 'u0': 20.0,
-                            'v0': 19.0, 'T': (62.1313, 35.0, 1220.0),
-                            'angles': (0.0003, 0.0009, 0.0005)}},
-    'right': {'GA': {'fx': 3423.9, 'fy': 3232.3, 'kappa': 63.462, 'u0': 240.0, 'v0': 197.0,
-                     'T': (-36.8733, 37.2688, 1211.6814),
-                     'angles': (-1.9023, 0.2252, 0.1452)},
-              'GA+network': {'fx': 3423.9, 'fy': 3304.2, 'kappa': 63.462, 'u0': 244.0,
-                             'v0': 195.0, 'T': (-36.9, 37.56, 1211.0),
-                             'angles': (-1.9029, 0.2, 0.15)}},
+    'left': {
+        'GA': {
+            'fx': 1825.8,
+            'fy': 1798.9,
+            'kappa': 11.526,
+            'u0': 21.0,
+            'v0': 19.0,
+            'T': (64.7812, 34.7845, 1249.9474),
+            'angles': (0.0003, 0.0052, 0.0005),
+        },
+        'GA+network': {
+            'fx': 1798.9,
+            'fy': 1798.9,
+            'kappa': 11.526,
+            'u0': 20.0,
+            'v0': 19.0,
+            'T': (62.1313, 35.0, 1220.0),
+            'angles': (0.0003, 0.0009, 0.0005),
+        },
+    },
+    'right': {
+        'GA': {
+            'fx': 3423.9,
+            'fy': 3232.3,
+            'kappa': 63.462,
+            'u0': 240.0,
+            'v0': 197.0,
+            'T': (-36.8733, 37.2688, 1211.6814),
+            'angles': (-1.9023, 0.2252, 0.1452),
+        },
+        'GA+network': {
+            'fx': 3423.9,
+            'fy': 3304.2,
+            'kappa': 63.462,
+            'u0': 244.0,
+            'v0': 195.0,
+            'T': (-36.9, 37.56, 1211.0),
+            'angles': (-1.9029, 0.2, 0.15),
+        },
+    },
 }
 
 # Table 4.3 [T] as printed, PARAM_NAMES order (u0, v0, Nx, Ny, f, k, alpha, beta, gamma, T).
 THESIS_PARAMS = {
-    ('left', 'GA'): [21, 19, 204, 201, 8.9499, 0.1439, 0.0003, 0.0052, 0.0005, 64.7812,
-                     34.7845, 1249.9474],
-    ('left', 'GA+network'): [20, 19, 201, 201, 8.9499, 0.1439, 0.0003, 0.0009, 0.0005,
-                             62.1313, 35.0, 1220],
-    ('right', 'GA'): [240, 197, 143, 135, 23.9432, 0.1107, -1.9023, 0.2252, 0.1452, -36.8733,
-                      37.2688, 1211.6814],
-    ('right', 'GA+network'): [244, 195, 143, 138, 23.9432, 0.1107, -1.9029, 0.2, 0.15, -36.9,
-                              37.56, 1211],
+    ('left', 'GA'): [
+        21,
+        19,
+        204,
+        201,
+        8.9499,
+        0.1439,
+        0.0003,
+        0.0052,
+        0.0005,
+        64.7812,
+        34.7845,
+        1249.9474,
+    ],
+    ('left', 'GA+network'): [
+        20,
+        19,
+        201,
+        201,
+        8.9499,
+        0.1439,
+        0.0003,
+        0.0009,
+        0.0005,
+        62.1313,
+        35.0,
+        1220,
+    ],
+    ('right', 'GA'): [
+        240,
+        197,
+        143,
+        135,
+        23.9432,
+        0.1107,
+        -1.9023,
+        0.2252,
+        0.1452,
+        -36.8733,
+        37.2688,
+        1211.6814,
+    ],
+    ('right', 'GA+network'): [
+        244,
+        195,
+        143,
+        138,
+        23.9432,
+        0.1107,
+        -1.9029,
+        0.2,
+        0.15,
+        -36.9,
+        37.56,
+        1211,
+    ],
 }
 
 
@@ -89,29 +167,35 @@ def rotation_error(R, R_true):
 def errors_of(ident, truth):
     """Absolute errors of the identifiable quantities of one camera."""
     want = identifiable(truth)
-    out = {name: abs(float(getattr(ident, name)) - float(getattr(want, name)))
-           for name in ('fx', 'fy', 'kappa', 'u0', 'v0')}
+    out = {
+        name: abs(float(getattr(ident, name)) - float(getattr(want, name)))
+        for name in ('fx', 'fy', 'kappa', 'u0', 'v0')
+    }
     out['R'] = rotation_error(np.asarray(ident.R), want.R)
     out['T'] = float(np.linalg.norm(np.asarray(ident.T) - want.T))
     return out
 
 
 def rms(params, pixels):
-    return float(np.sqrt(np.mean(np.sum((project_seed(params[None], POINTS)[0] - pixels) ** 2,
-                                        axis=1))))
+    return float(
+        np.sqrt(np.mean(np.sum((project_seed(params[None], POINTS)[0] - pixels) ** 2, axis=1)))
+    )
 
 
 def seed_params_from_dlt(pixels):
     """DLT camera as seed parameters with f = 1 and k = 0 (ours, closed-form start)."""
     from scipy.spatial.transform import Rotation
+
     K, R, t = dlt_camera(POINTS, pixels)
-    return np.r_[K[0, 2], K[1, 2], K[0, 0], K[1, 1], 1.0, 0.0,
-                 Rotation.from_matrix(R).as_euler('ZYX'), t]
+    return np.r_[
+        K[0, 2], K[1, 2], K[0, 0], K[1, 1], 1.0, 0.0, Rotation.from_matrix(R).as_euler('ZYX'), t
+    ]
 
 
 def opencv_identifiable(K, R, T):
     class Ident:  # the seed's Identifiable fields; OpenCV's polynomial has no kappa
         pass
+
     ident = Ident()
     ident.fx, ident.fy, ident.u0, ident.v0 = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     ident.kappa, ident.R, ident.T = np.nan, R, T
@@ -144,43 +228,69 @@ def trial(sigma, seed, run_ga=True, extras=False):
     if run_ga:
         bounds = np.concatenate([LEFT_BOUNDS, RIGHT_BOUNDS])
         started = time.perf_counter()
-        result = lxpm_ga(stereo_objective(POINTS, *pixels), bounds[:, 0], bounds[:, 1],
-                         np.random.default_rng(seed))
+        result = lxpm_ga(
+            stereo_objective(POINTS, *pixels),
+            bounds[:, 0],
+            bounds[:, 1],
+            np.random.default_rng(seed),
+        )
         ga_time = time.perf_counter() - started
         ga = (result.best[:12], result.best[12:])
         record('GA', ga, ga_time)
         started = time.perf_counter()
         nets = [network_refine(p, POINTS, uv) for p, uv in zip(ga, pixels)]
-        record('GA+network', [n[0] for n in nets], ga_time + time.perf_counter() - started,
-               accepted=[bool(n[1].accepted) for n in nets],
-               network_rms=[float(n[1].rms_after) for n in nets])
+        record(
+            'GA+network',
+            [n[0] for n in nets],
+            ga_time + time.perf_counter() - started,
+            accepted=[bool(n[1].accepted) for n in nets],
+            network_rms=[float(n[1].rms_after) for n in nets],
+        )
         if extras:
             started = time.perf_counter()
-            free = [network_refine(p, POINTS, uv, weights='free', accept='always')[0]
-                    for p, uv in zip(ga, pixels)]
-            record('GA+network (free weights, always)', free,
-                   ga_time + time.perf_counter() - started)
+            free = [
+                network_refine(p, POINTS, uv, weights='free', accept='always')[0]
+                for p, uv in zip(ga, pixels)
+            ]
+            record(
+                'GA+network (free weights, always)', free, ga_time + time.perf_counter() - started
+            )
         started = time.perf_counter()
         left, right, info = refine_seed_lm(*ga, POINTS, *pixels)
-        record('GA+LM', (left, right), ga_time + time.perf_counter() - started,
-               wrong=wrong_minima((info.rms_left, info.rms_right)))
+        record(
+            'GA+LM',
+            (left, right),
+            ga_time + time.perf_counter() - started,
+            wrong=wrong_minima((info.rms_left, info.rms_right)),
+        )
     started = time.perf_counter()
     starts = [division_init(POINTS, uv)[0] for uv in pixels]
     left, right, info = refine_seed_lm(*starts, POINTS, *pixels)
-    record('ours: division init+LM', (left, right), time.perf_counter() - started,
-           wrong=wrong_minima((info.rms_left, info.rms_right)))
+    record(
+        'ours: division init+LM',
+        (left, right),
+        time.perf_counter() - started,
+        wrong=wrong_minima((info.rms_left, info.rms_right)),
+    )
     if extras:
         started = time.perf_counter()
-        left, right, info = refine_seed_lm(*(seed_params_from_dlt(uv) for uv in pixels),
-                                           POINTS, *pixels)
-        record('old: DLT+LM', (left, right), time.perf_counter() - started,
-               wrong=wrong_minima((info.rms_left, info.rms_right)))
+        left, right, info = refine_seed_lm(
+            *(seed_params_from_dlt(uv) for uv in pixels), POINTS, *pixels
+        )
+        record(
+            'old: DLT+LM',
+            (left, right),
+            time.perf_counter() - started,
+            wrong=wrong_minima((info.rms_left, info.rms_right)),
+        )
     started = time.perf_counter()
     ref = opencv_reference(POINTS, *pixels, *IMAGE_SIZES)
     seconds = time.perf_counter() - started
     out['OpenCV'] = {'time': seconds, 'rms': [ref.rms_left, ref.rms_right]}
-    for name, K, R, T, truth in (('left', ref.K_left, ref.R_left, ref.T_left, LEFT_TRUTH),
-                                 ('right', ref.K_right, ref.R_right, ref.T_right, RIGHT_TRUTH)):
+    for name, K, R, T, truth in (
+        ('left', ref.K_left, ref.R_left, ref.T_left, LEFT_TRUTH),
+        ('right', ref.K_right, ref.R_right, ref.T_right, RIGHT_TRUTH),
+    ):
         out['OpenCV'][name] = errors_of(opencv_identifiable(K, R, T), truth)
     return out
 
@@ -197,29 +307,43 @@ def thesis_errors(camera, stage):
     printed = THESIS[camera][stage]
     truth = identifiable(TRUTH[camera == 'right'])
     from vgm_common.geometry import rpy_to_matrix
+
     alpha, beta, gamma = printed['angles']
-    return {'fx': abs(printed['fx'] - truth.fx), 'fy': abs(printed['fy'] - truth.fy),
-            'kappa': abs(printed['kappa'] - truth.kappa),
-            'u0': abs(printed['u0'] - truth.u0), 'v0': abs(printed['v0'] - truth.v0),
-            'R': rotation_error(rpy_to_matrix(gamma, beta, alpha), truth.R),
-            'T': float(np.linalg.norm(np.array(printed['T']) - truth.T))}
+    return {
+        'fx': abs(printed['fx'] - truth.fx),
+        'fy': abs(printed['fy'] - truth.fy),
+        'kappa': abs(printed['kappa'] - truth.kappa),
+        'u0': abs(printed['u0'] - truth.u0),
+        'v0': abs(printed['v0'] - truth.v0),
+        'R': rotation_error(rpy_to_matrix(gamma, beta, alpha), truth.R),
+        'T': float(np.linalg.norm(np.array(printed['T']) - truth.T)),
+    }
 
 
 def table_43(result):
-    lines = ['| camera | method | ' + ' | '.join(f'{q} err' for q in QUANTITIES)
-             + ' | RMS [px] | time [s] |', '|' + '---|' * (len(QUANTITIES) + 4)]
+    lines = [
+        '| camera | method | '
+        + ' | '.join(f'{q} err' for q in QUANTITIES)
+        + ' | RMS [px] | time [s] |',
+        '|' + '---|' * (len(QUANTITIES) + 4),
+    ]
     for camera in ('left', 'right'):
         for stage in ('GA', 'GA+network'):
             e = thesis_errors(camera, stage)
             clean = project_seed(TRUTH[camera == 'right'][None], POINTS)[0]
             thesis_rms = rms(np.array(THESIS_PARAMS[camera, stage], dtype=float), clean)
-            lines.append(f'| {camera} | thesis {stage} (Table 4.3) | '
-                         + ' | '.join(fmt(e[q]) for q in QUANTITIES)
-                         + f' | {fmt(thesis_rms)} | n/a |')
+            lines.append(
+                f'| {camera} | thesis {stage} (Table 4.3) | '
+                + ' | '.join(fmt(e[q]) for q in QUANTITIES)
+                + f' | {fmt(thesis_rms)} | n/a |'
+            )
         for method, data in result.items():
             e = data[camera]
-            lines.append(f'| {camera} | {method} | ' + ' | '.join(fmt(e[q]) for q in QUANTITIES)
-                         + f' | {fmt(data["rms"][camera == "right"])} | {data["time"]:.2f} |')
+            lines.append(
+                f'| {camera} | {method} | '
+                + ' | '.join(fmt(e[q]) for q in QUANTITIES)
+                + f' | {fmt(data["rms"][camera == "right"])} | {data["time"]:.2f} |'
+            )
     return lines
 
 
@@ -234,38 +358,58 @@ def sweep(sigmas, trials, ga_trials):
             if 'wrong' in method_runs[0]:
                 summary[method]['wrong_minima'] = int(sum(r['wrong'] for r in method_runs))
             if 'accepted' in method_runs[0]:
-                summary[method]['network_accepted'] = int(sum(sum(r['accepted'])
-                                                              for r in method_runs))
+                summary[method]['network_accepted'] = int(
+                    sum(sum(r['accepted']) for r in method_runs)
+                )
             summary[method]['time'] = float(np.mean([r['time'] for r in method_runs]))
             for camera in ('left', 'right'):
                 summary[method][camera] = {
-                    q: [float(np.mean([r[camera][q] for r in method_runs])),
-                        float(np.std([r[camera][q] for r in method_runs]))]
-                    for q in QUANTITIES}
+                    q: [
+                        float(np.mean([r[camera][q] for r in method_runs])),
+                        float(np.std([r[camera][q] for r in method_runs])),
+                    ]
+                    for q in QUANTITIES
+                }
         results[sigma] = summary
-        print(f'sigma {sigma}: ' + ', '.join(
-            f'{m} fx err L {s["left"]["fx"][0]:.3g}' for m, s in summary.items()), flush=True)
+        print(
+            f'sigma {sigma}: '
+            + ', '.join(f'{m} fx err L {s["left"]["fx"][0]:.3g}' for m, s in summary.items()),
+            flush=True,
+        )
     return results
 
 
 def plot_sweep(results, directory):
     try:
         import matplotlib
+
         matplotlib.use('Agg')
         import matplotlib.pyplot as plt
     except ImportError:
         print('matplotlib not available: no plots')
         return []
-    figures = {'fig4_3_focal_kappa': ('fx', 'kappa'), 'fig4_4_fy': ('fx', 'fy'),
-               'fig4_5_principal_point': ('u0', 'v0'), 'fig4_6_translation': ('T',),
-               'fig4_7_rotation': ('R',)}
-    labels = {'fx': 'f Nx [px]', 'fy': 'f Ny [px]', 'kappa': 'k f^2', 'u0': 'u0 [px]',
-              'v0': 'v0 [px]', 'T': '|T error| [unit]', 'R': 'rotation error [rad]'}
+    figures = {
+        'fig4_3_focal_kappa': ('fx', 'kappa'),
+        'fig4_4_fy': ('fx', 'fy'),
+        'fig4_5_principal_point': ('u0', 'v0'),
+        'fig4_6_translation': ('T',),
+        'fig4_7_rotation': ('R',),
+    }
+    labels = {
+        'fx': 'f Nx [px]',
+        'fy': 'f Ny [px]',
+        'kappa': 'k f^2',
+        'u0': 'u0 [px]',
+        'v0': 'v0 [px]',
+        'T': '|T error| [unit]',
+        'R': 'rotation error [rad]',
+    }
     sigmas = sorted(results)
     written = []
     for name, quantities in figures.items():
-        fig, axes = plt.subplots(1, 2 * len(quantities), figsize=(6 * len(quantities), 3.6),
-                                 squeeze=False)
+        fig, axes = plt.subplots(
+            1, 2 * len(quantities), figsize=(6 * len(quantities), 3.6), squeeze=False
+        )
         column = 0
         for q in quantities:
             for camera in ('left', 'right'):
@@ -303,15 +447,20 @@ def scenario_rig(sigma, seed):
             if np.all(depth > 0) and np.all((uv >= 0) & (uv < [camera.width, camera.height])):
                 points.append(base)
                 pixels.append(uv + sigma * rng.standard_normal(uv.shape))
-        observations[name] = (np.concatenate(points), np.concatenate(pixels),
-                              (camera.width, camera.height))
+        observations[name] = (
+            np.concatenate(points),
+            np.concatenate(pixels),
+            (camera.width, camera.height),
+        )
     return scenario.cameras, observations
 
 
 def scenario_table(trials):
-    lines = ['| method | sigma [px] | fx rel err (max over cameras) | fy rel err | '
-             'baseline rel err | max RMS [px] | fx rel std predicted (max) | time [s] |',
-             '|---|---|---|---|---|---|---|---|']
+    lines = [
+        '| method | sigma [px] | fx rel err (max over cameras) | fy rel err | '
+        'baseline rel err | max RMS [px] | fx rel std predicted (max) | time [s] |',
+        '|---|---|---|---|---|---|---|---|',
+    ]
     rows = []
     for method in ('lm', 'opencv', 'lxpm_ga'):
         for sigma in (0.0, 0.5):
@@ -322,23 +471,47 @@ def scenario_table(trials):
                 result = calibrate_rig(observations, method, seed)
                 fx = max(abs(f.K[0, 0] / truth[c].K[0, 0] - 1) for c, f in result.fits.items())
                 fy = max(abs(f.K[1, 1] / truth[c].K[1, 1] - 1) for c, f in result.fits.items())
-                baseline = np.linalg.norm(result.fits['left'].T_base_camera[:3, 3]
-                                          - result.fits['right'].T_base_camera[:3, 3])
-                true_baseline = np.linalg.norm(truth['left'].centre_base
-                                               - truth['right'].centre_base)
+                baseline = np.linalg.norm(
+                    result.fits['left'].T_base_camera[:3, 3]
+                    - result.fits['right'].T_base_camera[:3, 3]
+                )
+                true_baseline = np.linalg.norm(
+                    truth['left'].centre_base - truth['right'].centre_base
+                )
                 # the LM / OpenCV covariance: the statistical floor of fx at this noise
-                predicted = max((f.std.get('fx', np.nan) / f.K[0, 0]
-                                 for f in result.fits.values()), default=np.nan)
-                stats.append((fx, fy, abs(baseline / true_baseline - 1),
-                              max(f.rms_px for f in result.fits.values()), predicted,
-                              result.seconds))
+                predicted = max(
+                    (f.std.get('fx', np.nan) / f.K[0, 0] for f in result.fits.values()),
+                    default=np.nan,
+                )
+                stats.append(
+                    (
+                        fx,
+                        fy,
+                        abs(baseline / true_baseline - 1),
+                        max(f.rms_px for f in result.fits.values()),
+                        predicted,
+                        result.seconds,
+                    )
+                )
             mean = np.mean(stats, axis=0)
-            rows.append({'method': method, 'sigma': sigma, 'trials': n,
-                         'fx_rel': mean[0], 'fy_rel': mean[1], 'baseline_rel': mean[2],
-                         'rms': mean[3], 'fx_rel_std_predicted': mean[4], 'time': mean[5]})
-            lines.append(f'| {method} | {sigma} ({n} trials) | {fmt(mean[0])} | '
-                         f'{fmt(mean[1])} | {fmt(mean[2])} | {fmt(mean[3])} | '
-                         f'{fmt(mean[4])} | {mean[5]:.2f} |')
+            rows.append(
+                {
+                    'method': method,
+                    'sigma': sigma,
+                    'trials': n,
+                    'fx_rel': mean[0],
+                    'fy_rel': mean[1],
+                    'baseline_rel': mean[2],
+                    'rms': mean[3],
+                    'fx_rel_std_predicted': mean[4],
+                    'time': mean[5],
+                }
+            )
+            lines.append(
+                f'| {method} | {sigma} ({n} trials) | {fmt(mean[0])} | '
+                f'{fmt(mean[1])} | {fmt(mean[2])} | {fmt(mean[3])} | '
+                f'{fmt(mean[4])} | {mean[5]:.2f} |'
+            )
             print(lines[-1], flush=True)
     return lines, rows
 
@@ -346,14 +519,18 @@ def scenario_table(trials):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--trials', type=int, default=20, help='trials per sigma (LM, OpenCV)')
-    parser.add_argument('--ga-trials', type=int, default=3,
-                        help='of which with the GA stages (about 3-5 s each)')
-    parser.add_argument('--sigmas', type=float, nargs='+',
-                        default=[0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0])
-    parser.add_argument('--rigs', type=int, default=10,
-                        help='generated rigs (issue 12), 0 to skip')
-    parser.add_argument('--plot-only', action='store_true',
-                        help='redraw the plots from the last calib.json')
+    parser.add_argument(
+        '--ga-trials', type=int, default=3, help='of which with the GA stages (about 3-5 s each)'
+    )
+    parser.add_argument(
+        '--sigmas', type=float, nargs='+', default=[0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0]
+    )
+    parser.add_argument(
+        '--rigs', type=int, default=10, help='generated rigs (issue 12), 0 to skip'
+    )
+    parser.add_argument(
+        '--plot-only', action='store_true', help='redraw the plots from the last calib.json'
+    )
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
     if args.plot_only:
@@ -364,68 +541,109 @@ def main():
 
     noise_free = trial(0.0, 0, extras=True)
     t_stereo = noise_free['OpenCV']['time']
-    lines = ['# calib_node bench: thesis chapter 4', '',
-             f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-             f'bench/bench_calib.py --trials {args.trials} --ga-trials {args.ga_trials}`. '
-             'Times are wall-clock on a 2-core machine shared with other jobs: noisy.', '',
-             '## Table 4.3: 512 points, Tables 4.1/4.2 cameras, noise-free', '',
-             'Absolute errors of the identifiable quantities (A4.1): fx = f Nx, fy = f Ny '
-             '[px], kappa = k f^2, u0, v0 [px], R (rotation angle of R_est R_true^T) [rad], '
-             'T (norm) [unit]. Thesis rows: Table 4.3 turned into the same products. GA: '
-             'population 240, 200 generations, pc 0.9, pm 0.005, pm_index 0.25, printed '
-             'Laplace rule drawn per gene, tournament 3, elitism 1, clipping, seed 0. '
-             'Network: structured weights, accepted only if the full-model RMS drops. '
-             'OpenCV kappa: n/a (polynomial model). Thesis RMS: its printed parameters '
-             'projected on the noise-free points.', '']
+    lines = [
+        '# calib_node bench: thesis chapter 4',
+        '',
+        f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        f'bench/bench_calib.py --trials {args.trials} --ga-trials {args.ga_trials}`. '
+        'Times are wall-clock on a 2-core machine shared with other jobs: noisy.',
+        '',
+        '## Table 4.3: 512 points, Tables 4.1/4.2 cameras, noise-free',
+        '',
+        'Absolute errors of the identifiable quantities (A4.1): fx = f Nx, fy = f Ny '
+        '[px], kappa = k f^2, u0, v0 [px], R (rotation angle of R_est R_true^T) [rad], '
+        'T (norm) [unit]. Thesis rows: Table 4.3 turned into the same products. GA: '
+        'population 240, 200 generations, pc 0.9, pm 0.005, pm_index 0.25, printed '
+        'Laplace rule drawn per gene, tournament 3, elitism 1, clipping, seed 0. '
+        'Network: structured weights, accepted only if the full-model RMS drops. '
+        'OpenCV kappa: n/a (polynomial model). Thesis RMS: its printed parameters '
+        'projected on the noise-free points.',
+        '',
+    ]
     lines += table_43(noise_free)
     times = {m: d['time'] for m, d in noise_free.items()}
-    lines += ['', 'Whole stereo calibration times [s] (ratio to OpenCV 2 x calibrateCamera + '
-              'stereoCalibrate on the same points):', '', '| method | time [s] | ratio |',
-              '|---|---|---|'] + [f'| {m} | {t:.2f} | {t / t_stereo:.1f} |'
-                                  for m, t in times.items()]
-    lines += ['', f'Network acceptance (noise-free run): '
-              f'{noise_free["GA+network"]["accepted"]} (left, right); network-camera RMS '
-              f'{[round(r, 2) for r in noise_free["GA+network"]["network_rms"]]} px.', '']
+    lines += [
+        '',
+        'Whole stereo calibration times [s] (ratio to OpenCV 2 x calibrateCamera + '
+        'stereoCalibrate on the same points):',
+        '',
+        '| method | time [s] | ratio |',
+        '|---|---|---|',
+    ] + [f'| {m} | {t:.2f} | {t / t_stereo:.1f} |' for m, t in times.items()]
+    lines += [
+        '',
+        f'Network acceptance (noise-free run): '
+        f'{noise_free["GA+network"]["accepted"]} (left, right); network-camera RMS '
+        f'{[round(r, 2) for r in noise_free["GA+network"]["network_rms"]]} px.',
+        '',
+    ]
 
     results = sweep(args.sigmas, args.trials, args.ga_trials)
     plots = plot_sweep(results, RESULTS)
-    lines += ['## Figures 4.3-4.7: noise sweep', '',
-              f'Mean absolute error over {args.trials} seeded trials per sigma for ours and '
-              f'OpenCV, {args.ga_trials} for the GA stages. "wrong": cameras (of 2 x trials) '
-              'whose final RMS is above that of LM started at the truth (a wrong local '
-              'minimum). Plots: ' + ', '.join(plots) + '.', '',
-              '| sigma | method | trials | wrong | L fx | L fy | L kappa | L u0 | L v0 | L R | '
-              'L T | R fx | R fy | R kappa | R u0 | R v0 | R R | R T | time [s] |',
-              '|' + '---|' * 19]
+    lines += [
+        '## Figures 4.3-4.7: noise sweep',
+        '',
+        f'Mean absolute error over {args.trials} seeded trials per sigma for ours and '
+        f'OpenCV, {args.ga_trials} for the GA stages. "wrong": cameras (of 2 x trials) '
+        'whose final RMS is above that of LM started at the truth (a wrong local '
+        'minimum). Plots: ' + ', '.join(plots) + '.',
+        '',
+        '| sigma | method | trials | wrong | L fx | L fy | L kappa | L u0 | L v0 | L R | '
+        'L T | R fx | R fy | R kappa | R u0 | R v0 | R R | R T | time [s] |',
+        '|' + '---|' * 19,
+    ]
     for sigma, summary in results.items():
         for method, data in summary.items():
-            lines.append(f'| {sigma} | {method} | {data["trials"]} | '
-                         f'{data.get("wrong_minima", "")} | ' + ' | '.join(
-                             fmt(data[c][q][0]) for c in ('left', 'right') for q in QUANTITIES)
-                         + f' | {data["time"]:.2f} |')
+            lines.append(
+                f'| {sigma} | {method} | {data["trials"]} | '
+                f'{data.get("wrong_minima", "")} | '
+                + ' | '.join(fmt(data[c][q][0]) for c in ('left', 'right') for q in QUANTITIES)
+                + f' | {data["time"]:.2f} |'
+            )
     if 0.5 in results:
         ours = results[0.5]['ours: division init+LM']
-        lines += ['', 'sigma = 0.5 px, ours, mean relative errors: ' + ', '.join(
-            f'{c} fx {ours[c]["fx"][0] / identifiable(t).fx:.2%}, fy '
-            f'{ours[c]["fy"][0] / identifiable(t).fy:.2%}'
-            for c, t in zip(('left', 'right'), TRUTH)) + '.']
+        lines += [
+            '',
+            'sigma = 0.5 px, ours, mean relative errors: '
+            + ', '.join(
+                f'{c} fx {ours[c]["fx"][0] / identifiable(t).fx:.2%}, fy '
+                f'{ours[c]["fy"][0] / identifiable(t).fy:.2%}'
+                for c, t in zip(('left', 'right'), TRUTH)
+            )
+            + '.',
+        ]
 
     scenario_lines, scenario_rows = scenario_table(args.trials)
-    lines += ['', '## The node\'s setting: default scenario (3 plumb_bob cameras, 10 chart '
-              'poses)', '', 'Exact chart corners projected by the true cameras plus Gaussian '
-              'noise; all three cameras calibrated; errors relative.', ''] + scenario_lines
+    lines += [
+        '',
+        "## The node's setting: default scenario (3 plumb_bob cameras, 10 chart poses)",
+        '',
+        'Exact chart corners projected by the true cameras plus Gaussian '
+        'noise; all three cameras calibrated; errors relative.',
+        '',
+    ] + scenario_lines
     if args.rigs:
         import sys
+
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         from calib_rigs import rigs_table
+
         rig_lines, _ = rigs_table(args.rigs)
         lines += ['', f'## Generated rigs (issue 12): {args.rigs} rigs, rendered charts', '']
         lines += rig_lines
     lines += ['', f'Bench run time: {time.perf_counter() - started:.0f} s.']
     (RESULTS / 'calib.md').write_text('\n'.join(lines) + '\n')
-    (RESULTS / 'calib.json').write_text(json.dumps(
-        {'table_4_3': noise_free, 'sweep': {str(k): v for k, v in results.items()},
-         'scenario': scenario_rows}, indent=1, default=float))
+    (RESULTS / 'calib.json').write_text(
+        json.dumps(
+            {
+                'table_4_3': noise_free,
+                'sweep': {str(k): v for k, v in results.items()},
+                'scenario': scenario_rows,
+            },
+            indent=1,
+            default=float,
+        )
+    )
     print('\n'.join(lines))
 
 

@@ -18,6 +18,7 @@ uncompressed size (the chunks' own sizes), if a demo bag is given.
     python bench/bench_live_view.py [--seconds 20] [--demo-bag bags/demo-...]
 Writes bench/results/live_view/results.md and results.json.
 """
+
 import argparse
 import json
 import resource
@@ -49,6 +50,7 @@ SLOW_READ_PERIOD = 0.2  # [s] the slow client takes one frame this often
 
 # -- probes, each its own process (no GIL shared with what they measure) ---------------
 
+
 def ros_probe(seconds, out):
     """Raw subscriptions to TOPICS for ``seconds``: receive time of every image per stamp."""
     import rclpy
@@ -56,6 +58,7 @@ def ros_probe(seconds, out):
     from sensor_msgs.msg import Image, JointState
 
     from vgm_common.qos import DEFAULT_QOS
+
     rclpy.init()
     node = rclpy.create_node('bench_live_view_probe')
     images, counts = {t: {} for t in IMAGE_TOPICS}, dict.fromkeys(TOPICS, 0)
@@ -65,10 +68,16 @@ def ros_probe(seconds, out):
         counts[topic] += 1
 
     for topic in IMAGE_TOPICS:
-        node.create_subscription(Image, topic, lambda d, t=topic: on_image(t, d), DEFAULT_QOS,
-                                 raw=True)
-    node.create_subscription(JointState, '/joint_states', lambda d: counts.__setitem__(
-        '/joint_states', counts['/joint_states'] + 1), DEFAULT_QOS, raw=True)
+        node.create_subscription(
+            Image, topic, lambda d, t=topic: on_image(t, d), DEFAULT_QOS, raw=True
+        )
+    node.create_subscription(
+        JointState,
+        '/joint_states',
+        lambda d: counts.__setitem__('/joint_states', counts['/joint_states'] + 1),
+        DEFAULT_QOS,
+        raw=True,
+    )
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     Path(out + '.ready').touch()
@@ -108,16 +117,30 @@ def _cpu_self():
 
 
 def _start_probe(kind, out, seconds, url=''):
-    return subprocess.Popen([sys.executable, __file__, '--probe', kind, '--out', str(out),
-                             '--seconds', str(seconds), '--url', url])
+    return subprocess.Popen(
+        [
+            sys.executable,
+            __file__,
+            '--probe',
+            kind,
+            '--out',
+            str(out),
+            '--seconds',
+            str(seconds),
+            '--url',
+            url,
+        ]
+    )
 
 
 # -- runs ----------------------------------------------------------------------------
 
+
 def cpu_seconds(pid):
     process = psutil.Process(pid)
     return sum(process.cpu_times()[:2]) + sum(
-        sum(child.cpu_times()[:2]) for child in process.children(recursive=True))
+        sum(child.cpu_times()[:2]) for child in process.children(recursive=True)
+    )
 
 
 def run(name, seconds, live_view, clients):
@@ -130,24 +153,37 @@ def run(name, seconds, live_view, clients):
         params_file = tmp / 'params.yaml'
         params_file.write_text(yaml.safe_dump(params))
         nodes = ['recorder', *(['live_view'] if live_view else []), 'sensor_sim']
-        launch = Launch(params_file, nodes=nodes, overrides=[
-            f'recorder:output_dir:={tmp}', 'recorder:bag_name:=bench',
-            'recorder:exclude:=[/parameter_events, /rosout]', 'recorder:compression:=zstd',
-            'sensor_sim:calibration_phase:=false', f'sensor_sim:rate:={RATE}'],
-            out=open(tmp / 'launch.log', 'w'))
+        launch = Launch(
+            params_file,
+            nodes=nodes,
+            overrides=[
+                f'recorder:output_dir:={tmp}',
+                'recorder:bag_name:=bench',
+                'recorder:exclude:=[/parameter_events, /rosout]',
+                'recorder:compression:=zstd',
+                'sensor_sim:calibration_phase:=false',
+                f'sensor_sim:rate:={RATE}',
+            ],
+            out=open(tmp / 'launch.log', 'w'),
+        )
         launch.start()
         try:
             url = ''
             if live_view:
-                url = _wait(lambda: live_view_url(launch.log_text('live_view')), 60,
-                            'live_view to listen')
+                url = _wait(
+                    lambda: live_view_url(launch.log_text('live_view')), 60, 'live_view to listen'
+                )
             window = seconds + 5.0  # the probes outlast the measured window a little
             probes = {'ros': _start_probe('ros', tmp / 'ros.json', window)}
             for index, read_period in enumerate(clients):
                 probes[f'ws{index}'] = _start_probe(
-                    'slow' if read_period else 'ws', tmp / f'ws{index}.json', window, url)
-            _wait(lambda: all((tmp / f'{p}.json.ready').exists() for p in probes), 90,
-                  'the probes to subscribe')
+                    'slow' if read_period else 'ws', tmp / f'ws{index}.json', window, url
+                )
+            _wait(
+                lambda: all((tmp / f'{p}.json.ready').exists() for p in probes),
+                90,
+                'the probes to subscribe',
+            )
             pids = {n: p.pid for n, p in launch.processes.items()}
             cpu_start = {n: cpu_seconds(pid) for n, pid in pids.items()}
             start = time.monotonic()
@@ -159,22 +195,32 @@ def run(name, seconds, live_view, clients):
         finally:
             launch.stop()
         published = parse_published_counts(launch.log_text('sensor_sim'))
-        recorded = {topic: int(n) for topic, n in
-                    (line.split(':') for line in _recorded_lines(launch.log_text('recorder')))}
+        recorded = {
+            topic: int(n)
+            for topic, n in (
+                line.split(':') for line in _recorded_lines(launch.log_text('recorder'))
+            )
+        }
         results = {p: json.loads((tmp / f'{p}.json').read_text()) for p in probes}
-    row = {'run': name,
-           'camera_hz': _camera_hz(results['ros']),
-           'cpu_live_view_percent': round(cpu.get('live_view', 0.0), 1),
-           'cpu_plain_subscriber_percent': round(results['ros']['cpu'], 1),
-           'cpu_sensor_sim_percent': round(cpu['sensor_sim'], 1),
-           'cpu_recorder_percent': round(cpu['recorder'], 1),
-           'recorder_lost': sum(published[t] - recorded.get(t, 0) for t in TOPICS)}
+    row = {
+        'run': name,
+        'camera_hz': _camera_hz(results['ros']),
+        'cpu_live_view_percent': round(cpu.get('live_view', 0.0), 1),
+        'cpu_plain_subscriber_percent': round(results['ros']['cpu'], 1),
+        'cpu_sensor_sim_percent': round(cpu['sensor_sim'], 1),
+        'cpu_recorder_percent': round(cpu['recorder'], 1),
+        'recorder_lost': sum(published[t] - recorded.get(t, 0) for t in TOPICS),
+    }
     ros_images = results['ros']['images']
     for probe, result in results.items():
         if probe == 'ros':
             continue
-        added = [(result['images'][t][s] - ros_images[t][s]) * 1e-6
-                 for t in IMAGE_TOPICS for s in result['images'][t] if s in ros_images[t]]
+        added = [
+            (result['images'][t][s] - ros_images[t][s]) * 1e-6
+            for t in IMAGE_TOPICS
+            for s in result['images'][t]
+            if s in ros_images[t]
+        ]
         # Images the plain subscriber got, while this client was receiving, that it lost.
         lost = offered = 0
         for t in IMAGE_TOPICS:
@@ -204,6 +250,7 @@ def _camera_hz(ros_result):
 def _recorded_lines(log_text):
     """'/topic: N' lines of the recorder's closing log."""
     import re
+
     return [m.group(1) for m in re.finditer(r'\]:\s+(/\S+: \d+)', log_text)]
 
 
@@ -220,6 +267,7 @@ def bag_sizes(bag_dir):
     """The bag's size on disk and the sum of its chunks uncompressed (what the same
     recording takes without compression, to within the summary and index bytes)."""
     from mcap.reader import make_reader
+
     files = sorted(Path(bag_dir).glob('*.mcap'))
     on_disk = sum(f.stat().st_size for f in files)
     uncompressed = compressed = 0
@@ -233,11 +281,15 @@ def bag_sizes(bag_dir):
             compression.add(chunk.compression or 'none')
     meta = yaml.safe_load((Path(bag_dir) / 'metadata.yaml').read_text())
     seconds = meta['rosbag2_bagfile_information']['duration']['nanoseconds'] * 1e-9
-    return {'bag': str(bag_dir), 'compression': ','.join(sorted(compression)),
-            'duration_s': round(seconds, 1), 'on_disk_MB': round(on_disk / 1e6, 1),
-            'chunks_uncompressed_MB': round(uncompressed / 1e6, 1),
-            'chunks_compressed_MB': round(compressed / 1e6, 1),
-            'ratio': round(uncompressed / max(compressed, 1), 2)}
+    return {
+        'bag': str(bag_dir),
+        'compression': ','.join(sorted(compression)),
+        'duration_s': round(seconds, 1),
+        'on_disk_MB': round(on_disk / 1e6, 1),
+        'chunks_uncompressed_MB': round(uncompressed / 1e6, 1),
+        'chunks_compressed_MB': round(compressed / 1e6, 1),
+        'ratio': round(uncompressed / max(compressed, 1), 2),
+    }
 
 
 def main():
@@ -251,36 +303,48 @@ def main():
     if args.probe == 'ros':
         return ros_probe(args.seconds, args.out)
     if args.probe:
-        return ws_probe(args.url, args.seconds, args.out,
-                        SLOW_READ_PERIOD if args.probe == 'slow' else 0.0)
+        return ws_probe(
+            args.url, args.seconds, args.out, SLOW_READ_PERIOD if args.probe == 'slow' else 0.0
+        )
     rows = []
-    for name, live_view, clients in (('baseline', False, []), ('one client', True, [0.0]),
-                                     ('slow client', True, [0.0, SLOW_READ_PERIOD])):
+    for name, live_view, clients in (
+        ('baseline', False, []),
+        ('one client', True, [0.0]),
+        ('slow client', True, [0.0, SLOW_READ_PERIOD]),
+    ):
         print(f'== {name}', flush=True)
         rows.append(run(name, args.seconds, live_view, clients))
         print(rows[-1], flush=True)
     bag = bag_sizes(args.demo_bag) if args.demo_bag else None
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / 'results.json').write_text(json.dumps({'runs': rows, 'demo_bag': bag},
-                                                     indent=2))
+    (RESULTS / 'results.json').write_text(json.dumps({'runs': rows, 'demo_bag': bag}, indent=2))
     columns = sorted({c for row in rows for c in row}, key=lambda c: (c != 'run', c))
-    lines = ['# live_view: 3 cameras 640x480 mono8 at 30 Hz + 200 Hz joint states', '',
-             f'Command: `python bench/bench_live_view.py --seconds {args.seconds:g}'
-             + (f' --demo-bag {args.demo_bag}' if args.demo_bag else '') + '`; '
-             f'{psutil.cpu_count()} cores, shared with other work (absolute CPU figures '
-             'are loaded-machine figures; compare within a run). Plain subscriber: a raw '
-             'rclpy subscription to the same topics in its own process, the peer floor. '
-             'Added latency: the WebSocket client\'s receive time minus the plain '
-             'subscriber\'s for the same capture. Lost: published by sensor_sim but not in '
-             'the bag (recorder); for a client (ws0 the normal one, ws1 the slow one), '
-             'images the plain subscriber received while the client was receiving that '
-             'the client did not.',
-             '', '| ' + ' | '.join(columns) + ' |', '|' + '---|' * len(columns)]
+    lines = [
+        '# live_view: 3 cameras 640x480 mono8 at 30 Hz + 200 Hz joint states',
+        '',
+        f'Command: `python bench/bench_live_view.py --seconds {args.seconds:g}'
+        + (f' --demo-bag {args.demo_bag}' if args.demo_bag else '')
+        + '`; '
+        f'{psutil.cpu_count()} cores, shared with other work (absolute CPU figures '
+        'are loaded-machine figures; compare within a run). Plain subscriber: a raw '
+        'rclpy subscription to the same topics in its own process, the peer floor. '
+        "Added latency: the WebSocket client's receive time minus the plain "
+        "subscriber's for the same capture. Lost: published by sensor_sim but not in "
+        'the bag (recorder); for a client (ws0 the normal one, ws1 the slow one), '
+        'images the plain subscriber received while the client was receiving that '
+        'the client did not.',
+        '',
+        '| ' + ' | '.join(columns) + ' |',
+        '|' + '---|' * len(columns),
+    ]
     lines += ['| ' + ' | '.join(str(row.get(c, '')) for c in columns) + ' |' for row in rows]
     if bag:
-        lines += ['', f'Demo bag ({bag["bag"]}, {bag["duration_s"]} s): {bag["on_disk_MB"]} MB '
-                  f'on disk with {bag["compression"]}; its chunks uncompressed '
-                  f'{bag["chunks_uncompressed_MB"]} MB (ratio {bag["ratio"]}).']
+        lines += [
+            '',
+            f'Demo bag ({bag["bag"]}, {bag["duration_s"]} s): {bag["on_disk_MB"]} MB '
+            f'on disk with {bag["compression"]}; its chunks uncompressed '
+            f'{bag["chunks_uncompressed_MB"]} MB (ratio {bag["ratio"]}).',
+        ]
     (RESULTS / 'results.md').write_text('\n'.join(lines) + '\n')
     print('\n'.join(lines))
 

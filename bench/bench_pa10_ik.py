@@ -26,6 +26,7 @@ Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_pa10_ik.p
 Writes bench/results/pa10_ik/ (results.md, results.json, PNG plots) and, for Part C,
 bench/results/pa10_ik_cases/ (results.md, results.json).
 """
+
 import json
 import sys
 import time
@@ -59,15 +60,20 @@ from vgm_common.robot_model import load_robot  # noqa: E402
 
 OUT = REPO / 'bench' / 'results' / 'pa10_ik'
 W_THESIS = np.array([1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0])
-Q0 = {'Gamma1': np.array([0.1288, 0.0, 0.3125, 0.0, 0.0, 0.3241, 0.038]),
-      'Gamma2': np.array([0.20, 0.0, 0.0, -0.28, 0.0, -0.10, -0.03]),
-      # Gamma1's q(0) has q4 = 0: the arm is fully stretched (|p| = d3 + d5 + d7), on the
-      # workspace boundary; a velocity-level IK cannot bend the elbow from there (J has
-      # no radial component). The same curve from an elbow bent by 0.3 rad:
-      'Gamma1_bent': np.array([0.1288, 0.0, 0.3125, 0.3, 0.0, 0.3241, 0.038])}
+Q0 = {
+    'Gamma1': np.array([0.1288, 0.0, 0.3125, 0.0, 0.0, 0.3241, 0.038]),
+    'Gamma2': np.array([0.20, 0.0, 0.0, -0.28, 0.0, -0.10, -0.03]),
+    # Gamma1's q(0) has q4 = 0: the arm is fully stretched (|p| = d3 + d5 + d7), on the
+    # workspace boundary; a velocity-level IK cannot bend the elbow from there (J has
+    # no radial component). The same curve from an elbow bent by 0.3 rad:
+    'Gamma1_bent': np.array([0.1288, 0.0, 0.3125, 0.3, 0.0, 0.3241, 0.038]),
+}
 CURVE = {'Gamma1': 'Gamma1', 'Gamma2': 'Gamma2', 'Gamma1_bent': 'Gamma1'}
-THESIS_TABLE = {'Gamma1': (1.8e-5, 4.17e-5), 'Gamma2': (3.6e-4, 2.16e-5),
-                'Gamma1_bent': (1.8e-5, 4.17e-5)}
+THESIS_TABLE = {
+    'Gamma1': (1.8e-5, 4.17e-5),
+    'Gamma2': (3.6e-4, 2.16e-5),
+    'Gamma1_bent': (1.8e-5, 4.17e-5),
+}
 DURATION = 6.0  # [s]
 DT = 1e-3  # [s] control step of Part A
 FEEDBACK_GAIN = 300.0  # [1/s] pose feedback of ours and dls
@@ -112,8 +118,12 @@ def run_table(name, method, robot):
     q = Q0[name].copy()
     T0 = robot.forward_kinematics(q)
     # ours_identity: the node's default weights W = I.
-    solver = RateSolver(method.replace('_identity', ''), np.ones(7) if method.endswith(
-        '_identity') else W_THESIS, K=100.0, damping=0.05)
+    solver = RateSolver(
+        method.replace('_identity', ''),
+        np.ones(7) if method.endswith('_identity') else W_THESIS,
+        K=100.0,
+        damping=0.05,
+    )
     feedback = 0.0 if method == 'primal_dual' else FEEDBACK_GAIN
     steps = int(round(DURATION / DT))
     log = {k: [] for k in ('t', 'p_err', 'o_err', 'q', 'qdot', 'r_d', 'rdot_d')}
@@ -135,8 +145,9 @@ def run_table(name, method, robot):
         log['o_err'].append(np.linalg.norm(error[3:]))
         log['q'].append(q.copy())
         log['qdot'].append(qdot)
-        log['r_d'].append(np.concatenate([T_d[:3, 3], Rotation.from_matrix(
-            T_d[:3, :3]).as_rotvec()]))
+        log['r_d'].append(
+            np.concatenate([T_d[:3, 3], Rotation.from_matrix(T_d[:3, :3]).as_rotvec()])
+        )
         log['rdot_d'].append(twist)
         if k < steps:
             q = q + qdot * DT
@@ -146,7 +157,8 @@ def run_table(name, method, robot):
         'rms_orientation': float(np.sqrt(np.mean(log['o_err'] ** 2))),
         'max_position': float(log['p_err'].max()),
         'step_ms_median': float(np.median(step_times) * 1e3),
-        'null_space_failures': int(failures), 'network_diverged': int(diverged),
+        'null_space_failures': int(failures),
+        'network_diverged': int(diverged),
         'steps': steps + 1,
     }, log
 
@@ -154,8 +166,9 @@ def run_table(name, method, robot):
 def fixed_step_report(robot):
     J = robot.jacobian(Q0['Gamma1'])
     radius = float(np.max(np.abs(np.linalg.eigvals(fixed_step_matrix(J, np.diag(W_THESIS))))))
-    _, _, norms = primal_dual_velocity_fixed_step(J, np.diag(W_THESIS), np.ones(6) * 0.1,
-                                                  iterations=50)
+    _, _, norms = primal_dual_velocity_fixed_step(
+        J, np.diag(W_THESIS), np.ones(6) * 0.1, iterations=50
+    )
     diverged_at = int(np.argmax(norms > 1e10)) if np.any(norms > 1e10) else None
     return radius, diverged_at
 
@@ -163,6 +176,7 @@ def fixed_step_report(robot):
 def plot_table(logs, path):
     try:
         import matplotlib
+
         matplotlib.use('Agg')
         import matplotlib.pyplot as plt
     except ImportError:
@@ -170,18 +184,22 @@ def plot_table(logs, path):
     for name, by_method in logs.items():
         log = by_method['ours_identity']
         fig, axes = plt.subplots(2, 3, figsize=(15, 8))
-        panels = [('r_d', 'r_d (position, rotation vector)'),
-                  ('rdot_d', 'rdot_d'), ('qdot', 'qdot [rad/s] (ours)'),
-                  ('q', 'q [rad] (ours)')]
+        panels = [
+            ('r_d', 'r_d (position, rotation vector)'),
+            ('rdot_d', 'rdot_d'),
+            ('qdot', 'qdot [rad/s] (ours)'),
+            ('q', 'q [rad] (ours)'),
+        ]
         for ax, (key, title) in zip(axes.flat, panels):
             ax.plot(log['t'], log[key])
             ax.set_title(f'{name}: {title}')
             ax.set_xlabel('t [s]')
-        for ax, key, title in ((axes[1, 1], 'p_err', 'position error'),
-                               (axes[1, 2], 'o_err', 'orientation error [rad]')):
+        for ax, key, title in (
+            (axes[1, 1], 'p_err', 'position error'),
+            (axes[1, 2], 'o_err', 'orientation error [rad]'),
+        ):
             for method, method_log in by_method.items():
-                ax.semilogy(method_log['t'], np.maximum(method_log[key], 1e-16),
-                            label=method)
+                ax.semilogy(method_log['t'], np.maximum(method_log[key], 1e-16), label=method)
             ax.set_title(f'{name}: {title}')
             ax.set_xlabel('t [s]')
             ax.legend()
@@ -193,6 +211,7 @@ def plot_table(logs, path):
 
 # --- Part B: force tracking in the simulated contact --------------------------------
 
+
 def curve_waypoints(scenario, spacing=0.002):
     """Waypoints every ~``spacing`` [m] on the scenario's true curve, true normals."""
     curve = curve_polylines(scenario.curve, scenario.surface)[0]
@@ -201,29 +220,38 @@ def curve_waypoints(scenario, spacing=0.002):
     points = curve[:-1:every]
     normals = normal_base(scenario.surface, points)
     ahead = np.roll(points, -1, axis=0)
-    return np.array([next_target_on_tangent_plane(p, n, q)[1]
-                     for p, n, q in zip(points, normals, ahead)])
+    return np.array(
+        [next_target_on_tangent_plane(p, n, q)[1] for p, n, q in zip(points, normals, ahead)]
+    )
 
 
-def run_force(scenario_name, force_law='integral', speed=0.02, dt=0.01, depth_error=0.0,
-              force_gain=5.0):
+def run_force(
+    scenario_name, force_law='integral', speed=0.02, dt=0.01, depth_error=0.0, force_gain=5.0
+):
     """One whole closed curve under force control. ``depth_error`` [m]: the waypoints are
     displaced by depth_error * sin(2 * 2 pi * s / length) along their approach axis (a
     reconstructed curve off the surface), which the force law has to absorb."""
-    scenario = load_scenario(REPO / 'src' / 'sensor_sim' / 'scenarios'
-                             / f'{scenario_name}.yaml')
+    scenario = load_scenario(REPO / 'src' / 'sensor_sim' / 'scenarios' / f'{scenario_name}.yaml')
     robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
     waypoints = curve_waypoints(scenario)
     if depth_error:
         fraction = np.linspace(0.0, 1.0, len(waypoints), endpoint=False)
-        waypoints[:, :3, 3] += (depth_error * np.sin(4 * np.pi * fraction))[:, None] \
-            * waypoints[:, :3, 2]
+        waypoints[:, :3, 3] += (depth_error * np.sin(4 * np.pi * fraction))[:, None] * waypoints[
+            :, :3, 2
+        ]
     desired = 5.0
     controller = TrackingController(
-        robot, RateSolver('ours', np.ones(7)),
-        TrackingConfig(desired_force=desired, stiffness=scenario.contact_stiffness,
-                       speed=speed, force_law=force_law, force_gain=force_gain),
-        max_joint_velocity=1.0)
+        robot,
+        RateSolver('ours', np.ones(7)),
+        TrackingConfig(
+            desired_force=desired,
+            stiffness=scenario.contact_stiffness,
+            speed=speed,
+            force_law=force_law,
+            force_gain=force_gain,
+        ),
+        max_joint_velocity=1.0,
+    )
     controller.start(waypoints)
     arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints)
     rng = np.random.default_rng(scenario.seed)
@@ -235,23 +263,32 @@ def run_force(scenario_name, force_law='integral', speed=0.02, dt=0.01, depth_er
         step_times.append(time.perf_counter() - started)
         t = arm.follow_velocity(robot.joint_names, qdot, t, dt)
         T = robot.forward_kinematics(arm.q)
-        true_force = contact_force(T[:3, 3], scenario.surface,
-                                   scenario.contact_stiffness).force
-        force = max(0.0, true_force + rng.normal(0, scenario.noise.pressure_sigma)) \
-            if true_force > 0 else 0.0
+        true_force = contact_force(T[:3, 3], scenario.surface, scenario.contact_stiffness).force
+        force = (
+            max(0.0, true_force + rng.normal(0, scenario.noise.pressure_sigma))
+            if true_force > 0
+            else 0.0
+        )
         if info['phase'] == 'tracking':
             forces.append(true_force)
             phis.append(info['phi'])
     rms, _ = controller.stats.summary()
     forces = np.array(forces)
     return {
-        'scenario': scenario_name, 'surface': scenario.surface.kind, 'force_law': force_law,
-        'force_gain': force_gain, 'depth_error_mm': depth_error * 1e3,
-        'phase': controller.phase, 'reason': controller.reason,
-        'path_length_m': controller.path.length, 'closed': controller.path.closed,
-        'sim_time_s': t, 'rms_lateral_mm': rms * 1e3,
+        'scenario': scenario_name,
+        'surface': scenario.surface.kind,
+        'force_law': force_law,
+        'force_gain': force_gain,
+        'depth_error_mm': depth_error * 1e3,
+        'phase': controller.phase,
+        'reason': controller.reason,
+        'path_length_m': controller.path.length,
+        'closed': controller.path.closed,
+        'sim_time_s': t,
+        'rms_lateral_mm': rms * 1e3,
         'max_lateral_mm': float(np.max(controller.stats.position_errors)) * 1e3,
-        'true_force_min_N': float(forces.min()), 'true_force_max_N': float(forces.max()),
+        'true_force_min_N': float(forces.min()),
+        'true_force_max_N': float(forces.max()),
         'max_force_error_pct': float(np.max(np.abs(forces - desired)) / desired * 100),
         'rms_force_error_N': float(np.sqrt(np.mean((forces - desired) ** 2))),
         'phi_range_rad': [float(np.min(phis)), float(np.max(phis))],
@@ -265,14 +302,20 @@ CASES_OUT = REPO / 'bench' / 'results' / 'pa10_ik_cases'
 # method -> (RateSolver method, W, TrackingConfig changes). dls_plain: the conventional
 # peer, DLS IK with the plain pose feedback (no integral across the approach axis, no
 # compensation of a slow arm's measured response).
-CASE_METHODS = {'ours': ('ours', np.ones(7), {}),
-                'ours_adaptive': ('ours', np.ones(7), {'adapt_response': True}),
-                'dls': ('dls', np.ones(7), {}),
-                'dls_plain': ('dls', np.ones(7), {'pose_integral_gain': 0.0,
-                                                  'adapt_response': False}),
-                'primal_dual': ('primal_dual', W_THESIS, {})}
-GOALS = {'rms_mm': 0.05, 'passed_fraction': 0.99, 'force_p95_pct': 3.0,
-         'step_ms_median': 1.0, 'stop_latency_ms': 10.0}
+CASE_METHODS = {
+    'ours': ('ours', np.ones(7), {}),
+    'ours_adaptive': ('ours', np.ones(7), {'adapt_response': True}),
+    'dls': ('dls', np.ones(7), {}),
+    'dls_plain': ('dls', np.ones(7), {'pose_integral_gain': 0.0, 'adapt_response': False}),
+    'primal_dual': ('primal_dual', W_THESIS, {}),
+}
+GOALS = {
+    'rms_mm': 0.05,
+    'passed_fraction': 0.99,
+    'force_p95_pct': 3.0,
+    'step_ms_median': 1.0,
+    'stop_latency_ms': 10.0,
+}
 
 
 def run_case(built, method, stop_at_progress=None):
@@ -280,15 +323,23 @@ def run_case(built, method, stop_at_progress=None):
     desired, stiffness = 5.0, 2000.0
     solver_method, weights, changes = CASE_METHODS[method]
     controller = TrackingController(
-        built.robot, RateSolver(solver_method, weights),
+        built.robot,
+        RateSolver(solver_method, weights),
         TrackingConfig(desired_force=desired, stiffness=stiffness, speed=0.015, **changes),
-        max_joint_velocity=1.0)
+        max_joint_velocity=1.0,
+    )
     controller.start(built.waypoints)
-    log = task_generator.run_closed_loop(controller, built.robot, built.simulated_arm(),
-                                         built.surface, stiffness,
-                                         stop_at_progress=stop_at_progress)
-    row = task_generator.tracking_metrics(log, built.surface, built.path_base, desired,
-                                          built.robot)
+    log = task_generator.run_closed_loop(
+        controller,
+        built.robot,
+        built.simulated_arm(),
+        built.surface,
+        stiffness,
+        stop_at_progress=stop_at_progress,
+    )
+    row = task_generator.tracking_metrics(
+        log, built.surface, built.path_base, desired, built.robot
+    )
     row.update(phase=controller.phase, stage=controller.stage, reason=controller.reason)
     return row
 
@@ -323,49 +374,73 @@ def main_cases(seed=13, random_arms=2):
                 if method == 'primal_dual' and index >= len(task_generator.SURFACE_KINDS):
                     continue
                 row = run_case(built, method)
-                row.update(case=spec.label, method=method, missed=meets_goals(row),
-                           stop_mid_latency_ms=float('nan'))
+                row.update(
+                    case=spec.label,
+                    method=method,
+                    missed=meets_goals(row),
+                    stop_mid_latency_ms=float('nan'),
+                )
                 if method == 'ours':  # stop mid-motion: same case, half-way along
                     stop = run_case(built, method, stop_at_progress=0.5)
-                    row.update(stop_mid_latency_ms=stop['stop_latency_ms'],
-                               stop_mid_phase=stop['phase'])
+                    row.update(
+                        stop_mid_latency_ms=stop['stop_latency_ms'], stop_mid_phase=stop['phase']
+                    )
                 rows.append(row)
-                print(f'{spec.label} | {method}: {row["phase"]} rms {row["rms_mm"]:.4f} mm, '
-                      f'passed {row["passed_fraction"]:.3f}, force p95 '
-                      f'{row["force_p95_pct"]:.2f} %, step {row["step_ms_median"]:.3f} ms, '
-                      f'stop {row["stop_mid_latency_ms"]:.0f} ms {row["missed"]}', flush=True)
+                print(
+                    f'{spec.label} | {method}: {row["phase"]} rms {row["rms_mm"]:.4f} mm, '
+                    f'passed {row["passed_fraction"]:.3f}, force p95 '
+                    f'{row["force_p95_pct"]:.2f} %, step {row["step_ms_median"]:.3f} ms, '
+                    f'stop {row["stop_mid_latency_ms"]:.0f} ms {row["missed"]}',
+                    flush=True,
+                )
             write_case_tables(rows, seed)
 
 
 def write_case_tables(rows, seed):
-    lines = ['# pa10_ik_node: generated cases (issue 13)', '',
-             'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-             'bench/bench_pa10_ik.py --cases-only`', '',
-             f'Seed {seed}: sensor_sim.task_generator.generate_cases. Every case: 5 N '
-             'desired, contact stiffness 2000 N/m (estimate exact), 0.015 m/s, control '
-             '100 Hz, the arm simulated at 200 Hz. RMS = distance of the tip\'s foot point on '
-             'the surface to the true path while tracking; passed = fraction of the path '
-             'with a foot point within 2 mm; force p95 = 95th percentile of |force error| / '
-             'desired; stop = time from a stop half-way along the path to zero joint '
-             'velocity; qdot/limit = largest commanded joint speed over its limit; margin = '
-             'closest approach to a position limit. Step times measured on a loaded 2-core '
-             'machine (ours, dls and primal_dual back to back on the same inputs).', '',
-             f'Goals: RMS < {GOALS["rms_mm"]} mm, passed > {GOALS["passed_fraction"] * 100:g} '
-             f'%, force p95 < {GOALS["force_p95_pct"]:g} %, no limit exceeded, stop within '
-             f'{GOALS["stop_latency_ms"]:g} ms, step < {GOALS["step_ms_median"]:g} ms median.']
-    table = ['', '## Every case', '',
-             '| case | method | end | RMS [mm] | max [mm] | passed [%] | force p95 [%] | '
-             'qdot/limit | margin [rad] | step [ms] | stop [ms] | goals missed |',
-             '|---|---|---|---|---|---|---|---|---|---|---|---|']
+    lines = [
+        '# pa10_ik_node: generated cases (issue 13)',
+        '',
+        'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        'bench/bench_pa10_ik.py --cases-only`',
+        '',
+        f'Seed {seed}: sensor_sim.task_generator.generate_cases. Every case: 5 N '
+        'desired, contact stiffness 2000 N/m (estimate exact), 0.015 m/s, control '
+        "100 Hz, the arm simulated at 200 Hz. RMS = distance of the tip's foot point on "
+        'the surface to the true path while tracking; passed = fraction of the path '
+        'with a foot point within 2 mm; force p95 = 95th percentile of |force error| / '
+        'desired; stop = time from a stop half-way along the path to zero joint '
+        'velocity; qdot/limit = largest commanded joint speed over its limit; margin = '
+        'closest approach to a position limit. Step times measured on a loaded 2-core '
+        'machine (ours, dls and primal_dual back to back on the same inputs).',
+        '',
+        f'Goals: RMS < {GOALS["rms_mm"]} mm, passed > {GOALS["passed_fraction"] * 100:g} '
+        f'%, force p95 < {GOALS["force_p95_pct"]:g} %, no limit exceeded, stop within '
+        f'{GOALS["stop_latency_ms"]:g} ms, step < {GOALS["step_ms_median"]:g} ms median.',
+    ]
+    table = [
+        '',
+        '## Every case',
+        '',
+        '| case | method | end | RMS [mm] | max [mm] | passed [%] | force p95 [%] | '
+        'qdot/limit | margin [rad] | step [ms] | stop [ms] | goals missed |',
+        '|---|---|---|---|---|---|---|---|---|---|---|---|',
+    ]
     for row in rows:
         table.append(
             f'| {row["case"]} | {row["method"]} | {row["phase"]} | {row["rms_mm"]:.4f} | '
             f'{row["max_mm"]:.4f} | {row["passed_fraction"] * 100:.1f} | '
             f'{row["force_p95_pct"]:.2f} | {row["velocity_ratio"]:.2f} | '
             f'{row["limit_margin_rad"]:.3f} | {row["step_ms_median"]:.3f} | '
-            f'{row["stop_mid_latency_ms"]:.0f} | {"; ".join(row["missed"]) or "none"} |')
-    summary = ['', '## Summary', '', '| method | cases | all goals met | done | median RMS '
-               '[mm] | median step [ms] | step ratio to ours |', '|---|---|---|---|---|---|---|']
+            f'{row["stop_mid_latency_ms"]:.0f} | {"; ".join(row["missed"]) or "none"} |'
+        )
+    summary = [
+        '',
+        '## Summary',
+        '',
+        '| method | cases | all goals met | done | median RMS '
+        '[mm] | median step [ms] | step ratio to ours |',
+        '|---|---|---|---|---|---|---|',
+    ]
     ours_step = np.median([r['step_ms_median'] for r in rows if r['method'] == 'ours'])
     for method in CASE_METHODS:
         mine = [r for r in rows if r['method'] == method]
@@ -374,11 +449,18 @@ def write_case_tables(rows, seed):
             f'| {method} | {len(mine)} | {sum(not r["missed"] for r in mine)} | '
             f'{sum(r["phase"] == "done" for r in mine)} | '
             f'{np.nanmedian([r["rms_mm"] for r in mine]):.4f} | {step:.3f} | '
-            f'{step / ours_step:.2f} |')
-    failures = [f'- {r["case"]}: {"; ".join(r["missed"])}' for r in rows
-                if r['method'] == 'primal_dual' and r['missed']]
-    summary += ['', 'Where the thesis\'s primal-dual method (W = diag(1,-1,-1,1,-1,1,1)) '
-                'misses the goals:', ''] + (failures or ['- nowhere'])
+            f'{step / ours_step:.2f} |'
+        )
+    failures = [
+        f'- {r["case"]}: {"; ".join(r["missed"])}'
+        for r in rows
+        if r['method'] == 'primal_dual' and r['missed']
+    ]
+    summary += [
+        '',
+        "Where the thesis's primal-dual method (W = diag(1,-1,-1,1,-1,1,1)) misses the goals:",
+        '',
+    ] + (failures or ['- nowhere'])
     text = '\n'.join(lines + summary + table) + '\n'
     (CASES_OUT / 'results.md').write_text(text)
     (CASES_OUT / 'results.json').write_text(json.dumps(rows, indent=2))
@@ -412,47 +494,60 @@ def main():
         force_rows.append(row)
         print(row, flush=True)
 
-    lines = ['# pa10_ik_node benchmark', '',
-             'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-             'bench/bench_pa10_ik.py`', '',
-             '## Table 7.1 (thesis PA-10 model `pa10_thesis`, T = 6 s, dt = 1 ms)', '',
-             '| trajectory | method | RMS position | RMS orientation [rad] | max position | '
-             'thesis position | thesis orientation | median step [ms] | W fails on null(J) '
-             '[steps] | network unstable [steps] |',
-             '|---|---|---|---|---|---|---|---|---|---|']
+    lines = [
+        '# pa10_ik_node benchmark',
+        '',
+        'Command: `source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_pa10_ik.py`',
+        '',
+        '## Table 7.1 (thesis PA-10 model `pa10_thesis`, T = 6 s, dt = 1 ms)',
+        '',
+        '| trajectory | method | RMS position | RMS orientation [rad] | max position | '
+        'thesis position | thesis orientation | median step [ms] | W fails on null(J) '
+        '[steps] | network unstable [steps] |',
+        '|---|---|---|---|---|---|---|---|---|---|',
+    ]
     for (name, method), row in table.items():
         thesis = THESIS_TABLE[name]
-        lines.append(f'| {name} | {method} | {row["rms_position"]:.3g} | '
-                     f'{row["rms_orientation"]:.3g} | {row["max_position"]:.3g} | '
-                     f'{thesis[0]:.3g} | {thesis[1]:.3g} | {row["step_ms_median"]:.3f} | '
-                     f'{row["null_space_failures"]} / {row["steps"]} | '
-                     f'{row["network_diverged"]} |')
-    lines += ['', 'Units: the thesis model\'s length unit (its link lengths 1.8, 3.6, 0.6) '
-              'and rad. primal_dual = the seed\'s network as published (no pose feedback), '
-              'integrated exactly per step (one matrix exponential = the "iterations" of a '
-              'step), W = diag(1,-1,-1,1,-1,1,1), K = 100, |W| where W is not positive on '
-              'null(J); ours = closed-form KKT with the same W (same fallback) + pose '
-              f'feedback {FEEDBACK_GAIN:g}/s; ours_identity = the same with W = I (the '
-              'node default); dls = damping 0.05 + the same feedback. One '
-              'solve per control step for every method.', '',
-              f'Literal fixed-step rules (mu = eta = 0.02, K = 100) at Gamma1\'s start: '
-              f'spectral radius {radius:.1f} (> 1: divergent); the iterate norm passes 1e10 '
-              f'after {diverged_at} iterations.', '',
-              '## Force tracking in the simulated contact (whole closed curves, ours, '
-              '5 N desired, 0.02 m/s, 100 Hz, pressure noise of the scenario)', '',
-              'force_law: integral = ours (depth = lambda_d / k_est + integral of the force '
-              'error); tilt = the thesis\'s 7.3.15 rule (the motion PQ\' tilted by phi into / '
-              'out of the surface at every control step, tracking.tilted_motion).',
-              '',
-              'The last three rows: the waypoints 1 mm * sin(2 turns) off the surface along '
-              'their approach axis (+-2 N of depth disturbance); force_gain only acts in '
-              'the integral law (the tilt law\'s equivalent gain is v pi k / (2 lambda_d) = '
-              f'{0.02 * np.pi * 2000.0 / 10.0:.1f} /s).', '',
-              '| scenario | surface | force_law | force_gain [1/s] | waypoint depth error '
-              '[mm] | length [m] | end phase | RMS lateral [mm] | '
-              'max lateral [mm] | true force range [N] | max force error [%] | '
-              'RMS force error [N] | phi range [rad] | median step [ms] |',
-              '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|']
+        lines.append(
+            f'| {name} | {method} | {row["rms_position"]:.3g} | '
+            f'{row["rms_orientation"]:.3g} | {row["max_position"]:.3g} | '
+            f'{thesis[0]:.3g} | {thesis[1]:.3g} | {row["step_ms_median"]:.3f} | '
+            f'{row["null_space_failures"]} / {row["steps"]} | '
+            f'{row["network_diverged"]} |'
+        )
+    lines += [
+        '',
+        "Units: the thesis model's length unit (its link lengths 1.8, 3.6, 0.6) "
+        "and rad. primal_dual = the seed's network as published (no pose feedback), "
+        'integrated exactly per step (one matrix exponential = the "iterations" of a '
+        'step), W = diag(1,-1,-1,1,-1,1,1), K = 100, |W| where W is not positive on '
+        'null(J); ours = closed-form KKT with the same W (same fallback) + pose '
+        f'feedback {FEEDBACK_GAIN:g}/s; ours_identity = the same with W = I (the '
+        'node default); dls = damping 0.05 + the same feedback. One '
+        'solve per control step for every method.',
+        '',
+        f"Literal fixed-step rules (mu = eta = 0.02, K = 100) at Gamma1's start: "
+        f'spectral radius {radius:.1f} (> 1: divergent); the iterate norm passes 1e10 '
+        f'after {diverged_at} iterations.',
+        '',
+        '## Force tracking in the simulated contact (whole closed curves, ours, '
+        '5 N desired, 0.02 m/s, 100 Hz, pressure noise of the scenario)',
+        '',
+        'force_law: integral = ours (depth = lambda_d / k_est + integral of the force '
+        "error); tilt = the thesis's 7.3.15 rule (the motion PQ' tilted by phi into / "
+        'out of the surface at every control step, tracking.tilted_motion).',
+        '',
+        'The last three rows: the waypoints 1 mm * sin(2 turns) off the surface along '
+        'their approach axis (+-2 N of depth disturbance); force_gain only acts in '
+        "the integral law (the tilt law's equivalent gain is v pi k / (2 lambda_d) = "
+        f'{0.02 * np.pi * 2000.0 / 10.0:.1f} /s).',
+        '',
+        '| scenario | surface | force_law | force_gain [1/s] | waypoint depth error '
+        '[mm] | length [m] | end phase | RMS lateral [mm] | '
+        'max lateral [mm] | true force range [N] | max force error [%] | '
+        'RMS force error [N] | phi range [rad] | median step [ms] |',
+        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
+    ]
     for row in force_rows:
         lines.append(
             f'| {row["scenario"]} | {row["surface"]} | {row["force_law"]} | '
@@ -462,15 +557,26 @@ def main():
             f'{row["true_force_min_N"]:.3f}..{row["true_force_max_N"]:.3f} | '
             f'{row["max_force_error_pct"]:.2f} | {row["rms_force_error_N"]:.4f} | '
             f'{row["phi_range_rad"][0]:.4f}..{row["phi_range_rad"][1]:.4f} | '
-            f'{row["step_ms_median"]:.3f} |')
+            f'{row["step_ms_median"]:.3f} |'
+        )
     if plotted:
-        lines += ['', 'Plots: table71_Gamma1.png, table71_Gamma2.png (r_d, rdot_d, qdot, q '
-                  'of ours as figs 7.14-7.21, and the errors of every method).']
+        lines += [
+            '',
+            'Plots: table71_Gamma1.png, table71_Gamma2.png (r_d, rdot_d, qdot, q '
+            'of ours as figs 7.14-7.21, and the errors of every method).',
+        ]
     (OUT / 'results.md').write_text('\n'.join(lines) + '\n')
-    (OUT / 'results.json').write_text(json.dumps({
-        'table71': {f'{n}/{m}': r for (n, m), r in table.items()},
-        'fixed_step_spectral_radius': radius, 'fixed_step_diverged_at': diverged_at,
-        'force_tracking': force_rows}, indent=2))
+    (OUT / 'results.json').write_text(
+        json.dumps(
+            {
+                'table71': {f'{n}/{m}': r for (n, m), r in table.items()},
+                'fixed_step_spectral_radius': radius,
+                'fixed_step_diverged_at': diverged_at,
+                'force_tracking': force_rows,
+            },
+            indent=2,
+        )
+    )
     print('\n'.join(lines))
 
 

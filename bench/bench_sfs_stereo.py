@@ -20,6 +20,7 @@ Stereo alone is measured on its sparse matches only.
 Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_sfs_stereo.py
 Writes bench/results/sfs_stereo/{results.md, results.json, <scene>.png}.
 """
+
 import json
 import sys
 import time
@@ -42,17 +43,30 @@ DEFAULT = ROOT / 'src' / 'sensor_sim' / 'scenarios' / 'default.yaml'
 THESIS = {'SFS alone': (15.6, 14.0, 0.4128), 'thesis fusion (mlp_rows)': (13.0, 13.3, 0.1730)}
 
 SURFACES = {
-    'vase': {'type': 'vase', 'scale': 0.4, 'extent': [[-0.5, 0.5], [0.0, 1.0]],
-             'pose': {'xyz': [0.6823, -0.2, 0.4254], 'rpy': [0.0, 0.35, 0.0]},
-             'albedo': 0.8, 'roughness': 0.3},
-    'sphere': {'type': 'sphere', 'scale': 0.12, 'radius': 1.0,
-               'extent': [[-1.0, 1.0], [-1.0, 1.0]],
-               'pose': {'xyz': [0.6823, 0.0, 0.4254], 'rpy': [0.0, 0.35, 0.0]},
-               'albedo': 0.8, 'roughness': 0.3},
+    'vase': {
+        'type': 'vase',
+        'scale': 0.4,
+        'extent': [[-0.5, 0.5], [0.0, 1.0]],
+        'pose': {'xyz': [0.6823, -0.2, 0.4254], 'rpy': [0.0, 0.35, 0.0]},
+        'albedo': 0.8,
+        'roughness': 0.3,
+    },
+    'sphere': {
+        'type': 'sphere',
+        'scale': 0.12,
+        'radius': 1.0,
+        'extent': [[-1.0, 1.0], [-1.0, 1.0]],
+        'pose': {'xyz': [0.6823, 0.0, 0.4254], 'rpy': [0.0, 0.35, 0.0]},
+        'albedo': 0.8,
+        'roughness': 0.3,
+    },
     'default': None,
 }
-CURVES = {'vase': {'center': [0.0, 0.5], 'radii': [0.2, 0.3]},
-          'sphere': {'center': [0.0, 0.0], 'radii': [0.55, 0.4]}, 'default': {}}
+CURVES = {
+    'vase': {'center': [0.0, 0.5], 'radii': [0.2, 0.3]},
+    'sphere': {'center': [0.0, 0.0], 'radii': [0.55, 0.4]},
+    'default': {},
+}
 
 
 def scenario_file(scene, size, tmp):
@@ -78,11 +92,17 @@ def render(scene, size, tmp):
     renderer = SceneRenderer(scenario)
     left, right = scenario.cameras['left'], scenario.cameras['right']
     rect = stereo_rectification(left, right)
-    pair = rectification_maps(left.K, left.D, *rect['left'], right.K, right.D,
-                              *rect['right'], size)
-    images = [add_noise(renderer.scene_image(n), scenario.noise.image_sigma,
-                        np.random.default_rng([scenario.seed, 0, i]))
-              for i, n in enumerate(('left', 'right'))]
+    pair = rectification_maps(
+        left.K, left.D, *rect['left'], right.K, right.D, *rect['right'], size
+    )
+    images = [
+        add_noise(
+            renderer.scene_image(n),
+            scenario.noise.image_sigma,
+            np.random.default_rng([scenario.seed, 0, i]),
+        )
+        for i, n in enumerate(('left', 'right'))
+    ]
     # The light of the scenario in the left optical frame, as a user would configure it.
     light = left.T_camera_base[:3, :3] @ np.asarray(scenario.lighting.direction_base)
     return images, pair, renderer.depth('left'), light / np.linalg.norm(light)
@@ -92,11 +112,14 @@ def measures(Z, G):
     m = np.isfinite(Z) & np.isfinite(G)
     span = np.ptp(G[m])
     e = depth_error_stats(Z, G, m)
-    return {'mean_pct': 100 * e.mean / span, 'std_pct': 100 * e.std / span,
-            'rms_pct': 100 * e.rms / span,
-            'median_mm': 1e3 * float(np.median(np.abs(Z[m] - G[m]))),
-            'p90_mm': 1e3 * float(np.percentile(np.abs(Z[m] - G[m]), 90)),
-            'points': int(m.sum())}
+    return {
+        'mean_pct': 100 * e.mean / span,
+        'std_pct': 100 * e.std / span,
+        'rms_pct': 100 * e.rms / span,
+        'median_mm': 1e3 * float(np.median(np.abs(Z[m] - G[m]))),
+        'p90_mm': 1e3 * float(np.percentile(np.abs(Z[m] - G[m]), 90)),
+        'points': int(m.sum()),
+    }
 
 
 def run_scene(scene, size, tmp, config):
@@ -106,11 +129,13 @@ def run_scene(scene, size, tmp, config):
     # Row order of the tables: the inputs first, then the fusions.
     estimates = dict.fromkeys(('SFS alone', 'stereo alone (sparse SSD)'))
     times = {}
-    for label, cfg in (('ours (shading_refine)', replace(config, fusion='shading_refine')),
-                       ('local_affine', replace(config, fusion='local_affine')),
-                       ('thesis fusion (mlp_rows)', replace(config, fusion='mlp_rows')),
-                       ('least_squares', replace(config, fusion='least_squares')),
-                       ('SGBM', replace(config, stereo='sgbm'))):
+    for label, cfg in (
+        ('ours (shading_refine)', replace(config, fusion='shading_refine')),
+        ('local_affine', replace(config, fusion='local_affine')),
+        ('thesis fusion (mlp_rows)', replace(config, fusion='mlp_rows')),
+        ('least_squares', replace(config, fusion='least_squares')),
+        ('SGBM', replace(config, stereo='sgbm')),
+    ):
         result = process_pair(*images, pair, size, cfg)
         times[label] = result.timings
         if label == 'SGBM':
@@ -129,6 +154,7 @@ def run_scene(scene, size, tmp, config):
 def plot(scene, estimates, G, path):
     try:
         import matplotlib
+
         matplotlib.use('Agg')
         import matplotlib.pyplot as plt
     except ImportError:
@@ -161,9 +187,11 @@ def aloe_pair(shift=24):
     import cv2
 
     from vgm_common.sample_data import opencv_sample_dir
+
     directory = opencv_sample_dir()
-    left, right = (cv2.imread(str(directory / n), cv2.IMREAD_GRAYSCALE)
-                   for n in ('aloeL.jpg', 'aloeR.jpg'))
+    left, right = (
+        cv2.imread(str(directory / n), cv2.IMREAD_GRAYSCALE) for n in ('aloeL.jpg', 'aloeR.jpg')
+    )
     truth = cv2.imread(str(directory / 'aloeGT.png'), cv2.IMREAD_GRAYSCALE).astype(float)
     left, right, truth = left[:, :-shift], right[:, shift:], truth[:, :-shift]
     height, width = left.shape
@@ -171,10 +199,17 @@ def aloe_pair(shift=24):
     K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])
     K_right = K.copy()
     K_right[0, 2] -= shift
-    pair = rectification_maps(K, np.zeros(5), np.eye(3), np.hstack([K, np.zeros((3, 1))]),
-                              K_right, np.zeros(5), np.eye(3),
-                              np.hstack([K_right, [[-f * baseline], [0], [0]]]),
-                              (width, height))
+    pair = rectification_maps(
+        K,
+        np.zeros(5),
+        np.eye(3),
+        np.hstack([K, np.zeros((3, 1))]),
+        K_right,
+        np.zeros(5),
+        np.eye(3),
+        np.hstack([K_right, [[-f * baseline], [0], [0]]]),
+        (width, height),
+    )
     return left, right, truth, pair
 
 
@@ -182,54 +217,74 @@ def speed_and_real_data():
     """Time per pair of ours and of cv2.StereoSGBM (stereo='sgbm', the same pipeline
     otherwise) back to back on the same inputs; Aloe bad pixels against SGBM."""
     import cv2
+
     tmp = OUT / 'scenarios'
     tmp.mkdir(parents=True, exist_ok=True)
     rows = {}
     for size, downsample in (((320, 240), 1), ((640, 480), 1), ((640, 480), 2)):
         images, pair, _, light = render('default', size, tmp)
-        config = DepthConfig(downsample=downsample, max_disparity=160 * size[0] // 320,
-                             light_direction=tuple(light))
+        config = DepthConfig(
+            downsample=downsample, max_disparity=160 * size[0] // 320, light_direction=tuple(light)
+        )
         process_pair(*images, pair, size, config)  # warm-up
         ours = process_pair(*images, pair, size, config).timings
         sgbm = process_pair(*images, pair, size, replace(config, stereo='sgbm')).timings
         rows[f'{size[0]}x{size[1]} downsample {downsample}'] = {
             'ours_ms': {k: 1e3 * v for k, v in ours.items()},
-            'sgbm_ms': {k: 1e3 * v for k, v in sgbm.items()}}
+            'sgbm_ms': {k: 1e3 * v for k, v in sgbm.items()},
+        }
     left, right, truth, pair = aloe_pair()
     aloe = {}
-    base = DepthConfig(fusion='local_affine', min_depth=0.0, max_depth=0.0, max_disparity=260,
-                       min_intensity=0.0)
-    for label, config in (('SGBM', replace(base, stereo='sgbm')),
-                          ('ours, defaults (window 3, texture_snr 2.5)', base),
-                          ('ours, window 5, texture_snr 0', replace(base, window=5,
-                                                                     texture_snr=0.0)),
-                          ('ours, window 7, texture_snr 0', replace(base, window=7,
-                                                                     texture_snr=0.0))):
+    base = DepthConfig(
+        fusion='local_affine', min_depth=0.0, max_depth=0.0, max_disparity=260, min_intensity=0.0
+    )
+    for label, config in (
+        ('SGBM', replace(base, stereo='sgbm')),
+        ('ours, defaults (window 3, texture_snr 2.5)', base),
+        ('ours, window 5, texture_snr 0', replace(base, window=5, texture_snr=0.0)),
+        ('ours, window 7, texture_snr 0', replace(base, window=7, texture_snr=0.0)),
+    ):
         result = process_pair(left, right, pair, (left.shape[1], left.shape[0]), config)
         h, w = result.disparity.shape
         g = cv2.resize(truth, (w, h), interpolation=cv2.INTER_NEAREST) / 2
         on = np.isfinite(result.disparity) & (g > 0)
-        aloe[label] = {'bad_2px': float(np.mean(np.abs(result.disparity[on] - g[on]) > 1)),
-                       'density': float(on.sum() / (g > 0).sum()),
-                       'stereo_ms': 1e3 * result.timings['stereo']}
-    lines = ['# sfs_stereo_node: speed beside cv2.StereoSGBM, and the Aloe pair', '',
-             'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-             'bench/bench_sfs_stereo.py --speed`. Default scene (sensor_sim), same pair, '
-             'back to back; SGBM = the same pipeline with stereo:=sgbm. Loaded 2-core '
-             'machine shared with 4 other engineers: absolute times noisy, compare ratios.', '',
-             '| size | ours stereo ms | SGBM stereo ms | ratio | ours total ms | with SGBM '
-             'total ms | ours sfs ms | ours fusion ms |', '|---|---|---|---|---|---|---|---|']
+        aloe[label] = {
+            'bad_2px': float(np.mean(np.abs(result.disparity[on] - g[on]) > 1)),
+            'density': float(on.sum() / (g > 0).sum()),
+            'stereo_ms': 1e3 * result.timings['stereo'],
+        }
+    lines = [
+        '# sfs_stereo_node: speed beside cv2.StereoSGBM, and the Aloe pair',
+        '',
+        'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        'bench/bench_sfs_stereo.py --speed`. Default scene (sensor_sim), same pair, '
+        'back to back; SGBM = the same pipeline with stereo:=sgbm. Loaded 2-core '
+        'machine shared with 4 other engineers: absolute times noisy, compare ratios.',
+        '',
+        '| size | ours stereo ms | SGBM stereo ms | ratio | ours total ms | with SGBM '
+        'total ms | ours sfs ms | ours fusion ms |',
+        '|---|---|---|---|---|---|---|---|',
+    ]
     for key, r in rows.items():
         o, g = r['ours_ms'], r['sgbm_ms']
-        lines.append(f'| {key} | {o["stereo"]:.0f} | {g["stereo"]:.0f} | '
-                     f'x{o["stereo"] / g["stereo"]:.2f} | {o["total"]:.0f} | {g["total"]:.0f} '
-                     f'| {o["sfs"]:.0f} | {o["fusion"]:.0f} |')
-    lines += ['', '## Aloe (Middlebury, opencv-doc), rectified pair with a 24 px cx offset, '
-              'processed at downsample 2', '', '| matcher | bad pixels (> 2 px full size) | '
-              'density | stereo ms |', '|---|---|---|---|']
+        lines.append(
+            f'| {key} | {o["stereo"]:.0f} | {g["stereo"]:.0f} | '
+            f'x{o["stereo"] / g["stereo"]:.2f} | {o["total"]:.0f} | {g["total"]:.0f} '
+            f'| {o["sfs"]:.0f} | {o["fusion"]:.0f} |'
+        )
+    lines += [
+        '',
+        '## Aloe (Middlebury, opencv-doc), rectified pair with a 24 px cx offset, '
+        'processed at downsample 2',
+        '',
+        '| matcher | bad pixels (> 2 px full size) | density | stereo ms |',
+        '|---|---|---|---|',
+    ]
     for label, a in aloe.items():
-        lines.append(f'| {label} | {100 * a["bad_2px"]:.1f} % | {100 * a["density"]:.1f} % | '
-                     f'{a["stereo_ms"]:.0f} |')
+        lines.append(
+            f'| {label} | {100 * a["bad_2px"]:.1f} % | {100 * a["density"]:.1f} % | '
+            f'{a["stereo_ms"]:.0f} |'
+        )
     (OUT / 'speed.md').write_text('\n'.join(lines) + '\n')
     (OUT / 'speed.json').write_text(json.dumps({'timing': rows, 'aloe': aloe}, indent=1))
     print('\n'.join(lines))
@@ -242,50 +297,83 @@ def family_draws(seed=0):
     (seeded), and one 1280x960 draw."""
     rng = np.random.default_rng(seed)
     from sensor_sim.scene_families import KINDS
+
     draws = []
     for kind in KINDS:
         for size in ((320, 240), (640, 480)):
             azimuth = rng.choice([np.pi / 4, 0.0, np.pi / 2, 3 * np.pi / 4, 0.3])
             tilt = rng.uniform(0.3, 0.6)
-            light = tuple(float(v) for v in (np.sin(tilt) * np.cos(azimuth),
-                                              np.sin(tilt) * np.sin(azimuth), -np.cos(tilt)))
-            draws.append(dict(kind=kind, seed=int(rng.integers(1000)), size=size,
-                              noise=float(rng.choice([0.0, 1.0, 2.0])),
-                              textured=bool(rng.random() < 0.3), light=tuple(light)))
-    draws.append(dict(kind='bumps', seed=7, size=(1280, 960), noise=1.0, textured=False,
-                      light=(-0.3, -0.3, -0.9)))
+            light = tuple(
+                float(v)
+                for v in (
+                    np.sin(tilt) * np.cos(azimuth),
+                    np.sin(tilt) * np.sin(azimuth),
+                    -np.cos(tilt),
+                )
+            )
+            draws.append(
+                dict(
+                    kind=kind,
+                    seed=int(rng.integers(1000)),
+                    size=size,
+                    noise=float(rng.choice([0.0, 1.0, 2.0])),
+                    textured=bool(rng.random() < 0.3),
+                    light=tuple(light),
+                )
+            )
+    draws.append(
+        dict(
+            kind='bumps',
+            seed=7,
+            size=(1280, 960),
+            noise=1.0,
+            textured=False,
+            light=(-0.3, -0.3, -0.9),
+        )
+    )
     return draws
 
 
 def families():
     """Fused against SFS alone and stereo alone on the scene families, one run."""
     from sensor_sim.scene_families import draw_scene
+
     rows = []
     for draw in family_draws():
         scene = draw_scene(**draw, cx_offset=5.0)
         width, height = draw['size']
         P = lambda K, tx: np.hstack([K, [[tx], [0], [0]]])  # noqa: E731
-        pair = rectification_maps(scene.K_left, np.zeros(5), np.eye(3), P(scene.K_left, 0.0),
-                                  scene.K_right, np.zeros(5), np.eye(3),
-                                  P(scene.K_right, -scene.K_left[0, 0] * scene.baseline),
-                                  (width, height))
-        config = DepthConfig(downsample=1, light_direction=tuple(scene.light),
-                             max_disparity=width)
+        pair = rectification_maps(
+            scene.K_left,
+            np.zeros(5),
+            np.eye(3),
+            P(scene.K_left, 0.0),
+            scene.K_right,
+            np.zeros(5),
+            np.eye(3),
+            P(scene.K_right, -scene.K_left[0, 0] * scene.baseline),
+            (width, height),
+        )
+        config = DepthConfig(downsample=1, light_direction=tuple(scene.light), max_disparity=width)
         started = time.perf_counter()
         result = process_pair(scene.left, scene.right, pair, (width, height), config)
         seconds = time.perf_counter() - started
         G = scene.depth
-        row = {**{k: v for k, v in draw.items() if k != 'light'},
-               'light': [round(v, 3) for v in draw['light']], 'seconds': seconds,
-               'fusion': result.fusion, 'warnings': list(result.warnings),
-               'density': result.density}
+        row = {
+            **{k: v for k, v in draw.items() if k != 'light'},
+            'light': [round(v, 3) for v in draw['light']],
+            'seconds': seconds,
+            'fusion': result.fusion,
+            'warnings': list(result.warnings),
+            'density': result.density,
+        }
         if result.depth_fused is not None:
             surface = np.isfinite(G)
             fused, sfs, stereo = result.depth_fused, result.depth_sfs, result.depth_stereo
             on = surface & np.isfinite(fused) & np.isfinite(sfs)
             row['fused_dense'] = float(np.isfinite(fused[surface]).mean())
             row['sfs_dense'] = float(np.isfinite(sfs[surface]).mean())
-            rms = lambda Z, m, G=G: float(np.sqrt(np.mean((Z[m] - G[m])**2)))  # noqa: E731
+            rms = lambda Z, m, G=G: float(np.sqrt(np.mean((Z[m] - G[m]) ** 2)))  # noqa: E731
             row['rms_sfs_mm'], row['rms_fused_mm'] = 1e3 * rms(sfs, on), 1e3 * rms(fused, on)
             row['rms_ratio'] = row['rms_sfs_mm'] / row['rms_fused_mm']
             mapped = depth_error_stats(sfs, G, on), depth_error_stats(fused, G, on)
@@ -298,22 +386,29 @@ def families():
                 row['fused_on_stereo_mean_mm'] = 1e3 * float(np.mean(np.abs(fused[st] - G[st])))
         rows.append(row)
         print(row, flush=True)
-    lines = ['# sfs_stereo_node on the scene families (sensor_sim.scene_families)', '',
-             'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-             'bench/bench_sfs_stereo.py --families`. Node defaults (downsample 1 so the '
-             'output is at the image resolution), already-rectified pairs with a 5 px cx '
-             'offset, the drawn curve on, the light given to the node. RMS as published '
-             '[mm] and the ratio after the thesis range mapping (§4.5). Goals: SFS/fused '
-             'RMS >= 3 both ways, fused below stereo (RMS, mean) on stereo pixels, >= 95 % '
-             'dense. Loaded 2-core machine: times noisy.', '',
-             '| kind | size | noise | textured | light | density | SFS RMS mm | fused RMS mm '
-             '| ratio | ratio mapped | stereo RMS / mean mm | fused on stereo RMS / mean mm '
-             '| fused dense | s | warnings |', '|' + '---|' * 15]
+    lines = [
+        '# sfs_stereo_node on the scene families (sensor_sim.scene_families)',
+        '',
+        'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        'bench/bench_sfs_stereo.py --families`. Node defaults (downsample 1 so the '
+        'output is at the image resolution), already-rectified pairs with a 5 px cx '
+        'offset, the drawn curve on, the light given to the node. RMS as published '
+        '[mm] and the ratio after the thesis range mapping (§4.5). Goals: SFS/fused '
+        'RMS >= 3 both ways, fused below stereo (RMS, mean) on stereo pixels, >= 95 % '
+        'dense. Loaded 2-core machine: times noisy.',
+        '',
+        '| kind | size | noise | textured | light | density | SFS RMS mm | fused RMS mm '
+        '| ratio | ratio mapped | stereo RMS / mean mm | fused on stereo RMS / mean mm '
+        '| fused dense | s | warnings |',
+        '|' + '---|' * 15,
+    ]
     for r in rows:
         if 'rms_fused_mm' not in r:
-            lines.append(f'| {r["kind"]} | {r["size"][0]} | {r["noise"]:g} | {r["textured"]} | '
-                         f'{r["light"]} | {r["density"]:.3f} | - | - | - | - | - | - | - | '
-                         f'{r["seconds"]:.1f} | {"; ".join(r["warnings"])} |')
+            lines.append(
+                f'| {r["kind"]} | {r["size"][0]} | {r["noise"]:g} | {r["textured"]} | '
+                f'{r["light"]} | {r["density"]:.3f} | - | - | - | - | - | - | - | '
+                f'{r["seconds"]:.1f} | {"; ".join(r["warnings"])} |'
+            )
             continue
         lines.append(
             f'| {r["kind"]} | {r["size"][0]} | {r["noise"]:g} | {r["textured"]} | {r["light"]} '
@@ -324,7 +419,8 @@ def families():
             f'{r.get("fused_on_stereo_rms_mm", float("nan")):.1f} / '
             f'{r.get("fused_on_stereo_mean_mm", float("nan")):.1f} | '
             f'{100 * r["fused_dense"]:.0f} % | {r["seconds"]:.1f} | '
-            f'{"; ".join(r["warnings"])} |')
+            f'{"; ".join(r["warnings"])} |'
+        )
     met = [r for r in rows if r.get('rms_ratio', 0) >= 3 and r.get('rms_ratio_mapped', 0) >= 3]
     lines += ['', f'RMS ratio >= 3 (published and mapped): {len(met)} of {len(rows)} draws.']
     (OUT / 'families.md').write_text('\n'.join(lines) + '\n')
@@ -350,66 +446,95 @@ def main():
     started = time.monotonic()
     for scene in ('vase', 'sphere', 'default'):
         rows, times, density, estimates, G = run_scene(scene, (320, 240), tmp, config)
-        results[scene] = {'rows': rows, 'match_density': density,
-                          'timings_ms': {k: {s: 1e3 * v for s, v in t.items()}
-                                         for k, t in times.items()}}
+        results[scene] = {
+            'rows': rows,
+            'match_density': density,
+            'timings_ms': {k: {s: 1e3 * v for s, v in t.items()} for k, t in times.items()},
+        }
         plot(scene, estimates, G, OUT / f'{scene}.png')
         print(f'{scene}: done after {time.monotonic() - started:.0f} s', flush=True)
     timing = {}
     for size, cfg in (((320, 240), config), ((640, 480), replace(config, max_disparity=320))):
         images, pair, _, light = render('default', size, tmp)
         process_pair(*images, pair, size, replace(cfg, light_direction=tuple(light)))  # warm-up
-        for fusion, extra in (('shading_refine', {}),
-                              ('shading_refine', {'refine_finest_steps': 0}),
-                              ('local_affine', {}), ('mlp_rows', {})):
+        for fusion, extra in (
+            ('shading_refine', {}),
+            ('shading_refine', {'refine_finest_steps': 0}),
+            ('local_affine', {}),
+            ('mlp_rows', {}),
+        ):
             c = replace(cfg, fusion=fusion, light_direction=tuple(light), **extra)
             label = fusion + (' (refine_finest_steps 0)' if extra else '')
             timing[f'{size[0]}x{size[1]} {label}'] = {
-                k: 1e3 * v for k, v in process_pair(*images, pair, size, c).timings.items()}
+                k: 1e3 * v for k, v in process_pair(*images, pair, size, c).timings.items()
+            }
     results['timing_ms'] = timing
 
-    lines += ['# sfs_stereo_node bench (thesis Tables 5.1 / 5.2, RMS of figs 5.4 / 5.5)', '',
-              'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-              'bench/bench_sfs_stereo.py`. 320x240 noisy pairs (sigma 1 grey level) rendered '
-              'by sensor_sim, default rig; light, albedo, roughness as in the scenario. '
-              'mean/std/RMS: estimate mapped linearly onto the truth range (§4.5), in % of '
-              'the truth depth range; median: plain metric |error| [mm]. Stereo alone: on '
-              'its sparse matches only. Disparity search limited to the depth band 0.35-1.5 m '
-              '(DepthConfig min_depth/max_depth). Time: one run each on a loaded 2-core '
-              'machine shared with other jobs: noisy, +-50 %.', '']
+    lines += [
+        '# sfs_stereo_node bench (thesis Tables 5.1 / 5.2, RMS of figs 5.4 / 5.5)',
+        '',
+        'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        'bench/bench_sfs_stereo.py`. 320x240 noisy pairs (sigma 1 grey level) rendered '
+        'by sensor_sim, default rig; light, albedo, roughness as in the scenario. '
+        'mean/std/RMS: estimate mapped linearly onto the truth range (§4.5), in % of '
+        'the truth depth range; median: plain metric |error| [mm]. Stereo alone: on '
+        'its sparse matches only. Disparity search limited to the depth band 0.35-1.5 m '
+        '(DepthConfig min_depth/max_depth). Time: one run each on a loaded 2-core '
+        'machine shared with other jobs: noisy, +-50 %.',
+        '',
+    ]
     for scene in ('vase', 'sphere', 'default'):
         r = results[scene]
-        lines += [f'## {scene} (SSD match density {100 * r["match_density"]:.1f} % of '
-                  'the surface pixels)', '',
-                  '| method | mean % | std % | RMS % | median mm | p90 mm | points | '
-                  'thesis (vase) mean / std / RMS |', '|---|---|---|---|---|---|---|---|']
+        lines += [
+            f'## {scene} (SSD match density {100 * r["match_density"]:.1f} % of '
+            'the surface pixels)',
+            '',
+            '| method | mean % | std % | RMS % | median mm | p90 mm | points | '
+            'thesis (vase) mean / std / RMS |',
+            '|---|---|---|---|---|---|---|---|',
+        ]
         for name, m in r['rows'].items():
             seed = THESIS.get(name)
-            seed_text = (f'{seed[0]} / {seed[1]} / {seed[2]}' if seed and scene == 'vase'
-                         else '')
-            lines.append(f'| {name} | {m["mean_pct"]:.2f} | {m["std_pct"]:.2f} | '
-                         f'{m["rms_pct"]:.2f} | {m["median_mm"]:.1f} | '
-                         f'{m["p90_mm"]:.1f} | {m["points"]} | '
-                         f'{seed_text} |')
+            seed_text = f'{seed[0]} / {seed[1]} / {seed[2]}' if seed and scene == 'vase' else ''
+            lines.append(
+                f'| {name} | {m["mean_pct"]:.2f} | {m["std_pct"]:.2f} | '
+                f'{m["rms_pct"]:.2f} | {m["median_mm"]:.1f} | '
+                f'{m["p90_mm"]:.1f} | {m["points"]} | '
+                f'{seed_text} |'
+            )
         sfs, ours = r['rows']['SFS alone'], r['rows']['ours (shading_refine)']
         mlp = r['rows']['thesis fusion (mlp_rows)']
-        lines += ['', f'SFS -> ours: RMS x{sfs["rms_pct"] / ours["rms_pct"]:.2f} lower, mean '
-                  f'x{sfs["mean_pct"] / ours["mean_pct"]:.2f} lower (goals x3, x2); SFS -> '
-                  f'mlp_rows: RMS x{sfs["rms_pct"] / mlp["rms_pct"]:.2f}, mean '
-                  f'x{sfs["mean_pct"] / mlp["mean_pct"]:.2f}; ours better than mlp_rows: '
-                  f'{ours["rms_pct"] < mlp["rms_pct"] and ours["mean_pct"] < mlp["mean_pct"]}',
-                  '']
-    lines += ['Thesis RMS units are not recoverable (survey depth units); compare the '
-              'ratios: thesis vase SFS 0.4128 -> fused 0.1730 (x2.4 RMS), mean 15.6 -> 13.0 '
-              '(x1.2).', '', '## Time per frame [ms] (default scene, this machine: 2 shared '
-              'cores)', '', '| size, fusion | rectify | stereo | sfs | fusion | total |',
-              '|---|---|---|---|---|---|']
+        lines += [
+            '',
+            f'SFS -> ours: RMS x{sfs["rms_pct"] / ours["rms_pct"]:.2f} lower, mean '
+            f'x{sfs["mean_pct"] / ours["mean_pct"]:.2f} lower (goals x3, x2); SFS -> '
+            f'mlp_rows: RMS x{sfs["rms_pct"] / mlp["rms_pct"]:.2f}, mean '
+            f'x{sfs["mean_pct"] / mlp["mean_pct"]:.2f}; ours better than mlp_rows: '
+            f'{ours["rms_pct"] < mlp["rms_pct"] and ours["mean_pct"] < mlp["mean_pct"]}',
+            '',
+        ]
+    lines += [
+        'Thesis RMS units are not recoverable (survey depth units); compare the '
+        'ratios: thesis vase SFS 0.4128 -> fused 0.1730 (x2.4 RMS), mean 15.6 -> 13.0 '
+        '(x1.2).',
+        '',
+        '## Time per frame [ms] (default scene, this machine: 2 shared cores)',
+        '',
+        '| size, fusion | rectify | stereo | sfs | fusion | total |',
+        '|---|---|---|---|---|---|',
+    ]
     for key, t in timing.items():
-        lines.append(f'| {key} | {t["rectify"]:.0f} | {t["stereo"]:.0f} | {t["sfs"]:.0f} | '
-                     f'{t["fusion"]:.0f} | {t["total"]:.0f} |')
-    lines += ['', 'Goal: fusion of a 320x240 pair < 200 ms, 640x480 < 1 s (the fusion '
-              'column; the total includes SSD stereo and SFS).', '',
-              'Depth and error maps: vase.png, sphere.png, default.png.']
+        lines.append(
+            f'| {key} | {t["rectify"]:.0f} | {t["stereo"]:.0f} | {t["sfs"]:.0f} | '
+            f'{t["fusion"]:.0f} | {t["total"]:.0f} |'
+        )
+    lines += [
+        '',
+        'Goal: fusion of a 320x240 pair < 200 ms, 640x480 < 1 s (the fusion '
+        'column; the total includes SSD stereo and SFS).',
+        '',
+        'Depth and error maps: vase.png, sphere.png, default.png.',
+    ]
     (OUT / 'results.md').write_text('\n'.join(lines) + '\n')
     (OUT / 'results.json').write_text(json.dumps(results, indent=1))
     print('\n'.join(lines))

@@ -8,6 +8,7 @@ time - capture stamp), bytes over the link, CPU of each process.
     make bench            # or: python bench/bench_sim_recording.py --seconds 20 --repeats 3
 Writes bench/results/sim_recording.md and .json.
 """
+
 import argparse
 import json
 import os
@@ -36,8 +37,7 @@ IMAGE_TOPICS = ('/stereo/left/image_raw', '/stereo/right/image_raw', '/aux/image
 def wait_for_recording(launch, timeout):
     """Until the recorder subscribed to every camera (sensor_sim waits for it)."""
     deadline = time.monotonic() + timeout
-    while not all(f'recording {topic} ' in launch.log_text('recorder')
-                  for topic in IMAGE_TOPICS):
+    while not all(f'recording {topic} ' in launch.log_text('recorder') for topic in IMAGE_TOPICS):
         if time.monotonic() > deadline or launch.failed():
             raise TimeoutError('the recorder did not subscribe to the cameras')
         time.sleep(0.1)
@@ -56,15 +56,24 @@ def measure(rate, seconds, hosts=None):
     given), record ``seconds`` [s] once the recorder subscribed, stop, compare what was
     published with what is in the bag."""
     graph = Path(get_package_share_directory('vgm_common')) / 'params' / 'graph.yaml'
-    prefixes = {} if hosts is None else {'sensor_sim': hosts.prefix('a'),
-                                         'recorder': hosts.prefix('b')}
+    prefixes = (
+        {} if hosts is None else {'sensor_sim': hosts.prefix('a'), 'recorder': hosts.prefix('b')}
+    )
     if hosts is not None:
         os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'SUBNET'  # the hosts see each other
     with tempfile.TemporaryDirectory() as tmp:
-        launch = Launch(graph, nodes=['recorder', 'sensor_sim'], overrides=[
-            f'recorder:output_dir:={tmp}', 'recorder:bag_name:=bench',
-            'sensor_sim:calibration_phase:=false', f'sensor_sim:rate:={rate}',
-            'sensor_sim:min_subscribers:=1'], command_prefixes=prefixes)
+        launch = Launch(
+            graph,
+            nodes=['recorder', 'sensor_sim'],
+            overrides=[
+                f'recorder:output_dir:={tmp}',
+                'recorder:bag_name:=bench',
+                'sensor_sim:calibration_phase:=false',
+                f'sensor_sim:rate:={rate}',
+                'sensor_sim:min_subscribers:=1',
+            ],
+            command_prefixes=prefixes,
+        )
         launch.start()
         try:
             wait_for_recording(launch, 60.0)
@@ -74,8 +83,10 @@ def measure(rate, seconds, hosts=None):
             start = time.monotonic()
             time.sleep(seconds)  # the measurement window itself, not a wait for a condition
             wall = time.monotonic() - start
-            cpu = {name: (cpu_seconds(pid) - cpu_start[name]) / wall * 100
-                   for name, pid in pids.items()}
+            cpu = {
+                name: (cpu_seconds(pid) - cpu_start[name]) / wall * 100
+                for name, pid in pids.items()
+            }
             link_rate = (hosts.transmitted_bytes('a') - link_start) / wall if hosts else 0
         finally:
             launch.stop()
@@ -119,10 +130,15 @@ def time_noise(repeats=30):
     """[ms] per 640x480 image: sensor_sim's add_noise vs numpy's rng.normal."""
     clean = np.random.default_rng(0).uniform(0, 255, (480, 640))
     timings = {}
-    for name, noisy in (('add_noise', lambda rng: add_noise(clean, 1.0, rng)),
-                        ('rng.normal', lambda rng: np.clip(np.rint(
-                            clean + rng.normal(0.0, 1.0, clean.shape)), 0, 255)
-                         .astype(np.uint8))):
+    for name, noisy in (
+        ('add_noise', lambda rng: add_noise(clean, 1.0, rng)),
+        (
+            'rng.normal',
+            lambda rng: np.clip(np.rint(clean + rng.normal(0.0, 1.0, clean.shape)), 0, 255).astype(
+                np.uint8
+            ),
+        ),
+    ):
         start = time.perf_counter()
         for k in range(repeats):
             noisy(np.random.default_rng(k))
@@ -135,32 +151,44 @@ def main():
     parser.add_argument('--seconds', type=float, default=20.0)
     parser.add_argument('--rates', type=float, nargs='+', default=[10.0, 30.0])
     parser.add_argument('--repeats', type=int, default=2)
-    parser.add_argument('--single-host', action='store_true',
-                        help='skip the two-host split (it needs root)')
+    parser.add_argument(
+        '--single-host', action='store_true', help='skip the two-host split (it needs root)'
+    )
     args = parser.parse_args()
     runs = []
     for split in (False,) if args.single_host else (False, True):
         with TwoHosts(os.getpid()) if split else nullcontext() as hosts:
             for rate in args.rates:
                 for repeat in range(args.repeats):
-                    print(f'== {"two hosts" if split else "one host"}, {rate:g} Hz, '
-                          f'run {repeat + 1}/{args.repeats}', flush=True)
+                    print(
+                        f'== {"two hosts" if split else "one host"}, {rate:g} Hz, '
+                        f'run {repeat + 1}/{args.repeats}',
+                        flush=True,
+                    )
                     runs.append(measure(rate, args.seconds, hosts))
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / 'sim_recording.json').write_text(json.dumps(runs, indent=2))
     columns = list(runs[0])
-    lines = ['# sensor_sim (3 x 640x480 mono8) + recorder', '',
-             f'Command: `python bench/bench_sim_recording.py --seconds {args.seconds:g} '
-             f'--rates {" ".join(f"{r:g}" for r in args.rates)} --repeats {args.repeats}` '
-             f'(part of `make bench`); {psutil.cpu_count()} cores. Frames are counted over '
-             'the three cameras; lost = published by sensor_sim but not in the bag. '
-             'hosts 2: sensor_sim on host a, the recorder on host b (network namespaces '
-             'on a veth); latency = receive time in the bag - capture stamp.', '',
-             '| ' + ' | '.join(columns) + ' |', '|' + '---|' * len(columns)]
+    lines = [
+        '# sensor_sim (3 x 640x480 mono8) + recorder',
+        '',
+        f'Command: `python bench/bench_sim_recording.py --seconds {args.seconds:g} '
+        f'--rates {" ".join(f"{r:g}" for r in args.rates)} --repeats {args.repeats}` '
+        f'(part of `make bench`); {psutil.cpu_count()} cores. Frames are counted over '
+        'the three cameras; lost = published by sensor_sim but not in the bag. '
+        'hosts 2: sensor_sim on host a, the recorder on host b (network namespaces '
+        'on a veth); latency = receive time in the bag - capture stamp.',
+        '',
+        '| ' + ' | '.join(columns) + ' |',
+        '|' + '---|' * len(columns),
+    ]
     lines += ['| ' + ' | '.join(str(run[c]) for c in columns) + ' |' for run in runs]
     noise = time_noise()
-    lines += ['', 'Pixel noise per 640x480 image [ms]: ' +
-              ', '.join(f'{name} {ms}' for name, ms in noise.items())]
+    lines += [
+        '',
+        'Pixel noise per 640x480 image [ms]: '
+        + ', '.join(f'{name} {ms}' for name, ms in noise.items()),
+    ]
     (RESULTS / 'sim_recording.md').write_text('\n'.join(lines) + '\n')
     print('\n'.join(lines))
 

@@ -18,6 +18,7 @@ is reported as such. invisible-watermark's package imports torch at import time,
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_stereo_coding.py
 writes bench/results/stereo_coding/ (results.md, results.json, PNGs).
 """
+
 import importlib.util
 import json
 import time
@@ -44,13 +45,20 @@ OUT = ROOT / 'bench' / 'results' / 'stereo_coding'
 KEY = 'bench-key'
 ALOE_WIDTH = 1282
 SEEDS = (1,)  # generated scenes; the thesis's 640x480 SVDs make each scene take minutes
-THESIS_TABLE_6_2 = {'Cone': (44.7679, 46.4761), 'Tsukuba': (43.2041, 42.7857),
-                    'Pentagon': (49.2029, 48.5100)}
+THESIS_TABLE_6_2 = {
+    'Cone': (44.7679, 46.4761),
+    'Tsukuba': (43.2041, 42.7857),
+    'Pentagon': (49.2029, 48.5100),
+}
 THESIS_TABLE_6_3 = {  # attack: (Cone, Tsukuba, Pentagon)
-    'average 3x3': (-0.0136, 0.0182, -0.4780), 'median 3x3': (0.1110, -0.1871, -0.5426),
-    'noise 50 %': (0.0569, 0.3928, 0.4204), 'JPEG 50:1': (0.3617, 0.9370, 0.1890),
-    'resize 1/2': (0.0016, -0.9477, -0.8848), 'rotation 10 deg': (-0.6410, -0.0562, -0.0270),
-    'crop 25 %': (-0.9800, -0.6764, -0.8694)}
+    'average 3x3': (-0.0136, 0.0182, -0.4780),
+    'median 3x3': (0.1110, -0.1871, -0.5426),
+    'noise 50 %': (0.0569, 0.3928, 0.4204),
+    'JPEG 50:1': (0.3617, 0.9370, 0.1890),
+    'resize 1/2': (0.0016, -0.9477, -0.8848),
+    'rotation 10 deg': (-0.6410, -0.0562, -0.0270),
+    'crop 25 %': (-0.9800, -0.6764, -0.8694),
+}
 
 
 def aloe(width=640):
@@ -62,8 +70,11 @@ def aloe(width=640):
     disparity = cv2.resize(truth, size, interpolation=cv2.INTER_NEAREST).astype(float)
     disparity *= width / ALOE_WIDTH
     disparity[disparity == 0] = np.nan
-    return (cv2.resize(left, size, interpolation=cv2.INTER_AREA),
-            cv2.resize(right, size, interpolation=cv2.INTER_AREA), disparity)
+    return (
+        cv2.resize(left, size, interpolation=cv2.INTER_AREA),
+        cv2.resize(right, size, interpolation=cv2.INTER_AREA),
+        disparity,
+    )
 
 
 def load_libraries():
@@ -72,6 +83,7 @@ def load_libraries():
     libraries, missing = {}, {}
     try:
         from blind_watermark import WaterMark, bw_notes
+
         bw_notes.close()  # its banner
 
         def bw_embed(grey, bits, strength=1.0):
@@ -80,14 +92,14 @@ def load_libraries():
             mark.read_img(img=cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
             mark.read_wm(list(bits.astype(bool)), mode='bit')
             out = mark.embed()
-            return cv2.cvtColor(np.clip(np.rint(out), 0, 255).astype(np.uint8),
-                                cv2.COLOR_BGR2GRAY)
+            return cv2.cvtColor(np.clip(np.rint(out), 0, 255).astype(np.uint8), cv2.COLOR_BGR2GRAY)
 
         def bw_extract(grey, n_bits, strength=1.0):
             mark = WaterMark(password_wm=7, password_img=11)
             mark.bwm_core.d1, mark.bwm_core.d2 = 36 * strength, 20 * strength
-            soft = mark.extract(embed_img=cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR),
-                                wm_shape=n_bits, mode='bit')
+            soft = mark.extract(
+                embed_img=cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), wm_shape=n_bits, mode='bit'
+            )
             return (np.asarray(soft) >= 0.5).astype(np.uint8)
 
         libraries['blind-watermark 0.4.4'] = (bw_embed, bw_extract)
@@ -104,8 +116,9 @@ def load_libraries():
 
         # Its default marks the U chroma plane, which a grey image has not: mark Y.
         def iw_embed(grey, bits, strength=1.0):
-            coder = module.EmbedDwtDctSvd(list(bits), wmLen=len(bits),
-                                          scales=[36 * strength, 0, 0])
+            coder = module.EmbedDwtDctSvd(
+                list(bits), wmLen=len(bits), scales=[36 * strength, 0, 0]
+            )
             out = coder.encode(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
             return cv2.cvtColor(out, cv2.COLOR_BGR2GRAY)
 
@@ -128,7 +141,7 @@ def disparity_error(decoded, embedded):
     if not both.any():
         return float('nan'), float('nan')
     e = decoded[both] - embedded[both]
-    return float(np.sqrt(np.mean(e ** 2))), float(np.mean(np.abs(e) > 2.0))
+    return float(np.sqrt(np.mean(e**2))), float(np.mean(np.abs(e) > 2.0))
 
 
 def rho_of(disparity, decoded):
@@ -152,11 +165,21 @@ def run_thesis(left, disparity, scale):
     for name, attacked in all_attacks(coded, 0).items():
         _, decoded, extracted = thesis.decode(attacked, key)
         rms, beyond = disparity_error(decoded, np.nan_to_num(disparity))
-        rows[name] = {'rho': correlation(w, extracted), 'ber': None, 'found': True,
-                      'rms_px': rms, 'beyond_2px': beyond}
-    return {'psnr_degraded': psnr(thesis.zigzag_degrade(left), coded),
-            'psnr': psnr(left, restored), 'ssim': ssim(left, restored), 'attacks': rows,
-            'restored': restored, 'decoded': thesis.decode(coded, key)[1]}
+        rows[name] = {
+            'rho': correlation(w, extracted),
+            'ber': None,
+            'found': True,
+            'rms_px': rms,
+            'beyond_2px': beyond,
+        }
+    return {
+        'psnr_degraded': psnr(thesis.zigzag_degrade(left), coded),
+        'psnr': psnr(left, restored),
+        'ssim': ssim(left, restored),
+        'attacks': rows,
+        'restored': restored,
+        'decoded': thesis.decode(coded, key)[1],
+    }
 
 
 def run_bits(left, disparity, embed, extract):
@@ -168,11 +191,20 @@ def run_bits(left, disparity, embed, extract):
         received = extract(attacked, bits.size)
         decoded = blind.disparity_from_code(received, left.shape)
         rms, beyond = disparity_error(decoded, disparity)
-        rows[name] = {'rho': rho_of(disparity, decoded), 'found': decoded is not None,
-                      'ber': float(np.mean(received != bits)), 'rms_px': rms,
-                      'beyond_2px': beyond}
-    return {'psnr': psnr(left, coded), 'ssim': ssim(left, coded), 'attacks': rows,
-            'coded': coded, 'bits': int(bits.size)}
+        rows[name] = {
+            'rho': rho_of(disparity, decoded),
+            'found': decoded is not None,
+            'ber': float(np.mean(received != bits)),
+            'rms_px': rms,
+            'beyond_2px': beyond,
+        }
+    return {
+        'psnr': psnr(left, coded),
+        'ssim': ssim(left, coded),
+        'attacks': rows,
+        'coded': coded,
+        'bits': int(bits.size),
+    }
 
 
 def ours_rotation_resynchronised(left, disparity, coded):
@@ -180,10 +212,15 @@ def ours_rotation_resynchronised(left, disparity, coded):
     started = time.perf_counter()
     detection, angle = blind.decode_rotated(thesis_attacks(coded)['rotation 10 deg'], KEY)
     rms, beyond = disparity_error(detection.disparity_px, disparity)
-    return {'found': detection.found, 'angle_deg': angle,
-            'ber': float(np.mean(detection.bits != blind.disparity_code(disparity))),
-            'rho': rho_of(disparity, detection.disparity_px), 'rms_px': rms,
-            'beyond_2px': beyond, 'seconds': time.perf_counter() - started}
+    return {
+        'found': detection.found,
+        'angle_deg': angle,
+        'ber': float(np.mean(detection.bits != blind.disparity_code(disparity))),
+        'rho': rho_of(disparity, detection.disparity_px),
+        'rms_px': rms,
+        'beyond_2px': beyond,
+        'seconds': time.perf_counter() - started,
+    }
 
 
 def matched_strength(left, bits, embed, target_psnr):
@@ -204,8 +241,12 @@ def simulcast(left, coded, right, quality=50):
     for q in range(95, 0, -1):
         image, size = jpeg(right, q)
         if size <= budget or q == 1:
-            return {'extra_bytes': int(extra), 'right_jpeg_quality': q,
-                    'right_jpeg_bytes': int(size), 'right_jpeg_psnr': psnr(right, image)}
+            return {
+                'extra_bytes': int(extra),
+                'right_jpeg_quality': q,
+                'right_jpeg_bytes': int(size),
+                'right_jpeg_psnr': psnr(right, image),
+            }
 
 
 def table_6_2_setting(seeds=(1, 2), max_disparities=(4, 8, 16)):
@@ -217,10 +258,15 @@ def table_6_2_setting(seeds=(1, 2), max_disparities=(4, 8, 16)):
         for seed in seeds:
             left, _, disparity = generated_scene((256, 256), seed, max_disparity_px=top)
             coded, key = thesis.encode(left, disparity)
-            rows.append({'max_disparity_px': top, 'seed': seed,
-                         'thesis_psnr_degraded': psnr(thesis.zigzag_degrade(left), coded),
-                         'thesis_psnr': psnr(left, thesis.decode(coded, key)[0]),
-                         'ours_psnr': psnr(left, blind.encode(left, disparity, KEY))})
+            rows.append(
+                {
+                    'max_disparity_px': top,
+                    'seed': seed,
+                    'thesis_psnr_degraded': psnr(thesis.zigzag_degrade(left), coded),
+                    'thesis_psnr': psnr(left, thesis.decode(coded, key)[0]),
+                    'ours_psnr': psnr(left, blind.encode(left, disparity, KEY)),
+                }
+            )
     return rows
 
 
@@ -229,12 +275,12 @@ def timings(shape, libraries, repeats=3):
     left, _, disparity = generated_scene(shape, seed=99)
     bits = blind.disparity_code(disparity)
     methods = {
-        'ours': (lambda: blind.encode(left, disparity, KEY),
-                 lambda c: blind.decode(c, KEY)),
-        'thesis': (lambda: thesis.encode(left, disparity),
-                   lambda c: thesis.decode(c[0], c[1])),
-        **{name: (lambda e=e: e(left, bits), lambda c, x=x: x(c, bits.size))
-           for name, (e, x) in libraries.items()},
+        'ours': (lambda: blind.encode(left, disparity, KEY), lambda c: blind.decode(c, KEY)),
+        'thesis': (lambda: thesis.encode(left, disparity), lambda c: thesis.decode(c[0], c[1])),
+        **{
+            name: (lambda e=e: e(left, bits), lambda c, x=x: x(c, bits.size))
+            for name, (e, x) in libraries.items()
+        },
     }
     out = {}
     for name, (encode, decode) in methods.items():
@@ -246,8 +292,10 @@ def timings(shape, libraries, repeats=3):
             decode(coded)
             decode_s.append(time.perf_counter() - t1)
             encode_s.append(t1 - t0)
-        out[name] = {'encode_ms': 1e3 * float(np.median(encode_s)),
-                     'decode_ms': 1e3 * float(np.median(decode_s))}
+        out[name] = {
+            'encode_ms': 1e3 * float(np.median(encode_s)),
+            'decode_ms': 1e3 * float(np.median(decode_s)),
+        }
     return out
 
 
@@ -256,24 +304,28 @@ def false_positives(trials, shape):
     wrong keys (each should say 'no watermark')."""
     left, _, disparity = generated_scene(shape, seed=500)
     coded = blind.encode(left, disparity, KEY)
-    unmarked = sum(blind.decode(generated_scene(shape, seed=10_000 + i)[0], KEY).found
-                   for i in range(trials // 2))
+    unmarked = sum(
+        blind.decode(generated_scene(shape, seed=10_000 + i)[0], KEY).found
+        for i in range(trials // 2)
+    )
     wrong = sum(blind.decode(coded, f'wrong-{i}').found for i in range(trials - trials // 2))
-    return {'trials': trials, 'unmarked_detected': int(unmarked),
-            'wrong_key_detected': int(wrong)}
+    return {'trials': trials, 'unmarked_detected': int(unmarked), 'wrong_key_detected': int(wrong)}
 
 
 def plot(name, left, coded, disparity, decoded, path):
     try:
         import matplotlib
+
         matplotlib.use('Agg')
         import matplotlib.pyplot as plt
     except ImportError:
         return
     fig, axes = plt.subplots(1, 4, figsize=(16, 4))
-    for ax, image, title in zip(axes, (left, coded, disparity, decoded),
-                                ('left', 'coded (ours)', 'embedded disparity',
-                                 'decoded after JPEG 50')):
+    for ax, image, title in zip(
+        axes,
+        (left, coded, disparity, decoded),
+        ('left', 'coded (ours)', 'embedded disparity', 'decoded after JPEG 50'),
+    ):
         ax.imshow(image, cmap='gray' if image.dtype == np.uint8 else 'viridis')
         ax.set_title(title)
         ax.axis('off')
@@ -293,18 +345,25 @@ def main():
     for scene, (left, right, disparity) in scenes.items():
         print(f'== {scene}', flush=True)
         entry = {}
-        ours = run_bits(left, disparity,
-                        lambda g, b, d=disparity: blind.encode(g, d, KEY),
-                        lambda g, n: blind.decode(g, KEY).bits)
+        ours = run_bits(
+            left,
+            disparity,
+            lambda g, b, d=disparity: blind.encode(g, d, KEY),
+            lambda g, n: blind.decode(g, KEY).bits,
+        )
         entry['ours'] = ours
-        entry['ours_rotation_resync'] = ours_rotation_resynchronised(left, disparity,
-                                                                     ours['coded'])
+        entry['ours_rotation_resync'] = ours_rotation_resynchronised(
+            left, disparity, ours['coded']
+        )
         for name, (embed, extract) in libraries.items():
             bits = blind.disparity_code(disparity)
             strength = matched_strength(left, bits, embed, ours['psnr'])
             entry[f'{name} (PSNR-matched)'] = run_bits(
-                left, disparity, lambda g, b, e=embed, s=strength: e(g, b, s),
-                lambda g, n, x=extract, s=strength: x(g, n, s))
+                left,
+                disparity,
+                lambda g, b, e=embed, s=strength: e(g, b, s),
+                lambda g, n, x=extract, s=strength: x(g, n, s),
+            )
             entry[f'{name} (PSNR-matched)']['strength'] = strength
             entry[f'{name} (default)'] = run_bits(left, disparity, embed, extract)
         entry['thesis (pixels)'] = run_thesis(left, disparity, 'pixels')
@@ -312,17 +371,24 @@ def main():
         entry['thesis_full_range_psnr'] = psnr(left, thesis.decode(coded, key)[0])
         received = jpeg(ours['coded'], 50)[0]
         decoded = blind.decode(received, KEY).disparity_px
-        views = {'ours (JPEG 50)': synthesise_right(received, decoded),
-                 'thesis pixels (no attack)': synthesise_right(
-                     entry['thesis (pixels)']['restored'],
-                     entry['thesis (pixels)']['decoded']),
-                 'left as right (nothing sent)': left,
-                 'true disparity (bound)': synthesise_right(left, disparity)}
+        views = {
+            'ours (JPEG 50)': synthesise_right(received, decoded),
+            'thesis pixels (no attack)': synthesise_right(
+                entry['thesis (pixels)']['restored'], entry['thesis (pixels)']['decoded']
+            ),
+            'left as right (nothing sent)': left,
+            'true disparity (bound)': synthesise_right(left, disparity),
+        }
         entry['right_view_psnr'] = {k: psnr(right, v) for k, v in views.items()}
         entry['simulcast'] = simulcast(left, ours['coded'], right)
-        plot(scene, left, ours['coded'], disparity,
-             decoded if decoded is not None else np.zeros_like(disparity),
-             OUT / f'{"_".join(scene.split()[:3]).lower()}.png')
+        plot(
+            scene,
+            left,
+            ours['coded'],
+            disparity,
+            decoded if decoded is not None else np.zeros_like(disparity),
+            OUT / f'{"_".join(scene.split()[:3]).lower()}.png',
+        )
         for method in entry.values():
             if isinstance(method, dict):  # arrays stay out of results.json
                 for key in ('coded', 'restored', 'decoded'):
@@ -348,64 +414,121 @@ def fmt(value, digits=3):
 
 
 def markdown(results):
-    lines = ['# Stereo image coding (thesis chapter 6): thesis, ours, and two libraries', '',
-             'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-             'bench/bench_stereo_coding.py`. Machine shared by 5 engineers (load ~20 on 2 '
-             'cores): absolute times are inflated; the ratios were measured back to back.',
-             '', 'Not compared: ' + '; '.join(f'{k}: {v}' for k, v in results['missing'].items()),
-             '']
+    lines = [
+        '# Stereo image coding (thesis chapter 6): thesis, ours, and two libraries',
+        '',
+        'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        'bench/bench_stereo_coding.py`. Machine shared by 5 engineers (load ~20 on 2 '
+        'cores): absolute times are inflated; the ratios were measured back to back.',
+        '',
+        'Not compared: ' + '; '.join(f'{k}: {v}' for k, v in results['missing'].items()),
+        '',
+    ]
     for scene, entry in results['scenes'].items():
         methods = [m for m in entry if isinstance(entry[m], dict) and 'attacks' in entry[m]]
-        lines += [f'## {scene}', '', '| method | PSNR [dB] | SSIM | payload bits |',
-                  '|---|---|---|---|']
+        lines += [
+            f'## {scene}',
+            '',
+            '| method | PSNR [dB] | SSIM | payload bits |',
+            '|---|---|---|---|',
+        ]
         for m in methods:
             r = entry[m]
-            extra = f" (degraded {fmt(r['psnr_degraded'], 2)})" if 'psnr_degraded' in r else ''
-            lines.append(f"| {m} | {fmt(r['psnr'], 2)}{extra} | {fmt(r['ssim'])} | "
-                         f"{r.get('bits', 'disparity map')} |")
+            extra = f' (degraded {fmt(r["psnr_degraded"], 2)})' if 'psnr_degraded' in r else ''
+            lines.append(
+                f'| {m} | {fmt(r["psnr"], 2)}{extra} | {fmt(r["ssim"])} | '
+                f'{r.get("bits", "disparity map")} |'
+            )
         attacks = list(entry['ours']['attacks'])
-        for measure, title in (('rho', 'correlation (6.6.1)'), ('ber', 'payload BER'),
-                               ('rms_px', 'decoded disparity RMS [px] (n/a: not found)'),
-                               ('beyond_2px', 'decoded disparity > 2 px rate')):
-            lines += ['', f'{title}:', '', '| attack | ' + ' | '.join(methods) + ' |',
-                      '|---' * (len(methods) + 1) + '|']
+        for measure, title in (
+            ('rho', 'correlation (6.6.1)'),
+            ('ber', 'payload BER'),
+            ('rms_px', 'decoded disparity RMS [px] (n/a: not found)'),
+            ('beyond_2px', 'decoded disparity > 2 px rate'),
+        ):
+            lines += [
+                '',
+                f'{title}:',
+                '',
+                '| attack | ' + ' | '.join(methods) + ' |',
+                '|---' * (len(methods) + 1) + '|',
+            ]
             for a in attacks:
-                lines.append(f'| {a} | ' + ' | '.join(
-                    fmt(entry[m]['attacks'][a][measure]) if entry[m]['attacks'][a]['found']
-                    or measure in ('rho', 'ber') else 'not found' for m in methods) + ' |')
+                lines.append(
+                    f'| {a} | '
+                    + ' | '.join(
+                        fmt(entry[m]['attacks'][a][measure])
+                        if entry[m]['attacks'][a]['found'] or measure in ('rho', 'ber')
+                        else 'not found'
+                        for m in methods
+                    )
+                    + ' |'
+                )
         r = entry['ours_rotation_resync']
-        lines += ['', f"Ours after the 10° rotation with resynchronisation (exhaustive search "
-                  f"over ±15° in 0.1° steps, {fmt(r['seconds'], 1)} s): found {r['found']} at "
-                  f"{fmt(r['angle_deg'], 1)}°, BER {fmt(r['ber'])}, (6.6.1) {fmt(r['rho'])}, "
-                  f"disparity RMS {fmt(r['rms_px'], 2)} px."]
-        lines += ['', f"Thesis with the disparity scaled to [0, 255] (ALGORITHMS.md's choice): "
-                  f"PSNR {fmt(entry['thesis_full_range_psnr'], 2)} dB."]
-        lines += ['', 'Right view PSNR against the true right image [dB]: ' + ', '.join(
-            f'{k} {fmt(v, 2)}' for k, v in entry['right_view_psnr'].items()) + '.']
+        lines += [
+            '',
+            f'Ours after the 10° rotation with resynchronisation (exhaustive search '
+            f'over ±15° in 0.1° steps, {fmt(r["seconds"], 1)} s): found {r["found"]} at '
+            f'{fmt(r["angle_deg"], 1)}°, BER {fmt(r["ber"])}, (6.6.1) {fmt(r["rho"])}, '
+            f'disparity RMS {fmt(r["rms_px"], 2)} px.',
+        ]
+        lines += [
+            '',
+            f"Thesis with the disparity scaled to [0, 255] (ALGORITHMS.md's choice): "
+            f'PSNR {fmt(entry["thesis_full_range_psnr"], 2)} dB.',
+        ]
+        lines += [
+            '',
+            'Right view PSNR against the true right image [dB]: '
+            + ', '.join(f'{k} {fmt(v, 2)}' for k, v in entry['right_view_psnr'].items())
+            + '.',
+        ]
         s = entry['simulcast']
-        lines += [f"Simulcast: the mark costs {s['extra_bytes']} extra bytes at JPEG 50; the "
-                  f"right image as JPEG at quality {s['right_jpeg_quality']} takes "
-                  f"{s['right_jpeg_bytes']} bytes, PSNR {fmt(s['right_jpeg_psnr'], 2)} dB.", '']
-    lines += ['## Thesis tables', '', 'Table 6.2 (PSNR, degraded / original): ' + ', '.join(
-        f'{k} {v[0]} / {v[1]}' for k, v in THESIS_TABLE_6_2.items()) + '.', '',
-        'Table 6.3 (rho after attacks, Cone / Tsukuba / Pentagon):', '',
-        '| attack | thesis (Cone, Tsukuba, Pentagon) |', '|---|---|']
+        lines += [
+            f'Simulcast: the mark costs {s["extra_bytes"]} extra bytes at JPEG 50; the '
+            f'right image as JPEG at quality {s["right_jpeg_quality"]} takes '
+            f'{s["right_jpeg_bytes"]} bytes, PSNR {fmt(s["right_jpeg_psnr"], 2)} dB.',
+            '',
+        ]
+    lines += [
+        '## Thesis tables',
+        '',
+        'Table 6.2 (PSNR, degraded / original): '
+        + ', '.join(f'{k} {v[0]} / {v[1]}' for k, v in THESIS_TABLE_6_2.items())
+        + '.',
+        '',
+        'Table 6.3 (rho after attacks, Cone / Tsukuba / Pentagon):',
+        '',
+        '| attack | thesis (Cone, Tsukuba, Pentagon) |',
+        '|---|---|',
+    ]
     lines += [f'| {a} | {v[0]}, {v[1]}, {v[2]} |' for a, v in THESIS_TABLE_6_3.items()]
-    lines += ['', '## Table 6.2 setting: 256x256 generated scenes, small disparities', '',
-              '| max disparity [px] | seed | thesis PSNR degraded / original [dB] '
-              '| ours PSNR [dB] |',
-              '|---|---|---|---|']
-    lines += [f"| {r['max_disparity_px']} | {r['seed']} | {fmt(r['thesis_psnr_degraded'], 2)} / "
-              f"{fmt(r['thesis_psnr'], 2)} | {fmt(r['ours_psnr'], 2)} |"
-              for r in results['table_6_2_setting']]
+    lines += [
+        '',
+        '## Table 6.2 setting: 256x256 generated scenes, small disparities',
+        '',
+        '| max disparity [px] | seed | thesis PSNR degraded / original [dB] | ours PSNR [dB] |',
+        '|---|---|---|---|',
+    ]
+    lines += [
+        f'| {r["max_disparity_px"]} | {r["seed"]} | {fmt(r["thesis_psnr_degraded"], 2)} / '
+        f'{fmt(r["thesis_psnr"], 2)} | {fmt(r["ours_psnr"], 2)} |'
+        for r in results['table_6_2_setting']
+    ]
     fp = results['false_positives']
-    lines += ['', f"## False positives (ours)\n\n{fp['trials']} trials at 320x240: "
-              f"{fp['unmarked_detected']} detections on unmarked images, "
-              f"{fp['wrong_key_detected']} with a wrong key.", '',
-              '## Time per 640x480 image (median, back to back)', '',
-              '| method | encode [ms] | decode [ms] |', '|---|---|---|']
+    lines += [
+        '',
+        f'## False positives (ours)\n\n{fp["trials"]} trials at 320x240: '
+        f'{fp["unmarked_detected"]} detections on unmarked images, '
+        f'{fp["wrong_key_detected"]} with a wrong key.',
+        '',
+        '## Time per 640x480 image (median, back to back)',
+        '',
+        '| method | encode [ms] | decode [ms] |',
+        '|---|---|---|',
+    ]
     for m, t in results['timings_640x480'].items():
-        lines.append(f"| {m} | {fmt(t['encode_ms'], 1)} | {fmt(t['decode_ms'], 1)} |")
+        lines.append(f'| {m} | {fmt(t["encode_ms"], 1)} | {fmt(t["decode_ms"], 1)} |')
     return '\n'.join(lines) + '\n'
 
 

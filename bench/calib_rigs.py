@@ -1,6 +1,7 @@
 """Generated rigs (issue 12): calib_node's stage and handheld calibrations against
 OpenCV's calibrateCamera + stereoCalibrate, on the same rendered images, scored against
 the truth. Imported by bench_calib.py (``--rigs``) and the tests."""
+
 import time
 
 import cv2
@@ -12,8 +13,7 @@ from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.rig_generator import draw_rig, render_rig, score_rig
 from vgm_common.camera_model import PinholeCamera
 
-FIGURES = ('fx', 'fy', 'cx', 'cy', 'distortion', 'baseline', 'position', 'rotation',
-           'rect_rows')
+FIGURES = ('fx', 'fy', 'cx', 'cy', 'distortion', 'baseline', 'position', 'rotation', 'rect_rows')
 
 
 def detect_views(rig, images, detector='ours'):
@@ -30,11 +30,18 @@ def detect_views(rig, images, detector='ours'):
                     found[name] = detection.corners
                 continue
             ok, corners = cv2.findChessboardCorners(
-                image, (rig.cols, rig.rows),
-                flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+                image,
+                (rig.cols, rig.rows),
+                flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE,
+            )
             if ok:
-                corners = cv2.cornerSubPix(image, corners, (11, 11), (-1, -1), (
-                    cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-3))
+                corners = cv2.cornerSubPix(
+                    image,
+                    corners,
+                    (11, 11),
+                    (-1, -1),
+                    (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-3),
+                )
                 found[name] = corners.reshape(-1, 2).astype(float)
         views.append(found)
     return views
@@ -68,8 +75,14 @@ def opencv_rig(chart, views, image_sizes, names):
     for name in names:
         seen = [v[name] for v in views if name in v]
         _, K, D, _, _ = cv2.calibrateCamera(
-            [objects] * len(seen), [s.astype(np.float32).reshape(-1, 1, 2) for s in seen],
-            image_sizes[name], None, None, flags=flags, criteria=criteria)
+            [objects] * len(seen),
+            [s.astype(np.float32).reshape(-1, 1, 2) for s in seen],
+            image_sizes[name],
+            None,
+            None,
+            flags=flags,
+            criteria=criteria,
+        )
         intr[name] = (K, D.ravel())
     cameras = {'left': PinholeCamera(*image_sizes['left'], *intr['left'], np.eye(4))}
     K_left, D_left = intr['left']
@@ -79,13 +92,19 @@ def opencv_rig(chart, views, image_sizes, names):
             [objects] * len(common),
             [v['left'].astype(np.float32).reshape(-1, 1, 2) for v in common],
             [v[name].astype(np.float32).reshape(-1, 1, 2) for v in common],
-            intr['left'][0].copy(), intr['left'][1].copy(), intr[name][0].copy(),
-            intr[name][1].copy(), image_sizes['left'],
-            flags=cv2.CALIB_USE_INTRINSIC_GUESS | flags, criteria=criteria)
+            intr['left'][0].copy(),
+            intr['left'][1].copy(),
+            intr[name][0].copy(),
+            intr[name][1].copy(),
+            image_sizes['left'],
+            flags=cv2.CALIB_USE_INTRINSIC_GUESS | flags,
+            criteria=criteria,
+        )
         T_name_left = np.eye(4)
         T_name_left[:3, :3], T_name_left[:3, 3] = R, T.ravel()
-        cameras[name] = PinholeCamera(*image_sizes[name], K2, D2.ravel(),
-                                      np.linalg.inv(T_name_left))
+        cameras[name] = PinholeCamera(
+            *image_sizes[name], K2, D2.ravel(), np.linalg.inv(T_name_left)
+        )
         if name == 'right':
             K_left, D_left = K1, D1.ravel()
     cameras['left'] = PinholeCamera(*image_sizes['left'], K_left, D_left, np.eye(4))
@@ -102,19 +121,23 @@ def stage_rig(rig, views):
             if name in view:
                 points.append(chart @ T[:3, :3].T + T[:3, 3])
                 pixels.append(view[name])
-        observations[name] = (np.concatenate(points), np.concatenate(pixels),
-                              (camera.width, camera.height))
+        observations[name] = (
+            np.concatenate(points),
+            np.concatenate(pixels),
+            (camera.width, camera.height),
+        )
     result = calibrate_rig(observations, 'lm')
-    return {n: PinholeCamera(*observations[n][2], f.K, f.D, f.T_base_camera)
-            for n, f in result.fits.items()}
+    return {
+        n: PinholeCamera(*observations[n][2], f.K, f.D, f.T_base_camera)
+        for n, f in result.fits.items()
+    }
 
 
 def handheld_rig(rig, views):
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
     result = bundle_adjust_selected(chart, views, sizes, names=list(rig.cameras))
-    return {n: PinholeCamera(*sizes[n], f.K, f.D, f.T_base_camera)
-            for n, f in result.fits.items()}
+    return {n: PinholeCamera(*sizes[n], f.K, f.D, f.T_base_camera) for n, f in result.fits.items()}
 
 
 def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exact=False):
@@ -126,13 +149,15 @@ def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exac
     names = list(rig.cameras)
     if exact:
         from calib_node.rig_generator import true_corners
+
         ours_views = true_corners(rig)
         own_views = None
     else:
         images = render_rig(rig, seed)
         ours_views = detect_views(rig, images, 'ours')
-        own_views = orient_like(detect_views(rig, images, 'opencv'), ours_views, rig.rows,
-                                rig.cols)
+        own_views = orient_like(
+            detect_views(rig, images, 'opencv'), ours_views, rig.rows, rig.cols
+        )
     out = {'params': rig.params}
     timings = {}
     started = time.perf_counter()
@@ -146,8 +171,7 @@ def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exac
     timings['opencv'] = time.perf_counter() - started
     if own_views is not None and all(sum(n in v for v in own_views) >= 3 for n in names):
         try:
-            out['opencv_own'] = score_rig(rig.cameras, opencv_rig(chart, own_views, sizes,
-                                                                  names))
+            out['opencv_own'] = score_rig(rig.cameras, opencv_rig(chart, own_views, sizes, names))
         except cv2.error:
             pass
     out['time'] = timings
@@ -160,43 +184,67 @@ def rigs_table(count):
     for seed in range(count):
         results.append(run_rig(seed))
         print(f'rig {seed}: {results[-1]["params"]}', flush=True)
-    lines = ['Worst camera per figure; ratio = ours / OpenCV (cv2.calibrateCamera + '
-             'cv2.stereoCalibrate with CALIB_USE_INTRINSIC_GUESS on the same corners, k1 k2 p1 '
-             'p2; ours selects p1 p2 by BIC and drops them on these lenses); "own": OpenCV '
-             'on its own detection (findChessboardCorners + cornerSubPix 11 x 11). Positions '
-             'and rotations relative to the left camera. Goals: stage median <= 0.7, max <= 1.2; '
-             'handheld median <= 1.0, max <= 1.5.', '',
-             '| figure | stage / OpenCV median | max | handheld / OpenCV median | max | '
-             'stage / OpenCV own median | max |', '|---|---|---|---|---|---|---|']
+    lines = [
+        'Worst camera per figure; ratio = ours / OpenCV (cv2.calibrateCamera + '
+        'cv2.stereoCalibrate with CALIB_USE_INTRINSIC_GUESS on the same corners, k1 k2 p1 '
+        'p2; ours selects p1 p2 by BIC and drops them on these lenses); "own": OpenCV '
+        'on its own detection (findChessboardCorners + cornerSubPix 11 x 11). Positions '
+        'and rotations relative to the left camera. Goals: stage median <= 0.7, max <= 1.2; '
+        'handheld median <= 1.0, max <= 1.5.',
+        '',
+        '| figure | stage / OpenCV median | max | handheld / OpenCV median | max | '
+        'stage / OpenCV own median | max |',
+        '|---|---|---|---|---|---|---|',
+    ]
     for figure in FIGURES:
-        ratios = {m: [r[m][figure] / max(r['opencv'][figure], 1e-300) for r in results]
-                  for m in ('stage', 'handheld')}
-        own = [r['stage'][figure] / max(r['opencv_own'][figure], 1e-300)
-               for r in results if 'opencv_own' in r]
-        lines.append(f'| {figure} | {np.median(ratios["stage"]):.2f} | '
-                     f'{np.max(ratios["stage"]):.2f} | {np.median(ratios["handheld"]):.2f} | '
-                     f'{np.max(ratios["handheld"]):.2f} | '
-                     + (f'{np.median(own):.2f} | {np.max(own):.2f} |' if own else 'n/a | n/a |'))
-    lines += ['', '| rig | width | views | noise | baseline [m] | vergence [deg] | aux oblique '
-              '[deg] | k1 L / R | stage worst ratio | handheld worst ratio | stage fx err | '
-              'OpenCV fx err |', '|---|---|---|---|---|---|---|---|---|---|---|---|']
+        ratios = {
+            m: [r[m][figure] / max(r['opencv'][figure], 1e-300) for r in results]
+            for m in ('stage', 'handheld')
+        }
+        own = [
+            r['stage'][figure] / max(r['opencv_own'][figure], 1e-300)
+            for r in results
+            if 'opencv_own' in r
+        ]
+        lines.append(
+            f'| {figure} | {np.median(ratios["stage"]):.2f} | '
+            f'{np.max(ratios["stage"]):.2f} | {np.median(ratios["handheld"]):.2f} | '
+            f'{np.max(ratios["handheld"]):.2f} | '
+            + (f'{np.median(own):.2f} | {np.max(own):.2f} |' if own else 'n/a | n/a |')
+        )
+    lines += [
+        '',
+        '| rig | width | views | noise | baseline [m] | vergence [deg] | aux oblique '
+        '[deg] | k1 L / R | stage worst ratio | handheld worst ratio | stage fx err | '
+        'OpenCV fx err |',
+        '|---|---|---|---|---|---|---|---|---|---|---|---|',
+    ]
     for seed, r in enumerate(results):
         p = r['params']
-        worst = {m: max(FIGURES, key=lambda f: r[m][f] / max(r['opencv'][f], 1e-300))
-                 for m in ('stage', 'handheld')}
+        worst = {
+            m: max(FIGURES, key=lambda f: r[m][f] / max(r['opencv'][f], 1e-300))
+            for m in ('stage', 'handheld')
+        }
         lines.append(
             f'| {seed} | {p["width"]} | {p["views"]} | {p["noise"]:.1f} | '
             f'{p["baseline_m"]:.3f} | {p["vergence_deg"]:.1f} | {p["aux_oblique_deg"]:.0f} | '
-            f'{p["k1_left"]:.2f} / {p["k1_right"]:.2f} | ' + ' | '.join(
+            f'{p["k1_left"]:.2f} / {p["k1_right"]:.2f} | '
+            + ' | '.join(
                 f'{worst[m]} {r[m][worst[m]] / max(r["opencv"][worst[m]], 1e-300):.2f}'
-                for m in ('stage', 'handheld'))
-            + f' | {r["stage"]["fx"]:.2e} | {r["opencv"]["fx"]:.2e} |')
-    times = {m: np.median([r['time'][m] for r in results]) for m in ('stage', 'handheld',
-                                                                    'opencv')}
-    lines += ['', 'Median calibration time of the three cameras [s] (loaded 2-core machine): '
-              + ', '.join(f'{m} {t:.2f}' for m, t in times.items())
-              + f'; handheld / OpenCV {times["handheld"] / times["opencv"]:.1f}, stage / '
-              f'OpenCV {times["stage"] / times["opencv"]:.1f}.']
+                for m in ('stage', 'handheld')
+            )
+            + f' | {r["stage"]["fx"]:.2e} | {r["opencv"]["fx"]:.2e} |'
+        )
+    times = {
+        m: np.median([r['time'][m] for r in results]) for m in ('stage', 'handheld', 'opencv')
+    }
+    lines += [
+        '',
+        'Median calibration time of the three cameras [s] (loaded 2-core machine): '
+        + ', '.join(f'{m} {t:.2f}' for m, t in times.items())
+        + f'; handheld / OpenCV {times["handheld"] / times["opencv"]:.1f}, stage / '
+        f'OpenCV {times["stage"] / times["opencv"]:.1f}.',
+    ]
     return lines, results
 
 
@@ -208,9 +256,13 @@ def main():
 
     count = int(sys.argv[1]) if len(sys.argv) > 1 else 10
     lines, results = rigs_table(count)
-    lines = ['# calib_node on generated rigs (issue 12)', '',
-             f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-             f'bench/calib_rigs.py {count}`.', ''] + lines
+    lines = [
+        '# calib_node on generated rigs (issue 12)',
+        '',
+        f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        f'bench/calib_rigs.py {count}`.',
+        '',
+    ] + lines
     out = Path(__file__).resolve().parent / 'results' / 'calib'
     out.mkdir(parents=True, exist_ok=True)
     (out / 'rigs.md').write_text('\n'.join(lines) + '\n')

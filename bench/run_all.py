@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """make bench: run every bench/bench_*.py in turn; each writes its results to
 bench/results/."""
+
 import subprocess
 import sys
 from pathlib import Path

@@ -11,6 +11,7 @@ A curve that does not lie on the scenario's surface (the thesis's chapter-3 curv
 in front of a background plane) has nothing to press on: then the demo runs the vision
 stages only, without pa10_ik_node, and says so.
 """
+
 import argparse
 import json
 import re
@@ -54,8 +55,15 @@ from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS  # noqa: E402
 from vgm_common.topics import IMAGE_TOPICS
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-NODES = ['recorder', 'live_view', 'sensor_sim', 'calib_node', 'sfs_stereo_node',
-         'curve_recon_node', 'pa10_ik_node']
+NODES = [
+    'recorder',
+    'live_view',
+    'sensor_sim',
+    'calib_node',
+    'sfs_stereo_node',
+    'curve_recon_node',
+    'pa10_ik_node',
+]
 LIVE_VIEW_PORT = 8765  # live_view's default (foxglove_bridge's), on 127.0.0.1
 # Pipeline outputs the demo's probe watches to know how far the graph has got.
 WATCHED_TOPICS = {'/curve/waypoints': (PathMsg, LATCHED_QOS), '/depth/fused': (Image, DEFAULT_QOS)}
@@ -67,12 +75,12 @@ CURVE_DEGREES = {'parabola': 2, 'ellipse': 2, 'circle': 2, 'line_pair': 2, 'cubi
 
 # Tolerances of the stages (the summary table shows each beside its measured value).
 TOLERANCES = {
-    'calibration image RMS [px]': 0.5,   # calibrated vs true projection of the surface
-    'curve RMS [mm]': 1.0,               # waypoints to the true curve
-    'curve coverage [mm]': 5.0,          # farthest true-curve point from the waypoints
-    'fused depth median [mm]': 5.0,      # |height| of fused-depth points over the surface
-    'tool path RMS [mm]': 1.0,           # tool tip (on the surface) to the true curve
-    'force in band [%]': 95.0,           # samples within +-10 % of the desired force
+    'calibration image RMS [px]': 0.5,  # calibrated vs true projection of the surface
+    'curve RMS [mm]': 1.0,  # waypoints to the true curve
+    'curve coverage [mm]': 5.0,  # farthest true-curve point from the waypoints
+    'fused depth median [mm]': 5.0,  # |height| of fused-depth points over the surface
+    'tool path RMS [mm]': 1.0,  # tool tip (on the surface) to the true curve
+    'force in band [%]': 95.0,  # samples within +-10 % of the desired force
 }
 LIFT_OFF_TIME = 2.0  # [s] the graph runs on this long once the arm reports done
 DEPTH_GRACE = 30.0  # [s] without tracking: how long to wait for fused depth after the curve
@@ -114,7 +122,8 @@ class GraphProbe:
         diagnostics until a subscriber matched, and that must be the recorder."""
         if self.diagnostics_subscription is None:
             self.diagnostics_subscription = self.node.create_subscription(
-                DiagnosticArray, '/diagnostics', self._on_diagnostics, DEFAULT_QOS)
+                DiagnosticArray, '/diagnostics', self._on_diagnostics, DEFAULT_QOS
+            )
 
     def _on_diagnostics(self, msg):
         for status in msg.status:
@@ -186,13 +195,27 @@ class ClosedLoop:
         # Tracking needs the depth (approach directions); the vision stages alone
         # report a missing depth as a failed stage rather than waiting for it forever.
         if depth_frames or (not self.track and now - self.curve_at > DEPTH_GRACE):
-            why_no_depth = '' if depth_frames else ' ({})'.format(self.probe.status.get(
-                'sfs_stereo_node: rejected stereo pair', ('no reason given',))[0])
-            print(f'   curve: {len(self.probe.waypoints.poses)} waypoints; fused depth '
-                  f'frames: {depth_frames}{why_no_depth}', flush=True)
+            why_no_depth = (
+                ''
+                if depth_frames
+                else ' ({})'.format(
+                    self.probe.status.get(
+                        'sfs_stereo_node: rejected stereo pair', ('no reason given',)
+                    )[0]
+                )
+            )
+            print(
+                f'   curve: {len(self.probe.waypoints.poses)} waypoints; fused depth '
+                f'frames: {depth_frames}{why_no_depth}',
+                flush=True,
+            )
             if not self.track:
-                self._next('done', 4, 'no tracking: the curve does not lie on the '
-                           'surface, there is nothing to press on')
+                self._next(
+                    'done',
+                    4,
+                    'no tracking: the curve does not lie on the '
+                    'surface, there is nothing to press on',
+                )
                 return True
             self._next('tracking', 4, 'tracking the curve under force control')
         return None
@@ -209,9 +232,12 @@ class ClosedLoop:
         values = self.probe.values('pa10_ik_node: tracking')
         phase = values.get('phase', '?')
         if chatty:
-            print(f'   ... {phase}: {float(values.get("progress", 0)):.0%} of the curve, '
-                  f'force {float(values.get("force_N", "nan")):.2f} N, path error '
-                  f'{float(values.get("position_error_m", "nan")) * 1e3:.2f} mm', flush=True)
+            print(
+                f'   ... {phase}: {float(values.get("progress", 0)):.0%} of the curve, '
+                f'force {float(values.get("force_N", "nan")):.2f} N, path error '
+                f'{float(values.get("position_error_m", "nan")) * 1e3:.2f} mm',
+                flush=True,
+            )
         if phase == 'done':  # give the arm a moment to lift off the surface
             self.done_at = self.done_at or now
             return now - self.done_at > LIFT_OFF_TIME
@@ -246,8 +272,9 @@ def write_params(graph, path, settings):
 
 def curve_on_surface(scenario):
     """Whether the scenario's curve lies on its surface: only then can the arm press on it."""
-    heights = signed_height_base(scenario.surface,
-                                 curve_points_base(scenario.curve, scenario.surface))
+    heights = signed_height_base(
+        scenario.surface, curve_points_base(scenario.curve, scenario.surface)
+    )
     return bool(np.all(np.abs(heights) < ON_SURFACE_TOLERANCE))
 
 
@@ -311,8 +338,9 @@ def evaluate(scenario, messages, truth_dir, calibration_dir, track):
     calibration = evaluation.calibration_errors(calibration_dir, cameras, depth_true)
     results['calibration'] = calibration
     waypoints = messages['/curve/waypoints'][-1][1]
-    points = np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
-                       for p in waypoints.poses])
+    points = np.array(
+        [[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in waypoints.poses]
+    )
     results['curve'] = evaluation.curve_errors(points, curve)
     data['waypoints'] = points
 
@@ -328,8 +356,9 @@ def evaluate(scenario, messages, truth_dir, calibration_dir, track):
         if messages.get(topic):
             depth = image_to_numpy(messages[topic][-1][1])
             data['depth'][topic] = depth
-            results['depth'][topic] = evaluation.depth_errors(depth, P_rect, R_rect, T_base_left,
-                                                              scenario.surface)
+            results['depth'][topic] = evaluation.depth_errors(
+                depth, P_rect, R_rect, T_base_left, scenario.surface
+            )
 
     if not track:
         data.update(tool_all=np.empty((0, 3)), tool_tracking=np.empty((0, 3)), windows=[])
@@ -337,13 +366,19 @@ def evaluate(scenario, messages, truth_dir, calibration_dir, track):
     windows = phase_windows(messages['/diagnostics'], 'tracking')
     tool = [(t, m) for t, m in messages['/tool_pose'] if inside(t, windows)]
     force = [(t, m.wrench.force.z) for t, m in messages['/tool/pressure'] if inside(t, windows)]
-    tool_points = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z]
-                            for _, m in tool]).reshape(-1, 3)
+    tool_points = np.array(
+        [[m.pose.position.x, m.pose.position.y, m.pose.position.z] for _, m in tool]
+    ).reshape(-1, 3)
     if len(tool_points) and force:
         results['tracking'] = evaluation.tracking_errors(
-            tool_points, curve, [f for _, f in force], DESIRED_FORCE, scenario.surface)
-    data['tool_all'] = np.array([[m.pose.position.x, m.pose.position.y, m.pose.position.z]
-                                 for _, m in messages['/tool_pose']]).reshape(-1, 3)
+            tool_points, curve, [f for _, f in force], DESIRED_FORCE, scenario.surface
+        )
+    data['tool_all'] = np.array(
+        [
+            [m.pose.position.x, m.pose.position.y, m.pose.position.z]
+            for _, m in messages['/tool_pose']
+        ]
+    ).reshape(-1, 3)
     data['tool_tracking'] = tool_points
     data['windows'] = windows
     return results, data
@@ -360,8 +395,10 @@ def checks(results, track):
         rows.append((name, value, tolerance, bool(ok)))
 
     calibration = results['calibration']
-    check('calibration image RMS [px]',
-          max(calibration[n]['image_rms_px'] for n in ('left', 'right', 'aux')))
+    check(
+        'calibration image RMS [px]',
+        max(calibration[n]['image_rms_px'] for n in ('left', 'right', 'aux')),
+    )
     check('curve RMS [mm]', results['curve']['rms_m'] * 1e3)
     check('curve coverage [mm]', results['curve']['coverage_m'] * 1e3)
     fused = results['depth'].get('/depth/fused')
@@ -370,8 +407,11 @@ def checks(results, track):
         return rows
     tracking = results.get('tracking')
     check('tool path RMS [mm]', tracking['path_rms_m'] * 1e3 if tracking else np.inf)
-    check('force in band [%]', tracking['force_in_band'] * 100 if tracking else 0.0,
-          smaller_is_better=False)
+    check(
+        'force in band [%]',
+        tracking['force_in_band'] * 100 if tracking else 0.0,
+        smaller_is_better=False,
+    )
     return rows
 
 
@@ -441,8 +481,9 @@ def plot_report(report_dir, messages, data):
         ax_q.legend(fontsize=7, ncol=4)
         tp = (np.array([log_time for log_time, _ in pressure]) - t0) * 1e-9
         ax_f.plot(tp, [m.wrench.force.z for _, m in pressure], lw=0.6)
-        ax_f.axhspan(0.9 * DESIRED_FORCE, 1.1 * DESIRED_FORCE, color='g', alpha=0.15,
-                     label='desired +-10 %')
+        ax_f.axhspan(
+            0.9 * DESIRED_FORCE, 1.1 * DESIRED_FORCE, color='g', alpha=0.15, label='desired +-10 %'
+        )
         for a, b in data['windows']:
             ax_f.axvspan((a - t0) * 1e-9, (b - t0) * 1e-9, color='b', alpha=0.05)
         ax_f.set_ylabel('contact force [N]')
@@ -458,25 +499,52 @@ def message_rows(messages_counts, counts_rosbags, published):
     for topic in sorted(set(messages_counts) | set(counts_rosbags)):
         sent = published.get(topic)
         n = messages_counts.get(topic, 0)
-        rows.append((topic, sent, n, counts_rosbags.get(topic, 0),
-                     None if sent is None else sent - n))
+        rows.append(
+            (topic, sent, n, counts_rosbags.get(topic, 0), None if sent is None else sent - n)
+        )
     return rows
 
 
 def write_report(report_dir, bag_dir, scenario, results, check_rows, rows, figures, timings):
-    lines = [f'# Demo report: {bag_dir.name}', '',
-             f'Scenario `{scenario.name}` ({scenario.path}), seed {scenario.seed}; '
-             f'wall time {timings["total_s"]:.0f} s.', '', '## Summary', '',
-             '| measure | value | tolerance | |', '|---|---|---|---|']
-    lines += [f'| {n} | {v:.3f} | {"<=" if n != "force in band [%]" else ">="} {t} | '
-              f'{"ok" if ok else "**FAILED**"} |' for n, v, t, ok in check_rows]
-    lines += ['', '## Measurements', '', '```', json.dumps(results, indent=1), '```', '',
-              '## Messages', '', '| topic | sent | in bag (mcap) | in bag (rosbags) | lost |',
-              '|---|---|---|---|---|']
-    lines += [f'| `{t}` | {"" if s is None else s} | {n} | {m} | {"" if lost is None else lost} |'
-              for t, s, n, m, lost in rows]
-    lines += ['', '"sent" is what the publishing nodes counted (their "published:" log line at '
-              'shutdown); /rosout and /parameter_events are not counted.', '']
+    lines = [
+        f'# Demo report: {bag_dir.name}',
+        '',
+        f'Scenario `{scenario.name}` ({scenario.path}), seed {scenario.seed}; '
+        f'wall time {timings["total_s"]:.0f} s.',
+        '',
+        '## Summary',
+        '',
+        '| measure | value | tolerance | |',
+        '|---|---|---|---|',
+    ]
+    lines += [
+        f'| {n} | {v:.3f} | {"<=" if n != "force in band [%]" else ">="} {t} | '
+        f'{"ok" if ok else "**FAILED**"} |'
+        for n, v, t, ok in check_rows
+    ]
+    lines += [
+        '',
+        '## Measurements',
+        '',
+        '```',
+        json.dumps(results, indent=1),
+        '```',
+        '',
+        '## Messages',
+        '',
+        '| topic | sent | in bag (mcap) | in bag (rosbags) | lost |',
+        '|---|---|---|---|---|',
+    ]
+    lines += [
+        f'| `{t}` | {"" if s is None else s} | {n} | {m} | {"" if lost is None else lost} |'
+        for t, s, n, m, lost in rows
+    ]
+    lines += [
+        '',
+        '"sent" is what the publishing nodes counted (their "published:" log line at '
+        'shutdown); /rosout and /parameter_events are not counted.',
+        '',
+    ]
     for title, file in figures:
         lines += [f'## {title}', '', f'![{title}]({file})', '']
     (report_dir / 'report.md').write_text('\n'.join(lines))
@@ -486,20 +554,30 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--scenario', default='default', help='shipped name or file')
     parser.add_argument('--bags', type=Path, default=REPO_ROOT / 'bags')
-    parser.add_argument('--timeout', type=float, default=600.0,
-                        help='give up after this long [s]')
-    parser.add_argument('--remote-nodes', nargs='+', default=[], metavar='NODE',
-                        help='nodes started through --remote-prefix (another host)')
-    parser.add_argument('--remote-prefix', default='', metavar='COMMAND',
-                        help='command before each remote node, e.g. "ip netns exec B" '
-                        '(the multi-host test\'s simulated second machine)')
+    parser.add_argument('--timeout', type=float, default=600.0, help='give up after this long [s]')
+    parser.add_argument(
+        '--remote-nodes',
+        nargs='+',
+        default=[],
+        metavar='NODE',
+        help='nodes started through --remote-prefix (another host)',
+    )
+    parser.add_argument(
+        '--remote-prefix',
+        default='',
+        metavar='COMMAND',
+        help='command before each remote node, e.g. "ip netns exec B" '
+        "(the multi-host test's simulated second machine)",
+    )
     args = parser.parse_args()
 
     scenario_path = resolve_scenario_path(args.scenario).resolve()
     scenario = load_scenario(scenario_path)
     if scenario.calibration is None:
-        print(f'scenario {scenario.name} has no calibration chart: the demo needs one',
-              file=sys.stderr)
+        print(
+            f'scenario {scenario.name} has no calibration chart: the demo needs one',
+            file=sys.stderr,
+        )
         return 2
     track = curve_on_surface(scenario)
     nodes = NODES if track else [n for n in NODES if n != 'pa10_ik_node']
@@ -516,35 +594,58 @@ def main():
     print(f'   node logs: {bag_dir}/launch.log; bag: {bag_dir}', flush=True)
     layout = Path(get_package_share_directory('live_view')) / 'layouts' / 'vgm_live_view.json'
     live_view_port = free_live_view_port()
-    print(f'   watch it live: in Foxglove, Open connection > Foxglove WebSocket > '
-          f'ws://127.0.0.1:{live_view_port} (layout: {layout})', flush=True)
+    print(
+        f'   watch it live: in Foxglove, Open connection > Foxglove WebSocket > '
+        f'ws://127.0.0.1:{live_view_port} (layout: {layout})',
+        flush=True,
+    )
     graph = Path(get_package_share_directory('vgm_common')) / 'params' / 'graph.yaml'
     params_file = work_dir / 'params.yaml'  # kept with the bag: how it was made
-    write_params(graph, params_file, {
-        'recorder': {'output_dir': str(args.bags), 'bag_name': name, 'compression': 'zstd'},
-        'live_view': {'port': live_view_port},
-        'sensor_sim': {'scenario': str(scenario_path), 'ground_truth_dir': str(truth_dir),
-                       # no message is lost to discovery: the recorder has matched every
-                       # stream, and calib_node and curve_recon_node every camera (a count
-                       # alone was met by the pipeline while the recorder was starting)
-                       'wait_for_nodes': ['recorder'], 'min_subscribers': 3},
-        'calib_node': {'min_views': views, 'output_dir': str(calibration_dir),
-                       'chart.rows': scenario.calibration.rows,
-                       'chart.cols': scenario.calibration.cols,
-                       'chart.spacing': scenario.calibration.spacing},
-        'curve_recon_node': {'degree': CURVE_DEGREES.get(scenario.curve.kind, 2)},
-        'sfs_stereo_node': {'light_direction': [float(v) for v in light],
-                            'albedo': scenario.surface.albedo,
-                            'roughness': scenario.surface.roughness},
-        # the recorder and live_view have matched /tool_pose before the loop starts (a
-        # remote arm's endpoints are discovered later than the simulator's)
-        'pa10_ik_node': {'wait_for_nodes': ['recorder', 'live_view'],
-                         'robot': scenario.robot.model,
-                         'tool_length': scenario.robot.tool_length,
-                         'desired_force': DESIRED_FORCE}})
+    write_params(
+        graph,
+        params_file,
+        {
+            'recorder': {'output_dir': str(args.bags), 'bag_name': name, 'compression': 'zstd'},
+            'live_view': {'port': live_view_port},
+            'sensor_sim': {
+                'scenario': str(scenario_path),
+                'ground_truth_dir': str(truth_dir),
+                # no message is lost to discovery: the recorder has matched every
+                # stream, and calib_node and curve_recon_node every camera (a count
+                # alone was met by the pipeline while the recorder was starting)
+                'wait_for_nodes': ['recorder'],
+                'min_subscribers': 3,
+            },
+            'calib_node': {
+                'min_views': views,
+                'output_dir': str(calibration_dir),
+                'chart.rows': scenario.calibration.rows,
+                'chart.cols': scenario.calibration.cols,
+                'chart.spacing': scenario.calibration.spacing,
+            },
+            'curve_recon_node': {'degree': CURVE_DEGREES.get(scenario.curve.kind, 2)},
+            'sfs_stereo_node': {
+                'light_direction': [float(v) for v in light],
+                'albedo': scenario.surface.albedo,
+                'roughness': scenario.surface.roughness,
+            },
+            # the recorder and live_view have matched /tool_pose before the loop starts (a
+            # remote arm's endpoints are discovered later than the simulator's)
+            'pa10_ik_node': {
+                'wait_for_nodes': ['recorder', 'live_view'],
+                'robot': scenario.robot.model,
+                'tool_length': scenario.robot.tool_length,
+                'desired_force': DESIRED_FORCE,
+            },
+        },
+    )
     log_file = open(work_dir / 'launch.log', 'w')
-    launch = Launch(params_file, nodes=nodes, out=log_file, command_prefixes={
-        node: shlex.split(args.remote_prefix) for node in args.remote_nodes})
+    launch = Launch(
+        params_file,
+        nodes=nodes,
+        out=log_file,
+        command_prefixes={node: shlex.split(args.remote_prefix) for node in args.remote_nodes},
+    )
     probe = GraphProbe()
     loop = ClosedLoop(launch, probe, total, track)
     stage(2, total, f'calibrating the rig from {views} chart views')
@@ -562,30 +663,44 @@ def main():
         shutil.move(str(work_dir / item), str(bag_dir / item))
     work_dir.rmdir()
     if status != 0 or loop.failure:
-        print(f'FAILED: {loop.failure or "a node failed"}; last node log lines:',
-              file=sys.stderr)
-        print(''.join((bag_dir / 'launch.log').read_text().splitlines(True)[-40:]),
-              file=sys.stderr)
+        print(f'FAILED: {loop.failure or "a node failed"}; last node log lines:', file=sys.stderr)
+        print(
+            ''.join((bag_dir / 'launch.log').read_text().splitlines(True)[-40:]), file=sys.stderr
+        )
         return 1
     published = Counter()  # what every node says it published, per topic
     for node in nodes[1:]:
         published.update(parse_published_counts(launch.log_text(node)))
 
     stage(5, total, 'reading the bag with mcap + mcap_ros2 and with rosbags')
-    topics = [*IMAGE_TOPICS.values(), '/curve/waypoints', '/depth/fused', '/depth/sfs',
-              '/depth/stereo', '/depth/camera_info', '/stereo/left/camera_info',
-              '/stereo/left/pose', '/diagnostics', '/tool_pose', '/tool/pressure',
-              '/joint_states']
+    topics = [
+        *IMAGE_TOPICS.values(),
+        '/curve/waypoints',
+        '/depth/fused',
+        '/depth/sfs',
+        '/depth/stereo',
+        '/depth/camera_info',
+        '/stereo/left/camera_info',
+        '/stereo/left/pose',
+        '/diagnostics',
+        '/tool_pose',
+        '/tool/pressure',
+        '/joint_states',
+    ]
     messages, counts_mcap = read_bag(bag_dir, topics)
     counts_rosbags = count_with_rosbags(bag_dir)
     # The recorder's own diagnostics: its last ones follow the bag's closing, so those in
     # the bag are all that can be compared.
-    published['/diagnostics'] += sum(1 for _, m in messages['/diagnostics']
-                                     if m.status and m.status[0].name.startswith('recorder:'))
+    published['/diagnostics'] += sum(
+        1
+        for _, m in messages['/diagnostics']
+        if m.status and m.status[0].name.startswith('recorder:')
+    )
 
     stage(6, total, 'comparing with the ground truth and writing the report')
-    results, data = evaluate(scenario, messages, bag_dir / 'ground_truth',
-                             bag_dir / 'calibration', track)
+    results, data = evaluate(
+        scenario, messages, bag_dir / 'ground_truth', bag_dir / 'calibration', track
+    )
     check_rows = checks(results, track)
     rows = message_rows(counts_mcap, counts_rosbags, published)
     report_dir = bag_dir / 'report'
@@ -593,25 +708,35 @@ def main():
     figures = plot_report(report_dir, messages, data)
     timings['total_s'] = time.monotonic() - started
     write_report(report_dir, bag_dir, scenario, results, check_rows, rows, figures, timings)
-    (report_dir / 'results.json').write_text(json.dumps(
-        {'results': results, 'checks': check_rows, 'messages': rows, 'timings': timings},
-        indent=1))
+    (report_dir / 'results.json').write_text(
+        json.dumps(
+            {'results': results, 'checks': check_rows, 'messages': rows, 'timings': timings},
+            indent=1,
+        )
+    )
 
     print(f'\n{"measure":30} {"value":>10} {"tolerance":>10}')
     for measure, value, tolerance, ok in check_rows:
         print(f'{measure:30} {value:10.3f} {tolerance:10} {"ok" if ok else "FAILED"}')
     print(f'\n{"topic":36} {"sent":>7} {"mcap":>7} {"rosbags":>8} {"lost":>5}')
     for topic, sent, n_mcap, n_rosbags, lost in rows:
-        print(f'{topic:36} {"" if sent is None else sent:>7} {n_mcap:7d} {n_rosbags:8d} '
-              f'{"" if lost is None else lost:>5}')
+        print(
+            f'{topic:36} {"" if sent is None else sent:>7} {n_mcap:7d} {n_rosbags:8d} '
+            f'{"" if lost is None else lost:>5}'
+        )
     lost = [row[0] for row in rows if row[4] not in (None, 0)]
     disagree = [row[0] for row in rows if row[2] != row[3]]
     failed = [row[0] for row in check_rows if not row[3]]
-    print(f'\nbag:    {bag_dir}\nreport: {report_dir / "report.md"}\n'
-          f'time:   {timings["total_s"]:.0f} s')
+    print(
+        f'\nbag:    {bag_dir}\nreport: {report_dir / "report.md"}\n'
+        f'time:   {timings["total_s"]:.0f} s'
+    )
     if lost or disagree or failed:
-        print(f'FAILED: out of tolerance: {failed}; messages lost: {lost}; reader counts '
-              f'differ: {disagree}', file=sys.stderr)
+        print(
+            f'FAILED: out of tolerance: {failed}; messages lost: {lost}; reader counts '
+            f'differ: {disagree}',
+            file=sys.stderr,
+        )
         return 1
     print('OK: every stage within tolerance, nothing lost, both readers agree')
     return 0

@@ -1,5 +1,6 @@
 """What the demo measures against the simulator's ground truth. Plain functions on numpy
 arrays (no ROS), shared by scripts/demo.py and the closed-loop tests."""
+
 import numpy as np
 import yaml
 
@@ -11,9 +12,12 @@ from vgm_common.camera_model import PinholeCamera
 def true_cameras(ground_truth_dir):
     """sensor_sim's cameras.yaml -> {name: PinholeCamera}."""
     cameras = yaml.safe_load((ground_truth_dir / 'cameras.yaml').read_text())
-    return {name: PinholeCamera(c['width'], c['height'], c['K'], c['D'], c['T_base_camera'],
-                                c['distortion_model'])
-            for name, c in cameras.items()}
+    return {
+        name: PinholeCamera(
+            c['width'], c['height'], c['K'], c['D'], c['T_base_camera'], c['distortion_model']
+        )
+        for name, c in cameras.items()
+    }
 
 
 def true_curve(ground_truth_dir):
@@ -29,12 +33,11 @@ def distance_to_polylines(points, polylines):
     ends = np.concatenate([p[1:] for p in polylines])
     best = np.full(len(points), np.inf)
     for chunk in range(0, len(points), 256):  # bounded memory: 256 x segments at a time
-        P = points[chunk:chunk + 256, None, :]
+        P = points[chunk : chunk + 256, None, :]
         d = ends - starts
-        t = np.clip(np.einsum('nsk,sk->ns', P - starts, d) / np.einsum('sk,sk->s', d, d),
-                    0.0, 1.0)
+        t = np.clip(np.einsum('nsk,sk->ns', P - starts, d) / np.einsum('sk,sk->s', d, d), 0.0, 1.0)
         nearest = starts + t[..., None] * d
-        best[chunk:chunk + 256] = np.linalg.norm(P - nearest, axis=2).min(axis=1)
+        best[chunk : chunk + 256] = np.linalg.norm(P - nearest, axis=2).min(axis=1)
     return best
 
 
@@ -44,8 +47,12 @@ def curve_errors(waypoints, polylines):
     d = distance_to_polylines(waypoints, polylines)
     truth = np.concatenate(polylines)
     coverage = distance_to_polylines(truth, [waypoints])
-    return {'rms_m': float(np.sqrt(np.mean(d ** 2))), 'max_m': float(d.max()),
-            'coverage_m': float(coverage.max()), 'count': len(waypoints)}
+    return {
+        'rms_m': float(np.sqrt(np.mean(d**2))),
+        'max_m': float(d.max()),
+        'coverage_m': float(coverage.max()),
+        'count': len(waypoints),
+    }
 
 
 def calibration_errors(calibration_file, cameras_true, depth_true):
@@ -53,8 +60,9 @@ def calibration_errors(calibration_file, cameras_true, depth_true):
     points of the true surface seen by each camera are projected with the calibrated and
     the true camera; their pixel distance [px] (RMS, max) is what the pipeline feels.
     Also relative focal errors, camera-centre error [m] and the stereo baseline."""
-    calibrated = {name: camera for name, (camera, _, _) in read_calibration(
-        calibration_file).items()}
+    calibrated = {
+        name: camera for name, (camera, _, _) in read_calibration(calibration_file).items()
+    }
     errors = {}
     for name, truth in cameras_true.items():
         camera = calibrated[name]
@@ -63,21 +71,23 @@ def calibration_errors(calibration_file, cameras_true, depth_true):
         pixels, _ = camera.project(points)
         difference = np.linalg.norm(pixels - pixels_true, axis=1)
         errors[name] = {
-            'image_rms_px': float(np.sqrt(np.mean(difference ** 2))),
+            'image_rms_px': float(np.sqrt(np.mean(difference**2))),
             'image_max_px': float(difference.max()),
             'fx_rel': float(camera.K[0, 0] / truth.K[0, 0] - 1),
             'fy_rel': float(camera.K[1, 1] / truth.K[1, 1] - 1),
-            'centre_m': float(np.linalg.norm(camera.centre_base - truth.centre_base))}
+            'centre_m': float(np.linalg.norm(camera.centre_base - truth.centre_base)),
+        }
     baseline = np.linalg.norm(calibrated['left'].centre_base - calibrated['right'].centre_base)
-    baseline_true = np.linalg.norm(cameras_true['left'].centre_base -
-                                   cameras_true['right'].centre_base)
+    baseline_true = np.linalg.norm(
+        cameras_true['left'].centre_base - cameras_true['right'].centre_base
+    )
     errors['baseline_rel'] = float(baseline / baseline_true - 1)
     return errors
 
 
 def surface_points_from_depth(camera, depth, step=1):
     """base_link points of a raw depth map (metres along the optical axis, NaN = none)."""
-    v, u = np.mgrid[0:depth.shape[0]:step, 0:depth.shape[1]:step]
+    v, u = np.mgrid[0 : depth.shape[0] : step, 0 : depth.shape[1] : step]
     z = depth[v, u].ravel()
     keep = np.isfinite(z)
     pixels = np.column_stack([u.ravel(), v.ravel()])[keep].astype(float)
@@ -98,9 +108,13 @@ def depth_errors(depth, P_rect, R_rect, T_base_left, surface):
     points_base = points_left @ T_base_left[:3, :3].T + T_base_left[:3, 3]
     error = np.abs(signed_height_base(surface, points_base))
     error = error[np.isfinite(error)]
-    return {'median_abs_m': float(np.median(error)), 'rms_m': float(np.sqrt(np.mean(error ** 2))),
-            'p90_abs_m': float(np.percentile(error, 90)), 'pixels': int(error.size),
-            'coverage': float(error.size / depth.size)}
+    return {
+        'median_abs_m': float(np.median(error)),
+        'rms_m': float(np.sqrt(np.mean(error**2))),
+        'p90_abs_m': float(np.percentile(error, 90)),
+        'pixels': int(error.size),
+        'coverage': float(error.size / depth.size),
+    }
 
 
 def tracking_errors(tool_positions, polylines, forces, desired_force, surface, band=0.10):
@@ -114,12 +128,14 @@ def tracking_errors(tool_positions, polylines, forces, desired_force, surface, b
     d = distance_to_polylines(on_surface, polylines)
     d_3d = distance_to_polylines(tool_positions, polylines)
     force_error = np.abs(np.asarray(forces) - desired_force)
-    return {'path_rms_m': float(np.sqrt(np.mean(d ** 2))), 'path_max_m': float(d.max()),
-            'path_3d_rms_m': float(np.sqrt(np.mean(d_3d ** 2))),
-            'pressing_depth_mean_m': float(-np.mean(heights)),
-            'force_mean_N': float(np.mean(forces)),
-            'force_rms_error_N': float(np.sqrt(np.mean(force_error ** 2))),
-            'force_max_error_N': float(force_error.max()),
-            'force_in_band': float(np.mean(force_error <= band * desired_force)),
-            'samples': len(d)}
-
+    return {
+        'path_rms_m': float(np.sqrt(np.mean(d**2))),
+        'path_max_m': float(d.max()),
+        'path_3d_rms_m': float(np.sqrt(np.mean(d_3d**2))),
+        'pressing_depth_mean_m': float(-np.mean(heights)),
+        'force_mean_N': float(np.mean(forces)),
+        'force_rms_error_N': float(np.sqrt(np.mean(force_error**2))),
+        'force_max_error_N': float(force_error.max()),
+        'force_in_band': float(np.mean(force_error <= band * desired_force)),
+        'samples': len(d),
+    }

@@ -1,5 +1,6 @@
 """Shared fixtures: private ROS domains, node processes torn down pass or fail, and an
 rclpy node in the test process on the same domain."""
+
 import sys
 import time
 from pathlib import Path
@@ -14,9 +15,15 @@ from vgm_common.node_tools import use_fastdds_profile
 # image bursts came up to 3 s late under load.
 use_fastdds_profile()
 
-MARKER_OF_DIRECTORY = {'unit': 'unit', 'topic': 'topic', 'bag_tools': 'topic', 'fuzz': 'topic',
-                       'integration': 'integration', 'browser': 'integration',
-                       'multihost': 'integration'}
+MARKER_OF_DIRECTORY = {
+    'unit': 'unit',
+    'topic': 'topic',
+    'bag_tools': 'topic',
+    'fuzz': 'topic',
+    'integration': 'integration',
+    'browser': 'integration',
+    'multihost': 'integration',
+}
 
 
 def pytest_collection_modifyitems(items):
@@ -56,14 +63,17 @@ def rclpy_node(ros_env, monkeypatch):
     for key in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE'):
         monkeypatch.setenv(key, ros_env[key])
     import rclpy
+
     context = rclpy.Context()
     rclpy.init(context=context)
     node = rclpy.create_node('test_probe', context=context)
     from rclpy.executors import SingleThreadedExecutor
+
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     node.spin_until = lambda cond, timeout, what='condition': _spin_until(
-        executor, cond, timeout, what)
+        executor, cond, timeout, what
+    )
     try:
         yield node
     finally:

@@ -8,6 +8,7 @@ Protocol (ws-protocol spec, the same wire format under ``foxglove.websocket.v1``
 subscribe...); binary frames with a one-byte opcode, message data being
 ``0x01 | uint32 subscription id | uint64 log time [ns] | payload`` (little endian).
 """
+
 import json
 import re
 import struct
@@ -32,8 +33,9 @@ class FoxgloveClient:
 
     def __init__(self, url, subprotocol=SDK_SUBPROTOCOL, open_timeout=10.0):
         # Entered by hand: the connection outlives this constructor (closed by close()).
-        self.ws = connect(url, subprotocols=[subprotocol], max_size=None,
-                          open_timeout=open_timeout).__enter__()
+        self.ws = connect(
+            url, subprotocols=[subprotocol], max_size=None, open_timeout=open_timeout
+        ).__enter__()
         self.server_info = None
         self.channels = {}  # topic -> channel (the advertise entry)
         self._by_id = {}  # channel id -> channel
@@ -73,7 +75,7 @@ class FoxgloveClient:
             return None
         _, subscription_id, log_time_ns = _HEADER.unpack_from(frame)
         topic = self._subscriptions.get(subscription_id)
-        return None if topic is None else (topic, log_time_ns, frame[_HEADER.size:])
+        return None if topic is None else (topic, log_time_ns, frame[_HEADER.size :])
 
     def wait_for_channels(self, topics, timeout):
         """Handle frames until every topic in ``topics`` is advertised."""
@@ -127,6 +129,7 @@ class FoxgloveClient:
 
 # -- protobuf wire format (enough for foxglove.FrameTransforms) ---------------------------
 
+
 def _varint(data, offset):
     value = shift = 0
     while True:
@@ -153,7 +156,7 @@ def protobuf_fields(data):
             offset += 8
         elif wire_type == 2:
             length, offset = _varint(data, offset)
-            value = bytes(data[offset:offset + length])
+            value = bytes(data[offset : offset + length])
             offset += length
         elif wire_type == 5:
             value = struct.unpack_from('<f', data, offset)[0]
@@ -172,9 +175,12 @@ def decode_frame_transforms(payload):
         fields = protobuf_fields(item)
         translation = protobuf_fields(fields.get(4, [b''])[0])
         rotation = protobuf_fields(fields.get(5, [b''])[0])
-        transforms.append({
-            'parent': fields.get(2, [b''])[0].decode(),
-            'child': fields.get(3, [b''])[0].decode(),
-            'translation': tuple(translation.get(i, [0.0])[0] for i in (1, 2, 3)),
-            'rotation': tuple(rotation.get(i, [0.0])[0] for i in (1, 2, 3, 4))})
+        transforms.append(
+            {
+                'parent': fields.get(2, [b''])[0].decode(),
+                'child': fields.get(3, [b''])[0].decode(),
+                'translation': tuple(translation.get(i, [0.0])[0] for i in (1, 2, 3)),
+                'rotation': tuple(rotation.get(i, [0.0])[0] for i in (1, 2, 3, 4)),
+            }
+        )
     return transforms

@@ -1,5 +1,6 @@
 """Test harness: installed executables, node processes that are always torn down, and
 bounded waits on conditions (never fixed sleeps). Fixtures are in conftest.py."""
+
 import itertools
 import os
 import signal
@@ -26,7 +27,6 @@ def next_ros_env():
     for variable in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS'):  # as vgm_launch does
         env.setdefault(variable, '1')
     return env
-
 
 
 def executable(package, name=None):
@@ -57,8 +57,13 @@ class NodeProcess:
         self.log_path = Path(log_path)
         self._log = open(self.log_path, 'wb')
         self.proc = subprocess.Popen(
-            self.argv, env=env, stdout=self._log, stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL, start_new_session=True)
+            self.argv,
+            env=env,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
 
     def output(self):
         if not self._log.closed:

@@ -13,9 +13,11 @@ setup(
     install_requires=['setuptools'],
     zip_safe=True,
     license='Apache-2.0',
-    entry_points={'console_scripts': [
-        'recorder = bag_tools.recorder_node:main',
-        'player = bag_tools.player_node:main',
-        'reindex = bag_tools.reindex:main',
-    ]},
+    entry_points={
+        'console_scripts': [
+            'recorder = bag_tools.recorder_node:main',
+            'player = bag_tools.player_node:main',
+            'reindex = bag_tools.reindex:main',
+        ]
+    },
 )

@@ -17,7 +17,9 @@ setup(
     install_requires=['setuptools'],
     zip_safe=True,
     license='Apache-2.0',
-    entry_points={'console_scripts': [
-        'sensor_sim = sensor_sim.sensor_sim_node:main',
-    ]},
+    entry_points={
+        'console_scripts': [
+            'sensor_sim = sensor_sim.sensor_sim_node:main',
+        ]
+    },
 )

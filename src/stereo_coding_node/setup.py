@@ -16,8 +16,10 @@ setup(
     install_requires=['setuptools'],
     zip_safe=True,
     license='Apache-2.0',
-    entry_points={'console_scripts': [
-        'stereo_coding_node = stereo_coding_node.encoder_node:main',
-        'stereo_decoding_node = stereo_coding_node.decoder_node:main',
-    ]},
+    entry_points={
+        'console_scripts': [
+            'stereo_coding_node = stereo_coding_node.encoder_node:main',
+            'stereo_decoding_node = stereo_coding_node.decoder_node:main',
+        ]
+    },
 )

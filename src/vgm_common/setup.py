@@ -18,7 +18,9 @@ setup(
     install_requires=['setuptools'],
     zip_safe=True,
     license='Apache-2.0',
-    entry_points={'console_scripts': [
-        'vgm_launch = vgm_common.launcher:main',
-    ]},
+    entry_points={
+        'console_scripts': [
+            'vgm_launch = vgm_common.launcher:main',
+        ]
+    },
 )

@@ -5,6 +5,7 @@ RIHS01 hash against the stored definitions) and with mcap's reader + mcap_ros2 d
 hold exactly the written messages, and carry the rosbag2 (Jazzy) metadata. A writer killed
 with SIGKILL leaves a file whose flushed chunks are still readable.
 """
+
 import os
 import signal
 import struct
@@ -87,10 +88,12 @@ def sample_bag(tmp_path_factory):
     """A bag with images, camera info, joint states and a latched pose, and what went in."""
     rng = np.random.default_rng(7)
     bag_dir = tmp_path_factory.mktemp('bags') / 'sample'
-    topics = {'/stereo/left/image_raw': ('sensor_msgs/msg/Image', STREAM),
-              '/stereo/left/camera_info': ('sensor_msgs/msg/CameraInfo', LATCHED),
-              '/joint_states': ('sensor_msgs/msg/JointState', STREAM),
-              '/stereo/left/pose': ('geometry_msgs/msg/PoseStamped', LATCHED)}
+    topics = {
+        '/stereo/left/image_raw': ('sensor_msgs/msg/Image', STREAM),
+        '/stereo/left/camera_info': ('sensor_msgs/msg/CameraInfo', LATCHED),
+        '/joint_states': ('sensor_msgs/msg/JointState', STREAM),
+        '/stereo/left/pose': ('geometry_msgs/msg/PoseStamped', LATCHED),
+    }
     written = []  # (topic, message, serialized, log_time, publish_time)
     with BagWriter(bag_dir) as writer:
         for name, (type_name, qos) in topics.items():
@@ -116,19 +119,32 @@ def test_full_definition_is_rosbag2s_ros2msg_text():
     assert text.startswith('# This message defines meta information for a camera.')
     # Dependencies in sorted order, depth first, each once, behind 80 '=' and 'MSG: pkg/Type'.
     headers = [line for line in text.splitlines() if line.startswith('MSG: ')]
-    assert headers == ['MSG: sensor_msgs/RegionOfInterest', 'MSG: std_msgs/Header',
-                       'MSG: builtin_interfaces/Time']
+    assert headers == [
+        'MSG: sensor_msgs/RegionOfInterest',
+        'MSG: std_msgs/Header',
+        'MSG: builtin_interfaces/Time',
+    ]
     assert f'\n\n{RULE}\nMSG: std_msgs/Header\n' in text
     assert definition('sensor_msgs/msg/CameraInfo') == ('ros2msg', text)
     assert full_definition('sensor_msgs/Image') == full_definition('sensor_msgs/msg/Image')
     assert 'MSG: ' not in full_definition('std_msgs/msg/String')
 
 
-@pytest.mark.parametrize('type_name', [
-    'sensor_msgs/msg/Image', 'sensor_msgs/msg/CameraInfo', 'sensor_msgs/msg/JointState',
-    'sensor_msgs/msg/PointCloud2', 'geometry_msgs/msg/PoseStamped', 'nav_msgs/msg/Path',
-    'stereo_msgs/msg/DisparityImage', 'diagnostic_msgs/msg/DiagnosticArray',
-    'trajectory_msgs/msg/JointTrajectory', 'rcl_interfaces/msg/Log'])
+@pytest.mark.parametrize(
+    'type_name',
+    [
+        'sensor_msgs/msg/Image',
+        'sensor_msgs/msg/CameraInfo',
+        'sensor_msgs/msg/JointState',
+        'sensor_msgs/msg/PointCloud2',
+        'geometry_msgs/msg/PoseStamped',
+        'nav_msgs/msg/Path',
+        'stereo_msgs/msg/DisparityImage',
+        'diagnostic_msgs/msg/DiagnosticArray',
+        'trajectory_msgs/msg/JointTrajectory',
+        'rcl_interfaces/msg/Log',
+    ],
+)
 def test_definitions_hash_to_the_installed_rihs01(type_name):
     """rosbags parses our text and hashes it to the RIHS01 that rosidl installed."""
     store = get_typestore(Stores.EMPTY)
@@ -142,39 +158,74 @@ def test_metadata_yaml_is_rosbag2_jazzy(sample_bag):
     document = yaml.safe_load((bag_dir / 'metadata.yaml').read_text())
     assert list(document) == ['rosbag2_bagfile_information']
     info = document['rosbag2_bagfile_information']
-    assert list(info) == ['version', 'storage_identifier', 'duration', 'starting_time',
-                          'message_count', 'topics_with_message_count', 'compression_format',
-                          'compression_mode', 'relative_file_paths', 'files', 'custom_data',
-                          'ros_distro']
-    assert (info['version'], info['storage_identifier'], info['ros_distro']) == \
-        (9, 'mcap', 'jazzy')
+    assert list(info) == [
+        'version',
+        'storage_identifier',
+        'duration',
+        'starting_time',
+        'message_count',
+        'topics_with_message_count',
+        'compression_format',
+        'compression_mode',
+        'relative_file_paths',
+        'files',
+        'custom_data',
+        'ros_distro',
+    ]
+    assert (info['version'], info['storage_identifier'], info['ros_distro']) == (
+        9,
+        'mcap',
+        'jazzy',
+    )
     log_times = [w[3] for w in written]
     assert info['starting_time'] == {'nanoseconds_since_epoch': min(log_times)}
     assert info['duration'] == {'nanoseconds': max(log_times) - min(log_times)}
     assert info['message_count'] == len(written) == 17
     assert info['relative_file_paths'] == ['sample_0.mcap']
-    assert info['files'] == [{'path': 'sample_0.mcap', 'starting_time': info['starting_time'],
-                              'duration': info['duration'], 'message_count': 17}]
-    assert (info['compression_format'], info['compression_mode'], info['custom_data']) == \
-        ('', '', None)
-    counts = {t['topic_metadata']['name']: t['message_count']
-              for t in info['topics_with_message_count']}
-    assert counts == {'/stereo/left/image_raw': 3, '/stereo/left/camera_info': 1,
-                      '/joint_states': 12, '/stereo/left/pose': 1}
+    assert info['files'] == [
+        {
+            'path': 'sample_0.mcap',
+            'starting_time': info['starting_time'],
+            'duration': info['duration'],
+            'message_count': 17,
+        }
+    ]
+    assert (info['compression_format'], info['compression_mode'], info['custom_data']) == (
+        '',
+        '',
+        None,
+    )
+    counts = {
+        t['topic_metadata']['name']: t['message_count'] for t in info['topics_with_message_count']
+    }
+    assert counts == {
+        '/stereo/left/image_raw': 3,
+        '/stereo/left/camera_info': 1,
+        '/joint_states': 12,
+        '/stereo/left/pose': 1,
+    }
     for entry in info['topics_with_message_count']:
         meta = entry['topic_metadata']
         type_name, qos = topics[meta['name']]
         assert meta['type'] == type_name and meta['serialization_format'] == 'cdr'
         assert meta['type_description_hash'] == type_hash(type_name)
         assert meta['offered_qos_profiles'] == [qos]  # a YAML list of maps, string policies
-    pose_qos = next(e for e in info['topics_with_message_count']
-                    if e['topic_metadata']['name'] == '/stereo/left/pose')
+    pose_qos = next(
+        e
+        for e in info['topics_with_message_count']
+        if e['topic_metadata']['name'] == '/stereo/left/pose'
+    )
     assert pose_qos['topic_metadata']['offered_qos_profiles'][0] == {
-        'history': 'unknown', 'depth': 0, 'reliability': 'reliable',
-        'durability': 'transient_local', 'deadline': INFINITE_DURATION,
-        'lifespan': INFINITE_DURATION, 'liveliness': 'automatic',
+        'history': 'unknown',
+        'depth': 0,
+        'reliability': 'reliable',
+        'durability': 'transient_local',
+        'deadline': INFINITE_DURATION,
+        'lifespan': INFINITE_DURATION,
+        'liveliness': 'automatic',
         'liveliness_lease_duration': INFINITE_DURATION,
-        'avoid_ros_namespace_conventions': False}
+        'avoid_ros_namespace_conventions': False,
+    }
 
 
 def test_rosbags_anyreader_reads_everything(sample_bag):
@@ -184,13 +235,16 @@ def test_rosbags_anyreader_reads_everything(sample_bag):
             '/stereo/left/image_raw': ('sensor_msgs/msg/Image', 3),
             '/stereo/left/camera_info': ('sensor_msgs/msg/CameraInfo', 1),
             '/joint_states': ('sensor_msgs/msg/JointState', 12),
-            '/stereo/left/pose': ('geometry_msgs/msg/PoseStamped', 1)}
+            '/stereo/left/pose': ('geometry_msgs/msg/PoseStamped', 1),
+        }
         pose_connection = reader.topics['/stereo/left/pose']
         assert pose_connection.msgtype == 'geometry_msgs/msg/PoseStamped'
         latched = [c for c in reader.connections if c.topic == '/stereo/left/pose'][0]
         assert latched.ext.offered_qos_profiles[0].durability == QosDurability.TRANSIENT_LOCAL
-        read = [(c.topic, t, raw, reader.deserialize(raw, c.msgtype))
-                for c, t, raw in reader.messages()]
+        read = [
+            (c.topic, t, raw, reader.deserialize(raw, c.msgtype))
+            for c, t, raw in reader.messages()
+        ]
     expected = sorted(written, key=lambda w: w[3])
     assert [(r[0], r[1], bytes(r[2])) for r in read] == [(w[0], w[3], w[2]) for w in expected]
     images = [(r[3], w[1]) for r, w in zip(read, expected) if r[0] == '/stereo/left/image_raw']
@@ -206,8 +260,11 @@ def test_rosbags_anyreader_reads_everything(sample_bag):
     np.testing.assert_array_equal(info.k, make_camera_info(T0).k)
     assert info.distortion_model == 'plumb_bob'
     pose = [r[3] for r in read if r[0] == '/stereo/left/pose'][0]
-    assert (pose.pose.position.x, pose.pose.position.z, pose.header.frame_id) == \
-        (0.25, 1.5, 'base_link')
+    assert (pose.pose.position.x, pose.pose.position.z, pose.header.frame_id) == (
+        0.25,
+        1.5,
+        'base_link',
+    )
 
 
 def test_mcap_reader_sees_rosbag2_layout(sample_bag):
@@ -229,8 +286,10 @@ def test_mcap_reader_sees_rosbag2_layout(sample_bag):
             assert set(channel.metadata) == {'offered_qos_profiles', 'topic_type_hash'}
             assert yaml.safe_load(channel.metadata['offered_qos_profiles']) == [qos]
             assert channel.metadata['topic_type_hash'] == type_hash(type_name)
-        decoded = [(c.topic, m.log_time, m.publish_time, m.data, d)
-                   for _, c, m, d in reader.iter_decoded_messages()]
+        decoded = [
+            (c.topic, m.log_time, m.publish_time, m.data, d)
+            for _, c, m, d in reader.iter_decoded_messages()
+        ]
         records = [m for m in reader.iter_metadata() if m.name == 'rosbag2']
     expected = sorted(written, key=lambda w: w[3])
     assert [d[:4] for d in decoded] == [(w[0], w[3], w[4], w[2]) for w in expected]
@@ -252,8 +311,9 @@ def test_bag_reader_and_header_stamps(sample_bag):
     assert not reader.recovered and reader.message_count == 17
     messages = list(reader.messages())
     expected = sorted(written, key=lambda w: w[3])
-    assert [(m.topic, m.data, m.log_time, m.publish_time) for m in messages] == \
-        [(w[0], w[2], w[3], w[4]) for w in expected]
+    assert [(m.topic, m.data, m.log_time, m.publish_time) for m in messages] == [
+        (w[0], w[2], w[3], w[4]) for w in expected
+    ]
     assert [m.topic for m in reader.messages(['/stereo/left/pose'])] == ['/stereo/left/pose']
     # The recorder reads header.stamp straight from the CDR bytes.
     t = T0 + 123_456_789
@@ -273,8 +333,9 @@ def test_split_files_and_refusals(tmp_path):
         for i in range(30):
             image = Image(height=40, width=256, encoding='mono8', step=256, data=payload)
             writer.write('/images', serialize_message(stamp(image, T0 + i)), T0 + 10 * i)
-            writer.write('/joint_states', serialize_message(make_joint_state(i, T0)),
-                         T0 + 10 * i + 5)
+            writer.write(
+                '/joint_states', serialize_message(make_joint_state(i, T0)), T0 + 10 * i + 5
+            )
         with pytest.raises(BagWriterError):
             writer.write('/unknown', b'', T0)
         with pytest.raises(BagWriterError):
@@ -291,11 +352,12 @@ def test_split_files_and_refusals(tmp_path):
     with AnyReader([bag_dir]) as reader:
         assert sum(1 for _ in reader.messages()) == 60
         assert reader.topics['/images'].msgcount == 30
-    assert [m.log_time for m in BagReader(bag_dir).messages()] == \
-        sorted(T0 + 10 * i + k for i in range(30) for k in (0, 5))
+    assert [m.log_time for m in BagReader(bag_dir).messages()] == sorted(
+        T0 + 10 * i + k for i in range(30) for k in (0, 5)
+    )
 
 
-CRASHING_WRITER = textwrap.dedent('''
+CRASHING_WRITER = textwrap.dedent("""
     import sys, time
     from bag_tools.bag_writer import BagWriter
     bag_dir, explicit_flush = sys.argv[1], sys.argv[2] == 'flush'
@@ -310,7 +372,7 @@ CRASHING_WRITER = textwrap.dedent('''
             writer.write('/joint_states', payload, 1_000 + i)
     open(sys.argv[3], 'w').close()  # tell the test, then wait to be killed
     time.sleep(60)
-''')
+""")
 
 
 @pytest.mark.parametrize('explicit_flush', [False, True])
@@ -319,11 +381,22 @@ def test_killed_writer_keeps_flushed_chunks(tmp_path, explicit_flush):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
     ready = tmp_path / 'ready'
     process = subprocess.Popen(
-        [sys.executable, '-c', CRASHING_WRITER, str(bag_dir),
-         'flush' if explicit_flush else 'auto', str(ready)], env=env)
+        [
+            sys.executable,
+            '-c',
+            CRASHING_WRITER,
+            str(bag_dir),
+            'flush' if explicit_flush else 'auto',
+            str(ready),
+        ],
+        env=env,
+    )
     try:
-        wait_for(lambda: ready.exists() or process.poll() is not None, 30,
-                 what='the writer to write its messages')
+        wait_for(
+            lambda: ready.exists() or process.poll() is not None,
+            30,
+            what='the writer to write its messages',
+        )
         assert ready.exists(), f'the writer exited with {process.returncode}'
     finally:
         process.send_signal(signal.SIGKILL)
@@ -334,7 +407,8 @@ def test_killed_writer_keeps_flushed_chunks(tmp_path, explicit_flush):
         log_times = []
         try:
             for _, channel, message in NonSeekingReader(stream).iter_messages(
-                    log_time_order=False):
+                log_time_order=False
+            ):
                 assert channel.topic == '/joint_states' and len(message.data) == 1000
                 log_times.append(message.log_time)
         except (McapError, struct.error):
@@ -347,6 +421,7 @@ def test_killed_writer_keeps_flushed_chunks(tmp_path, explicit_flush):
         assert 500 - 17 <= len(log_times) < 500
     recovered = BagReader(bag_dir)  # rebuilds topics from the channels when killed
     assert recovered.recovered
-    assert [(t.name, t.type, t.message_count) for t in recovered.topics] == \
-        [('/joint_states', 'sensor_msgs/msg/JointState', len(log_times))]
+    assert [(t.name, t.type, t.message_count) for t in recovered.topics] == [
+        ('/joint_states', 'sensor_msgs/msg/JointState', len(log_times))
+    ]
     assert [m.log_time for m in recovered.messages()] == log_times

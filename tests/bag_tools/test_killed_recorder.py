@@ -4,6 +4,7 @@ every reader opens it (rosbags' AnyReader, mcap's indexed reader with mcap_ros2 
 BagReader) with the same messages. A recorder killed before anything was flushed leaves
 a valid, empty bag. Nothing the talker published after the recorder matched is lost at
 the start of the recording."""
+
 import signal
 import subprocess
 
@@ -25,10 +26,22 @@ N_BEFORE_KILL = 200  # 2 s of messages
 
 
 def start_recorder(spawn, tmp_path, name, *extra):
-    return spawn([executable('bag_tools', 'recorder'), '--ros-args',
-                  '-p', f'output_dir:={tmp_path}', '-p', f'bag_name:={name}',
-                  '-p', f'topics:=[{TOPIC}]', '-p', f'flush_period:={FLUSH_PERIOD}', *extra],
-                 name=f'recorder-{name}')
+    return spawn(
+        [
+            executable('bag_tools', 'recorder'),
+            '--ros-args',
+            '-p',
+            f'output_dir:={tmp_path}',
+            '-p',
+            f'bag_name:={name}',
+            '-p',
+            f'topics:=[{TOPIC}]',
+            '-p',
+            f'flush_period:={FLUSH_PERIOD}',
+            *extra,
+        ],
+        name=f'recorder-{name}',
+    )
 
 
 def sequence_numbers(messages):
@@ -43,16 +56,18 @@ def stream_all(path):
 
 
 def streamed_numbers(bag):
-    return sequence_numbers([data for path in sorted(bag.glob(f'{bag.name}_*.mcap'))
-                             for data in stream_all(path)])
+    return sequence_numbers(
+        [data for path in sorted(bag.glob(f'{bag.name}_*.mcap')) for data in stream_all(path)]
+    )
 
 
 def test_a_killed_recorder_leaves_a_bag_every_reader_opens(spawn, rclpy_node, tmp_path):
     node = rclpy_node
     publisher = node.create_publisher(JointState, TOPIC, DEFAULT_QOS)
     recorder = start_recorder(spawn, tmp_path, 'killed', '-p', 'compression:=zstd')
-    node.spin_until(lambda: publisher.get_subscription_count() > 0, 30,
-                    'the recorder to subscribe')
+    node.spin_until(
+        lambda: publisher.get_subscription_count() > 0, 30, 'the recorder to subscribe'
+    )
     sent = []
 
     def publish_next():
@@ -68,8 +83,11 @@ def test_a_killed_recorder_leaves_a_bag_every_reader_opens(spawn, rclpy_node, tm
     bag = tmp_path / 'killed'
     # Within a flush period or two the recorder has flushed all it received; a streaming
     # reader reads it while the recorder still runs.
-    wait_for(lambda: len(streamed_numbers(bag)) == N_BEFORE_KILL, 10 + 4 * FLUSH_PERIOD,
-             'every message flushed')
+    wait_for(
+        lambda: len(streamed_numbers(bag)) == N_BEFORE_KILL,
+        10 + 4 * FLUSH_PERIOD,
+        'every message flushed',
+    )
     recorder.stop(signal.SIGKILL)
     assert not (bag / METADATA_FILENAME).exists()
 
@@ -77,8 +95,9 @@ def test_a_killed_recorder_leaves_a_bag_every_reader_opens(spawn, rclpy_node, tm
     streamed = streamed_numbers(bag)
     assert streamed == list(range(1, N_BEFORE_KILL + 1))  # nothing lost at the start
 
-    result = subprocess.run([executable('bag_tools', 'reindex'), str(bag)],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [executable('bag_tools', 'reindex'), str(bag)], capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0, result.stderr
     assert f'{len(streamed)} messages' in result.stdout
 
@@ -91,9 +110,11 @@ def test_a_killed_recorder_leaves_a_bag_every_reader_opens(spawn, rclpy_node, tm
     assert decoded == streamed
     with AnyReader([bag]) as reader:
         assert reader.message_count == len(streamed)
-        connection, = [c for c in reader.connections if c.topic == TOPIC]
-        stamps = [reader.deserialize(raw, connection.msgtype).header.stamp.sec
-                  for _, _, raw in reader.messages(connections=[connection])]
+        (connection,) = [c for c in reader.connections if c.topic == TOPIC]
+        stamps = [
+            reader.deserialize(raw, connection.msgtype).header.stamp.sec
+            for _, _, raw in reader.messages(connections=[connection])
+        ]
     assert stamps == streamed
     reindexed = BagReader(bag)
     assert not reindexed.recovered and reindexed.topic(TOPIC).message_count == len(streamed)
@@ -107,15 +128,20 @@ def test_a_recorder_killed_at_once_leaves_a_valid_empty_bag(spawn, rclpy_node, t
     bag = tmp_path / 'early'
     for path in bag.glob('early_*.mcap'):
         assert stream_all(path) == []
-    result = subprocess.run([executable('bag_tools', 'reindex'), str(bag)],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [executable('bag_tools', 'reindex'), str(bag)], capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0 and '0 messages' in result.stdout, result
     with AnyReader([bag]) as reader:
         assert reader.message_count == 0
 
 
 def test_reindex_refuses_what_is_no_bag(tmp_path):
-    result = subprocess.run([executable('bag_tools', 'reindex'), str(tmp_path)],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [executable('bag_tools', 'reindex'), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 1
     assert result.stderr.count('\n') == 1 and 'is not a bag' in result.stderr

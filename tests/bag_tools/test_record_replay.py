@@ -6,6 +6,7 @@ player replays that bag while a second recorder records: same serialized bytes p
 same inter-message timing. Replaying at rate 2 with a topic filter halves the duration and
 plays only the chosen topic. Unusable inputs fail in one log line with status 2.
 """
+
 import signal
 
 import numpy as np
@@ -40,15 +41,34 @@ TYPICAL_TIMING_ERROR = 0.02
 
 
 def start_recorder(spawn, tmp_path, bag_name, *extra):
-    return spawn([executable('bag_tools', 'recorder'), '--ros-args',
-                  '-p', f'output_dir:={tmp_path}', '-p', f'bag_name:={bag_name}', *extra],
-                 name=f'recorder-{bag_name}')
+    return spawn(
+        [
+            executable('bag_tools', 'recorder'),
+            '--ros-args',
+            '-p',
+            f'output_dir:={tmp_path}',
+            '-p',
+            f'bag_name:={bag_name}',
+            *extra,
+        ],
+        name=f'recorder-{bag_name}',
+    )
 
 
 def play(spawn, bag_dir, *extra):
     """Run the player to completion; returns its exit status."""
-    player = spawn([executable('bag_tools', 'player'), '--ros-args', '-p', f'bag:={bag_dir}',
-                    '-p', 'wait_for_subscribers:=30.0', *extra], name='player')
+    player = spawn(
+        [
+            executable('bag_tools', 'player'),
+            '--ros-args',
+            '-p',
+            f'bag:={bag_dir}',
+            '-p',
+            'wait_for_subscribers:=30.0',
+            *extra,
+        ],
+        name='player',
+    )
     wait_for(lambda: not player.alive(), 60, what='the player to finish')
     return player.proc.returncode
 
@@ -69,10 +89,12 @@ def check_timing(replayed, original, rate=1.0):
     t_replayed = np.array([m.log_time - replayed[0].log_time for m in replayed]) * 1e-9
     i, j = np.triu_indices(len(t_original), k=1)
     apart = t_original[j] - t_original[i] > 0.2  # [s]
-    slowness = np.median((t_replayed[j] - t_replayed[i])[apart] /
-                         (t_original[j] - t_original[i])[apart])
-    assert abs(slowness * rate - 1.0) < SPEED_TOLERANCE, \
+    slowness = np.median(
+        (t_replayed[j] - t_replayed[i])[apart] / (t_original[j] - t_original[i])[apart]
+    )
+    assert abs(slowness * rate - 1.0) < SPEED_TOLERANCE, (
         f'replayed at speed {1 / slowness:.3f}, wanted {rate}'
+    )
     offsets = t_replayed - t_original / rate
     errors = np.abs(offsets - np.median(offsets))  # [s]
     assert np.median(errors) < TYPICAL_TIMING_ERROR, errors
@@ -82,17 +104,26 @@ def test_qos_adaptation():
     latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     best_effort = QoSProfile(depth=5, reliability=ReliabilityPolicy.BEST_EFFORT)
     qos = subscription_qos([latched, latched])
-    assert (qos.durability, qos.reliability) == \
-        (DurabilityPolicy.TRANSIENT_LOCAL, ReliabilityPolicy.RELIABLE)
+    assert (qos.durability, qos.reliability) == (
+        DurabilityPolicy.TRANSIENT_LOCAL,
+        ReliabilityPolicy.RELIABLE,
+    )
     qos = subscription_qos([latched, best_effort])  # must match both publishers
-    assert (qos.durability, qos.reliability) == \
-        (DurabilityPolicy.VOLATILE, ReliabilityPolicy.BEST_EFFORT)
+    assert (qos.durability, qos.reliability) == (
+        DurabilityPolicy.VOLATILE,
+        ReliabilityPolicy.BEST_EFFORT,
+    )
     assert qos.depth == SUBSCRIPTION_DEPTH
     stored = qos_to_dict(LATCHED_QOS)
-    assert {k: stored[k] for k in ('history', 'depth', 'reliability', 'durability',
-                                   'liveliness')} == {
-        'history': 'keep_last', 'depth': 1, 'reliability': 'reliable',
-        'durability': 'transient_local', 'liveliness': 'system_default'}
+    assert {
+        k: stored[k] for k in ('history', 'depth', 'reliability', 'durability', 'liveliness')
+    } == {
+        'history': 'keep_last',
+        'depth': 1,
+        'reliability': 'reliable',
+        'durability': 'transient_local',
+        'liveliness': 'system_default',
+    }
     assert stored['deadline'] == {'sec': 0, 'nsec': 0}  # "default", as rmw reports it
     # What the graph reports for a publisher: infinite durations, written as rosbag2 does.
     stored = qos_to_dict(QoSProfile(depth=1, deadline=Infinite, lifespan=Duration(seconds=2.5)))
@@ -113,8 +144,11 @@ def test_record_replay_roundtrip(spawn, rclpy_node, tmp_path):
 
     recorder = start_recorder(spawn, tmp_path, 'first')
     publishers = (pose_pub, joint_pub, image_pub)
-    node.spin_until(lambda: all(p.get_subscription_count() for p in publishers), 30,
-                    'the recorder to subscribe to the test topics')
+    node.spin_until(
+        lambda: all(p.get_subscription_count() for p in publishers),
+        30,
+        'the recorder to subscribe to the test topics',
+    )
 
     sent = {JOINTS: [], IMAGE: []}
 
@@ -123,14 +157,21 @@ def test_record_replay_roundtrip(spawn, rclpy_node, tmp_path):
         if i >= N_JOINT_STATES:
             return
         now = node.get_clock().now().to_msg()
-        joints = JointState(name=[f'pa10_joint{j}' for j in range(1, 8)],
-                            position=[0.01 * i * j for j in range(1, 8)])
+        joints = JointState(
+            name=[f'pa10_joint{j}' for j in range(1, 8)],
+            position=[0.01 * i * j for j in range(1, 8)],
+        )
         joints.header.stamp = now
         joint_pub.publish(joints)
         sent[JOINTS].append(joints)
         if i % 3 == 0:
-            image = Image(height=48, width=64, encoding='mono8', step=64,
-                          data=rng.integers(0, 256, 48 * 64, dtype=np.uint8).tobytes())
+            image = Image(
+                height=48,
+                width=64,
+                encoding='mono8',
+                step=64,
+                data=rng.integers(0, 256, 48 * 64, dtype=np.uint8).tobytes(),
+            )
             image.header.stamp = now
             image_pub.publish(image)
             sent[IMAGE].append(image)
@@ -148,16 +189,24 @@ def test_record_replay_roundtrip(spawn, rclpy_node, tmp_path):
 
     first = tmp_path / 'first'
     original = messages_by_topic(first)
-    assert {t: len(original.get(t, [])) for t in TEST_TOPICS} == \
-        {POSE: 1, JOINTS: N_JOINT_STATES, IMAGE: N_JOINT_STATES // 3}
+    assert {t: len(original.get(t, [])) for t in TEST_TOPICS} == {
+        POSE: 1,
+        JOINTS: N_JOINT_STATES,
+        IMAGE: N_JOINT_STATES // 3,
+    }
     assert '/rosout' in original  # everything published is recorded, as `ros2 bag record -a`
     with AnyReader([first]) as reader:
-        decoded = [reader.deserialize(raw, c.msgtype)
-                   for c, _, raw in reader.messages() if c.topic in (JOINTS, IMAGE)]
-    assert [list(m.position) for m in decoded if hasattr(m, 'position')] == \
-        [list(m.position) for m in sent[JOINTS]]
-    assert [m.data.tobytes() for m in decoded if hasattr(m, 'encoding')] == \
-        [bytes(m.data) for m in sent[IMAGE]]
+        decoded = [
+            reader.deserialize(raw, c.msgtype)
+            for c, _, raw in reader.messages()
+            if c.topic in (JOINTS, IMAGE)
+        ]
+    assert [list(m.position) for m in decoded if hasattr(m, 'position')] == [
+        list(m.position) for m in sent[JOINTS]
+    ]
+    assert [m.data.tobytes() for m in decoded if hasattr(m, 'encoding')] == [
+        bytes(m.data) for m in sent[IMAGE]
+    ]
     # publish time = header stamp; log time = receive time, after it.
     stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in sent[JOINTS]]
     assert [m.publish_time for m in original[JOINTS]] == stamps
@@ -167,8 +216,9 @@ def test_record_replay_roundtrip(spawn, rclpy_node, tmp_path):
     assert [q['durability'] for q in recorded_qos] == ['transient_local']
 
     # Replay onto the same topics; a second recorder (stopped with SIGTERM) records it.
-    recorder = start_recorder(spawn, tmp_path, 'second',
-                              '-p', f'topics:=[{",".join(TEST_TOPICS)}]')
+    recorder = start_recorder(
+        spawn, tmp_path, 'second', '-p', f'topics:=[{",".join(TEST_TOPICS)}]'
+    )
     assert play(spawn, first) == 0
     assert recorder.stop(signal.SIGTERM) == 0
     replayed = messages_by_topic(tmp_path / 'second')
@@ -179,8 +229,7 @@ def test_record_replay_roundtrip(spawn, rclpy_node, tmp_path):
     check_timing(replayed[IMAGE], original[IMAGE])
 
     # Twice as fast, joint states only.
-    recorder = start_recorder(spawn, tmp_path, 'third',
-                              '-p', f'topics:=[{",".join(TEST_TOPICS)}]')
+    recorder = start_recorder(spawn, tmp_path, 'third', '-p', f'topics:=[{",".join(TEST_TOPICS)}]')
     assert play(spawn, first, '-p', 'rate:=2', '-p', f'topics:=[{JOINTS}]') == 0
     assert recorder.stop(signal.SIGINT) == 0
     fast = messages_by_topic(tmp_path / 'third')
@@ -192,14 +241,29 @@ def test_record_replay_roundtrip(spawn, rclpy_node, tmp_path):
 def test_unusable_inputs_fail_in_one_line(spawn, tmp_path):
     (tmp_path / 'taken').mkdir()
     runs = {
-        'missing bag': [executable('bag_tools', 'player'), '--ros-args',
-                        '-p', f'bag:={tmp_path / "nope"}'],
-        'not a bag': [executable('bag_tools', 'player'), '--ros-args',
-                      '-p', f'bag:={tmp_path}'],
-        'bad rate': [executable('bag_tools', 'player'), '--ros-args',
-                     '-p', f'bag:={tmp_path}', '-p', 'rate:=-1'],
-        'existing bag': [executable('bag_tools', 'recorder'), '--ros-args',
-                         '-p', f'output_dir:={tmp_path}', '-p', 'bag_name:=taken'],
+        'missing bag': [
+            executable('bag_tools', 'player'),
+            '--ros-args',
+            '-p',
+            f'bag:={tmp_path / "nope"}',
+        ],
+        'not a bag': [executable('bag_tools', 'player'), '--ros-args', '-p', f'bag:={tmp_path}'],
+        'bad rate': [
+            executable('bag_tools', 'player'),
+            '--ros-args',
+            '-p',
+            f'bag:={tmp_path}',
+            '-p',
+            'rate:=-1',
+        ],
+        'existing bag': [
+            executable('bag_tools', 'recorder'),
+            '--ros-args',
+            '-p',
+            f'output_dir:={tmp_path}',
+            '-p',
+            'bag_name:=taken',
+        ],
     }
     processes = {what: spawn(argv, name=what.replace(' ', '_')) for what, argv in runs.items()}
     for what, process in processes.items():
@@ -218,9 +282,14 @@ def test_player_rate_parameter(rclpy_node, tmp_path):
         writer.add_topic(JOINTS, 'sensor_msgs/msg/JointState')
         for i in range(3):
             writer.write(JOINTS, serialize_message(JointState()), 1_000_000_000 * i)
-    player = PlayerNode(context=rclpy_node.context, parameter_overrides=[
-        Parameter('bag', value=str(tmp_path / 'tiny')), Parameter('rate', value=2),
-        Parameter('wait_for_subscribers', value=0)])
+    player = PlayerNode(
+        context=rclpy_node.context,
+        parameter_overrides=[
+            Parameter('bag', value=str(tmp_path / 'tiny')),
+            Parameter('rate', value=2),
+            Parameter('wait_for_subscribers', value=0),
+        ],
+    )
     try:
         assert player.get_parameter('rate').value == 2
         refused = player.set_parameters([Parameter('rate', value=0.0)])[0]

@@ -12,6 +12,7 @@
 - ``Chromium``: headless chromium driven over the DevTools protocol (a websockets
   client): navigate, evaluate JavaScript, take screenshots.
 """
+
 import asyncio
 import base64
 import json
@@ -34,16 +35,29 @@ from websockets.sync.client import connect as ws_sync_connect
 
 STUDIO_VERSION = '1.48.0'
 REACT_VERSION = '17.0.2'
-CACHE_DIR = Path(os.environ.get('XDG_CACHE_HOME', Path.home() / '.cache')) / 'vgm' / \
-    f'foxglove-studio-{STUDIO_VERSION}'
+CACHE_DIR = (
+    Path(os.environ.get('XDG_CACHE_HOME', Path.home() / '.cache'))
+    / 'vgm'
+    / f'foxglove-studio-{STUDIO_VERSION}'
+)
 HOST_DIR = Path(__file__).resolve().parent / 'host'
 CHROMIUM = '/usr/bin/chromium'
 # As known to work on this machine kind: no background connections out (the network is
 # closed), a fresh profile; software WebGL for the 3D panel.
-CHROMIUM_FLAGS = ['--headless', '--no-sandbox', '--disable-gpu', '--disable-quic',
-                  '--no-first-run', '--disable-background-networking',
-                  '--disable-component-update', '--disable-sync', '--use-angle=swiftshader',
-                  '--enable-unsafe-swiftshader', '--hide-scrollbars', '--mute-audio']
+CHROMIUM_FLAGS = [
+    '--headless',
+    '--no-sandbox',
+    '--disable-gpu',
+    '--disable-quic',
+    '--no-first-run',
+    '--disable-background-networking',
+    '--disable-component-update',
+    '--disable-sync',
+    '--use-angle=swiftshader',
+    '--enable-unsafe-swiftshader',
+    '--hide-scrollbars',
+    '--mute-audio',
+]
 OLD_SUBPROTOCOL = 'foxglove.websocket.v1'
 SDK_SUBPROTOCOL = 'foxglove.sdk.v1'
 
@@ -68,8 +82,9 @@ def ensure_chromium():
     if Path(CHROMIUM).exists():
         return CHROMIUM
     if shutil.which('apt-get') is None:
-        raise BrowserSetupError('chromium is not installed and there is no apt-get: '
-                                'install Debian\'s chromium package')
+        raise BrowserSetupError(
+            "chromium is not installed and there is no apt-get: install Debian's chromium package"
+        )
     env_note = 'apt-get install -y chromium (as root)'
     try:
         _run(['apt-get', 'install', '-y', '--no-install-recommends', 'chromium'], env_note, 900)
@@ -85,20 +100,35 @@ def ensure_studio(cache_dir=CACHE_DIR):
     """``node_modules`` holding the Foxglove app bundle and React's UMD builds, installed
     with npm into ``cache_dir`` once."""
     modules = cache_dir / 'node_modules'
-    wanted = [modules / '@foxglove' / 'studio-base' / 'assets' / 'index.js',
-              modules / 'react' / 'umd' / 'react.production.min.js',
-              modules / 'react-dom' / 'umd' / 'react-dom.production.min.js']
+    wanted = [
+        modules / '@foxglove' / 'studio-base' / 'assets' / 'index.js',
+        modules / 'react' / 'umd' / 'react.production.min.js',
+        modules / 'react-dom' / 'umd' / 'react-dom.production.min.js',
+    ]
     if all(path.exists() for path in wanted):
         return modules
     if shutil.which('npm') is None:
-        raise BrowserSetupError('npm is not installed: it is needed to fetch '
-                                f'@foxglove/studio-base@{STUDIO_VERSION}')
+        raise BrowserSetupError(
+            f'npm is not installed: it is needed to fetch @foxglove/studio-base@{STUDIO_VERSION}'
+        )
     cache_dir.mkdir(parents=True, exist_ok=True)
     (cache_dir / 'package.json').write_text('{"private": true}\n')  # npm stays in here
-    _run(['npm', 'install', '--prefix', str(cache_dir), '--no-audit', '--no-fund',
-          '--loglevel=error', f'@foxglove/studio-base@{STUDIO_VERSION}',
-          f'react@{REACT_VERSION}', f'react-dom@{REACT_VERSION}'],
-         f'npm install @foxglove/studio-base@{STUDIO_VERSION} into {cache_dir}', 900)
+    _run(
+        [
+            'npm',
+            'install',
+            '--prefix',
+            str(cache_dir),
+            '--no-audit',
+            '--no-fund',
+            '--loglevel=error',
+            f'@foxglove/studio-base@{STUDIO_VERSION}',
+            f'react@{REACT_VERSION}',
+            f'react-dom@{REACT_VERSION}',
+        ],
+        f'npm install @foxglove/studio-base@{STUDIO_VERSION} into {cache_dir}',
+        900,
+    )
     missing = [str(path) for path in wanted if not path.exists()]
     if missing:
         raise BrowserSetupError(f'npm install left out {missing}')
@@ -107,10 +137,19 @@ def ensure_studio(cache_dir=CACHE_DIR):
 
 # -- HTTP ------------------------------------------------------------------------------
 
-_TYPES = {'.html': 'text/html', '.js': 'text/javascript', '.json': 'application/json',
-          '.wasm': 'application/wasm', '.png': 'image/png', '.svg': 'image/svg+xml',
-          '.woff2': 'font/woff2', '.woff': 'font/woff', '.ttf': 'font/ttf',
-          '.css': 'text/css', '.mcap': 'application/octet-stream'}
+_TYPES = {
+    '.html': 'text/html',
+    '.js': 'text/javascript',
+    '.json': 'application/json',
+    '.wasm': 'application/wasm',
+    '.png': 'image/png',
+    '.svg': 'image/svg+xml',
+    '.woff2': 'font/woff2',
+    '.woff': 'font/woff',
+    '.ttf': 'font/ttf',
+    '.css': 'text/css',
+    '.mcap': 'application/octet-stream',
+}
 _RANGE = re.compile(r'bytes=(\d*)-(\d*)$')
 
 
@@ -144,13 +183,14 @@ class HostServer:
         for prefix in sorted(self.routes, key=len, reverse=True):
             if path == prefix or path.startswith(prefix.rstrip('/') + '/'):
                 target = self.routes[prefix]
-                rest = path[len(prefix):].lstrip('/')
+                rest = path[len(prefix) :].lstrip('/')
                 candidate = (target / rest) if rest else target
                 if target.is_dir() and not rest:
                     candidate = target / 'index.html'
                 candidate = candidate.resolve()
-                if candidate.is_file() and (candidate == target.resolve()
-                                            or target.resolve() in candidate.parents):
+                if candidate.is_file() and (
+                    candidate == target.resolve() or target.resolve() in candidate.parents
+                ):
                     return candidate
         return None
 
@@ -210,6 +250,7 @@ class HostServer:
 
 # -- WebSocket relay ---------------------------------------------------------------------
 
+
 class Relay:
     """ws://127.0.0.1:<port> accepting ``foxglove.websocket.v1``, each client relayed to
     ``upstream_url`` over ``foxglove.sdk.v1``. Runs its own event loop in a thread."""
@@ -233,16 +274,24 @@ class Relay:
 
     async def _main(self):
         self._stop = asyncio.Event()
-        async with ws_serve(self._handle, '127.0.0.1', 0, subprotocols=[OLD_SUBPROTOCOL],
-                            max_size=None, compression=None) as server:
+        async with ws_serve(
+            self._handle,
+            '127.0.0.1',
+            0,
+            subprotocols=[OLD_SUBPROTOCOL],
+            max_size=None,
+            compression=None,
+        ) as server:
             self.port = next(iter(server.sockets)).getsockname()[1]
             self._ready.set()
             await self._stop.wait()
 
     async def _handle(self, client):
         self.connections += 1
-        async with ws_connect(self.upstream_url, subprotocols=[SDK_SUBPROTOCOL],
-                              max_size=None, compression=None) as upstream:
+        async with ws_connect(
+            self.upstream_url, subprotocols=[SDK_SUBPROTOCOL], max_size=None, compression=None
+        ) as upstream:
+
             async def pipe(source, sink, count):
                 try:
                     async for frame in source:
@@ -263,6 +312,7 @@ class Relay:
 
 # -- Chromium over the DevTools protocol -------------------------------------------------
 
+
 class Chromium:
     """Headless chromium with one page, driven over the DevTools protocol."""
 
@@ -271,11 +321,20 @@ class Chromium:
         self._log = open(log_path or self.profile / 'chromium.log', 'wb')
         self.log_path = Path(self._log.name)
         self.proc = subprocess.Popen(
-            [executable, *CHROMIUM_FLAGS, f'--user-data-dir={self.profile}',
-             '--remote-debugging-port=0', '--remote-allow-origins=*',
-             f'--window-size={width},{height}', 'about:blank'],
-            stdout=self._log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True)
+            [
+                executable,
+                *CHROMIUM_FLAGS,
+                f'--user-data-dir={self.profile}',
+                '--remote-debugging-port=0',
+                '--remote-allow-origins=*',
+                f'--window-size={width},{height}',
+                'about:blank',
+            ],
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         port_file = self.profile / 'DevToolsActivePort'
         deadline = time.monotonic() + 60
         while not (port_file.exists() and port_file.read_text().strip()):
@@ -286,14 +345,20 @@ class Chromium:
         port = int(port_file.read_text().split()[0])
         with urllib.request.urlopen(f'http://127.0.0.1:{port}/json/list', timeout=10) as answer:
             pages = [t for t in json.load(answer) if t['type'] == 'page']
-        self._ws = ws_sync_connect(pages[0]['webSocketDebuggerUrl'], max_size=None,
-                                   open_timeout=10).__enter__()
+        self._ws = ws_sync_connect(
+            pages[0]['webSocketDebuggerUrl'], max_size=None, open_timeout=10
+        ).__enter__()
         self._id = 0
         self.console = []  # console messages and exceptions of the page
         self.call('Runtime.enable')
         self.call('Page.enable')
-        self.call('Emulation.setDeviceMetricsOverride', width=width, height=height,
-                  deviceScaleFactor=1, mobile=False)
+        self.call(
+            'Emulation.setDeviceMetricsOverride',
+            width=width,
+            height=height,
+            deviceScaleFactor=1,
+            mobile=False,
+        )
 
     def _tail(self):
         self._log.flush()
@@ -312,19 +377,23 @@ class Chromium:
                 return message.get('result', {})
             if message.get('method') == 'Runtime.consoleAPICalled':
                 args = message['params'].get('args', [])
-                self.console.append(' '.join(str(a.get('value', a.get('description', '')))
-                                             for a in args))
+                self.console.append(
+                    ' '.join(str(a.get('value', a.get('description', ''))) for a in args)
+                )
             elif message.get('method') == 'Runtime.exceptionThrown':
                 details = message['params']['exceptionDetails']
-                self.console.append('exception: ' + str(
-                    details.get('exception', {}).get('description', details.get('text'))))
+                self.console.append(
+                    'exception: '
+                    + str(details.get('exception', {}).get('description', details.get('text')))
+                )
 
     def navigate(self, url):
         self.call('Page.navigate', url=url)
 
     def evaluate(self, expression):
-        result = self.call('Runtime.evaluate', expression=expression, returnByValue=True,
-                           awaitPromise=True)
+        result = self.call(
+            'Runtime.evaluate', expression=expression, returnByValue=True, awaitPromise=True
+        )
         if 'exceptionDetails' in result:
             raise RuntimeError(f'{expression[:60]}...: {result["exceptionDetails"]}')
         return result['result'].get('value')
@@ -341,8 +410,10 @@ class Chromium:
             if value:
                 return value
             if time.monotonic() > deadline:
-                raise TimeoutError(f'timed out after {timeout:.0f} s waiting for {what}; '
-                                   f'last error: {error}; page console: {self.console[-8:]}')
+                raise TimeoutError(
+                    f'timed out after {timeout:.0f} s waiting for {what}; '
+                    f'last error: {error}; page console: {self.console[-8:]}'
+                )
             time.sleep(0.25)
 
     def screenshot(self, path):

@@ -1,6 +1,7 @@
 """Bad and unusual messages, by type: what a wrong driver, a mistyped command line or a
 corrupted bag sends. Each maker returns fresh messages; ``stamp_ns`` lets a caller give
 one stamp to the images of one capture."""
+
 import math
 
 import numpy as np
@@ -41,10 +42,18 @@ def images(stamp_ns, frame_id, width=320, height=240):
     msg = mono(good)
     msg.width, msg.height, msg.step = 100_000, 100_000, 100_000
     cases.append(('declared 100000x100000, data of 320x240', msg))
-    cases.append(('float depth where grey is expected', numpy_to_image(
-        np.full((height, width), NAN, np.float32), '32FC1', stamp_ns, frame_id)))
-    cases.append(('16-bit image', numpy_to_image(
-        (good.astype(np.uint16) * 257), 'mono16', stamp_ns, frame_id)))
+    cases.append(
+        (
+            'float depth where grey is expected',
+            numpy_to_image(np.full((height, width), NAN, np.float32), '32FC1', stamp_ns, frame_id),
+        )
+    )
+    cases.append(
+        (
+            '16-bit image',
+            numpy_to_image((good.astype(np.uint16) * 257), 'mono16', stamp_ns, frame_id),
+        )
+    )
     cases.append(('4000x3000 image', mono(np.zeros((3000, 4000), np.uint8))))
     cases.append(('1x1 image', mono(np.zeros((1, 1), np.uint8))))
     msg = mono(good)
@@ -55,12 +64,19 @@ def images(stamp_ns, frame_id, width=320, height=240):
 
 def camera_infos(width=320, height=240):
     """(label, CameraInfo) pairs."""
+
     def info(**fields):
         K = [300.0, 0, width / 2, 0, 300.0, height / 2, 0, 0, 1]
-        msg = CameraInfo(header=make_header(1, 'stereo_left_optical_frame'), width=width,
-                         height=height, distortion_model='plumb_bob', d=[0.0] * 5, k=K,
-                         r=[1.0, 0, 0, 0, 1, 0, 0, 0, 1],
-                         p=K[:3] + [0.0] + K[3:6] + [0.0] + K[6:] + [0.0])
+        msg = CameraInfo(
+            header=make_header(1, 'stereo_left_optical_frame'),
+            width=width,
+            height=height,
+            distortion_model='plumb_bob',
+            d=[0.0] * 5,
+            k=K,
+            r=[1.0, 0, 0, 0, 1, 0, 0, 0, 1],
+            p=K[:3] + [0.0] + K[3:6] + [0.0] + K[6:] + [0.0],
+        )
         for key, value in fields.items():
             setattr(msg, key, value)
         return msg
@@ -81,15 +97,16 @@ def camera_infos(width=320, height=240):
 
 def _pose(x, y, z, q=(0.0, 0.0, 0.0, 1.0)):
     from geometry_msgs.msg import Pose
+
     pose = Pose()
     pose.position.x, pose.position.y, pose.position.z = x, y, z
-    (pose.orientation.x, pose.orientation.y, pose.orientation.z,
-     pose.orientation.w) = q
+    (pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w) = q
     return pose
 
 
 def poses(stamp_ns=1):
     """(label, PoseStamped) pairs."""
+
     def stamped(pose, frame='base_link'):
         return PoseStamped(header=make_header(stamp_ns, frame), pose=pose)
 
@@ -108,10 +125,14 @@ _DOWN = (1.0, 0.0, 0.0, 0.0)
 
 def paths(stamp_ns=1):
     """(label, Path) pairs: waypoints no arm can or should follow."""
+
     def path(points, q=_DOWN, frame='base_link'):
-        return Path(header=make_header(stamp_ns, frame),
-                    poses=[PoseStamped(header=make_header(stamp_ns, frame), pose=_pose(*p, q))
-                           for p in points])
+        return Path(
+            header=make_header(stamp_ns, frame),
+            poses=[
+                PoseStamped(header=make_header(stamp_ns, frame), pose=_pose(*p, q)) for p in points
+            ],
+        )
 
     line = [(0.6, -0.1 + 0.005 * i, 0.3) for i in range(41)]
     return [
@@ -121,8 +142,10 @@ def paths(stamp_ns=1):
         ('non-unit quaternions', path(line, q=(0.0, 0.0, 0.0, 2.0))),
         ('wrong frame', path(line, frame='map')),
         ('100 m away', path([(100 + x, y, z) for x, y, z in line])),
-        ('approach axis along the path', path(
-            [(0.6, 0.0, 0.30 - 0.001 * i) for i in range(41)], q=(0.0, 0.0, 0.0, 1.0))),
+        (
+            'approach axis along the path',
+            path([(0.6, 0.0, 0.30 - 0.001 * i) for i in range(41)], q=(0.0, 0.0, 0.0, 1.0)),
+        ),
         ('one point repeated', path([(0.6, 0.0, 0.3)] * 41)),
     ]
 
@@ -132,9 +155,12 @@ def joint_states(names, stamp_ns=1):
     n = len(names)
 
     def state(names_, positions, velocities=None):
-        return JointState(header=make_header(stamp_ns, ''), name=list(names_),
-                          position=[float(v) for v in positions],
-                          velocity=[float(v) for v in (velocities or [])])
+        return JointState(
+            header=make_header(stamp_ns, ''),
+            name=list(names_),
+            position=[float(v) for v in positions],
+            velocity=[float(v) for v in (velocities or [])],
+        )
 
     return [
         ('unknown joint names', state([f'other{i}' for i in range(n)], [0] * n)),
@@ -148,6 +174,7 @@ def joint_states(names, stamp_ns=1):
 
 def wrenches(frame='tool0', stamp_ns=1):
     """(label, WrenchStamped) pairs."""
+
     def wrench(fz, frame_=frame):
         msg = WrenchStamped(header=make_header(stamp_ns, frame_))
         msg.wrench.force.z = fz
@@ -168,23 +195,21 @@ def joint_trajectories(names, stamp_ns=0):
     def trajectory(names_, *points):
         msg = JointTrajectory(header=make_header(stamp_ns, ''), joint_names=list(names_))
         for t, positions, velocities in points:
-            point = JointTrajectoryPoint(positions=[float(v) for v in positions],
-                                         velocities=[float(v) for v in velocities])
-            point.time_from_start.sec, point.time_from_start.nanosec = \
-                int(t), int((t % 1) * 1e9)
+            point = JointTrajectoryPoint(
+                positions=[float(v) for v in positions], velocities=[float(v) for v in velocities]
+            )
+            point.time_from_start.sec, point.time_from_start.nanosec = int(t), int((t % 1) * 1e9)
             msg.points.append(point)
         return msg
 
     return [
         ('no points', trajectory(names)),
-        ('unknown joint names', trajectory([f'other{i}' for i in range(n)],
-                                           (0.1, [0] * n, []))),
+        ('unknown joint names', trajectory([f'other{i}' for i in range(n)], (0.1, [0] * n, []))),
         ('NaN position', trajectory(names, (0.1, [NAN] * n, []))),
         ('velocity of 1e300', trajectory(names, (0.1, [0] * n, [1e300] * n))),
         ('positions of the wrong length', trajectory(names, (0.1, [0] * (n + 1), []))),
         ('times going backwards', trajectory(names, (0.5, [0] * n, []), (0.2, [0] * n, []))),
-        ('duplicate joint names', trajectory(list(names[:-1]) + [names[0]],
-                                             (0.1, [0] * n, []))),
+        ('duplicate joint names', trajectory(list(names[:-1]) + [names[0]], (0.1, [0] * n, []))),
         ('no joint names', trajectory([], (0.1, [0] * n, []))),
         ('NaN velocity', trajectory(names, (0.1, [0] * n, [NAN] * n))),
     ]
@@ -200,8 +225,10 @@ def unusual_joint_trajectories(names):
     many = JointTrajectory(joint_names=list(names))
     for i in range(10_000):
         point = JointTrajectoryPoint(positions=[0.0] * n)
-        point.time_from_start.sec, point.time_from_start.nanosec = divmod((i + 1) * 10**6,
-                                                                          10**9)
+        point.time_from_start.sec, point.time_from_start.nanosec = divmod((i + 1) * 10**6, 10**9)
         many.points.append(point)
-    return [('positions of 1e300 (beyond the limits)', far),
-            ('a stamp far in the future', future), ('10000 points', many)]
+    return [
+        ('positions of 1e300 (beyond the limits)', far),
+        ('a stamp far in the future', future),
+        ('10000 points', many),
+    ]

@@ -4,6 +4,7 @@ Each case sends something bad (a message, a parameter change, a service call out
 order) and then checks the node: the process is alive, it answers ``get_parameters``
 within ``ANSWER_TIMEOUT``, and, for input that must be refused, it said so: a
 ``rejected ...`` diagnostic whose count grew, or a new WARN/ERROR line in its log."""
+
 import re
 import time
 from dataclasses import dataclass, field
@@ -22,12 +23,16 @@ REJECTION_TIMEOUT = 15.0  # [s] for the node to report a refused input
 # Declared by rclpy itself (get_parameters answers nothing for the second).
 _RCLPY_PARAMETERS = ('use_sim_time', 'start_type_description_service')
 _LOG_PROBLEM = re.compile(r'\[(WARN|ERROR)\]')
-_TYPE_NAMES = {ParameterType.PARAMETER_BOOL: 'bool', ParameterType.PARAMETER_INTEGER: 'int',
-               ParameterType.PARAMETER_DOUBLE: 'float', ParameterType.PARAMETER_STRING: 'str',
-               ParameterType.PARAMETER_DOUBLE_ARRAY: 'float[]',
-               ParameterType.PARAMETER_INTEGER_ARRAY: 'int[]',
-               ParameterType.PARAMETER_STRING_ARRAY: 'str[]',
-               ParameterType.PARAMETER_BOOL_ARRAY: 'bool[]'}
+_TYPE_NAMES = {
+    ParameterType.PARAMETER_BOOL: 'bool',
+    ParameterType.PARAMETER_INTEGER: 'int',
+    ParameterType.PARAMETER_DOUBLE: 'float',
+    ParameterType.PARAMETER_STRING: 'str',
+    ParameterType.PARAMETER_DOUBLE_ARRAY: 'float[]',
+    ParameterType.PARAMETER_INTEGER_ARRAY: 'int[]',
+    ParameterType.PARAMETER_STRING_ARRAY: 'str[]',
+    ParameterType.PARAMETER_BOOL_ARRAY: 'bool[]',
+}
 
 
 @dataclass
@@ -54,8 +59,9 @@ class Fuzzer:
         self._clients = {}
         self._rejected = {}  # diagnostic status name -> highest count seen
         self._problems = 0  # WARN/ERROR diagnostics of this node seen
-        probe.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
-                                  DEFAULT_QOS)
+        probe.create_subscription(
+            DiagnosticArray, '/diagnostics', self._on_diagnostics, DEFAULT_QOS
+        )
 
     # -- observing the node ---------------------------------------------------------
 
@@ -82,25 +88,32 @@ class Fuzzer:
 
     def wait_until_serving(self, timeout=60.0):
         client = self._client(GetParameters, f'/{self.node_name}/get_parameters')
-        self.probe.spin_until(lambda: client.service_is_ready() or not self.process.alive(),
-                              timeout, f'{self.node_name} to serve its parameters')
+        self.probe.spin_until(
+            lambda: client.service_is_ready() or not self.process.alive(),
+            timeout,
+            f'{self.node_name} to serve its parameters',
+        )
         self.check_serving('start-up')
 
     def check_serving(self, case):
         """Alive and answering get_parameters, else AssertionError naming ``case``."""
-        assert self.process.alive(), \
+        assert self.process.alive(), (
             f'{self.node_name} died after {case!r}:\n{self.process.output()[-3000:]}'
+        )
         request = GetParameters.Request(names=['use_sim_time'])
         try:
-            self.call(GetParameters, f'/{self.node_name}/get_parameters', request,
-                      ANSWER_TIMEOUT)
+            self.call(GetParameters, f'/{self.node_name}/get_parameters', request, ANSWER_TIMEOUT)
         except TimeoutError:
-            raise AssertionError(f'{self.node_name} stopped answering get_parameters after '
-                                 f'{case!r}') from None
+            raise AssertionError(
+                f'{self.node_name} stopped answering get_parameters after {case!r}'
+            ) from None
 
     def rss_bytes(self):
-        return sum(p.memory_info().rss for p in [psutil.Process(self.process.proc.pid)]
-                   + psutil.Process(self.process.proc.pid).children(recursive=True))
+        return sum(
+            p.memory_info().rss
+            for p in [psutil.Process(self.process.proc.pid)]
+            + psutil.Process(self.process.proc.pid).children(recursive=True)
+        )
 
     # -- acting ---------------------------------------------------------------------
 
@@ -108,8 +121,11 @@ class Fuzzer:
         key = (topic, msg_type, qos.durability)
         if key not in self._publishers:
             publisher = self.probe.create_publisher(msg_type, topic, qos)
-            self.probe.spin_until(lambda: publisher.get_subscription_count() > 0, 30,
-                                  f'{self.node_name} to subscribe to {topic}')
+            self.probe.spin_until(
+                lambda: publisher.get_subscription_count() > 0,
+                30,
+                f'{self.node_name} to subscribe to {topic}',
+            )
             self._publishers[key] = publisher
         return self._publishers[key]
 
@@ -121,13 +137,18 @@ class Fuzzer:
     def call(self, srv_type, name, request, timeout):
         """The answer of service ``name``; AssertionError if the node died meanwhile."""
         client = self._client(srv_type, name)
-        self.probe.spin_until(lambda: client.service_is_ready() or not self.process.alive(),
-                              timeout, f'service {name}')
+        self.probe.spin_until(
+            lambda: client.service_is_ready() or not self.process.alive(),
+            timeout,
+            f'service {name}',
+        )
         future = client.call_async(request)
-        self.probe.spin_until(lambda: future.done() or not self.process.alive(), timeout,
-                              f'an answer from {name}')
-        assert self.process.alive(), \
+        self.probe.spin_until(
+            lambda: future.done() or not self.process.alive(), timeout, f'an answer from {name}'
+        )
+        assert self.process.alive(), (
             f'{self.node_name} died serving {name}:\n{self.process.output()[-3000:]}'
+        )
         return future.result()
 
     def reject(self, case, send):
@@ -136,12 +157,15 @@ class Fuzzer:
         before = self._snapshot()
         send()
         try:
-            self.probe.spin_until(lambda: self._said_something(before) or
-                                  not self.process.alive(), REJECTION_TIMEOUT,
-                                  f'{self.node_name} to report {case!r}')
+            self.probe.spin_until(
+                lambda: self._said_something(before) or not self.process.alive(),
+                REJECTION_TIMEOUT,
+                f'{self.node_name} to report {case!r}',
+            )
         except TimeoutError:
-            raise AssertionError(f'{self.node_name} accepted {case!r} silently (no rejected '
-                                 'diagnostic, no warning)') from None
+            raise AssertionError(
+                f'{self.node_name} accepted {case!r} silently (no rejected diagnostic, no warning)'
+            ) from None
         self.check_serving(case)
 
     def survive(self, case, send):
@@ -154,23 +178,36 @@ class Fuzzer:
 
     def parameters(self):
         """The node's declared parameters with descriptors and values."""
-        names = self.call(ListParameters, f'/{self.node_name}/list_parameters',
-                          ListParameters.Request(), ANSWER_TIMEOUT).result.names
-        names = [n for n in names if n not in _RCLPY_PARAMETERS
-                 and not n.startswith('qos_overrides')]
-        descriptors = self.call(DescribeParameters, f'/{self.node_name}/describe_parameters',
-                                DescribeParameters.Request(names=names),
-                                ANSWER_TIMEOUT).descriptors
-        values = self.call(GetParameters, f'/{self.node_name}/get_parameters',
-                           GetParameters.Request(names=names), ANSWER_TIMEOUT).values
+        names = self.call(
+            ListParameters,
+            f'/{self.node_name}/list_parameters',
+            ListParameters.Request(),
+            ANSWER_TIMEOUT,
+        ).result.names
+        names = [
+            n for n in names if n not in _RCLPY_PARAMETERS and not n.startswith('qos_overrides')
+        ]
+        descriptors = self.call(
+            DescribeParameters,
+            f'/{self.node_name}/describe_parameters',
+            DescribeParameters.Request(names=names),
+            ANSWER_TIMEOUT,
+        ).descriptors
+        values = self.call(
+            GetParameters,
+            f'/{self.node_name}/get_parameters',
+            GetParameters.Request(names=names),
+            ANSWER_TIMEOUT,
+        ).values
         assert len(values) == len(names), f'get_parameters answered {len(values)} of {names}'
         declared = []
         for name, descriptor, value in zip(names, descriptors, values):
             kind = _TYPE_NAMES.get(value.type)
             if kind is None:
                 continue
-            parameter = DeclaredParameter(name, kind, _python_value(value),
-                                          descriptor.read_only, descriptor.description)
+            parameter = DeclaredParameter(
+                name, kind, _python_value(value), descriptor.read_only, descriptor.description
+            )
             if descriptor.integer_range:
                 r = descriptor.integer_range[0]
                 parameter.range = (r.from_value, r.to_value)
@@ -185,10 +222,12 @@ class Fuzzer:
 
     def set_parameter(self, name, value):
         """(successful, reason) of setting ``name`` to ``value`` over the service."""
-        request = SetParameters.Request(parameters=[ParameterMsg(
-            name=name, value=_parameter_value(value))])
-        result = self.call(SetParameters, f'/{self.node_name}/set_parameters', request,
-                           ANSWER_TIMEOUT).results[0]
+        request = SetParameters.Request(
+            parameters=[ParameterMsg(name=name, value=_parameter_value(value))]
+        )
+        result = self.call(
+            SetParameters, f'/{self.node_name}/set_parameters', request, ANSWER_TIMEOUT
+        ).results[0]
         return result.successful, result.reason
 
     def refuse_parameter(self, case, name, value):
@@ -203,14 +242,16 @@ class Fuzzer:
 
 
 def _python_value(value):
-    return {ParameterType.PARAMETER_BOOL: value.bool_value,
-            ParameterType.PARAMETER_INTEGER: value.integer_value,
-            ParameterType.PARAMETER_DOUBLE: value.double_value,
-            ParameterType.PARAMETER_STRING: value.string_value,
-            ParameterType.PARAMETER_DOUBLE_ARRAY: list(value.double_array_value),
-            ParameterType.PARAMETER_INTEGER_ARRAY: list(value.integer_array_value),
-            ParameterType.PARAMETER_STRING_ARRAY: list(value.string_array_value),
-            ParameterType.PARAMETER_BOOL_ARRAY: list(value.bool_array_value)}[value.type]
+    return {
+        ParameterType.PARAMETER_BOOL: value.bool_value,
+        ParameterType.PARAMETER_INTEGER: value.integer_value,
+        ParameterType.PARAMETER_DOUBLE: value.double_value,
+        ParameterType.PARAMETER_STRING: value.string_value,
+        ParameterType.PARAMETER_DOUBLE_ARRAY: list(value.double_array_value),
+        ParameterType.PARAMETER_INTEGER_ARRAY: list(value.integer_array_value),
+        ParameterType.PARAMETER_STRING_ARRAY: list(value.string_array_value),
+        ParameterType.PARAMETER_BOOL_ARRAY: list(value.bool_array_value),
+    }[value.type]
 
 
 def _parameter_value(value):
@@ -223,11 +264,11 @@ def _parameter_value(value):
     if isinstance(value, str):
         return ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)
     if isinstance(value, list) and all(isinstance(v, str) for v in value) and value:
-        return ParameterValue(type=ParameterType.PARAMETER_STRING_ARRAY,
-                              string_array_value=value)
+        return ParameterValue(type=ParameterType.PARAMETER_STRING_ARRAY, string_array_value=value)
     if isinstance(value, list):
-        return ParameterValue(type=ParameterType.PARAMETER_DOUBLE_ARRAY,
-                              double_array_value=[float(v) for v in value])
+        return ParameterValue(
+            type=ParameterType.PARAMETER_DOUBLE_ARRAY, double_array_value=[float(v) for v in value]
+        )
     raise TypeError(f'no parameter type for {value!r}')
 
 
@@ -241,23 +282,30 @@ def fuzz_parameters(fuzzer):
         if p.read_only:
             fuzzer.refuse_parameter(f'set read-only {p.name}', p.name, p.value)
             continue
-        wrong = {'bool': 'yes', 'int': 'many', 'float': 'fast', 'str': 3.5,
-                 'float[]': 'a list', 'int[]': 'a list', 'str[]': 1.0, 'bool[]': 2.0}[p.type]
+        wrong = {
+            'bool': 'yes',
+            'int': 'many',
+            'float': 'fast',
+            'str': 3.5,
+            'float[]': 'a list',
+            'int[]': 'a list',
+            'str[]': 1.0,
+            'bool[]': 2.0,
+        }[p.type]
         fuzzer.refuse_parameter(f'{p.name} := {wrong!r}', p.name, wrong)
         if p.type == 'float':
             fuzzer.refuse_parameter(f'{p.name} := nan', p.name, float('nan'))
             fuzzer.refuse_parameter(f'{p.name} := inf', p.name, float('inf'))
         if p.type == 'float[]' and p.value:
-            fuzzer.refuse_parameter(f'{p.name} := [nan, ...]', p.name,
-                                    [float('nan')] * len(p.value))
+            fuzzer.refuse_parameter(
+                f'{p.name} := [nan, ...]', p.name, [float('nan')] * len(p.value)
+            )
         trials = []
         if p.range:
             low, high = p.range
             step = 1 if p.type == 'int' else max(1.0, abs(high - low)) * 1e-3
-            fuzzer.refuse_parameter(f'{p.name} := above its range', p.name,
-                                    _kind(p, high + step))
-            fuzzer.refuse_parameter(f'{p.name} := below its range', p.name,
-                                    _kind(p, low - step))
+            fuzzer.refuse_parameter(f'{p.name} := above its range', p.name, _kind(p, high + step))
+            fuzzer.refuse_parameter(f'{p.name} := below its range', p.name, _kind(p, low - step))
             trials = [_kind(p, low), _kind(p, high)]
         if p.choices:
             fuzzer.refuse_parameter(f'{p.name} := no choice', p.name, 'no-such-choice')

@@ -8,6 +8,7 @@ order and all at once, a flood; after each case the process is alive and answers
 get_parameters, input it must refuse is reported (a `rejected` diagnostic or a warning),
 memory stays bounded, and at the end a good input is still processed. Bad start-up
 arguments end every executable in one error line with a non-zero status."""
+
 import threading
 import time
 
@@ -54,8 +55,12 @@ def small_scene(tmp_path_factory):
     path = small_scenario(directory)
     scenario = load_scenario(path)
     write_calibration(directory / 'calibration', scenario.cameras, OPTICAL_FRAMES)
-    return scenario, path, directory / 'calibration' / 'calibration.yaml', \
-        SceneRenderer(scenario, supersample=2)
+    return (
+        scenario,
+        path,
+        directory / 'calibration' / 'calibration.yaml',
+        SceneRenderer(scenario, supersample=2),
+    )
 
 
 def grey(array, scenario, index):
@@ -86,17 +91,19 @@ class Capture:
             T = np.eye(4) if T_base_chart is None else T_base_chart
             T[2, 3] = T[2, 3] or 0.4
             self.fuzzer.publisher(TARGET_POSE_TOPIC, PoseStamped).publish(
-                matrix_to_pose_stamped(T, stamp_ns, 'base_link'))
+                matrix_to_pose_stamped(T, stamp_ns, 'base_link')
+            )
 
 
-def fuzz_images(fuzzer, capture,
-                survive_labels=('empty frame_id', '1x1 image', '16-bit image')):
+def fuzz_images(fuzzer, capture, survive_labels=('empty frame_id', '1x1 image', '16-bit image')):
     """Each bad image as a whole capture (every camera the same bad image, one stamp)."""
     stamp = capture.next_stamp()
     for label, _ in bad_messages.images(stamp, OPTICAL_FRAMES['left']):
         stamp = capture.next_stamp()
-        by_camera = {camera: dict(bad_messages.images(stamp, OPTICAL_FRAMES[camera]))[label]
-                     for camera in capture.cameras}
+        by_camera = {
+            camera: dict(bad_messages.images(stamp, OPTICAL_FRAMES[camera]))[label]
+            for camera in capture.cameras
+        }
         act = fuzzer.survive if label in survive_labels else fuzzer.reject
         act(f'capture: {label}', lambda b=by_camera, s=stamp: capture.publish(b, s))
 
@@ -105,8 +112,9 @@ def fuzz_camera_infos(fuzzer, cameras):
     for camera in cameras:
         publisher = fuzzer.publisher(CAMERA_INFO_TOPICS[camera], CameraInfo, LATCHED_QOS)
         for label, msg in bad_messages.camera_infos():
-            fuzzer.reject(f'{CAMERA_INFO_TOPICS[camera]}: {label}',
-                          lambda m=msg, p=publisher: p.publish(m))
+            fuzzer.reject(
+                f'{CAMERA_INFO_TOPICS[camera]}: {label}', lambda m=msg, p=publisher: p.publish(m)
+            )
 
 
 def flood_images(fuzzer, capture, size=(480, 640)):
@@ -115,8 +123,10 @@ def flood_images(fuzzer, capture, size=(480, 640)):
     frame = rng.integers(0, 256, size, dtype=np.uint8)
     for _ in range(FLOOD_IMAGES):
         stamp = capture.next_stamp()
-        capture.publish({c: numpy_to_image(frame, 'mono8', stamp, OPTICAL_FRAMES[c])
-                         for c in capture.cameras}, stamp)
+        capture.publish(
+            {c: numpy_to_image(frame, 'mono8', stamp, OPTICAL_FRAMES[c]) for c in capture.cameras},
+            stamp,
+        )
     fuzzer.survive(f'a flood of {FLOOD_IMAGES} captures', lambda: None)
     grown = fuzzer.rss_bytes() - before
     assert grown < FLOOD_MEMORY_BOUND, f'{fuzzer.node_name} grew by {grown / 1e6:.0f} MB'
@@ -144,6 +154,7 @@ def start(spawn, rclpy_node, name, *args, package=None):
 
 # -- the nodes ---------------------------------------------------------------------------
 
+
 def test_sfs_stereo_node(spawn, rclpy_node, small_scene):
     scenario, _, calibration, renderer = small_scene
     fuzzer = start(spawn, rclpy_node, 'sfs_stereo_node', '-p', 'max_rate:=0.0')
@@ -157,12 +168,23 @@ def test_sfs_stereo_node(spawn, rclpy_node, small_scene):
     # A good pair: fused depth of its stamp.
     fused = collect(rclpy_node, Image, '/depth/fused')
     stamp = capture.next_stamp()
-    capture.publish({c: numpy_to_image(grey(renderer.scene_image(c), scenario, i).round()
-                                       .clip(0, 255).astype(np.uint8), 'mono8', stamp,
-                                       OPTICAL_FRAMES[c])
-                     for i, c in enumerate(('left', 'right'))}, stamp)
-    rclpy_node.spin_until(lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in fused),
-                          120, 'fused depth of a good pair after the fuzzing')
+    capture.publish(
+        {
+            c: numpy_to_image(
+                grey(renderer.scene_image(c), scenario, i).round().clip(0, 255).astype(np.uint8),
+                'mono8',
+                stamp,
+                OPTICAL_FRAMES[c],
+            )
+            for i, c in enumerate(('left', 'right'))
+        },
+        stamp,
+    )
+    rclpy_node.spin_until(
+        lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in fused),
+        120,
+        'fused depth of a good pair after the fuzzing',
+    )
     finish(fuzzer)
 
 
@@ -174,8 +196,10 @@ def test_curve_recon_node(spawn, rclpy_node, small_scene):
     # Out of order and all at once: reconstruct with no capture, four calls waiting while
     # parameters are read.
     answers = []
-    callers = [threading.Thread(target=lambda: answers.append(_trigger_in_thread(
-        fuzzer, 'reconstruct'))) for _ in range(4)]
+    callers = [
+        threading.Thread(target=lambda: answers.append(_trigger_in_thread(fuzzer, 'reconstruct')))
+        for _ in range(4)
+    ]
     fuzzer.cases.append('four reconstruct calls waiting, no capture')
     for caller in callers:
         caller.start()
@@ -188,8 +212,12 @@ def test_curve_recon_node(spawn, rclpy_node, small_scene):
     depth = fuzzer.publisher('/depth/fused', Image)
     depth_info.publish(_good_depth_info())  # the depth values themselves are at fault
     for label, value in (('negative depth', -1.0), ('zero depth', 0.0), ('depth 1e30', 1e30)):
-        msg = numpy_to_image(np.full((240, 320), value, np.float32), '32FC1',
-                             capture.next_stamp(), OPTICAL_FRAMES['left'])
+        msg = numpy_to_image(
+            np.full((240, 320), value, np.float32),
+            '32FC1',
+            capture.next_stamp(),
+            OPTICAL_FRAMES['left'],
+        )
         fuzzer.reject(f'/depth/fused: {label}', lambda m=msg: depth.publish(m))
     publishers, _ = publish_rig(rclpy_node, calibration)
     fuzz_parameters(fuzzer)
@@ -200,30 +228,41 @@ def test_curve_recon_node(spawn, rclpy_node, small_scene):
     # Good captures, one a second as a camera streams (automatic reconstruction tries at
     # most once a second): waypoints.
     waypoints = collect(rclpy_node, Path, '/curve/waypoints', LATCHED_QOS)
-    scene = {c: grey(renderer.scene_image(c), scenario, i).round().clip(0, 255)
-             .astype(np.uint8) for i, c in enumerate(('left', 'right', 'aux'))}
+    scene = {
+        c: grey(renderer.scene_image(c), scenario, i).round().clip(0, 255).astype(np.uint8)
+        for i, c in enumerate(('left', 'right', 'aux'))
+    }
     good_stamps = set()
 
     def show_scene():
         stamp = capture.next_stamp()
         good_stamps.add(stamp)
-        capture.publish({c: numpy_to_image(scene[c], 'mono8', stamp, OPTICAL_FRAMES[c])
-                         for c in scene}, stamp)
+        capture.publish(
+            {c: numpy_to_image(scene[c], 'mono8', stamp, OPTICAL_FRAMES[c]) for c in scene}, stamp
+        )
 
     timer = rclpy_node.create_timer(1.0, show_scene)
-    rclpy_node.spin_until(lambda: any(stamp_to_ns(m.header.stamp) in good_stamps
-                                      for m in waypoints), 120,
-                          'waypoints of a good capture after the fuzzing')
+    rclpy_node.spin_until(
+        lambda: any(stamp_to_ns(m.header.stamp) in good_stamps for m in waypoints),
+        120,
+        'waypoints of a good capture after the fuzzing',
+    )
     rclpy_node.destroy_timer(timer)
     finish(fuzzer)
 
 
 def _good_depth_info():
     K = [300.0, 0, 160, 0, 300.0, 120, 0, 0, 1]
-    return CameraInfo(header=make_header(1, OPTICAL_FRAMES['left']), width=320, height=240,
-                      distortion_model='plumb_bob', d=[0.0] * 5, k=K,
-                      r=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], p=K[:3] + [0.0] + K[3:6] + [0.0]
-                      + K[6:] + [0.0])
+    return CameraInfo(
+        header=make_header(1, OPTICAL_FRAMES['left']),
+        width=320,
+        height=240,
+        distortion_model='plumb_bob',
+        d=[0.0] * 5,
+        k=K,
+        r=[1.0, 0, 0, 0, 1, 0, 0, 0, 1],
+        p=K[:3] + [0.0] + K[3:6] + [0.0] + K[6:] + [0.0],
+    )
 
 
 def _trigger_in_thread(fuzzer, service):
@@ -240,8 +279,17 @@ def _trigger_in_thread(fuzzer, service):
 
 def test_calib_node(spawn, rclpy_node, small_scene):
     scenario, _, _, renderer = small_scene
-    fuzzer = start(spawn, rclpy_node, 'calib_node', '-p', 'chart.rows:=6', '-p',
-                   'chart.cols:=9', '-p', f'chart.spacing:={scenario.calibration.spacing}')
+    fuzzer = start(
+        spawn,
+        rclpy_node,
+        'calib_node',
+        '-p',
+        'chart.rows:=6',
+        '-p',
+        'chart.cols:=9',
+        '-p',
+        f'chart.spacing:={scenario.calibration.spacing}',
+    )
     for service in ('calibrate', 'reset', 'reset', 'calibrate'):
         fuzzer.cases.append(f'{service} out of order')
         answer = fuzzer.trigger(service)
@@ -257,21 +305,37 @@ def test_calib_node(spawn, rclpy_node, small_scene):
     # A good chart view is taken.
     views = []
     rclpy_node.create_subscription(
-        DiagnosticArray, '/diagnostics', lambda m: views.extend(
-            int(v.value) for s in m.status if s.name == 'calib_node: views'
-            for v in s.values if v.key == 'views'), DEFAULT_QOS)
+        DiagnosticArray,
+        '/diagnostics',
+        lambda m: views.extend(
+            int(v.value)
+            for s in m.status
+            if s.name == 'calib_node: views'
+            for v in s.values
+            if v.key == 'views'
+        ),
+        DEFAULT_QOS,
+    )
     fuzzer.trigger('reset')
-    chart = {c: grey(renderer.chart_image(c, 0), scenario, i).round().clip(0, 255)
-             .astype(np.uint8) for i, c in enumerate(('left', 'right', 'aux'))}
+    chart = {
+        c: grey(renderer.chart_image(c, 0), scenario, i).round().clip(0, 255).astype(np.uint8)
+        for i, c in enumerate(('left', 'right', 'aux'))
+    }
 
     def show_chart():  # as the stage does: the chart in view capture after capture
         stamp = capture.next_stamp()
-        capture.publish({c: numpy_to_image(chart[c], 'mono8', stamp, OPTICAL_FRAMES[c])
-                         for c in chart}, stamp, scenario.calibration.T_base_chart[0].copy())
+        capture.publish(
+            {c: numpy_to_image(chart[c], 'mono8', stamp, OPTICAL_FRAMES[c]) for c in chart},
+            stamp,
+            scenario.calibration.T_base_chart[0].copy(),
+        )
 
     timer = rclpy_node.create_timer(1.0, show_chart)
-    rclpy_node.spin_until(lambda: views and views[-1] >= 1, 120,
-                          'calib_node to take a good chart view after the fuzzing')
+    rclpy_node.spin_until(
+        lambda: views and views[-1] >= 1,
+        120,
+        'calib_node to take a good chart view after the fuzzing',
+    )
     rclpy_node.destroy_timer(timer)
     finish(fuzzer)
 
@@ -284,8 +348,9 @@ def test_pa10_ik_node(spawn, rclpy_node):
     tool_poses = collect(rclpy_node, PoseStamped, '/tool_pose')
     q_home = [0.0, 0.5, 0.0, 1.2, 0.0, 0.8, 0.0]
     good_state = JointState(name=list(JOINT_NAMES), position=q_home)
-    feed = rclpy_node.create_timer(0.02, lambda: (joints.publish(good_state),
-                                                  pressure.publish(_wrench(0.0))))
+    feed = rclpy_node.create_timer(
+        0.02, lambda: (joints.publish(good_state), pressure.publish(_wrench(0.0)))
+    )
     rclpy_node.spin_until(lambda: tool_poses, 30, 'the tool pose of a good joint state')
     for service in ('stop', 'start_tracking', 'stop', 'stop'):
         fuzzer.cases.append(f'{service} out of order')
@@ -309,8 +374,11 @@ def test_pa10_ik_node(spawn, rclpy_node):
     fuzz_parameters(fuzzer)
     # Still serving a good joint state: its tool pose.
     count = len(tool_poses)
-    rclpy_node.spin_until(lambda: len(tool_poses) > count + 5, 30,
-                          'tool poses of good joint states after the fuzzing')
+    rclpy_node.spin_until(
+        lambda: len(tool_poses) > count + 5,
+        30,
+        'tool poses of good joint states after the fuzzing',
+    )
     rclpy_node.destroy_timer(feed)
     finish(fuzzer)
 
@@ -324,8 +392,17 @@ def _wrench(force):
 
 def test_sensor_sim(spawn, rclpy_node, small_scene):
     _, scenario_path, _, _ = small_scene
-    fuzzer = start(spawn, rclpy_node, 'sensor_sim', '-p', f'scenario:={scenario_path}',
-                   '-p', 'calibration_phase:=false', '-p', 'rate:=1.0')
+    fuzzer = start(
+        spawn,
+        rclpy_node,
+        'sensor_sim',
+        '-p',
+        f'scenario:={scenario_path}',
+        '-p',
+        'calibration_phase:=false',
+        '-p',
+        'rate:=1.0',
+    )
     commands = fuzzer.publisher('/pa10_controller/joint_trajectory', JointTrajectory)
     for label, msg in bad_messages.joint_trajectories(JOINT_NAMES):
         fuzzer.reject(f'joint_trajectory: {label}', lambda m=msg: commands.publish(m))
@@ -339,14 +416,25 @@ def test_sensor_sim(spawn, rclpy_node, small_scene):
     good = bad_messages.joint_trajectories(JOINT_NAMES)[2][1]  # NaN positions, fixed:
     good.points[0].positions = [float(q + 0.05) for q in q0]
     commands.publish(good)
-    rclpy_node.spin_until(lambda: np.abs(np.array(states[-1].position) - q0).max() > 0.04,
-                          30, 'the arm to follow a good command after the fuzzing')
+    rclpy_node.spin_until(
+        lambda: np.abs(np.array(states[-1].position) - q0).max() > 0.04,
+        30,
+        'the arm to follow a good command after the fuzzing',
+    )
     finish(fuzzer)
 
 
 def test_recorder_and_player(spawn, rclpy_node, tmp_path):
-    recorder = start(spawn, rclpy_node, 'recorder', '-p', f'output_dir:={tmp_path}',
-                     '-p', 'bag_name:=fuzz', package='bag_tools')
+    recorder = start(
+        spawn,
+        rclpy_node,
+        'recorder',
+        '-p',
+        f'output_dir:={tmp_path}',
+        '-p',
+        'bag_name:=fuzz',
+        package='bag_tools',
+    )
     # One topic with two types (from two participants: DDS refuses it within one) is
     # refused with a warning; a flood is recorded or counted.
     other = rclpy.Context()
@@ -354,15 +442,19 @@ def test_recorder_and_player(spawn, rclpy_node, tmp_path):
     other_node = rclpy.create_node('other_type', context=other)
     try:
         other_node.create_publisher(String, '/fuzz/two_types', DEFAULT_QOS)
-        recorder.reject('a topic with two types', lambda: rclpy_node.create_publisher(
-            JointState, '/fuzz/two_types', DEFAULT_QOS))
+        recorder.reject(
+            'a topic with two types',
+            lambda: rclpy_node.create_publisher(JointState, '/fuzz/two_types', DEFAULT_QOS),
+        )
     finally:
         other_node.destroy_node()
         rclpy.shutdown(context=other)
     flood = recorder.publisher('/fuzz/flood', JointState)
     before = recorder.rss_bytes()
-    recorder.survive('a flood of 5000 joint states', lambda: [
-        flood.publish(JointState(name=['a'], position=[float(i)])) for i in range(5000)])
+    recorder.survive(
+        'a flood of 5000 joint states',
+        lambda: [flood.publish(JointState(name=['a'], position=[float(i)])) for i in range(5000)],
+    )
     assert recorder.rss_bytes() - before < FLOOD_MEMORY_BOUND
     fuzz_parameters(recorder)
     # Nothing changes while recording.
@@ -374,8 +466,18 @@ def test_recorder_and_player(spawn, rclpy_node, tmp_path):
         writer.add_topic('/fuzz/js', 'sensor_msgs/msg/JointState')
         for i in range(5):
             writer.write('/fuzz/js', serialize_message(JointState()), 10**9 * (i + 1))
-    player = start(spawn, rclpy_node, 'player', '-p', f'bag:={tmp_path / "tiny"}',
-                   '-p', 'loop:=true', '-p', 'wait_for_subscribers:=0.0', package='bag_tools')
+    player = start(
+        spawn,
+        rclpy_node,
+        'player',
+        '-p',
+        f'bag:={tmp_path / "tiny"}',
+        '-p',
+        'loop:=true',
+        '-p',
+        'wait_for_subscribers:=0.0',
+        package='bag_tools',
+    )
     fuzz_parameters(player)
     assert len(set(recorder.cases + player.cases)) >= MIN_CASES
     assert 'Traceback' not in player.process.output()
@@ -383,9 +485,15 @@ def test_recorder_and_player(spawn, rclpy_node, tmp_path):
 
 # -- start-up --------------------------------------------------------------------------
 
-STARTUP_PARAMETER = {'sfs_stereo_node': 'window', 'curve_recon_node': 'degree',
-                     'calib_node': 'min_views', 'pa10_ik_node': 'rate',
-                     'sensor_sim': 'rate', 'recorder': 'flush_period', 'player': 'rate'}
+STARTUP_PARAMETER = {
+    'sfs_stereo_node': 'window',
+    'curve_recon_node': 'degree',
+    'calib_node': 'min_views',
+    'pa10_ik_node': 'rate',
+    'sensor_sim': 'rate',
+    'recorder': 'flush_period',
+    'player': 'rate',
+}
 
 
 def test_bad_start_up_is_one_error_line(spawn, tmp_path):
@@ -396,12 +504,14 @@ def test_bad_start_up_is_one_error_line(spawn, tmp_path):
         package = 'bag_tools' if name in ('recorder', 'player') else name
         binary = executable(package, name)
         for label, args in (
-                ('missing params file', ['--params-file', str(tmp_path / 'none.yaml')]),
-                ('params file not YAML', ['--params-file', str(tmp_path / 'bad.yaml')]),
-                ('params file a list', ['--params-file', str(tmp_path / 'list.yaml')]),
-                ('wrong kind', ['-p', f'{parameter}:=[1, 2]'])):
-            runs[(name, label)] = spawn([binary, '--ros-args', *args],
-                                        name=f'{name}-{label.replace(" ", "_")}')
+            ('missing params file', ['--params-file', str(tmp_path / 'none.yaml')]),
+            ('params file not YAML', ['--params-file', str(tmp_path / 'bad.yaml')]),
+            ('params file a list', ['--params-file', str(tmp_path / 'list.yaml')]),
+            ('wrong kind', ['-p', f'{parameter}:=[1, 2]']),
+        ):
+            runs[(name, label)] = spawn(
+                [binary, '--ros-args', *args], name=f'{name}-{label.replace(" ", "_")}'
+            )
     for (name, label), process in runs.items():
         assert wait_gone(process, 90), f'{name} with {label} did not exit'
         output = process.output()

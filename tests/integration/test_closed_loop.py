@@ -2,6 +2,7 @@
 reconstruct, fuse, track under force control, record), then curve_recon_node and
 sfs_stereo_node run again against the recorded bag, with no simulator, and must
 reproduce what they published live."""
+
 import json
 import subprocess
 import sys
@@ -27,15 +28,29 @@ def demo_run(tmp_path_factory):
     bags = tmp_path_factory.mktemp('bags')
     env = next_ros_env()
     process = subprocess.run(
-        [sys.executable, str(REPO_ROOT / 'scripts' / 'demo.py'), '--scenario',
-         str(SCENARIO_DIR / 'quick.yaml'), '--bags', str(bags)],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        timeout=DEMO_TIMEOUT, start_new_session=True)
+        [
+            sys.executable,
+            str(REPO_ROOT / 'scripts' / 'demo.py'),
+            '--scenario',
+            str(SCENARIO_DIR / 'quick.yaml'),
+            '--bags',
+            str(bags),
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=DEMO_TIMEOUT,
+        start_new_session=True,
+    )
     sys.stdout.write(process.stdout[-6000:])
     bag_dirs = [d for d in bags.iterdir() if d.name.startswith('demo-')]
     results_file = bag_dirs[0] / 'report' / 'results.json' if bag_dirs else None
-    results = (json.loads(results_file.read_text())
-               if results_file is not None and results_file.exists() else None)
+    results = (
+        json.loads(results_file.read_text())
+        if results_file is not None and results_file.exists()
+        else None
+    )
     return process.returncode, (bag_dirs[0] if bag_dirs else None), results
 
 
@@ -62,15 +77,24 @@ def test_closed_loop_tracks_the_curve_under_force_control(demo_run):
     assert status == 0
 
 
-REPLAYED_INPUTS = ['/stereo/left/image_raw', '/stereo/right/image_raw', '/aux/image_raw',
-                   '/stereo/left/camera_info', '/stereo/right/camera_info', '/aux/camera_info',
-                   '/stereo/left/pose', '/stereo/right/pose', '/aux/pose',
-                   '/calibration/target_pose']
+REPLAYED_INPUTS = [
+    '/stereo/left/image_raw',
+    '/stereo/right/image_raw',
+    '/aux/image_raw',
+    '/stereo/left/camera_info',
+    '/stereo/right/camera_info',
+    '/aux/camera_info',
+    '/stereo/left/pose',
+    '/stereo/right/pose',
+    '/aux/pose',
+    '/calibration/target_pose',
+]
 
 
 def _bag_messages(bag_dir, topics):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
+
     messages = {t: [] for t in topics}
     for path in sorted(bag_dir.glob('*.mcap')):
         with open(path, 'rb') as stream:
@@ -86,17 +110,32 @@ def test_replay_reproduces_the_live_outputs(demo_run, spawn, rclpy_node):
     assert bag_dir is not None, 'the demo recorded no bag'
     live = _bag_messages(bag_dir, ['/curve/waypoints', '/depth/fused'])
     replayed = {'/curve/waypoints': [], '/depth/fused': []}
-    rclpy_node.create_subscription(PathMsg, '/curve/waypoints',
-                                   replayed['/curve/waypoints'].append, LATCHED_QOS)
-    rclpy_node.create_subscription(Image, '/depth/fused', replayed['/depth/fused'].append,
-                                   DEFAULT_QOS)
+    rclpy_node.create_subscription(
+        PathMsg, '/curve/waypoints', replayed['/curve/waypoints'].append, LATCHED_QOS
+    )
+    rclpy_node.create_subscription(
+        Image, '/depth/fused', replayed['/depth/fused'].append, DEFAULT_QOS
+    )
     params = bag_dir / 'params.yaml'  # what the demo ran them with
     for node in ('curve_recon_node', 'sfs_stereo_node'):
         spawn([executable(node), '--ros-args', '--params-file', params])
-    spawn([executable('bag_tools', 'player'), '--ros-args', '-p', f'bag:={bag_dir}',
-           '-p', f'topics:={json.dumps(REPLAYED_INPUTS)}', '-p', 'exit_when_done:=false'])
-    rclpy_node.spin_until(lambda: replayed['/curve/waypoints'] and replayed['/depth/fused'],
-                          120.0, 'waypoints and fused depth from the replayed bag')
+    spawn(
+        [
+            executable('bag_tools', 'player'),
+            '--ros-args',
+            '-p',
+            f'bag:={bag_dir}',
+            '-p',
+            f'topics:={json.dumps(REPLAYED_INPUTS)}',
+            '-p',
+            'exit_when_done:=false',
+        ]
+    )
+    rclpy_node.spin_until(
+        lambda: replayed['/curve/waypoints'] and replayed['/depth/fused'],
+        120.0,
+        'waypoints and fused depth from the replayed bag',
+    )
 
     # The curve: reconstructed from the same capture, the same waypoints bit for bit;
     # from another capture (other image noise), within 0.5 mm.
@@ -112,9 +151,12 @@ def test_replay_reproduces_the_live_outputs(demo_run, spawn, rclpy_node):
     # Fused depth of a capture processed both live and in replay: identical.
     live_by_stamp = {stamp_to_ns(m.header.stamp): m for m in live['/depth/fused']}
     rclpy_node.spin_until(
-        lambda: any(stamp_to_ns(m.header.stamp) in live_by_stamp
-                    for m in replayed['/depth/fused']),
-        120.0, 'a replayed fused depth of a capture also fused live')
+        lambda: any(
+            stamp_to_ns(m.header.stamp) in live_by_stamp for m in replayed['/depth/fused']
+        ),
+        120.0,
+        'a replayed fused depth of a capture also fused live',
+    )
     for msg in replayed['/depth/fused']:
         original = live_by_stamp.get(stamp_to_ns(msg.header.stamp))
         if original is not None:
@@ -122,5 +164,6 @@ def test_replay_reproduces_the_live_outputs(demo_run, spawn, rclpy_node):
 
 
 def _positions(path):
-    return np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
-                     for p in path.poses])
+    return np.array(
+        [[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in path.poses]
+    )

@@ -12,6 +12,7 @@ from host a, so every tool pose is a round trip over the link.
    tool pose, and whether it took the latched waypoints again (start_tracking accepted).
 
 Prints progress, then one JSON line of figures; exit status 1 if a step timed out."""
+
 import argparse
 import functools
 import json
@@ -67,8 +68,9 @@ class Processes:
 
     def start(self, argv, name):
         log = open(self.work / f'{name}-{len(self.started)}.log', 'w')
-        self.started.append(subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT,
-                                             start_new_session=True))
+        self.started.append(
+            subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        )
         return self.started[-1]
 
     def stop_all(self):
@@ -136,8 +138,11 @@ def measure_link_outage(spin, arrivals, link, rate):
     spin_until(spin, lambda: arrivals[-1] > up, 60, 'tool poses after the link came back')
     back = next(t for t in arrivals if t > up)
     print(f'data again {back - up:.2f} s after link up', flush=True)
-    return dict(outage_s=up - down, recovery_s=back - up,
-                lost_tool_poses=max(0, round(rate * (back - down)) - during))
+    return dict(
+        outage_s=up - down,
+        recovery_s=back - up,
+        lost_tool_poses=max(0, round(rate * (back - down)) - during),
+    )
 
 
 def restart_pa10(spin, arrivals, node, pa10):
@@ -170,8 +175,9 @@ def main():
     init_rclpy([])
     probe = rclpy.create_node('fault_probe')
     arrivals = []
-    probe.create_subscription(PoseStamped, '/tool_pose',
-                              lambda msg: arrivals.append(time.monotonic()), DEFAULT_QOS)
+    probe.create_subscription(
+        PoseStamped, '/tool_pose', lambda msg: arrivals.append(time.monotonic()), DEFAULT_QOS
+    )
     spin = functools.partial(rclpy.spin_once, probe, timeout_sec=0.02)
 
     def pa10():
@@ -179,10 +185,21 @@ def main():
 
     figures = {}
     try:
-        processes.start([str(executable('sensor_sim')), '--ros-args', '-p',
-                         f'scenario:={SCENARIO_DIR / "quick.yaml"}', '-p',
-                         'calibration_phase:=false', '-p', 'rate:=1.0', '-p',
-                         f'ground_truth_dir:={truth}'], 'sensor_sim')
+        processes.start(
+            [
+                str(executable('sensor_sim')),
+                '--ros-args',
+                '-p',
+                f'scenario:={SCENARIO_DIR / "quick.yaml"}',
+                '-p',
+                'calibration_phase:=false',
+                '-p',
+                'rate:=1.0',
+                '-p',
+                f'ground_truth_dir:={truth}',
+            ],
+            'sensor_sim',
+        )
         spin_until(spin, lambda: (truth / 'curve_base.npz').exists(), 90, 'the ground truth')
         path_publisher = probe.create_publisher(PathMsg, '/curve/waypoints', LATCHED_QOS)
         path_publisher.publish(matrices_to_path(waypoints_of_true_curve(truth), 1, 'base_link'))

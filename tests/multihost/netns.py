@@ -2,6 +2,7 @@
 loopback up, an address on the link, a multicast route (DDS discovery) and the kernel
 settings the ROS 2 DDS tuning guide asks for. Needs root and iproute2 (installed with
 apt-get if missing); without them ``TwoHosts`` raises HostsError saying why."""
+
 import os
 import shutil
 import subprocess
@@ -28,8 +29,9 @@ class TwoHosts:
         tag = int(tag) % 10000
         self.names = {host: f'vgm{tag}{host}' for host in 'ab'}
         self.links = {host: f'vgm{tag}{host}0' for host in 'ab'}
-        self.addresses = {host: f'10.{100 + tag // 250 % 100}.{tag % 250}.{i}'
-                          for i, host in enumerate('ab', 1)}
+        self.addresses = {
+            host: f'10.{100 + tag // 250 % 100}.{tag % 250}.{i}' for i, host in enumerate('ab', 1)
+        }
 
     def prefix(self, host):
         return ['ip', 'netns', 'exec', self.names[host]]
@@ -43,8 +45,19 @@ class TwoHosts:
         try:
             for name in self.names.values():
                 _run(['ip', 'netns', 'add', name])
-            _run(['ip', 'link', 'add', self.links['a'], 'type', 'veth', 'peer', 'name',
-                  self.links['b']])
+            _run(
+                [
+                    'ip',
+                    'link',
+                    'add',
+                    self.links['a'],
+                    'type',
+                    'veth',
+                    'peer',
+                    'name',
+                    self.links['b'],
+                ]
+            )
             for host, name in self.names.items():
                 link = self.links[host]
                 _run(['ip', 'link', 'set', link, 'netns', name])
@@ -69,8 +82,7 @@ class TwoHosts:
 
     def set_link(self, up):
         """The link up or down (both ends see it: a cable pulled)."""
-        _run(['ip', '-n', self.names['a'], 'link', 'set', self.links['a'],
-              'up' if up else 'down'])
+        _run(['ip', '-n', self.names['a'], 'link', 'set', self.links['a'], 'up' if up else 'down'])
 
     def transmitted_bytes(self, host):
         """Bytes host sent over the link (the veth's counter)."""

@@ -8,6 +8,7 @@ namespaces, so every image the vision nodes see crossed the veth.
    nothing lost between the publishers and the bag.
 2. Faults (tests/multihost/fault_scenario.py, run on host a): the link down for 5 s
    mid-stream, then pa10_ik_node killed and restarted on host b."""
+
 import json
 import os
 import subprocess
@@ -41,11 +42,26 @@ def hosts():
 def test_closed_loop_across_two_hosts(hosts, tmp_path):
     sent_before = hosts.transmitted_bytes('a')
     process = subprocess.run(
-        [*hosts.prefix('a'), sys.executable, str(REPO_ROOT / 'scripts' / 'demo.py'),
-         '--scenario', str(SCENARIO_DIR / 'quick.yaml'), '--bags', str(tmp_path),
-         '--remote-nodes', *REMOTE_NODES, '--remote-prefix', ' '.join(hosts.prefix('b'))],
-        env=host_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        timeout=DEMO_TIMEOUT, start_new_session=True)
+        [
+            *hosts.prefix('a'),
+            sys.executable,
+            str(REPO_ROOT / 'scripts' / 'demo.py'),
+            '--scenario',
+            str(SCENARIO_DIR / 'quick.yaml'),
+            '--bags',
+            str(tmp_path),
+            '--remote-nodes',
+            *REMOTE_NODES,
+            '--remote-prefix',
+            ' '.join(hosts.prefix('b')),
+        ],
+        env=host_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=DEMO_TIMEOUT,
+        start_new_session=True,
+    )
     sys.stdout.write(process.stdout[-6000:])
     bag_dirs = [d for d in tmp_path.iterdir() if d.name.startswith('demo-')]
     assert bag_dirs, 'the demo recorded no bag'
@@ -69,12 +85,24 @@ def test_closed_loop_across_two_hosts(hosts, tmp_path):
 @pytest.mark.timeout(300)
 def test_link_outage_and_a_restarted_node(hosts, tmp_path):
     result = subprocess.run(
-        [*hosts.prefix('a'), sys.executable, str(REPO_ROOT / 'tests' / 'multihost' /
-                                                 'fault_scenario.py'),
-         '--host-b-prefix', ' '.join(hosts.prefix('b')), '--link', hosts.links['a'],
-         '--work', str(tmp_path)],
-        env=host_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        timeout=280, start_new_session=True)
+        [
+            *hosts.prefix('a'),
+            sys.executable,
+            str(REPO_ROOT / 'tests' / 'multihost' / 'fault_scenario.py'),
+            '--host-b-prefix',
+            ' '.join(hosts.prefix('b')),
+            '--link',
+            hosts.links['a'],
+            '--work',
+            str(tmp_path),
+        ],
+        env=host_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=280,
+        start_new_session=True,
+    )
     sys.stdout.write(result.stdout[-6000:])
     assert result.returncode == 0
     figures = json.loads(result.stdout.strip().splitlines()[-1])

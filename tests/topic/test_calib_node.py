@@ -2,6 +2,7 @@
 CameraInfo and poses against the scenario's true cameras; the YAML round trip through
 ``output_dir`` and ``calibration_file``; bad input (no chart, NaN target pose, wrong
 encoding / size, degenerate views) -> diagnostics, no calibration, no crash."""
+
 import math
 from pathlib import Path
 
@@ -45,9 +46,14 @@ class Probe:
         self.infos, self.poses, self.diagnostics = {}, {}, []
         self.subscriptions = []
         self.subscribe_calibration()
-        self.subscriptions.append(node.create_subscription(
-            DiagnosticArray, '/diagnostics', lambda m: self.diagnostics.extend(m.status),
-            DEFAULT_QOS))
+        self.subscriptions.append(
+            node.create_subscription(
+                DiagnosticArray,
+                '/diagnostics',
+                lambda m: self.diagnostics.extend(m.status),
+                DEFAULT_QOS,
+            )
+        )
 
     def subscribe_calibration(self):
         for subscription in self.subscriptions[:6]:
@@ -55,12 +61,22 @@ class Probe:
         self.infos, self.poses = {}, {}
         subscriptions = []
         for name in CAMERA_NAMES:
-            subscriptions.append(self.node.create_subscription(
-                CameraInfo, CAMERA_INFO_TOPICS[name],
-                lambda m, n=name: self.infos.__setitem__(n, m), LATCHED_QOS))
-            subscriptions.append(self.node.create_subscription(
-                PoseStamped, POSE_TOPICS[name],
-                lambda m, n=name: self.poses.__setitem__(n, m), LATCHED_QOS))
+            subscriptions.append(
+                self.node.create_subscription(
+                    CameraInfo,
+                    CAMERA_INFO_TOPICS[name],
+                    lambda m, n=name: self.infos.__setitem__(n, m),
+                    LATCHED_QOS,
+                )
+            )
+            subscriptions.append(
+                self.node.create_subscription(
+                    PoseStamped,
+                    POSE_TOPICS[name],
+                    lambda m, n=name: self.poses.__setitem__(n, m),
+                    LATCHED_QOS,
+                )
+            )
         self.subscriptions[:6] = subscriptions
 
     def calibrated(self):
@@ -71,13 +87,14 @@ class Probe:
         try:
             self.node.spin_until(condition, timeout, what)
         except TimeoutError as error:
-            last = [f'{s.name}: {s.message} {[(kv.key, kv.value) for kv in s.values]}'
-                    for s in self.diagnostics[-5:]]
+            last = [
+                f'{s.name}: {s.message} {[(kv.key, kv.value) for kv in s.values]}'
+                for s in self.diagnostics[-5:]
+            ]
             raise AssertionError(f'{error}; last diagnostics: {last}') from None
 
     def statuses(self, name_part, message_part=''):
-        return [s for s in self.diagnostics
-                if name_part in s.name and message_part in s.message]
+        return [s for s in self.diagnostics if name_part in s.name and message_part in s.message]
 
 
 def call(node, name, timeout=30.0):
@@ -90,17 +107,26 @@ def call(node, name, timeout=30.0):
 
 def true_cameras(ground_truth_dir):
     cameras = yaml.safe_load((ground_truth_dir / 'cameras.yaml').read_text())
-    return {name: PinholeCamera(c['width'], c['height'], np.array(c['K']), np.array(c['D']),
-                                np.array(c['T_base_camera']))
-            for name, c in cameras.items()}
+    return {
+        name: PinholeCamera(
+            c['width'],
+            c['height'],
+            np.array(c['K']),
+            np.array(c['D']),
+            np.array(c['T_base_camera']),
+        )
+        for name, c in cameras.items()
+    }
 
 
 def chart_corners_base(ground_truth_dir, rows=6, cols=9, spacing=0.025):
     r, c = np.divmod(np.arange(rows * cols), cols)
-    corners = np.column_stack([c * spacing, r * spacing, np.zeros(rows * cols), np.ones(rows
-                                                                                        * cols)])
-    return np.concatenate([(T @ corners.T).T[:, :3]
-                           for T in np.load(ground_truth_dir / 'T_base_chart.npy')])
+    corners = np.column_stack(
+        [c * spacing, r * spacing, np.zeros(rows * cols), np.ones(rows * cols)]
+    )
+    return np.concatenate(
+        [(T @ corners.T).T[:, :3] for T in np.load(ground_truth_dir / 'T_base_chart.npy')]
+    )
 
 
 def rotation_angle(R):
@@ -111,9 +137,20 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
     truth_dir, out_dir = tmp_path / 'truth', tmp_path / 'calibration'
     probe = Probe(rclpy_node)
     calib = spawn([executable('calib_node'), '--ros-args', '-p', f'output_dir:={out_dir}'])
-    spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default',
-           '-p', 'calibration_phase:=true', '-p', 'min_subscribers:=1',
-           '-p', f'ground_truth_dir:={truth_dir}'])
+    spawn(
+        [
+            executable('sensor_sim'),
+            '--ros-args',
+            '-p',
+            'scenario:=default',
+            '-p',
+            'calibration_phase:=true',
+            '-p',
+            'min_subscribers:=1',
+            '-p',
+            f'ground_truth_dir:={truth_dir}',
+        ]
+    )
     rclpy_node.spin_until(probe.calibrated, 150, 'the calibration')
     truth = true_cameras(truth_dir)
     corners = chart_corners_base(truth_dir)
@@ -126,14 +163,19 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
         camera = camera_info_to_camera(info, pose_to_matrix(pose.pose))
         estimated[name] = camera
         true = truth[name]
-        np.testing.assert_allclose(camera.K[[0, 1], [0, 1]], true.K[[0, 1], [0, 1]],
-                                   rtol=FOCAL_RTOL, err_msg=name)
-        np.testing.assert_allclose(camera.K[:2, 2], true.K[:2, 2], atol=CENTRE_ATOL_PX,
-                                   err_msg=name)
-        np.testing.assert_allclose(camera.centre_base, true.centre_base, atol=POSITION_ATOL_M,
-                                   err_msg=name)
-        assert rotation_angle(camera.T_base_camera[:3, :3].T
-                              @ true.T_base_camera[:3, :3]) < ANGLE_ATOL_RAD, name
+        np.testing.assert_allclose(
+            camera.K[[0, 1], [0, 1]], true.K[[0, 1], [0, 1]], rtol=FOCAL_RTOL, err_msg=name
+        )
+        np.testing.assert_allclose(
+            camera.K[:2, 2], true.K[:2, 2], atol=CENTRE_ATOL_PX, err_msg=name
+        )
+        np.testing.assert_allclose(
+            camera.centre_base, true.centre_base, atol=POSITION_ATOL_M, err_msg=name
+        )
+        assert (
+            rotation_angle(camera.T_base_camera[:3, :3].T @ true.T_base_camera[:3, :3])
+            < ANGLE_ATOL_RAD
+        ), name
         # K, D and pose together: every chart corner lands where the true camera puts it
         true_pixels, depth = true.project(corners)
         seen = (depth > 0) & np.all((true_pixels >= 0) & (true_pixels < [640, 480]), axis=1)
@@ -146,8 +188,11 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
     assert baseline == pytest.approx(true_baseline, rel=BASELINE_RTOL)
     P_right = np.reshape(probe.infos['right'].p, (3, 4))
     assert -P_right[0, 3] / P_right[0, 0] == pytest.approx(baseline, rel=1e-6)
-    rclpy_node.spin_until(lambda: probe.statuses('calibration', 'calibrated 3 cameras'), 10,
-                          'the calibration diagnostic')
+    rclpy_node.spin_until(
+        lambda: probe.statuses('calibration', 'calibrated 3 cameras'),
+        10,
+        'the calibration diagnostic',
+    )
     values = {kv.key: kv.value for kv in probe.statuses('calibration', 'calibrated')[-1].values}
     assert int(values['views']) == 10 and values['method'] == 'lm'
     assert all(float(values[f'rms_px {n}']) < 0.5 for n in CAMERA_NAMES)
@@ -159,18 +204,33 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
     first = dict(probe.infos), dict(probe.poses)
     assert calib.stop() == 0
     probe.subscribe_calibration()
-    spawn([executable('calib_node'), '--ros-args', '-p',
-           f'calibration_file:={out_dir / "calibration.yaml"}'])
+    spawn(
+        [
+            executable('calib_node'),
+            '--ros-args',
+            '-p',
+            f'calibration_file:={out_dir / "calibration.yaml"}',
+        ]
+    )
     rclpy_node.spin_until(probe.calibrated, 30, 'the republished calibration')
     for name in CAMERA_NAMES:
         old, new = first[0][name], probe.infos[name]
-        assert (new.width, new.height, new.header.frame_id) == (old.width, old.height,
-                                                                old.header.frame_id)
+        assert (new.width, new.height, new.header.frame_id) == (
+            old.width,
+            old.height,
+            old.header.frame_id,
+        )
         for field in ('k', 'd', 'r', 'p'):
-            np.testing.assert_allclose(getattr(new, field), getattr(old, field), rtol=1e-12,
-                                       atol=1e-12, err_msg=f'{name}.{field}')
-        np.testing.assert_allclose(pose_to_matrix(probe.poses[name].pose),
-                                   pose_to_matrix(first[1][name].pose), atol=1e-12)
+            np.testing.assert_allclose(
+                getattr(new, field),
+                getattr(old, field),
+                rtol=1e-12,
+                atol=1e-12,
+                err_msg=f'{name}.{field}',
+            )
+        np.testing.assert_allclose(
+            pose_to_matrix(probe.poses[name].pose), pose_to_matrix(first[1][name].pose), atol=1e-12
+        )
 
 
 @pytest.fixture(scope='module')
@@ -190,25 +250,27 @@ def chart_images():
 class CapturePublisher:
     def __init__(self, node):
         self.node = node
-        self.images = {name: node.create_publisher(Image, IMAGE_TOPICS[name], DEFAULT_QOS)
-                       for name in CAMERA_NAMES}
+        self.images = {
+            name: node.create_publisher(Image, IMAGE_TOPICS[name], DEFAULT_QOS)
+            for name in CAMERA_NAMES
+        }
         self.target = node.create_publisher(PoseStamped, TARGET_POSE_TOPIC, DEFAULT_QOS)
         self.stamp_ns = 1_000_000_000
 
     def matched(self):
-        return all(p.get_subscription_count() > 0
-                   for p in (*self.images.values(), self.target))
+        return all(p.get_subscription_count() > 0 for p in (*self.images.values(), self.target))
 
     def publish(self, images, T_base_chart=None, pose=None, overrides=None):
         self.stamp_ns += 100_000_000
         if T_base_chart is not None or pose is not None:
             msg = pose or matrix_to_pose_stamped(T_base_chart, self.stamp_ns, 'base_link')
-            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(self.stamp_ns, 10 ** 9)
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(self.stamp_ns, 10**9)
             self.target.publish(msg)
         for name in CAMERA_NAMES:
             msg = (overrides or {}).get(name) or numpy_to_image(
-                images[name], 'mono8', self.stamp_ns, 'x')
-            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(self.stamp_ns, 10 ** 9)
+                images[name], 'mono8', self.stamp_ns, 'x'
+            )
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(self.stamp_ns, 10**9)
             self.images[name].publish(msg)
 
 
@@ -216,8 +278,9 @@ def test_bad_input_gives_diagnostics_and_no_calibration(spawn, rclpy_node, chart
     images, scene, T_base_chart = chart_images
     probe = Probe(rclpy_node)
     capture = CapturePublisher(rclpy_node)
-    calib = spawn([executable('calib_node'), '--ros-args', '-p', 'min_views:=3',
-                   '-p', 'chart.source:=stage'])
+    calib = spawn(
+        [executable('calib_node'), '--ros-args', '-p', 'min_views:=3', '-p', 'chart.source:=stage']
+    )
     rclpy_node.spin_until(capture.matched, 30, 'calib_node subscribing')
     rclpy_node.spin_until(lambda: probe.statuses('views', 'waiting'), 30, 'status')
 
@@ -227,32 +290,45 @@ def test_bad_input_gives_diagnostics_and_no_calibration(spawn, rclpy_node, chart
         capture.publish(scene)
     rclpy_node.spin_until(
         # a loaded reader may drop some of the 45 images: their sets count as incomplete
-        lambda: any(kv.key.startswith(('image sets without', 'incomplete'))
-                    and int(kv.value) > 0
-                    for s in probe.statuses('views') for kv in s.values), 20,
-        'incomplete sets counted')
+        lambda: any(
+            kv.key.startswith(('image sets without', 'incomplete')) and int(kv.value) > 0
+            for s in probe.statuses('views')
+            for kv in s.values
+        ),
+        20,
+        'incomplete sets counted',
+    )
     assert not probe.statuses('rejected')
 
     # No chart in any camera.
     capture.publish(scene, T_base_chart)
-    rclpy_node.spin_until(lambda: probe.statuses('rejected view', 'chart not found'), 30,
-                          'the no-chart diagnostic')
+    rclpy_node.spin_until(
+        lambda: probe.statuses('rejected view', 'chart not found'), 30, 'the no-chart diagnostic'
+    )
     # NaN target pose.
     nan_pose = matrix_to_pose_stamped(T_base_chart, 0, 'base_link')
     nan_pose.pose.position.x = float('nan')
     capture.publish(images, pose=nan_pose)
-    rclpy_node.spin_until(lambda: probe.statuses(f'rejected {TARGET_POSE_TOPIC}',
-                                                 'non-finite'), 30, 'the NaN pose diagnostic')
+    rclpy_node.spin_until(
+        lambda: probe.statuses(f'rejected {TARGET_POSE_TOPIC}', 'non-finite'),
+        30,
+        'the NaN pose diagnostic',
+    )
     # Wrong encoding, and data that does not match the stated size.
     float_image = numpy_to_image(images['left'].astype(np.float32), '32FC1', 0, 'x')
     short_image = numpy_to_image(images['right'], 'mono8', 0, 'x')
     short_image.height += 10
-    capture.publish(images, T_base_chart, overrides={'left': float_image,
-                                                     'right': short_image})
-    rclpy_node.spin_until(lambda: probe.statuses(f'rejected {IMAGE_TOPICS["left"]}',
-                                                 'encoding'), 30, 'the encoding diagnostic')
-    rclpy_node.spin_until(lambda: probe.statuses(f'rejected {IMAGE_TOPICS["right"]}',
-                                                 'bytes'), 30, 'the size diagnostic')
+    capture.publish(images, T_base_chart, overrides={'left': float_image, 'right': short_image})
+    rclpy_node.spin_until(
+        lambda: probe.statuses(f'rejected {IMAGE_TOPICS["left"]}', 'encoding'),
+        30,
+        'the encoding diagnostic',
+    )
+    rclpy_node.spin_until(
+        lambda: probe.statuses(f'rejected {IMAGE_TOPICS["right"]}', 'bytes'),
+        30,
+        'the size diagnostic',
+    )
     # ... the aux image of that capture was good: one view. Too few views to calibrate:
     answer = call(rclpy_node, '/calib_node/calibrate')
     assert not answer.success and 'min_views' in answer.message
@@ -260,8 +336,9 @@ def test_bad_input_gives_diagnostics_and_no_calibration(spawn, rclpy_node, chart
     # Degenerate views: the chart at one pose, so every point lies on one plane.
     for _ in range(3):
         capture.publish(images, T_base_chart)
-    probe.wait(lambda: probe.statuses('calibration', 'degenerate'), 60,
-               'the degenerate-views diagnostic')
+    probe.wait(
+        lambda: probe.statuses('calibration', 'degenerate'), 60, 'the degenerate-views diagnostic'
+    )
     # min_views counts the aux view above, so the diagnostic can come before the third
     # capture is taken; reset must come after it.
     probe.wait(lambda: probe.statuses('views', '4 views'), 30, 'all four views taken')
@@ -292,13 +369,22 @@ def opencv_stereo(views, chart, size):
     """cv2.calibrateCamera per camera + cv2.stereoCalibrate (joint, intrinsic guess), the
     same parameter set as calib_node (k1, k2, p1, p2)."""
     objects = [chart.astype(np.float32).reshape(-1, 1, 3)] * len(views)
-    pixels = {n: [v[n].astype(np.float32).reshape(-1, 1, 2) for v in views]
-              for n in ('left', 'right')}
-    start = {n: cv2.calibrateCamera(objects, pixels[n], size, None, None,
-                                    flags=cv2.CALIB_FIX_K3)[1:3] for n in pixels}
+    pixels = {
+        n: [v[n].astype(np.float32).reshape(-1, 1, 2) for v in views] for n in ('left', 'right')
+    }
+    start = {
+        n: cv2.calibrateCamera(objects, pixels[n], size, None, None, flags=cv2.CALIB_FIX_K3)[1:3]
+        for n in pixels
+    }
     rms, K1, D1, K2, D2, R, T, _, _ = cv2.stereoCalibrate(
-        objects, pixels['left'], pixels['right'], *start['left'], *start['right'], size,
-        flags=cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3)
+        objects,
+        pixels['left'],
+        pixels['right'],
+        *start['left'],
+        *start['right'],
+        size,
+        flags=cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_K3,
+    )
     return rms, K1, D1, K2, D2, R, T
 
 
@@ -307,19 +393,41 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
     first three copies of one fronto-parallel view (refused: too little coverage, the
     diagnostic says what is missing), then all 13 pairs -> beside cv2.stereoCalibrate."""
     directory = Path(opencv_sample_dir())  # fetched once; fails with the reason if not
-    images = [{n: cv2.imread(str(directory / f'{n}{i:02d}.jpg'), cv2.IMREAD_GRAYSCALE)
-               for n in ('left', 'right')} for i in OPENCV_VIEWS]
+    images = [
+        {
+            n: cv2.imread(str(directory / f'{n}{i:02d}.jpg'), cv2.IMREAD_GRAYSCALE)
+            for n in ('left', 'right')
+        }
+        for i in OPENCV_VIEWS
+    ]
     size = images[0]['left'].shape[::-1]
     rig_pose = [0.1, -0.2, 0.9, 0.3, -0.1, 1.2]
     probe = Probe(rclpy_node)
-    publishers = {n: rclpy_node.create_publisher(Image, IMAGE_TOPICS[n], DEFAULT_QOS)
-                  for n in ('left', 'right')}
-    calib = spawn([executable('calib_node'), '--ros-args', '-p', 'cameras:=[left, right]',
-                   '-p', 'chart.source:=handheld', '-p', 'select_views:=false',
-                   '-p', 'min_coverage:=0.3', '-p', f'min_views:={len(OPENCV_VIEWS)}',
-                   '-p', f'rig_pose:={rig_pose}'])
-    rclpy_node.spin_until(lambda: all(p.get_subscription_count() > 0
-                                      for p in publishers.values()), 30, 'subscribers')
+    publishers = {
+        n: rclpy_node.create_publisher(Image, IMAGE_TOPICS[n], DEFAULT_QOS)
+        for n in ('left', 'right')
+    }
+    calib = spawn(
+        [
+            executable('calib_node'),
+            '--ros-args',
+            '-p',
+            'cameras:=[left, right]',
+            '-p',
+            'chart.source:=handheld',
+            '-p',
+            'select_views:=false',
+            '-p',
+            'min_coverage:=0.3',
+            '-p',
+            f'min_views:={len(OPENCV_VIEWS)}',
+            '-p',
+            f'rig_pose:={rig_pose}',
+        ]
+    )
+    rclpy_node.spin_until(
+        lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), 30, 'subscribers'
+    )
     stamp = [0]
 
     def publish(view):
@@ -331,25 +439,30 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
         publish(images[0])
         probe.wait(lambda c=count: probe.statuses('views', f'{c} views'), 60, f'view {count}')
     answer = call(rclpy_node, '/calib_node/calibrate')
-    assert not answer.success and 'coverage' in answer.message and 'tilt the chart' in \
-        answer.message, answer.message
+    assert (
+        not answer.success and 'coverage' in answer.message and 'tilt the chart' in answer.message
+    ), answer.message
     assert any('skew 0 %' in s.message for s in probe.statuses('views', 'coverage'))
     assert call(rclpy_node, '/calib_node/reset').success
     for count, view in enumerate(images, 1):  # one at a time: the image queues hold 10
         publish(view)
         probe.wait(lambda c=count: probe.statuses('views', f'{c} views'), 60, f'view {count}')
-    probe.wait(lambda: len(probe.infos) == 2 and len(probe.poses) == 2, 120,
-               'the handheld calibration')
+    probe.wait(
+        lambda: len(probe.infos) == 2 and len(probe.poses) == 2, 120, 'the handheld calibration'
+    )
     assert 'aux' not in probe.infos
 
     # OpenCV on the same corners (calib_node's detector, as the node found them).
     from calib_node.chart_detection import chart_points, detect_chessboard
+
     chart = chart_points(6, 9, 0.025)
     views = [{n: detect_chessboard(v[n], 6, 9).corners for n in v} for v in images]
     rms_cv, K1, D1, K2, D2, R, T = opencv_stereo(views, chart, size)
     baseline_cv = float(np.linalg.norm(T))
-    cameras = {n: camera_info_to_camera(probe.infos[n], pose_to_matrix(probe.poses[n].pose))
-               for n in ('left', 'right')}
+    cameras = {
+        n: camera_info_to_camera(probe.infos[n], pose_to_matrix(probe.poses[n].pose))
+        for n in ('left', 'right')
+    }
     for name, K_cv in (('left', K1), ('right', K2)):
         K = cameras[name].K
         assert abs(K[0, 0] / K_cv[0, 0] - 1) < 0.01 and abs(K[1, 1] / K_cv[1, 1] - 1) < 0.01
@@ -364,8 +477,13 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
         for name, image in view.items():
             found, c = cv2.findChessboardCorners(image, (9, 6))
             assert found
-            corners[name] = cv2.cornerSubPix(image, c, (11, 11), (-1, -1), (
-                cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-3)).reshape(-1, 2)
+            corners[name] = cv2.cornerSubPix(
+                image,
+                c,
+                (11, 11),
+                (-1, -1),
+                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-3),
+            ).reshape(-1, 2)
         own.append(corners)
     rms_own, K1_own, _, K2_own, _, _, T_own = opencv_stereo(own, chart, size)
     for name, K_cv in (('left', K1_own), ('right', K2_own)):
@@ -374,15 +492,21 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
     assert abs(baseline / np.linalg.norm(T_own) - 1) < 0.01
     # The left camera sits at rig_pose.
     from vgm_common.geometry import rpy_to_matrix
+
     np.testing.assert_allclose(cameras['left'].T_base_camera[:3, 3], rig_pose[:3], atol=1e-9)
-    np.testing.assert_allclose(cameras['left'].T_base_camera[:3, :3],
-                               rpy_to_matrix(*rig_pose[3:]), atol=1e-9)
+    np.testing.assert_allclose(
+        cameras['left'].T_base_camera[:3, :3], rpy_to_matrix(*rig_pose[3:]), atol=1e-9
+    )
     # The views status repeats the latest calibration's RMS at 1 Hz (a lost message of
     # the one-off calibration diagnostic on a loaded machine does not matter).
-    probe.wait(lambda: any(kv.key == 'rms_px left' for s in probe.statuses('views')
-                           for kv in s.values), 30, 'the RMS in the status')
-    status = [s for s in probe.statuses('views') if any(kv.key == 'rms_px left'
-                                                        for kv in s.values)][-1]
+    probe.wait(
+        lambda: any(kv.key == 'rms_px left' for s in probe.statuses('views') for kv in s.values),
+        30,
+        'the RMS in the status',
+    )
+    status = [
+        s for s in probe.statuses('views') if any(kv.key == 'rms_px left' for kv in s.values)
+    ][-1]
     values = {kv.key: kv.value for kv in status.values}
     rms = np.sqrt((float(values['rms_px left']) ** 2 + float(values['rms_px right']) ** 2) / 2)
     assert rms <= rms_cv * (1 + 1e-4), (rms, rms_cv)  # the same optimum, 4-digit diagnostics
@@ -393,17 +517,26 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
         rectified = []
         for name in ('left', 'right'):
             info = probe.infos[name]
-            rectified.append(cv2.undistortPoints(
-                view[name].reshape(-1, 1, 2), np.reshape(info.k, (3, 3)), np.array(info.d),
-                R=np.reshape(info.r, (3, 3)), P=np.reshape(info.p, (3, 4))).reshape(-1, 2))
+            rectified.append(
+                cv2.undistortPoints(
+                    view[name].reshape(-1, 1, 2),
+                    np.reshape(info.k, (3, 3)),
+                    np.array(info.d),
+                    R=np.reshape(info.r, (3, 3)),
+                    P=np.reshape(info.p, (3, 4)),
+                ).reshape(-1, 2)
+            )
         rows.append(rectified[0][:, 1] - rectified[1][:, 1])
     # The measured corners carry their own noise (reprojection RMS 0.36 px on these
     # photographs), so the figure is compared with OpenCV's rectification of them.
-    R1, R2, P1, P2, *_ = cv2.stereoRectify(K1, D1, K2, D2, size, R, T,
-                                           flags=cv2.CALIB_ZERO_DISPARITY, alpha=0)
-    rows_cv = [cv2.undistortPoints(v['left'].reshape(-1, 1, 2), K1, D1, R=R1, P=P1)[:, 0, 1]
-               - cv2.undistortPoints(v['right'].reshape(-1, 1, 2), K2, D2, R=R2, P=P2)[:, 0, 1]
-               for v in views]
+    R1, R2, P1, P2, *_ = cv2.stereoRectify(
+        K1, D1, K2, D2, size, R, T, flags=cv2.CALIB_ZERO_DISPARITY, alpha=0
+    )
+    rows_cv = [
+        cv2.undistortPoints(v['left'].reshape(-1, 1, 2), K1, D1, R=R1, P=P1)[:, 0, 1]
+        - cv2.undistortPoints(v['right'].reshape(-1, 1, 2), K2, D2, R=R2, P=P2)[:, 0, 1]
+        for v in views
+    ]
     ours = np.sqrt(np.mean(np.concatenate(rows) ** 2))
     theirs = np.sqrt(np.mean(np.concatenate(rows_cv) ** 2))
     assert ours <= theirs * 1.01 and ours < 0.45, (ours, theirs)
@@ -414,8 +547,12 @@ def _remapped(prefix):
     """ros-args remapping calib_node's outputs under ``prefix`` (a second node beside)."""
     args = []
     for name in CAMERA_NAMES:
-        args += ['-r', f'{CAMERA_INFO_TOPICS[name]}:={prefix}/{name}/camera_info',
-                 '-r', f'{POSE_TOPICS[name]}:={prefix}/{name}/pose']
+        args += [
+            '-r',
+            f'{CAMERA_INFO_TOPICS[name]}:={prefix}/{name}/camera_info',
+            '-r',
+            f'{POSE_TOPICS[name]}:={prefix}/{name}/pose',
+        ]
     return args
 
 
@@ -430,39 +567,84 @@ def test_generated_rig_stage_and_handheld(spawn, rclpy_node):
 
     rig = draw_rig(24, views=8)
     images = render_rig(rig, 24)
-    chart = ['-p', f'chart.rows:={rig.rows}', '-p', f'chart.cols:={rig.cols}',
-             '-p', f'chart.spacing:={rig.spacing}', '-p', f'min_views:={len(images)}']
+    chart = [
+        '-p',
+        f'chart.rows:={rig.rows}',
+        '-p',
+        f'chart.cols:={rig.cols}',
+        '-p',
+        f'chart.spacing:={rig.spacing}',
+        '-p',
+        f'min_views:={len(images)}',
+    ]
     probe = Probe(rclpy_node)
     handheld = {'infos': {}, 'poses': {}}
     for name in CAMERA_NAMES:
-        rclpy_node.create_subscription(CameraInfo, f'/handheld/{name}/camera_info',
-                                       lambda m, n=name: handheld['infos'].__setitem__(n, m),
-                                       LATCHED_QOS)
-        rclpy_node.create_subscription(PoseStamped, f'/handheld/{name}/pose',
-                                       lambda m, n=name: handheld['poses'].__setitem__(n, m),
-                                       LATCHED_QOS)
-    stage = spawn([executable('calib_node'), '--ros-args', *chart, '-p',
-                   'chart.source:=stage'])
-    hand = spawn([executable('calib_node'), '--ros-args', *chart, '-p',
-                  'chart.source:=handheld', '-p', 'min_coverage:=0.0', '-p',
-                  'select_views:=false', '-r', '__node:=calib_handheld', *_remapped('/handheld')])
+        rclpy_node.create_subscription(
+            CameraInfo,
+            f'/handheld/{name}/camera_info',
+            lambda m, n=name: handheld['infos'].__setitem__(n, m),
+            LATCHED_QOS,
+        )
+        rclpy_node.create_subscription(
+            PoseStamped,
+            f'/handheld/{name}/pose',
+            lambda m, n=name: handheld['poses'].__setitem__(n, m),
+            LATCHED_QOS,
+        )
+    stage = spawn([executable('calib_node'), '--ros-args', *chart, '-p', 'chart.source:=stage'])
+    hand = spawn(
+        [
+            executable('calib_node'),
+            '--ros-args',
+            *chart,
+            '-p',
+            'chart.source:=handheld',
+            '-p',
+            'min_coverage:=0.0',
+            '-p',
+            'select_views:=false',
+            '-r',
+            '__node:=calib_handheld',
+            *_remapped('/handheld'),
+        ]
+    )
     capture = CapturePublisher(rclpy_node)
-    rclpy_node.spin_until(lambda: all(p.get_subscription_count() >= 2
-                                      for p in capture.images.values()), 30, 'subscribers')
+    rclpy_node.spin_until(
+        lambda: all(p.get_subscription_count() >= 2 for p in capture.images.values()),
+        30,
+        'subscribers',
+    )
     for count, (view, T) in enumerate(zip(images, rig.T_base_chart), 1):
         capture.publish(view, T)  # one at a time: a loaded reader drops images otherwise
-        probe.wait(lambda c=count: len(probe.statuses('views', f'{c} views')) >= 2, 60,
-                   f'view {count} in both nodes')
-    probe.wait(lambda: probe.calibrated() and len(handheld['infos']) == 3
-               and len(handheld['poses']) == 3, 120, 'both calibrations')
-    for label, infos, poses, absolute in (('stage', probe.infos, probe.poses, True),
-                                          ('handheld', handheld['infos'], handheld['poses'],
-                                           False)):
-        cameras = {n: camera_info_to_camera(infos[n], pose_to_matrix(poses[n].pose))
-                   for n in CAMERA_NAMES}
+        probe.wait(
+            lambda c=count: len(probe.statuses('views', f'{c} views')) >= 2,
+            60,
+            f'view {count} in both nodes',
+        )
+    probe.wait(
+        lambda: probe.calibrated() and len(handheld['infos']) == 3 and len(handheld['poses']) == 3,
+        120,
+        'both calibrations',
+    )
+    for label, infos, poses, absolute in (
+        ('stage', probe.infos, probe.poses, True),
+        ('handheld', handheld['infos'], handheld['poses'], False),
+    ):
+        cameras = {
+            n: camera_info_to_camera(infos[n], pose_to_matrix(poses[n].pose)) for n in CAMERA_NAMES
+        }
         score = score_rig(rig.cameras, cameras)
-        bounds = {'fx': 2e-3, 'fy': 2e-3, 'cx': 2.0, 'cy': 2.0, 'baseline': 2e-3,
-                  'position': 2e-3, 'rotation': 0.1, 'rect_rows': 0.1}
+        bounds = {
+            'fx': 2e-3,
+            'fy': 2e-3,
+            'cx': 2.0,
+            'cy': 2.0,
+            'baseline': 2e-3,
+            'position': 2e-3,
+            'rotation': 0.1,
+            'rect_rows': 0.1,
+        }
         for figure, bound in bounds.items():
             assert score[figure] < bound, (label, figure, score, rig.params)
         if absolute:  # the stage places every camera in base_link itself

@@ -7,6 +7,7 @@ that a latched camera pose published before the client connected still reaches i
 /tf carries base_link -> camera and tool0 transforms equal to the poses, that a bad tool
 pose is rejected without stopping the node, and that an unusable port is one line.
 """
+
 import socket
 
 import numpy as np
@@ -40,28 +41,60 @@ LEFT = '/stereo/left/image_raw'
 def _tool_pose(position, quaternion):
     msg = PoseStamped(header=make_header(123_000_000_456, 'base_link'))
     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = position
-    (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
-     msg.pose.orientation.w) = quaternion
+    (
+        msg.pose.orientation.x,
+        msg.pose.orientation.y,
+        msg.pose.orientation.z,
+        msg.pose.orientation.w,
+    ) = quaternion
     return msg
 
 
 def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_path):
-    live_view = spawn([executable('live_view'), '--ros-args', '-p', 'port:=0',
-                       '-p', 'exclude:=[/parameter_events]'])
+    live_view = spawn(
+        [
+            executable('live_view'),
+            '--ros-args',
+            '-p',
+            'port:=0',
+            '-p',
+            'exclude:=[/parameter_events]',
+        ]
+    )
     url = wait_for(lambda: live_view_url(live_view.output()), 30, 'live_view to listen')
     assert url.startswith('ws://127.0.0.1:')  # loopback unless told otherwise
     truth = tmp_path / 'truth'
-    spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default', '-p', 'rate:=5.0',
-           '-p', f'ground_truth_dir:={truth}', '-p', 'calibration_phase:=false'])
+    spawn(
+        [
+            executable('sensor_sim'),
+            '--ros-args',
+            '-p',
+            'scenario:=default',
+            '-p',
+            'rate:=5.0',
+            '-p',
+            f'ground_truth_dir:={truth}',
+            '-p',
+            'calibration_phase:=false',
+        ]
+    )
     calibration = truth / 'true_calibration' / 'calibration.yaml'
     # the ground truth files are written one after another: wait for the last one
-    wait_for(lambda: calibration.exists() and (truth / 'depth_aux.npy').exists(), 60,
-             'sensor_sim ground truth')
+    wait_for(
+        lambda: calibration.exists() and (truth / 'depth_aux.npy').exists(),
+        60,
+        'sensor_sim ground truth',
+    )
     # The rig as calib_node publishes it: latched, before any viewer connects.
     rig_publishers, rig = publish_rig(rclpy_node, calibration)
     raw_left = {}  # stamp -> the CDR bytes a plain ROS subscriber receives
-    rclpy_node.create_subscription(Image, LEFT, lambda data: raw_left.setdefault(
-        header_stamp_ns(data), data), DEFAULT_QOS, raw=True)
+    rclpy_node.create_subscription(
+        Image,
+        LEFT,
+        lambda data: raw_left.setdefault(header_stamp_ns(data), data),
+        DEFAULT_QOS,
+        raw=True,
+    )
     tool_pose = rclpy_node.create_publisher(PoseStamped, '/tool_pose', DEFAULT_QOS)
     rclpy_node.spin_until(lambda: raw_left, 60, 'a left image')
 
@@ -72,16 +105,22 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
         assert client.server_info['name'] == 'vgm live_view'
         for topic, schema_name in EXPECTED.items():
             channel = channels[topic]
-            assert (channel['schemaName'], channel['encoding'], channel['schemaEncoding']) == \
-                (schema_name, 'cdr', 'ros2msg'), topic
+            assert (channel['schemaName'], channel['encoding'], channel['schemaEncoding']) == (
+                schema_name,
+                'cdr',
+                'ros2msg',
+            ), topic
             assert channel['schema'] == full_definition(schema_name), topic  # as bags carry
-        assert (channels['/tf']['schemaName'], channels['/tf']['encoding']) == \
-            ('foxglove.FrameTransforms', 'protobuf')
+        assert (channels['/tf']['schemaName'], channels['/tf']['encoding']) == (
+            'foxglove.FrameTransforms',
+            'protobuf',
+        )
         assert '/parameter_events' not in channels  # exclude
 
         client.subscribe([LEFT, '/joint_states', '/tf', POSE_TOPICS['left']])
         received = {}
         transforms = {}
+
         # The camera transforms come on subscribing to /tf (they were latched before).
         def record(topic, log_time_ns, payload):
             received.setdefault(topic, payload)
@@ -93,15 +132,21 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
         # Now that /tf is watched: a bad pose is rejected (the node keeps serving), a good
         # one becomes tool0.
         tool_pose.publish(_tool_pose((0.1, 0.2, 0.3), (0.0, 0.0, 0.0, 2.0)))
-        wait_for(lambda: 'rejected /tool_pose' in live_view.output(), 30,
-                 'the bad tool pose to be rejected')
+        wait_for(
+            lambda: 'rejected /tool_pose' in live_view.output(),
+            30,
+            'the bad tool pose to be rejected',
+        )
         good_tool = _tool_pose((0.4, -0.2, 0.55), (0.0, 0.0, np.sin(0.3), np.cos(0.3)))
         tool_pose.publish(good_tool)
 
         def collect(topic, log_time_ns, payload):
             record(topic, log_time_ns, payload)
-            return set(received) == {LEFT, '/joint_states', '/tf', POSE_TOPICS['left']} and \
-                {OPTICAL_FRAMES['left'], OPTICAL_FRAMES['aux'], 'tool0'} <= set(transforms)
+            return set(received) == {LEFT, '/joint_states', '/tf', POSE_TOPICS['left']} and {
+                OPTICAL_FRAMES['left'],
+                OPTICAL_FRAMES['aux'],
+                'tool0',
+            } <= set(transforms)
 
         client.receive_until(collect, 60, 'an image, a joint state, the latched pose and /tf')
     finally:
@@ -114,8 +159,9 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
     assert pixels.size == 640 * 480 and pixels.std() > 5.0  # a rendered scene, not a blank
     # Forwarded unchanged: the same bytes a ROS subscriber got for that capture.
     stamp = header_stamp_ns(received[LEFT])
-    rclpy_node.spin_until(lambda: stamp in raw_left or max(raw_left) > stamp, 30,
-                          'the probe to see the same capture')
+    rclpy_node.spin_until(
+        lambda: stamp in raw_left or max(raw_left) > stamp, 30, 'the probe to see the same capture'
+    )
     assert bytes(received[LEFT]) == bytes(raw_left[stamp])
 
     joints = deserialize_message(received['/joint_states'], JointState)
@@ -123,18 +169,17 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
     assert len(joints.position) == 7 and np.all(np.isfinite(joints.position))
 
     pose = deserialize_message(received[POSE_TOPICS['left']], PoseStamped)
-    np.testing.assert_allclose(pose_to_matrix(pose.pose), rig['left'][0].T_base_camera,
-                               atol=1e-9)
+    np.testing.assert_allclose(pose_to_matrix(pose.pose), rig['left'][0].T_base_camera, atol=1e-9)
     for name in ('left', 'aux'):
         transform = transforms[OPTICAL_FRAMES[name]]
         assert transform['parent'] == 'base_link'
-        np.testing.assert_allclose(transform['translation'],
-                                   rig[name][0].T_base_camera[:3, 3], atol=1e-9)
+        np.testing.assert_allclose(
+            transform['translation'], rig[name][0].T_base_camera[:3, 3], atol=1e-9
+        )
     tool = transforms['tool0']
     assert tool['parent'] == 'base_link'
     np.testing.assert_allclose(tool['translation'], (0.4, -0.2, 0.55), atol=1e-12)
-    np.testing.assert_allclose(tool['rotation'], (0.0, 0.0, np.sin(0.3), np.cos(0.3)),
-                               atol=1e-12)
+    np.testing.assert_allclose(tool['rotation'], (0.0, 0.0, np.sin(0.3), np.cos(0.3)), atol=1e-12)
     assert live_view.alive()
     assert live_view.stop() == 0
     assert rig_publishers  # kept alive until here: latched values stay offered

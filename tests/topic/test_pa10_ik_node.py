@@ -1,5 +1,6 @@
 """Topic level, real processes: pa10_ik_node closes the loop with sensor_sim's arm and
 pressure sensor along a piece of the true curve on S3, and rejects bad input."""
+
 import time
 import zipfile
 
@@ -64,12 +65,15 @@ class Probe:
         self.node = node
         self.poses, self.pressures, self.diagnostics, self.commands = [], [], [], []
         node.create_subscription(PoseStamped, '/tool_pose', self.poses.append, DEFAULT_QOS)
-        node.create_subscription(WrenchStamped, '/tool/pressure', self.pressures.append,
-                                 DEFAULT_QOS)
-        node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
-                                 DEFAULT_QOS)
-        node.create_subscription(JointTrajectory, '/pa10_controller/joint_trajectory',
-                                 self.commands.append, DEFAULT_QOS)
+        node.create_subscription(
+            WrenchStamped, '/tool/pressure', self.pressures.append, DEFAULT_QOS
+        )
+        node.create_subscription(
+            DiagnosticArray, '/diagnostics', self._on_diagnostics, DEFAULT_QOS
+        )
+        node.create_subscription(
+            JointTrajectory, '/pa10_controller/joint_trajectory', self.commands.append, DEFAULT_QOS
+        )
         self.path_publisher = node.create_publisher(Path, '/curve/waypoints', LATCHED_QOS)
         self.tracking = []  # (stamp_ns, {key: value}) of 'tracking' statuses
         self.rejected = []  # (name, message)
@@ -77,9 +81,13 @@ class Probe:
     def _on_diagnostics(self, msg):
         for status in msg.status:
             if status.name == 'pa10_ik_node: tracking':
-                self.tracking.append((stamp_to_ns(msg.header.stamp),
-                                      {kv.key: kv.value for kv in status.values},
-                                      status.message))
+                self.tracking.append(
+                    (
+                        stamp_to_ns(msg.header.stamp),
+                        {kv.key: kv.value for kv in status.values},
+                        status.message,
+                    )
+                )
             elif 'rejected' in status.name:
                 self.rejected.append((status.name, status.message))
 
@@ -98,17 +106,38 @@ class Probe:
 
 
 def start_node(spawn, *extra):
-    return spawn([executable('pa10_ik_node'), '--ros-args', '-p', 'tool_length:=0.1',
-                  '-p', f'desired_force:={DESIRED_FORCE}', '-p', f'speed:={SPEED}', *extra])
+    return spawn(
+        [
+            executable('pa10_ik_node'),
+            '--ros-args',
+            '-p',
+            'tool_length:=0.1',
+            '-p',
+            f'desired_force:={DESIRED_FORCE}',
+            '-p',
+            f'speed:={SPEED}',
+            *extra,
+        ]
+    )
 
 
 @pytest.mark.parametrize('force_law', ['integral', 'tilt'])
-def test_tracks_a_piece_of_the_true_curve_on_s3_with_force(spawn, rclpy_node, tmp_path,
-                                                           force_law):
+def test_tracks_a_piece_of_the_true_curve_on_s3_with_force(spawn, rclpy_node, tmp_path, force_law):
     scenario = load_scenario(SCENARIO)
-    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', f'scenario:={SCENARIO}',
-                 '-p', 'calibration_phase:=false', '-p', 'rate:=2',
-                 '-p', f'ground_truth_dir:={tmp_path}'])
+    sim = spawn(
+        [
+            executable('sensor_sim'),
+            '--ros-args',
+            '-p',
+            f'scenario:={SCENARIO}',
+            '-p',
+            'calibration_phase:=false',
+            '-p',
+            'rate:=2',
+            '-p',
+            f'ground_truth_dir:={tmp_path}',
+        ]
+    )
     node = start_node(spawn, '-p', f'force_law:={force_law}')
     probe = Probe(rclpy_node)
     curves = {}
@@ -125,27 +154,41 @@ def test_tracks_a_piece_of_the_true_curve_on_s3_with_force(spawn, rclpy_node, tm
     curve = curves['arr_0']  # (2000, 3) closed loop [m]
     piece = curve[:120]  # about 4.4 cm of the loop, from its start
     waypoints = waypoints_along(piece[::5], scenario.surface)
-    probe.path_publisher.publish(matrices_to_path(waypoints, Clock().now().nanoseconds,
-                                                  'base_link'))
-    rclpy_node.spin_until(lambda: len(probe.poses) > 10 and len(probe.pressures) > 10, 60,
-                          'tool poses and pressure')
+    probe.path_publisher.publish(
+        matrices_to_path(waypoints, Clock().now().nanoseconds, 'base_link')
+    )
+    rclpy_node.spin_until(
+        lambda: len(probe.poses) > 10 and len(probe.pressures) > 10, 60, 'tool poses and pressure'
+    )
     response = probe.call('start_tracking')
     assert response.success, response.message
     rclpy_node.spin_until(lambda: probe.phase() == 'done', 90, 'phase done')
 
     started, ended = probe.first_stamp('tracking'), probe.first_stamp('done')
-    tips = np.array([pose_to_matrix(p.pose)[:3, 3] for p in probe.poses
-                     if started <= stamp_to_ns(p.header.stamp) <= ended])
-    forces = np.array([w.wrench.force.z for w in probe.pressures
-                       if started <= stamp_to_ns(w.header.stamp) <= ended])
+    tips = np.array(
+        [
+            pose_to_matrix(p.pose)[:3, 3]
+            for p in probe.poses
+            if started <= stamp_to_ns(p.header.stamp) <= ended
+        ]
+    )
+    forces = np.array(
+        [
+            w.wrench.force.z
+            for w in probe.pressures
+            if started <= stamp_to_ns(w.header.stamp) <= ended
+        ]
+    )
     approach = -normal_base(scenario.surface, piece)
     errors = np.array([lateral_distance(tip, piece, approach) for tip in tips])
-    rms, worst = np.sqrt(np.mean(errors ** 2)), errors.max()
+    rms, worst = np.sqrt(np.mean(errors**2)), errors.max()
     along = np.linalg.norm(tips[-1] - piece[-1])
-    print(f'{force_law}: {len(tips)} tool poses while tracking: lateral RMS '
-          f'{rms * 1e3:.3f} mm, max '
-          f'{worst * 1e3:.3f} mm; force {forces.min():.3f}..{forces.max():.3f} N; end '
-          f'{along * 1e3:.2f} mm from the last point')
+    print(
+        f'{force_law}: {len(tips)} tool poses while tracking: lateral RMS '
+        f'{rms * 1e3:.3f} mm, max '
+        f'{worst * 1e3:.3f} mm; force {forces.min():.3f}..{forces.max():.3f} N; end '
+        f'{along * 1e3:.2f} mm from the last point'
+    )
     assert len(tips) > 50 and len(forces) > 100
     assert rms < 1e-3 and worst < 3e-3
     assert np.all(np.abs(forces - DESIRED_FORCE) < 0.1 * DESIRED_FORCE)
@@ -163,17 +206,18 @@ class FakeArm:
         self.node, self.q, self.names = node, list(q), list(names)
         self.pressure_on = True
         self.joint_publisher = node.create_publisher(JointState, '/joint_states', DEFAULT_QOS)
-        self.pressure_publisher = node.create_publisher(WrenchStamped, '/tool/pressure',
-                                                        DEFAULT_QOS)
+        self.pressure_publisher = node.create_publisher(
+            WrenchStamped, '/tool/pressure', DEFAULT_QOS
+        )
         node.create_timer(0.01, self._tick)
 
     def _tick(self):
         stamp_ns = Clock().now().nanoseconds
-        self.joint_publisher.publish(JointState(header=make_header(stamp_ns, 'base_link'),
-                                                name=self.names, position=self.q))
+        self.joint_publisher.publish(
+            JointState(header=make_header(stamp_ns, 'base_link'), name=self.names, position=self.q)
+        )
         if self.pressure_on:
-            self.pressure_publisher.publish(WrenchStamped(header=make_header(stamp_ns,
-                                                                             'tool0')))
+            self.pressure_publisher.publish(WrenchStamped(header=make_header(stamp_ns, 'tool0')))
 
 
 @pytest.fixture
@@ -210,18 +254,25 @@ def test_bad_paths_and_joint_states_are_rejected(fake_loop, rclpy_node):
     for what, msg in bad_paths.items():
         seen = len(probe.rejected)
         probe.path_publisher.publish(msg)
-        rclpy_node.spin_until(lambda seen=seen: any('/curve/waypoints' in name
-                                                    for name, _ in probe.rejected[seen:]),
-                              20, f'a diagnostic rejecting the {what} path')
+        rclpy_node.spin_until(
+            lambda seen=seen: any('/curve/waypoints' in name for name, _ in probe.rejected[seen:]),
+            20,
+            f'a diagnostic rejecting the {what} path',
+        )
     response = probe.call('start_tracking')  # nothing valid to follow
     assert not response.success and 'waypoints' in response.message
     rclpy_node.spin_until(lambda: probe.tracking, 20, 'tracking diagnostics')
     assert probe.phase() == 'idle'
 
     arm.names = [f'joint_{i}' for i in range(7)]
-    rclpy_node.spin_until(lambda: any('/joint_states' in name and 'unknown joint' in message
-                                      for name, message in probe.rejected),
-                          20, 'a diagnostic rejecting unknown joint names')
+    rclpy_node.spin_until(
+        lambda: any(
+            '/joint_states' in name and 'unknown joint' in message
+            for name, message in probe.rejected
+        ),
+        20,
+        'a diagnostic rejecting unknown joint names',
+    )
     assert node.alive() and 'Traceback' not in node.output()
 
 
@@ -235,8 +286,11 @@ def test_unreachable_waypoints_fail_clearly_and_the_arm_holds(fake_loop, rclpy_n
     status = probe.tracking[-1]
     assert 'beyond the reach' in status[2]
     # The hold command may arrive just after the diagnostic (another topic).
-    rclpy_node.spin_until(lambda: probe.commands and not np.any(
-        probe.commands[-1].points[0].velocities), 10, 'a zero-velocity hold command')
+    rclpy_node.spin_until(
+        lambda: probe.commands and not np.any(probe.commands[-1].points[0].velocities),
+        10,
+        'a zero-velocity hold command',
+    )
     hold = probe.commands[-1].points[0]
     np.testing.assert_allclose(hold.positions, scenario.robot.initial_joints, atol=1e-12)
     assert node.alive() and 'Traceback' not in node.output()
@@ -248,15 +302,19 @@ def test_stale_pressure_stops_the_arm(fake_loop, rclpy_node):
     rclpy_node.spin_until(lambda: 'waypoints' in node.output(), 20, 'the path taken')
     response = probe.call('start_tracking')
     assert response.success, response.message
-    rclpy_node.spin_until(lambda: probe.phase() == 'approach' and len(probe.commands) > 20,
-                          20, 'approach commands')
+    rclpy_node.spin_until(
+        lambda: probe.phase() == 'approach' and len(probe.commands) > 20, 20, 'approach commands'
+    )
     moving = probe.commands[-1].points[0]
     assert np.max(np.abs(moving.velocities)) > 1e-3  # it was heading for the surface
     arm.pressure_on = False
     rclpy_node.spin_until(lambda: probe.phase() == 'stopped', 20, 'phase stopped')
     assert 'stale pressure' in probe.tracking[-1][2]
-    rclpy_node.spin_until(lambda: not np.any(probe.commands[-1].points[0].velocities), 10,
-                          'a zero-velocity hold command')
+    rclpy_node.spin_until(
+        lambda: not np.any(probe.commands[-1].points[0].velocities),
+        10,
+        'a zero-velocity hold command',
+    )
     count = len(probe.commands)
     hold = probe.commands[-1].points[0]
     np.testing.assert_allclose(hold.positions, scenario.robot.initial_joints, atol=1e-12)
@@ -290,20 +348,29 @@ def test_failure_stop_start_failure_stop_keeps_serving(spawn, rclpy_node):
         rclpy_node.spin_until(lambda: probe.phase() == 'stopped', 20, 'phase stopped')
         probe.path_publisher.publish(path_message(far))
         taken = 2 * attempt
-        rclpy_node.spin_until(lambda n=taken + 1: node.output().count('waypoints: 11 poses')
-                              >= n, 20, 'the far path taken')
+        rclpy_node.spin_until(
+            lambda n=taken + 1: node.output().count('waypoints: 11 poses') >= n,
+            20,
+            'the far path taken',
+        )
         response = probe.call('start_tracking')
         assert not response.success and 'unreachable' in response.message
         rclpy_node.spin_until(lambda: probe.phase() == 'failed', 20, 'phase failed')
         assert probe.call('stop').success
         probe.path_publisher.publish(path_message(near))
-        rclpy_node.spin_until(lambda n=taken + 2: node.output().count('waypoints: 11 poses')
-                              >= n, 20, 'the near path taken')
+        rclpy_node.spin_until(
+            lambda n=taken + 2: node.output().count('waypoints: 11 poses') >= n,
+            20,
+            'the near path taken',
+        )
         response = probe.call('start_tracking')
         assert response.success, response.message
         # The fake arm never moves: no progress towards the pre-contact pose.
-        rclpy_node.spin_until(lambda: probe.phase() == 'failed' and 'pre-contact' in
-                              probe.tracking[-1][2], 30, 'phase failed on no progress')
+        rclpy_node.spin_until(
+            lambda: probe.phase() == 'failed' and 'pre-contact' in probe.tracking[-1][2],
+            30,
+            'phase failed on no progress',
+        )
         assert get_parameter(rclpy_node, 'desired_force').double_value == DESIRED_FORCE
     log = node.output()
     assert log.count('phase failed: unreachable') == 2
@@ -319,9 +386,14 @@ def test_path_along_its_approach_axis_is_rejected(fake_loop, rclpy_node):
     waypoints = np.tile(np.eye(4), (41, 1, 1))
     waypoints[:, :3, 3] = [(0.6, 0.0, 0.30 - 0.001 * i) for i in range(41)]
     probe.path_publisher.publish(path_message(waypoints))
-    rclpy_node.spin_until(lambda: any('/curve/waypoints' in name and 'approach axis' in
-                                      message for name, message in probe.rejected),
-                          20, 'a diagnostic rejecting the path')
+    rclpy_node.spin_until(
+        lambda: any(
+            '/curve/waypoints' in name and 'approach axis' in message
+            for name, message in probe.rejected
+        ),
+        20,
+        'a diagnostic rejecting the path',
+    )
     response = probe.call('start_tracking')
     assert not response.success and 'waypoints' in response.message
     assert get_parameter(rclpy_node, 'speed').double_value == SPEED
@@ -338,21 +410,29 @@ def test_implausible_joint_states_and_pressures_are_rejected(fake_loop, rclpy_no
     q = list(scenario.robot.initial_joints)
     duplicate = JointState(name=list(JOINT_NAMES[:6]) + [JOINT_NAMES[0]], position=q)
     huge = JointState(name=list(JOINT_NAMES), position=q[:3] + [1e300] + q[4:])
-    cases = [(joints, duplicate, '/joint_states', 'duplicate joint names'),
-             (joints, huge, '/joint_states', 'outside its limits')]
-    for force, frame, text in ((1e308, 'tool0', 'sanity bound'),
-                               (-1e308, 'tool0', 'sanity bound'), (5.0, '', 'frame')):
+    cases = [
+        (joints, duplicate, '/joint_states', 'duplicate joint names'),
+        (joints, huge, '/joint_states', 'outside its limits'),
+    ]
+    for force, frame, text in (
+        (1e308, 'tool0', 'sanity bound'),
+        (-1e308, 'tool0', 'sanity bound'),
+        (5.0, '', 'frame'),
+    ):
         wrench = WrenchStamped(header=make_header(0, frame))
         wrench.wrench.force.z = force
         cases.append((pressures, wrench, '/tool/pressure', text))
     for publisher, msg, topic, text in cases:
         seen = len(probe.rejected)
-        rclpy_node.spin_until(lambda p=publisher: p.get_subscription_count() > 0, 20,
-                              'matched')
+        rclpy_node.spin_until(lambda p=publisher: p.get_subscription_count() > 0, 20, 'matched')
         publisher.publish(msg)
-        rclpy_node.spin_until(lambda seen=seen, topic=topic, text=text: any(
-            topic in name and text in message for name, message in probe.rejected[seen:]),
-            20, f'a diagnostic rejecting {text} on {topic}')
+        rclpy_node.spin_until(
+            lambda seen=seen, topic=topic, text=text: any(
+                topic in name and text in message for name, message in probe.rejected[seen:]
+            ),
+            20,
+            f'a diagnostic rejecting {text} on {topic}',
+        )
     # Still the good state: the tool pose of the start joints.
     count = len(probe.poses)
     rclpy_node.spin_until(lambda: len(probe.poses) > count + 5, 20, 'more tool poses')
@@ -361,13 +441,11 @@ def test_implausible_joint_states_and_pressures_are_rejected(fake_loop, rclpy_no
     np.testing.assert_allclose(tip, expected, atol=1e-9)
     log = node.output()
     assert log.count('rejected /tool/pressure') <= 2  # throttled: one line per 2 s
-    assert 'rejected /joint_states: duplicate joint names' in log or \
-        'outside its limits' in log
+    assert 'rejected /joint_states: duplicate joint names' in log or 'outside its limits' in log
     assert node.alive() and 'Traceback' not in log
 
 
-def test_an_exception_in_the_control_step_stops_the_arm_and_the_node_serves(ros_env,
-                                                                           monkeypatch):
+def test_an_exception_in_the_control_step_stops_the_arm_and_the_node_serves(ros_env, monkeypatch):
     """No exception escapes a timer: a solver blowing up mid-task (here a non-finite
     Jacobian raised as a RuntimeError) fails the task, holds the arm, and the next
     start works. In process, calling the real node's callbacks."""
@@ -418,49 +496,101 @@ def arm_on_a_tilted_plane(tmp_path, arm, tilt_deg, shape, seed):
     urdf.write_text(arm.urdf)
     robot = load_robot(str(urdf))
     rng = np.random.default_rng(seed)
-    surface = task_generator.posed_surface('plane', robot, arm.start_joints,
-                                           np.radians(tilt_deg), rng)
+    surface = task_generator.posed_surface(
+        'plane', robot, arm.start_joints, np.radians(tilt_deg), rng
+    )
     xy, closed = task_generator.path_xy_m(shape, rng)
     waypoints = task_generator.surface_waypoints(surface, xy, closed)
     path_base = surface_points_base(surface, xy / surface.scale)
     data = yaml.safe_load(SCENARIO.read_text())
     T = surface.T_base_surface
     # The default scenario's curve (drawn, not tracked here) needs +-0.5 m of plane.
-    data['surface'] = {'type': 'plane', 'scale': 1.0, 'extent': [[-0.5, 0.5], [-0.5, 0.5]],
-                       'pose': {'xyz': T[:3, 3].tolist(), 'quaternion':
-                                Rotation.from_matrix(T[:3, :3]).as_quat().tolist()},
-                       'albedo': 0.8, 'roughness': 0.3}
-    data['robot'] = {'model': urdf.name, 'initial_joints': arm.start_joints.tolist(),
-                     'tool_length': 0.0}
+    data['surface'] = {
+        'type': 'plane',
+        'scale': 1.0,
+        'extent': [[-0.5, 0.5], [-0.5, 0.5]],
+        'pose': {
+            'xyz': T[:3, 3].tolist(),
+            'quaternion': Rotation.from_matrix(T[:3, :3]).as_quat().tolist(),
+        },
+        'albedo': 0.8,
+        'roughness': 0.3,
+    }
+    data['robot'] = {
+        'model': urdf.name,
+        'initial_joints': arm.start_joints.tolist(),
+        'tool_length': 0.0,
+    }
     scenario_path = tmp_path / 'scenario.yaml'
     scenario_path.write_text(yaml.safe_dump(data))
     return scenario_path, load_scenario(scenario_path), waypoints, path_base
 
 
-def track_over_topics(spawn, rclpy_node, scenario_path, scenario, waypoints, sim_args=(),
-                      node_args=()):
+def track_over_topics(
+    spawn, rclpy_node, scenario_path, scenario, waypoints, sim_args=(), node_args=()
+):
     """sensor_sim on the scenario and pa10_ik_node on its arm, one run to done; returns
     (tool tips while tracking (K, 3), forces while tracking (F,), node)."""
-    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', f'scenario:={scenario_path}',
-                 '-p', 'calibration_phase:=false', '-p', 'rate:=1', *sim_args])
-    node = spawn([executable('pa10_ik_node'), '--ros-args', '-p',
-                  f'robot:={scenario.robot.model}', '-p', 'tool_length:=0.0',
-                  '-p', f'desired_force:={DESIRED_FORCE}', '-p', f'speed:={SPEED}',
-                  '-p', f'contact_stiffness:={scenario.contact_stiffness}', *node_args])
+    sim = spawn(
+        [
+            executable('sensor_sim'),
+            '--ros-args',
+            '-p',
+            f'scenario:={scenario_path}',
+            '-p',
+            'calibration_phase:=false',
+            '-p',
+            'rate:=1',
+            *sim_args,
+        ]
+    )
+    node = spawn(
+        [
+            executable('pa10_ik_node'),
+            '--ros-args',
+            '-p',
+            f'robot:={scenario.robot.model}',
+            '-p',
+            'tool_length:=0.0',
+            '-p',
+            f'desired_force:={DESIRED_FORCE}',
+            '-p',
+            f'speed:={SPEED}',
+            '-p',
+            f'contact_stiffness:={scenario.contact_stiffness}',
+            *node_args,
+        ]
+    )
     probe = Probe(rclpy_node)
     probe.path_publisher.publish(path_message(waypoints))
-    rclpy_node.spin_until(lambda: len(probe.poses) > 10 and len(probe.pressures) > 10 and
-                          'waypoints:' in node.output(), 60, 'tool poses, pressure, path')
+    rclpy_node.spin_until(
+        lambda: len(probe.poses) > 10
+        and len(probe.pressures) > 10
+        and 'waypoints:' in node.output(),
+        60,
+        'tool poses, pressure, path',
+    )
     response = probe.call('start_tracking')
     assert response.success, response.message
-    rclpy_node.spin_until(lambda: probe.phase() == 'done' or probe.phase() == 'failed',
-                          180, 'phase done')
+    rclpy_node.spin_until(
+        lambda: probe.phase() == 'done' or probe.phase() == 'failed', 180, 'phase done'
+    )
     assert probe.phase() == 'done', probe.tracking[-1][2]
     started, ended = probe.first_stamp('tracking'), probe.first_stamp('done')
-    tips = np.array([pose_to_matrix(p.pose)[:3, 3] for p in probe.poses
-                     if started <= stamp_to_ns(p.header.stamp) <= ended])
-    forces = np.array([w.wrench.force.z for w in probe.pressures
-                       if started <= stamp_to_ns(w.header.stamp) <= ended])
+    tips = np.array(
+        [
+            pose_to_matrix(p.pose)[:3, 3]
+            for p in probe.poses
+            if started <= stamp_to_ns(p.header.stamp) <= ended
+        ]
+    )
+    forces = np.array(
+        [
+            w.wrench.force.z
+            for w in probe.pressures
+            if started <= stamp_to_ns(w.header.stamp) <= ended
+        ]
+    )
     assert 'Traceback' not in node.output() + sim.output()
     return tips, forces, node
 
@@ -470,11 +600,13 @@ def check_goals(tips, forces, scenario, path_base, what, rms_max, passed_min, p9
     3 %; over topics on a loaded 2-core machine the tests allow what it reliably gives:
     see README)."""
     distances, passed = task_generator.path_errors(tips, scenario.surface, path_base)
-    rms = float(np.sqrt(np.mean(distances ** 2)))
+    rms = float(np.sqrt(np.mean(distances**2)))
     p95 = float(np.percentile(np.abs(forces - DESIRED_FORCE), 95)) / DESIRED_FORCE
-    print(f'{what}: {len(tips)} tool poses while tracking, RMS {rms * 1e3:.4f} mm, max '
-          f'{distances.max() * 1e3:.4f} mm, passed {passed * 100:.1f} %, force p95 error '
-          f'{p95 * 100:.2f} %')
+    print(
+        f'{what}: {len(tips)} tool poses while tracking, RMS {rms * 1e3:.4f} mm, max '
+        f'{distances.max() * 1e3:.4f} mm, passed {passed * 100:.1f} %, force p95 error '
+        f'{p95 * 100:.2f} %'
+    )
     assert len(tips) > 50 and len(forces) > 100
     assert rms < rms_max and passed > passed_min and p95 < p95_max
 
@@ -482,32 +614,54 @@ def check_goals(tips, forces, scenario, path_base, what, rms_max, passed_min, p9
 def test_random_pa10_like_arm_tracks_on_a_35_degree_plane(spawn, rclpy_node, tmp_path):
     arm = task_generator.random_pa10_like_arm(np.random.default_rng(1))
     scenario_path, scenario, waypoints, path_base = arm_on_a_tilted_plane(
-        tmp_path, arm, 35.0, 'arc', seed=5)
-    tips, forces, _ = track_over_topics(spawn, rclpy_node, scenario_path, scenario,
-                                        waypoints)
-    check_goals(tips, forces, scenario, path_base, arm.description, rms_max=0.5e-3,
-                passed_min=0.99, p95_max=0.05)
+        tmp_path, arm, 35.0, 'arc', seed=5
+    )
+    tips, forces, _ = track_over_topics(spawn, rclpy_node, scenario_path, scenario, waypoints)
+    check_goals(
+        tips,
+        forces,
+        scenario,
+        path_base,
+        arm.description,
+        rms_max=0.5e-3,
+        passed_min=0.99,
+        p95_max=0.05,
+    )
 
 
-def test_panda_following_only_velocities_tracks_on_a_30_degree_plane(spawn, rclpy_node,
-                                                                     tmp_path):
+def test_panda_following_only_velocities_tracks_on_a_30_degree_plane(spawn, rclpy_node, tmp_path):
     arm = task_generator.panda_arm()
     scenario_path, scenario, waypoints, path_base = arm_on_a_tilted_plane(
-        tmp_path, arm, 30.0, 'arc', seed=6)
-    tips, forces, node = track_over_topics(spawn, rclpy_node, scenario_path, scenario,
-                                           waypoints, ('-p', 'arm_mode:=velocity'))
-    check_goals(tips, forces, scenario, path_base, 'Panda, velocity arm', rms_max=1e-3,
-                passed_min=0.95, p95_max=0.1)
+        tmp_path, arm, 30.0, 'arc', seed=6
+    )
+    tips, forces, node = track_over_topics(
+        spawn, rclpy_node, scenario_path, scenario, waypoints, ('-p', 'arm_mode:=velocity')
+    )
+    check_goals(
+        tips,
+        forces,
+        scenario,
+        path_base,
+        'Panda, velocity arm',
+        rms_max=1e-3,
+        passed_min=0.95,
+        p95_max=0.1,
+    )
 
 
-@pytest.mark.parametrize('edit, message', [
-    (('tool0', 'flange', 2), "no frame 'tool0'"),
-    (('name="pa10_joint7" type="revolute"', 'name="pa10_joint7" type="fixed"'),
-     '6 joints move'),
-])
-def test_a_urdf_that_is_no_7_dof_arm_with_tool0_is_a_clear_start_up_error(spawn,
-                                                                          tmp_path, edit,
-                                                                          message):
+@pytest.mark.parametrize(
+    'edit, message',
+    [
+        (('tool0', 'flange', 2), "no frame 'tool0'"),
+        (
+            ('name="pa10_joint7" type="revolute"', 'name="pa10_joint7" type="fixed"'),
+            '6 joints move',
+        ),
+    ],
+)
+def test_a_urdf_that_is_no_7_dof_arm_with_tool0_is_a_clear_start_up_error(
+    spawn, tmp_path, edit, message
+):
     from vgm_common.robot_model import pa10_urdf
 
     urdf = tmp_path / 'arm.urdf'

@@ -1,5 +1,6 @@
 """Topic level, real processes: sensor_sim's arm and pressure sensor over topics, and
 its handling of bad input (malformed scenario, bad parameter, bad joint commands)."""
+
 import numpy as np
 import pytest
 import yaml
@@ -22,9 +23,10 @@ LOWERING_JOINT_STEP = np.array([0.0, 0.25, 0.0, 0.25, 0.0, 0.15, 0.0])  # [rad]
 
 
 def trajectory(names, q, seconds=0.0):
-    point = JointTrajectoryPoint(positions=[float(x) for x in q],
-                                 time_from_start=Duration(sec=int(seconds),
-                                                          nanosec=int(seconds % 1 * 1e9)))
+    point = JointTrajectoryPoint(
+        positions=[float(x) for x in q],
+        time_from_start=Duration(sec=int(seconds), nanosec=int(seconds % 1 * 1e9)),
+    )
     return JointTrajectory(joint_names=list(names), points=[point])
 
 
@@ -32,24 +34,39 @@ def pressing_configuration(scenario, penetration):
     """A joint vector whose tool tip is ``penetration`` [m] below the surface."""
     robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
     q_start = scenario.robot.initial_joints
-    return joint_vector_pressing(robot, scenario.surface, q_start,
-                                 q_start + LOWERING_JOINT_STEP, penetration)
+    return joint_vector_pressing(
+        robot, scenario.surface, q_start, q_start + LOWERING_JOINT_STEP, penetration
+    )
 
 
 @pytest.fixture
 def sim(spawn, rclpy_node):
-    process = spawn([executable('sensor_sim'), '--ros-args', '-p', f'scenario:={SCENARIO}',
-                     '-p', 'calibration_phase:=false', '-p', 'rate:=2'])
+    process = spawn(
+        [
+            executable('sensor_sim'),
+            '--ros-args',
+            '-p',
+            f'scenario:={SCENARIO}',
+            '-p',
+            'calibration_phase:=false',
+            '-p',
+            'rate:=2',
+        ]
+    )
     states, wrenches, diagnostics = [], [], []
     rclpy_node.create_subscription(JointState, '/joint_states', states.append, DEFAULT_QOS)
-    rclpy_node.create_subscription(WrenchStamped, '/tool/pressure', wrenches.append,
-                                   DEFAULT_QOS)
-    rclpy_node.create_subscription(DiagnosticArray, '/diagnostics', diagnostics.append,
-                                   DEFAULT_QOS)
-    publisher = rclpy_node.create_publisher(JointTrajectory,
-                                            '/pa10_controller/joint_trajectory', DEFAULT_QOS)
-    rclpy_node.spin_until(lambda: len(states) > 10 and publisher.get_subscription_count(),
-                          60, 'sensor_sim joint states')
+    rclpy_node.create_subscription(WrenchStamped, '/tool/pressure', wrenches.append, DEFAULT_QOS)
+    rclpy_node.create_subscription(
+        DiagnosticArray, '/diagnostics', diagnostics.append, DEFAULT_QOS
+    )
+    publisher = rclpy_node.create_publisher(
+        JointTrajectory, '/pa10_controller/joint_trajectory', DEFAULT_QOS
+    )
+    rclpy_node.spin_until(
+        lambda: len(states) > 10 and publisher.get_subscription_count(),
+        60,
+        'sensor_sim joint states',
+    )
     return process, publisher, states, wrenches, diagnostics
 
 
@@ -63,30 +80,44 @@ def test_arm_moves_to_a_pressing_pose_and_the_sensor_reads_the_force(sim, rclpy_
     order = [6, 2, 0, 4, 1, 5, 3]
     publisher.publish(trajectory([JOINT_NAMES[i] for i in order], q_goal[order], 1.0))
     rclpy_node.spin_until(
-        lambda: np.allclose(states[-1].position, q_goal, atol=1e-9), 30, 'the arm to arrive')
+        lambda: np.allclose(states[-1].position, q_goal, atol=1e-9), 30, 'the arm to arrive'
+    )
     arrived_ns = stamp_to_ns(states[-1].header.stamp)
-    rclpy_node.spin_until(lambda: len(wrenches) > 200 and stamp_to_ns(
-        wrenches[-200].header.stamp) > arrived_ns, 30, '200 pressure readings in place')
-    forces = np.array([w.wrench.force.z for w in wrenches
-                       if stamp_to_ns(w.header.stamp) > arrived_ns])
+    rclpy_node.spin_until(
+        lambda: len(wrenches) > 200 and stamp_to_ns(wrenches[-200].header.stamp) > arrived_ns,
+        30,
+        '200 pressure readings in place',
+    )
+    forces = np.array(
+        [w.wrench.force.z for w in wrenches if stamp_to_ns(w.header.stamp) > arrived_ns]
+    )
     sigma = scenario.noise.pressure_sigma
     expected = scenario.contact_stiffness * penetration  # [N]
     assert forces.mean() == pytest.approx(expected, abs=4 * sigma / np.sqrt(len(forces)) + 1e-3)
     assert forces.std() == pytest.approx(sigma, rel=0.25)
 
 
-@pytest.mark.parametrize('problem, names, q', [
-    ('unknown names', [f'joint_{i}' for i in range(7)], np.zeros(7)),
-    ('wrong length', list(JOINT_NAMES), np.zeros(6)),
-    ('NaN', list(JOINT_NAMES), np.array([0, 0, np.nan, 0, 0, 0, 0.0])),
-])
+@pytest.mark.parametrize(
+    'problem, names, q',
+    [
+        ('unknown names', [f'joint_{i}' for i in range(7)], np.zeros(7)),
+        ('wrong length', list(JOINT_NAMES), np.zeros(6)),
+        ('NaN', list(JOINT_NAMES), np.array([0, 0, np.nan, 0, 0, 0, 0.0])),
+    ],
+)
 def test_bad_joint_commands_are_rejected_and_the_arm_holds(sim, rclpy_node, problem, names, q):
     process, publisher, states, _, diagnostics = sim
     before = np.array(states[-1].position)
     publisher.publish(trajectory(names, q, 0.5))
-    rclpy_node.spin_until(lambda: any('rejected /pa10_controller/joint_trajectory' in s.name
-                                      for d in diagnostics for s in d.status),
-                          20, f'a diagnostic rejecting the {problem} command')
+    rclpy_node.spin_until(
+        lambda: any(
+            'rejected /pa10_controller/joint_trajectory' in s.name
+            for d in diagnostics
+            for s in d.status
+        ),
+        20,
+        f'a diagnostic rejecting the {problem} command',
+    )
     seen = len(states)
     rclpy_node.spin_until(lambda: len(states) > seen + 100, 20, 'more joint states')
     np.testing.assert_array_equal(states[-1].position, before)
@@ -100,21 +131,29 @@ def run_to_exit(spawn, argv, timeout=60):
     return process.proc.returncode, process.output()
 
 
-@pytest.mark.parametrize('edit, key', [
-    (lambda d: d['cameras']['left'].update(fx='abc'), 'cameras.left.fx'),
-    (lambda d: d['contact'].pop('stiffness'), 'contact.stiffness'),
-    (lambda d: d['surface'].update(type='torus'), 'surface.type'),
-    (lambda d: d['lighting'].update(intensity=float('nan')), 'lighting.intensity'),
-    (lambda d: d['cameras']['aux']['pose'].update(look_at=[0.4, 0.45, 2.0]), 'cameras.aux.pose'),
-])
-def test_malformed_scenario_fails_at_start_with_one_line_naming_the_key(spawn, tmp_path,
-                                                                        edit, key):
+@pytest.mark.parametrize(
+    'edit, key',
+    [
+        (lambda d: d['cameras']['left'].update(fx='abc'), 'cameras.left.fx'),
+        (lambda d: d['contact'].pop('stiffness'), 'contact.stiffness'),
+        (lambda d: d['surface'].update(type='torus'), 'surface.type'),
+        (lambda d: d['lighting'].update(intensity=float('nan')), 'lighting.intensity'),
+        (
+            lambda d: d['cameras']['aux']['pose'].update(look_at=[0.4, 0.45, 2.0]),
+            'cameras.aux.pose',
+        ),
+    ],
+)
+def test_malformed_scenario_fails_at_start_with_one_line_naming_the_key(
+    spawn, tmp_path, edit, key
+):
     data = yaml.safe_load(SCENARIO.read_text())
     edit(data)
     path = tmp_path / 'bad.yaml'
     path.write_text(yaml.safe_dump(data))
-    status, output = run_to_exit(spawn, [executable('sensor_sim'), '--ros-args',
-                                         '-p', f'scenario:={path}'])
+    status, output = run_to_exit(
+        spawn, [executable('sensor_sim'), '--ros-args', '-p', f'scenario:={path}']
+    )
     assert status == 2
     errors = [line for line in output.splitlines() if 'error' in line]
     assert len(errors) == 1 and key in errors[0], output
@@ -122,6 +161,7 @@ def test_malformed_scenario_fails_at_start_with_one_line_naming_the_key(spawn, t
 
 
 def test_parameter_of_the_wrong_kind_is_reported_in_one_line(spawn):
-    status, output = run_to_exit(spawn, [executable('sensor_sim'), '--ros-args',
-                                         '-p', 'rate:=fast'])
+    status, output = run_to_exit(
+        spawn, [executable('sensor_sim'), '--ros-args', '-p', 'rate:=fast']
+    )
     assert status == 2 and "'rate'" in output and 'Traceback' not in output

@@ -4,6 +4,7 @@ Checks topics, types, stamps and rates as a subscriber sees them, then that the 
 holds exactly what sensor_sim says it published, readable by two independent readers,
 with images byte-identical to the published ones.
 """
+
 from collections import defaultdict
 
 import numpy as np
@@ -20,36 +21,68 @@ from vgm_common.conversions import stamp_to_ns
 from vgm_common.node_tools import parse_published_counts
 from vgm_common.qos import DEFAULT_QOS
 
-IMAGE_TOPICS = {'/stereo/left/image_raw': 'stereo_left_optical_frame',
-                '/stereo/right/image_raw': 'stereo_right_optical_frame',
-                '/aux/image_raw': 'aux_optical_frame'}
+IMAGE_TOPICS = {
+    '/stereo/left/image_raw': 'stereo_left_optical_frame',
+    '/stereo/right/image_raw': 'stereo_right_optical_frame',
+    '/aux/image_raw': 'aux_optical_frame',
+}
 RATE_HZ = 10.0
 
 
 def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
     scenario = load_scenario(SCENARIO_DIR / 'default.yaml')
-    chart_captures = len(scenario.calibration.T_base_chart) * \
-        scenario.calibration.captures_per_pose
+    chart_captures = (
+        len(scenario.calibration.T_base_chart) * scenario.calibration.captures_per_pose
+    )
     received = defaultdict(list)
-    for topic, kind in [*[(t, Image) for t in IMAGE_TOPICS],
-                        ('/calibration/target_pose', PoseStamped),
-                        ('/joint_states', JointState), ('/tool/pressure', WrenchStamped)]:
-        rclpy_node.create_subscription(kind, topic, lambda m, t=topic: received[t].append(m),
-                                       DEFAULT_QOS)
+    for topic, kind in [
+        *[(t, Image) for t in IMAGE_TOPICS],
+        ('/calibration/target_pose', PoseStamped),
+        ('/joint_states', JointState),
+        ('/tool/pressure', WrenchStamped),
+    ]:
+        rclpy_node.create_subscription(
+            kind, topic, lambda m, t=topic: received[t].append(m), DEFAULT_QOS
+        )
 
     # Publishing waits until this probe matched every camera and the recorder every
     # stream. The recorder starts last, once the count alone is met: in CI a count met by
     # the pipeline before the recorder had started lost the first joint states and images.
-    sim = spawn([executable('sensor_sim'), '--ros-args', '-p', 'scenario:=default',
-                 '-p', 'min_subscribers:=1', '-p', 'wait_for_nodes:=[recorder]',
-                 '-p', f'rate:={RATE_HZ}', '-p', f'ground_truth_dir:={tmp_path / "truth"}'])
-    rclpy_node.spin_until(lambda: all(rclpy_node.count_publishers(t) for t in IMAGE_TOPICS),
-                          30, 'sensor_sim to advertise the cameras')
-    recorder = spawn([executable('bag_tools', 'recorder'), '--ros-args',
-                      '-p', f'output_dir:={tmp_path}', '-p', 'bag_name:=sim'])
+    sim = spawn(
+        [
+            executable('sensor_sim'),
+            '--ros-args',
+            '-p',
+            'scenario:=default',
+            '-p',
+            'min_subscribers:=1',
+            '-p',
+            'wait_for_nodes:=[recorder]',
+            '-p',
+            f'rate:={RATE_HZ}',
+            '-p',
+            f'ground_truth_dir:={tmp_path / "truth"}',
+        ]
+    )
+    rclpy_node.spin_until(
+        lambda: all(rclpy_node.count_publishers(t) for t in IMAGE_TOPICS),
+        30,
+        'sensor_sim to advertise the cameras',
+    )
+    recorder = spawn(
+        [
+            executable('bag_tools', 'recorder'),
+            '--ros-args',
+            '-p',
+            f'output_dir:={tmp_path}',
+            '-p',
+            'bag_name:=sim',
+        ]
+    )
     wanted = chart_captures + 10
-    rclpy_node.spin_until(lambda: len(received['/aux/image_raw']) >= wanted, 90,
-                          f'{wanted} captures')
+    rclpy_node.spin_until(
+        lambda: len(received['/aux/image_raw']) >= wanted, 90, f'{wanted} captures'
+    )
 
     # One stamp per capture: the three images share it.
     stamps = {t: [stamp_to_ns(m.header.stamp) for m in received[t]] for t in IMAGE_TOPICS}
@@ -70,8 +103,9 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
     # The contract's joint names; pressure in tool0. (Rates are checked on the bag: this
     # probe's keep-last-10 reader may drop messages when the machine is busy.)
     assert list(received['/joint_states'][-1].name) == [f'pa10_joint{i}' for i in range(1, 8)]
-    np.testing.assert_allclose(received['/joint_states'][-1].position,
-                               scenario.robot.initial_joints, atol=1e-12)
+    np.testing.assert_allclose(
+        received['/joint_states'][-1].position, scenario.robot.initial_joints, atol=1e-12
+    )
     assert received['/tool/pressure'][-1].header.frame_id == 'tool0'
 
     assert sim.stop() == 0
@@ -80,8 +114,13 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
     bag_dir = tmp_path / 'sim'
     assert (bag_dir / 'metadata.yaml').exists() and (bag_dir / 'sim_0.mcap').exists()
 
-    assert set(counts) == {*IMAGE_TOPICS, '/calibration/target_pose', '/joint_states',
-                           '/tool/pressure', '/diagnostics'}
+    assert set(counts) == {
+        *IMAGE_TOPICS,
+        '/calibration/target_pose',
+        '/joint_states',
+        '/tool/pressure',
+        '/diagnostics',
+    }
     # The recorder publishes diagnostics too: that topic's total is not sensor_sim's alone.
     expected = {topic: n for topic, n in counts.items() if topic != '/diagnostics'}
     assert expected['/calibration/target_pose'] == chart_captures
@@ -99,8 +138,9 @@ def test_sensor_sim_topics_and_recorded_bag(spawn, rclpy_node, tmp_path):
     joint_periods = np.diff(np.array(sorted(joint_stamps)) * 1e-9)
     assert np.median(joint_periods) <= 1 / 100.0
 
-    published_left = {stamp_to_ns(m.header.stamp): bytes(m.data)
-                      for m in received['/stereo/left/image_raw']}
+    published_left = {
+        stamp_to_ns(m.header.stamp): bytes(m.data) for m in received['/stereo/left/image_raw']
+    }
     decoded_counts = defaultdict(int)
     compared = 0
     with open(bag_dir / 'sim_0.mcap', 'rb') as stream:

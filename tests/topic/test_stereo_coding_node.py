@@ -5,6 +5,7 @@ publishes what sfs_stereo_node publishes: /stereo/left/image_rect and an SGBM
 input (wrong encodings, sizes that differ, a disparity without its image, an unmarked
 image, a missing or corrupt key file) answered by diagnostics while the nodes keep
 serving."""
+
 import cv2
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -26,8 +27,12 @@ from vgm_common.qos import DEFAULT_QOS
 
 FRAME = 'stereo_left_optical_frame'
 WAIT = 60.0  # [s] generous: the machine is shared
-DECODED = ('/stereo/decoded/disparity', '/stereo/decoded/left/image_rect',
-           '/stereo/decoded/right/image_rect', '/stereo/coded/image/compressed')
+DECODED = (
+    '/stereo/decoded/disparity',
+    '/stereo/decoded/left/image_rect',
+    '/stereo/decoded/right/image_rect',
+    '/stereo/coded/image/compressed',
+)
 
 
 def sgbm_disparity(left, right, max_disparity):
@@ -42,8 +47,12 @@ def sgbm_disparity(left, right, max_disparity):
 def disparity_msg(disparity, stamp_ns):
     msg = DisparityImage(f=500.0, t=0.1, min_disparity=0.0, max_disparity=64.0, delta_d=1 / 16)
     msg.header = numpy_to_image(np.zeros((1, 1), np.uint8), 'mono8', stamp_ns, FRAME).header
-    msg.image = numpy_to_image(np.where(np.isfinite(disparity), disparity, -1.0)
-                               .astype(np.float32), '32FC1', stamp_ns, FRAME)
+    msg.image = numpy_to_image(
+        np.where(np.isfinite(disparity), disparity, -1.0).astype(np.float32),
+        '32FC1',
+        stamp_ns,
+        FRAME,
+    )
     return msg
 
 
@@ -52,24 +61,33 @@ class Probe:
         self.node = node
         self.received = {}  # topic -> {stamp: msg}
         self.statuses = []
-        for topic, kind in (('/stereo/decoded/disparity', DisparityImage),
-                            ('/stereo/decoded/left/image_rect', Image),
-                            ('/stereo/decoded/right/image_rect', Image),
-                            ('/stereo/coded/image/compressed', CompressedImage)):
+        for topic, kind in (
+            ('/stereo/decoded/disparity', DisparityImage),
+            ('/stereo/decoded/left/image_rect', Image),
+            ('/stereo/decoded/right/image_rect', Image),
+            ('/stereo/coded/image/compressed', CompressedImage),
+        ):
             self.received[topic] = {}
-            node.create_subscription(kind, topic, lambda m, t=topic: self.received[t].__setitem__(
-                stamp_to_ns(m.header.stamp), m), DEFAULT_QOS)
-        node.create_subscription(DiagnosticArray, '/diagnostics',
-                                 lambda m: self.statuses.extend(m.status), DEFAULT_QOS)
+            node.create_subscription(
+                kind,
+                topic,
+                lambda m, t=topic: self.received[t].__setitem__(stamp_to_ns(m.header.stamp), m),
+                DEFAULT_QOS,
+            )
+        node.create_subscription(
+            DiagnosticArray, '/diagnostics', lambda m: self.statuses.extend(m.status), DEFAULT_QOS
+        )
         self.image = node.create_publisher(Image, '/stereo/left/image_rect', DEFAULT_QOS)
         self.disparity = node.create_publisher(DisparityImage, '/stereo/disparity', DEFAULT_QOS)
         self.coded = node.create_publisher(Image, '/stereo/coded/image', DEFAULT_QOS)
-        self.coded_jpeg = node.create_publisher(CompressedImage, '/stereo/coded/image/compressed',
-                                                DEFAULT_QOS)
+        self.coded_jpeg = node.create_publisher(
+            CompressedImage, '/stereo/coded/image/compressed', DEFAULT_QOS
+        )
 
     def status(self, name, containing):
-        return next((s for s in self.statuses if s.name.endswith(name)
-                     and containing in s.message), None)
+        return next(
+            (s for s in self.statuses if s.name.endswith(name) and containing in s.message), None
+        )
 
     def wait_status(self, name, containing, what):
         self.node.spin_until(lambda: self.status(name, containing), WAIT, what)
@@ -77,9 +95,12 @@ class Probe:
 
     def wait_matched(self, *publishers, listen=()):
         """Until the nodes subscribe to ``publishers`` and publish ``listen`` topics."""
-        self.node.spin_until(lambda: all(p.get_subscription_count() for p in publishers)
-                             and all(self.node.count_publishers(t) for t in listen),
-                             WAIT, 'the nodes to subscribe and publish')
+        self.node.spin_until(
+            lambda: all(p.get_subscription_count() for p in publishers)
+            and all(self.node.count_publishers(t) for t in listen),
+            WAIT,
+            'the nodes to subscribe and publish',
+        )
 
     def send_pair(self, left, disparity, stamp_ns, encoding='mono8'):
         image = numpy_to_image(left, 'mono8', stamp_ns, FRAME)
@@ -96,8 +117,11 @@ class Probe:
             stamp = stamp_ns + attempt
             self.send_pair(left, disparity, stamp)
             try:
-                self.node.spin_until(lambda s=stamp: all(s in self.received[t] for t in topics),
-                                     3.0, 'decoded outputs')
+                self.node.spin_until(
+                    lambda s=stamp: all(s in self.received[t] for t in topics),
+                    3.0,
+                    'decoded outputs',
+                )
                 return stamp, [self.received[t][stamp] for t in topics]
             except TimeoutError:
                 continue
@@ -105,22 +129,40 @@ class Probe:
 
     def wait_decoded(self, stamp_ns):
         topics = DECODED[:3]
-        self.node.spin_until(lambda: all(stamp_ns in self.received[t] for t in topics), WAIT,
-                             f'the decoded outputs of stamp {stamp_ns}')
+        self.node.spin_until(
+            lambda: all(stamp_ns in self.received[t] for t in topics),
+            WAIT,
+            f'the decoded outputs of stamp {stamp_ns}',
+        )
         return [self.received[t][stamp_ns] for t in topics]
 
 
 def test_ours_through_jpeg_50_then_bad_input(spawn, rclpy_node):
     probe = Probe(rclpy_node)
-    spawn([executable('stereo_coding_node'), '--ros-args', '-p', 'jpeg_quality:=50',
-           '-p', 'key:=topic-test'])
-    spawn([executable('stereo_coding_node', 'stereo_decoding_node'), '--ros-args',
-           '-p', 'transport:=compressed', '-p', 'key:=topic-test'])
+    spawn(
+        [
+            executable('stereo_coding_node'),
+            '--ros-args',
+            '-p',
+            'jpeg_quality:=50',
+            '-p',
+            'key:=topic-test',
+        ]
+    )
+    spawn(
+        [
+            executable('stereo_coding_node', 'stereo_decoding_node'),
+            '--ros-args',
+            '-p',
+            'transport:=compressed',
+            '-p',
+            'key:=topic-test',
+        ]
+    )
     probe.wait_matched(probe.image, probe.disparity, probe.coded_jpeg, listen=DECODED)
     left, right, _ = generated_scene((240, 320), seed=21, max_disparity_px=24)
     sent = sgbm_disparity(left, right, 24)
-    stamp, (disparity, restored, synthetic) = probe.send_until_decoded(
-        left, sent, 1_000_000_000)
+    stamp, (disparity, restored, synthetic) = probe.send_until_decoded(left, sent, 1_000_000_000)
     decoded = image_to_numpy(disparity.image).astype(float)
     decoded[decoded < disparity.min_disparity] = np.nan
     # Bit for bit what ours decodes from the JPEG that went over the topic.
@@ -134,8 +176,8 @@ def test_ours_through_jpeg_50_then_bad_input(spawn, rclpy_node):
     both = np.isfinite(decoded) & np.isfinite(sent)
     assert both.sum() > 0.7 * np.isfinite(sent).sum()
     error = decoded[both] - sent[both]
-    rms, beyond_2px = np.sqrt(np.mean(error ** 2)), np.mean(np.abs(error) > 2.0)
-    print(f"decoded vs sent: RMS {rms:.2f} px, > 2 px {beyond_2px:.1%}")
+    rms, beyond_2px = np.sqrt(np.mean(error**2)), np.mean(np.abs(error) > 2.0)
+    print(f'decoded vs sent: RMS {rms:.2f} px, > 2 px {beyond_2px:.1%}')
     assert rms < 3.5 and beyond_2px < 0.4, (rms, beyond_2px)
     restored = image_to_numpy(restored)
     assert psnr(left, restored) > 30.0  # JPEG 50 and the mark
@@ -167,8 +209,16 @@ def test_ours_through_jpeg_50_then_bad_input(spawn, rclpy_node):
 def test_thesis_method_with_its_key_file(spawn, rclpy_node, tmp_path):
     probe = Probe(rclpy_node)
     key_file = tmp_path / 'thesis_key.npz'
-    spawn([executable('stereo_coding_node', 'stereo_decoding_node'), '--ros-args',
-           '-p', 'method:=thesis', '-p', f'key_file:={key_file}'])
+    spawn(
+        [
+            executable('stereo_coding_node', 'stereo_decoding_node'),
+            '--ros-args',
+            '-p',
+            'method:=thesis',
+            '-p',
+            f'key_file:={key_file}',
+        ]
+    )
     probe.wait_matched(probe.coded)
     left, right, truth = generated_scene((96, 128), seed=22, max_disparity_px=12)
     probe.coded.publish(numpy_to_image(left, 'mono8', 1, FRAME))
@@ -176,8 +226,16 @@ def test_thesis_method_with_its_key_file(spawn, rclpy_node, tmp_path):
     key_file.write_bytes(b'corrupt')
     probe.coded.publish(numpy_to_image(left, 'mono8', 2, FRAME))
     probe.wait_status('rejected coded image', 'not a thesis key', 'the corrupt key file reported')
-    spawn([executable('stereo_coding_node'), '--ros-args', '-p', 'method:=thesis',
-           '-p', f'key_file:={key_file}'])
+    spawn(
+        [
+            executable('stereo_coding_node'),
+            '--ros-args',
+            '-p',
+            'method:=thesis',
+            '-p',
+            f'key_file:={key_file}',
+        ]
+    )
     probe.wait_matched(probe.image, probe.disparity, listen=DECODED)
     _, (disparity, restored, _) = probe.send_until_decoded(left, truth, 3_000_000_000)
     decoded = image_to_numpy(disparity.image).astype(float)

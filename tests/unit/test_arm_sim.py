@@ -69,8 +69,9 @@ def test_hermite_interpolation_reproduces_a_cubic():
     t = np.array([0.0, 0.4, 1.0])
     cubic = lambda s: 0.2 * s**3 - 0.3 * s**2 + 0.1 * s  # noqa: E731
     d_cubic = lambda s: 0.6 * s**2 - 0.6 * s + 0.1  # noqa: E731
-    arm.set_trajectory(NAMES, t, np.tile(cubic(t)[:, None], 7),
-                       np.tile(d_cubic(t)[:, None], 7), start_time=0.0)
+    arm.set_trajectory(
+        NAMES, t, np.tile(cubic(t)[:, None], 7), np.tile(d_cubic(t)[:, None], 7), start_time=0.0
+    )
     for s in [0.1, 0.4, 0.7, 0.95]:
         np.testing.assert_allclose(arm.desired(s), cubic(s), atol=1e-15)
 
@@ -87,23 +88,25 @@ def test_follows_a_feasible_trajectory_exactly():
 GOOD_POINT = np.full(7, 0.5)
 
 
-@pytest.mark.parametrize('names, times, positions, velocities', [
-    (NAMES[:6] + ('elbow',), [0.0], [GOOD_POINT], None),  # unknown name
-    (NAMES[:6], [0.0], [GOOD_POINT[:6]], None),  # missing joint
-    (NAMES[:6] + (NAMES[0],), [0.0], [GOOD_POINT], None),  # duplicate
-    (NAMES, [0.0], [GOOD_POINT[:6]], None),  # short point
-    (NAMES, [0.0, 1.0], [GOOD_POINT], None),  # fewer points than times
-    (NAMES, [0.0], [[0, 0, np.nan, 0, 0, 0, 0]], None),
-    (NAMES, [0.0, np.inf], [GOOD_POINT, GOOD_POINT], None),
-    (NAMES, [1.0, 1.0], [GOOD_POINT, GOOD_POINT], None),  # not increasing
-    (NAMES, [2.0, 1.0], [GOOD_POINT, GOOD_POINT], None),
-    (NAMES, [-1.0], [GOOD_POINT], None),
-    (NAMES, [], np.empty((0, 7)), None),
-    (NAMES, [0.0], [GOOD_POINT], [GOOD_POINT[:5]]),
-    (NAMES, [0.0, 1.0], [[0.1] * 7, [0.1] * 6], None),  # ragged
-])
-def test_bad_trajectory_is_rejected_and_the_arm_keeps_holding(names, times, positions,
-                                                              velocities):
+@pytest.mark.parametrize(
+    'names, times, positions, velocities',
+    [
+        (NAMES[:6] + ('elbow',), [0.0], [GOOD_POINT], None),  # unknown name
+        (NAMES[:6], [0.0], [GOOD_POINT[:6]], None),  # missing joint
+        (NAMES[:6] + (NAMES[0],), [0.0], [GOOD_POINT], None),  # duplicate
+        (NAMES, [0.0], [GOOD_POINT[:6]], None),  # short point
+        (NAMES, [0.0, 1.0], [GOOD_POINT], None),  # fewer points than times
+        (NAMES, [0.0], [[0, 0, np.nan, 0, 0, 0, 0]], None),
+        (NAMES, [0.0, np.inf], [GOOD_POINT, GOOD_POINT], None),
+        (NAMES, [1.0, 1.0], [GOOD_POINT, GOOD_POINT], None),  # not increasing
+        (NAMES, [2.0, 1.0], [GOOD_POINT, GOOD_POINT], None),
+        (NAMES, [-1.0], [GOOD_POINT], None),
+        (NAMES, [], np.empty((0, 7)), None),
+        (NAMES, [0.0], [GOOD_POINT], [GOOD_POINT[:5]]),
+        (NAMES, [0.0, 1.0], [[0.1] * 7, [0.1] * 6], None),  # ragged
+    ],
+)
+def test_bad_trajectory_is_rejected_and_the_arm_keeps_holding(names, times, positions, velocities):
     q0 = np.full(7, 0.2)
     arm = make_arm(q0)
     with pytest.raises(InvalidInput):
@@ -168,8 +171,7 @@ def test_velocity_arm_follows_only_the_commanded_velocities():
 def test_slower_arm_makes_a_fraction_of_the_commanded_motion(mode):
     qdot = np.array([0.2, -0.1, 0.3, 0.0, 0.5, -0.4, 0.1])
     full = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode=mode)
-    slow = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode=mode,
-                        speed_scale=0.5)
+    slow = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode=mode, speed_scale=0.5)
     t = 0.0
     for _ in range(50):  # 0.5 s of pa10_ik_node's commands, 100 Hz
         full.follow_velocity(NAMES, qdot, t, DT)
@@ -197,8 +199,15 @@ def test_a_hold_now_stops_either_arm_within_one_step(mode):
     np.testing.assert_allclose(arm.q, q_measured, atol=1e-12)
 
 
-@pytest.mark.parametrize('kwargs', [{'mode': 'torque'}, {'speed_scale': 0.0},
-                                    {'speed_scale': 1.5}, {'speed_scale': float('nan')}])
+@pytest.mark.parametrize(
+    'kwargs',
+    [
+        {'mode': 'torque'},
+        {'speed_scale': 0.0},
+        {'speed_scale': 1.5},
+        {'speed_scale': float('nan')},
+    ],
+)
 def test_bad_arm_mode_or_scale_is_rejected(kwargs):
     with pytest.raises(InvalidInput):
         SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), **kwargs)

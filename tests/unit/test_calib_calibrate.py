@@ -1,6 +1,7 @@
 """calib_node's rig calibration core (calibrate.py) on the default scenario's true cameras
 and chart poses: exact recovery without noise, statistically consistent errors with noise,
 the OpenCV reference, the thesis method's plumb_bob conversion, degenerate input."""
+
 import numpy as np
 import pytest
 
@@ -18,8 +19,9 @@ from vgm_common.camera_model import distort_division, distort_normalized
 
 SCENARIO = load_scenario(resolve_scenario_path('default'))
 CAMERAS = SCENARIO.cameras
-CHART = chart_points(SCENARIO.calibration.rows, SCENARIO.calibration.cols,
-                     SCENARIO.calibration.spacing)
+CHART = chart_points(
+    SCENARIO.calibration.rows, SCENARIO.calibration.cols, SCENARIO.calibration.spacing
+)
 
 
 def observations(sigma=0.0, seed=0, names=('left', 'right', 'aux')):
@@ -27,8 +29,9 @@ def observations(sigma=0.0, seed=0, names=('left', 'right', 'aux')):
     out = {}
     for name in names:
         camera = CAMERAS[name]
-        points = np.concatenate([CHART @ T[:3, :3].T + T[:3, 3]
-                                 for T in SCENARIO.calibration.T_base_chart])
+        points = np.concatenate(
+            [CHART @ T[:3, :3].T + T[:3, 3] for T in SCENARIO.calibration.T_base_chart]
+        )
         pixels, depth = camera.project(points)
         assert np.all(depth > 0) and np.all((pixels > 0) & (pixels < [640, 480]))
         out[name] = (points, pixels + sigma * rng.standard_normal(pixels.shape), (640, 480))
@@ -68,8 +71,9 @@ def test_noisy_lm_is_within_its_standard_errors_and_matches_opencv():
 
 def test_lm_started_from_the_ga_recovers_the_cameras():
     small = GAOptions(population=60, generations=30, network_epochs=200)
-    result = calibrate_rig(observations(names=('left', 'right')), 'lm', seed=1,
-                           lm_start='ga', ga=small)
+    result = calibrate_rig(
+        observations(names=('left', 'right')), 'lm', seed=1, lm_start='ga', ga=small
+    )
     for name, fit in result.fits.items():
         np.testing.assert_allclose(fit.K, CAMERAS[name].K, rtol=1e-6, err_msg=name)
 
@@ -91,14 +95,20 @@ def test_thesis_method_runs_and_reports_its_error():
 
 
 # Largest disagreement [px at f = 600] over the image allowed for kappa r_max^2 and k3.
-CONVERSION_TOLERANCE = {(0.02, False): 0.01, (0.1, False): 0.25, (0.3, False): 2.5,
-                        (0.02, True): 0.001, (0.1, True): 0.03, (0.3, True): 0.5}
+CONVERSION_TOLERANCE = {
+    (0.02, False): 0.01,
+    (0.1, False): 0.25,
+    (0.3, False): 2.5,
+    (0.02, True): 0.001,
+    (0.1, True): 0.03,
+    (0.3, True): 0.5,
+}
 
 
 @pytest.mark.parametrize('kappa_r2, fit_k3', list(CONVERSION_TOLERANCE))
 def test_division_model_converted_to_plumb_bob(kappa_r2, fit_k3):
     max_radius = 0.7
-    kappa = kappa_r2 / max_radius ** 2
+    kappa = kappa_r2 / max_radius**2
     D, residual = division_to_plumb_bob(kappa, max_radius, fit_k3)
     assert (D[4] != 0) == fit_k3
     xy = np.random.default_rng(4).uniform(-0.49, 0.49, (500, 2))  # |xy| <= 0.7
@@ -112,8 +122,9 @@ def test_division_model_converted_to_plumb_bob(kappa_r2, fit_k3):
 def test_degenerate_and_too_few_points_are_refused():
     coplanar = observations(names=('left',))
     T = SCENARIO.calibration.T_base_chart[0]
-    points = np.concatenate([CHART @ T[:3, :3].T + T[:3, 3] + shift * T[:3, 0]
-                             for shift in (0.0, 0.01, 0.02)])  # moved within its plane
+    points = np.concatenate(
+        [CHART @ T[:3, :3].T + T[:3, 3] + shift * T[:3, 0] for shift in (0.0, 0.01, 0.02)]
+    )  # moved within its plane
     assert 'one plane' in degeneracy(points)
     pixels = CAMERAS['left'].project(points)[0]
     with pytest.raises(CalibrationError, match='one plane'):

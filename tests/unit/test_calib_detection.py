@@ -1,5 +1,6 @@
 """Chessboard detection mapped to INTERFACES.md's chart frame: synthetic chart images drawn
 by a known homography, at every in-plane orientation, against the true corner pixels."""
+
 import cv2
 import numpy as np
 import pytest
@@ -19,16 +20,22 @@ def draw_chart(H, size=SIZE, supersample=3):
     """Image of the printed chart (INTERFACES.md colours: the square outside corner (0, 0)
     black) through the homography H (chart metres -> pixels), antialiased."""
     width, height = size
-    u, v = np.meshgrid((np.arange(width * supersample) + 0.5) / supersample - 0.5,
-                       (np.arange(height * supersample) + 0.5) / supersample - 0.5)
+    u, v = np.meshgrid(
+        (np.arange(width * supersample) + 0.5) / supersample - 0.5,
+        (np.arange(height * supersample) + 0.5) / supersample - 0.5,
+    )
     pixels = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])
     chart = np.linalg.inv(H) @ pixels
     x, y = chart[0] / chart[2], chart[1] / chart[2]
     i, j = np.floor(x / SPACING), np.floor(y / SPACING)
     on_squares = (i >= -1) & (i <= COLS - 1) & (j >= -1) & (j <= ROWS - 1)
     black = on_squares & (((i + j).astype(int) & 1) == 0)
-    plate = (x > -2 * SPACING) & (x < (COLS + 1) * SPACING) & \
-        (y > -2 * SPACING) & (y < (ROWS + 1) * SPACING)
+    plate = (
+        (x > -2 * SPACING)
+        & (x < (COLS + 1) * SPACING)
+        & (y > -2 * SPACING)
+        & (y < (ROWS + 1) * SPACING)
+    )
     grey = np.where(plate, np.where(black, 15.0, 230.0), 60.0).reshape(u.shape)
     grey = grey.reshape(height, supersample, width, supersample).mean(axis=(1, 3))
     return np.clip(np.round(grey), 0, 255).astype(np.uint8)
@@ -92,8 +99,6 @@ def test_a_symmetric_board_is_ambiguous():
     grid = project(homography(0.0), chart_points(ROWS, COLS, SPACING))
     corners, reason = orient_corners(np.full(SIZE[::-1], 100, np.uint8), grid, ROWS, COLS)
     assert corners is None and 'ambiguous' in reason
-
-
 
 
 def test_a_sheared_grid_of_saddle_points_is_not_a_chessboard():

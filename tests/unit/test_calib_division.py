@@ -1,6 +1,7 @@
 """The closed-form start for the seed's division model (``refine.division_init``,
 ``refine.radial_division_init``) and ours = that start + LM (``calibrate_seed_stereo``) on
 the thesis's setting: Tables 4.1 / 4.2 cameras, the 512 control points of §3.6."""
+
 import numpy as np
 import pytest
 
@@ -35,7 +36,8 @@ def relative_errors(params, truth):
 def test_closed_form_start_is_exact_without_noise(camera):
     # Radial alignment + linear (t3, lambda, lambda t3, fx): exact on noise-free data.
     relative, pixels, angle = relative_errors(
-        radial_division_init(POINTS_WORLD, PIXELS[camera]), TRUTH[camera])
+        radial_division_init(POINTS_WORLD, PIXELS[camera]), TRUTH[camera]
+    )
     assert relative < 1e-6 and pixels < 1e-6 and angle < 1e-8
     # The searched start: the best candidate is within the grid's resolution.
     best = division_init(POINTS_WORLD, PIXELS[camera])[0]
@@ -66,8 +68,10 @@ def test_noisy_ours_reaches_the_optimum_of_lm_started_at_the_truth(sigma):
         assert info.rms_right == pytest.approx(best.rms_right, rel=1e-6)
         # RMS of a 2D residual with sigma per coordinate: about sqrt(2) sigma
         assert max(info.rms_left, info.rms_right) < 1.6 * sigma
-        for params, truth, std in ((left, LEFT_TRUTH, info.std[0]),
-                                   (right, RIGHT_TRUTH, info.std[1])):
+        for params, truth, std in (
+            (left, LEFT_TRUTH, info.std[0]),
+            (right, RIGHT_TRUTH, info.std[1]),
+        ):
             got, want = identifiable(params), identifiable(truth)
             assert abs(got.fx - want.fx) < 5 * std[2] + 1e-9  # within 5 standard errors
             assert abs(got.u0 - want.u0) < 5 * std[0] + 1e-9

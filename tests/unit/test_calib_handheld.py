@@ -1,6 +1,7 @@
 """Handheld calibration (bundle adjustment) and the rig generator: seeded rigs unlike the
 shipped scenarios, exact corners -> the truth to 1e-6; rendered images -> within the
 bounds of OpenCV's error on the same corners; coverage and a second board."""
+
 import numpy as np
 import pytest
 
@@ -18,12 +19,15 @@ from vgm_common.camera_model import PinholeCamera
 
 
 def _cameras(rig, result):
-    return {n: PinholeCamera(c.width, c.height, result.fits[n].K, result.fits[n].D,
-                             result.fits[n].T_base_camera) for n, c in rig.cameras.items()}
+    return {
+        n: PinholeCamera(
+            c.width, c.height, result.fits[n].K, result.fits[n].D, result.fits[n].T_base_camera
+        )
+        for n, c in rig.cameras.items()
+    }
 
 
-@pytest.mark.parametrize('seed, cameras', [(3, ('left', 'right', 'aux')),
-                                           (7, ('left', 'right'))])
+@pytest.mark.parametrize('seed, cameras', [(3, ('left', 'right', 'aux')), (7, ('left', 'right'))])
 def test_exact_corners_give_the_truth(seed, cameras):
     rig = draw_rig(seed, cameras)
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
@@ -50,20 +54,37 @@ def test_rendered_rig_within_opencv_bounds():
     medians over rigs), so the test bounds it by 3."""
     import sys
     from pathlib import Path
+
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / 'bench'))
     from calib_rigs import opencv_rig
 
     rig = draw_rig(12, views=8)
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
-    views = [{n: d.corners for n, d in ((n, detect_chessboard(img, rig.rows, rig.cols))
-                                        for n, img in view.items()) if d.corners is not None}
-             for view in render_rig(rig, 12)]
+    views = [
+        {
+            n: d.corners
+            for n, d in (
+                (n, detect_chessboard(img, rig.rows, rig.cols)) for n, img in view.items()
+            )
+            if d.corners is not None
+        }
+        for view in render_rig(rig, 12)
+    ]
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
-    ours = score_rig(rig.cameras, _cameras(rig, bundle_adjust(chart, views, sizes,
-                                                              names=list(sizes))))
+    ours = score_rig(
+        rig.cameras, _cameras(rig, bundle_adjust(chart, views, sizes, names=list(sizes)))
+    )
     theirs = score_rig(rig.cameras, opencv_rig(chart, views, sizes, list(sizes)))
-    bounds = {'fx': 2e-3, 'fy': 2e-3, 'cx': 2.0, 'cy': 2.0, 'baseline': 2e-3,
-              'position': 2e-3, 'rotation': 0.1, 'rect_rows': 0.1}
+    bounds = {
+        'fx': 2e-3,
+        'fy': 2e-3,
+        'cx': 2.0,
+        'cy': 2.0,
+        'baseline': 2e-3,
+        'position': 2e-3,
+        'rotation': 0.1,
+        'rect_rows': 0.1,
+    }
     for figure, bound in bounds.items():
         assert ours[figure] < bound, (figure, ours)
         assert ours[figure] <= 3 * theirs[figure], (figure, ours[figure], theirs[figure])
@@ -72,7 +93,8 @@ def test_rendered_rig_within_opencv_bounds():
 def test_coverage_says_what_is_missing_and_a_second_board_is_refused():
     rig = draw_rig(24, ('left', 'right'), views=8, noise=0.5)
     image = ChartRenderer(rig.rows, rig.cols, rig.spacing).render(
-        rig.cameras['left'], rig.T_base_chart[0], np.random.default_rng(0), rig.noise)
+        rig.cameras['left'], rig.T_base_chart[0], np.random.default_rng(0), rig.noise
+    )
     detection = detect_chessboard(image, rig.rows, rig.cols)
     assert detection.corners is not None
     coverage = Coverage()
@@ -82,13 +104,15 @@ def test_coverage_says_what_is_missing_and_a_second_board_is_refused():
     assert 'skew' in coverage.missing(0.5) and 'x 0 %' in coverage.summary()
     # The same board pasted beside itself: two charts, ambiguous.
     box = detection.corners
-    (u0, v0), (u1, v1) = np.floor(box.min(axis=0)).astype(int) - 25, \
-        np.ceil(box.max(axis=0)).astype(int) + 25
-    patch = image[max(v0, 0):v1, max(u0, 0):u1]
+    (u0, v0), (u1, v1) = (
+        np.floor(box.min(axis=0)).astype(int) - 25,
+        np.ceil(box.max(axis=0)).astype(int) + 25,
+    )
+    patch = image[max(v0, 0) : v1, max(u0, 0) : u1]
     double = np.full((image.shape[0], 2 * image.shape[1] + 40), 70, np.uint8)
-    double[:image.shape[0], :image.shape[1]] = image
+    double[: image.shape[0], : image.shape[1]] = image
     left = image.shape[1] + 40 + max(u0, 0)
-    double[max(v0, 0):max(v0, 0) + patch.shape[0], left:left + patch.shape[1]] = patch
+    double[max(v0, 0) : max(v0, 0) + patch.shape[0], left : left + patch.shape[1]] = patch
     second = detect_chessboard(double, rig.rows, rig.cols)
     assert second.corners is None and 'two charts' in second.reason
 
@@ -101,13 +125,18 @@ def test_p1_p2_are_kept_only_where_the_lens_has_them(tangential):
     from calib_node.rig_generator import Rig
 
     rig = draw_rig(3, ('left', 'right'))
-    cameras = {n: PinholeCamera(c.width, c.height, c.K, c.D + [0, 0, tangential, tangential,
-                                                                 0], c.T_base_camera)
-               for n, c in rig.cameras.items()}
+    cameras = {
+        n: PinholeCamera(
+            c.width, c.height, c.K, c.D + [0, 0, tangential, tangential, 0], c.T_base_camera
+        )
+        for n, c in rig.cameras.items()
+    }
     rig = Rig(cameras, *rig[1:])
     rng = np.random.default_rng(0)
-    views = [{n: uv + rng.normal(0, 0.05, uv.shape) for n, uv in view.items()}
-             for view in true_corners(rig)]
+    views = [
+        {n: uv + rng.normal(0, 0.05, uv.shape) for n, uv in view.items()}
+        for view in true_corners(rig)
+    ]
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in cameras.items()}
     result = bundle_adjust_selected(chart, views, sizes, names=['left', 'right'])

@@ -1,6 +1,7 @@
 """Chapter 4 "better" (ALGORITHMS.md §8): LM refinement in the identifiable parameters
 (A4.1), the DLT camera and the OpenCV reference, against Tables 4.1 / 4.2 and the 512
 control points (§3.6)."""
+
 import numpy as np
 import pytest
 
@@ -32,8 +33,9 @@ def centre(camera):
 def noisy():
     rng = np.random.default_rng(7)
     pixels = PIXELS + SIGMA * rng.standard_normal(PIXELS.shape)
-    left, right, info = refine_seed_lm(perturbed(LEFT_TRUTH, rng), perturbed(RIGHT_TRUTH, rng),
-                                       POINTS_WORLD, *pixels)
+    left, right, info = refine_seed_lm(
+        perturbed(LEFT_TRUTH, rng), perturbed(RIGHT_TRUTH, rng), POINTS_WORLD, *pixels
+    )
     return pixels, info
 
 
@@ -42,14 +44,14 @@ def test_noise_free_recovers_identifiable_parameters():
     start = [perturbed(t, rng) for t in TRUTH]
     left, right, info = refine_seed_lm(*start, POINTS_WORLD, *PIXELS)
     assert info.status > 0 and info.rms_left < 1e-6 and info.rms_right < 1e-6
-    for estimate, truth, first, products in zip((left, right), TRUTH, start,
-                                                (info.left, info.right)):
+    for estimate, truth, first, products in zip(
+        (left, right), TRUTH, start, (info.left, info.right)
+    ):
         assert estimate[4] == first[4]  # f held at its start, Nx, Ny, k re-derived
         got, want = identifiable(estimate), identifiable(truth)
         for name in ('fx', 'fy', 'kappa', 'u0', 'v0', 'T'):
             np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-6)
-            np.testing.assert_allclose(getattr(products, name), getattr(want, name),
-                                       rtol=1e-6)
+            np.testing.assert_allclose(getattr(products, name), getattr(want, name), rtol=1e-6)
         np.testing.assert_allclose(estimate[6:9], truth[6:9], rtol=1e-6, atol=1e-6)
 
 
@@ -139,10 +141,10 @@ def test_network_refinement_keeps_the_start_when_it_would_get_worse():
     start[5] *= 4  # a GA-like k far too large: the undistorted targets are wrong
     start[0] += 15.0
     kept, info = network_refine(start, POINTS_WORLD, pixels, epochs=500)
-    forced, forced_info = network_refine(start, POINTS_WORLD, pixels, epochs=500,
-                                         accept='always')
-    rms_forced = np.sqrt(np.mean(np.sum((project_seed(forced[None], POINTS_WORLD)[0]
-                                         - pixels) ** 2, axis=1)))
+    forced, forced_info = network_refine(start, POINTS_WORLD, pixels, epochs=500, accept='always')
+    rms_forced = np.sqrt(
+        np.mean(np.sum((project_seed(forced[None], POINTS_WORLD)[0] - pixels) ** 2, axis=1))
+    )
     assert forced_info.rms_after == pytest.approx(rms_forced)
     if info.rms_after < info.rms_before:
         assert info.accepted and np.array_equal(kept, forced)
@@ -158,5 +160,8 @@ def test_network_refinement_undistorts_with_the_start_camera():
     pixels = project_seed(LEFT_TRUTH[None], POINTS_WORLD)[0]
     pinhole = LEFT_TRUTH.copy()
     pinhole[5] = 0.0
-    np.testing.assert_allclose(undistort_seed_pixels(LEFT_TRUTH, pixels),
-                               project_seed(pinhole[None], POINTS_WORLD)[0], atol=1e-9)
+    np.testing.assert_allclose(
+        undistort_seed_pixels(LEFT_TRUTH, pixels),
+        project_seed(pinhole[None], POINTS_WORLD)[0],
+        atol=1e-9,
+    )

@@ -1,4 +1,5 @@
 """Calibration files: camera_calibration_parsers per camera, the rig file with poses."""
+
 import numpy as np
 import pytest
 import yaml
@@ -17,17 +18,28 @@ from vgm_common.topics import OPTICAL_FRAMES
 
 def _rig():
     K = np.array([[800.0, 0.0, 320.5], [0.0, 790.0, 240.25], [0.0, 0.0, 1.0]])
-    return {name: PinholeCamera(640, 480, K, [-0.1, 0.02, 0.001, -0.002, 0.0],
-                                make_transform(rpy_to_matrix(3.0, 0.1 * i, 0.2), [i, 0.5, 1.2]))
-            for i, name in enumerate(('left', 'right', 'aux'))}
+    return {
+        name: PinholeCamera(
+            640,
+            480,
+            K,
+            [-0.1, 0.02, 0.001, -0.002, 0.0],
+            make_transform(rpy_to_matrix(3.0, 0.1 * i, 0.2), [i, 0.5, 1.2]),
+        )
+        for i, name in enumerate(('left', 'right', 'aux'))
+    }
 
 
 def test_rig_round_trip(tmp_path):
     rig = _rig()
     P_right = np.hstack([rig['right'].K, [[-800.0 * 0.14], [0.0], [0.0]]])
-    path = write_calibration(tmp_path, rig, OPTICAL_FRAMES,
-                             rectification={'right': (rpy_to_matrix(0.01, 0, 0), P_right)},
-                             quality={'left': {'rms_px': 0.12}})
+    path = write_calibration(
+        tmp_path,
+        rig,
+        OPTICAL_FRAMES,
+        rectification={'right': (rpy_to_matrix(0.01, 0, 0), P_right)},
+        quality={'left': {'rms_px': 0.12}},
+    )
     loaded = read_calibration(path)
     assert set(loaded) == set(rig)
     for name, (camera, _, _) in loaded.items():
@@ -44,14 +56,23 @@ def test_rig_round_trip(tmp_path):
     assert read_calibration(tmp_path)['left'][0].width == 640  # the directory works too
 
 
-@pytest.mark.parametrize('edit, key', [
-    (lambda d: d['cameras']['left'].pop('pose_in_base_link'), 'cameras.left'),
-    (lambda d: d['cameras']['left']['camera_matrix']['data'].__setitem__(0, float('nan')),
-     'cameras.left'),
-    (lambda d: d['cameras']['aux']['pose_in_base_link'].__setitem__('orientation', [0, 0, 0, 2]),
-     'cameras.aux'),
-    (lambda d: d.pop('cameras'), 'calibration_file'),
-])
+@pytest.mark.parametrize(
+    'edit, key',
+    [
+        (lambda d: d['cameras']['left'].pop('pose_in_base_link'), 'cameras.left'),
+        (
+            lambda d: d['cameras']['left']['camera_matrix']['data'].__setitem__(0, float('nan')),
+            'cameras.left',
+        ),
+        (
+            lambda d: d['cameras']['aux']['pose_in_base_link'].__setitem__(
+                'orientation', [0, 0, 0, 2]
+            ),
+            'cameras.aux',
+        ),
+        (lambda d: d.pop('cameras'), 'calibration_file'),
+    ],
+)
 def test_malformed_rig_file_names_the_key(tmp_path, edit, key):
     path = write_calibration(tmp_path, _rig(), OPTICAL_FRAMES)
     document = yaml.safe_load(path.read_text())
@@ -71,8 +92,9 @@ def test_stereo_rectification_puts_the_baseline_in_the_right_projection():
     K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
     R = rpy_to_matrix(np.pi, 0.0, 0.0)  # looking down
     left = PinholeCamera(640, 480, K, np.zeros(5), make_transform(R, [0.0, 0.0, 1.0]))
-    right = PinholeCamera(640, 480, K, np.zeros(5),
-                          make_transform(R @ rpy_to_matrix(0, 0.05, 0), [0.14, 0.0, 1.0]))
+    right = PinholeCamera(
+        640, 480, K, np.zeros(5), make_transform(R @ rpy_to_matrix(0, 0.05, 0), [0.14, 0.0, 1.0])
+    )
     rectified = stereo_rectification(left, right)
     (R1, P1), (R2, P2) = rectified['left'], rectified['right']
     baseline = -P2[0, 3] / P2[0, 0]

@@ -1,4 +1,5 @@
 """Contact: force = stiffness * penetration along the surface normal, 0 off the surface."""
+
 from pathlib import Path
 
 import numpy as np
@@ -15,15 +16,22 @@ STIFFNESS = 2000.0  # [N/m]
 
 @pytest.fixture(scope='module')
 def tilted_plane():
-    return Surface(kind='plane', T_base_surface=make_transform(rpy_to_matrix(0.3, -0.2, 1.0),
-                                                               [0.6, 0.1, 0.2]),
-                   scale=0.5, extent=((-0.4, 0.4), (-0.3, 0.3)), albedo=0.8, roughness=0.0)
+    return Surface(
+        kind='plane',
+        T_base_surface=make_transform(rpy_to_matrix(0.3, -0.2, 1.0), [0.6, 0.1, 0.2]),
+        scale=0.5,
+        extent=((-0.4, 0.4), (-0.3, 0.3)),
+        albedo=0.8,
+        roughness=0.0,
+    )
 
 
 def test_plane_force_is_stiffness_times_depth(tilted_plane):
     normal = tilted_plane.T_base_surface[:3, 2]
-    on_plane = tilted_plane.T_base_surface[:3, :3] @ [0.05, -0.1, 0.0] \
+    on_plane = (
+        tilted_plane.T_base_surface[:3, :3] @ [0.05, -0.1, 0.0]
         + tilted_plane.T_base_surface[:3, 3]
+    )
     state = contact_force(on_plane - 0.004 * normal, tilted_plane, STIFFNESS)
     assert state.penetration == pytest.approx(0.004, abs=1e-15)
     assert state.force == pytest.approx(STIFFNESS * 0.004, abs=1e-10)
@@ -43,8 +51,8 @@ def test_s3_force_matches_an_independent_computation():
         tip = R @ (surface.scale * np.array([x, y, z])) + origin
         # Independent: first-order distance below z = xy + 0.5x - 0.6 along its normal.
         h_x, h_y = y + 0.5, x
-        depth = (x * y + 0.5 * x - 0.6 - z) * surface.scale / np.sqrt(1 + h_x ** 2 + h_y ** 2)
-        normal = R @ (np.array([-h_x, -h_y, 1.0]) / np.sqrt(1 + h_x ** 2 + h_y ** 2))
+        depth = (x * y + 0.5 * x - 0.6 - z) * surface.scale / np.sqrt(1 + h_x**2 + h_y**2)
+        normal = R @ (np.array([-h_x, -h_y, 1.0]) / np.sqrt(1 + h_x**2 + h_y**2))
         state = contact_force(tip, surface, STIFFNESS)
         assert state.penetration == pytest.approx(depth, rel=1e-9, abs=1e-15)
         assert state.force == pytest.approx(STIFFNESS * depth, rel=1e-9, abs=1e-12)

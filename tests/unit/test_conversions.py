@@ -1,4 +1,5 @@
 """Round trips of every message conversion, and rejection of malformed messages."""
+
 import numpy as np
 import pytest
 from sensor_msgs.msg import Image
@@ -25,9 +26,15 @@ from vgm_common.geometry import make_transform, rpy_to_matrix
 rng = np.random.default_rng(3)
 
 
-@pytest.mark.parametrize('encoding, dtype, shape', [
-    ('mono8', np.uint8, (48, 64)), ('mono16', np.uint16, (48, 64)),
-    ('rgb8', np.uint8, (48, 64, 3)), ('32FC1', np.float32, (48, 64))])
+@pytest.mark.parametrize(
+    'encoding, dtype, shape',
+    [
+        ('mono8', np.uint8, (48, 64)),
+        ('mono16', np.uint16, (48, 64)),
+        ('rgb8', np.uint8, (48, 64, 3)),
+        ('32FC1', np.float32, (48, 64)),
+    ],
+)
 def test_image_round_trip(encoding, dtype, shape):
     array = (rng.random(shape) * 200).astype(dtype)
     if dtype == np.float32:
@@ -45,14 +52,21 @@ def test_image_with_row_padding_and_big_endian():
     values = np.arange(12, dtype='>u2').reshape(3, 4)
     padded = np.zeros((3, 10), dtype=np.uint8)
     padded[:, :8] = values.view(np.uint8).reshape(3, 8)
-    msg = Image(height=3, width=4, encoding='mono16', is_bigendian=1, step=10,
-                data=padded.tobytes())
+    msg = Image(
+        height=3, width=4, encoding='mono16', is_bigendian=1, step=10, data=padded.tobytes()
+    )
     np.testing.assert_array_equal(image_to_numpy(msg), values.astype(np.uint16))
 
 
-@pytest.mark.parametrize('field, value, words', [
-    ('encoding', 'yuv422_weird', 'encoding'), ('step', 10, 'step'),
-    ('data', b'\x00' * 5, 'bytes'), ('width', 0, 'empty')])
+@pytest.mark.parametrize(
+    'field, value, words',
+    [
+        ('encoding', 'yuv422_weird', 'encoding'),
+        ('step', 10, 'step'),
+        ('data', b'\x00' * 5, 'bytes'),
+        ('width', 0, 'empty'),
+    ],
+)
 def test_malformed_image_is_rejected(field, value, words):
     msg = numpy_to_image(np.zeros((4, 6), np.uint8), 'mono8', 0, 'cam')
     setattr(msg, field, value)
@@ -82,12 +96,15 @@ def _camera_info():
     return camera_to_camera_info(camera, 42, 'stereo_left_optical_frame')
 
 
-@pytest.mark.parametrize('field, value, words', [
-    ('k', [500.0, 0, 320, 3.0, 510, 240, 0, 0, 1], 'upper-triangular'),
-    ('d', [], 'D has 0 coefficients'),
-    ('d', [0.01] * 14, 'D has 14 coefficients'),
-    ('distortion_model', 'rational_polynomial', 'unsupported distortion model'),
-])
+@pytest.mark.parametrize(
+    'field, value, words',
+    [
+        ('k', [500.0, 0, 320, 3.0, 510, 240, 0, 0, 1], 'upper-triangular'),
+        ('d', [], 'D has 0 coefficients'),
+        ('d', [0.01] * 14, 'D has 14 coefficients'),
+        ('distortion_model', 'rational_polynomial', 'unsupported distortion model'),
+    ],
+)
 def test_camera_info_with_a_bad_k_or_d_is_rejected(field, value, words):
     msg = _camera_info()
     setattr(msg, field, value)
@@ -130,8 +147,12 @@ def test_pointcloud_round_trip():
 
 
 def test_path_round_trip_and_rejections():
-    poses = np.stack([make_transform(rpy_to_matrix(*rng.uniform(-3, 3, 3)), rng.normal(size=3))
-                      for _ in range(20)])
+    poses = np.stack(
+        [
+            make_transform(rpy_to_matrix(*rng.uniform(-3, 3, 3)), rng.normal(size=3))
+            for _ in range(20)
+        ]
+    )
     msg = matrices_to_path(poses, 7, 'base_link')
     np.testing.assert_allclose(path_to_matrices(msg), poses, atol=1e-12)
     msg.poses[3].pose.orientation.w = 5.0
@@ -155,11 +176,13 @@ def test_image_to_grey_puts_every_encoding_on_one_scale():
     expected = grey.astype(np.float32)
     np.testing.assert_array_equal(image_to_grey(numpy_to_image(grey, 'mono8', 1, 'f')), expected)
     mono16 = grey.astype(np.uint16) * 257  # 255 -> 65535
-    np.testing.assert_allclose(image_to_grey(numpy_to_image(mono16, 'mono16', 1, 'f')),
-                               expected, atol=1e-4)
+    np.testing.assert_allclose(
+        image_to_grey(numpy_to_image(mono16, 'mono16', 1, 'f')), expected, atol=1e-4
+    )
     rgb = np.stack([grey] * 3, axis=2)
     for encoding in ('rgb8', 'bgr8'):
-        np.testing.assert_allclose(image_to_grey(numpy_to_image(rgb, encoding, 1, 'f')),
-                                   expected, atol=1e-4)
+        np.testing.assert_allclose(
+            image_to_grey(numpy_to_image(rgb, encoding, 1, 'f')), expected, atol=1e-4
+        )
     with pytest.raises(InvalidInput, match="encoding '32FC1'"):
         image_to_grey(numpy_to_image(expected, '32FC1', 1, 'f'))

@@ -1,6 +1,7 @@
 """Curve reconstruction from cones (ALGORITHMS §2): implicit fits against known curves, cone
 polynomials against projection, and ray-root / cone least-squares reconstructions against
 synthetic ground truth seen by three PinholeCameras."""
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -34,9 +35,16 @@ CENTRES = [(-0.1, 0.0, 0.0), (0.1, 0.0, 0.0), (0.35, -0.4, 0.45)]  # [m]
 
 
 def make_cameras():
-    return [PinholeCamera(640, 480, K, np.zeros(5),
-                          make_transform(look_at_rotation(c, TARGET, up=(0.0, -1.0, 0.0)), c))
-            for c in CENTRES]
+    return [
+        PinholeCamera(
+            640,
+            480,
+            K,
+            np.zeros(5),
+            make_transform(look_at_rotation(c, TARGET, up=(0.0, -1.0, 0.0)), c),
+        )
+        for c in CENTRES
+    ]
 
 
 def ellipse_points(t):
@@ -50,13 +58,16 @@ def ellipse_points(t):
 
 def cubic_points(t):
     """Fig. 3.13's non-planar cubic, scaled by 0.04 and centred near TARGET, (N, 3) [m]."""
-    raw = np.column_stack([t**3 + t + 4, t**3 + 2 * t**2 + 5 * t + 1,
-                           3 * t**3 + 2 * t**2 + 3 * t + 25])
+    raw = np.column_stack(
+        [t**3 + t + 4, t**3 + 2 * t**2 + 5 * t + 1, 3 * t**3 + 2 * t**2 + 3 * t + 25]
+    )
     return 0.04 * (raw - [4.0, 1.0, 25.0]) + TARGET
 
 
-CURVES = {'ellipse': (ellipse_points, (0.0, 2 * np.pi), 2),
-          'cubic': (cubic_points, (-1.0, 1.0), 3)}
+CURVES = {
+    'ellipse': (ellipse_points, (0.0, 2 * np.pi), 2),
+    'cubic': (cubic_points, (-1.0, 1.0), 3),
+}
 
 
 def normalised(camera, points_base, rng=None, sigma_px=0.0):
@@ -77,8 +88,11 @@ def make_views(name, n=200, sigma_px=0.0, seed=0):
     for camera in make_cameras():
         xy = normalised(camera, truth, rng, sigma_px)
         samples.append(xy)
-        views.append(CurveView(fit_implicit_curve(xy, degree), camera.T_camera_base[:3, :3],
-                               camera.centre_base))
+        views.append(
+            CurveView(
+                fit_implicit_curve(xy, degree), camera.T_camera_base[:3, :3], camera.centre_base
+            )
+        )
     return views, truth, samples[0]
 
 
@@ -97,22 +111,26 @@ def test_monomial_order_and_count():
         evaluate_curve(np.ones(5), np.zeros((4, 2)), 2)
 
 
-@pytest.mark.parametrize('coefficients, degree', [
-    # fig. 3.16's Gamma_1 circle (far from the origin: needs the Hartley normalisation)
-    ((107.0087, -7.5276, -19.4015, 1.0, 0.0, 1.0), 2),
-    # a rotated ellipse (A, C, B) = (2, 0.6, 1), centre (0.3, -0.2)
-    ((2 * 0.09 + 0.04 - 0.6 * 0.06 - 0.5, -1.2 + 0.12, -0.4 - 0.18, 2.0, 0.6, 1.0), 2),
-])
+@pytest.mark.parametrize(
+    'coefficients, degree',
+    [
+        # fig. 3.16's Gamma_1 circle (far from the origin: needs the Hartley normalisation)
+        ((107.0087, -7.5276, -19.4015, 1.0, 0.0, 1.0), 2),
+        # a rotated ellipse (A, C, B) = (2, 0.6, 1), centre (0.3, -0.2)
+        ((2 * 0.09 + 0.04 - 0.6 * 0.06 - 0.5, -1.2 + 0.12, -0.4 - 0.18, 2.0, 0.6, 1.0), 2),
+    ],
+)
 def test_fit_recovers_conic_from_exact_points(coefficients, degree):
     a_true = np.array(coefficients)
     # points on the conic: intersect rays from an interior point with it
-    centre = np.linalg.solve([[2 * a_true[3], a_true[4]], [a_true[4], 2 * a_true[5]]],
-                             -a_true[1:3])
+    centre = np.linalg.solve(
+        [[2 * a_true[3], a_true[4]], [a_true[4], 2 * a_true[5]]], -a_true[1:3]
+    )
     angles = np.linspace(0, 2 * np.pi, 40, endpoint=False)
     xy = []
     for angle in angles:
         d = np.array([np.cos(angle), np.sin(angle)])
-        quad = a_true[3] * d[0]**2 + a_true[4] * d[0] * d[1] + a_true[5] * d[1]**2
+        quad = a_true[3] * d[0] ** 2 + a_true[4] * d[0] * d[1] + a_true[5] * d[1] ** 2
         r = np.sqrt(-evaluate_curve(a_true, centre[None], degree)[0] / quad)
         xy.append(centre + r * d)
     xy = np.array(xy)
@@ -129,8 +147,12 @@ def test_sampson_distance_of_circle_and_gradient():
     np.testing.assert_allclose(sampson_distance(a, xy, 2), [0.21 / 2.2, 0.19 / 1.8])
     rng = np.random.default_rng(1)
     a3, p, h = rng.normal(size=10), rng.normal(size=(5, 2)), 1e-6
-    numeric = np.column_stack([(evaluate_curve(a3, p + e, 3) - evaluate_curve(a3, p - e, 3))
-                               / (2 * h) for e in np.eye(2) * h])
+    numeric = np.column_stack(
+        [
+            (evaluate_curve(a3, p + e, 3) - evaluate_curve(a3, p - e, 3)) / (2 * h)
+            for e in np.eye(2) * h
+        ]
+    )
     np.testing.assert_allclose(curve_gradient(a3, p, 3), numeric, rtol=1e-7, atol=1e-7)
 
 
@@ -147,14 +169,20 @@ def test_cone_is_homogenised_curve_and_gradient_matches_differences():
     for view, cam in zip(views, make_cameras()):
         for s in (0.3, 1.0, 3.0):
             on_ray = cam.centre_base + s * (truth - cam.centre_base)
-            assert np.abs(cone_value(view.coefficients, 3, view.R_camera_base,
-                                     view.centre_base, on_ray)).max() < 1e-12
+            assert (
+                np.abs(
+                    cone_value(view.coefficients, 3, view.R_camera_base, view.centre_base, on_ray)
+                ).max()
+                < 1e-12
+            )
     h = 1e-6
-    numeric = np.column_stack([(cone_value(a, 3, R, c, points + e)
-                                - cone_value(a, 3, R, c, points - e)) / (2 * h)
-                               for e in np.eye(3) * h])
-    np.testing.assert_allclose(cone_gradient(a, 3, R, c, points), numeric, rtol=1e-6,
-                               atol=1e-8)
+    numeric = np.column_stack(
+        [
+            (cone_value(a, 3, R, c, points + e) - cone_value(a, 3, R, c, points - e)) / (2 * h)
+            for e in np.eye(3) * h
+        ]
+    )
+    np.testing.assert_allclose(cone_gradient(a, 3, R, c, points), numeric, rtol=1e-6, atol=1e-8)
 
 
 def assert_on_all_image_curves(points, views, degree, tol=1e-8):
@@ -169,8 +197,7 @@ def assert_on_all_image_curves(points, views, degree, tol=1e-8):
 def test_ray_roots_three_views_noise_free(name):
     degree = CURVES[name][2]
     views, truth, samples_xy1 = make_views(name)
-    points, info = reconstruct_ray_roots(*views, degree=degree, samples_xy1=samples_xy1,
-                                         tol3=1e-6)
+    points, info = reconstruct_ray_roots(*views, degree=degree, samples_xy1=samples_xy1, tol3=1e-6)
     size = np.ptp(truth, axis=0).max()  # [m]
     assert len(points) >= 0.95 * len(truth)
     # every kept point is its sample's true point, and no ghost survives view 3
@@ -184,11 +211,13 @@ def test_ray_roots_three_views_noise_free(name):
 
 def test_ray_roots_two_views_report_ambiguity():
     views, truth, samples_xy1 = make_views('ellipse')
-    points, info = reconstruct_ray_roots(views[0], views[1], degree=2,
-                                         samples_xy1=samples_xy1)
+    points, info = reconstruct_ray_roots(views[0], views[1], degree=2, samples_xy1=samples_xy1)
     assert info['n_ambiguous'] > 0
-    assert (len(points) + info['n_ambiguous'] + info['n_without_candidates']
-            == info['n_samples'] == len(truth))
+    assert (
+        len(points) + info['n_ambiguous'] + info['n_without_candidates']
+        == info['n_samples']
+        == len(truth)
+    )
     # a single candidate can only be the true point
     errors = np.linalg.norm(points - truth[info['sample_index']], axis=1)
     assert np.all(errors < 1e-6 * np.ptp(truth, axis=0).max())
@@ -196,8 +225,7 @@ def test_ray_roots_two_views_report_ambiguity():
 
 def test_cone_lsq_three_views_noise_free():
     views, truth, samples_xy1 = make_views('ellipse', n=40)
-    points, info = reconstruct_cone_lsq(*views, degree=2, samples_xy1=samples_xy1,
-                                        tol3=1e-6)
+    points, info = reconstruct_cone_lsq(*views, degree=2, samples_xy1=samples_xy1, tol3=1e-6)
     # the samples near the two epipolar tangencies (t = pi/2, 3pi/2), where S1 and S2
     # touch, give minima off the curve that view 3 rejects
     assert len(points) >= 0.8 * len(truth)
@@ -219,8 +247,9 @@ def test_plane_angle_noise_free_and_noisy():
     views, truth, samples_xy1 = make_views('ellipse', sigma_px=0.5, seed=3)
     samples_xy1 = project_to_curve(views[0].coefficients, samples_xy1, 2)
     assert sampson_distance(views[0].coefficients, samples_xy1, 2).max() < 1e-12
-    points, info = reconstruct_ray_roots(*views, degree=2, samples_xy1=samples_xy1,
-                                         tol3=3.0 / F_PX)
+    points, info = reconstruct_ray_roots(
+        *views, degree=2, samples_xy1=samples_xy1, tol3=3.0 / F_PX
+    )
     assert len(points) >= 0.75 * len(truth)
     errors = np.linalg.norm(points - truth[info['sample_index']], axis=1)
     assert np.median(errors) < 0.02 * np.ptp(truth, axis=0).max()

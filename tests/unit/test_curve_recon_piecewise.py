@@ -2,6 +2,7 @@
 chains), piecewise fits, piecewise ray-roots / cone least-squares reconstruction of a
 loop no single conic fits, two-view ambiguity, ordering, resampling, orientation and
 normals from depth; all against synthetic ground truth."""
+
 import cv2
 import numpy as np
 import pytest
@@ -34,31 +35,39 @@ CENTRES = [(0.95, -0.07, 0.92), (0.95, 0.07, 0.92), (0.40, 0.45, 0.95)]  # defau
 
 
 def cameras():
-    return [PinholeCamera(640, 480, K, np.zeros(5),
-                          make_transform(look_at_rotation(c, TARGET, up=(0.0, 0.0, 1.0)), c))
-            for c in CENTRES]
+    return [
+        PinholeCamera(
+            640,
+            480,
+            K,
+            np.zeros(5),
+            make_transform(look_at_rotation(c, TARGET, up=(0.0, 0.0, 1.0)), c),
+        )
+        for c in CENTRES
+    ]
 
 
 def loop_points(t):
     """A non-planar closed loop (a 'saddle' ellipse, 0.24 x 0.16 m) no conic fits."""
-    return TARGET + np.column_stack([0.12 * np.cos(t) + 0.02 * np.cos(2 * t),
-                                     0.08 * np.sin(t), 0.03 * np.cos(2 * t)])
+    return TARGET + np.column_stack(
+        [0.12 * np.cos(t) + 0.02 * np.cos(2 * t), 0.08 * np.sin(t), 0.03 * np.cos(2 * t)]
+    )
 
 
-def ellipse_image(centre, axes, angle_deg, size=(480, 640), noise=1.0, seed=0,
-                  closed=True):
+def ellipse_image(centre, axes, angle_deg, size=(480, 640), noise=1.0, seed=0, closed=True):
     """A 3 px dark antialiased ellipse (or arc) on a shaded background, and its dense
     true points (M, 2) [px]."""
     rng = np.random.default_rng(seed)
-    v, u = np.mgrid[0:size[0], 0:size[1]]
+    v, u = np.mgrid[0 : size[0], 0 : size[1]]
     image = 120.0 + 0.1 * u + 0.05 * v
     t = np.linspace(0, 2 * np.pi if closed else np.pi, 4000)
     c, s = np.cos(np.radians(angle_deg)), np.sin(np.radians(angle_deg))
     local = np.column_stack([axes[0] * np.cos(t), axes[1] * np.sin(t)])
     truth = centre + local @ np.array([[c, s], [-s, c]])
     mask = np.zeros(size, np.uint8)
-    cv2.polylines(mask, [np.round(truth * 256).astype(np.int32)], closed, 255, 3,
-                  cv2.LINE_AA, shift=8)
+    cv2.polylines(
+        mask, [np.round(truth * 256).astype(np.int32)], closed, 255, 3, cv2.LINE_AA, shift=8
+    )
     image *= 1.0 - 0.6 * mask / 255.0
     image += rng.normal(scale=noise, size=size)
     return np.clip(np.round(image), 0, 255).astype(np.uint8), truth
@@ -69,6 +78,7 @@ def test_extraction_finds_subpixel_ordered_closed_chain():
     chains = extract_chains(image, line_width_px=3.0)
     assert len(chains) == 1 and chains[0].closed
     from scipy.spatial import cKDTree
+
     distance, _ = cKDTree(truth).query(chains[0].pixels)
     # cv2's antialiased line is not exactly symmetric: 0.1 px RMS is its own accuracy
     assert np.sqrt(np.mean(distance**2)) < 0.15 and distance.max() < 0.5
@@ -84,12 +94,18 @@ def test_extraction_open_arc_is_trimmed_and_blank_or_chart_images_give_nothing()
     chains = extract_chains(image)
     assert len(chains) == 1 and not chains[0].closed
     from scipy.spatial import cKDTree
+
     distance = cKDTree(truth).query(chains[0].pixels)[0]
     # trimmed end caps: at most ~2 px at the very ends of cv2's round-capped line
     assert distance[3:-3].max() < 0.5 and distance.max() < 2.5
     blank, _ = ellipse_image(np.array([320.0, 240.0]), (150.0, 90.0), 0.0, noise=2.0)
-    blank = np.clip(blank.astype(float) * 0 + 140 + np.random.default_rng(1).normal(
-        scale=2.0, size=blank.shape), 0, 255)
+    blank = np.clip(
+        blank.astype(float) * 0
+        + 140
+        + np.random.default_rng(1).normal(scale=2.0, size=blank.shape),
+        0,
+        255,
+    )
     assert extract_chains(blank) == []
     # a chessboard (what sensor_sim shows during calibration) has edges, not thin lines
     board = np.kron((np.indices((8, 10)).sum(axis=0) % 2) * 200.0 + 30.0, np.ones((40, 40)))
@@ -131,8 +147,9 @@ def test_real_positive_roots_of_quadratics_and_lines_match_numpy():
     for i in range(len(poly)):
         expected = np.roots(np.trim_zeros(poly[i, ::-1], 'f'))
         if 50 <= i < 150:  # rounding may make the double root a close complex pair
-            np.testing.assert_allclose(roots[rows == i], [np.sqrt(c0[i - 50] / c2[i - 50])] * 2,
-                                       rtol=1e-6)
+            np.testing.assert_allclose(
+                roots[rows == i], [np.sqrt(c0[i - 50] / c2[i - 50])] * 2, rtol=1e-6
+            )
             continue
         expected = np.sort(expected.real[(np.abs(expected.imag) < 1e-9) & (expected.real > 0)])
         np.testing.assert_allclose(np.sort(roots[rows == i]), expected, rtol=1e-8)
@@ -156,8 +173,9 @@ def test_pinv_solve_matches_numpy_pinv(views):
         s = np.linalg.svd(J, compute_uv=False)
         clear = np.all(np.abs(s / s[:, :1] - 1e-2) > 1e-4, axis=1) | (s[:, 0] == 0)
         assert clear.mean() > 0.95
-        np.testing.assert_allclose(got[clear] / scale[clear], expected[clear] / scale[clear],
-                                   atol=1e-7)
+        np.testing.assert_allclose(
+            got[clear] / scale[clear], expected[clear] / scale[clear], atol=1e-7
+        )
 
 
 def make_views(sigma_px=0.0, n=800, seed=0, fit_tolerance_px=0.05):
@@ -169,8 +187,7 @@ def make_views(sigma_px=0.0, n=800, seed=0, fit_tolerance_px=0.05):
         pixels, depth = camera.project(truth)
         assert np.all(depth > 0)
         pixels = pixels + rng.normal(scale=sigma_px, size=pixels.shape) if sigma_px else pixels
-        curve = PiecewiseCurve(camera.undistort_pixels(pixels), True, 2, F_PX,
-                               fit_tolerance_px)
+        curve = PiecewiseCurve(camera.undistort_pixels(pixels), True, 2, F_PX, fit_tolerance_px)
         views.append(View(curve, camera.T_camera_base[:3, :3], camera.centre_base))
     return views, truth
 
@@ -209,11 +226,13 @@ def test_piecewise_reconstruction_noise_free(method):
         errors = np.linalg.norm(points - truth[info['sample_index']], axis=1)
         assert len(points) >= 0.9 * len(truth)
     else:
-        points, info = reconstruct_cone_lsq(*views, tol3_px=0.5,
-                                            seed_depths=np.geomspace(0.3, 3.0, 8))
+        points, info = reconstruct_cone_lsq(
+            *views, tol3_px=0.5, seed_depths=np.geomspace(0.3, 3.0, 8)
+        )
         assert len(points) >= 0.6 * len(truth)  # flat minima near tangencies rejected
         errors = None
     from scipy.spatial import cKDTree
+
     dense = loop_points(np.linspace(0, 2 * np.pi, 200000))
     distance = cKDTree(dense).query(points)[0]
     # issue goal: noise-free points within 1e-6 of the curve's size (met by single conics,
@@ -237,6 +256,7 @@ def test_piecewise_reconstruction_with_pixel_noise_and_two_views():
     points, info = reconstruct_ray_roots(*views, tol3_px=2.0)
     refined, _, _ = refine_points(points, views)
     from scipy.spatial import cKDTree
+
     dense = loop_points(np.linspace(0, 2 * np.pi, 200000))
     distance = cKDTree(dense).query(refined)[0]
     # [m] 0.1 px noise at 0.8 m; isolated triple-cone points (see above) excepted
@@ -246,7 +266,7 @@ def test_piecewise_reconstruction_with_pixel_noise_and_two_views():
     points2, info2 = reconstruct_ray_roots(views[0], views[1])
     assert info2['n_ambiguous'] > 0
     assert len(points2) + info2['n_ambiguous'] + info2['n_without_candidates'] == len(truth)
-    assert np.sqrt(np.mean(cKDTree(dense).query(points2)[0]**2)) < 2e-3
+    assert np.sqrt(np.mean(cKDTree(dense).query(points2)[0] ** 2)) < 2e-3
 
 
 def test_smoothing_ordering_and_resampling():
@@ -258,8 +278,9 @@ def test_smoothing_ordering_and_resampling():
     smoothed, kept = smooth_along_curve(noisy, True, 0.02, np.arange(500.0), period=500)
     assert not kept[100] and kept.sum() >= 495
     from scipy.spatial import cKDTree
+
     dense = loop_points(np.linspace(0, 2 * np.pi, 200000))
-    assert np.sqrt(np.mean(cKDTree(dense).query(smoothed)[0]**2)) < 1.5e-4  # noise 2e-4
+    assert np.sqrt(np.mean(cKDTree(dense).query(smoothed)[0] ** 2)) < 1.5e-4  # noise 2e-4
     waypoints = resample(smoothed, True, 0.005)
     steps = np.linalg.norm(np.diff(np.vstack([waypoints, waypoints[:1]]), axis=0), axis=1)
     np.testing.assert_allclose(steps, 0.005, rtol=0.05)
@@ -297,5 +318,8 @@ def test_frames_and_normals_from_a_plane_depth():
     normals = normals_from_depth(on_plane, depth, K, T_base_rect, window_px=7)
     np.testing.assert_allclose(normals, np.tile(normal_base, (100, 1)), atol=1e-6)
     frames = waypoint_frames(on_plane, True, -normals)
-    np.testing.assert_allclose(frames[:, :3, 2] @ normal_base,
-                               -np.sqrt(1 - (frames[:, :3, 0] @ normal_base)**2), atol=1e-9)
+    np.testing.assert_allclose(
+        frames[:, :3, 2] @ normal_base,
+        -np.sqrt(1 - (frames[:, :3, 0] @ normal_base) ** 2),
+        atol=1e-9,
+    )

@@ -1,6 +1,7 @@
 """Issue 18 for curve_recon_node's cores: implausible depth intrinsics and depth values
 are refused with a reason (never an OverflowError or a normal made from them), and any
 spacing in the parameter's range gives waypoints with proper rotations."""
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -42,9 +43,12 @@ def test_huge_intrinsics_are_refused_with_a_reason():
     huge = np.full((3, 3), 1e308)
     with pytest.raises(InvalidInput, match='finite|focal'):
         normals_from_depth(np.array([[0.0, 0.0, 0.5]]), depth, huge, np.eye(4))
-    for bad in (np.diag([1e308, 1e308, 1.0]), np.diag([0.0, 500.0, 1.0]),
-                np.array([[500.0, 0, 1e9], [0, 500, 240], [0, 0, 1]]),
-                np.array([[500.0, 0, 320], [3, 500, 240], [0, 0, 1]])):
+    for bad in (
+        np.diag([1e308, 1e308, 1.0]),
+        np.diag([0.0, 500.0, 1.0]),
+        np.array([[500.0, 0, 1e9], [0, 500, 240], [0, 0, 1]]),
+        np.array([[500.0, 0, 320], [3, 500, 240], [0, 0, 1]]),
+    ):
         with pytest.raises(InvalidInput):
             check_depth_intrinsics(bad, W, H)
     check_depth_intrinsics(K, W, H)
@@ -69,7 +73,7 @@ def test_negative_zero_and_huge_depths_give_no_normals():
     assert np.isnan(normals_from_depth(points, np.full((H, W), 2.0), K, np.eye(4))).all()
     # half the image unusable: the rest still gives the normals where it is valid
     mixed = depth.copy()
-    mixed[:, :W // 2] = -1.0
+    mixed[:, : W // 2] = -1.0
     normals = normals_from_depth(points, mixed, K, np.eye(4), 9)
     u = K[0, 0] * points[:, 0] / points[:, 2] + K[0, 2]
     right = u > W // 2 + 8
@@ -85,8 +89,9 @@ def test_any_spacing_gives_proper_rotations(spacing, closed):
     assert len(waypoints) >= (3 if closed else 2)
     frames = waypoint_frames(waypoints, closed)
     R = frames[:, :3, :3]
-    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.tile(np.eye(3), (len(R), 1, 1)),
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        R @ np.swapaxes(R, 1, 2), np.tile(np.eye(3), (len(R), 1, 1)), atol=1e-9
+    )
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
     assert len(matrices_to_path(frames, 1, 'base_link').poses) == len(waypoints)
 
@@ -118,15 +123,21 @@ def test_noise_draws_that_opened_the_quick_loop_give_one_closed_curve(frame):
 
     scenario = load_scenario(resolve_scenario_path('quick'))
     renderer = SceneRenderer(scenario)
-    images = {name: add_noise(renderer.scene_image(name), scenario.noise.image_sigma,
-                              np.random.default_rng([scenario.seed, frame, i]))
-              for i, name in enumerate(('left', 'right', 'aux'))}
+    images = {
+        name: add_noise(
+            renderer.scene_image(name),
+            scenario.noise.image_sigma,
+            np.random.default_rng([scenario.seed, frame, i]),
+        )
+        for i, name in enumerate(('left', 'right', 'aux'))
+    }
     result = reconstruct_capture(images, scenario.cameras, ReconstructionSettings())
     assert result.closed and result.stats['segments'] == 1
     truth = np.vstack(curve_polylines(scenario.curve, scenario.surface))
     loop = np.vstack([result.waypoints_base, result.waypoints_base[:1]])
-    dense = np.vstack([a + np.linspace(0, 1, 20)[:, None] * (b - a)
-                       for a, b in zip(loop[:-1], loop[1:])])
+    dense = np.vstack(
+        [a + np.linspace(0, 1, 20)[:, None] * (b - a) for a, b in zip(loop[:-1], loop[1:])]
+    )
     assert cKDTree(dense).query(truth)[0].max() < 5e-3
 
 

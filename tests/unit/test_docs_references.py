@@ -1,6 +1,7 @@
 """The code's references into the specs resolve inside the repository: every
 ``ALGORITHMS.md §N.M`` names a section of docs/ALGORITHMS.md, every ``INTERFACES.md,
 "Title"`` a section of docs/INTERFACES.md, and every ``docs/<file>`` exists."""
+
 import re
 from pathlib import Path
 
@@ -14,15 +15,21 @@ THIS_FILE = Path(__file__).resolve()
 def cited_files():
     for top in SEARCHED:
         for path in sorted((REPO_ROOT / top).rglob('*')):
-            if path.suffix in ('.py', '.md', '.yaml') and '__pycache__' not in path.parts \
-                    and path != THIS_FILE:
+            if (
+                path.suffix in ('.py', '.md', '.yaml')
+                and '__pycache__' not in path.parts
+                and path != THIS_FILE
+            ):
                 yield path
     yield REPO_ROOT / 'README.md'
 
 
 def headings(doc):
-    return [line.lstrip('#').strip() for line in (DOCS / doc).read_text().splitlines()
-            if line.startswith('#')]
+    return [
+        line.lstrip('#').strip()
+        for line in (DOCS / doc).read_text().splitlines()
+        if line.startswith('#')
+    ]
 
 
 def citations(pattern):
@@ -45,13 +52,15 @@ def test_interfaces_sections_cited_in_the_code_exist():
     titles = headings('INTERFACES.md')
     cited = citations(r'INTERFACES\.md,?\s+"([^"]+)"')
     assert cited, 'no INTERFACES.md citation found: the pattern is stale'
-    missing = [(str(path), title) for path, title in cited
-               if not any(t.startswith(title) or title.startswith(t) for t in titles)]
+    missing = [
+        (str(path), title)
+        for path, title in cited
+        if not any(t.startswith(title) or title.startswith(t) for t in titles)
+    ]
     assert not missing, f'INTERFACES.md has no such section: {missing}'
 
 
 def test_cited_docs_files_exist():
     cited = citations(r'\bdocs/([A-Za-z_][\w.-]*\w)')
-    missing = sorted({(str(path), name) for path, name in cited
-                      if not (DOCS / name).exists()})
+    missing = sorted({(str(path), name) for path, name in cited if not (DOCS / name).exists()})
     assert not missing, f'not in docs/: {missing}'

@@ -1,4 +1,5 @@
 """Velocity-level IK cores (ALGORITHMS.md §6.5, A7.3, A7.4, A7.14) against the KKT point."""
+
 import numpy as np
 import pytest
 
@@ -26,8 +27,9 @@ def random_jacobians(robot_name, seed, count):
     """``count`` Jacobians at seeded uniform configurations within the joint limits."""
     robot = load_robot(robot_name, 0.0)
     rng = np.random.default_rng(seed)
-    return [robot.jacobian(rng.uniform(robot.lower_limits, robot.upper_limits))
-            for _ in range(count)]
+    return [
+        robot.jacobian(rng.uniform(robot.lower_limits, robot.upper_limits)) for _ in range(count)
+    ]
 
 
 def h_positive(J, W, K=K_THESIS):
@@ -80,8 +82,9 @@ def test_null_space_positive_verdicts():
     positive, min_eig = null_space_positive(J, -np.eye(7))
     assert not positive and min_eig == pytest.approx(-1.0)
     # A7.3: the thesis's W fails in about 77 % of uniform configurations of its model.
-    failures = [not null_space_positive(J, W_THESIS)[0]
-                for J in random_jacobians('pa10_thesis', 5, 300)]
+    failures = [
+        not null_space_positive(J, W_THESIS)[0] for J in random_jacobians('pa10_thesis', 5, 300)
+    ]
     assert 0.67 < np.mean(failures) < 0.87
 
 
@@ -103,16 +106,20 @@ def test_primal_dual_warm_start_stays_at_the_kkt_point():
     J = well_posed_jacobians('pa10_thesis', W_THESIS, 1)[0]
     rdot_d = np.random.default_rng(7).normal(size=6)
     qdot_kkt, lam_kkt = kkt_velocity(J, W_THESIS, rdot_d)
-    qdot, lam, info = primal_dual_velocity(J, W_THESIS, rdot_d, v0=qdot_kkt, u0=lam_kkt,
-                                           t_final=1e-3)
+    qdot, lam, info = primal_dual_velocity(
+        J, W_THESIS, rdot_d, v0=qdot_kkt, u0=lam_kkt, t_final=1e-3
+    )
     np.testing.assert_allclose(qdot, qdot_kkt, atol=1e-9)
     assert info.converged
 
 
 def test_primal_dual_raises_the_gain_when_k_is_too_small():
     # The real PA-10's short links: W positive on null(J), yet W + 100 J^T J indefinite.
-    J = next(J for J in random_jacobians('pa10', 8, 300)
-             if null_space_positive(J, W_THESIS)[1] > 0.05 and not h_positive(J, W_THESIS))
+    J = next(
+        J
+        for J in random_jacobians('pa10', 8, 300)
+        if null_space_positive(J, W_THESIS)[1] > 0.05 and not h_positive(J, W_THESIS)
+    )
     rdot_d = np.random.default_rng(8).normal(size=6)
     qdot, lam, info = primal_dual_velocity(J, W_THESIS, rdot_d, K=K_THESIS)
     assert info.gain > K_THESIS and info.min_h_eigenvalue > 0 and not info.fallback_used
@@ -123,9 +130,12 @@ def test_primal_dual_raises_the_gain_when_k_is_too_small():
 def test_primal_dual_detects_failure_and_falls_back(robot_name):
     rng = np.random.default_rng(9)
     # Away from singularities: near one, the dual mode decays only at about sigma_min^2.
-    failing = [J for J in random_jacobians(robot_name, 9, 30)
-               if not null_space_positive(J, W_THESIS)[0]
-               and np.linalg.svd(J, compute_uv=False)[-1] > 0.05][:5]
+    failing = [
+        J
+        for J in random_jacobians(robot_name, 9, 30)
+        if not null_space_positive(J, W_THESIS)[0]
+        and np.linalg.svd(J, compute_uv=False)[-1] > 0.05
+    ][:5]
     assert failing
     for J in failing:
         rdot_d = rng.normal(size=6)
@@ -146,8 +156,9 @@ def test_fixed_step_rules_diverge_at_the_thesis_values():
     spectral_radius = np.max(np.abs(np.linalg.eigvals(fixed_step_matrix(J, W_THESIS))))
     assert spectral_radius == pytest.approx(108, rel=0.02)  # A7.4
     rdot_d = np.random.default_rng(10).normal(size=6)
-    _, _, norms = primal_dual_velocity_fixed_step(J, W_THESIS, rdot_d, K=K_THESIS, mu=0.02,
-                                                  eta=0.02, iterations=20)
+    _, _, norms = primal_dual_velocity_fixed_step(
+        J, W_THESIS, rdot_d, K=K_THESIS, mu=0.02, eta=0.02, iterations=20
+    )
     assert norms.shape == (21,) and np.all(np.isfinite(norms))
     assert norms[-1] > 1e20 * norms[1]
 
@@ -171,10 +182,12 @@ def test_dls_tends_to_the_pseudo_inverse_away_from_singularities():
         if np.linalg.svd(J, compute_uv=False)[-1] < 0.05:
             continue
         twist = rng.normal(size=6)
-        np.testing.assert_allclose(dls_velocity(J, twist, 1e-7), np.linalg.pinv(J) @ twist,
-                                   atol=1e-8)
+        np.testing.assert_allclose(
+            dls_velocity(J, twist, 1e-7), np.linalg.pinv(J) @ twist, atol=1e-8
+        )
         assert np.linalg.norm(dls_velocity(J, twist, 0.5)) < np.linalg.norm(
-            dls_velocity(J, twist, 0.0))
+            dls_velocity(J, twist, 0.0)
+        )
 
 
 def test_pose_error_is_zero_for_equal_poses_and_matches_a_known_rotation():
@@ -184,8 +197,7 @@ def test_pose_error_is_zero_for_equal_poses_and_matches_a_known_rotation():
     # shifted by 1 cm along base y.
     angle_z, offset_m = 0.01, np.array([0.0, 0.01, 0.0])
     T_desired = make_transform(rot_z(angle_z) @ T[:3, :3], T[:3, 3] + offset_m)
-    np.testing.assert_allclose(pose_error(T, T_desired), [0, 0.01, 0, 0, 0, angle_z],
-                               atol=1e-12)
+    np.testing.assert_allclose(pose_error(T, T_desired), [0, 0.01, 0, 0, 0, angle_z], atol=1e-12)
     T_desired = make_transform(rot_x(0.02) @ T[:3, :3], T[:3, 3])
     np.testing.assert_allclose(pose_error(T, T_desired), [0, 0, 0, 0.02, 0, 0], atol=1e-12)
 

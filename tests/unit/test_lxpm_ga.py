@@ -1,5 +1,6 @@
 """Chapter 4 algorithm core: the seed camera model (ALGORITHMS.md §3.2, §3.6) and the LX-PM
 genetic algorithm (§3.4, A4.4-A4.5) against the ground truth of Tables 4.1 / 4.2."""
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -63,17 +64,19 @@ def test_implicit_distortion_solves_its_cubic():
     k = np.concatenate([[0.0, 1e-14], rng.uniform(0, 1, 28)])[:, None]
     r = distorted_radius(r_u, k)
     assert np.all(r >= 0)
-    assert np.max(np.abs(k * r ** 3 + r - r_u)) < 1e-12
+    assert np.max(np.abs(k * r**3 + r - r_u)) < 1e-12
     # and the projected point's radius is that root: |X_d| (1 + k |X_d|^2) = r_u
     params = random_cameras(rng, 5)
     uv_d = project_seed(params, POINTS_WORLD)
     xy_d = (uv_d - params[:, None, 0:2]) / params[:, None, 2:4]
-    uv_pinhole = project_seed(np.column_stack([params[:, :5], np.zeros(5), params[:, 6:]]),
-                              POINTS_WORLD)
+    uv_pinhole = project_seed(
+        np.column_stack([params[:, :5], np.zeros(5), params[:, 6:]]), POINTS_WORLD
+    )
     xy_u = (uv_pinhole - params[:, None, 0:2]) / params[:, None, 2:4]
     r_d = np.linalg.norm(xy_d, axis=-1)
-    np.testing.assert_allclose(xy_d * (1 + params[:, 5, None, None] * r_d[..., None] ** 2),
-                               xy_u, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        xy_d * (1 + params[:, 5, None, None] * r_d[..., None] ** 2), xy_u, rtol=0, atol=1e-12
+    )
 
 
 def test_zero_k_is_the_pinhole():
@@ -82,19 +85,26 @@ def test_zero_k_is_the_pinhole():
     X = np.einsum('pij,nj->pni', rpy_to_matrix(*params[:, 6:9].T[::-1]), POINTS_WORLD)
     X += params[:, None, 9:12]
     fx, fy = params[:, 4] * params[:, 2], params[:, 4] * params[:, 3]
-    expected = np.stack([fx[:, None] * X[..., 0] / X[..., 2] + params[:, 0, None],
-                         fy[:, None] * X[..., 1] / X[..., 2] + params[:, 1, None]], axis=-1)
+    expected = np.stack(
+        [
+            fx[:, None] * X[..., 0] / X[..., 2] + params[:, 0, None],
+            fy[:, None] * X[..., 1] / X[..., 2] + params[:, 1, None],
+        ],
+        axis=-1,
+    )
     for distortion in ('implicit', 'explicit'):
-        np.testing.assert_allclose(project_seed(params, POINTS_WORLD, distortion), expected,
-                                   rtol=0, atol=1e-9)
+        np.testing.assert_allclose(
+            project_seed(params, POINTS_WORLD, distortion), expected, rtol=0, atol=1e-9
+        )
 
 
 def test_population_projection_equals_individual_projections():
     params = random_cameras(np.random.default_rng(3), 7)
     together = project_seed(params, POINTS_WORLD)
     for p in range(7):
-        np.testing.assert_array_equal(together[p], project_seed(params[p:p + 1],
-                                                                POINTS_WORLD)[0])
+        np.testing.assert_array_equal(
+            together[p], project_seed(params[p : p + 1], POINTS_WORLD)[0]
+        )
 
 
 def test_identifiable_products_match_the_tables():
@@ -106,8 +116,11 @@ def test_identifiable_products_match_the_tables():
     # two cameras with the same products project identically (A4.1)
     other = LEFT_TRUTH.copy()
     other[2:6] = [400.0, 400.0, 5.0, 0.15152 * 4]  # Nx, Ny doubled, f halved, kappa kept
-    np.testing.assert_allclose(project_seed(other[None], POINTS_WORLD),
-                               project_seed(LEFT_TRUTH[None], POINTS_WORLD), atol=1e-9)
+    np.testing.assert_allclose(
+        project_seed(other[None], POINTS_WORLD),
+        project_seed(LEFT_TRUTH[None], POINTS_WORLD),
+        atol=1e-9,
+    )
 
 
 def test_bad_shapes_raise():
@@ -150,9 +163,17 @@ def test_power_mutation_stays_in_bounds_and_follows_its_sign_rule():
 
 
 def test_ga_is_deterministic_for_a_seed():
-    runs = [lxpm_ga(shifted_sphere, -5 * np.ones(6), 5 * np.ones(6),
-                    np.random.default_rng(seed), population=30, generations=20)
-            for seed in (6, 6, 7)]
+    runs = [
+        lxpm_ga(
+            shifted_sphere,
+            -5 * np.ones(6),
+            5 * np.ones(6),
+            np.random.default_rng(seed),
+            population=30,
+            generations=20,
+        )
+        for seed in (6, 6, 7)
+    ]
     np.testing.assert_array_equal(runs[0].best, runs[1].best)
     np.testing.assert_array_equal(runs[0].history, runs[1].history)
     assert not np.array_equal(runs[0].best, runs[2].best)
@@ -161,10 +182,16 @@ def test_ga_is_deterministic_for_a_seed():
 @pytest.mark.parametrize('lx_variant', ['printed', 'symmetric'])
 def test_ga_minimises_a_shifted_sphere(lx_variant):
     initial = []
-    result = lxpm_ga(shifted_sphere, -5 * np.ones(6), 5 * np.ones(6),
-                     np.random.default_rng(8), population=60, generations=60,
-                     lx_variant=lx_variant,
-                     progress=lambda generation, cost: initial.append(cost))
+    result = lxpm_ga(
+        shifted_sphere,
+        -5 * np.ones(6),
+        5 * np.ones(6),
+        np.random.default_rng(8),
+        population=60,
+        generations=60,
+        lx_variant=lx_variant,
+        progress=lambda generation, cost: initial.append(cost),
+    )
     assert result.history.shape == (60,)
     assert np.all(np.diff(result.history) <= 0)  # elitism
     assert result.best_cost == result.history[-1] == shifted_sphere(result.best[None])[0]
@@ -177,9 +204,15 @@ def test_ga_lowers_the_noise_free_stereo_cost():
     objective = stereo_objective(POINTS_WORLD, pixels[0], pixels[1])
     assert objective(TRUTH.reshape(1, 24))[0] < 1e-18  # rounding of the closed-form root
     initial = []
-    result = lxpm_ga(objective, BOUNDS[:, 0], BOUNDS[:, 1], np.random.default_rng(9),
-                     population=80, generations=100,
-                     progress=lambda generation, cost: initial.append(cost))
+    result = lxpm_ga(
+        objective,
+        BOUNDS[:, 0],
+        BOUNDS[:, 1],
+        np.random.default_rng(9),
+        population=80,
+        generations=100,
+        progress=lambda generation, cost: initial.append(cost),
+    )
     assert np.all(np.diff(result.history) <= 0)
     assert np.all((result.best >= BOUNDS[:, 0]) & (result.best <= BOUNDS[:, 1]))
     # The thesis's operators on its 24-D box converge slowly: the small budget only lowers

@@ -1,6 +1,7 @@
 """vgm_common.node_tools with real rclpy nodes in this process: NodeParameters (kinds,
 ranges, lists, refusals with a reason, the on_change hook) and run_node (exit request,
 drain after a signal, exit status, one-line start-up error)."""
+
 import array
 import os
 import signal
@@ -39,8 +40,13 @@ def make_node(private_domain):
     nodes = []
 
     def _make(**overrides):
-        node = Node(f'probe_{len(nodes)}', context=context, parameter_overrides=[
-            Parameter(name, value=value) for name, value in overrides.items()])
+        node = Node(
+            f'probe_{len(nodes)}',
+            context=context,
+            parameter_overrides=[
+                Parameter(name, value=value) for name, value in overrides.items()
+            ],
+        )
         nodes.append(node)
         return node
 
@@ -52,6 +58,7 @@ def make_node(private_domain):
 
 def probe_params(changes=None):
     """Parameters of every kind; ``changes`` collects (name, value) from on_change."""
+
     def record(name):
         return None if changes is None else lambda value: changes.append((name, value))
 
@@ -59,9 +66,14 @@ def probe_params(changes=None):
         Param('rate', 30.0, '[Hz]', range=(0.0, 200.0), on_change=record('rate')),
         Param('count', 3, 'How many.', range=(1, 10)),
         Param('mode', 'fast', 'How.', choices=('fast', 'exact')),
-        Param('names', ['/a'], 'Topic names.',
-              check=lambda names: None if all(n.startswith('/') for n in names)
-              else 'must be absolute'),
+        Param(
+            'names',
+            ['/a'],
+            'Topic names.',
+            check=lambda names: None
+            if all(n.startswith('/') for n in names)
+            else 'must be absolute',
+        ),
         Param('weights', [1.0, 2.0], 'Diagonal of W.'),
         Param('frozen', 'x', 'Fixed at start-up.', read_only=True),
     ]
@@ -89,19 +101,22 @@ def test_an_empty_list_parameter_has_a_value(make_node):
     assert 'read-only' in refusal(node, 'topics', ['/a'])
 
 
-@pytest.mark.parametrize('overrides, reason', [
-    ({'rate': 'fast'}, 'expected float'),
-    ({'rate': 500.0}, 'out of range'),  # the descriptor's floating-point range
-    ({'rate': float('nan')}, 'out of range'),
-    ({'count': 2.5}, 'count'),
-    ({'count': 11}, 'out of range'),  # refused by rclpy itself: the descriptor's range
-    ({'mode': 'slow'}, 'not one of fast, exact'),
-    ({'names': 'a'}, 'expected a list'),
-    ({'names': ['a']}, 'must be absolute'),
-    ({'weights': [True, False]}, 'expected a list of float'),
-])
+@pytest.mark.parametrize(
+    'overrides, reason',
+    [
+        ({'rate': 'fast'}, 'expected float'),
+        ({'rate': 500.0}, 'out of range'),  # the descriptor's floating-point range
+        ({'rate': float('nan')}, 'out of range'),
+        ({'count': 2.5}, 'count'),
+        ({'count': 11}, 'out of range'),  # refused by rclpy itself: the descriptor's range
+        ({'mode': 'slow'}, 'not one of fast, exact'),
+        ({'names': 'a'}, 'expected a list'),
+        ({'names': ['a']}, 'must be absolute'),
+        ({'weights': [True, False]}, 'expected a list of float'),
+    ],
+)
 def test_a_bad_start_up_value_is_one_line_naming_the_parameter(make_node, overrides, reason):
-    (name, value), = overrides.items()
+    ((name, value),) = overrides.items()
     with pytest.raises(ParameterError) as raised:
         NodeParameters(make_node(**overrides), probe_params())
     message = str(raised.value)
@@ -126,8 +141,9 @@ def test_values_that_must_go_together_are_checked_at_start_up_and_on_change(make
     assert "'weights' needs 3 values" in refusal(node, 'count', 3)
     assert (params.weights, params.count) == ([1.0, 2.0], 2)  # nothing changed
     # Both at once: judged together.
-    result = node.set_parameters_atomically([Parameter('count', value=3),
-                                             Parameter('weights', value=[1.0, 2.0, 3.0])])
+    result = node.set_parameters_atomically(
+        [Parameter('count', value=3), Parameter('weights', value=[1.0, 2.0, 3.0])]
+    )
     assert result.successful, result.reason
     assert (params.weights, params.count) == ([1.0, 2.0, 3.0], 3)
     assert diagnostics.rejected == {'parameter change': 2}
@@ -138,7 +154,8 @@ def test_changes_are_checked_then_applied_and_reported(make_node):
     changes = []
     vetoed = False  # a callback added before ours, so it runs after ours (rclpy's order)
     node.add_on_set_parameters_callback(
-        lambda parameters: SetParametersResult(successful=not vetoed, reason='veto'))
+        lambda parameters: SetParametersResult(successful=not vetoed, reason='veto')
+    )
     diagnostics = Diagnostics(node)
     params = NodeParameters(node, probe_params(changes), diagnostics=diagnostics)
 
@@ -229,6 +246,7 @@ def test_subscriber_gate_opens_on_matched_subscribers_or_after_its_timeout(make_
     from std_msgs.msg import String
 
     from vgm_common.qos import DEFAULT_QOS
+
     node = make_node()
     publisher = node.create_publisher(String, '/gated', DEFAULT_QOS)
     gate = SubscriberGate(node, [publisher], min_subscribers=1, timeout=60.0)
@@ -249,11 +267,13 @@ def test_subscriber_gate_waits_for_the_named_node_on_every_stream(make_node):
     from std_msgs.msg import String
 
     from vgm_common.qos import DEFAULT_QOS
+
     gated = make_node()  # probe_0
     camera = gated.create_publisher(String, '/gated/camera', DEFAULT_QOS)
     stream = gated.create_publisher(String, '/gated/stream', DEFAULT_QOS)
-    gate = SubscriberGate(gated, [camera, stream], 1, 60.0, wait_for_nodes=['probe_2'],
-                          counted=[camera])
+    gate = SubscriberGate(
+        gated, [camera, stream], 1, 60.0, wait_for_nodes=['probe_2'], counted=[camera]
+    )
     pipeline, recorder = make_node(), make_node()  # probe_1, probe_2
     pipeline.create_subscription(String, '/gated/camera', lambda msg: None, DEFAULT_QOS)
     deadline = time.monotonic() + 10.0
@@ -329,17 +349,21 @@ def test_run_node_reports_a_bad_parameter_in_one_line(private_domain, capfd):
     assert "[ticker]: start-up error: parameter 'rate': expected float" in errors[0]
 
 
-@pytest.mark.parametrize('content, reason', [
-    (None, 'cannot read params file'),
-    ('ticker: [\n', 'is not valid YAML (line 2)'),
-    ('- a\n- b\n', 'must map node names'),
-    # YAML that only rcl's parser refuses (rcl's own 'Failed to parse global arguments'
-    # line is held back)
-    ('ticker:\n  rate: 3\n', 'Cannot have a value before ros__parameters'),
-    ('ticker:\n  ros__parameters:\n    names: [1, "a"]\n', 'Sequence should be of same type'),
-])
-def test_run_node_reports_a_bad_params_file_in_one_line(private_domain, capfd, tmp_path,
-                                                        content, reason):
+@pytest.mark.parametrize(
+    'content, reason',
+    [
+        (None, 'cannot read params file'),
+        ('ticker: [\n', 'is not valid YAML (line 2)'),
+        ('- a\n- b\n', 'must map node names'),
+        # YAML that only rcl's parser refuses (rcl's own 'Failed to parse global arguments'
+        # line is held back)
+        ('ticker:\n  rate: 3\n', 'Cannot have a value before ros__parameters'),
+        ('ticker:\n  ros__parameters:\n    names: [1, "a"]\n', 'Sequence should be of same type'),
+    ],
+)
+def test_run_node_reports_a_bad_params_file_in_one_line(
+    private_domain, capfd, tmp_path, content, reason
+):
     path = tmp_path / 'params.yaml'
     if content is not None:
         path.write_text(content)

@@ -1,5 +1,6 @@
 """RateSolver (ours / primal_dual / dls) against the KKT point, joint limits, Jacobians
 against finite differences, and a 7-DOF arm from example-robot-data (panda)."""
+
 from pathlib import Path
 
 import numpy as np
@@ -18,9 +19,16 @@ from vgm_common.geometry import make_transform, rot_x
 from vgm_common.robot_model import load_robot
 
 W_THESIS = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0]
-PANDA_URDF = next(Path(__file__).resolve().parents[2].glob(
-    '.venv/lib/python3*/site-packages/cmeel.prefix/share/example-robot-data/robots/'
-    'panda_description/urdf/panda.urdf'), None)
+PANDA_URDF = next(
+    Path(__file__)
+    .resolve()
+    .parents[2]
+    .glob(
+        '.venv/lib/python3*/site-packages/cmeel.prefix/share/example-robot-data/robots/'
+        'panda_description/urdf/panda.urdf'
+    ),
+    None,
+)
 
 
 def robots():
@@ -32,12 +40,12 @@ def robots():
 
 def random_configurations(robot, seed, count):
     rng = np.random.default_rng(seed)
-    return [rng.uniform(0.8 * robot.lower_limits, 0.8 * robot.upper_limits)
-            for _ in range(count)]
+    return [rng.uniform(0.8 * robot.lower_limits, 0.8 * robot.upper_limits) for _ in range(count)]
 
 
-@pytest.mark.parametrize('name, robot', list(robots()), ids=lambda x: x if
-                         isinstance(x, str) else '')
+@pytest.mark.parametrize(
+    'name, robot', list(robots()), ids=lambda x: x if isinstance(x, str) else ''
+)
 def test_jacobian_matches_finite_differences(name, robot):
     step = 1e-6  # [rad]
     for q in random_configurations(robot, 1, 5):
@@ -48,8 +56,10 @@ def test_jacobian_matches_finite_differences(name, robot):
             dq = np.zeros(robot.n_joints)
             dq[i] = step
             # pose_error(T, T') = (p' - p, rotvec(R' R^T)): the twist over one step.
-            numeric[:, i] = (pose_error(T, robot.forward_kinematics(q + dq))
-                             - pose_error(T, robot.forward_kinematics(q - dq))) / (2 * step)
+            numeric[:, i] = (
+                pose_error(T, robot.forward_kinematics(q + dq))
+                - pose_error(T, robot.forward_kinematics(q - dq))
+            ) / (2 * step)
         np.testing.assert_allclose(J, numeric, atol=1e-7)
 
 
@@ -71,8 +81,7 @@ def test_ours_satisfies_the_task_and_is_the_kkt_point(rows):
         np.testing.assert_allclose(J_task @ qdot, task, atol=1e-10)
         J6 = np.vstack([J_task, np.zeros((6 - rows, 7))])
         task6 = np.concatenate([task, np.zeros(6 - rows)])
-        np.testing.assert_allclose(qdot, kkt_velocity(J6, np.diag(weights), task6)[0],
-                                   atol=1e-9)
+        np.testing.assert_allclose(qdot, kkt_velocity(J6, np.diag(weights), task6)[0], atol=1e-9)
 
 
 def test_ours_with_an_indefinite_weight_uses_the_kkt_point_or_falls_back():
@@ -89,8 +98,11 @@ def test_ours_with_an_indefinite_weight_uses_the_kkt_point_or_falls_back():
         positive = null_space_positive(J, np.diag(W_THESIS))[0]
         assert info['null_space_positive'] == positive
         verdicts.append(positive)
-        expected = kkt_velocity(J, np.diag(W_THESIS), twist)[0] if positive else \
-            closed_form_velocity(J, np.eye(7), twist)  # |W| = I
+        expected = (
+            kkt_velocity(J, np.diag(W_THESIS), twist)[0]
+            if positive
+            else closed_form_velocity(J, np.eye(7), twist)
+        )  # |W| = I
         np.testing.assert_allclose(qdot, expected, atol=1e-8)
         np.testing.assert_allclose(J @ qdot, twist, atol=1e-9)
     assert any(verdicts) and not all(verdicts)  # both cases were exercised
@@ -147,12 +159,12 @@ def test_velocity_limits_scale_uniformly():
     solver = RateSolver('ours', np.ones(7))
     twist = np.array([2.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # far too fast
     limits = np.full(7, 0.5)
-    qdot, info = solver.solve_limited(J, twist, q, robot.lower_limits, robot.upper_limits,
-                                      limits)
+    qdot, info = solver.solve_limited(J, twist, q, robot.lower_limits, robot.upper_limits, limits)
     assert info['scale'] > 1 and np.max(np.abs(qdot)) == pytest.approx(0.5)
     direction = J @ qdot
-    np.testing.assert_allclose(direction / np.linalg.norm(direction), [1, 0, 0, 0, 0, 0],
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        direction / np.linalg.norm(direction), [1, 0, 0, 0, 0, 0], atol=1e-9
+    )
 
 
 @pytest.mark.skipif(PANDA_URDF is None, reason='example-robot-data not installed')
@@ -168,9 +180,14 @@ def test_panda_from_example_robot_data_reaches_a_pose():
         error = pose_error(panda.forward_kinematics(q), T_goal)
         if np.linalg.norm(error) < 1e-9:
             break
-        qdot, _ = solver.solve_limited(panda.jacobian(q), 20.0 * error, q,
-                                       panda.lower_limits, panda.upper_limits,
-                                       panda.velocity_limits)
+        qdot, _ = solver.solve_limited(
+            panda.jacobian(q),
+            20.0 * error,
+            q,
+            panda.lower_limits,
+            panda.upper_limits,
+            panda.velocity_limits,
+        )
         q = q + qdot * dt
     error = pose_error(panda.forward_kinematics(q), T_goal)
     assert np.linalg.norm(error[:3]) < 1e-8 and np.linalg.norm(error[3:]) < 1e-8

@@ -4,6 +4,7 @@ drift from the code.
 
 Each node is constructed in this process (its parameters are declared in ``__init__``) on
 the test's private domain, read, closed and destroyed."""
+
 import importlib
 import math
 import re
@@ -18,13 +19,16 @@ from harness import REPO_ROOT
 NODES = {  # params file -> {node name in the file: 'module:Class'}
     'calib_node/params/calib_node.yaml': {'calib_node': 'calib_node.node:CalibNode'},
     'curve_recon_node/params/curve_recon_node.yaml': {
-        'curve_recon_node': 'curve_recon_node.node:CurveReconNode'},
+        'curve_recon_node': 'curve_recon_node.node:CurveReconNode'
+    },
     'sfs_stereo_node/params/sfs_stereo_node.yaml': {
-        'sfs_stereo_node': 'sfs_stereo_node.node:SfsStereoNode'},
+        'sfs_stereo_node': 'sfs_stereo_node.node:SfsStereoNode'
+    },
     'pa10_ik_node/params/pa10_ik_node.yaml': {'pa10_ik_node': 'pa10_ik_node.node:Pa10IkNode'},
     'stereo_coding_node/params/stereo_coding.yaml': {
         'stereo_coding_node': 'stereo_coding_node.encoder_node:StereoCodingNode',
-        'stereo_decoding_node': 'stereo_coding_node.decoder_node:StereoDecodingNode'},
+        'stereo_decoding_node': 'stereo_coding_node.decoder_node:StereoDecodingNode',
+    },
 }
 NOT_LISTED = {'use_sim_time', 'start_type_description_service'}  # every rclpy node's
 # live_view binds its port as it is constructed: any free one here, so only the name of
@@ -47,8 +51,11 @@ def same(a, b):
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
     if isinstance(a, float) or isinstance(b, float):
-        return isinstance(a, (int, float)) and isinstance(b, (int, float)) and \
-            math.isclose(a, b, rel_tol=1e-12, abs_tol=0.0)
+        return (
+            isinstance(a, (int, float))
+            and isinstance(b, (int, float))
+            and math.isclose(a, b, rel_tol=1e-12, abs_tol=0.0)
+        )
     return a == b
 
 
@@ -56,9 +63,17 @@ def same(a, b):
 def default_context(ros_env, monkeypatch):
     for key in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE'):
         monkeypatch.setenv(key, ros_env[key])
-    rclpy.init(args=['--ros-args', *(arg for node, values in OVERRIDDEN.items()
-                                      for name, value in values.items()
-                                      for arg in ('-p', f'{node}:{name}:={value}'))])
+    rclpy.init(
+        args=[
+            '--ros-args',
+            *(
+                arg
+                for node, values in OVERRIDDEN.items()
+                for name, value in values.items()
+                for arg in ('-p', f'{node}:{name}:={value}')
+            ),
+        ]
+    )
     yield
     rclpy.shutdown()
 
@@ -67,8 +82,11 @@ def declared_defaults(class_path):
     module, name = class_path.split(':')
     node = getattr(importlib.import_module(module), name)()
     try:
-        return {name: parameter.value for name, parameter in node._parameters.items()
-                if name not in NOT_LISTED}
+        return {
+            name: parameter.value
+            for name, parameter in node._parameters.items()
+            if name not in NOT_LISTED
+        }
     finally:
         if hasattr(node, 'close'):
             node.close()
@@ -84,8 +102,11 @@ def test_params_file_lists_what_the_node_declares(params_file, default_context):
         declared = declared_defaults(class_path)
         assert sorted(set(declared) - set(listed)) == [], f'{node_name}: not in {params_file}'
         assert sorted(set(listed) - set(declared)) == [], f'{node_name}: not declared'
-        differ = {name: (listed[name], declared[name]) for name in listed
-                  if not same(listed[name], declared[name])}
+        differ = {
+            name: (listed[name], declared[name])
+            for name in listed
+            if not same(listed[name], declared[name])
+        }
         assert differ == {}, f'{node_name}: (file, node default) differ'
 
 
@@ -95,8 +116,9 @@ def readme_tables(readme):
     and each value in turn when there are as many."""
     rows, in_table = {}, False
     for line in readme.read_text().splitlines():
-        cells = [c.strip() for c in line.strip().strip('|').split('|')] if \
-            line.startswith('|') else []
+        cells = (
+            [c.strip() for c in line.strip().strip('|').split('|')] if line.startswith('|') else []
+        )
         if cells[:2] in (['name', 'default'], ['parameter', 'default']):
             in_table = True
         elif not cells:
@@ -115,12 +137,16 @@ def same_as_written(cell, value):
     quoted = re.fullmatch(r'`([^`]*)`.*', cell)  # `0.5` s: the value, then its unit
     text = quoted.group(1) if quoted else cell
     try:
-        written = float(text) if re.fullmatch(r'[-+]?[\d.]+e[-+]?\d+', text) else \
-            yaml.safe_load(text)  # (YAML 1.1 reads 1e-4 as a string)
+        written = (
+            float(text) if re.fullmatch(r'[-+]?[\d.]+e[-+]?\d+', text) else yaml.safe_load(text)
+        )  # (YAML 1.1 reads 1e-4 as a string)
     except yaml.YAMLError:
         return False
-    if isinstance(value, (int, float)) and not isinstance(value, bool) and \
-            isinstance(written, (int, float)):
+    if (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and isinstance(written, (int, float))
+    ):
         return math.isclose(written, value, rel_tol=0.01, abs_tol=1e-12)
     if isinstance(value, list) and isinstance(written, list) and len(value) == len(written):
         return all(same_as_written(str(w), v) for w, v in zip(written, value))
@@ -132,8 +158,10 @@ READMES = {  # README -> the nodes whose parameters its tables list
     'curve_recon_node/README.md': ['curve_recon_node.node:CurveReconNode'],
     'sfs_stereo_node/README.md': ['sfs_stereo_node.node:SfsStereoNode'],
     'pa10_ik_node/README.md': ['pa10_ik_node.node:Pa10IkNode'],
-    'stereo_coding_node/README.md': ['stereo_coding_node.encoder_node:StereoCodingNode',
-                                     'stereo_coding_node.decoder_node:StereoDecodingNode'],
+    'stereo_coding_node/README.md': [
+        'stereo_coding_node.encoder_node:StereoCodingNode',
+        'stereo_coding_node.decoder_node:StereoDecodingNode',
+    ],
     'live_view/README.md': ['live_view.node:LiveViewNode'],
     '../README.md': ['sensor_sim.sensor_sim_node:SensorSim'],  # the simulator's table
 }
@@ -148,14 +176,20 @@ def test_readme_tables_list_what_the_node_declares(readme, default_context):
     assert sorted(set(declared) - set(written)) == [], f'not in the tables of {readme}'
     assert sorted(set(written) - set(declared)) == [], f'in {readme} but not declared'
     overridden = {name for values in OVERRIDDEN.values() for name in values}
-    differ = {name: (cell, declared[name]) for name, cell in written.items()
-              if cell is not None and name not in overridden
-              and not same_as_written(cell, declared[name])}
+    differ = {
+        name: (cell, declared[name])
+        for name, cell in written.items()
+        if cell is not None
+        and name not in overridden
+        and not same_as_written(cell, declared[name])
+    }
     assert differ == {}, f'{readme}: (README, node default) differ'
 
 
 def test_every_params_file_is_checked():
-    found = {str(path.relative_to(REPO_ROOT / 'src'))
-             for path in Path(REPO_ROOT / 'src').glob('*/params/*.yaml')
-             if path.parent.parent.name != 'vgm_common'}  # graph.yaml: the demo's values
+    found = {
+        str(path.relative_to(REPO_ROOT / 'src'))
+        for path in Path(REPO_ROOT / 'src').glob('*/params/*.yaml')
+        if path.parent.parent.name != 'vgm_common'
+    }  # graph.yaml: the demo's values
     assert found == set(NODES)

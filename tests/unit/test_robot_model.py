@@ -1,4 +1,5 @@
 """PA-10 kinematics on Pinocchio against an independent Denavit-Hartenberg model."""
+
 import importlib.metadata
 from pathlib import Path
 from xml.etree import ElementTree
@@ -25,10 +26,14 @@ CASES = [(name, tool_m) for name in PARAMETER_SETS for tool_m in (0.0, 0.15)]
 def dh_transform(theta, d, a, alpha):
     """Standard DH link transform Rz(theta) Tz(d) Tx(a) Rx(alpha)."""
     ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
-    return np.array([[ct, -st * ca, st * sa, a * ct],
-                     [st, ct * ca, -ct * sa, a * st],
-                     [0.0, sa, ca, d],
-                     [0.0, 0.0, 0.0, 1.0]])
+    return np.array(
+        [
+            [ct, -st * ca, st * sa, a * ct],
+            [st, ct * ca, -ct * sa, a * st],
+            [0.0, sa, ca, d],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    )
 
 
 def pa10_dh_fk(q, params, tool_m):
@@ -51,16 +56,18 @@ def test_zero_pose_points_straight_up(name, tool_m):
     p = PARAMETER_SETS[name]
     T_base_tool = load_robot(name, tool_m).forward_kinematics(np.zeros(7))
     np.testing.assert_allclose(T_base_tool[:3, :3], np.eye(3), atol=1e-15)
-    np.testing.assert_allclose(T_base_tool[:3, 3], [0, 0, p.d1 + p.d3 + p.d5 + p.d7 + tool_m],
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        T_base_tool[:3, 3], [0, 0, p.d1 + p.d3 + p.d5 + p.d7 + tool_m], atol=1e-15
+    )
 
 
 @pytest.mark.parametrize('name, tool_m', CASES)
 def test_forward_kinematics_matches_dh_table(name, tool_m):
     robot = load_robot(name, tool_m)
     for q in [np.zeros(7), *random_configurations(50)]:
-        np.testing.assert_allclose(robot.forward_kinematics(q),
-                                   pa10_dh_fk(q, PARAMETER_SETS[name], tool_m), atol=1e-12)
+        np.testing.assert_allclose(
+            robot.forward_kinematics(q), pa10_dh_fk(q, PARAMETER_SETS[name], tool_m), atol=1e-12
+        )
 
 
 @pytest.mark.parametrize('name, tool_m', CASES)
@@ -80,8 +87,9 @@ def test_jacobian_matches_finite_differences(name, tool_m):
 
 @pytest.mark.parametrize('name', PARAMETER_SETS)
 def test_committed_urdf_is_generated_text(name):
-    assert (URDF_DIR / f'{name}.urdf').read_text() == pa10_urdf(name), \
+    assert (URDF_DIR / f'{name}.urdf').read_text() == pa10_urdf(name), (
         'regenerate with `python -m vgm_common.robot_model`'
+    )
 
 
 @pytest.mark.parametrize('name', PARAMETER_SETS)
@@ -91,8 +99,7 @@ def test_limits_and_names_match_parameter_set(name):
     np.testing.assert_array_equal(robot.lower_limits, PA10_LOWER_LIMITS_RAD)
     np.testing.assert_array_equal(robot.upper_limits, PA10_UPPER_LIMITS_RAD)
     np.testing.assert_array_equal(robot.velocity_limits, PA10_VELOCITY_LIMITS_RAD_S)
-    np.testing.assert_allclose(np.rad2deg(robot.upper_limits),
-                               [177, 94, 174, 137, 255, 165, 255])
+    np.testing.assert_allclose(np.rad2deg(robot.upper_limits), [177, 94, 174, 137, 255, 165, 255])
     assert not robot.upper_limits.flags.writeable
 
 
@@ -100,15 +107,19 @@ def test_urdf_file_loads_like_named_model(tmp_path):
     path = tmp_path / 'pa10.urdf'
     path.write_text(pa10_urdf('pa10'))
     q = random_configurations(1)[0]
-    np.testing.assert_allclose(load_robot(str(path), 0.2).forward_kinematics(q),
-                               load_robot('pa10', 0.2).forward_kinematics(q), atol=1e-15)
+    np.testing.assert_allclose(
+        load_robot(str(path), 0.2).forward_kinematics(q),
+        load_robot('pa10', 0.2).forward_kinematics(q),
+        atol=1e-15,
+    )
 
 
 def test_panda_from_example_robot_data_goes_through_same_code_path():
     # example-robot-data ships as a data-only cmeel wheel: locate its URDF, not a module.
     try:
         urdf = importlib.metadata.distribution('example-robot-data').locate_file(
-            'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf')
+            'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf'
+        )
     except importlib.metadata.PackageNotFoundError:
         pytest.skip('example-robot-data is not installed')
     robot = load_robot(str(urdf), tip_frame='panda_hand_tcp')
@@ -123,8 +134,9 @@ def test_panda_from_example_robot_data_goes_through_same_code_path():
         assert robot.jacobian(q).shape == (6, 7)
 
 
-@pytest.mark.parametrize('q', [np.zeros(6), np.zeros((7, 1)), [0, 0, 0, np.nan, 0, 0, 0],
-                               ['a'] * 7, None])
+@pytest.mark.parametrize(
+    'q', [np.zeros(6), np.zeros((7, 1)), [0, 0, 0, np.nan, 0, 0, 0], ['a'] * 7, None]
+)
 def test_bad_joint_vector_is_rejected(q):
     robot = load_robot('pa10')
     with pytest.raises(InvalidInput):
@@ -133,10 +145,16 @@ def test_bad_joint_vector_is_rejected(q):
         robot.jacobian(q)
 
 
-@pytest.mark.parametrize('robot, kwargs', [
-    ('pa11', {}), ('/no/such/file.urdf', {}), (None, {}),
-    ('pa10', {'tool_length': float('nan')}), ('pa10', {'tip_frame': 'flange'}),
-])
+@pytest.mark.parametrize(
+    'robot, kwargs',
+    [
+        ('pa11', {}),
+        ('/no/such/file.urdf', {}),
+        (None, {}),
+        ('pa10', {'tool_length': float('nan')}),
+        ('pa10', {'tip_frame': 'flange'}),
+    ],
+)
 def test_bad_model_request_is_rejected(robot, kwargs):
     with pytest.raises(InvalidInput):
         load_robot(robot, **kwargs)
@@ -150,28 +168,48 @@ def _edited_pa10(tmp_path, old, new, count=1):
     return str(path)
 
 
-@pytest.mark.parametrize('edit, message', [
-    # No tool0: the tip link renamed.
-    (('tool0', 'flange', 2), "no frame 'tool0'"),
-    # 6 joints: the last revolute joint made fixed.
-    (('name="pa10_joint7" type="revolute"', 'name="pa10_joint7" type="fixed"'),
-     '6 joints move'),
-    # 8 joints: the tool joint made revolute, with limits.
-    (('name="pa10_joint_tool" type="fixed">',
-      'name="pa10_joint_tool" type="revolute"><axis xyz="0 0 1"/>'
-      '<limit lower="-1" upper="1" velocity="1" effort="1"/>'), '8 joints move'),
-    # A joint lacking limits.
-    (('<limit lower="-1.6406094968746698" upper="1.6406094968746698" velocity="1.0" '
-      'effort="232.0"/>', ''), 'pa10_joint2 lacks limits'),
-    # Limits without velocity.
-    (('velocity="2.0" effort="100.0"', 'effort="100.0"'), 'lacks limits (velocity'),
-    # A continuous joint.
-    (('name="pa10_joint1" type="revolute"', 'name="pa10_joint1" type="continuous"'),
-     'pa10_joint1 is continuous'),
-    # Position limits that leave no motion.
-    (('lower="-3.0892327760299634" upper="3.0892327760299634"',
-      'lower="0.5" upper="0.5"'), 'no usable position limits'),
-])
+@pytest.mark.parametrize(
+    'edit, message',
+    [
+        # No tool0: the tip link renamed.
+        (('tool0', 'flange', 2), "no frame 'tool0'"),
+        # 6 joints: the last revolute joint made fixed.
+        (
+            ('name="pa10_joint7" type="revolute"', 'name="pa10_joint7" type="fixed"'),
+            '6 joints move',
+        ),
+        # 8 joints: the tool joint made revolute, with limits.
+        (
+            (
+                'name="pa10_joint_tool" type="fixed">',
+                'name="pa10_joint_tool" type="revolute"><axis xyz="0 0 1"/>'
+                '<limit lower="-1" upper="1" velocity="1" effort="1"/>',
+            ),
+            '8 joints move',
+        ),
+        # A joint lacking limits.
+        (
+            (
+                '<limit lower="-1.6406094968746698" upper="1.6406094968746698" velocity="1.0" '
+                'effort="232.0"/>',
+                '',
+            ),
+            'pa10_joint2 lacks limits',
+        ),
+        # Limits without velocity.
+        (('velocity="2.0" effort="100.0"', 'effort="100.0"'), 'lacks limits (velocity'),
+        # A continuous joint.
+        (
+            ('name="pa10_joint1" type="revolute"', 'name="pa10_joint1" type="continuous"'),
+            'pa10_joint1 is continuous',
+        ),
+        # Position limits that leave no motion.
+        (
+            ('lower="-3.0892327760299634" upper="3.0892327760299634"', 'lower="0.5" upper="0.5"'),
+            'no usable position limits',
+        ),
+    ],
+)
 def test_urdf_that_is_no_7_dof_arm_with_tool0_is_refused_clearly(tmp_path, edit, message):
     path = _edited_pa10(tmp_path, *edit)
     with pytest.raises(InvalidInput) as raised:
@@ -185,7 +223,8 @@ def test_panda_with_a_tool0_added_is_a_7_dof_arm(tmp_path):
 
     arm = panda_arm()
     full_urdf = importlib.metadata.distribution('example-robot-data').locate_file(
-        'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf')
+        'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf'
+    )
     reference = load_robot(str(full_urdf), tip_frame='panda_hand_tcp')
     assert ElementTree.fromstring(arm.urdf).find("link[@name='tool0']") is not None
     model = pin.buildModelFromXML(arm.urdf)
@@ -195,8 +234,9 @@ def test_panda_with_a_tool0_added_is_a_7_dof_arm(tmp_path):
     robot = load_robot(str(path))
     assert robot.n_joints == 7
     q = arm.start_joints
-    np.testing.assert_allclose(robot.forward_kinematics(q), reference.forward_kinematics(q),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        robot.forward_kinematics(q), reference.forward_kinematics(q), atol=1e-12
+    )
 
 
 def test_random_pa10_like_arms_are_7_dof_with_their_tool(tmp_path):
@@ -213,8 +253,9 @@ def test_random_pa10_like_arms_are_7_dof_with_their_tool(tmp_path):
         assert np.all(robot.upper_limits > arm.start_joints + 0.49)
         # Zero pose straight up: the tip at the sum of the offsets and the tool.
         tip = robot.forward_kinematics(np.zeros(7))[:3, 3]
-        np.testing.assert_allclose(tip, [0, 0, sum(arm.link_offsets_m) + arm.tool_length_m],
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            tip, [0, 0, sum(arm.link_offsets_m) + arm.tool_length_m], atol=1e-12
+        )
         real = np.array([0.317, 0.45, 0.48, 0.07])
         assert np.all(np.abs(np.array(arm.link_offsets_m) / real - 1) <= 0.4)
         assert 0.05 <= arm.tool_length_m <= 0.2

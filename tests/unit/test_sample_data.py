@@ -1,5 +1,6 @@
 """The real images fetched from Debian's opencv-doc package (no skip: a machine that
 cannot fetch them fails here with the reason)."""
+
 import cv2
 import numpy as np
 
@@ -13,8 +14,9 @@ from vgm_common.sample_data import (
 
 def test_aloe_pair_and_ground_truth():
     data = opencv_sample_dir()
-    left, right, truth = (cv2.imread(str(data / name), cv2.IMREAD_UNCHANGED)
-                          for name in ALOE_FILES)
+    left, right, truth = (
+        cv2.imread(str(data / name), cv2.IMREAD_UNCHANGED) for name in ALOE_FILES
+    )
     assert left.shape == right.shape and left.shape[2] == 3
     assert truth.shape[:2] == left.shape[:2]
     # Middlebury ground truth: disparity in pixels (0 = unknown), mostly known.

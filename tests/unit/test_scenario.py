@@ -5,6 +5,7 @@ Every shipped scenario loads and shows its curve to all three cameras; the thesi
 naming the key; the division model inverts exactly and matches the seed's formula; the
 plumb_bob model still matches OpenCV.
 """
+
 import copy
 from pathlib import Path
 
@@ -38,6 +39,7 @@ def ids(paths):
 
 # --------------------------------------------------------------------------- helpers
 
+
 def curve_samples_base(curve, surface, n=1500):
     """Points (N, 3) [m] on a scenario curve, from the formulas of docs/SCENARIO.md."""
     p = curve.params
@@ -47,8 +49,7 @@ def curve_samples_base(curve, surface, n=1500):
         return np.vander(t, p['coefficients'].shape[1], increasing=True) @ p['coefficients'].T
     t = np.linspace(0.0, 2 * np.pi, n)
     if kind == 'ellipse':
-        return (p['center'] + np.outer(np.cos(t), p['axis_a'])
-                + np.outer(np.sin(t), p['axis_b']))
+        return p['center'] + np.outer(np.cos(t), p['axis_a']) + np.outer(np.sin(t), p['axis_b'])
     if kind == 'circle':
         normal = p['normal'] / np.linalg.norm(p['normal'])
         u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -62,6 +63,7 @@ def curve_samples_base(curve, surface, n=1500):
         return p['points']
     if kind == 'surface_loop':  # the loop is ours; the surface's height h(x, y) is the simulator's
         from sensor_sim.surfaces import surface_points_base
+
         c, s = np.cos(p['angle']), np.sin(p['angle'])
         local = np.column_stack([p['radii'][0] * np.cos(t), p['radii'][1] * np.sin(t)])
         return surface_points_base(surface, p['center'] + local @ np.array([[c, s], [-s, c]]))
@@ -73,11 +75,17 @@ def assert_inside(camera, points_base, margin_px=0.0, what='points'):
     assert np.all(depth > 0), f'{what} behind the camera'
     u, v = pixels[:, 0], pixels[:, 1]
     assert np.all(np.isfinite(pixels)), f'{what} do not project'
-    inside = ((u >= margin_px) & (u <= camera.width - 1 - margin_px)
-              & (v >= margin_px) & (v <= camera.height - 1 - margin_px))
-    assert inside.all(), (f'{what}: {np.count_nonzero(~inside)} of {len(u)} outside the '
-                          f'{camera.width}x{camera.height} image; u in [{u.min():.1f}, '
-                          f'{u.max():.1f}], v in [{v.min():.1f}, {v.max():.1f}]')
+    inside = (
+        (u >= margin_px)
+        & (u <= camera.width - 1 - margin_px)
+        & (v >= margin_px)
+        & (v <= camera.height - 1 - margin_px)
+    )
+    assert inside.all(), (
+        f'{what}: {np.count_nonzero(~inside)} of {len(u)} outside the '
+        f'{camera.width}x{camera.height} image; u in [{u.min():.1f}, '
+        f'{u.max():.1f}], v in [{v.min():.1f}, {v.max():.1f}]'
+    )
 
 
 def euler_zxz(theta, phi, psi):
@@ -108,11 +116,18 @@ def camera_from_seed(width, height, f, N, u0, v0, k, R, T, scale):
 
 # --------------------------------------------------------------------------- shipped files
 
+
 def test_the_thesis_setups_are_shipped():
     names = {path.stem for path in SHIPPED}
-    assert {'ch3_parabola_perfect', 'ch3_ellipse_perfect', 'ch3_line_pair',
-            'ch3_parabola_general', 'ch3_cubic_planar', 'ch3_cubic_general',
-            'ch4_calibration'} <= names
+    assert {
+        'ch3_parabola_perfect',
+        'ch3_ellipse_perfect',
+        'ch3_line_pair',
+        'ch3_parabola_general',
+        'ch3_cubic_planar',
+        'ch3_cubic_general',
+        'ch4_calibration',
+    } <= names
 
 
 @pytest.mark.parametrize('path', SHIPPED, ids=ids(SHIPPED))
@@ -152,8 +167,12 @@ def test_background_plane_is_behind_the_curve(path):
         assert np.all(t_plane > 1.0), f'{name}: the plane is not behind the curve'
         hits_surface = (centre + t_plane[:, None] * rays - origin) @ R / surface.scale
         (x0, x1), (y0, y1) = surface.extent
-        assert np.all((hits_surface[:, 0] > x0) & (hits_surface[:, 0] < x1)
-                      & (hits_surface[:, 1] > y0) & (hits_surface[:, 1] < y1)), name
+        assert np.all(
+            (hits_surface[:, 0] > x0)
+            & (hits_surface[:, 0] < x1)
+            & (hits_surface[:, 1] > y0)
+            & (hits_surface[:, 1] < y1)
+        ), name
 
 
 @pytest.mark.parametrize('path', THESIS_FILES, ids=ids(THESIS_FILES))
@@ -170,8 +189,9 @@ def test_chart_is_whole_in_every_image_at_every_stage_pose(path):
     for index, T_base_chart in enumerate(chart.T_base_chart):
         printed_base = printed_chart @ T_base_chart[:3, :3].T + T_base_chart[:3, 3]
         for name, camera in scenario.cameras.items():
-            assert_inside(camera, printed_base, margin_px=2.0,
-                          what=f'{name}: chart at stage pose {index}')
+            assert_inside(
+                camera, printed_base, margin_px=2.0, what=f'{name}: chart at stage pose {index}'
+            )
             to_chart = T_base_chart[:3, 3] - camera.centre_base
             assert T_base_chart[:3, 2] @ to_chart > 0, f'{name} sees the back of the chart'
 
@@ -179,23 +199,46 @@ def test_chart_is_whole_in_every_image_at_every_stage_pose(path):
 # Thesis chapter 3 (ALGORITHMS.md §2.4): curve x(t) in thesis units, its t range, camera 2's
 # centre and Euler angles (theta, phi, psi) [rad].
 CHAPTER3 = {
-    'ch3_parabola_perfect': (lambda t: (16 * t**2, 4 * t, 40 + 0 * t), (-4, 4),
-                             (100, 0, 0), (0, 0, 0)),
-    'ch3_ellipse_perfect': (lambda t: (5 + 3 * np.cos(t) - 2 * np.sin(t),
-                                       4 - 2 * np.cos(t) + 3 * np.sin(t),
-                                       0.82 - 0.02 * np.cos(t) - 0.02 * np.sin(t)),
-                            (0, 2 * np.pi), (15, 0, 0), (0, 0, 0)),
+    'ch3_parabola_perfect': (
+        lambda t: (16 * t**2, 4 * t, 40 + 0 * t),
+        (-4, 4),
+        (100, 0, 0),
+        (0, 0, 0),
+    ),
+    'ch3_ellipse_perfect': (
+        lambda t: (
+            5 + 3 * np.cos(t) - 2 * np.sin(t),
+            4 - 2 * np.cos(t) + 3 * np.sin(t),
+            0.82 - 0.02 * np.cos(t) - 0.02 * np.sin(t),
+        ),
+        (0, 2 * np.pi),
+        (15, 0, 0),
+        (0, 0, 0),
+    ),
     'ch3_line_pair': (lambda t: (4 + 5 * t, 5 + t, 10 + 0 * t), (0, 1), (20, 0, 0), (0, 0, 0)),
-    'ch3_parabola_general': (lambda t: (40 + 9.96195 * t - 0.31751 * t**2,
-                                        70 + 0.59696 * t + 4.980975 * t**2,
-                                        100 + 0.63502 * t + 0.29848 * t**2),
-                             (-4, 4), (30, 80, 30), (np.pi / 4,) * 3),
-    'ch3_cubic_planar': (lambda t: (t, t**3 + 2 * t**2 + 5 * t + 1, 10 + 0 * t), (-1, 1),
-                         (12, 0, 0), (0, 0, 0)),
+    'ch3_parabola_general': (
+        lambda t: (
+            40 + 9.96195 * t - 0.31751 * t**2,
+            70 + 0.59696 * t + 4.980975 * t**2,
+            100 + 0.63502 * t + 0.29848 * t**2,
+        ),
+        (-4, 4),
+        (30, 80, 30),
+        (np.pi / 4,) * 3,
+    ),
+    'ch3_cubic_planar': (
+        lambda t: (t, t**3 + 2 * t**2 + 5 * t + 1, 10 + 0 * t),
+        (-1, 1),
+        (12, 0, 0),
+        (0, 0, 0),
+    ),
     # t from -0.5, not -1: below t = -0.943 the curve is behind camera 2 (see the file).
-    'ch3_cubic_general': (lambda t: (t**3 + t + 4, t**3 + 2 * t**2 + 5 * t + 1,
-                                     3 * t**3 + 2 * t**2 + 3 * t + 25),
-                          (-0.5, 1), (15, 10, 20), tuple(np.deg2rad([5, 20, 15]))),
+    'ch3_cubic_general': (
+        lambda t: (t**3 + t + 4, t**3 + 2 * t**2 + 5 * t + 1, 3 * t**3 + 2 * t**2 + 3 * t + 25),
+        (-0.5, 1),
+        (15, 10, 20),
+        tuple(np.deg2rad([5, 20, 15])),
+    ),
 }
 
 
@@ -211,8 +254,10 @@ def test_chapter3_setup_maps_the_thesis(name):
         assert np.allclose(scenario.curve.params['t_range'], t_range)
         ours = curve_samples_base(scenario.curve, scenario.surface, n=200)
         assert np.allclose(ours, points_units * CM, rtol=0, atol=1e-12)
-    thesis = {'left': (np.eye(3), np.zeros(3)),
-              'right': (euler_zxz(*angles), np.array(c2_units, dtype=float))}
+    thesis = {
+        'left': (np.eye(3), np.zeros(3)),
+        'right': (euler_zxz(*angles), np.array(c2_units, dtype=float)),
+    }
     for camera_name, (R, c) in thesis.items():
         camera = scenario.cameras[camera_name]
         assert np.allclose(camera.T_base_camera[:3, :3], R.T, atol=1e-12)
@@ -233,11 +278,20 @@ def test_chapter4_cameras_reproduce_the_seed_projection():
     scenario = load_scenario(SCENARIO_DIR / 'ch4_calibration.yaml')
     g = np.arange(8) * 10.0
     grid_mm = np.array([(x, y, z) for z in g for y in g for x in g])
-    seed = {'left': dict(f=10, N=200, u0=20, v0=19, k=0.15152, R=np.eye(3),
-                         T=np.array([60, 35, 1210.0])),
-            'right': dict(f=25, N=144, u0=256, v0=192, k=0.15152,
-                          R=rpy_to_matrix(0.15152, 0.20916, -1.90),  # Rz(a) Ry(b) Rx(g)
-                          T=np.array([-38, 35, 1210.0]))}
+    seed = {
+        'left': dict(
+            f=10, N=200, u0=20, v0=19, k=0.15152, R=np.eye(3), T=np.array([60, 35, 1210.0])
+        ),
+        'right': dict(
+            f=25,
+            N=144,
+            u0=256,
+            v0=192,
+            k=0.15152,
+            R=rpy_to_matrix(0.15152, 0.20916, -1.90),  # Rz(a) Ry(b) Rx(g)
+            T=np.array([-38, 35, 1210.0]),
+        ),
+    }
     for name, parameters in seed.items():
         camera = scenario.cameras[name]
         expected = seed_division_project(grid_mm, **parameters)
@@ -358,10 +412,15 @@ def test_bad_value_names_its_key(key, value):
     assert_one_error(info, key)
 
 
-@pytest.mark.parametrize('key, text', [('lighting.intensity', '.nan'),
-                                       ('cameras.aux.fy', '.inf'),
-                                       ('cameras.left.cx', '-.inf'),
-                                       ('surface.pose.xyz', '[0.0, .nan, 1.0]')])
+@pytest.mark.parametrize(
+    'key, text',
+    [
+        ('lighting.intensity', '.nan'),
+        ('cameras.aux.fy', '.inf'),
+        ('cameras.left.cx', '-.inf'),
+        ('surface.pose.xyz', '[0.0, .nan, 1.0]'),
+    ],
+)
 def test_non_finite_yaml_number_names_its_key(tmp_path, key, text):
     data = edited(minimal(), key, '@@')
     path = tmp_path / 'scenario.yaml'
@@ -372,16 +431,20 @@ def test_non_finite_yaml_number_names_its_key(tmp_path, key, text):
 
 
 def test_circle_needs_a_normal():
-    data = edited(minimal(), 'curve', {'type': 'circle', 'center': [0.0, 0.0, 0.99],
-                                       'normal': [0.0, 0.0, 0.0], 'radius': 0.1})
+    data = edited(
+        minimal(),
+        'curve',
+        {'type': 'circle', 'center': [0.0, 0.0, 0.99], 'normal': [0.0, 0.0, 0.0], 'radius': 0.1},
+    )
     with pytest.raises(ScenarioError) as info:
         parse_scenario(data)
     assert_one_error(info, 'curve.normal')
 
 
 def test_camera_looking_away_names_its_pose():
-    data = edited(minimal(), 'cameras.aux.pose', {'position': [0.0, -0.2, 0.0],
-                                                   'look_at': [0.0, -0.2, -1.0]})
+    data = edited(
+        minimal(), 'cameras.aux.pose', {'position': [0.0, -0.2, 0.0], 'look_at': [0.0, -0.2, -1.0]}
+    )
     with pytest.raises(ScenarioError) as info:
         parse_scenario(data)
     assert_one_error(info, 'cameras.aux.pose')
@@ -396,20 +459,26 @@ def test_chessboard_with_even_rows_plus_cols_is_refused():
     assert 'odd' in str(info.value)
 
 
-@pytest.mark.parametrize('model, distortion', [('division', [0.1, 0.0]),
-                                               ('plumb_bob', [0.1]),
-                                               ('division', ['kappa'])])
+@pytest.mark.parametrize(
+    'model, distortion', [('division', [0.1, 0.0]), ('plumb_bob', [0.1]), ('division', ['kappa'])]
+)
 def test_distortion_must_fit_its_model(model, distortion):
-    data = edited(edited(minimal(), 'cameras.left.distortion_model', model),
-                  'cameras.left.distortion', distortion)
+    data = edited(
+        edited(minimal(), 'cameras.left.distortion_model', model),
+        'cameras.left.distortion',
+        distortion,
+    )
     with pytest.raises(ScenarioError) as info:
         parse_scenario(data)
     assert_one_error(info, 'cameras.left.distortion')
 
 
 def test_division_camera_is_read():
-    data = edited(edited(minimal(), 'cameras.left.distortion_model', 'division'),
-                  'cameras.left.distortion', [15.152])
+    data = edited(
+        edited(minimal(), 'cameras.left.distortion_model', 'division'),
+        'cameras.left.distortion',
+        [15.152],
+    )
     camera = parse_scenario(data).cameras['left']
     assert camera.distortion_model == 'division'
     assert camera.D.tolist() == [15.152]
@@ -418,8 +487,10 @@ def test_division_camera_is_read():
 POINTS_CSV = {
     'plain': '0.0,0.0,0.99\n0.1,0.0,0.99\n0.1,0.05,0.99\n',
     'header': 'x,y,z\n0.0,0.0,0.99\n0.1,0.0,0.99\n0.1,0.05,0.99\n',
-    'comments, blanks, spaces, CRLF': ('# curve samples [m]\r\n\r\n0.0, 0.0, 0.99\r\n'
-                                       '0.1, 0.0, 0.99  # second\r\n0.1, 0.05, 0.99\r\n'),
+    'comments, blanks, spaces, CRLF': (
+        '# curve samples [m]\r\n\r\n0.0, 0.0, 0.99\r\n'
+        '0.1, 0.0, 0.99  # second\r\n0.1, 0.05, 0.99\r\n'
+    ),
 }
 
 
@@ -435,10 +506,11 @@ def test_points_curve_reads_csv(tmp_path, text):
     assert np.array_equal(parse_scenario(absolute).curve.params['points'], expected)
 
 
-@pytest.mark.parametrize('text', [None, '', 'x,y,z\n', '0,0,1\n0,0.1,a\n', '0,0\n1,1\n',
-                                  '0,0,1\n', '0,0,1\n0,nan,1\n'],
-                         ids=['missing', 'empty', 'header only', 'not a number',
-                              'two columns', 'one row', 'nan'])
+@pytest.mark.parametrize(
+    'text',
+    [None, '', 'x,y,z\n', '0,0,1\n0,0.1,a\n', '0,0\n1,1\n', '0,0,1\n', '0,0,1\n0,nan,1\n'],
+    ids=['missing', 'empty', 'header only', 'not a number', 'two columns', 'one row', 'nan'],
+)
 def test_unreadable_points_csv_names_curve_file(tmp_path, text):
     if text is not None:
         (tmp_path / 'curve.csv').write_text(text)
@@ -466,21 +538,27 @@ def test_unreadable_scenario_file_is_one_error(tmp_path):
 
 # --------------------------------------------------------------------------- poses
 
+
 def test_the_three_pose_forms_give_the_same_transform():
     position, target, up = np.array([0.03, -0.1, 0.05]), np.array([0.0, 0.02, 0.99]), [0, -1, 0]
     R = look_at_rotation(position, target, up)
     rpy = [np.arctan2(R[2, 1], R[2, 2]), -np.arcsin(R[2, 0]), np.arctan2(R[1, 0], R[0, 0])]
     assert np.allclose(rpy_to_matrix(*rpy), R, atol=1e-14)
-    forms = [{'position': position.tolist(), 'look_at': target.tolist(), 'up': up},
-             {'xyz': position.tolist(), 'rpy': [float(a) for a in rpy]},
-             {'xyz': position.tolist(), 'quaternion': matrix_to_quaternion(R).tolist()}]
-    transforms = [parse_scenario(edited(minimal(), 'cameras.aux.pose', form))
-                  .cameras['aux'].T_base_camera for form in forms]
+    forms = [
+        {'position': position.tolist(), 'look_at': target.tolist(), 'up': up},
+        {'xyz': position.tolist(), 'rpy': [float(a) for a in rpy]},
+        {'xyz': position.tolist(), 'quaternion': matrix_to_quaternion(R).tolist()},
+    ]
+    transforms = [
+        parse_scenario(edited(minimal(), 'cameras.aux.pose', form)).cameras['aux'].T_base_camera
+        for form in forms
+    ]
     for T in transforms:
         assert np.allclose(T, make_transform(R, position), rtol=0, atol=1e-12)
 
 
 # --------------------------------------------------------------------------- camera models
+
 
 def random_camera_points(rng, count, camera):
     """Points in base_link whose optical-frame direction is within the image's field."""
@@ -511,8 +589,11 @@ def test_division_projection_and_undistortion_are_inverse(kappa):
 
 def test_division_agrees_with_the_seed_formula():
     rng = np.random.default_rng(43)
-    for f, N, u0, v0, k in [(10, 200, 20, 19, 0.15152), (25, 144, 256, 192, 0.15152),
-                            (8.95, 204, 21, 19, 0.1439)]:
+    for f, N, u0, v0, k in [
+        (10, 200, 20, 19, 0.15152),
+        (25, 144, 256, 192, 0.15152),
+        (8.95, 204, 21, 19, 0.1439),
+    ]:
         R = rpy_to_matrix(*rng.uniform(-0.3, 0.3, 3))
         T = rng.uniform([-50, -50, 900], [50, 50, 1500])
         points = rng.uniform(-100, 100, size=(300, 3))
@@ -527,8 +608,7 @@ def test_division_beyond_the_fold_gives_nan():
     2 / (3 sqrt(-3 kappa)); such points must not get a pixel."""
     kappa = -0.3
     fold = 2 / (3 * np.sqrt(-3 * kappa))
-    camera = PinholeCamera(640, 480, np.diag([500.0, 500.0, 1.0]), [kappa], np.eye(4),
-                           'division')
+    camera = PinholeCamera(640, 480, np.diag([500.0, 500.0, 1.0]), [kappa], np.eye(4), 'division')
     pixels, _ = camera.project(np.array([[0.9 * fold, 0.0, 1.0], [1.1 * fold, 0.0, 1.0]]))
     assert np.all(np.isfinite(pixels[0])) and np.all(np.isnan(pixels[1]))
 
@@ -536,15 +616,13 @@ def test_division_beyond_the_fold_gives_nan():
 def test_plumb_bob_agrees_with_opencv():
     rng = np.random.default_rng(5)
     K = np.array([[610.0, 0.0, 318.0], [0.0, 605.0, 243.0], [0.0, 0.0, 1.0]])
-    for D in ([-0.28, 0.09, 0.001, -0.0015, -0.01], [0.05, -0.02, 0.0, 0.0, 0.0],
-              [0.0] * 5):
+    for D in ([-0.28, 0.09, 0.001, -0.0015, -0.01], [0.05, -0.02, 0.0, 0.0, 0.0], [0.0] * 5):
         camera = PinholeCamera(640, 480, K, D, random_pose(rng))
         points_base, xy = random_camera_points(rng, 400, camera)
         pixels, _ = camera.project(points_base)
         T_camera_base = camera.T_camera_base
         rvec, _ = cv2.Rodrigues(T_camera_base[:3, :3])
-        expected, _ = cv2.projectPoints(points_base, rvec, T_camera_base[:3, 3], K,
-                                        np.array(D))
+        expected, _ = cv2.projectPoints(points_base, rvec, T_camera_base[:3, 3], K, np.array(D))
         assert np.max(np.abs(pixels - expected.reshape(-1, 2))) < 1e-9
         assert np.allclose(camera.undistort_pixels(pixels), xy, rtol=0, atol=1e-9)
 

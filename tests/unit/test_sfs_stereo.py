@@ -1,4 +1,5 @@
 """Chapter 5 cores (stereo, SFS, fusion) against synthetic ground truth, all seeded."""
+
 import numpy as np
 import pytest
 
@@ -28,8 +29,8 @@ def brute_force_ssd(I_left, I_right, max_disparity, window):
     for d in range(max_disparity + 1):
         for y in range(H):
             for x in range(W - d):
-                wr = R[o + y - r:o + y + r + 1, o + x - r:o + x + r + 1]
-                wl = L[o + y - r:o + y + r + 1, o + x + d - r:o + x + d + r + 1]
+                wr = R[o + y - r : o + y + r + 1, o + x - r : o + x + r + 1]
+                wl = L[o + y - r : o + y + r + 1, o + x + d - r : o + x + d + r + 1]
                 cost[d, y, x] = np.sum((wr - wl) ** 2) / np.sqrt(np.sum(wr**2) * np.sum(wl**2))
     return cost
 
@@ -54,7 +55,7 @@ def make_pair(rng, H=48, W=64):
     I_left = rng.uniform(0.1, 1.0, (H, W))
     for y in range(H):
         d = true_d[y, 0]
-        I_left[y, d:] = I_right[y, :W - d]
+        I_left[y, d:] = I_right[y, : W - d]
     return I_left, I_right, true_d
 
 
@@ -130,7 +131,7 @@ def test_row_network_training_lowers_loss():
 
 def smooth_surface(H=48, W=64):
     y, x = np.mgrid[:H, :W] / np.array([H, W])[:, None, None]
-    return 2.0 + np.exp(-((x - 0.4)**2 + (y - 0.5)**2) / 0.05) + 0.5 * x * y
+    return 2.0 + np.exp(-((x - 0.4) ** 2 + (y - 0.5) ** 2) / 0.05) + 0.5 * x * y
 
 
 def test_mlp_rows_fusion_improves_on_sfs():

@@ -2,6 +2,7 @@
 light directions (upwind differences, damped Newton), left-reference confident
 disparity, the local-affine fusion and our shading_refine fusion, and the speed-ups of
 the thesis methods (which must compute the same); all seeded, against ground truth."""
+
 import numpy as np
 import pytest
 
@@ -37,19 +38,29 @@ from vgm_common.reflectance import oren_nayar
 def rig(width=320, height=240):
     """A verged pair with distortion, 0.14 m baseline along the left camera's x."""
     K = np.array([[300.0, 0, 160.5], [0, 301.0, 119.0], [0, 0, 1]])
-    left = PinholeCamera(width, height, K, np.array([-0.08, 0.03, 0.0005, -0.0004, 0]),
-                         make_transform(rot_y(0.03), [0.0, 0.0, 0.0]))
-    right = PinholeCamera(width, height, K * [[1.01], [1.0], [1]],
-                          np.array([-0.05, 0.01, 0, 0.0003, 0]),
-                          make_transform(rot_y(-0.03), [0.14, 0.0, 0.0]))
+    left = PinholeCamera(
+        width,
+        height,
+        K,
+        np.array([-0.08, 0.03, 0.0005, -0.0004, 0]),
+        make_transform(rot_y(0.03), [0.0, 0.0, 0.0]),
+    )
+    right = PinholeCamera(
+        width,
+        height,
+        K * [[1.01], [1.0], [1]],
+        np.array([-0.05, 0.01, 0, 0.0003, 0]),
+        make_transform(rot_y(-0.03), [0.14, 0.0, 0.0]),
+    )
     rect = stereo_rectification(left, right)
     return left, right, rect
 
 
 def test_rectification_maps_row_align_and_depth_transfer():
     left, right, rect = rig()
-    pair = rectification_maps(left.K, left.D, *rect['left'], right.K, right.D,
-                              *rect['right'], (320, 240))
+    pair = rectification_maps(
+        left.K, left.D, *rect['left'], right.K, right.D, *rect['right'], (320, 240)
+    )
     assert pair.baseline_m == pytest.approx(0.14, rel=1e-9)
     # A 3D point seen by both raw cameras lands on one rectified row, disparity f b / Z.
     point_base = np.array([[0.05, -0.03, 0.8]])
@@ -109,8 +120,9 @@ def bump(H=96, W=96):
     return G, p, q, inner
 
 
-@pytest.mark.parametrize('light', [(0.343, 1.045), (1.0, -1.0), (-1.2, 0.3), (0.8, -0.7),
-                                   (-0.8, -0.8)])
+@pytest.mark.parametrize(
+    'light', [(0.343, 1.045), (1.0, -1.0), (-1.2, 0.3), (0.8, -0.7), (-0.8, -0.8)]
+)
 def test_sfs_works_for_general_light_directions(light):
     G, p, q, inner = bump()
     E = reflectance(p, q, *light, albedo=0.8, roughness=0.3)
@@ -124,8 +136,9 @@ def test_thesis_backward_differences_fail_off_the_diagonal():
     G, p, q, inner = bump()
     light = (1.0, -1.0)
     E = reflectance(p, q, *light, albedo=0.8, roughness=0.3)
-    Z = sfs_depth(E, light, albedo=0.8, roughness=0.3, iterations=400, tol=1e-6,
-                  upwind=False, max_step=0.5)
+    Z = sfs_depth(
+        E, light, albedo=0.8, roughness=0.3, iterations=400, tol=1e-6, upwind=False, max_step=0.5
+    )
     assert np.corrcoef(Z[inner], G[inner])[0, 1] < 0.5  # measured 0.04
 
 
@@ -133,16 +146,19 @@ def test_left_reference_disparity_recovers_shift_with_subpixel():
     rng = np.random.default_rng(11)
     H, W, d_true = 40, 80, 7.0
     texture = rng.uniform(20, 230, (H, W + 20))
-    left = texture[:, 10:10 + W]
-    right = texture[:, 10 + 7:10 + 7 + W]  # right(x) = left(x + 7): left x sees right x-7
+    left = texture[:, 10 : 10 + W]
+    right = texture[:, 10 + 7 : 10 + 7 + W]  # right(x) = left(x + 7): left x sees right x-7
     cost = left_reference_volume(left, right, 16)
     disparity = confident_disparity(cost, 0.05, window_std(left, 3), 2.0, 0.02, True)
     ok = np.isfinite(disparity)
     assert ok[:, 10:].mean() > 0.9  # measured 0.98 (the left 7 columns have no partner)
     assert np.median(np.abs(disparity[ok] - d_true)) < 0.15  # measured 0.062 px
-    flat = confident_disparity(left_reference_volume(np.full((H, W), 50.0),
-                                                     np.full((H, W), 50.0), 16),
-                               0.05, window_std(np.full((H, W), 50.0), 3), 2.0)
+    flat = confident_disparity(
+        left_reference_volume(np.full((H, W), 50.0), np.full((H, W), 50.0), 16),
+        0.05,
+        window_std(np.full((H, W), 50.0), 3),
+        2.0,
+    )
     assert np.isnan(flat).all()  # a flat image has no confident match
 
 
@@ -150,19 +166,22 @@ def test_local_affine_fusion_beats_sfs_and_mlp_rows_on_drifting_scale():
     rng = np.random.default_rng(12)
     H, W = 60, 80
     y, x = np.mgrid[:H, :W] / np.array([H, W])[:, None, None]
-    G = 0.8 + 0.05 * np.exp(-((x - 0.5)**2 + (y - 0.5)**2) / 0.05) + 0.02 * x
+    G = 0.8 + 0.05 * np.exp(-((x - 0.5) ** 2 + (y - 0.5) ** 2) / 0.05) + 0.02 * x
     relief = (G - 0.8) * (1 + 0.8 * x)  # SFS-like: right shape, scale drifting along x
     Z_stereo = np.where(rng.random(G.shape) < 0.05, G, np.nan)
     fused = fuse_local_affine(relief, Z_stereo, sigma=8.0)
     mlp = fuse_mlp_rows(relief, Z_stereo, np.random.default_rng(0), epochs=500).depth
     a, b = np.polyfit(relief.ravel(), G.ravel(), 1)
-    rms = {name: np.sqrt(np.mean((Z - G) ** 2)) for name, Z in
-           (('global affine SFS', a * relief + b), ('ours', fused), ('mlp', mlp))}
+    rms = {
+        name: np.sqrt(np.mean((Z - G) ** 2))
+        for name, Z in (('global affine SFS', a * relief + b), ('ours', fused), ('mlp', mlp))
+    }
     assert rms['ours'] < 0.3 * rms['global affine SFS']
     assert rms['ours'] < rms['mlp']
 
 
 # --- speed-ups of the thesis methods compute the same -----------------------------------
+
 
 @pytest.mark.parametrize('variant', ['thesis', 'oren_nayar'])
 def test_closed_form_reflectance_equals_the_shared_model(variant):
@@ -184,7 +203,7 @@ def test_disparity_band_gives_the_same_costs_and_matches():
     rng = np.random.default_rng(22)
     H, W = 30, 60
     texture = rng.uniform(20, 230, (H, W + 30))
-    left, right = texture[:, 5:5 + W], texture[:, 5 + 12:5 + 12 + W]  # d = 12
+    left, right = texture[:, 5 : 5 + W], texture[:, 5 + 12 : 5 + 12 + W]  # d = 12
     cost = left_reference_volume(left, right, 20, 3, min_disparity=8)
     assert np.isinf(cost[:8]).all()
     full = left_reference_volume(left, right, 20, 3)
@@ -197,8 +216,7 @@ def test_disparity_band_gives_the_same_costs_and_matches():
     padded[:8] = 1e300
     reference = confident_disparity(padded, 0.05, texture_std, 2.0, 0.02, True)
     np.testing.assert_array_equal(np.isnan(banded), np.isnan(reference))
-    np.testing.assert_array_equal(banded[np.isfinite(banded)],
-                                  reference[np.isfinite(reference)])
+    np.testing.assert_array_equal(banded[np.isfinite(banded)], reference[np.isfinite(reference)])
     assert np.nanmedian(np.abs(banded - 12)) < 0.1
 
 
@@ -216,7 +234,7 @@ def rendered_bump(H=120, W=160, line_contrast=0.5, seed=23):
     (the only texture, as in the sim). Returns image, true depth, ring mask."""
     v, u = np.mgrid[:H, :W].astype(float)
     xn, yn = (u - K_TEST[0, 2]) / 150.0, (v - K_TEST[1, 2]) / 150.0
-    g = 0.04 * np.exp(-((xn - 0.05)**2 + yn**2) / (2 * 0.12**2))
+    g = 0.04 * np.exp(-((xn - 0.05) ** 2 + yn**2) / (2 * 0.12**2))
     Z = 0.6 + 0.08 * yn - g
     # exact dZ/du, dZ/dv, then tangents X_u, X_v of X = Z (xn, yn, 1)
     gx = g * (xn - 0.05) / 0.12**2 / 150.0
@@ -239,10 +257,18 @@ def rendered_bump(H=120, W=160, line_contrast=0.5, seed=23):
 
 def test_predicted_grey_is_the_shared_model():
     # Fronto-parallel plane at the principal point: normal (0, 0, -1), viewer (0, 0, -1).
-    value = predicted_grey(np.array([0.7]), np.array([0.0]), np.array([0.0]),
-                           np.array([79.5]), np.array([59.5]), K_TEST, MODEL)
-    expected = 255 * 0.8 * (oren_nayar(np.array([0, 0, -1.0]), LIGHT, np.array([0, 0, -1.0]),
-                                       0.3) + 0.08)
+    value = predicted_grey(
+        np.array([0.7]),
+        np.array([0.0]),
+        np.array([0.0]),
+        np.array([79.5]),
+        np.array([59.5]),
+        K_TEST,
+        MODEL,
+    )
+    expected = (
+        255 * 0.8 * (oren_nayar(np.array([0, 0, -1.0]), LIGHT, np.array([0, 0, -1.0]), 0.3) + 0.08)
+    )
     assert value[0] == pytest.approx(expected, rel=1e-12)
     # Depth scale invariance: the normal depends on Z_u / Z and Z_v / Z only.
     a = predicted_grey(0.6, 1e-4, -2e-4, 30.0, 90.0, K_TEST, MODEL)
@@ -263,12 +289,16 @@ def test_shading_refine_recovers_a_rendered_surface():
     surface = np.ones(Z.shape, bool)
     result = refine_depth(image, Z_stereo, surface, K_TEST, MODEL)
     err = np.abs(result.depth - Z)[4:-4, 4:-4]
-    print(f'shading_refine: median {1e3 * np.median(err):.2f} mm, p90 '
-          f'{1e3 * np.percentile(err, 90):.2f} mm, shading rms {result.shading_rms:.2f}')
+    print(
+        f'shading_refine: median {1e3 * np.median(err):.2f} mm, p90 '
+        f'{1e3 * np.percentile(err, 90):.2f} mm, shading rms {result.shading_rms:.2f}'
+    )
     stereo_only = refine_depth(image, Z_stereo, surface, K_TEST, MODEL, sigma_i=1e9)
     err_stereo_only = np.abs(stereo_only.depth - Z)[4:-4, 4:-4]
-    print(f'without shading: median {1e3 * np.median(err_stereo_only):.2f} mm, p90 '
-          f'{1e3 * np.percentile(err_stereo_only, 90):.2f} mm')
+    print(
+        f'without shading: median {1e3 * np.median(err_stereo_only):.2f} mm, p90 '
+        f'{1e3 * np.percentile(err_stereo_only, 90):.2f} mm'
+    )
     assert np.median(err) < 0.0015 and np.percentile(err, 90) < 0.008
     assert result.shading_rms < 3.0  # [grey levels]: the model explains the image
     assert np.median(err) < np.median(err_stereo_only) / 2.5  # measured 3.8x

@@ -1,5 +1,6 @@
 """Chapter 6 cores: the DFrFT against its definition, the thesis's coding round trip,
 ours under JPEG, and no watermark on unmarked or wrong-key images."""
+
 import cv2
 import numpy as np
 import pytest
@@ -32,14 +33,20 @@ def aloe(width):
     assert left.shape[1] == ALOE_WIDTH == truth.shape[1], 'unexpected Aloe size'
     size = (width, int(round(left.shape[0] * width / ALOE_WIDTH)))
     scale = width / ALOE_WIDTH
-    disparity = cv2.resize(truth.astype(np.float32), size,
-                           interpolation=cv2.INTER_NEAREST).astype(float) * scale
+    disparity = (
+        cv2.resize(truth.astype(np.float32), size, interpolation=cv2.INTER_NEAREST).astype(float)
+        * scale
+    )
     disparity[disparity == 0] = np.nan
-    return (cv2.resize(left, size, interpolation=cv2.INTER_AREA),
-            cv2.resize(right, size, interpolation=cv2.INTER_AREA), disparity)
+    return (
+        cv2.resize(left, size, interpolation=cv2.INTER_AREA),
+        cv2.resize(right, size, interpolation=cv2.INTER_AREA),
+        disparity,
+    )
 
 
 # --- DFrFT ------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize('n', [2, 7, 8, 33, 64])
 def test_dfrft_is_unitary_additive_and_order_one_is_the_dft(n):
@@ -74,6 +81,7 @@ def test_zigzag_is_jpegs_scan_and_inverts():
 
 # --- thesis method ------------------------------------------------------------------------
 
+
 def test_thesis_round_trip_returns_the_disparity_within_quantisation(tmp_path):
     left, _, disparity = aloe(160)
     coded, key = thesis.encode(left, disparity)
@@ -83,7 +91,7 @@ def test_thesis_round_trip_returns_the_disparity_within_quantisation(tmp_path):
     error = decoded - watermark
     # Only the real part and 8-bit rounding of F* lose information (A6.3): measured
     # RMS 0.05 px, max 0.29 px.
-    assert np.sqrt(np.mean(error ** 2)) < 0.2
+    assert np.sqrt(np.mean(error**2)) < 0.2
     assert np.max(np.abs(error)) < 1.0
     assert correlation(thesis.watermark_singular_values(disparity), singular) > 0.999
     # A permutation keeps the MSE: Table 6.2's two columns agree here (A6.1).
@@ -105,6 +113,7 @@ def test_thesis_key_file_errors_name_the_file(tmp_path):
 
 
 # --- ours ---------------------------------------------------------------------------------
+
 
 def cell_truth(disparity):
     """The embedded disparity as the code represents it (cell medians, 6 bits)."""
@@ -186,6 +195,7 @@ def test_ours_code_corrects_byte_errors_and_refuses_beyond_its_capacity():
 
 def test_ours_resynchronises_a_rotation_and_finds_nothing_in_a_rotated_unmarked_image():
     from stereo_coding_node.channel import rotate
+
     left, _, disparity = generated_scene((240, 320), seed=12)
     coded = blind.encode(left, disparity, key='k')
     assert not blind.decode(rotate(coded, 7.3), key='k').found  # without resynchronisation

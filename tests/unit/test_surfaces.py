@@ -1,5 +1,6 @@
 """Surfaces: closed forms, analytic gradients against finite differences, ray casting
 against a brute-force march, normals and signed heights."""
+
 from dataclasses import replace
 
 import numpy as np
@@ -15,10 +16,17 @@ HEIGHTS = np.random.default_rng(5).normal(size=(7, 9))  # rows along y
 
 def make_surface(kind, **changes):
     extent = {'vase': ((-0.5, 0.5), (0.0, 1.0)), 'heightmap': ((-1.0, 1.0), (-0.75, 0.75))}
-    surface = Surface(kind=kind, T_base_surface=T_TILTED, scale=0.3,
-                      extent=extent.get(kind, ((-1.0, 1.0), (-1.0, 1.0))), albedo=0.8,
-                      roughness=0.0, radius=1.0,
-                      heights=HEIGHTS if kind == 'heightmap' else None, cell=0.25)
+    surface = Surface(
+        kind=kind,
+        T_base_surface=T_TILTED,
+        scale=0.3,
+        extent=extent.get(kind, ((-1.0, 1.0), (-1.0, 1.0))),
+        albedo=0.8,
+        roughness=0.0,
+        radius=1.0,
+        heights=HEIGHTS if kind == 'heightmap' else None,
+        cell=0.25,
+    )
     return replace(surface, **changes)
 
 
@@ -46,10 +54,12 @@ def test_gradient_matches_finite_differences(kind):
     surface = make_surface(kind)
     xy = interior_points(surface)
     step = 1e-6
-    numeric = np.column_stack([
-        (surfaces.height(surface, xy + [step, 0]) - surfaces.height(surface, xy - [step, 0])),
-        (surfaces.height(surface, xy + [0, step]) - surfaces.height(surface, xy - [0, step])),
-    ]) / (2 * step)
+    numeric = np.column_stack(
+        [
+            (surfaces.height(surface, xy + [step, 0]) - surfaces.height(surface, xy - [step, 0])),
+            (surfaces.height(surface, xy + [0, step]) - surfaces.height(surface, xy - [0, step])),
+        ]
+    ) / (2 * step)
     analytic = surfaces.gradient(surface, xy)
     np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-6)
 
@@ -57,9 +67,13 @@ def test_gradient_matches_finite_differences(kind):
 def test_heights_are_the_thesis_formulas():
     x, y = 0.3, -0.7
     xy = np.array([[x, y]])
-    expected = {'S1': -(x + y ** 3), 'S2': x * x * y * np.sin(x / 3) + np.cos(y * y),
-                'S3': x * y + 0.5 * x - 0.6, 'plane': 0.0,
-                'sphere': np.sqrt(1 - x * x - y * y)}
+    expected = {
+        'S1': -(x + y**3),
+        'S2': x * x * y * np.sin(x / 3) + np.cos(y * y),
+        'S3': x * y + 0.5 * x - 0.6,
+        'plane': 0.0,
+        'sphere': np.sqrt(1 - x * x - y * y),
+    }
     for kind, value in expected.items():
         assert surfaces.height(make_surface(kind), xy)[0] == pytest.approx(value, abs=1e-15)
 
@@ -75,7 +89,7 @@ def test_vase_profile_and_base_plane():
 
 def test_heightmap_interpolates_its_grid():
     surface = make_surface('heightmap')
-    rows, cols = np.mgrid[0:HEIGHTS.shape[0], 0:HEIGHTS.shape[1]]
+    rows, cols = np.mgrid[0 : HEIGHTS.shape[0], 0 : HEIGHTS.shape[1]]
     xy = np.column_stack([-1.0 + 0.25 * cols.ravel(), -0.75 + 0.25 * rows.ravel()])
     np.testing.assert_allclose(surfaces.height(surface, xy), HEIGHTS.ravel(), atol=1e-12)
     # Half way between two nodes along x: their mean.
@@ -87,8 +101,9 @@ def test_outside_the_domain_is_nan():
     assert np.isnan(surfaces.height(make_surface('S3'), [[1.5, 0.0]])[0])
     assert np.isnan(surfaces.height(make_surface('sphere'), [[0.9, 0.9]])[0])
     surface = make_surface('S2')
-    outside_base = surfaces.surface_points_base(replace(surface, extent=((-3, 3), (-3, 3))),
-                                                [[2.0, 0.0]])
+    outside_base = surfaces.surface_points_base(
+        replace(surface, extent=((-3, 3), (-3, 3))), [[2.0, 0.0]]
+    )
     assert np.isnan(surfaces.signed_height_base(surface, outside_base)[0])
     assert np.all(np.isnan(surfaces.normal_base(surface, outside_base)))
 
@@ -100,8 +115,9 @@ def test_normals_are_unit_upward_and_orthogonal_to_the_surface():
     np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-12)
     step = 1e-6
     for offset in ([step, 0], [0, step]):
-        tangent = (surfaces.surface_points_base(surface, xy + offset)
-                   - surfaces.surface_points_base(surface, xy - offset))
+        tangent = surfaces.surface_points_base(
+            surface, xy + offset
+        ) - surfaces.surface_points_base(surface, xy - offset)
         tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
         np.testing.assert_allclose(np.sum(tangent * normals, axis=1), 0.0, atol=1e-8)
     # +z side of the surface frame.
@@ -113,8 +129,9 @@ def test_signed_height_is_exact_for_a_plane_and_first_order_elsewhere():
     point = surfaces.surface_points_base(plane, [[0.2, -0.3]])[0]
     normal = T_TILTED[:3, 2]
     for distance in (0.05, -0.02):
-        assert surfaces.signed_height_base(plane, point + distance * normal)[0] == \
-            pytest.approx(distance, abs=1e-14)
+        assert surfaces.signed_height_base(plane, point + distance * normal)[0] == pytest.approx(
+            distance, abs=1e-14
+        )
     s3 = make_surface('S3')
     xy = interior_points(s3, 20)
     on_surface = surfaces.surface_points_base(s3, xy)
@@ -156,8 +173,9 @@ def test_marching_finds_the_first_hit(kind):
         points = origin + ts[:, None] * direction
         gap = points[:, 2] - surfaces.height(surface, points[:, :2])
         sign = np.sign(gap)
-        change = np.flatnonzero(np.isfinite(gap[:-1]) & np.isfinite(gap[1:])
-                                & (sign[:-1] != sign[1:]))
+        change = np.flatnonzero(
+            np.isfinite(gap[:-1]) & np.isfinite(gap[1:]) & (sign[:-1] != sign[1:])
+        )
         if len(change):
             assert t_hit == pytest.approx(ts[change[0]], abs=4e-4)
         else:
@@ -166,8 +184,9 @@ def test_marching_finds_the_first_hit(kind):
 
 def test_plane_and_sphere_closed_forms():
     plane = make_surface('plane', T_base_surface=np.eye(4), scale=2.0)
-    t = surfaces.intersect_rays(plane, [0.0, 0.0, 3.0], [[0.0, 0.0, -2.0], [1.0, 0, -1.0],
-                                                        [0.0, 0.0, 1.0]])
+    t = surfaces.intersect_rays(
+        plane, [0.0, 0.0, 3.0], [[0.0, 0.0, -2.0], [1.0, 0, -1.0], [0.0, 0.0, 1.0]]
+    )
     assert t[0] == pytest.approx(1.5)  # hit = origin + t * direction
     assert np.isnan(t[1])  # hits the plane outside the extent (x = 3 m > 2 m)
     assert np.isnan(t[2])  # looks away

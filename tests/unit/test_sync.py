@@ -1,11 +1,13 @@
 """Exact-time synchronisation: complete sets out, stale halves dropped and counted."""
+
 from vgm_common.sync import ExactTimeSync
 
 
 def make_sync(**kwargs):
     out = []
-    sync = ExactTimeSync(('left', 'right', 'aux'), lambda stamp, msgs: out.append((stamp, msgs)),
-                         **kwargs)
+    sync = ExactTimeSync(
+        ('left', 'right', 'aux'), lambda stamp, msgs: out.append((stamp, msgs)), **kwargs
+    )
     return sync, out
 
 

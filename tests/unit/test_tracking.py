@@ -1,4 +1,5 @@
 """Tracking-control core (ALGORITHMS.md §6.4, 7.3.15, A7.10) in a simulated contact loop."""
+
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +43,10 @@ def surface_path(surface, start, end, count=40):
     xy = np.linspace(start, end, count)
     points = surface_points_base(surface, xy)
     normals = normal_base(surface, points)
-    poses = [next_target_on_tangent_plane(p, n, q)[1]
-             for p, n, q in zip(points[:-1], normals[:-1], points[1:])]
+    poses = [
+        next_target_on_tangent_plane(p, n, q)[1]
+        for p, n, q in zip(points[:-1], normals[:-1], points[1:])
+    ]
     last = poses[-1].copy()
     last[:3, 3] = points[-1]
     return np.array(poses + [last])
@@ -57,20 +60,32 @@ def surface_loop(surface, radius, count, phase=0.0):
     points = surface_points_base(surface, xy)
     normals = normal_base(surface, points)
     ahead = np.roll(points, -1, axis=0)
-    return np.array([next_target_on_tangent_plane(p, n, q)[1]
-                     for p, n, q in zip(points, normals, ahead)])
+    return np.array(
+        [next_target_on_tangent_plane(p, n, q)[1] for p, n, q in zip(points, normals, ahead)]
+    )
 
 
-def simulate(robot, scenario, waypoints, stiffness_estimate, method='ours', max_time=60.0,
-             new_waypoints_at=None, new_waypoints=None, **config):
+def simulate(
+    robot,
+    scenario,
+    waypoints,
+    stiffness_estimate,
+    method='ours',
+    max_time=60.0,
+    new_waypoints_at=None,
+    new_waypoints=None,
+    **config,
+):
     """The controller against sensor_sim's arm and spring contact, 100 Hz control, the arm
     at 200 Hz following one-point trajectories as in the node. Returns the controller
     and the log of (phase, T_base_tool, force) per control step."""
     k = scenario.contact_stiffness
     controller = TrackingController(
-        robot, RateSolver(method, np.ones(7)),
-        TrackingConfig(desired_force=DESIRED_FORCE, stiffness=stiffness_estimate,
-                       **config), max_joint_velocity=1.0)
+        robot,
+        RateSolver(method, np.ones(7)),
+        TrackingConfig(desired_force=DESIRED_FORCE, stiffness=stiffness_estimate, **config),
+        max_joint_velocity=1.0,
+    )
     controller.start(waypoints)
     arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints)
     log, force, t = [], 0.0, 0.0
@@ -99,31 +114,44 @@ def lateral_errors(log, points, surface):
         tip = T[:3, 3]
         normal = normal_base(surface, tip[None])[0]
         a, b = points[:-1], points[1:]
-        t = np.clip(np.einsum('ij,ij->i', tip - a, b - a) / np.sum((b - a) ** 2, axis=1),
-                    0, 1)
+        t = np.clip(np.einsum('ij,ij->i', tip - a, b - a) / np.sum((b - a) ** 2, axis=1), 0, 1)
         nearest = a + t[:, None] * (b - a)
         d = tip - nearest[np.argmin(np.linalg.norm(nearest - tip, axis=1))]
         errors.append(np.linalg.norm(d - normal * (normal @ d)))
     return np.array(errors)
 
 
-@pytest.mark.parametrize('method, track_spin, stiffness_ratio', [
-    ('ours', False, 1.0), ('ours', True, 1.0), ('ours', False, 0.6), ('dls', False, 1.0)])
+@pytest.mark.parametrize(
+    'method, track_spin, stiffness_ratio',
+    [('ours', False, 1.0), ('ours', True, 1.0), ('ours', False, 0.6), ('dls', False, 1.0)],
+)
 def test_tracks_path_with_force(robot, scenario, method, track_spin, stiffness_ratio):
     waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
-    controller, log = simulate(robot, scenario, waypoints,
-                               stiffness_ratio * scenario.contact_stiffness, method,
-                               track_spin=track_spin, speed=0.02)
+    controller, log = simulate(
+        robot,
+        scenario,
+        waypoints,
+        stiffness_ratio * scenario.contact_stiffness,
+        method,
+        track_spin=track_spin,
+        speed=0.02,
+    )
     assert controller.phase == 'done', controller.reason
     phases = [phase for phase, _, _ in log]
-    assert phases.index('approach') < phases.index('contact') < phases.index('tracking') \
+    assert (
+        phases.index('approach')
+        < phases.index('contact')
+        < phases.index('tracking')
         < phases.index('done')
+    )
     errors = lateral_errors(log, waypoints[:, :3, 3], scenario.surface)
     forces = np.array([f for phase, _, f in log if phase == 'tracking'])
-    rms = np.sqrt(np.mean(errors ** 2))
-    print(f'{method}, track_spin={track_spin}, k_est/k={stiffness_ratio}: {len(forces)} '
-          f'tracking steps, lateral RMS {rms * 1e3:.3f} mm, max {errors.max() * 1e3:.3f} mm, '
-          f'force {forces.min():.3f}..{forces.max():.3f} N')
+    rms = np.sqrt(np.mean(errors**2))
+    print(
+        f'{method}, track_spin={track_spin}, k_est/k={stiffness_ratio}: {len(forces)} '
+        f'tracking steps, lateral RMS {rms * 1e3:.3f} mm, max {errors.max() * 1e3:.3f} mm, '
+        f'force {forces.min():.3f}..{forces.max():.3f} N'
+    )
     assert rms < 0.3e-3 and errors.max() < 1e-3
     assert np.all(np.abs(forces - DESIRED_FORCE) < 0.1 * DESIRED_FORCE)
     # Lifted off 3 cm along the approach axis from the pressed end point (2.5 mm deep).
@@ -137,8 +165,15 @@ def test_tracks_path_with_force(robot, scenario, method, track_spin, stiffness_r
 def test_closed_loop_is_followed_once_around_and_a_new_path_taken_over(robot, scenario):
     loop = surface_loop(scenario.surface, radius=0.06, count=60)
     better = surface_loop(scenario.surface, radius=0.06, count=90, phase=0.3)
-    controller, log = simulate(robot, scenario, loop, scenario.contact_stiffness,
-                               speed=0.03, new_waypoints_at=0.4, new_waypoints=better)
+    controller, log = simulate(
+        robot,
+        scenario,
+        loop,
+        scenario.contact_stiffness,
+        speed=0.03,
+        new_waypoints_at=0.4,
+        new_waypoints=better,
+    )
     assert controller.path.closed and controller.phase == 'done', controller.reason
     assert len(controller.path.points) == 91  # the new path, closed with its first point
     errors = lateral_errors(log, better[:, :3, 3], scenario.surface)
@@ -163,8 +198,9 @@ def test_waypoints_off_the_surface_fail_and_stop(robot, scenario):
     # standoff + max_depth, and the controller fails instead of pushing on.
     waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
     waypoints[:, :3, 3] -= 0.05 * waypoints[:, :3, 2]
-    controller, log = simulate(robot, scenario, waypoints, scenario.contact_stiffness,
-                               max_time=30.0)
+    controller, log = simulate(
+        robot, scenario, waypoints, scenario.contact_stiffness, max_time=30.0
+    )
     assert controller.phase == 'failed'
     assert 'no contact' in controller.reason
     assert all(force == 0.0 for _, _, force in log)
@@ -207,8 +243,9 @@ def test_tangent_plane_target_and_frame():
 
 def test_singular_posture_is_damped_within_limits(robot, scenario):
     waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
-    controller = TrackingController(robot, RateSolver('ours', np.ones(7)),
-                                    TrackingConfig(track_spin=True))
+    controller = TrackingController(
+        robot, RateSolver('ours', np.ones(7)), TrackingConfig(track_spin=True)
+    )
     controller.start(waypoints)
     qdot, info = controller.step(np.zeros(7), 0.0, DT)  # upright: J loses rank
     assert info['damping'] > 0 and info['sigma_min'] < 1e-6
@@ -225,38 +262,48 @@ def test_tilted_motion_tilts_the_step_into_or_out_of_the_surface():
     assert tilted_motion(6.0, 5.0, 0.001)[2] == pytest.approx(-0.001 * np.sin(np.pi / 10))
     assert tilted_motion(5.0, 5.0, 0.001)[1:] == (pytest.approx(0.001), pytest.approx(0.0))
     # No contact: straight in; beyond 2 lambda_d: phi clipped, straight out.
-    assert tilted_motion(0.0, 5.0, 0.001)[1:] == (pytest.approx(0.0, abs=1e-15),
-                                                 pytest.approx(0.001))
-    assert tilted_motion(30.0, 5.0, 0.001) == (pytest.approx(np.pi / 2),
-                                               pytest.approx(0.0, abs=1e-15),
-                                               pytest.approx(-0.001))
+    assert tilted_motion(0.0, 5.0, 0.001)[1:] == (
+        pytest.approx(0.0, abs=1e-15),
+        pytest.approx(0.001),
+    )
+    assert tilted_motion(30.0, 5.0, 0.001) == (
+        pytest.approx(np.pi / 2),
+        pytest.approx(0.0, abs=1e-15),
+        pytest.approx(-0.001),
+    )
 
 
 def test_unknown_force_law_is_refused(robot):
     with pytest.raises(InvalidInput, match='force_law'):
-        TrackingController(robot, RateSolver('ours', np.ones(7)),
-                           TrackingConfig(force_law='spring'))
+        TrackingController(
+            robot, RateSolver('ours', np.ones(7)), TrackingConfig(force_law='spring')
+        )
 
 
 # Measured (100 Hz, 0.02 m/s, k = 2000 N/m, S3 loop of radius 0.06, waypoints displaced
 # 1 mm * sin(2 angle) along their approach axis = +-2 N of depth disturbance):
 # integral 4.39..5.66 N (RMS error 0.42 N), tilt 4.76..5.26 N (RMS error 0.16 N).
-@pytest.mark.parametrize('force_law, band, rms_bound', [
-    ('integral', 0.15, 0.5), ('tilt', 0.10, 0.25)])
+@pytest.mark.parametrize(
+    'force_law, band, rms_bound', [('integral', 0.15, 0.5), ('tilt', 0.10, 0.25)]
+)
 def test_force_laws_hold_the_force_on_s3_against_waypoint_depth_errors(
-        robot, scenario, force_law, band, rms_bound):
+    robot, scenario, force_law, band, rms_bound
+):
     loop = surface_loop(scenario.surface, radius=0.06, count=60)
     on_surface = loop[:, :3, 3].copy()
     offset = 0.001 * np.sin(2 * np.linspace(0.0, 2 * np.pi, 60, endpoint=False))
     loop[:, :3, 3] += offset[:, None] * loop[:, :3, 2]
-    controller, log = simulate(robot, scenario, loop, scenario.contact_stiffness,
-                               speed=0.02, force_law=force_law)
+    controller, log = simulate(
+        robot, scenario, loop, scenario.contact_stiffness, speed=0.02, force_law=force_law
+    )
     assert controller.phase == 'done', controller.reason
     forces = np.array([f for phase, _, f in log if phase == 'tracking'])
     errors = lateral_errors(log, np.vstack([on_surface, on_surface[:1]]), scenario.surface)
     rms_force = np.sqrt(np.mean((forces - DESIRED_FORCE) ** 2))
-    print(f'{force_law}: force {forces.min():.3f}..{forces.max():.3f} N, RMS error '
-          f'{rms_force:.3f} N, lateral max {errors.max() * 1e3:.3f} mm')
+    print(
+        f'{force_law}: force {forces.min():.3f}..{forces.max():.3f} N, RMS error '
+        f'{rms_force:.3f} N, lateral max {errors.max() * 1e3:.3f} mm'
+    )
     assert np.all(np.abs(forces - DESIRED_FORCE) < band * DESIRED_FORCE)
     assert rms_force < rms_bound
     assert errors.max() < 1e-3
@@ -266,48 +313,57 @@ def test_force_laws_hold_the_force_on_s3_against_waypoint_depth_errors(
 
 def test_tilt_law_tracks_the_exact_s3_path_with_force_within_2_percent(robot, scenario):
     waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
-    controller, log = simulate(robot, scenario, waypoints, scenario.contact_stiffness,
-                               speed=0.02, force_law='tilt')
+    controller, log = simulate(
+        robot, scenario, waypoints, scenario.contact_stiffness, speed=0.02, force_law='tilt'
+    )
     assert controller.phase == 'done', controller.reason
     forces = np.array([f for phase, _, f in log if phase == 'tracking'])
     errors = lateral_errors(log, waypoints[:, :3, 3], scenario.surface)
     assert np.all(np.abs(forces - DESIRED_FORCE) < 0.02 * DESIRED_FORCE)
-    assert np.sqrt(np.mean(errors ** 2)) < 0.3e-3 and errors.max() < 1e-3
+    assert np.sqrt(np.mean(errors**2)) < 0.3e-3 and errors.max() < 1e-3
 
 
 # --- issue 13: measured-state phases, any 7-DOF arm, tilted surfaces -----------------
+
 
 def run_generated(spec, tmp_path, **config):
     """A generated case under ours; (controller, log, goal figures)."""
     built = task_generator.build_case(spec, tmp_path)
     controller = TrackingController(
-        built.robot, RateSolver('ours', np.ones(7)),
-        TrackingConfig(desired_force=DESIRED_FORCE, stiffness=2000.0, speed=0.015,
-                       **config), max_joint_velocity=1.0)
+        built.robot,
+        RateSolver('ours', np.ones(7)),
+        TrackingConfig(desired_force=DESIRED_FORCE, stiffness=2000.0, speed=0.015, **config),
+        max_joint_velocity=1.0,
+    )
     controller.start(built.waypoints)
-    log = task_generator.run_closed_loop(controller, built.robot, built.simulated_arm(),
-                                         built.surface, 2000.0)
-    metrics = task_generator.tracking_metrics(log, built.surface, built.path_base,
-                                              DESIRED_FORCE, built.robot)
+    log = task_generator.run_closed_loop(
+        controller, built.robot, built.simulated_arm(), built.surface, 2000.0
+    )
+    metrics = task_generator.tracking_metrics(
+        log, built.surface, built.path_base, DESIRED_FORCE, built.robot
+    )
     print(spec.label, controller.phase, controller.reason, metrics)
     return controller, log, metrics
 
 
-def test_an_arm_slower_than_commanded_reaches_contact_on_its_measured_descent(robot,
-                                                                             scenario):
+def test_an_arm_slower_than_commanded_reaches_contact_on_its_measured_descent(robot, scenario):
     """Issue 13 failure 1: the descent was counted by integrating the commanded speed, so
     an arm making 10 % of its commands was declared 'no contact: descended 40 mm' at
     3.5 N (and at 15 % it never finished its time-based lift-off)."""
     waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
-    controller = TrackingController(robot, RateSolver('ours', np.ones(7)),
-                                    TrackingConfig(desired_force=DESIRED_FORCE,
-                                                   stiffness=scenario.contact_stiffness),
-                                    max_joint_velocity=1.0)
+    controller = TrackingController(
+        robot,
+        RateSolver('ours', np.ones(7)),
+        TrackingConfig(desired_force=DESIRED_FORCE, stiffness=scenario.contact_stiffness),
+        max_joint_velocity=1.0,
+    )
     controller.start(waypoints)
-    arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints,
-                                        mode='velocity', speed_scale=0.1)
-    log = task_generator.run_closed_loop(controller, robot, arm, scenario.surface,
-                                         scenario.contact_stiffness)
+    arm = SimulatedArm.from_robot_model(
+        robot, scenario.robot.initial_joints, mode='velocity', speed_scale=0.1
+    )
+    log = task_generator.run_closed_loop(
+        controller, robot, arm, scenario.surface, scenario.contact_stiffness
+    )
     assert controller.phase == 'done' and controller.stage == 'lifted', controller.reason
     assert 'contact' in log.phases and 'tracking' in log.phases
 
@@ -317,14 +373,19 @@ def test_descent_into_nothing_fails_on_the_measured_distance(robot, scenario):
     (measured) without force, and the failure says so."""
     waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
     waypoints[:, :3, 3] -= 0.05 * waypoints[:, :3, 2]
-    controller = TrackingController(robot, RateSolver('ours', np.ones(7)),
-                                    TrackingConfig(desired_force=DESIRED_FORCE),
-                                    max_joint_velocity=1.0)
+    controller = TrackingController(
+        robot,
+        RateSolver('ours', np.ones(7)),
+        TrackingConfig(desired_force=DESIRED_FORCE),
+        max_joint_velocity=1.0,
+    )
     controller.start(waypoints)
-    arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints,
-                                        mode='velocity', speed_scale=0.5)
-    log = task_generator.run_closed_loop(controller, robot, arm, scenario.surface,
-                                         scenario.contact_stiffness)
+    arm = SimulatedArm.from_robot_model(
+        robot, scenario.robot.initial_joints, mode='velocity', speed_scale=0.5
+    )
+    log = task_generator.run_closed_loop(
+        controller, robot, arm, scenario.surface, scenario.contact_stiffness
+    )
     assert controller.phase == 'failed' and 'no contact' in controller.reason
     assert 'measured' in controller.reason
     P0, z0 = waypoints[0, :3, 3], waypoints[0, :3, 2]
@@ -336,8 +397,11 @@ def test_descent_into_nothing_fails_on_the_measured_distance(robot, scenario):
 GENERATED = task_generator.generate_cases(13)
 
 
-@pytest.mark.parametrize('index, config', [(3, {'adapt_response': True}), (9, {}), (17, {})],
-                         ids=lambda v: GENERATED[v].label if isinstance(v, int) else str(v))
+@pytest.mark.parametrize(
+    'index, config',
+    [(3, {'adapt_response': True}), (9, {}), (17, {})],
+    ids=lambda v: GENERATED[v].label if isinstance(v, int) else str(v),
+)
 def test_generated_arm_surface_path_meets_the_goals(tmp_path, index, config):
     """Seeded draws of the bench's cases (a random PA-10-like arm and the Panda, tilted
     surfaces, velocity arms, one at half speed: that one needs adapt_response, without it
@@ -352,12 +416,16 @@ def test_generated_arm_surface_path_meets_the_goals(tmp_path, index, config):
 
 def test_stop_mid_motion_stands_the_arm_still_within_10_ms(tmp_path):
     built = task_generator.build_case(GENERATED[9], tmp_path)
-    controller = TrackingController(built.robot, RateSolver('ours', np.ones(7)),
-                                    TrackingConfig(desired_force=DESIRED_FORCE),
-                                    max_joint_velocity=1.0)
+    controller = TrackingController(
+        built.robot,
+        RateSolver('ours', np.ones(7)),
+        TrackingConfig(desired_force=DESIRED_FORCE),
+        max_joint_velocity=1.0,
+    )
     controller.start(built.waypoints)
-    log = task_generator.run_closed_loop(controller, built.robot, built.simulated_arm(),
-                                         built.surface, 2000.0, stop_at_progress=0.5)
+    log = task_generator.run_closed_loop(
+        controller, built.robot, built.simulated_arm(), built.surface, 2000.0, stop_at_progress=0.5
+    )
     assert controller.phase == 'stopped'
     assert 0.45 <= controller.progress < 0.55
     assert log.stop_latency <= 0.010

@@ -25,6 +25,7 @@ killed recording's files are valid MCAP that streaming readers read whole; ``rei
 (bag_tools.reindex) adds the summary and ``metadata.yaml`` that indexed readers and
 rosbags need. ``BagReader`` reads such a bag without either.
 """
+
 from __future__ import annotations
 
 import heapq
@@ -69,22 +70,41 @@ except PackageNotFoundError:
 LIBRARY = f'bag_tools {_VERSION} (mcap-python/{_MCAP_VERSION})'
 """The MCAP header's library string: who wrote the file (honestly not rosbag2)."""
 
-_COMPRESSION = {'': CompressionType.NONE, 'none': CompressionType.NONE,
-                'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4}
+_COMPRESSION = {
+    '': CompressionType.NONE,
+    'none': CompressionType.NONE,
+    'zstd': CompressionType.ZSTD,
+    'lz4': CompressionType.LZ4,
+}
 
 # rmw_qos_*_policy_to_str spellings; integers are the enum values metadata version <= 8 used.
 _POLICY_NAMES = {
     'history': ('system_default', 'keep_last', 'keep_all', 'unknown'),
     'reliability': ('system_default', 'reliable', 'best_effort', 'unknown', 'best_available'),
     'durability': ('system_default', 'transient_local', 'volatile', 'unknown', 'best_available'),
-    'liveliness': ('system_default', 'automatic', 'manual_by_node', 'manual_by_topic', 'unknown',
-                   'best_available'),
+    'liveliness': (
+        'system_default',
+        'automatic',
+        'manual_by_node',
+        'manual_by_topic',
+        'unknown',
+        'best_available',
+    ),
 }
 # One offered QoS profile as metadata version 9 stores it (``qos_profile``): policy names,
 # depth, durations {sec, nsec} and a flag; values read from a bag are parsed YAML.
 QosProfileDict = dict[str, Any]
-_QOS_KEYS = ('history', 'depth', 'reliability', 'durability', 'deadline', 'lifespan',
-             'liveliness', 'liveliness_lease_duration', 'avoid_ros_namespace_conventions')
+_QOS_KEYS = (
+    'history',
+    'depth',
+    'reliability',
+    'durability',
+    'deadline',
+    'lifespan',
+    'liveliness',
+    'liveliness_lease_duration',
+    'avoid_ros_namespace_conventions',
+)
 
 
 class BagError(Exception):
@@ -103,11 +123,17 @@ class BagReaderError(BagError):
     """The path is not a readable rosbag2 MCAP bag."""
 
 
-def qos_profile(history: str = 'keep_last', depth: int = 10, reliability: str = 'reliable',
-                durability: str = 'volatile', deadline: Mapping[str, int] | None = None,
-                lifespan: Mapping[str, int] | None = None, liveliness: str = 'automatic',
-                liveliness_lease_duration: Mapping[str, int] | None = None,
-                avoid_ros_namespace_conventions: bool = False) -> QosProfileDict:
+def qos_profile(
+    history: str = 'keep_last',
+    depth: int = 10,
+    reliability: str = 'reliable',
+    durability: str = 'volatile',
+    deadline: Mapping[str, int] | None = None,
+    lifespan: Mapping[str, int] | None = None,
+    liveliness: str = 'automatic',
+    liveliness_lease_duration: Mapping[str, int] | None = None,
+    avoid_ros_namespace_conventions: bool = False,
+) -> QosProfileDict:
     """One offered QoS profile as metadata version 9 stores it (a plain dict).
 
     Policies are rmw's strings (``keep_last``, ``reliable``, ``transient_local``, ``automatic``,
@@ -182,17 +208,27 @@ class _YamlCppStyleDumper(yaml.SafeDumper):
 
 
 _YamlCppStyleDumper.add_representer(
-    str, lambda dumper, data: dumper.represent_scalar(
-        'tag:yaml.org,2002:str', data, style='"' if data == '' else None))
+    str,
+    lambda dumper, data: dumper.represent_scalar(
+        'tag:yaml.org,2002:str', data, style='"' if data == '' else None
+    ),
+)
 _YamlCppStyleDumper.add_representer(
-    type(None), lambda dumper, _data: dumper.represent_scalar('tag:yaml.org,2002:null', '~'))
+    type(None), lambda dumper, _data: dumper.represent_scalar('tag:yaml.org,2002:null', '~')
+)
 
 
 def dump_yaml(data: object) -> str:
     """YAML text of ``data`` in yaml-cpp's block style, keys in insertion order, no final
     newline (``YAML::Dump`` does not write one)."""
-    return yaml.dump(data, Dumper=_YamlCppStyleDumper, default_flow_style=False,
-                     sort_keys=False, allow_unicode=True, width=float('inf')).rstrip('\n')
+    return yaml.dump(
+        data,
+        Dumper=_YamlCppStyleDumper,
+        default_flow_style=False,
+        sort_keys=False,
+        allow_unicode=True,
+        width=float('inf'),
+    ).rstrip('\n')
 
 
 def serialize_qos_profiles(profiles: Sequence[Mapping[str, Any]]) -> str:
@@ -242,8 +278,7 @@ class _FileInfo:
 
 # What a killed recording ends with: a DataEnd record (data section CRC 0 = not
 # computed), a Footer without a summary (summary start 0) and the closing magic.
-_SEAL = (struct.pack('<BQI', 0x0F, 4, 0)
-         + struct.pack('<BQQQI', 0x02, 20, 0, 0, 0) + MCAP_MAGIC)
+_SEAL = struct.pack('<BQI', 0x0F, 4, 0) + struct.pack('<BQQQI', 0x02, 20, 0, 0, 0) + MCAP_MAGIC
 
 
 class _SealedFile:
@@ -301,9 +336,15 @@ class BagWriter:
         BagWriterError: the directory exists or cannot be created.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, max_file_size: int = 0,
-                 chunk_size: int = DEFAULT_CHUNK_SIZE, compression: str = '',
-                 custom_data: Mapping[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        max_file_size: int = 0,
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+        compression: str = '',
+        custom_data: Mapping[str, str] | None = None,
+    ) -> None:
         self.path = Path(path)
         if compression not in _COMPRESSION:
             raise BagWriterError(f'unknown compression {compression!r}', self.path)
@@ -313,10 +354,12 @@ class BagWriter:
             self.path.mkdir(parents=True, exist_ok=False)
         except FileExistsError:
             raise BagWriterError(
-                f'bag directory {self.path} already exists; not overwriting', self.path) from None
+                f'bag directory {self.path} already exists; not overwriting', self.path
+            ) from None
         except OSError as error:
-            raise BagWriterError(f'cannot create {self.path}: {error.strerror}', self.path) \
-                from None
+            raise BagWriterError(
+                f'cannot create {self.path}: {error.strerror}', self.path
+            ) from None
         self.max_file_size = int(max_file_size)
         self._chunk_size = int(chunk_size)
         self._compression = _COMPRESSION[compression]
@@ -355,9 +398,13 @@ class BagWriter:
     def closed(self) -> bool:
         return self._closed
 
-    def add_topic(self, name: str, type_name: str,
-                  offered_qos_profiles: Iterable[Mapping[str, Any]] = (),
-                  type_description_hash: str | None = None) -> None:
+    def add_topic(
+        self,
+        name: str,
+        type_name: str,
+        offered_qos_profiles: Iterable[Mapping[str, Any]] = (),
+        type_description_hash: str | None = None,
+    ) -> None:
         """Create the topic's schema and channel. Adding an existing topic is a no-op.
 
         Args:
@@ -376,19 +423,24 @@ class BagWriter:
             if existing.type != type_name:
                 raise BagWriterError(
                     f'topic {name} already recorded with type {existing.type}, not {type_name}',
-                    self.path)
+                    self.path,
+                )
             return
         if type_description_hash is None:
             type_description_hash = type_hash(type_name)
         definition(type_name)  # fail here, not half-way through writing the channel
-        topic = TopicInfo(name=name, type=type_name,
-                          offered_qos_profiles=normalize_qos_profiles(list(offered_qos_profiles)),
-                          type_description_hash=type_description_hash)
+        topic = TopicInfo(
+            name=name,
+            type=type_name,
+            offered_qos_profiles=normalize_qos_profiles(list(offered_qos_profiles)),
+            type_description_hash=type_description_hash,
+        )
         self._topics[name] = topic
         self._register(topic)
 
-    def write(self, topic: str, data: bytes, log_time_ns: int,
-              publish_time_ns: int | None = None) -> None:
+    def write(
+        self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None
+    ) -> None:
         """Append one serialized (CDR) message.
 
         Args:
@@ -409,12 +461,20 @@ class BagWriter:
         if log_time_ns < 0 or publish_time_ns < 0:
             raise BagWriterError(f'negative timestamp on {topic}', self.path)
         current = self._files[-1]
-        if (self.max_file_size and current.message_count
-                and self._stream.tell() >= self.max_file_size):
+        if (
+            self.max_file_size
+            and current.message_count
+            and self._stream.tell() >= self.max_file_size
+        ):
             self._split()
             current = self._files[-1]
-        self._writer.add_message(channel_id=self._channel_ids[topic], log_time=log_time_ns,
-                                 data=bytes(data), publish_time=publish_time_ns, sequence=0)
+        self._writer.add_message(
+            channel_id=self._channel_ids[topic],
+            log_time=log_time_ns,
+            data=bytes(data),
+            publish_time=publish_time_ns,
+            sequence=0,
+        )
         info.message_count += 1
         current.message_count += 1
         current.starting_time = min(current.starting_time, log_time_ns)
@@ -481,8 +541,11 @@ class BagWriter:
         self._stream = _SealedFile(self.path / name)
         # mcap's Writer calls only write() and tell() of a stream it did not open; its
         # annotation asks for a whole IO.
-        self._writer = Writer(self._stream, chunk_size=self._chunk_size,  # type: ignore[arg-type]
-                              compression=self._compression)
+        self._writer = Writer(
+            self._stream,  # type: ignore[arg-type]
+            chunk_size=self._chunk_size,
+            compression=self._compression,
+        )
         self._writer.start(profile=MCAP_PROFILE, library=LIBRARY)
         self._channel_ids.clear()
         self._schema_ids.clear()
@@ -497,12 +560,18 @@ class BagWriter:
         if schema_id is None:
             encoding, text = definition(topic.type)
             schema_id = self._writer.register_schema(
-                name=topic.type, encoding=encoding, data=text.encode('utf-8'))
+                name=topic.type, encoding=encoding, data=text.encode('utf-8')
+            )
             self._schema_ids[topic.type] = schema_id
         self._channel_ids[topic.name] = self._writer.register_channel(
-            topic=topic.name, message_encoding=topic.serialization_format, schema_id=schema_id,
-            metadata={'offered_qos_profiles': serialize_qos_profiles(topic.offered_qos_profiles),
-                      'topic_type_hash': topic.type_description_hash})
+            topic=topic.name,
+            message_encoding=topic.serialization_format,
+            schema_id=schema_id,
+            metadata={
+                'offered_qos_profiles': serialize_qos_profiles(topic.offered_qos_profiles),
+                'topic_type_hash': topic.type_description_hash,
+            },
+        )
 
     def _write_metadata_record(self) -> None:
         self._writer.add_metadata('rosbag2', {'serialized_metadata': dump_yaml(self.metadata())})
@@ -546,8 +615,9 @@ def _has_footer(path: Path) -> bool:
         return stream.read(len(MCAP_MAGIC)) == MCAP_MAGIC
 
 
-def _stream_records_tolerant(path: Path, topics: Iterable[str] | None
-                             ) -> Iterator[tuple[Schema | None, Channel, Message]]:
+def _stream_records_tolerant(
+    path: Path, topics: Iterable[str] | None
+) -> Iterator[tuple[Schema | None, Channel, Message]]:
     """(schema, channel, message) of a file read front to back, stopping quietly where a
     crash cut it short."""
     with open(path, 'rb') as stream:
@@ -602,22 +672,29 @@ class BagReader:
                     type=t['topic_metadata']['type'],
                     serialization_format=t['topic_metadata'].get('serialization_format', 'cdr'),
                     offered_qos_profiles=normalize_qos_profiles(
-                        t['topic_metadata'].get('offered_qos_profiles')),
+                        t['topic_metadata'].get('offered_qos_profiles')
+                    ),
                     type_description_hash=t['topic_metadata'].get('type_description_hash', ''),
-                    message_count=int(t.get('message_count', 0)))
-                for t in info.get('topics_with_message_count') or []]
+                    message_count=int(t.get('message_count', 0)),
+                )
+                for t in info.get('topics_with_message_count') or []
+            ]
         except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError) as error:
             raise BagReaderError(
                 f'{metadata_path} is not rosbag2 metadata ({type(error).__name__}: {error})',
-                self.path) from None
+                self.path,
+            ) from None
         if bag_version > METADATA_VERSION:
-            raise BagReaderError(f'rosbag2 metadata version {bag_version} is newer than '
-                                 f'{METADATA_VERSION}', self.path)
+            raise BagReaderError(
+                f'rosbag2 metadata version {bag_version} is newer than {METADATA_VERSION}',
+                self.path,
+            )
         if storage != STORAGE_IDENTIFIER:
             raise BagReaderError(f'storage {storage!r} is not supported (only mcap)', self.path)
         if info.get('compression_mode'):
-            raise BagReaderError(f'compression mode {info["compression_mode"]!r} is not '
-                                 'supported', self.path)
+            raise BagReaderError(
+                f'compression mode {info["compression_mode"]!r} is not supported', self.path
+            )
         self.files = [self.path / Path(p).name for p in relative_paths]
         missing = [str(p) for p in self.files if not p.is_file()]
         if missing:
@@ -626,12 +703,16 @@ class BagReader:
         self.topics = topics
 
     def _recover_metadata(self) -> None:
-        indices = {p: int(match.group(1)) for p in self.path.glob('*.mcap')
-                   if (match := _FILE_INDEX_RE.search(p.name))}  # file -> its n
+        indices = {
+            p: int(match.group(1))
+            for p in self.path.glob('*.mcap')
+            if (match := _FILE_INDEX_RE.search(p.name))
+        }  # file -> its n
         if not indices:
             raise BagReaderError(
                 f'{self.path} is not a bag: no {METADATA_FILENAME} and no <name>_<n>.mcap files',
-                self.path)
+                self.path,
+            )
         self.files = sorted(indices, key=indices.__getitem__)
         topics: dict[str, TopicInfo] = {}
         for path in self.files:
@@ -639,11 +720,14 @@ class BagReader:
                 topic = topics.get(channel.topic)
                 if topic is None:
                     topic = topics[channel.topic] = TopicInfo(
-                        name=channel.topic, type=schema.name if schema else '',
+                        name=channel.topic,
+                        type=schema.name if schema else '',
                         serialization_format=channel.message_encoding,
                         offered_qos_profiles=normalize_qos_profiles(
-                            channel.metadata.get('offered_qos_profiles')),
-                        type_description_hash=channel.metadata.get('topic_type_hash', ''))
+                            channel.metadata.get('offered_qos_profiles')
+                        ),
+                        type_description_hash=channel.metadata.get('topic_type_hash', ''),
+                    )
                 topic.message_count += 1
         self.topics = list(topics.values())
         self.metadata = None
@@ -656,22 +740,34 @@ class BagReader:
         """The ``TopicInfo`` of ``name``, or None."""
         return next((t for t in self.topics if t.name == name), None)
 
-    def file_messages(self, path: Path,
-                      topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+    def file_messages(
+        self, path: Path, topics: Iterable[str] | None = None
+    ) -> Iterator[BagMessage]:
         """Iterate ``BagMessage`` of one of ``files`` in log-time order (``topics``: names
         to keep; None = all)."""
         if _has_footer(path):
             with open(path, 'rb') as stream:
                 reader = SeekingReader(stream)
                 for schema, channel, message in reader.iter_messages(
-                        topics=topics, log_time_order=True):
-                    yield BagMessage(channel.topic, schema.name if schema else '',
-                                     message.data, message.log_time, message.publish_time)
+                    topics=topics, log_time_order=True
+                ):
+                    yield BagMessage(
+                        channel.topic,
+                        schema.name if schema else '',
+                        message.data,
+                        message.log_time,
+                        message.publish_time,
+                    )
             return
         records = sorted(_stream_records_tolerant(path, topics), key=lambda r: r[2].log_time)
         for schema, channel, message in records:
-            yield BagMessage(channel.topic, schema.name if schema else '', message.data,
-                             message.log_time, message.publish_time)
+            yield BagMessage(
+                channel.topic,
+                schema.name if schema else '',
+                message.data,
+                message.log_time,
+                message.publish_time,
+            )
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
         """Iterate ``BagMessage`` in log-time order over all files.

@@ -17,6 +17,7 @@ yield the same text. Where a package ships no ``.msg`` for a type, rosbag2 falls
 ``ros2idl`` encoding (every definition, the root included, behind ``IDL: pkg/msg/Type``);
 ``definition`` does the same.
 """
+
 from __future__ import annotations
 
 import functools
@@ -34,9 +35,24 @@ DELIMITER = '=' * 80 + '\n'
 _PACKAGE_TYPENAME_RE = re.compile(r'^([a-zA-Z0-9_]+)/(?:msg/|srv/)?([a-zA-Z0-9_]+)$')
 _MSG_FIELD_TYPE_RE = re.compile(r'(?:^|\n)\s*([a-zA-Z0-9_/]+)(?:\[[^\]]*\])?\s+')
 _IDL_INCLUDE_RE = re.compile(r'(?:^|\n)#include\s+(?:"|<)([a-zA-Z0-9_/]+)\.idl(?:"|>)')
-_PRIMITIVE_TYPES = frozenset((
-    'bool', 'byte', 'char', 'float32', 'float64', 'int8', 'uint8', 'int16', 'uint16',
-    'int32', 'uint32', 'int64', 'uint64', 'string'))
+_PRIMITIVE_TYPES = frozenset(
+    (
+        'bool',
+        'byte',
+        'char',
+        'float32',
+        'float64',
+        'int8',
+        'uint8',
+        'int16',
+        'uint16',
+        'int32',
+        'uint32',
+        'int64',
+        'uint64',
+        'string',
+    )
+)
 # rosbag2's ROSBAG2_CPP_LOCAL_MESSAGE_DEFINITION_SOURCE_MAX_RECURSION_DEPTH
 _MAX_RECURSION_DEPTH = 50
 
@@ -46,8 +62,9 @@ class DefinitionNotFoundError(LookupError):
 
     def __init__(self, type_name: str, detail: str = '') -> None:
         self.type_name = type_name
-        super().__init__(f'no message definition found for {type_name!r}'
-                         + (f': {detail}' if detail else ''))
+        super().__init__(
+            f'no message definition found for {type_name!r}' + (f': {detail}' if detail else '')
+        )
 
 
 def split_type_name(type_name: str) -> tuple[str, str]:
@@ -82,6 +99,7 @@ def package_share_directory(package: str) -> Path:
     candidates = []
     try:
         from ament_index_python.packages import get_package_share_directory
+
         candidates.append(Path(get_package_share_directory(package)))
     except Exception:  # noqa: BLE001 -- unset AMENT_PREFIX_PATH raises OSError, else not found
         pass
@@ -122,9 +140,12 @@ def _idl_dependencies(text: str) -> list[str]:
     return sorted({match.group(1) for match in _IDL_INCLUDE_RE.finditer(text)})
 
 
-def _full_text(root: str, extension: str,
-               dependencies_of: Callable[[str, str], list[str]],
-               header: Callable[[str], str]) -> str:
+def _full_text(
+    root: str,
+    extension: str,
+    dependencies_of: Callable[[str, str], list[str]],
+    header: Callable[[str], str],
+) -> str:
     """The text of ``root`` and, behind ``header(name)`` each, of its dependencies
     (``dependencies_of(text, package)``), depth first, each once."""
     seen: set[str] = set()
@@ -156,14 +177,17 @@ def definition(type_name: str) -> tuple[str, str]:
     split_type_name(type_name)
     try:
         return 'ros2msg', _full_text(
-            type_name, '.msg', _msg_dependencies,
-            lambda dep: f'{DELIMITER}MSG: {dep}\n')
+            type_name, '.msg', _msg_dependencies, lambda dep: f'{DELIMITER}MSG: {dep}\n'
+        )
     except DefinitionNotFoundError:
         pass
     root_header = f'{DELIMITER}IDL: {type_name}\n'
     return 'ros2idl', root_header + _full_text(
-        type_name, '.idl', lambda text, _package: _idl_dependencies(text),
-        lambda dep: f'{DELIMITER}IDL: {dep}\n')
+        type_name,
+        '.idl',
+        lambda text, _package: _idl_dependencies(text),
+        lambda dep: f'{DELIMITER}IDL: {dep}\n',
+    )
 
 
 def full_definition(type_name: str) -> str:

@@ -27,6 +27,7 @@ status 2 (the project's status for unusable start-up input, as ``vgm_common.node
 messages of the played topics in the bag, bag time; WARN if a requested topic cannot be
 played or a parameter change was refused, ERROR if reading the bag failed.
 """
+
 import sys
 import threading
 import time
@@ -78,22 +79,54 @@ class PlayerNode(Node):
     def __init__(self, **kwargs):
         super().__init__(self.node_name, **kwargs)
         self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(self, [
-            Param('bag', '', 'Path of the bag directory (the one holding metadata.yaml).',
-                  check=_required, read_only=True),
-            Param('rate', 1.0, 'Playback speed factor (2 = twice as fast); may be changed '
-                  'while playing.', range=(MIN_RATE, MAX_RATE), on_change=self._set_rate),
-            Param('loop', False, 'Play the bag again and again.', read_only=True),
-            Param('topics', [], 'Topics to play (exact names); empty = every recorded topic.',
-                  read_only=True),
-            Param('exclude', ['/rosout', '/parameter_events', DIAGNOSTICS_TOPIC],
-                  'Recorded topics not to play (exact names); [] = none.', read_only=True),
-            Param('exit_when_done', True, 'Exit once the bag was played; false keeps latched '
-                  'topics available.', read_only=True),
-            Param('wait_for_subscribers', 5.0, '[s] Before playing, wait at most this long '
-                  'for every topic to have a subscriber, so the first messages are not lost '
-                  'to discovery; 0 = do not wait.', range=(0.0, 3600.0), read_only=True),
-        ], diagnostics=self.diagnostics)
+        self.params = NodeParameters(
+            self,
+            [
+                Param(
+                    'bag',
+                    '',
+                    'Path of the bag directory (the one holding metadata.yaml).',
+                    check=_required,
+                    read_only=True,
+                ),
+                Param(
+                    'rate',
+                    1.0,
+                    'Playback speed factor (2 = twice as fast); may be changed while playing.',
+                    range=(MIN_RATE, MAX_RATE),
+                    on_change=self._set_rate,
+                ),
+                Param('loop', False, 'Play the bag again and again.', read_only=True),
+                Param(
+                    'topics',
+                    [],
+                    'Topics to play (exact names); empty = every recorded topic.',
+                    read_only=True,
+                ),
+                Param(
+                    'exclude',
+                    ['/rosout', '/parameter_events', DIAGNOSTICS_TOPIC],
+                    'Recorded topics not to play (exact names); [] = none.',
+                    read_only=True,
+                ),
+                Param(
+                    'exit_when_done',
+                    True,
+                    'Exit once the bag was played; false keeps latched topics available.',
+                    read_only=True,
+                ),
+                Param(
+                    'wait_for_subscribers',
+                    5.0,
+                    '[s] Before playing, wait at most this long '
+                    'for every topic to have a subscriber, so the first messages are not lost '
+                    'to discovery; 0 = do not wait.',
+                    range=(0.0, 3600.0),
+                    read_only=True,
+                ),
+            ],
+            diagnostics=self.diagnostics,
+        )
         self.exit_when_done = self.params.exit_when_done
         self._loop = self.params.loop
         self._wait_for_subscribers = self.params.wait_for_subscribers
@@ -102,11 +135,11 @@ class PlayerNode(Node):
         except BagError as error:
             raise PlayerStartupError(f'cannot play {self.params.bag!r}: {error}') from None
         self._not_played = {}  # requested topic -> why it is not played
-        self._topic_publishers = self._create_publishers(self.params.topics,
-                                                         self.params.exclude)
+        self._topic_publishers = self._create_publishers(self.params.topics, self.params.exclude)
         self.published = {name: 0 for name in self._topic_publishers}
-        self._total = sum(t.message_count for t in self._reader.topics
-                          if t.name in self._topic_publishers)  # one pass
+        self._total = sum(
+            t.message_count for t in self._reader.topics if t.name in self._topic_publishers
+        )  # one pass
         # [ns] bag time 0 (the first message played if the metadata does not say) and length
         self._bag_start, self._bag_duration = _bag_span(self._reader)
         self._bag_time = None  # [ns] log time of the last message played
@@ -137,8 +170,7 @@ class PlayerNode(Node):
             if name not in recorded:
                 self._not_played[name] = 'not in the bag'
                 self.get_logger().warning(f'topic {name} is not in the bag')
-        names = [n for n in recorded
-                 if (not wanted or n in wanted) and n not in excluded]
+        names = [n for n in recorded if (not wanted or n in wanted) and n not in excluded]
         publishers = {}
         for name in names:
             info = recorded[name]
@@ -147,26 +179,34 @@ class PlayerNode(Node):
             except (ImportError, AttributeError, ValueError) as error:
                 self._not_played[name] = f'type {info.type} is not installed'
                 self.get_logger().warning(
-                    f'not playing {name}: type {info.type} is not installed ({error})')
+                    f'not playing {name}: type {info.type} is not installed ({error})'
+                )
                 continue
             try:
                 local_hash = type_hash(info.type)
             except DefinitionNotFoundError:
                 local_hash = ''
-            if info.type_description_hash and local_hash and \
-                    info.type_description_hash != local_hash:
+            if (
+                info.type_description_hash
+                and local_hash
+                and info.type_description_hash != local_hash
+            ):
                 self.get_logger().warning(
                     f'{name}: recorded {info.type} differs from the installed definition '
-                    f'({info.type_description_hash} != {local_hash}); playing the bytes as is')
+                    f'({info.type_description_hash} != {local_hash}); playing the bytes as is'
+                )
             latched = is_latched(info)
             publishers[name] = self.create_publisher(
-                message_type, name, LATCHED_QOS if latched else DEFAULT_QOS)
+                message_type, name, LATCHED_QOS if latched else DEFAULT_QOS
+            )
             self.get_logger().info(
                 f'playing {name} [{info.type}] {info.message_count} messages'
-                + (' (latched)' if latched else ''))
+                + (' (latched)' if latched else '')
+            )
         if not publishers:
-            raise PlayerStartupError(f'nothing to play in {self._reader.path}: no recorded '
-                                     'topic matches topics/exclude')
+            raise PlayerStartupError(
+                f'nothing to play in {self._reader.path}: no recorded topic matches topics/exclude'
+            )
         return publishers
 
     # -- playback (playback thread) --------------------------------------------------------
@@ -205,11 +245,15 @@ class PlayerNode(Node):
                 return
             if self._stop.wait(0.02):
                 return
-        lonely = sorted(name for name, publisher in self._topic_publishers.items()
-                        if publisher.get_subscription_count() == 0)
+        lonely = sorted(
+            name
+            for name, publisher in self._topic_publishers.items()
+            if publisher.get_subscription_count() == 0
+        )
         self.get_logger().info(
             f'no subscriber after {self._wait_for_subscribers:g} s on {", ".join(lonely)}; '
-            'playing anyway')
+            'playing anyway'
+        )
 
     def _play_once(self):
         """Play the bag once; False if stopped or there was nothing to play."""
@@ -241,7 +285,8 @@ class PlayerNode(Node):
             self._state = 'stopped' if self._stop.is_set() else 'done'
             self.get_logger().info(
                 f'played {sum(self.published.values())} messages in '
-                f'{time.monotonic() - started:.2f} s')
+                f'{time.monotonic() - started:.2f} s'
+            )
         except (BagError, OSError, ValueError) as error:
             self.error = error
             self._state = 'failed'
@@ -257,8 +302,7 @@ class PlayerNode(Node):
 
     def _publish_progress(self):
         played = sum(self.published.values())
-        values = {'messages played': played, 'messages in bag': self._total,
-                  'rate': self._rate}
+        values = {'messages played': played, 'messages in bag': self._total, 'rate': self._rate}
         if self._loop:
             values['pass'] = self._passes
         if self._bag_time is not None:
@@ -293,8 +337,10 @@ def _bag_span(reader):
     """(start [ns since epoch], duration [ns]) of the bag from its metadata; (None, None)
     for a bag recovered without metadata."""
     try:
-        return (int(reader.metadata['starting_time']['nanoseconds_since_epoch']),
-                int(reader.metadata['duration']['nanoseconds']))
+        return (
+            int(reader.metadata['starting_time']['nanoseconds_since_epoch']),
+            int(reader.metadata['duration']['nanoseconds']),
+        )
     except (KeyError, TypeError, ValueError):
         return None, None
 

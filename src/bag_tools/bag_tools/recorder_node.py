@@ -33,6 +33,7 @@ oldest messages are dropped and counted.
 recorded, messages written per topic, messages dropped, bytes written; WARN once a message
 was dropped or a topic could not be recorded, ERROR once writing failed.
 """
+
 import collections
 import os
 import sys
@@ -85,12 +86,16 @@ def qos_to_dict(qos):
     a bag recorded by rosbag2.
     """
     return qos_profile(
-        history=qos.history.name.lower(), depth=qos.depth,
-        reliability=qos.reliability.name.lower(), durability=qos.durability.name.lower(),
-        deadline=_duration_dict(qos.deadline), lifespan=_duration_dict(qos.lifespan),
+        history=qos.history.name.lower(),
+        depth=qos.depth,
+        reliability=qos.reliability.name.lower(),
+        durability=qos.durability.name.lower(),
+        deadline=_duration_dict(qos.deadline),
+        lifespan=_duration_dict(qos.lifespan),
         liveliness=qos.liveliness.name.lower(),
         liveliness_lease_duration=_duration_dict(qos.liveliness_lease_duration),
-        avoid_ros_namespace_conventions=qos.avoid_ros_namespace_conventions)
+        avoid_ros_namespace_conventions=qos.avoid_ros_namespace_conventions,
+    )
 
 
 class _MessageQueue:
@@ -149,35 +154,74 @@ class RecorderNode(Node):
     def __init__(self, **kwargs):
         super().__init__(self.node_name, **kwargs)
         # None can change while recording.
-        self.params = NodeParameters(self, [
-            Param('bag_name', '', 'Bag directory name; empty = rosbag2_YYYY_MM_DD-HH_MM_SS '
-                  '(local time). Must not exist yet.', check=_plain_directory_name,
-                  read_only=True),
-            Param('output_dir', 'bags', 'Directory the bag directory is created in (relative '
-                  'to the working directory).', read_only=True),
-            *topic_selection_params('record', 'recorded', 0.1, ', e.g. [/rosout]'),
-            Param('flush_period', 1.0, '[s] The chunk being filled is written at least this '
-                  'often (bounds what a crash loses); 0 = only when full (768 KiB).',
-                  range=(0.0, 3600.0), read_only=True),
-            Param('max_file_size', 0, '[bytes] Split to <bag_name>_<n+1>.mcap once a file '
-                  'reaches this size; 0 = never.', range=(0, 2**62), read_only=True),
-            Param('compression', 'none', 'Chunk compression of the MCAP files: none '
-                  "(rosbag2's default; \"\" says the same), zstd or lz4 (mcap's chunk "
-                  'compression: every MCAP reader decompresses it).',
-                  choices=('none', '', 'zstd', 'lz4'), read_only=True),
-            Param('max_cache_size', 100 * 1024 * 1024, '[bytes] Messages waiting to be written; '
-                  'beyond this the oldest are dropped (counted). 0 = unbounded.',
-                  range=(0, 2**62), read_only=True),
-        ])
+        self.params = NodeParameters(
+            self,
+            [
+                Param(
+                    'bag_name',
+                    '',
+                    'Bag directory name; empty = rosbag2_YYYY_MM_DD-HH_MM_SS '
+                    '(local time). Must not exist yet.',
+                    check=_plain_directory_name,
+                    read_only=True,
+                ),
+                Param(
+                    'output_dir',
+                    'bags',
+                    'Directory the bag directory is created in (relative '
+                    'to the working directory).',
+                    read_only=True,
+                ),
+                *topic_selection_params('record', 'recorded', 0.1, ', e.g. [/rosout]'),
+                Param(
+                    'flush_period',
+                    1.0,
+                    '[s] The chunk being filled is written at least this '
+                    'often (bounds what a crash loses); 0 = only when full (768 KiB).',
+                    range=(0.0, 3600.0),
+                    read_only=True,
+                ),
+                Param(
+                    'max_file_size',
+                    0,
+                    '[bytes] Split to <bag_name>_<n+1>.mcap once a file '
+                    'reaches this size; 0 = never.',
+                    range=(0, 2**62),
+                    read_only=True,
+                ),
+                Param(
+                    'compression',
+                    'none',
+                    'Chunk compression of the MCAP files: none '
+                    '(rosbag2\'s default; "" says the same), zstd or lz4 (mcap\'s chunk '
+                    'compression: every MCAP reader decompresses it).',
+                    choices=('none', '', 'zstd', 'lz4'),
+                    read_only=True,
+                ),
+                Param(
+                    'max_cache_size',
+                    100 * 1024 * 1024,
+                    '[bytes] Messages waiting to be written; '
+                    'beyond this the oldest are dropped (counted). 0 = unbounded.',
+                    range=(0, 2**62),
+                    read_only=True,
+                ),
+            ],
+        )
         self._discovery = TopicDiscovery(self, self.params, 'recording')
         self._flush_period = self.params.flush_period  # [s]
         self._use_sim_time = self.get_parameter('use_sim_time').value
-        self.bag_path = os.path.join(self.params.output_dir or '.',
-                                     self.params.bag_name or default_bag_name())
+        self.bag_path = os.path.join(
+            self.params.output_dir or '.', self.params.bag_name or default_bag_name()
+        )
         try:
-            self._bag = BagWriter(self.bag_path, max_file_size=self.params.max_file_size,
-                                  compression=_COMPRESSION_ALIASES.get(
-                                      self.params.compression, self.params.compression))
+            self._bag = BagWriter(
+                self.bag_path,
+                max_file_size=self.params.max_file_size,
+                compression=_COMPRESSION_ALIASES.get(
+                    self.params.compression, self.params.compression
+                ),
+            )
         except BagError as error:
             raise RecorderStartupError(str(error)) from None
         self._bag_lock = threading.Lock()  # BagWriter is used by the executor and writer threads
@@ -189,7 +233,8 @@ class RecorderNode(Node):
         self.exit_requested = threading.Event()
         self.diagnostics = Diagnostics(self)
         self._writer_thread = threading.Thread(
-            target=self._write_loop, name='bag_writer', daemon=True)
+            target=self._write_loop, name='bag_writer', daemon=True
+        )
         self._writer_thread.start()
         self._closed = False
         self._last_message_time = time.monotonic()  # [s] for drained()
@@ -218,8 +263,11 @@ class RecorderNode(Node):
         if len(types) > 1 and name not in self._mixed_types:
             # Recorded with its first type; the others' messages cannot be.
             self._mixed_types.add(name)
-            self.diagnostics.reject(name, f'now published with several types {types}: '
-                                    f'only {self._bag.topic_type(name)} is recorded')
+            self.diagnostics.reject(
+                name,
+                f'now published with several types {types}: '
+                f'only {self._bag.topic_type(name)} is recorded',
+            )
 
     def _subscribe(self, topic):
         offered = [qos_to_dict(p.qos_profile) for p in topic.publishers]
@@ -235,11 +283,16 @@ class RecorderNode(Node):
         # rclpy passes the message info to a callback that takes two arguments (it inspects
         # the signature), though it annotates the callback Callable[[message], None].
         self._recorded[topic.name] = self.create_subscription(
-            topic.message_type, topic.name, on_message, qos,  # type: ignore[arg-type]
-            raw=True)
+            topic.message_type,
+            topic.name,
+            on_message,  # type: ignore[arg-type]
+            qos,
+            raw=True,
+        )
         self.get_logger().info(
             f'recording {topic.name} [{topic.type_name}] ({qos.reliability.name.lower()}, '
-            f'{qos.durability.name.lower()})')
+            f'{qos.durability.name.lower()})'
+        )
 
     def _on_message(self, topic, stamped, data, info):
         self._last_message_time = time.monotonic()
@@ -247,8 +300,11 @@ class RecorderNode(Node):
             log_time_ns = self.get_clock().now().nanoseconds
         else:
             log_time_ns = info['received_timestamp']
-        publish_time_ns = (header_stamp_ns(data) if stamped else None) \
-            or info.get('source_timestamp') or log_time_ns
+        publish_time_ns = (
+            (header_stamp_ns(data) if stamped else None)
+            or info.get('source_timestamp')
+            or log_time_ns
+        )
         self._queue.put((topic, data, log_time_ns, publish_time_ns))
 
     # -- writing (writer thread) ---------------------------------------------------------
@@ -265,8 +321,10 @@ class RecorderNode(Node):
                     for topic, data, log_time_ns, publish_time_ns in items:
                         self._bag.write(topic, data, log_time_ns, publish_time_ns)
                         self._bytes_written += len(data)
-                    if self._flush_period > 0 and \
-                            time.monotonic() - last_flush >= self._flush_period:
+                    if (
+                        self._flush_period > 0
+                        and time.monotonic() - last_flush >= self._flush_period
+                    ):
                         self._bag.flush()
                         last_flush = time.monotonic()
             except (OSError, BagError) as error:
@@ -289,12 +347,17 @@ class RecorderNode(Node):
         else:
             level = 'warn' if sum(dropped.values()) or self._discovery.skipped else 'ok'
             message = 'closed' if self._closed else 'recording'
-        values = {'bag': self.bag_path, 'topics recorded': len(topics),
-                  'messages': sum(t.message_count for t in topics),
-                  'dropped': sum(dropped.values()), 'bytes written': self._bytes_written}
+        values = {
+            'bag': self.bag_path,
+            'topics recorded': len(topics),
+            'messages': sum(t.message_count for t in topics),
+            'dropped': sum(dropped.values()),
+            'bytes written': self._bytes_written,
+        }
         for topic in topics:
             values[topic.name] = f'{topic.message_count}' + (
-                f' ({dropped[topic.name]} dropped)' if dropped.get(topic.name) else '')
+                f' ({dropped[topic.name]} dropped)' if dropped.get(topic.name) else ''
+            )
         if self._discovery.skipped:
             values['not recorded'] = ', '.join(sorted(self._discovery.skipped))
         self.diagnostics.publish('bag', level, message, values)
@@ -343,13 +406,14 @@ class RecorderNode(Node):
             return
         topics = self._bag.topics
         self.get_logger().info(
-            f'closed {self.bag_path}: {self._bag.message_count} messages on '
-            f'{len(topics)} topics')
+            f'closed {self.bag_path}: {self._bag.message_count} messages on {len(topics)} topics'
+        )
         for topic in topics:
             dropped = self._queue.dropped.get(topic.name, 0)
             self.get_logger().info(
                 f'  {topic.name}: {topic.message_count}'
-                + (f' ({dropped} dropped: writer too slow)' if dropped else ''))
+                + (f' ({dropped} dropped: writer too slow)' if dropped else '')
+            )
         never_seen = sorted(self._discovery.wanted_topics - {t.name for t in topics})
         if never_seen:
             self.get_logger().warning(f'never published, not recorded: {", ".join(never_seen)}')

@@ -12,6 +12,7 @@ What the crash cut off (the chunk being filled) is gone; everything flushed is k
 
 Usage: ``reindex <bag directory>`` (exit status 0 = reindexed, 1 = not a bag or failed).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -39,14 +40,17 @@ def reindex(bag_path: str | os.PathLike[str]) -> BagReader:
     try:
         writer = BagWriter(staging, compression=_chunk_compression(source.files))
         for topic in source.topics:
-            writer.add_topic(topic.name, topic.type, topic.offered_qos_profiles,
-                             topic.type_description_hash or None)
+            writer.add_topic(
+                topic.name,
+                topic.type,
+                topic.offered_qos_profiles,
+                topic.type_description_hash or None,
+            )
         for index, path in enumerate(source.files):
             if index:
                 writer.split()
             for message in source.file_messages(path):
-                writer.write(message.topic, message.data, message.log_time,
-                             message.publish_time)
+                writer.write(message.topic, message.data, message.log_time, message.publish_time)
         writer.close()
         # Data files first, metadata.yaml last: until it exists the bag still reads as a
         # recovered one.
@@ -77,8 +81,10 @@ def _chunk_compression(paths: Iterable[Path]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog='reindex', description='Rebuild the summary and metadata.yaml of a bag whose '
-        'recording was killed (as ros2 bag reindex).')
+        prog='reindex',
+        description='Rebuild the summary and metadata.yaml of a bag whose '
+        'recording was killed (as ros2 bag reindex).',
+    )
     parser.add_argument('bag', help='the bag directory')
     args = parser.parse_args(argv)
     try:
@@ -87,8 +93,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'reindex: {error}', file=sys.stderr)
         return 1
     counts = ', '.join(f'{t.name}={t.message_count}' for t in bag.topics)
-    print(f'reindexed {args.bag}: {bag.message_count} messages in {len(bag.files)} '
-          f'file(s) ({counts})')
+    print(
+        f'reindexed {args.bag}: {bag.message_count} messages in {len(bag.files)} '
+        f'file(s) ({counts})'
+    )
     return 0
 
 

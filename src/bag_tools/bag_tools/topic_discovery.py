@@ -5,6 +5,7 @@ A topic is taken once it has a publisher (one only subscribed has nothing to giv
 wanted (``topics`` / ``exclude`` / ``include_hidden_topics``: every topic but hidden ones by
 default, exactly as ``ros2 bag record -a``), has one type, and that type's Python class and
 definition are installed. One that fails a check is skipped for good, with a warning."""
+
 from __future__ import annotations
 
 import importlib
@@ -39,20 +40,40 @@ def _absolute_names(names: Iterable[str]) -> str | None:
     return f'must hold absolute topic names, got {relative}' if relative else None
 
 
-def topic_selection_params(verb: str, done: str, discovery_period: float,
-                           exclude_example: str = '') -> list[Param]:
+def topic_selection_params(
+    verb: str, done: str, discovery_period: float, exclude_example: str = ''
+) -> list[Param]:
     """The parameters of a TopicDiscovery: ``topics``, ``exclude``,
     ``include_hidden_topics``, ``discovery_period`` [s]; ``verb`` / ``done`` say what is
     done with a topic ('record' / 'recorded')."""
     return [
-        Param('topics', [], f'Topics to {verb} (exact names); empty = every published topic.',
-              check=_absolute_names, read_only=True),
-        Param('exclude', [], f'Topics never {done} (exact names){exclude_example}.',
-              check=_absolute_names, read_only=True),
-        Param('include_hidden_topics', False, f'Also {verb} hidden topics (a name token '
-              'starting with _).', read_only=True),
-        Param('discovery_period', discovery_period, '[s] How often the graph is polled for '
-              'new topics.', range=(0.01, 60.0), read_only=True),
+        Param(
+            'topics',
+            [],
+            f'Topics to {verb} (exact names); empty = every published topic.',
+            check=_absolute_names,
+            read_only=True,
+        ),
+        Param(
+            'exclude',
+            [],
+            f'Topics never {done} (exact names){exclude_example}.',
+            check=_absolute_names,
+            read_only=True,
+        ),
+        Param(
+            'include_hidden_topics',
+            False,
+            f'Also {verb} hidden topics (a name token starting with _).',
+            read_only=True,
+        ),
+        Param(
+            'discovery_period',
+            discovery_period,
+            '[s] How often the graph is polled for new topics.',
+            range=(0.01, 60.0),
+            read_only=True,
+        ),
     ]
 
 
@@ -63,14 +84,19 @@ def subscription_qos(publisher_qos_profiles: Iterable[QoSProfile]) -> QoSProfile
     keep last SUBSCRIPTION_DEPTH."""
     profiles = list(publisher_qos_profiles)
     reliable = bool(profiles) and all(
-        p.reliability == ReliabilityPolicy.RELIABLE for p in profiles)
+        p.reliability == ReliabilityPolicy.RELIABLE for p in profiles
+    )
     transient_local = bool(profiles) and all(
-        p.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in profiles)
+        p.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in profiles
+    )
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=SUBSCRIPTION_DEPTH,
+        history=HistoryPolicy.KEEP_LAST,
+        depth=SUBSCRIPTION_DEPTH,
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=(DurabilityPolicy.TRANSIENT_LOCAL if transient_local
-                    else DurabilityPolicy.VOLATILE))
+        durability=(
+            DurabilityPolicy.TRANSIENT_LOCAL if transient_local else DurabilityPolicy.VOLATILE
+        ),
+    )
 
 
 class DiscoveredTopic(NamedTuple):
@@ -105,9 +131,11 @@ class TopicDiscovery:
         self.skipped.add(name)
         self._node.get_logger().warning(f'not {self._doing} {name}: {reason}')
 
-    def poll(self, taken: Container[str],
-             on_types_of_taken: Callable[[str, list[str]], None] | None = None
-             ) -> list[DiscoveredTopic]:
+    def poll(
+        self,
+        taken: Container[str],
+        on_types_of_taken: Callable[[str, list[str]], None] | None = None,
+    ) -> list[DiscoveredTopic]:
         """The DiscoveredTopics new since the last poll: not in ``taken`` (the caller's)
         nor skipped. ``on_types_of_taken(name, types)`` sees each taken topic's types."""
         found = []

@@ -1,5 +1,6 @@
 """Stereo + aux camera calibration from a chart (LX-PM genetic algorithm, neural refinement,
 Levenberg-Marquardt)."""
+
 import os
 
 # Measured here (2 shared cores): OpenBLAS's threads make the small SVDs / QRs of the

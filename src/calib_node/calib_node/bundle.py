@@ -13,6 +13,7 @@ chart pose: T_ref_chart. Residuals: every detected corner's reprojection error [
 unweighted (the corners' errors are alike, ~0.05-0.1 px). The Jacobian is analytic:
 ``cv2.projectPoints``' derivatives chained through ``cv2.composeRT``'s.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
@@ -33,21 +34,26 @@ Intrinsics = dict[str, tuple[np.ndarray, list[float]]]  # {name: (K (3, 3), D (5
 BoolArray = npt.NDArray[np.bool_]
 
 
-def bundle_adjust_selected(chart: npt.ArrayLike, views: Views,
-                           image_sizes: Mapping[str, tuple[int, int]],
-                           T_ref_chart_known: Sequence[FloatArray | None] | None = None,
-                           names: Sequence[str] | None = None, fit_tangential: bool = True,
-                           fit_k3: bool = False, select_model: bool = True) -> BundleResult:
+def bundle_adjust_selected(
+    chart: npt.ArrayLike,
+    views: Views,
+    image_sizes: Mapping[str, tuple[int, int]],
+    T_ref_chart_known: Sequence[FloatArray | None] | None = None,
+    names: Sequence[str] | None = None,
+    fit_tangential: bool = True,
+    fit_k3: bool = False,
+    select_model: bool = True,
+) -> BundleResult:
     """:func:`bundle_adjust`, and with ``select_model`` also without p1, p2: the simpler
     rig is kept unless p1, p2 pay (``calibrate.tangential_pays``, BIC over the rig)."""
-    full = bundle_adjust(chart, views, image_sizes, T_ref_chart_known, names,
-                         fit_tangential, fit_k3)
+    full = bundle_adjust(
+        chart, views, image_sizes, T_ref_chart_known, names, fit_tangential, fit_k3
+    )
     if not (fit_tangential and select_model):
         return full
     plain = bundle_adjust(chart, views, image_sizes, T_ref_chart_known, names, False, fit_k3)
     n = 2 * sum(f.points for f in full.fits.values())
-    if tangential_pays(full.rms_px ** 2 * n / 2, plain.rms_px ** 2 * n / 2, n,
-                       len(full.fits)):
+    if tangential_pays(full.rms_px**2 * n / 2, plain.rms_px**2 * n / 2, n, len(full.fits)):
         return full
     return plain
 
@@ -75,9 +81,13 @@ def _mean_transform(transforms: Sequence[FloatArray]) -> FloatArray:
     return make_transform(R, np.mean([T[:3, 3] for T in transforms], axis=0))
 
 
-def zhang_start(chart: npt.ArrayLike, views: Views, image_sizes: Mapping[str, tuple[int, int]],
-                fit_tangential: bool = True, fit_k3: bool = False
-                ) -> tuple[Intrinsics, list[dict[str, FloatArray]]]:
+def zhang_start(
+    chart: npt.ArrayLike,
+    views: Views,
+    image_sizes: Mapping[str, tuple[int, int]],
+    fit_tangential: bool = True,
+    fit_k3: bool = False,
+) -> tuple[Intrinsics, list[dict[str, FloatArray]]]:
     """Per camera ``cv2.calibrateCamera`` (Zhang) on the views that saw the chart.
 
     Returns:
@@ -86,21 +96,28 @@ def zhang_start(chart: npt.ArrayLike, views: Views, image_sizes: Mapping[str, tu
     Raises:
         CalibrationError: a camera saw the chart in fewer than 3 views, or OpenCV failed.
     """
-    flags = (0 if fit_tangential else cv2.CALIB_ZERO_TANGENT_DIST) | \
-        (0 if fit_k3 else cv2.CALIB_FIX_K3)
+    flags = (0 if fit_tangential else cv2.CALIB_ZERO_TANGENT_DIST) | (
+        0 if fit_k3 else cv2.CALIB_FIX_K3
+    )
     objects = np.asarray(chart, dtype=np.float32).reshape(-1, 1, 3)
     intrinsics: Intrinsics = {}
     poses: list[dict[str, FloatArray]] = [dict() for _ in views]
     for name, size in image_sizes.items():
         seen = [i for i, view in enumerate(views) if name in view]
         if len(seen) < 3:
-            raise CalibrationError(f'{name}: the chart was found in {len(seen)} views, '
-                                   'need at least 3 without target poses')
+            raise CalibrationError(
+                f'{name}: the chart was found in {len(seen)} views, '
+                'need at least 3 without target poses'
+            )
         try:
             _, K, D, rvecs, tvecs = cv2.calibrateCamera(
                 [objects] * len(seen),
                 [np.asarray(views[i][name], dtype=np.float32).reshape(-1, 1, 2) for i in seen],
-                tuple(int(s) for s in size), None, None, flags=flags)
+                tuple(int(s) for s in size),
+                None,
+                None,
+                flags=flags,
+            )
         except cv2.error as error:
             raise CalibrationError(f'{name}: Zhang start failed: {error}') from None
         # float64 out, and np.float64 is a float (the stub's MatLike allows integers too)
@@ -110,10 +127,16 @@ def zhang_start(chart: npt.ArrayLike, views: Views, image_sizes: Mapping[str, tu
     return intrinsics, poses
 
 
-def bundle_adjust(chart: npt.ArrayLike, views: Views, image_sizes: Mapping[str, tuple[int, int]],
-                  T_ref_chart_known: Sequence[FloatArray | None] | None = None,
-                  names: Sequence[str] | None = None, fit_tangential: bool = True,
-                  fit_k3: bool = False, max_nfev: int = 200) -> BundleResult:
+def bundle_adjust(
+    chart: npt.ArrayLike,
+    views: Views,
+    image_sizes: Mapping[str, tuple[int, int]],
+    T_ref_chart_known: Sequence[FloatArray | None] | None = None,
+    names: Sequence[str] | None = None,
+    fit_tangential: bool = True,
+    fit_k3: bool = False,
+    max_nfev: int = 200,
+) -> BundleResult:
     """Calibrate the rig from chessboard views jointly.
 
     Args:
@@ -135,28 +158,38 @@ def bundle_adjust(chart: npt.ArrayLike, views: Views, image_sizes: Mapping[str, 
     chart = np.ascontiguousarray(chart, dtype=float)
     names = list(names or image_sizes)
     known = list(T_ref_chart_known or [None] * len(views))
-    intrinsics, T_camera_chart = zhang_start(chart, views, {n: image_sizes[n] for n in names},
-                                             fit_tangential, fit_k3)
+    intrinsics, T_camera_chart = zhang_start(
+        chart, views, {n: image_sizes[n] for n in names}, fit_tangential, fit_k3
+    )
     has_known = any(T is not None for T in known)
     reference = 'base_link' if has_known else names[0]
     # Start of T_camera_ref and T_ref_chart from the Zhang poses.
     if has_known:
-        T_camera_ref = _start_camera_poses_from_known_charts(names, views, known,
-                                                              T_camera_chart)
+        T_camera_ref = _start_camera_poses_from_known_charts(names, views, known, T_camera_chart)
     else:
         T_camera_ref = _start_camera_poses_from_reference(names, views, T_camera_chart)
     T_ref_chart = _start_chart_poses(views, known, T_camera_ref, T_camera_chart)
     layout = _Layout(len(names), len(views))
     x0 = _parameter_vector(names, intrinsics, T_camera_ref, T_ref_chart)
     free = _free_parameters(len(x0), layout, known, has_known, fit_tangential, fit_k3)
-    pairs = [(c, i) for i in range(layout.views) for c, name in enumerate(names)
-             if name in views[i]]
-    observed = np.concatenate([np.asarray(views[i][names[c]], dtype=float).ravel()
-                               for c, i in pairs])
+    pairs = [
+        (c, i) for i in range(layout.views) for c, name in enumerate(names) if name in views[i]
+    ]
+    observed = np.concatenate(
+        [np.asarray(views[i][names[c]], dtype=float).ravel() for c, i in pairs]
+    )
     evaluate = _reprojection(chart, x0, free, pairs, observed, layout)
-    result = least_squares(lambda xf: evaluate(xf)[0], x0[free], jac=lambda xf: evaluate(xf)[1],
-                           method='lm', x_scale='jac', xtol=1e-12, ftol=1e-12, gtol=1e-12,
-                           max_nfev=max_nfev)
+    result = least_squares(
+        lambda xf: evaluate(xf)[0],
+        x0[free],
+        jac=lambda xf: evaluate(xf)[1],
+        method='lm',
+        x_scale='jac',
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        max_nfev=max_nfev,
+    )
     x = x0.copy()
     x[free] = result.x
     if not np.all(np.isfinite(x)):
@@ -164,7 +197,7 @@ def bundle_adjust(chart: npt.ArrayLike, views: Views, image_sizes: Mapping[str, 
     residual_pairs = result.fun.reshape(len(pairs), -1, 2)
     fits = _camera_fits(x, names, pairs, residual_pairs, layout)
     charts = [_T(x[layout.chart(i)][:3], x[layout.chart(i)][3:]) for i in range(layout.views)]
-    rms = float(np.sqrt(np.mean(np.sum(residual_pairs ** 2, axis=2))))
+    rms = float(np.sqrt(np.mean(np.sum(residual_pairs**2, axis=2))))
     return BundleResult(fits, charts, reference, rms, int(result.nfev))
 
 
@@ -199,43 +232,52 @@ class _Layout(NamedTuple):
         return slice(self.chart_offset + 6 * i, self.chart_offset + 6 * i + 6)
 
 
-def _start_camera_poses_from_known_charts(names: Sequence[str], views: Views,
-                                          known: Sequence[FloatArray | None],
-                                          T_camera_chart: Sequence[Mapping[str, FloatArray]]
-                                          ) -> dict[str, FloatArray]:
+def _start_camera_poses_from_known_charts(
+    names: Sequence[str],
+    views: Views,
+    known: Sequence[FloatArray | None],
+    T_camera_chart: Sequence[Mapping[str, FloatArray]],
+) -> dict[str, FloatArray]:
     """{name: T_camera_ref} with ref = base_link: the mean over the views with a known
     chart pose that the camera saw."""
     T_camera_ref = {}
     for name in names:
-        samples = [T_camera_chart[i][name] @ invert_transform(T_ref_chart)
-                   for i in range(len(views))
-                   if (T_ref_chart := known[i]) is not None and name in views[i]]
+        samples = [
+            T_camera_chart[i][name] @ invert_transform(T_ref_chart)
+            for i in range(len(views))
+            if (T_ref_chart := known[i]) is not None and name in views[i]
+        ]
         if not samples:
-            raise CalibrationError(f'{name} never saw the chart in a view with a target '
-                                   'pose')
+            raise CalibrationError(f'{name} never saw the chart in a view with a target pose')
         T_camera_ref[name] = _mean_transform(samples)
     return T_camera_ref
 
 
-def _start_camera_poses_from_reference(names: Sequence[str], views: Views,
-                                       T_camera_chart: Sequence[Mapping[str, FloatArray]]
-                                       ) -> dict[str, FloatArray]:
+def _start_camera_poses_from_reference(
+    names: Sequence[str], views: Views, T_camera_chart: Sequence[Mapping[str, FloatArray]]
+) -> dict[str, FloatArray]:
     """{name: T_camera_ref} with ref = the first camera (identity): the mean over the views
     that the camera saw together with the reference."""
     reference = names[0]
     T_camera_ref = {reference: np.eye(4)}
     for name in names[1:]:
-        samples = [T_camera_chart[i][name] @ invert_transform(T_camera_chart[i][reference])
-                   for i in range(len(views)) if name in views[i] and reference in views[i]]
+        samples = [
+            T_camera_chart[i][name] @ invert_transform(T_camera_chart[i][reference])
+            for i in range(len(views))
+            if name in views[i] and reference in views[i]
+        ]
         if not samples:
             raise CalibrationError(f'{name} never saw the chart together with {reference}')
         T_camera_ref[name] = _mean_transform(samples)
     return T_camera_ref
 
 
-def _start_chart_poses(views: Views, known: Sequence[FloatArray | None],
-                       T_camera_ref: Mapping[str, FloatArray],
-                       T_camera_chart: Sequence[Mapping[str, FloatArray]]) -> list[FloatArray]:
+def _start_chart_poses(
+    views: Views,
+    known: Sequence[FloatArray | None],
+    T_camera_ref: Mapping[str, FloatArray],
+    T_camera_chart: Sequence[Mapping[str, FloatArray]],
+) -> list[FloatArray]:
     """[T_ref_chart] per view: the known pose, else the mean over the cameras that saw it."""
     T_ref_chart = []
     for i, view in enumerate(views):
@@ -247,9 +289,12 @@ def _start_chart_poses(views: Views, known: Sequence[FloatArray | None],
     return T_ref_chart
 
 
-def _parameter_vector(names: Sequence[str], intrinsics: Intrinsics,
-                      T_camera_ref: Mapping[str, FloatArray],
-                      T_ref_chart: Sequence[FloatArray]) -> FloatArray:
+def _parameter_vector(
+    names: Sequence[str],
+    intrinsics: Intrinsics,
+    T_camera_ref: Mapping[str, FloatArray],
+    T_ref_chart: Sequence[FloatArray],
+) -> FloatArray:
     """The start x0 in the order of :class:`_Layout`."""
     x0: list[float] = []
     for name in names:
@@ -262,13 +307,19 @@ def _parameter_vector(names: Sequence[str], intrinsics: Intrinsics,
     return np.array(x0, dtype=float)
 
 
-def _free_parameters(size: int, layout: _Layout, known: Sequence[FloatArray | None],
-                     has_known: bool, fit_tangential: bool, fit_k3: bool) -> BoolArray:
+def _free_parameters(
+    size: int,
+    layout: _Layout,
+    known: Sequence[FloatArray | None],
+    has_known: bool,
+    fit_tangential: bool,
+    fit_k3: bool,
+) -> BoolArray:
     """(size,) bool: the parameters the adjustment moves."""
     free = np.ones(size, dtype=bool)
     for c in range(layout.cameras):
         a = layout.intrinsics(c)
-        free[a + 6:a + 8] = fit_tangential  # p1, p2
+        free[a + 6 : a + 8] = fit_tangential  # p1, p2
         free[a + 8] = fit_k3
     if not has_known:
         free[layout.camera(0)] = False  # the reference camera is the frame
@@ -278,9 +329,14 @@ def _free_parameters(size: int, layout: _Layout, known: Sequence[FloatArray | No
     return free
 
 
-def _reprojection(chart: FloatArray, x0: FloatArray, free: BoolArray,
-                  pairs: Sequence[tuple[int, int]], observed: FloatArray, layout: _Layout
-                  ) -> Callable[[FloatArray], tuple[FloatArray, FloatArray]]:
+def _reprojection(
+    chart: FloatArray,
+    x0: FloatArray,
+    free: BoolArray,
+    pairs: Sequence[tuple[int, int]],
+    observed: FloatArray,
+    layout: _Layout,
+) -> Callable[[FloatArray], tuple[FloatArray, FloatArray]]:
     """evaluate(xf) -> (residuals [px], Jacobian w.r.t. the free parameters) over every
     (camera, view) pair's corners; the last evaluation is cached, as least_squares asks
     for the residuals and the Jacobian at the same point."""
@@ -297,8 +353,7 @@ def _reprojection(chart: FloatArray, x0: FloatArray, free: BoolArray,
         J = np.zeros((len(pairs) * n2, len(x)))
         for row, (c, i) in enumerate(pairs):
             rows = slice(row * n2, (row + 1) * n2)
-            residuals[rows] = _pair_reprojection(chart, x, c, i, layout, observed[rows],
-                                                 J[rows])
+            residuals[rows] = _pair_reprojection(chart, x, c, i, layout, observed[rows], J[rows])
         cache.clear()
         cache[key] = (residuals, J[:, free])
         return cache[key]
@@ -306,30 +361,43 @@ def _reprojection(chart: FloatArray, x0: FloatArray, free: BoolArray,
     return evaluate
 
 
-def _pair_reprojection(chart: FloatArray, x: FloatArray, c: int, i: int, layout: _Layout,
-                       observed: FloatArray, J: FloatArray) -> np.ndarray:
+def _pair_reprojection(
+    chart: FloatArray,
+    x: FloatArray,
+    c: int,
+    i: int,
+    layout: _Layout,
+    observed: FloatArray,
+    J: FloatArray,
+) -> np.ndarray:
     """Residuals (2N,) [px] of camera ``c`` in view ``i``; fills their Jacobian rows ``J``
     (2N, len(x), zero on entry) in place: ``cv2.projectPoints``' derivatives chained
     through ``cv2.composeRT``'s."""
     a = layout.intrinsics(c)
-    fx, fy, cx, cy = x[a:a + 4]
+    fx, fy, cx, cy = x[a : a + 4]
     K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
     cam = x[layout.camera(c)]
     board = x[layout.chart(i)]
-    r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = \
-        cv2.composeRT(board[:3], board[3:], cam[:3], cam[3:])
-    uv, Jp = cv2.projectPoints(chart, r3, t3, K, x[a + 4:a + 9])
+    r3, t3, dr3dr1, dr3dt1, dr3dr2, dr3dt2, dt3dr1, dt3dt1, dt3dr2, dt3dt2 = cv2.composeRT(
+        board[:3], board[3:], cam[:3], cam[3:]
+    )
+    uv, Jp = cv2.projectPoints(chart, r3, t3, K, x[a + 4 : a + 9])
     residuals = uv.ravel() - observed
     J_rt = Jp[:, :6]
-    J[:, a:a + 4] = Jp[:, 6:10]
-    J[:, a + 4:a + 9] = Jp[:, 10:15]
+    J[:, a : a + 4] = Jp[:, 6:10]
+    J[:, a + 4 : a + 9] = Jp[:, 10:15]
     J[:, layout.chart(i)] = J_rt @ np.block([[dr3dr1, dr3dt1], [dt3dr1, dt3dt1]])
     J[:, layout.camera(c)] = J_rt @ np.block([[dr3dr2, dr3dt2], [dt3dr2, dt3dt2]])
     return residuals
 
 
-def _camera_fits(x: FloatArray, names: Sequence[str], pairs: Sequence[tuple[int, int]],
-                 residual_pairs: FloatArray, layout: _Layout) -> dict[str, CameraFit]:
+def _camera_fits(
+    x: FloatArray,
+    names: Sequence[str],
+    pairs: Sequence[tuple[int, int]],
+    residual_pairs: FloatArray,
+    layout: _Layout,
+) -> dict[str, CameraFit]:
     """{name: CameraFit} from the adjusted x; ``residual_pairs`` (pairs, N, 2) [px].
 
     Raises:
@@ -344,7 +412,12 @@ def _camera_fits(x: FloatArray, names: Sequence[str], pairs: Sequence[tuple[int,
         pose = x[layout.camera(c)]
         T_camera = _T(pose[:3], pose[3:])
         mine = np.concatenate([residual_pairs[k] for k, (cc, _) in enumerate(pairs) if cc == c])
-        fits[name] = CameraFit(K, x[a + 4:a + 9].copy(), invert_transform(T_camera),
-                               float(np.sqrt(np.mean(np.sum(mine ** 2, axis=1)))), len(mine),
-                               {})
+        fits[name] = CameraFit(
+            K,
+            x[a + 4 : a + 9].copy(),
+            invert_transform(T_camera),
+            float(np.sqrt(np.mean(np.sum(mine**2, axis=1)))),
+            len(mine),
+            {},
+        )
     return fits

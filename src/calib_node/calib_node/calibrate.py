@@ -16,6 +16,7 @@ Methods (``METHODS``):
 - ``opencv``: ``cv2.calibrateCamera`` on the same points as one non-planar view, from the
   DLT intrinsic guess (the reference).
 """
+
 from __future__ import annotations
 
 import time
@@ -70,8 +71,9 @@ class GAOptions(NamedTuple):
     network_accept: str = 'if_better'  # keep the network's camera only if its RMS is lower
 
 
-def degeneracy(points_base: npt.ArrayLike, min_points: int = 12,
-               min_thickness: float = 0.02) -> str:
+def degeneracy(
+    points_base: npt.ArrayLike, min_points: int = 12, min_thickness: float = 0.02
+) -> str:
     """Reason why (N, 3) points cannot calibrate a camera, or '' if they can.
 
     The non-coplanar calibration needs the points to span 3D: the smallest principal
@@ -83,9 +85,11 @@ def degeneracy(points_base: npt.ArrayLike, min_points: int = 12,
         return f'{len(points_base)} points, need at least {min_points}'
     spread = np.linalg.svd(points_base - points_base.mean(axis=0), compute_uv=False)
     if spread[-1] < min_thickness * spread[0]:
-        return (f'degenerate views: all points lie on one plane (thickness '
-                f'{spread[-1] / spread[0]:.2g} of the extent, need {min_thickness:g}); '
-                'tilt or move the chart along its normal')
+        return (
+            f'degenerate views: all points lie on one plane (thickness '
+            f'{spread[-1] / spread[0]:.2g} of the extent, need {min_thickness:g}); '
+            'tilt or move the chart along its normal'
+        )
     return ''
 
 
@@ -98,8 +102,9 @@ def _pose(R: np.ndarray, t: npt.ArrayLike) -> FloatArray:
     return make_transform(R.T, -R.T @ np.asarray(t, dtype=float).ravel())
 
 
-def _dlt_start(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
-               image_size: tuple[int, int]) -> CameraStart:
+def _dlt_start(
+    points_base: npt.ArrayLike, pixels: npt.ArrayLike, image_size: tuple[int, int]
+) -> CameraStart:
     K, R, t = dlt_camera(points_base, pixels)
     K[0, 1] = 0.0  # no skew in plumb_bob
     if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0):
@@ -107,9 +112,14 @@ def _dlt_start(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
     return K, np.zeros(5), R, t
 
 
-def calibrate_camera_lm(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
-                        image_size: tuple[int, int], start: CameraStart | None = None,
-                        fit_tangential: bool = True, fit_k3: bool = False) -> CameraFit:
+def calibrate_camera_lm(
+    points_base: npt.ArrayLike,
+    pixels: npt.ArrayLike,
+    image_size: tuple[int, int],
+    start: CameraStart | None = None,
+    fit_tangential: bool = True,
+    fit_k3: bool = False,
+) -> CameraFit:
     """LM calibration of one camera from (N, 3) base_link points and (N, 2) pixels.
 
     Args:
@@ -123,9 +133,14 @@ def calibrate_camera_lm(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
     points_base = np.ascontiguousarray(points_base, dtype=float)
     pixels = np.asarray(pixels, dtype=float)
     K, D, R, t = start if start is not None else _dlt_start(points_base, pixels, image_size)
-    x0 = np.concatenate([cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel(),
-                         np.ravel(t), [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
-                         (list(np.ravel(D)) + [0.0] * 5)[:5]])
+    x0 = np.concatenate(
+        [
+            cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel(),
+            np.ravel(t),
+            [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+            (list(np.ravel(D)) + [0.0] * 5)[:5],
+        ]
+    )
     free = np.ones(15, dtype=bool)
     free[12:14] = fit_tangential
     free[14] = fit_k3
@@ -147,9 +162,17 @@ def calibrate_camera_lm(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
             cache[key] = ((uv.reshape(-1, 2) - pixels).ravel(), J[:, free])
         return cache[key]
 
-    result = least_squares(lambda xf: evaluate(xf)[0], x0[free],
-                           jac=lambda xf: evaluate(xf)[1], method='lm', x_scale='jac',
-                           xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=500)
+    result = least_squares(
+        lambda xf: evaluate(xf)[0],
+        x0[free],
+        jac=lambda xf: evaluate(xf)[1],
+        method='lm',
+        x_scale='jac',
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        max_nfev=500,
+    )
     x = full(result.x)
     if not np.all(np.isfinite(x)) or x[6] <= 0 or x[7] <= 0:
         raise CalibrationError('LM diverged')
@@ -157,7 +180,7 @@ def calibrate_camera_lm(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
     R = cv2.Rodrigues(x[0:3])[0]
     dof = max(result.fun.size - result.x.size, 1)
     try:
-        covariance = np.sum(result.fun ** 2) / dof * np.linalg.inv(result.jac.T @ result.jac)
+        covariance = np.sum(result.fun**2) / dof * np.linalg.inv(result.jac.T @ result.jac)
         std_all = np.full(15, np.nan)
         std_all[free] = np.sqrt(np.abs(np.diag(covariance)))
     except np.linalg.LinAlgError:
@@ -166,9 +189,13 @@ def calibrate_camera_lm(points_base: npt.ArrayLike, pixels: npt.ArrayLike,
     return CameraFit(K, x[10:15].copy(), _pose(R, x[3:6]), _rms(result.fun), len(pixels), std)
 
 
-def calibrate_camera_opencv(points_base: npt.ArrayLike, pixels: FloatArray,
-                            image_size: tuple[int, int], fit_tangential: bool = True,
-                            fit_k3: bool = False) -> CameraFit:
+def calibrate_camera_opencv(
+    points_base: npt.ArrayLike,
+    pixels: FloatArray,
+    image_size: tuple[int, int],
+    fit_tangential: bool = True,
+    fit_k3: bool = False,
+) -> CameraFit:
     """``cv2.calibrateCamera`` on the points as one non-planar view (DLT intrinsic guess)."""
     points_base = np.asarray(points_base, dtype=float)
     K0 = _dlt_start(points_base, pixels, image_size)[0]
@@ -180,15 +207,21 @@ def calibrate_camera_opencv(points_base: npt.ArrayLike, pixels: FloatArray,
     rms, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
         [points_base.astype(np.float32).reshape(-1, 1, 3)],
         [np.asarray(pixels, dtype=np.float32).reshape(-1, 1, 2)],
-        tuple(int(s) for s in image_size), K0, np.zeros(5), flags=flags, criteria=criteria)
+        tuple(int(s) for s in image_size),
+        K0,
+        np.zeros(5),
+        flags=flags,
+        criteria=criteria,
+    )
     R = cv2.Rodrigues(rvecs[0])[0]
     std = dict(zip(('fx', 'fy', 'cx', 'cy'), std_intrinsics.ravel()[:4].tolist()))
     D = np.array((list(dist.ravel()) + [0.0] * 5)[:5])
     return CameraFit(K, D, _pose(R, tvecs[0]), float(rms), len(pixels), std)
 
 
-def division_to_plumb_bob(kappa: float, max_radius: float, fit_k3: bool = False,
-                          samples: int = 200) -> tuple[FloatArray, float]:
+def division_to_plumb_bob(
+    kappa: float, max_radius: float, fit_k3: bool = False, samples: int = 200
+) -> tuple[FloatArray, float]:
     """plumb_bob radial coefficients closest to the seed's division model (A4.2).
 
     The division model x_d = x_u / (1 + kappa |x_d|^2) (normalised coordinates) maps the
@@ -202,6 +235,7 @@ def division_to_plumb_bob(kappa: float, max_radius: float, fit_k3: bool = False,
     """
     r_u = np.linspace(max_radius / samples, max_radius, samples)
     from vgm_common.camera_model import division_distorted_radius
+
     r_d = division_distorted_radius(r_u, kappa)
     powers = 3 if fit_k3 else 2
     A = np.column_stack([r_u ** (2 * (j + 1)) for j in range(powers)])
@@ -214,21 +248,36 @@ def division_to_plumb_bob(kappa: float, max_radius: float, fit_k3: bool = False,
     return D, float(residual)
 
 
-def _ga_bounds(points_base: FloatArray, image_size: tuple[int, int],
-               max_distance: float) -> FloatArray:
+def _ga_bounds(
+    points_base: FloatArray, image_size: tuple[int, int], max_distance: float
+) -> FloatArray:
     """Seed-model bounds [C] for a camera of ``image_size`` seeing points centred at 0."""
     width, height = image_size
-    return np.array([[0, width], [0, height], [0.25 * width, 4 * width],
-                     [0.25 * width, 4 * width], [1, 1], [0, 1],
-                     [-np.pi, np.pi], [-np.pi, np.pi], [-np.pi, np.pi],
-                     [-max_distance, max_distance], [-max_distance, max_distance],
-                     [0, max_distance]], dtype=float)
+    return np.array(
+        [
+            [0, width],
+            [0, height],
+            [0.25 * width, 4 * width],
+            [0.25 * width, 4 * width],
+            [1, 1],
+            [0, 1],
+            [-np.pi, np.pi],
+            [-np.pi, np.pi],
+            [-np.pi, np.pi],
+            [-max_distance, max_distance],
+            [-max_distance, max_distance],
+            [0, max_distance],
+        ],
+        dtype=float,
+    )
 
 
-def calibrate_rig_ga(observations: Observations, rng: np.random.Generator,
-                     options: GAOptions | None = None, fit_k3: bool = False
-                     ) -> tuple[dict[str, CameraFit], dict[str, FloatArray],
-                                dict[str, FloatArray]]:
+def calibrate_rig_ga(
+    observations: Observations,
+    rng: np.random.Generator,
+    options: GAOptions | None = None,
+    fit_k3: bool = False,
+) -> tuple[dict[str, CameraFit], dict[str, FloatArray], dict[str, FloatArray]]:
     """The thesis's method on the rig: {name: (points (N, 3), pixels (N, 2), (w, h))} ->
     ({name: CameraFit}, {name: seed params after the GA}, {name: after the network}).
 
@@ -247,39 +296,61 @@ def calibrate_rig_ga(observations: Observations, rng: np.random.Generator,
     after_network: dict[str, FloatArray] = {}
     for group in groups:
         data = [(observations[n][0] - centre, observations[n][1]) for n in group]
-        bounds = np.concatenate([_ga_bounds(p, observations[n][2], options.max_distance)
-                                 for n, (p, _) in zip(group, data)])
-        result = lxpm_ga(rig_objective(data), bounds[:, 0], bounds[:, 1], rng,
-                         population=options.population, generations=options.generations,
-                         crossover_probability=options.crossover,
-                         mutation_probability=options.mutation, pm_index=options.pm_index,
-                         lx_variant=options.lx_variant, lx_draw=options.lx_draw,
-                         tournament=options.tournament, elitism=options.elitism)
+        bounds = np.concatenate(
+            [
+                _ga_bounds(p, observations[n][2], options.max_distance)
+                for n, (p, _) in zip(group, data)
+            ]
+        )
+        result = lxpm_ga(
+            rig_objective(data),
+            bounds[:, 0],
+            bounds[:, 1],
+            rng,
+            population=options.population,
+            generations=options.generations,
+            crossover_probability=options.crossover,
+            mutation_probability=options.mutation,
+            pm_index=options.pm_index,
+            lx_variant=options.lx_variant,
+            lx_draw=options.lx_draw,
+            tournament=options.tournament,
+            elitism=options.elitism,
+        )
         for c, (name, (points, pixels)) in enumerate(zip(group, data)):
-            params = result.best[12 * c:12 * c + 12]
+            params = result.best[12 * c : 12 * c + 12]
             after_ga[name] = params
-            refined, _ = network_refine(params, points, pixels,
-                                        epochs=options.network_epochs,
-                                        weights=options.network_weights,
-                                        accept=options.network_accept)
+            refined, _ = network_refine(
+                params,
+                points,
+                pixels,
+                epochs=options.network_epochs,
+                weights=options.network_weights,
+                accept=options.network_accept,
+            )
             after_network[name] = refined
             ident = identifiable(refined)
             K = np.array([[ident.fx, 0, ident.u0], [0, ident.fy, ident.v0], [0, 0, 1.0]])
             width, height = observations[name][2]
-            corner = np.max(np.abs(np.array([[0, 0], [width, height]]) - [ident.u0, ident.v0])
-                            / [ident.fx, ident.fy], axis=0)
-            D, _ = division_to_plumb_bob(float(ident.kappa), float(np.hypot(*corner)),
-                                         fit_k3)
+            corner = np.max(
+                np.abs(np.array([[0, 0], [width, height]]) - [ident.u0, ident.v0])
+                / [ident.fx, ident.fy],
+                axis=0,
+            )
+            D, _ = division_to_plumb_bob(float(ident.kappa), float(np.hypot(*corner)), fit_k3)
             T = ident.T - ident.R @ centre  # back to base_link: R (x - centre) + T
-            uv = cv2.projectPoints(np.ascontiguousarray(observations[name][0]),
-                                   cv2.Rodrigues(ident.R)[0], T, K, D)[0].reshape(-1, 2)
-            fits[name] = CameraFit(K, D, _pose(ident.R, T), _rms(uv - observations[name][1]),
-                                   len(pixels), {})
+            uv = cv2.projectPoints(
+                np.ascontiguousarray(observations[name][0]), cv2.Rodrigues(ident.R)[0], T, K, D
+            )[0].reshape(-1, 2)
+            fits[name] = CameraFit(
+                K, D, _pose(ident.R, T), _rms(uv - observations[name][1]), len(pixels), {}
+            )
     return fits, after_ga, after_network
 
 
-def tangential_pays(rss_with: float, rss_without: float, residuals: int,
-                    cameras: int = 1) -> bool | np.bool_:
+def tangential_pays(
+    rss_with: float, rss_without: float, residuals: int, cameras: int = 1
+) -> bool | np.bool_:
     """Whether fitting p1, p2 lowers the residual enough to be kept (BIC, Schwarz).
 
     Fitting p1, p2 to a lens without tangential distortion leaves the RMS where it was but
@@ -302,10 +373,16 @@ class RigResult(NamedTuple):
     seconds: float
 
 
-def calibrate_rig(observations: Observations, method: str = 'lm', seed: int = 0,
-                  lm_start: str = 'dlt', ga: GAOptions | None = None,
-                  fit_tangential: bool = True, fit_k3: bool = False,
-                  select_model: bool = True) -> RigResult:
+def calibrate_rig(
+    observations: Observations,
+    method: str = 'lm',
+    seed: int = 0,
+    lm_start: str = 'dlt',
+    ga: GAOptions | None = None,
+    fit_tangential: bool = True,
+    fit_k3: bool = False,
+    select_model: bool = True,
+) -> RigResult:
     """Calibrate every camera of ``observations`` = {name: (points_base (N, 3),
     pixels (N, 2), (width, height))} with ``method`` (``METHODS``). ``select_model``
     (``lm``): p1, p2 are kept per camera only where they pay (:func:`tangential_pays`).
@@ -324,8 +401,10 @@ def calibrate_rig(observations: Observations, method: str = 'lm', seed: int = 0,
     if method == 'lxpm_ga':
         fits = calibrate_rig_ga(observations, rng, ga, fit_k3)[0]
     elif method == 'opencv':
-        fits = {name: calibrate_camera_opencv(p, uv, size, fit_tangential, fit_k3)
-                for name, (p, uv, size) in observations.items()}
+        fits = {
+            name: calibrate_camera_opencv(p, uv, size, fit_tangential, fit_k3)
+            for name, (p, uv, size) in observations.items()
+        }
     else:
         starts: dict[str, CameraStart | None] = {name: None for name in observations}
         if lm_start == 'ga':
@@ -337,7 +416,8 @@ def calibrate_rig(observations: Observations, method: str = 'lm', seed: int = 0,
             fits[name] = calibrate_camera_lm(p, uv, size, starts[name], fit_tangential, fit_k3)
             if fit_tangential and select_model:  # p1, p2 only where they pay (BIC)
                 plain = calibrate_camera_lm(p, uv, size, starts[name], False, fit_k3)
-                if not tangential_pays(fits[name].rms_px ** 2 * len(uv),
-                                       plain.rms_px ** 2 * len(uv), 2 * len(uv)):
+                if not tangential_pays(
+                    fits[name].rms_px ** 2 * len(uv), plain.rms_px**2 * len(uv), 2 * len(uv)
+                ):
                     fits[name] = plain
     return RigResult(fits, method, time.perf_counter() - started)

@@ -12,6 +12,7 @@ image of chart x cross chart y must point along the optical axis, i.e. be positi
 (u right, v down) pixel coordinates), then the colours (the darker end is corner (0, 0)).
 No rclpy.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple, Optional
@@ -68,15 +69,15 @@ def cells_alternate(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: i
     centres = (grid[:-1, :-1] + grid[:-1, 1:] + grid[1:, :-1] + grid[1:, 1:]) / 4
     size = np.median(np.linalg.norm(grid[1:, 1:] - grid[:-1, :-1], axis=2)) / np.sqrt(2)
     radius = max(1, int(0.2 * size))
-    means = np.array([[_mean_grey(grey, [centre], radius) for centre in row]
-                      for row in centres])
+    means = np.array([[_mean_grey(grey, [centre], radius) for centre in row] for row in centres])
     r, c = np.indices(means.shape)
     even, odd = means[(r + c) % 2 == 0], means[(r + c) % 2 == 1]
     return bool(even.max() < odd.min() or odd.max() < even.min())
 
 
-def orient_corners(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: int,
-                   min_contrast: float = 0.2) -> tuple[Optional[FloatArray], str]:
+def orient_corners(
+    grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: int, min_contrast: float = 0.2
+) -> tuple[Optional[FloatArray], str]:
     """Reorder OpenCV's (rows * cols, 2) corners into the chart order.
 
     Returns (corners (rows * cols, 2) or None, reason). None when the two ends of the board
@@ -94,12 +95,15 @@ def orient_corners(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: in
     start = _mean_grey(grey, start_squares, radius)
     end = _mean_grey(grey, end_squares, radius)
     # The board's own contrast: a black and a white square of the first row.
-    black_white = abs(_mean_grey(grey, start_squares[:1], radius)
-                      - _mean_grey(grey, [(grid[0, 1] + grid[0, 2] + grid[1, 1] + grid[1, 2])
-                                          / 4], radius))
+    black_white = abs(
+        _mean_grey(grey, start_squares[:1], radius)
+        - _mean_grey(grey, [(grid[0, 1] + grid[0, 2] + grid[1, 1] + grid[1, 2]) / 4], radius)
+    )
     if not np.isfinite(start - end) or abs(start - end) < min_contrast * max(black_white, 1.0):
-        return None, (f'ambiguous chart orientation: the board ends differ by '
-                      f'{abs(start - end):.1f} grey levels only')
+        return None, (
+            f'ambiguous chart orientation: the board ends differ by '
+            f'{abs(start - end):.1f} grey levels only'
+        )
     if start > end:
         grid = grid[::-1, ::-1]  # the darker end is corner (0, 0)
     return grid.reshape(-1, 2), ''
@@ -121,17 +125,24 @@ def refine_corners(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: in
     (findChessboardCornersSB's own corners 0.09-0.17 px; a fixed 11 x 11 window breaks on
     squares under ~12 px); the saddle fit brings it to 0.006-0.05 px."""
     grid = np.asarray(corners, dtype=float).reshape(rows, cols, 2)
-    side = min(np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
-               np.linalg.norm(np.diff(grid, axis=1), axis=2).min())
+    side = min(
+        np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
+        np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
+    )
     half = int(np.clip(np.floor(REFINE_WINDOW_FRACTION * side), *REFINE_WINDOW_RANGE))
-    refined = cv2.cornerSubPix(grey, np.asarray(corners, dtype=np.float32).reshape(-1, 1, 2),
-                               (half, half), (-1, -1),
-                               (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4))
+    refined = cv2.cornerSubPix(
+        grey,
+        np.asarray(corners, dtype=np.float32).reshape(-1, 1, 2),
+        (half, half),
+        (-1, -1),
+        (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-4),
+    )
     return saddle_points(grey, refined.reshape(-1, 2).astype(float), side)
 
 
-def saddle_points(grey: np.ndarray, corners: npt.ArrayLike, side: float,
-                  iterations: int = 8) -> FloatArray:
+def saddle_points(
+    grey: np.ndarray, corners: npt.ArrayLike, side: float, iterations: int = 8
+) -> FloatArray:
     """Each (K, 2) corner moved to the saddle point of the smoothed image.
 
     A chessboard corner (two straight edges crossing at any angle, opposite sectors of one
@@ -147,7 +158,7 @@ def saddle_points(grey: np.ndarray, corners: npt.ArrayLike, side: float,
     sigma = max(1.0, SADDLE_SIGMA_FRACTION * side)
     half = max(2, int(round(SADDLE_HALF_WIDTH * sigma)))
     smooth = cv2.GaussianBlur(np.asarray(grey, dtype=np.float32), (0, 0), sigma)
-    y, x = np.mgrid[-half:half + 1, -half:half + 1].astype(float)
+    y, x = np.mgrid[-half : half + 1, -half : half + 1].astype(float)
     x, y = x.ravel(), y.ravel()
     fit = np.linalg.pinv(np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)]))
     out = np.array(corners, dtype=float)
@@ -172,8 +183,9 @@ def saddle_points(grey: np.ndarray, corners: npt.ArrayLike, side: float,
     return out
 
 
-def detect_chessboard(grey: np.ndarray, rows: int, cols: int, max_blur_px: float = 4.0,
-                      min_contrast: float = 0.2) -> Detection:
+def detect_chessboard(
+    grey: np.ndarray, rows: int, cols: int, max_blur_px: float = 4.0, min_contrast: float = 0.2
+) -> Detection:
     """Find the rows x cols inner corners of the chart in a grey image (0..255).
 
     OpenCV's sector-based detector (``findChessboardCornersSB``, robust) first, the
@@ -190,33 +202,45 @@ def detect_chessboard(grey: np.ndarray, rows: int, cols: int, max_blur_px: float
     grey = np.ascontiguousarray(grey)
     size = (int(cols), int(rows))
     found, corners = cv2.findChessboardCornersSB(
-        grey, size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY)
+        grey, size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
+    )
     if not found:
         # The fast check gives up at once on an image with no chessboard-like quads
         # (0.07 s on a 640x480 noise image, 0.5 s without it): a stream of views without
         # the chart must not back the worker up.
         found, corners = cv2.findChessboardCorners(
-            grey, size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-            | cv2.CALIB_CB_FAST_CHECK)
+            grey,
+            size,
+            flags=cv2.CALIB_CB_ADAPTIVE_THRESH
+            | cv2.CALIB_CB_NORMALIZE_IMAGE
+            | cv2.CALIB_CB_FAST_CHECK,
+        )
         if not found:
             return Detection(None, f'no {rows}x{cols} chessboard found', np.nan)
     corners = refine_corners(grey, corners, rows, cols)
-    retval = cv2.estimateChessboardSharpness(grey, size,
-                                             corners.astype(np.float32).reshape(-1, 1, 2))[0]
+    retval = cv2.estimateChessboardSharpness(
+        grey, size, corners.astype(np.float32).reshape(-1, 1, 2)
+    )[0]
     # retval is a 4-element Scalar (edge width first); the stub's Scalar also allows a float
     sharpness = float(retval[0])  # type: ignore[index]
     if sharpness >= SHARPNESS_FAILED:  # OpenCV could not measure it (e.g. tiny squares)
         sharpness = np.nan
     if np.isfinite(sharpness) and sharpness > max_blur_px:
-        return Detection(None, f'chart too blurred (edge width {sharpness:.1f} px > '
-                               f'{max_blur_px:g})', sharpness)
+        return Detection(
+            None, f'chart too blurred (edge width {sharpness:.1f} px > {max_blur_px:g})', sharpness
+        )
     if not cells_alternate(grey, corners, rows, cols):
-        return Detection(None, 'the corners found do not form a chessboard (its cells '
-                               'do not alternate black and white)', sharpness)
+        return Detection(
+            None,
+            'the corners found do not form a chessboard (its cells '
+            'do not alternate black and white)',
+            sharpness,
+        )
     ordered, reason = orient_corners(grey, corners, rows, cols, min_contrast)
     if ordered is not None and second_board(grey, ordered, rows, cols):
-        return Detection(None, 'two charts in view (which one the pose belongs to is '
-                               'ambiguous)', sharpness)
+        return Detection(
+            None, 'two charts in view (which one the pose belongs to is ambiguous)', sharpness
+        )
     return Detection(ordered, reason, sharpness)
 
 
@@ -228,12 +252,16 @@ def second_board(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: int)
     centre = grid.reshape(-1, 2).mean(axis=0)
     square = np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2))
     outline = np.array([grid[0, 0], grid[0, -1], grid[-1, -1], grid[-1, 0]])
-    grown = centre + (outline - centre) * (1 + 2.5 * square / np.maximum(
-        np.linalg.norm(outline - centre, axis=1, keepdims=True), 1.0))
+    grown = centre + (outline - centre) * (
+        1 + 2.5 * square / np.maximum(np.linalg.norm(outline - centre, axis=1, keepdims=True), 1.0)
+    )
     masked = grey.copy()
     cv2.fillConvexPoly(masked, np.rint(grown).astype(np.int32), int(np.median(grey)))
     found, _ = cv2.findChessboardCorners(
-        masked, (int(cols), int(rows)),
-        flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-        | cv2.CALIB_CB_FAST_CHECK)
+        masked,
+        (int(cols), int(rows)),
+        flags=cv2.CALIB_CB_ADAPTIVE_THRESH
+        | cv2.CALIB_CB_NORMALIZE_IMAGE
+        | cv2.CALIB_CB_FAST_CHECK,
+    )
     return bool(found)

@@ -9,6 +9,7 @@ is kept only when its parameters differ from every kept view's by ``min_distance
 of absolute differences); progress per parameter is the spread of the kept views over
 ``RANGES`` (camera_calibration's x 0.7, y 0.7, size 0.4, skew 0.5), capped at 100 %.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -18,12 +19,17 @@ from vgm_common.geometry import FloatArray
 
 PARAMETERS = ('x', 'y', 'size', 'skew')
 RANGES = (0.7, 0.7, 0.4, 0.5)
-HINTS = {'x': 'move the chart left and right', 'y': 'move the chart up and down',
-         'size': 'move the chart nearer and farther', 'skew': 'tilt the chart'}
+HINTS = {
+    'x': 'move the chart left and right',
+    'y': 'move the chart up and down',
+    'size': 'move the chart nearer and farther',
+    'skew': 'tilt the chart',
+}
 
 
-def view_parameters(corners: npt.ArrayLike, rows: int, cols: int,
-                    image_size: tuple[int, int]) -> FloatArray:
+def view_parameters(
+    corners: npt.ArrayLike, rows: int, cols: int, image_size: tuple[int, int]
+) -> FloatArray:
     """(4,) x, y, size, skew in [0, 1] of a board's corners (rows * cols, 2) [px]."""
     width, height = image_size
     grid = np.asarray(corners, dtype=float).reshape(rows, cols, 2)
@@ -50,8 +56,9 @@ class Coverage:
 
     def is_new(self, parameters: npt.ArrayLike) -> bool:
         """Whether a view with ``parameters`` (4,) adds to the kept ones."""
-        return all(np.sum(np.abs(np.asarray(parameters) - p)) > self.min_distance
-                   for p in self.kept)
+        return all(
+            np.sum(np.abs(np.asarray(parameters) - p)) > self.min_distance for p in self.kept
+        )
 
     def add(self, parameters: npt.ArrayLike) -> None:
         self.kept.append(np.asarray(parameters, dtype=float).copy())
@@ -75,5 +82,8 @@ class Coverage:
 
     def missing(self, required: float = 1.0) -> str:
         """What to do to reach ``required`` in every parameter ('' when covered)."""
-        return '; '.join(f'{name} {100 * value:.0f} %: {HINTS[name]}'
-                         for name, value in self.progress().items() if value < required)
+        return '; '.join(
+            f'{name} {100 * value:.0f} %: {HINTS[name]}'
+            for name, value in self.progress().items()
+            if value < required
+        )

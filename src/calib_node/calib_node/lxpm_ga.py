@@ -5,6 +5,7 @@ The whole population is evaluated in one call of the objective, (P, D) -> (P,); 
 generations are a Python loop. Every random draw comes from the caller's
 ``numpy.random.Generator``, so a seed fixes the result.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
@@ -28,8 +29,9 @@ class GAResult(NamedTuple):
     history: np.ndarray  # (generations,) best cost after each generation, non-increasing
 
 
-def laplace_phi(u: npt.ArrayLike, a: float = 0.0, b: float = 0.15,
-                variant: str = 'printed') -> FloatArray:
+def laplace_phi(
+    u: npt.ArrayLike, a: float = 0.0, b: float = 0.15, variant: str = 'printed'
+) -> FloatArray:
     """Laplace crossover spread phi for uniform draws u in (0, 1) (4.4.1, A4.5).
 
     ``'printed'``: a - b ln u for u <= 1/2, else a + b ln u (half the draws >= a + b ln 2,
@@ -46,10 +48,16 @@ def laplace_phi(u: npt.ArrayLike, a: float = 0.0, b: float = 0.15,
     raise ValueError(f'lx_variant: expected one of {LX_VARIANTS}, got {variant!r}')
 
 
-def laplace_crossover(x1: FloatArray, x2: FloatArray, rng: np.random.Generator,
-                      probability: float = 0.9, a: float = 0.0, b: float = 0.15,
-                      variant: str = 'printed', draw: str = 'gene'
-                      ) -> tuple[FloatArray, FloatArray]:
+def laplace_crossover(
+    x1: FloatArray,
+    x2: FloatArray,
+    rng: np.random.Generator,
+    probability: float = 0.9,
+    a: float = 0.0,
+    b: float = 0.15,
+    variant: str = 'printed',
+    draw: str = 'gene',
+) -> tuple[FloatArray, FloatArray]:
     """Children of the (M, D) parent pairs: y_i = x_i + phi |x1 - x2|, one phi per gene
     (``draw='gene'``, A4.5) or one per pair (``'pair'``).
 
@@ -65,9 +73,14 @@ def laplace_crossover(x1: FloatArray, x2: FloatArray, rng: np.random.Generator,
     return x1 + spread, x2 + spread
 
 
-def power_mutation(x: FloatArray, lower: FloatArray, upper: FloatArray,
-                   rng: np.random.Generator, probability: float = 0.005,
-                   index: float = 0.25) -> FloatArray:
+def power_mutation(
+    x: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    rng: np.random.Generator,
+    probability: float = 0.005,
+    index: float = 0.25,
+) -> FloatArray:
     """Power mutation of each gene of (M, D) ``x`` with ``probability`` (A4.4).
 
     s = s1^(1/index), t = (x - xl) / (xu - xl), r ~ U[0, 1]: y = x - s (x - xl) if t < r,
@@ -82,8 +95,9 @@ def power_mutation(x: FloatArray, lower: FloatArray, upper: FloatArray,
     return np.where(mutate, y, x)
 
 
-def tournament_select(cost: FloatArray, count: int, rng: np.random.Generator,
-                      size: int = 3) -> npt.NDArray[np.int64]:
+def tournament_select(
+    cost: FloatArray, count: int, rng: np.random.Generator, size: int = 3
+) -> npt.NDArray[np.int64]:
     """Indices (count,) of the winners of ``count`` tournaments of ``size`` (lowest cost)."""
     entrants = rng.integers(0, cost.shape[0], size=(count, size))
     return entrants[np.arange(count), np.argmin(cost[entrants], axis=1)]
@@ -92,18 +106,28 @@ def tournament_select(cost: FloatArray, count: int, rng: np.random.Generator,
 def _evaluate(objective: Objective, population: FloatArray) -> FloatArray:
     cost = np.asarray(objective(population), dtype=float)
     if cost.shape != (population.shape[0],):
-        raise ValueError(f'objective: expected shape ({population.shape[0]},), '
-                         f'got {cost.shape}')
+        raise ValueError(f'objective: expected shape ({population.shape[0]},), got {cost.shape}')
     return np.where(np.isnan(cost), np.inf, cost)
 
 
-def lxpm_ga(objective: Objective, lower: npt.ArrayLike, upper: npt.ArrayLike,
-            rng: np.random.Generator, population: int = 240, generations: int = 200,
-            crossover_probability: float = 0.9, mutation_probability: float = 0.005,
-            laplace_a: float = 0.0, laplace_b: float = 0.15, pm_index: float = 0.25,
-            lx_variant: str = 'printed', tournament: int = 3, elitism: int = 1,
-            progress: Callable[[int, float], object] | None = None,
-            lx_draw: str = 'gene') -> GAResult:
+def lxpm_ga(
+    objective: Objective,
+    lower: npt.ArrayLike,
+    upper: npt.ArrayLike,
+    rng: np.random.Generator,
+    population: int = 240,
+    generations: int = 200,
+    crossover_probability: float = 0.9,
+    mutation_probability: float = 0.005,
+    laplace_a: float = 0.0,
+    laplace_b: float = 0.15,
+    pm_index: float = 0.25,
+    lx_variant: str = 'printed',
+    tournament: int = 3,
+    elitism: int = 1,
+    progress: Callable[[int, float], object] | None = None,
+    lx_draw: str = 'gene',
+) -> GAResult:
     """Minimise ``objective`` over the box [lower, upper] with the LX-PM GA (§3.4).
 
     Uniform initialisation in the box; each generation: ``tournament`` selection, Laplace
@@ -126,13 +150,17 @@ def lxpm_ga(objective: Objective, lower: npt.ArrayLike, upper: npt.ArrayLike,
     lower = np.array(lower, dtype=float)
     upper = np.array(upper, dtype=float)
     if lower.ndim != 1 or lower.shape != upper.shape or np.any(lower > upper):
-        raise ValueError(f'lower, upper: expected equal (D,) shapes with lower <= upper, '
-                         f'got {lower.shape} and {upper.shape}')
+        raise ValueError(
+            f'lower, upper: expected equal (D,) shapes with lower <= upper, '
+            f'got {lower.shape} and {upper.shape}'
+        )
     if lx_variant not in LX_VARIANTS:
         raise ValueError(f'lx_variant: expected one of {LX_VARIANTS}, got {lx_variant!r}')
     if population < 2 or not 0 <= elitism < population or tournament < 1:
-        raise ValueError(f'need population >= 2, 0 <= elitism < population and '
-                         f'tournament >= 1, got {population}, {elitism}, {tournament}')
+        raise ValueError(
+            f'need population >= 2, 0 <= elitism < population and '
+            f'tournament >= 1, got {population}, {elitism}, {tournament}'
+        )
     pairs = (population + 1) // 2
 
     x = lower + rng.random((population, lower.size)) * (upper - lower)
@@ -143,13 +171,20 @@ def lxpm_ga(objective: Objective, lower: npt.ArrayLike, upper: npt.ArrayLike,
     for generation in range(generations):
         elite = np.argsort(cost, kind='stable')[:elitism]
         parents = x[tournament_select(cost, 2 * pairs, rng, tournament)]
-        y1, y2 = laplace_crossover(parents[0::2], parents[1::2], rng, crossover_probability,
-                                   laplace_a, laplace_b, lx_variant, lx_draw)
+        y1, y2 = laplace_crossover(
+            parents[0::2],
+            parents[1::2],
+            rng,
+            crossover_probability,
+            laplace_a,
+            laplace_b,
+            lx_variant,
+            lx_draw,
+        )
         children = np.clip(np.concatenate([y1, y2])[:population], lower, upper)
-        children = power_mutation(children, lower, upper, rng, mutation_probability,
-                                  pm_index)
+        children = power_mutation(children, lower, upper, rng, mutation_probability, pm_index)
         child_cost = _evaluate(objective, children)
-        worst = np.argsort(child_cost, kind='stable')[population - elitism:]
+        worst = np.argsort(child_cost, kind='stable')[population - elitism :]
         children[worst], child_cost[worst] = x[elite], cost[elite]
         x, cost = children, child_cost
         history[generation] = cost.min()
@@ -159,9 +194,12 @@ def lxpm_ga(objective: Objective, lower: npt.ArrayLike, upper: npt.ArrayLike,
     return GAResult(best=x[best].copy(), best_cost=float(cost[best]), history=history)
 
 
-def stereo_objective(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
-                     pixels_right: npt.ArrayLike, distortion: str = 'implicit'
-                     ) -> Callable[[npt.ArrayLike], FloatArray]:
+def stereo_objective(
+    points_world: npt.ArrayLike,
+    pixels_left: npt.ArrayLike,
+    pixels_right: npt.ArrayLike,
+    distortion: str = 'implicit',
+) -> Callable[[npt.ArrayLike], FloatArray]:
     """The calibration cost (4.3.2) with the full §3.2 model (A4.3): (P, 24) -> (P,).
 
     Columns 0..11 are the left camera, 12..23 the right, each in ``PARAM_NAMES`` order.
@@ -178,8 +216,9 @@ def stereo_objective(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
         raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')
     for name, pixels in zip(('pixels_left', 'pixels_right'), observed):
         if pixels.shape != (points_world.shape[0], 2):
-            raise ValueError(f'{name}: expected shape ({points_world.shape[0]}, 2), '
-                             f'got {pixels.shape}')
+            raise ValueError(
+                f'{name}: expected shape ({points_world.shape[0]}, 2), got {pixels.shape}'
+            )
 
     costs = [PopulationCost(points_world, pixels, distortion) for pixels in observed]
 
@@ -192,8 +231,9 @@ def stereo_objective(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
     return cost
 
 
-def rig_objective(observations: Iterable[tuple[npt.ArrayLike, npt.ArrayLike]],
-                  distortion: str = 'implicit') -> Callable[[npt.ArrayLike], FloatArray]:
+def rig_objective(
+    observations: Iterable[tuple[npt.ArrayLike, npt.ArrayLike]], distortion: str = 'implicit'
+) -> Callable[[npt.ArrayLike], FloatArray]:
     """The cost (4.3.2) of M cameras with their own point sets: (P, 12 M) -> (P,).
 
     ``observations``: list of (points_world (N_c, 3), pixels (N_c, 2)) per camera; genes
@@ -205,14 +245,18 @@ def rig_objective(observations: Iterable[tuple[npt.ArrayLike, npt.ArrayLike]],
     for points_world, pixels in observations:
         points_world = np.array(points_world, dtype=float)
         pixels = np.array(pixels, dtype=float)
-        if points_world.ndim != 2 or points_world.shape[1] != 3 or \
-                pixels.shape != (points_world.shape[0], 2):
-            raise ValueError(f'observations: expected (N, 3) points and (N, 2) pixels, got '
-                             f'{points_world.shape} and {pixels.shape}')
+        if (
+            points_world.ndim != 2
+            or points_world.shape[1] != 3
+            or pixels.shape != (points_world.shape[0], 2)
+        ):
+            raise ValueError(
+                f'observations: expected (N, 3) points and (N, 2) pixels, got '
+                f'{points_world.shape} and {pixels.shape}'
+            )
         cameras.append((points_world, pixels))
 
-    costs = [PopulationCost(points_world, pixels, distortion)
-             for points_world, pixels in cameras]
+    costs = [PopulationCost(points_world, pixels, distortion) for points_world, pixels in cameras]
 
     def cost(q: npt.ArrayLike) -> FloatArray:
         q = np.asarray(q, dtype=float)
@@ -220,7 +264,7 @@ def rig_objective(observations: Iterable[tuple[npt.ArrayLike, npt.ArrayLike]],
             raise ValueError(f'q: expected shape (P, {12 * len(cameras)}), got {q.shape}')
         total = np.zeros(q.shape[0])
         for c, camera_cost in enumerate(costs):
-            total += camera_cost(q[:, 12 * c:12 * c + 12])
+            total += camera_cost(q[:, 12 * c : 12 * c + 12])
         return total
 
     return cost

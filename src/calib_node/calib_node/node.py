@@ -6,6 +6,7 @@ pose). Chart detection and calibration run in a worker thread, so the executor k
 taking images while a view is processed. With ``calibration_file`` set, the saved
 calibration is published at start instead and no chart is needed.
 """
+
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -88,8 +89,9 @@ def _target_matrix(msg):
     """The chart pose of a target pose message as a 4x4 matrix; InvalidInput if it is not
     in base_link or not a valid pose."""
     if msg.header.frame_id != BASE_FRAME:
-        raise InvalidInput(f'target pose must be in {BASE_FRAME}, got '
-                           f'{msg.header.frame_id!r}', key='frame_id')
+        raise InvalidInput(
+            f'target pose must be in {BASE_FRAME}, got {msg.header.frame_id!r}', key='frame_id'
+        )
     return pose_to_matrix(msg.pose)
 
 
@@ -99,100 +101,246 @@ class CalibNode(Node):
     def __init__(self):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(self, [
-            Param('chart.rows', 6, 'Inner corners along the chart y axis (rows + cols odd).',
-                  range=(2, 100), read_only=True),
-            Param('chart.cols', 9, 'Inner corners along the chart x axis.', range=(2, 100),
-                  read_only=True),
-            Param('chart.spacing', 0.025, 'Chessboard square size [m].', range=(1e-4, 10.0),
-                  read_only=True),
-            Param('chart.pattern', 'chessboard', 'Chart pattern.', choices=('chessboard',),
-                  read_only=True),
-            Param('chart.source', 'auto', 'stage: views need a /calibration/target_pose '
-                  'of their stamp; handheld: target poses are ignored, chart poses are '
-                  'estimated; auto: stage once target poses arrive, handheld before.',
-                  choices=CHART_SOURCES, read_only=True),
-            Param('rig_pose', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], 'The left camera optical '
-                  'frame in base_link when no view has a target pose: x y z [m] roll pitch '
-                  'yaw [rad], or x y z qx qy qz qw.', check=_rig_pose_check),
-            Param('cameras', list(CAMERA_NAMES), 'The rig\'s cameras (left and right, aux '
-                  'optional).', check=lambda v: None if ({'left', 'right'} <= set(v) <= set(
-                      CAMERA_NAMES) and len(set(v)) == len(v)) else
-                  f'expected left, right and optionally aux, got {v}', read_only=True),
-            Param('min_coverage', 0.5, 'Handheld: each of x, y, size and skew must cover '
-                  'this fraction of camera_calibration\'s ranges before calibrating.',
-                  range=(0.0, 1.0)),
-            Param('select_views', True, 'Handheld: keep a view only if it differs from the '
-                  'kept ones (camera_calibration\'s rule); false keeps every view.'),
-            Param('min_views', 10, 'Views (captures with the chart found in at least one '
-                  'camera) needed to calibrate.', range=(1, 10000)),
-            Param('auto_calibrate', True, 'Calibrate as soon as min_views views are '
-                  'collected (the calibrate service recalibrates on all views so far).'),
-            Param('calibration_file', '', 'A calibration.yaml (or its directory) to publish '
-                  'at start instead of calibrating; empty: calibrate from the chart.',
-                  read_only=True),
-            Param('output_dir', '', 'Where calibration.yaml and left/right/aux.yaml '
-                  '(camera_calibration_parsers) are written; empty: not written.'),
-            Param('method', 'lm', 'lm: DLT (or GA) start + Levenberg-Marquardt, plumb_bob '
-                  '(ours); lxpm_ga: the thesis GA + network refinement; opencv: '
-                  'cv2.calibrateCamera reference.', choices=METHODS),
-            Param('lm_start', 'dlt', 'Start of the lm method: closed-form DLT or the GA.',
-                  choices=LM_STARTS),
-            Param('seed', 0, 'Random seed of the GA.', range=(0, 2 ** 31 - 1)),
-            Param('ga.population', 240, 'GA population (thesis 240).', range=(4, 100000)),
-            Param('ga.generations', 200, 'GA generations (thesis 200).', range=(1, 100000)),
-            Param('ga.crossover', 0.9, 'Laplace crossover probability per pair (thesis 0.9).',
-                  range=(0.0, 1.0)),
-            Param('ga.mutation', 0.005, 'Power mutation probability per gene (thesis '
-                  '0.005).', range=(0.0, 1.0)),
-            Param('ga.pm_index', 0.25, 'Power mutation index p, s = s1^(1/p) (not in the '
-                  'thesis; ALGORITHMS.md A4.4).', range=(1e-3, 100.0)),
-            Param('ga.lx_variant', 'printed', 'Laplace crossover: as printed in the thesis, '
-                  'or the symmetric Laplace quantile (A4.5).', choices=LX_VARIANTS),
-            Param('ga.lx_draw', 'gene', 'Laplace spread phi drawn per gene (A4.5) or per '
-                  'parent pair.', choices=LX_DRAWS),
-            Param('ga.tournament', 3, 'Tournament size of the selection [C] (A4.6).',
-                  range=(1, 1000)),
-            Param('ga.elitism', 1, 'Best individuals carried over each generation [C] '
-                  '(A4.6).', range=(0, 1000)),
-            Param('ga.max_distance', 3.0, 'Bound of the GA translation genes: camera to '
-                  'chart-centroid distance [m].', range=(0.01, 1000.0)),
-            Param('network.epochs', 3000, 'Gradient-descent epochs of the thesis network '
-                  'refinement.', range=(0, 1000000)),
-            Param('network.weights', 'structured', 'structured: train only the entries of '
-                  'D = [A | 0] and B = [R T; 0 1] that stand for parameters (ALGORITHMS.md '
-                  '3.5); free: every weight, read out by RQ of D B.',
-                  choices=NETWORK_WEIGHTS),
-            Param('network.accept', 'if_better', 'if_better: keep the network camera only '
-                  'if its full-model RMS is below the GA camera; always: keep it.',
-                  choices=NETWORK_ACCEPT),
-            Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
-            Param('select_model', True, 'lm: keep p1, p2 only where they lower the residual '
-                  'enough (BIC); they otherwise trade against the principal point.'),
-            Param('fit_k3', False, 'Estimate k3 (else 0).'),
-            Param('max_rms_px', 2.0, 'A calibration whose reprojection RMS exceeds this in '
-                  'any camera is refused (not published) [px].', range=(0.0, 1e6)),
-            Param('max_blur_px', 4.0, 'Chart views whose edge width exceeds this are '
-                  'rejected as blurred [px].', range=(0.5, 100.0)),
-            Param('sync_max_wait', 5.0, 'Incomplete capture sets are dropped after this [s].',
-                  range=(0.01, 60.0), read_only=True),
-        ], self.diagnostics)
+        self.params = NodeParameters(
+            self,
+            [
+                Param(
+                    'chart.rows',
+                    6,
+                    'Inner corners along the chart y axis (rows + cols odd).',
+                    range=(2, 100),
+                    read_only=True,
+                ),
+                Param(
+                    'chart.cols',
+                    9,
+                    'Inner corners along the chart x axis.',
+                    range=(2, 100),
+                    read_only=True,
+                ),
+                Param(
+                    'chart.spacing',
+                    0.025,
+                    'Chessboard square size [m].',
+                    range=(1e-4, 10.0),
+                    read_only=True,
+                ),
+                Param(
+                    'chart.pattern',
+                    'chessboard',
+                    'Chart pattern.',
+                    choices=('chessboard',),
+                    read_only=True,
+                ),
+                Param(
+                    'chart.source',
+                    'auto',
+                    'stage: views need a /calibration/target_pose '
+                    'of their stamp; handheld: target poses are ignored, chart poses are '
+                    'estimated; auto: stage once target poses arrive, handheld before.',
+                    choices=CHART_SOURCES,
+                    read_only=True,
+                ),
+                Param(
+                    'rig_pose',
+                    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+                    'The left camera optical '
+                    'frame in base_link when no view has a target pose: x y z [m] roll pitch '
+                    'yaw [rad], or x y z qx qy qz qw.',
+                    check=_rig_pose_check,
+                ),
+                Param(
+                    'cameras',
+                    list(CAMERA_NAMES),
+                    "The rig's cameras (left and right, aux optional).",
+                    check=lambda v: None
+                    if ({'left', 'right'} <= set(v) <= set(CAMERA_NAMES) and len(set(v)) == len(v))
+                    else f'expected left, right and optionally aux, got {v}',
+                    read_only=True,
+                ),
+                Param(
+                    'min_coverage',
+                    0.5,
+                    'Handheld: each of x, y, size and skew must cover '
+                    "this fraction of camera_calibration's ranges before calibrating.",
+                    range=(0.0, 1.0),
+                ),
+                Param(
+                    'select_views',
+                    True,
+                    'Handheld: keep a view only if it differs from the '
+                    "kept ones (camera_calibration's rule); false keeps every view.",
+                ),
+                Param(
+                    'min_views',
+                    10,
+                    'Views (captures with the chart found in at least one '
+                    'camera) needed to calibrate.',
+                    range=(1, 10000),
+                ),
+                Param(
+                    'auto_calibrate',
+                    True,
+                    'Calibrate as soon as min_views views are '
+                    'collected (the calibrate service recalibrates on all views so far).',
+                ),
+                Param(
+                    'calibration_file',
+                    '',
+                    'A calibration.yaml (or its directory) to publish '
+                    'at start instead of calibrating; empty: calibrate from the chart.',
+                    read_only=True,
+                ),
+                Param(
+                    'output_dir',
+                    '',
+                    'Where calibration.yaml and left/right/aux.yaml '
+                    '(camera_calibration_parsers) are written; empty: not written.',
+                ),
+                Param(
+                    'method',
+                    'lm',
+                    'lm: DLT (or GA) start + Levenberg-Marquardt, plumb_bob '
+                    '(ours); lxpm_ga: the thesis GA + network refinement; opencv: '
+                    'cv2.calibrateCamera reference.',
+                    choices=METHODS,
+                ),
+                Param(
+                    'lm_start',
+                    'dlt',
+                    'Start of the lm method: closed-form DLT or the GA.',
+                    choices=LM_STARTS,
+                ),
+                Param('seed', 0, 'Random seed of the GA.', range=(0, 2**31 - 1)),
+                Param('ga.population', 240, 'GA population (thesis 240).', range=(4, 100000)),
+                Param('ga.generations', 200, 'GA generations (thesis 200).', range=(1, 100000)),
+                Param(
+                    'ga.crossover',
+                    0.9,
+                    'Laplace crossover probability per pair (thesis 0.9).',
+                    range=(0.0, 1.0),
+                ),
+                Param(
+                    'ga.mutation',
+                    0.005,
+                    'Power mutation probability per gene (thesis 0.005).',
+                    range=(0.0, 1.0),
+                ),
+                Param(
+                    'ga.pm_index',
+                    0.25,
+                    'Power mutation index p, s = s1^(1/p) (not in the '
+                    'thesis; ALGORITHMS.md A4.4).',
+                    range=(1e-3, 100.0),
+                ),
+                Param(
+                    'ga.lx_variant',
+                    'printed',
+                    'Laplace crossover: as printed in the thesis, '
+                    'or the symmetric Laplace quantile (A4.5).',
+                    choices=LX_VARIANTS,
+                ),
+                Param(
+                    'ga.lx_draw',
+                    'gene',
+                    'Laplace spread phi drawn per gene (A4.5) or per parent pair.',
+                    choices=LX_DRAWS,
+                ),
+                Param(
+                    'ga.tournament',
+                    3,
+                    'Tournament size of the selection [C] (A4.6).',
+                    range=(1, 1000),
+                ),
+                Param(
+                    'ga.elitism',
+                    1,
+                    'Best individuals carried over each generation [C] (A4.6).',
+                    range=(0, 1000),
+                ),
+                Param(
+                    'ga.max_distance',
+                    3.0,
+                    'Bound of the GA translation genes: camera to chart-centroid distance [m].',
+                    range=(0.01, 1000.0),
+                ),
+                Param(
+                    'network.epochs',
+                    3000,
+                    'Gradient-descent epochs of the thesis network refinement.',
+                    range=(0, 1000000),
+                ),
+                Param(
+                    'network.weights',
+                    'structured',
+                    'structured: train only the entries of '
+                    'D = [A | 0] and B = [R T; 0 1] that stand for parameters (ALGORITHMS.md '
+                    '3.5); free: every weight, read out by RQ of D B.',
+                    choices=NETWORK_WEIGHTS,
+                ),
+                Param(
+                    'network.accept',
+                    'if_better',
+                    'if_better: keep the network camera only '
+                    'if its full-model RMS is below the GA camera; always: keep it.',
+                    choices=NETWORK_ACCEPT,
+                ),
+                Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
+                Param(
+                    'select_model',
+                    True,
+                    'lm: keep p1, p2 only where they lower the residual '
+                    'enough (BIC); they otherwise trade against the principal point.',
+                ),
+                Param('fit_k3', False, 'Estimate k3 (else 0).'),
+                Param(
+                    'max_rms_px',
+                    2.0,
+                    'A calibration whose reprojection RMS exceeds this in '
+                    'any camera is refused (not published) [px].',
+                    range=(0.0, 1e6),
+                ),
+                Param(
+                    'max_blur_px',
+                    4.0,
+                    'Chart views whose edge width exceeds this are rejected as blurred [px].',
+                    range=(0.5, 100.0),
+                ),
+                Param(
+                    'sync_max_wait',
+                    5.0,
+                    'Incomplete capture sets are dropped after this [s].',
+                    range=(0.01, 60.0),
+                    read_only=True,
+                ),
+            ],
+            self.diagnostics,
+        )
         p = self.params
         if (self._param('chart.rows') + self._param('chart.cols')) % 2 == 0:
-            raise ParameterError('parameters chart.rows + chart.cols must be odd (the '
-                                 'board must not be symmetric under a half turn)',
-                                 key='chart.rows')
-        self.chart = chart_points(self._param('chart.rows'), self._param('chart.cols'),
-                                  self._param('chart.spacing'))
+            raise ParameterError(
+                'parameters chart.rows + chart.cols must be odd (the '
+                'board must not be symmetric under a half turn)',
+                key='chart.rows',
+            )
+        self.chart = chart_points(
+            self._param('chart.rows'), self._param('chart.cols'), self._param('chart.spacing')
+        )
 
         self.names = tuple(n for n in CAMERA_NAMES if n in self._param('cameras'))
         self.source = self._param('chart.source')
-        self.info_publishers = {n: self.create_publisher(
-            CameraInfo, CAMERA_INFO_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher)
-            for n in self.names}
-        self.pose_publishers = {n: self.create_publisher(
-            PoseStamped, POSE_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher)
-            for n in self.names}
+        self.info_publishers = {
+            n: self.create_publisher(
+                CameraInfo, CAMERA_INFO_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher
+            )
+            for n in self.names
+        }
+        self.pose_publishers = {
+            n: self.create_publisher(
+                PoseStamped, POSE_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher
+            )
+            for n in self.names
+        }
         self.lock = threading.Lock()  # views, image sizes, counters, targets
         self.detection_pool = ThreadPoolExecutor(len(self.names))
         self.calibration_lock = threading.Lock()  # one calibration at a time
@@ -220,26 +368,43 @@ class CalibNode(Node):
             self._publish_file(p.calibration_file)
             return
         # Every stage view counts: when VIEW_BACKLOG wait, a new one is refused and reported.
-        self.worker = Worker(lambda view: self._process_view(*view), self._on_worker_error,
-                             'calibration', capacity=VIEW_BACKLOG, keep='oldest')
+        self.worker = Worker(
+            lambda view: self._process_view(*view),
+            self._on_worker_error,
+            'calibration',
+            capacity=VIEW_BACKLOG,
+            keep='oldest',
+        )
         # Images are paired by stamp; the target pose of a set is looked up by its stamp
         # (it may come a little before or after the images, or never: handheld).
-        self.sync = ExactTimeSync(self.names, self._on_capture, queue_size=10,
-                                  max_wait=p.sync_max_wait)
+        self.sync = ExactTimeSync(
+            self.names, self._on_capture, queue_size=10, max_wait=p.sync_max_wait
+        )
         inputs = MutuallyExclusiveCallbackGroup()  # the sync is not thread-safe
         for name in self.names:
-            self.create_subscription(Image, IMAGE_TOPICS[name], partial(self._offer, name),
-                                     DEFAULT_QOS, callback_group=inputs)
+            self.create_subscription(
+                Image,
+                IMAGE_TOPICS[name],
+                partial(self._offer, name),
+                DEFAULT_QOS,
+                callback_group=inputs,
+            )
         # The poses get their own group: in one group with the images, rclpy's executor
         # serves a backlog of images first (subscription order), and under load a
         # set's pose came later than TARGET_WAIT_S. _on_target only takes self.lock.
-        self.create_subscription(PoseStamped, TARGET_POSE_TOPIC, self._on_target, DEFAULT_QOS,
-                                 callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_subscription(
+            PoseStamped,
+            TARGET_POSE_TOPIC,
+            self._on_target,
+            DEFAULT_QOS,
+            callback_group=MutuallyExclusiveCallbackGroup(),
+        )
         self.create_timer(1.0, self._publish_status)
         self.get_logger().info(
             f'collecting chart views ({p.method}, {self._param("chart.rows")}x'
             f'{self._param("chart.cols")} chessboard, chart.source {self.source}, cameras '
-            f'{", ".join(self.names)}, min_views {p.min_views})')
+            f'{", ".join(self.names)}, min_views {p.min_views})'
+        )
 
     def _param(self, name):
         return getattr(self.params, name)  # dotted names too
@@ -271,8 +436,7 @@ class CalibNode(Node):
                 if not posed:  # a handheld stream outruns detection: take what it can
                     self.similar_views += 1
             if posed:
-                self.diagnostics.reject('view', 'the calibration worker is behind: view '
-                                        'dropped')
+                self.diagnostics.reject('view', 'the calibration worker is behind: view dropped')
 
     def _on_worker_error(self, error):
         self.diagnostics.reject('view', f'{type(error).__name__}: {error}')
@@ -310,32 +474,38 @@ class CalibNode(Node):
                 with self.lock:
                     expected = self.image_sizes.setdefault(name, size)
                 if size != expected:
-                    raise InvalidInput(f'image size {size[0]}x{size[1]} differs from this '
-                                       f'camera\'s earlier {expected[0]}x{expected[1]}',
-                                       key='size')
+                    raise InvalidInput(
+                        f'image size {size[0]}x{size[1]} differs from this '
+                        f"camera's earlier {expected[0]}x{expected[1]}",
+                        key='size',
+                    )
             except (InvalidInput, ValueError) as error:
                 self.diagnostics.reject(IMAGE_TOPICS[name], error)
                 misses.append(f'{name}: unusable image')
                 greys.pop(name, None)
         rows, cols = self._param('chart.rows'), self._param('chart.cols')
         # OpenCV's detector releases the GIL: the cameras' images are searched in parallel.
-        detections = dict(zip(greys, self.detection_pool.map(
-            lambda grey: detect_chessboard(grey, rows, cols, self.params.max_blur_px),
-            greys.values())))
+        detections = dict(
+            zip(
+                greys,
+                self.detection_pool.map(
+                    lambda grey: detect_chessboard(grey, rows, cols, self.params.max_blur_px),
+                    greys.values(),
+                ),
+            )
+        )
         for name, detection in detections.items():
             if detection.corners is None:
                 misses.append(f'{name}: {detection.reason}')
                 continue
             corners[name] = detection.corners
         if not corners:
-            self._reject_view('view', 'chart not found in any camera (' + '; '.join(misses)
-                              + ')')
+            self._reject_view('view', 'chart not found in any camera (' + '; '.join(misses) + ')')
             return
         with self.lock:
             if T_base_chart is None:
                 first = next(n for n in self.names if n in corners)
-                parameters = view_parameters(corners[first], rows, cols,
-                                             self.image_sizes[first])
+                parameters = view_parameters(corners[first], rows, cols, self.image_sizes[first])
                 if self.params.select_views and not self.coverage.is_new(parameters):
                     self.similar_views += 1
                     return
@@ -343,11 +513,17 @@ class CalibNode(Node):
             self.views.append((T_base_chart, corners))
             count = len(self.views)
             coverage = self.coverage.summary() if T_base_chart is None else ''
-        self.get_logger().info(f'view {count}: chart found in {", ".join(corners)}'
-                               + (f' (not in {"; ".join(misses)})' if misses else '')
-                               + (f'; coverage {coverage}' if coverage else ''))
-        if self.params.auto_calibrate and count >= self.params.min_views and \
-                self.auto_done_at is None and not self._coverage_missing(self.views):
+        self.get_logger().info(
+            f'view {count}: chart found in {", ".join(corners)}'
+            + (f' (not in {"; ".join(misses)})' if misses else '')
+            + (f'; coverage {coverage}' if coverage else '')
+        )
+        if (
+            self.params.auto_calibrate
+            and count >= self.params.min_views
+            and self.auto_done_at is None
+            and not self._coverage_missing(self.views)
+        ):
             self.auto_done_at = count
             self._calibrate()
 
@@ -372,10 +548,11 @@ class CalibNode(Node):
             if not pairs:
                 missing.append(name)
                 continue
-            observations[name] = (np.concatenate([self.chart @ T[:3, :3].T + T[:3, 3]
-                                                  for T, _ in pairs]),
-                                  np.concatenate([uv for _, uv in pairs]),
-                                  self.image_sizes[name])
+            observations[name] = (
+                np.concatenate([self.chart @ T[:3, :3].T + T[:3, 3] for T, _ in pairs]),
+                np.concatenate([uv for _, uv in pairs]),
+                self.image_sizes[name],
+            )
         if missing:
             raise CalibrationError(f'the chart was never found in {", ".join(missing)}')
         return observations
@@ -383,17 +560,30 @@ class CalibNode(Node):
     def _calibrate_handheld(self, views):
         """Bundle adjustment over the views; {name: CameraFit} with poses in base_link."""
         if self.params.method != 'lm':
-            raise CalibrationError(f'method {self.params.method} needs target poses (the '
-                                   'stage); handheld views calibrate with lm')
+            raise CalibrationError(
+                f'method {self.params.method} needs target poses (the '
+                'stage); handheld views calibrate with lm'
+            )
         known = [T for T, _ in views]
         result = bundle_adjust_selected(
-            self.chart, [corners for _, corners in views],
-            {n: self.image_sizes[n] for n in self.names}, known, self.names,
-            self.params.fit_tangential, self.params.fit_k3, self.params.select_model)
-        T_base_ref = (rig_pose_matrix(self._param('rig_pose'))
-                      if result.reference != BASE_FRAME else np.eye(4))
-        return {n: f._replace(T_base_camera=T_base_ref @ f.T_base_camera)
-                for n, f in result.fits.items()}, result.reference
+            self.chart,
+            [corners for _, corners in views],
+            {n: self.image_sizes[n] for n in self.names},
+            known,
+            self.names,
+            self.params.fit_tangential,
+            self.params.fit_k3,
+            self.params.select_model,
+        )
+        T_base_ref = (
+            rig_pose_matrix(self._param('rig_pose'))
+            if result.reference != BASE_FRAME
+            else np.eye(4)
+        )
+        return {
+            n: f._replace(T_base_camera=T_base_ref @ f.T_base_camera)
+            for n, f in result.fits.items()
+        }, result.reference
 
     def _calibrate(self):
         """Calibrate on all views so far; returns (success, message)."""
@@ -402,11 +592,17 @@ class CalibNode(Node):
             views = list(self.views)
         missing = self._coverage_missing(views) if views else ''
         if missing:  # say what to do with the chart first: more views alike would not help
-            message = (f'not enough coverage in {len(views)} views ({self.coverage.summary()}'
-                       f'; need {100 * p.min_coverage:.0f} % each, and min_views '
-                       f'{p.min_views}): {missing}')
-            self.diagnostics.publish('calibration', 'warn', message,
-                                     {'views': len(views), 'coverage': self.coverage.summary()})
+            message = (
+                f'not enough coverage in {len(views)} views ({self.coverage.summary()}'
+                f'; need {100 * p.min_coverage:.0f} % each, and min_views '
+                f'{p.min_views}): {missing}'
+            )
+            self.diagnostics.publish(
+                'calibration',
+                'warn',
+                message,
+                {'views': len(views), 'coverage': self.coverage.summary()},
+            )
             return False, message
         if len(views) < p.min_views:
             return False, f'{len(views)} views collected, min_views is {p.min_views}'
@@ -419,56 +615,86 @@ class CalibNode(Node):
                     seconds = time.perf_counter() - started
                 else:
                     reference = BASE_FRAME
-                    ga = GAOptions(self._param('ga.population'), self._param('ga.generations'),
-                                   self._param('ga.crossover'), self._param('ga.mutation'),
-                                   self._param('ga.pm_index'), self._param('ga.lx_variant'),
-                                   self._param('ga.max_distance'),
-                                   self._param('network.epochs'), self._param('ga.lx_draw'),
-                                   self._param('ga.tournament'), self._param('ga.elitism'),
-                                   self._param('network.weights'),
-                                   self._param('network.accept'))
-                    result = calibrate_rig(self._observations(views), p.method, p.seed,
-                                           p.lm_start, ga, p.fit_tangential, p.fit_k3,
-                                           p.select_model)
+                    ga = GAOptions(
+                        self._param('ga.population'),
+                        self._param('ga.generations'),
+                        self._param('ga.crossover'),
+                        self._param('ga.mutation'),
+                        self._param('ga.pm_index'),
+                        self._param('ga.lx_variant'),
+                        self._param('ga.max_distance'),
+                        self._param('network.epochs'),
+                        self._param('ga.lx_draw'),
+                        self._param('ga.tournament'),
+                        self._param('ga.elitism'),
+                        self._param('network.weights'),
+                        self._param('network.accept'),
+                    )
+                    result = calibrate_rig(
+                        self._observations(views),
+                        p.method,
+                        p.seed,
+                        p.lm_start,
+                        ga,
+                        p.fit_tangential,
+                        p.fit_k3,
+                        p.select_model,
+                    )
                     fits, seconds = result.fits, result.seconds
                 worst = max(fits, key=lambda n: fits[n].rms_px)
                 if fits[worst].rms_px > p.max_rms_px:
                     raise CalibrationError(
                         f'{worst}: reprojection RMS {fits[worst].rms_px:.3g} px '
-                        f'exceeds max_rms_px {p.max_rms_px:g}')
-                cameras = {name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D,
-                                               fit.T_base_camera)
-                           for name, fit in fits.items()}
+                        f'exceeds max_rms_px {p.max_rms_px:g}'
+                    )
+                cameras = {
+                    name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D, fit.T_base_camera)
+                    for name, fit in fits.items()
+                }
                 rectification = stereo_rectification(cameras['left'], cameras['right'])
             except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError) as error:
                 message = f'calibration failed on {len(views)} views: {error}'
                 self.get_logger().error(message)
-                self.diagnostics.publish('calibration', 'error', message,
-                                         {'views': len(views), 'method': p.method})
+                self.diagnostics.publish(
+                    'calibration', 'error', message, {'views': len(views), 'method': p.method}
+                )
                 return False, message
             self._publish(cameras, rectification)
-            quality = {name: {'rms_px': fit.rms_px, 'points': fit.points,
-                              'views': sum(name in corners for _, corners in views)}
-                       for name, fit in fits.items()}
+            quality = {
+                name: {
+                    'rms_px': fit.rms_px,
+                    'points': fit.points,
+                    'views': sum(name in corners for _, corners in views),
+                }
+                for name, fit in fits.items()
+            }
             if p.output_dir:
                 try:
-                    write_calibration(p.output_dir, cameras, OPTICAL_FRAMES, rectification,
-                                      quality)
+                    write_calibration(
+                        p.output_dir, cameras, OPTICAL_FRAMES, rectification, quality
+                    )
                 except (OSError, VgmError) as error:
-                    self.diagnostics.publish('calibration', 'error',
-                                             f'cannot write {p.output_dir}: {error}')
+                    self.diagnostics.publish(
+                        'calibration', 'error', f'cannot write {p.output_dir}: {error}'
+                    )
             self.calibrations += 1
             rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in fits.items())
-            baseline = np.linalg.norm(cameras['left'].centre_base
-                                      - cameras['right'].centre_base)
+            baseline = np.linalg.norm(cameras['left'].centre_base - cameras['right'].centre_base)
             mode = 'handheld' if handheld else 'stage'
-            message = (f'calibrated {len(cameras)} cameras from {len(views)} views: rms '
-                       f'{rms} px, baseline {baseline:.4f} m ({p.method}, {mode}, '
-                       f'{seconds:.2f} s)')
+            message = (
+                f'calibrated {len(cameras)} cameras from {len(views)} views: rms '
+                f'{rms} px, baseline {baseline:.4f} m ({p.method}, {mode}, '
+                f'{seconds:.2f} s)'
+            )
             self.get_logger().info(message)
-            values = {'views': len(views), 'method': p.method, 'chart source': mode,
-                      'reference frame': reference,
-                      'time_s': f'{seconds:.3f}', 'baseline_m': f'{baseline:.6f}'}
+            values = {
+                'views': len(views),
+                'method': p.method,
+                'chart source': mode,
+                'reference frame': reference,
+                'time_s': f'{seconds:.3f}',
+                'baseline_m': f'{baseline:.6f}',
+            }
             if handheld:
                 values['coverage'] = self.coverage.summary()
             for name, fit in fits.items():
@@ -484,21 +710,26 @@ class CalibNode(Node):
         for name, camera in cameras.items():
             R, P = rectification.get(name, (None, None))
             self.info_publishers[name].publish(
-                camera_to_camera_info(camera, stamp_ns, OPTICAL_FRAMES[name], R, P))
+                camera_to_camera_info(camera, stamp_ns, OPTICAL_FRAMES[name], R, P)
+            )
             self.pose_publishers[name].publish(
-                matrix_to_pose_stamped(camera.T_base_camera, stamp_ns, BASE_FRAME))
+                matrix_to_pose_stamped(camera.T_base_camera, stamp_ns, BASE_FRAME)
+            )
 
     def _publish_file(self, path):
         rig = read_calibration(path)  # InvalidInput -> one-line start-up error
         missing = [name for name in self.names if name not in rig]
         if missing:
-            raise InvalidInput(f'calibration_file {path} lacks {", ".join(missing)}',
-                               key='calibration_file')
+            raise InvalidInput(
+                f'calibration_file {path} lacks {", ".join(missing)}', key='calibration_file'
+            )
         cameras = {name: rig[name][0] for name in self.names}
         # As the harness and every consumer expect: left/right re-rectified from the
         # cameras, aux as stored.
-        rectification = {**{n: rig[n][1:] for n in self.names if n not in ('left', 'right')},
-                         **stereo_rectification(cameras['left'], cameras['right'])}
+        rectification = {
+            **{n: rig[n][1:] for n in self.names if n not in ('left', 'right')},
+            **stereo_rectification(cameras['left'], cameras['right']),
+        }
         self._publish(cameras, rectification)
         message = f'published the calibration of {path}'
         self.get_logger().info(message)
@@ -529,21 +760,27 @@ class CalibNode(Node):
     def _publish_status(self):
         with self.lock:
             values: dict[str, object] = {
-                'views': len(self.views), 'rejected views': self.rejected_views,
+                'views': len(self.views),
+                'rejected views': self.rejected_views,
                 'calibrations': self.calibrations,
                 'similar views skipped': self.similar_views,
                 'image sets without a target pose': self.unposed_sets,
                 'incomplete capture sets (messages)': self.sync.dropped,
-                'matched capture sets': self.sync.matched}
+                'matched capture sets': self.sync.matched,
+            }
             if self.last_result:  # the latest calibration's quality, repeated at 1 Hz
-                values.update({k: v for k, v in self.last_result.items()
-                               if k.startswith('rms_px')})
+                values.update(
+                    {k: v for k, v in self.last_result.items() if k.startswith('rms_px')}
+                )
             handheld = any(T is None for T, _ in self.views)
             if handheld:
                 values['coverage'] = self.coverage.summary()
         level = 'ok'
-        message = (f'{values["views"]} views, {self.calibrations} calibrations'
-                   if self.calibrations or values['views'] else 'waiting for chart views')
+        message = (
+            f'{values["views"]} views, {self.calibrations} calibrations'
+            if self.calibrations or values['views']
+            else 'waiting for chart views'
+        )
         if handheld:
             message += f'; coverage {values["coverage"]}'
             missing = self._coverage_missing(self.views)

@@ -6,6 +6,7 @@ Both cameras use the seed conventions: X = R x + T maps world to camera, pixels 
 [px], lengths in the thesis's unit. The DLT is the standard 3x4 projection estimate with
 Hartley normalisation and an RQ decomposition.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -24,8 +25,7 @@ from calib_node.seed_camera import (
 )
 from vgm_common.geometry import FloatArray
 
-IDENTIFIABLE_NAMES = ('u0', 'v0', 'fx', 'fy', 'kappa', 'alpha', 'beta', 'gamma', 'Tx', 'Ty',
-                      'Tz')
+IDENTIFIABLE_NAMES = ('u0', 'v0', 'fx', 'fy', 'kappa', 'alpha', 'beta', 'gamma', 'Tx', 'Ty', 'Tz')
 
 
 class RefineInfo(NamedTuple):
@@ -57,30 +57,34 @@ class OpenCVReference(NamedTuple):
 def _to_identifiable(params: FloatArray) -> FloatArray:
     """(12,) seed params -> (11,) z = (u0, v0, fx, fy, kappa, alpha, beta, gamma, T)."""
     f = params[4]
-    return np.concatenate([params[0:2], params[2:4] * f, [params[5] * f ** 2], params[6:12]])
+    return np.concatenate([params[0:2], params[2:4] * f, [params[5] * f**2], params[6:12]])
 
 
 def _from_identifiable(z: FloatArray, f: float) -> FloatArray:
     """Inverse of :func:`_to_identifiable` with the focal length f held fixed."""
-    return np.concatenate([z[0:2], z[2:4] / f, [f], [z[4] / f ** 2], z[5:11]])
+    return np.concatenate([z[0:2], z[2:4] / f, [f], [z[4] / f**2], z[5:11]])
 
 
-def _check_points(points_world: npt.ArrayLike,
-                  *pixels: npt.ArrayLike) -> tuple[FloatArray, list[FloatArray]]:
+def _check_points(
+    points_world: npt.ArrayLike, *pixels: npt.ArrayLike
+) -> tuple[FloatArray, list[FloatArray]]:
     points_world = np.asarray(points_world, dtype=float)
     if points_world.ndim != 2 or points_world.shape[1] != 3:
         raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')
     out = [np.asarray(p, dtype=float) for p in pixels]
     for p in out:
         if p.shape != (points_world.shape[0], 2):
-            raise ValueError(f'pixels: expected shape ({points_world.shape[0]}, 2), '
-                             f'got {p.shape}')
+            raise ValueError(f'pixels: expected shape ({points_world.shape[0]}, 2), got {p.shape}')
     return points_world, out
 
 
-def refine_seed_lm(params_left: npt.ArrayLike, params_right: npt.ArrayLike,
-                   points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
-                   pixels_right: npt.ArrayLike) -> tuple[FloatArray, FloatArray, RefineInfo]:
+def refine_seed_lm(
+    params_left: npt.ArrayLike,
+    params_right: npt.ArrayLike,
+    points_world: npt.ArrayLike,
+    pixels_left: npt.ArrayLike,
+    pixels_right: npt.ArrayLike,
+) -> tuple[FloatArray, FloatArray, RefineInfo]:
     """Minimise the stereo reprojection error (4.3.2, full model) from a starting guess.
 
     The 11 identifiable parameters per camera (u0, v0, fx = f Nx, fy = f Ny, kappa = k f^2,
@@ -109,42 +113,64 @@ def refine_seed_lm(params_left: npt.ArrayLike, params_right: npt.ArrayLike,
     focal = [p[4] for p in start]
 
     def cameras(x: FloatArray) -> list[FloatArray]:
-        return [_from_identifiable(x[11 * c:11 * c + 11], focal[c]) for c in range(2)]
+        return [_from_identifiable(x[11 * c : 11 * c + 11], focal[c]) for c in range(2)]
 
     def residuals(x: FloatArray) -> FloatArray:
-        return np.concatenate([(project_seed(p[None], points_world)[0] - obs).ravel()
-                               for p, obs in zip(cameras(x), observed)])
+        return np.concatenate(
+            [
+                (project_seed(p[None], points_world)[0] - obs).ravel()
+                for p, obs in zip(cameras(x), observed)
+            ]
+        )
 
     def jacobian(x: FloatArray) -> FloatArray:
         # Central differences, every perturbed camera projected in one population call
         # (the block of each camera; the two cameras share no parameter).
         J = np.zeros((4 * len(points_world), 22))
         for c in range(2):
-            z = x[11 * c:11 * c + 11]
+            z = x[11 * c : 11 * c + 11]
             step = np.finfo(float).eps ** (1 / 3) * np.maximum(1.0, np.abs(z))
-            population = np.array([_from_identifiable(z + sign * step[j] * np.eye(11)[j],
-                                                      focal[c])
-                                   for j in range(11) for sign in (1.0, -1.0)])
+            population = np.array(
+                [
+                    _from_identifiable(z + sign * step[j] * np.eye(11)[j], focal[c])
+                    for j in range(11)
+                    for sign in (1.0, -1.0)
+                ]
+            )
             population[:, 5] = np.maximum(population[:, 5], 0.0)  # kappa at its bound
             uv = project_seed(population, points_world).reshape(11, 2, -1)
             rows = slice(2 * len(points_world) * c, 2 * len(points_world) * (c + 1))
-            J[rows, 11 * c:11 * c + 11] = ((uv[:, 0] - uv[:, 1]) / (2 * step[:, None])).T
+            J[rows, 11 * c : 11 * c + 11] = ((uv[:, 0] - uv[:, 1]) / (2 * step[:, None])).T
         return J
 
     x0 = np.concatenate([_to_identifiable(p) for p in start])
     lower = np.full(22, -np.inf)
     lower[[4, 15]] = 0.0  # kappa >= 0
-    result = least_squares(residuals, x0, bounds=(lower, np.inf), method='trf',
-                           x_scale='jac', jac=jacobian, ftol=1e-15, xtol=1e-15,
-                           gtol=1e-15, max_nfev=200)
+    result = least_squares(
+        residuals,
+        x0,
+        bounds=(lower, np.inf),
+        method='trf',
+        x_scale='jac',
+        jac=jacobian,
+        ftol=1e-15,
+        xtol=1e-15,
+        gtol=1e-15,
+        max_nfev=200,
+    )
     left, right = cameras(result.x)
     dof = max(result.fun.size - result.x.size, 1)
-    covariance = np.sum(result.fun ** 2) / dof * np.linalg.pinv(result.jac.T @ result.jac)
+    covariance = np.sum(result.fun**2) / dof * np.linalg.pinv(result.jac.T @ result.jac)
     rms = np.sqrt(np.mean(result.fun.reshape(2, -1, 2) ** 2, axis=(1, 2)) * 2)
-    info = RefineInfo(rms_left=float(rms[0]), rms_right=float(rms[1]),
-                      iterations=int(result.njev), status=int(result.status),
-                      std=np.sqrt(np.diag(covariance)).reshape(2, 11),
-                      left=identifiable(left), right=identifiable(right))
+    info = RefineInfo(
+        rms_left=float(rms[0]),
+        rms_right=float(rms[1]),
+        iterations=int(result.njev),
+        status=int(result.status),
+        std=np.sqrt(np.diag(covariance)).reshape(2, 11),
+        left=identifiable(left),
+        right=identifiable(right),
+    )
     return left, right, info
 
 
@@ -158,8 +184,9 @@ def _normalise(points: FloatArray) -> FloatArray:
     return T
 
 
-def dlt_camera(points_world: npt.ArrayLike,
-               pixels: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+def dlt_camera(
+    points_world: npt.ArrayLike, pixels: npt.ArrayLike
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Pinhole camera (K, R, t) with pixels ~ K (R x + t), from >= 6 non-coplanar points.
 
     Normalised DLT of the 3x4 P (SVD null vector), then P[:, :3] = K R by RQ, with the
@@ -178,8 +205,7 @@ def dlt_camera(points_world: npt.ArrayLike,
     X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T
     x = np.column_stack([pixels, np.ones(len(pixels))]) @ T2.T
     zero = np.zeros_like(X)
-    A = np.concatenate([np.hstack([X, zero, -x[:, :1] * X]),
-                        np.hstack([zero, X, -x[:, 1:2] * X])])
+    A = np.concatenate([np.hstack([X, zero, -x[:, :1] * X]), np.hstack([zero, X, -x[:, 1:2] * X])])
     P = np.linalg.inv(T2) @ np.linalg.svd(A, full_matrices=False)[2][-1].reshape(3, 4) @ T3
     return decompose_projection(P)
 
@@ -197,9 +223,13 @@ def decompose_projection(P: npt.ArrayLike) -> tuple[FloatArray, FloatArray, Floa
     return K / K[2, 2], R, t
 
 
-def opencv_reference(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
-                     pixels_right: npt.ArrayLike, image_size_left: tuple[int, int],
-                     image_size_right: tuple[int, int]) -> OpenCVReference:
+def opencv_reference(
+    points_world: npt.ArrayLike,
+    pixels_left: npt.ArrayLike,
+    pixels_right: npt.ArrayLike,
+    image_size_left: tuple[int, int],
+    image_size_right: tuple[int, int],
+) -> OpenCVReference:
     """OpenCV calibration of the same single non-planar view, as a reference.
 
     Each camera: DLT intrinsic guess, then ``calibrateCamera`` with
@@ -225,15 +255,43 @@ def opencv_reference(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
         K0[0, 1] = 0.0  # OpenCV has no skew; it needs the principal point in the image
         K0[:2, 2] = np.clip(K0[:2, 2], 0.0, np.asarray(size, dtype=float) - 1.0)
         rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
-            objects, images[-1], tuple(int(s) for s in size), K0, np.zeros(5), flags=flags,
-            criteria=criteria)
+            objects,
+            images[-1],
+            tuple(int(s) for s in size),
+            K0,
+            np.zeros(5),
+            flags=flags,
+            criteria=criteria,
+        )
         fits.append((rms, K, dist.ravel(), cv2.Rodrigues(rvecs[0])[0], tvecs[0].ravel()))
     (rms_l, K_l, d_l, R_l, t_l), (rms_r, K_r, d_r, R_r, t_r) = fits
     rms, *_, R, T, _, _ = cv2.stereoCalibrate(
-        objects, images[0], images[1], K_l, d_l, K_r, d_r,
-        tuple(int(s) for s in image_size_left), flags=cv2.CALIB_FIX_INTRINSIC, criteria=criteria)
-    return OpenCVReference(K_l, K_r, d_l, d_r, R_l, t_l, R_r, t_r, R, T.ravel(),
-                           float(rms_l), float(rms_r), float(rms))
+        objects,
+        images[0],
+        images[1],
+        K_l,
+        d_l,
+        K_r,
+        d_r,
+        tuple(int(s) for s in image_size_left),
+        flags=cv2.CALIB_FIX_INTRINSIC,
+        criteria=criteria,
+    )
+    return OpenCVReference(
+        K_l,
+        K_r,
+        d_l,
+        d_r,
+        R_l,
+        t_l,
+        R_r,
+        t_r,
+        R,
+        T.ravel(),
+        float(rms_l),
+        float(rms_r),
+        float(rms),
+    )
 
 
 class NetworkInfo(NamedTuple):
@@ -252,17 +310,24 @@ def undistort_seed_pixels(params: FloatArray, pixels: npt.ArrayLike) -> FloatArr
     in this direction)."""
     u0, v0, Nx, Ny, k = params[0], params[1], params[2], params[3], params[5]
     xy_d = (np.asarray(pixels, dtype=float) - [u0, v0]) / [Nx, Ny]
-    xy_u = xy_d * (1 + k * np.sum(xy_d ** 2, axis=1, keepdims=True))
+    xy_u = xy_d * (1 + k * np.sum(xy_d**2, axis=1, keepdims=True))
     return xy_u * [Nx, Ny] + [u0, v0]
 
 
 NETWORK_WEIGHTS = ('structured', 'free')
 
 
-def network_refine(params: npt.ArrayLike, points_world: npt.ArrayLike, pixels: npt.ArrayLike,
-                   epochs: int = 3000, rate_D: float = 0.05, rate_B: float = 0.05,
-                   rate_gamma: float = 0.5, weights: str = 'structured',
-                   accept: str = 'if_better') -> tuple[FloatArray, NetworkInfo]:
+def network_refine(
+    params: npt.ArrayLike,
+    points_world: npt.ArrayLike,
+    pixels: npt.ArrayLike,
+    epochs: int = 3000,
+    rate_D: float = 0.05,
+    rate_B: float = 0.05,
+    rate_gamma: float = 0.5,
+    weights: str = 'structured',
+    accept: str = 'if_better',
+) -> tuple[FloatArray, NetworkInfo]:
     """The seed's neural refinement of one camera (ALGORITHMS.md §3.5, 4.5.1-4.5.7).
 
     A linear network: hidden h_i = B W_i (B 4x4, the extrinsics [R T; 0 1]), output
@@ -339,19 +404,22 @@ def network_refine(params: npt.ArrayLike, points_world: npt.ArrayLike, pixels: n
     loss = np.empty(epochs)
     rate = 1.0  # backtracking factor on the three rates [C]: halve when a step raises E
 
-    def error(D: FloatArray, B: FloatArray,
-              gamma: FloatArray) -> tuple[float, FloatArray, FloatArray, FloatArray]:
+    def error(
+        D: FloatArray, B: FloatArray, gamma: FloatArray
+    ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
         h = W @ B.T
         Dh = h @ D.T
         e = d - gamma[:, None] * Dh
-        return 0.5 * np.mean(np.sum(e ** 2, axis=1)), h, Dh, e
+        return 0.5 * np.mean(np.sum(e**2, axis=1)), h, Dh, e
 
     current, h, Dh, e = error(D, B, gamma)
     for epoch in range(epochs):
         ge = gamma[:, None] * e
-        steps = (rate * rate_D * mask_D * (ge.T @ h) / count,
-                 rate * rate_B * mask_B * (D.T @ ge.T @ W) / count,
-                 rate * rate_gamma * np.sum(e * Dh, axis=1))
+        steps = (
+            rate * rate_D * mask_D * (ge.T @ h) / count,
+            rate * rate_B * mask_B * (D.T @ ge.T @ W) / count,
+            rate * rate_gamma * np.sum(e * Dh, axis=1),
+        )
         trial = error(D + steps[0], B + steps[1], gamma + steps[2])
         if trial[0] <= current:
             D, B, gamma = D + steps[0], B + steps[1], gamma + steps[2]
@@ -377,11 +445,16 @@ def network_refine(params: npt.ArrayLike, points_world: npt.ArrayLike, pixels: n
         refined[2:4] = K[0, 0] / params[4], K[1, 1] / params[4]
     refined[6:9] = Rotation.from_matrix(R).as_euler('ZYX')  # alpha, beta, gamma
     refined[9:12] = t
-    rms = [float(np.sqrt(np.mean(np.sum((project_seed(p[None], points_world)[0] - pixels)
-                                        ** 2, axis=1)))) for p in (params, refined)]
+    rms = [
+        float(
+            np.sqrt(
+                np.mean(np.sum((project_seed(p[None], points_world)[0] - pixels) ** 2, axis=1))
+            )
+        )
+        for p in (params, refined)
+    ]
     accepted = accept == 'always' or rms[1] < rms[0]
-    return (refined if accepted else params.copy()), NetworkInfo(rms[0], rms[1], loss,
-                                                                 accepted)
+    return (refined if accepted else params.copy()), NetworkInfo(rms[0], rms[1], loss, accepted)
 
 
 def _null_vector(rows: FloatArray) -> FloatArray:
@@ -434,8 +507,7 @@ def radial_division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike) -> 
     X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T  # (N, 4)
     m = np.column_stack([pixels, np.ones(len(pixels))]) @ T2.T  # (N, 3)
     # Step 1: m~^T M X~ = 0 in normalised coordinates; back: M = T2^T M_n T3.
-    M = T2.T @ _null_vector((m[:, :, None] * X[:, None, :]).reshape(len(X), 12)
-                            ).reshape(3, 4) @ T3
+    M = T2.T @ _null_vector((m[:, :, None] * X[:, None, :]).reshape(len(X), 12)).reshape(3, 4) @ T3
     c = np.linalg.svd(M.T)[2][-1]
     u0, v0 = c[:2] / c[2]
     # Step 2: (u - u0) B X~ - (v - v0) A X~ = 0, world normalised (X~_n = T3 X~).
@@ -449,7 +521,7 @@ def radial_division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike) -> 
     rows = _orthonormal_rows(AB[:, :3] / norms[:, None])
     # Step 3: linear in theta = (t3, lambda, lambda t3, fx), pixel offsets in px.
     mx, my = offsets[:, 0], offsets[:, 1]
-    rho = mx ** 2 + (my / aspect) ** 2
+    rho = mx**2 + (my / aspect) ** 2
     for sign in (1.0, -1.0):
         r12 = sign * rows
         t12 = sign * translation_xy
@@ -457,22 +529,26 @@ def radial_division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike) -> 
         cam = points_world @ R.T  # without t3
         x1, y1 = cam[:, 0] + t12[0], cam[:, 1] + t12[1]
         z = cam[:, 2]
-        system = np.concatenate([
-            np.column_stack([mx, rho * mx * z, rho * mx, -x1]),
-            np.column_stack([my, rho * my * z, rho * my, -aspect * y1])])
+        system = np.concatenate(
+            [
+                np.column_stack([mx, rho * mx * z, rho * mx, -x1]),
+                np.column_stack([my, rho * my * z, rho * my, -aspect * y1]),
+            ]
+        )
         rhs = -np.concatenate([mx * z, my * z])
         column_scale = 1.0 / np.maximum(np.linalg.norm(system, axis=0), 1e-300)
         theta = np.linalg.lstsq(system * column_scale, rhs, rcond=None)[0] * column_scale
         t3, lam, _, fx = theta
         if fx > 0:
             break
-    kappa = max(float(lam) * fx ** 2, 0.0)
+    kappa = max(float(lam) * fx**2, 0.0)
     angles = Rotation.from_matrix(R).as_euler('ZYX')  # R = Rz(alpha) Ry(beta) Rx(gamma)
     return np.r_[u0, v0, fx, aspect * fx, 1.0, kappa, angles, t12, t3]
 
 
-def _rac_pose(points_world: FloatArray, pixels: FloatArray,
-              centre: FloatArray) -> tuple[FloatArray, FloatArray, float]:
+def _rac_pose(
+    points_world: FloatArray, pixels: FloatArray, centre: FloatArray
+) -> tuple[FloatArray, FloatArray, float]:
     """Tsai's radial alignment constraint with the centre known: (r1, r2) orthonormal rows
     (2, 3), (t1, t2) and the aspect fy / fx from m_x (B X~) - m_y (A X~) = 0 with
     A ~ fx [r1 t1], B ~ fy [r2 t2] (8 unknowns, SVD null vector; exact without noise
@@ -487,8 +563,13 @@ def _rac_pose(points_world: FloatArray, pixels: FloatArray,
     return _orthonormal_rows(AB[:, :3] / norms[:, None]), AB[:, 3] / norms, norms[1] / norms[0]
 
 
-def division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike, grid: int = 9,
-                  depths: int = 48, keep: int = 3) -> list[FloatArray]:
+def division_init(
+    points_world: npt.ArrayLike,
+    pixels: npt.ArrayLike,
+    grid: int = 9,
+    depths: int = 48,
+    keep: int = 3,
+) -> list[FloatArray]:
     """Closed-form start candidates (seed params (12,) with f = 1) for the division model
     (§3.2), best first by their full-model reprojection RMS.
 
@@ -528,13 +609,18 @@ def division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike, grid: int 
             t3 = -cam[:, 2].min() + extent * np.geomspace(0.1, 1000, depths)  # Z > 0
             depth = cam[None, :, 2] + t3[:, None]  # (depths, N)
             # per t3: m = fx a - lambda b, a = (x1, aspect y1) / Z, b = rho m
-            a = np.concatenate([(cam[:, 0] + sign * t12[0]) / depth,
-                                aspect * (cam[:, 1] + sign * t12[1]) / depth], axis=1)
+            a = np.concatenate(
+                [
+                    (cam[:, 0] + sign * t12[0]) / depth,
+                    aspect * (cam[:, 1] + sign * t12[1]) / depth,
+                ],
+                axis=1,
+            )
             m = offsets.T.ravel()
             b = np.concatenate([rho, rho]) * m
             saa, sab, sbb = np.sum(a * a, axis=1), a @ b, b @ b
             sam, sbm = a @ m, b @ m
-            det = saa * sbb - sab ** 2
+            det = saa * sbb - sab**2
             with np.errstate(all='ignore'):
                 fx = (sbb * sam - sab * sbm) / det
                 lam = -(saa * sbm - sab * sam) / det
@@ -542,14 +628,25 @@ def division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike, grid: int 
             if not np.any(good):
                 continue
             angles = Rotation.from_matrix(R).as_euler('ZYX')
-            population = np.column_stack([
-                np.full(good.sum(), centre[0]), np.full(good.sum(), centre[1]),
-                fx[good], aspect * fx[good], np.ones(good.sum()),
-                np.maximum(lam[good], 0.0) * fx[good] ** 2, np.tile(angles, (good.sum(), 1)),
-                np.tile(sign * t12, (good.sum(), 1)), t3[good]])
+            population = np.column_stack(
+                [
+                    np.full(good.sum(), centre[0]),
+                    np.full(good.sum(), centre[1]),
+                    fx[good],
+                    aspect * fx[good],
+                    np.ones(good.sum()),
+                    np.maximum(lam[good], 0.0) * fx[good] ** 2,
+                    np.tile(angles, (good.sum(), 1)),
+                    np.tile(sign * t12, (good.sum(), 1)),
+                    t3[good],
+                ]
+            )
             error = np.sqrt(score(population) / len(pixels))
-            best = int(np.nanargmin(np.where(np.isfinite(error), error, np.nan))) \
-                if np.any(np.isfinite(error)) else None
+            best = (
+                int(np.nanargmin(np.where(np.isfinite(error), error, np.nan)))
+                if np.any(np.isfinite(error))
+                else None
+            )
             if best is not None:
                 candidates.append((float(error[best]), population[best]))
     if not candidates:
@@ -558,15 +655,16 @@ def division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike, grid: int 
     return [params for _, params in candidates[:keep]]
 
 
-def calibrate_seed_stereo(points_world: npt.ArrayLike, pixels_left: npt.ArrayLike,
-                          pixels_right: npt.ArrayLike
-                          ) -> tuple[FloatArray, FloatArray, RefineInfo]:
+def calibrate_seed_stereo(
+    points_world: npt.ArrayLike, pixels_left: npt.ArrayLike, pixels_right: npt.ArrayLike
+) -> tuple[FloatArray, FloatArray, RefineInfo]:
     """Ours on the thesis's setting: :func:`division_init` per camera, then
     :func:`refine_seed_lm` over both cameras (full implicit division model).
 
     Returns:
         (left (12,), right (12,), :class:`RefineInfo`) as :func:`refine_seed_lm`.
     """
-    start_left, start_right = [division_init(points_world, uv)[0]
-                               for uv in (pixels_left, pixels_right)]
+    start_left, start_right = [
+        division_init(points_world, uv)[0] for uv in (pixels_left, pixels_right)
+    ]
     return refine_seed_lm(start_left, start_right, points_world, pixels_left, pixels_right)

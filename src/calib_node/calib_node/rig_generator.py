@@ -6,6 +6,7 @@ from a seeded generator. No rclpy.
 The chart is the one of INTERFACES.md ("The calibration chart", ``sensor_sim.chart``):
 ``rows`` x ``cols`` inner corners, a white margin, corner (0, 0) at the black end.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
@@ -32,8 +33,9 @@ CHARTS = ((6, 9, 0.025), (5, 8, 0.03), (7, 10, 0.02), (6, 7, 0.035), (8, 11, 0.0
 GreyImage = npt.NDArray[np.uint8]
 Lens = tuple[FloatArray, FloatArray, tuple[int, int]]  # K (3, 3), D (5,), (width, height)
 # vgm_common.calibration_io.stereo_rectification: (left, right) -> {name: (R, P)}
-Rectification = Callable[[PinholeCamera, PinholeCamera],
-                         Mapping[str, tuple[np.ndarray, np.ndarray]]]
+Rectification = Callable[
+    [PinholeCamera, PinholeCamera], Mapping[str, tuple[np.ndarray, np.ndarray]]
+]
 
 
 class Rig(NamedTuple):
@@ -46,32 +48,48 @@ class Rig(NamedTuple):
     params: dict[str, int | float | str]  # what was drawn (for the bench's tables)
 
 
-def _lens(rng: np.random.Generator, width: int,
-          focal_range: tuple[float, float] = (400.0, 1400.0),
-          k1_range: tuple[float, float] = (-0.4, 0.1)) -> Lens:
+def _lens(
+    rng: np.random.Generator,
+    width: int,
+    focal_range: tuple[float, float] = (400.0, 1400.0),
+    k1_range: tuple[float, float] = (-0.4, 0.1),
+) -> Lens:
     """K and plumb_bob D of a lens: square pixels up to 0.5 % aspect, principal point
     within 4 % of the centre, k1 drawn, k2 of the opposite sign as real lenses have."""
     f = rng.uniform(*focal_range) * width / 1280 * rng.uniform(1.0, 1.4)
     f = float(np.clip(f, *focal_range))
     height = int(width * 3 / 4)
-    K = np.array([[f, 0, width / 2 + rng.uniform(-0.04, 0.04) * width],
-                  [0, f * rng.uniform(0.995, 1.005), height / 2
-                   + rng.uniform(-0.04, 0.04) * height], [0, 0, 1.0]])
+    K = np.array(
+        [
+            [f, 0, width / 2 + rng.uniform(-0.04, 0.04) * width],
+            [0, f * rng.uniform(0.995, 1.005), height / 2 + rng.uniform(-0.04, 0.04) * height],
+            [0, 0, 1.0],
+        ]
+    )
     k1 = rng.uniform(*k1_range)
     D = np.array([k1, -0.4 * k1 * rng.uniform(0.0, 1.0), 0.0, 0.0, 0.0])
     return K, D, (width, height)
 
 
-def board_in_view(camera: PinholeCamera, corners_base: FloatArray, margin_px: float = 8.0,
-                  max_angle_deg: float = 65.0, T_base_chart: FloatArray | None = None) -> bool:
+def board_in_view(
+    camera: PinholeCamera,
+    corners_base: FloatArray,
+    margin_px: float = 8.0,
+    max_angle_deg: float = 65.0,
+    T_base_chart: FloatArray | None = None,
+) -> bool:
     """Whether the whole board (corners padded by one square) is inside the image with
     ``margin_px``, in front of the camera, seen from the printed side at most
     ``max_angle_deg`` from its normal."""
     pixels, depth = camera.project(corners_base)
     if np.any(depth <= 0) or not np.all(np.isfinite(pixels)):
         return False
-    inside = ((pixels[:, 0] > margin_px) & (pixels[:, 0] < camera.width - 1 - margin_px)
-              & (pixels[:, 1] > margin_px) & (pixels[:, 1] < camera.height - 1 - margin_px))
+    inside = (
+        (pixels[:, 0] > margin_px)
+        & (pixels[:, 0] < camera.width - 1 - margin_px)
+        & (pixels[:, 1] > margin_px)
+        & (pixels[:, 1] < camera.height - 1 - margin_px)
+    )
     if not np.all(inside):
         return False
     if T_base_chart is not None:
@@ -86,13 +104,18 @@ def _outline_points(rows: int, cols: int, spacing: float) -> FloatArray:
     """The board's outer squares' corners (padded by one square) in the chart frame."""
     xs = np.array([-spacing, cols * spacing])
     ys = np.array([-spacing, rows * spacing])
-    grid = np.array([(x, y, 0.0) for x in np.linspace(xs[0], xs[1], 5)
-                     for y in np.linspace(ys[0], ys[1], 5)])
+    grid = np.array(
+        [(x, y, 0.0) for x in np.linspace(xs[0], xs[1], 5) for y in np.linspace(ys[0], ys[1], 5)]
+    )
     return grid
 
 
-def draw_rig(seed: int, cameras: Sequence[str] = ('left', 'right', 'aux'),
-             views: int | None = None, noise: float | None = None) -> Rig:
+def draw_rig(
+    seed: int,
+    cameras: Sequence[str] = ('left', 'right', 'aux'),
+    views: int | None = None,
+    noise: float | None = None,
+) -> Rig:
     """A random rig and chart poses (issue 12's ranges), from an integer ``seed``.
 
     Left: width 640..1280 (4:3), f 400..1400 px, k1 in [-0.4, 0.1], k2 = -0.4 k1 * U(0, 1).
@@ -123,20 +146,29 @@ def draw_rig(seed: int, cameras: Sequence[str] = ('left', 'right', 'aux'),
     distance = max(board[0] / (0.5 * fov), 2.5 * baseline / fov)
     # Fixation point on the pair's bisector; toe-in turns each axis to it.
     fixation = np.array([baseline / 2, 0.0, distance])
-    poses = {'left': make_transform(rot_y(vergence / 2), [0, 0, 0]),
-             'right': make_transform(rot_y(-vergence / 2), [baseline, 0, 0])}
+    poses = {
+        'left': make_transform(rot_y(vergence / 2), [0, 0, 0]),
+        'right': make_transform(rot_y(-vergence / 2), [baseline, 0, 0]),
+    }
     if 'aux' in cameras:
         oblique = np.radians(rng.uniform(0.0, 45.0))
         azimuth = rng.uniform(0, 2 * np.pi)
         aux_width = lenses['aux'][2][0]
         aux_distance = max(board[0] / (0.5 * aux_width / lenses['aux'][0][0, 0]), distance * 0.6)
-        direction = np.array([np.sin(oblique) * np.cos(azimuth),
-                              np.sin(oblique) * np.sin(azimuth), -np.cos(oblique)])
+        direction = np.array(
+            [
+                np.sin(oblique) * np.cos(azimuth),
+                np.sin(oblique) * np.sin(azimuth),
+                -np.cos(oblique),
+            ]
+        )
         centre = fixation + aux_distance * direction
         up = np.array([0.0, -1.0, 0.0])  # image up is -y of the left optical frame
         poses['aux'] = make_transform(look_at_rotation(centre, fixation, up), centre)
-    T_base_rig = make_transform(rot_z(rng.uniform(-np.pi, np.pi)) @ rot_x(rng.uniform(-2.5, -1.5)),
-                                rng.uniform(-0.5, 0.5, 3) + [0, 0, 1.0])
+    T_base_rig = make_transform(
+        rot_z(rng.uniform(-np.pi, np.pi)) @ rot_x(rng.uniform(-2.5, -1.5)),
+        rng.uniform(-0.5, 0.5, 3) + [0, 0, 1.0],
+    )
     truth = {}
     for name in cameras:
         K, D, size = lenses[name]
@@ -152,29 +184,44 @@ def draw_rig(seed: int, cameras: Sequence[str] = ('left', 'right', 'aux'),
         # Chart frame in the rig frame: z away from the cameras, tilted, turned in plane.
         spread = 0.25 if attempts < 5000 else 0.1
         centre = fixation + rng.uniform(-spread, spread, 3) * [board[0], board[1], distance]
-        R = (rot_x(rng.uniform(-0.7, 0.7)) @ rot_y(rng.uniform(-0.7, 0.7))
-             @ rot_z(rng.uniform(-0.35, 0.35)))
+        R = (
+            rot_x(rng.uniform(-0.7, 0.7))
+            @ rot_y(rng.uniform(-0.7, 0.7))
+            @ rot_z(rng.uniform(-0.35, 0.35))
+        )
         T_rig_chart = make_transform(R, centre - R @ centre_chart)
         T_base_chart = T_base_rig @ T_rig_chart
         outline_base = outline @ T_base_chart[:3, :3].T + T_base_chart[:3, 3]
-        if all(board_in_view(camera, outline_base, T_base_chart=T_base_chart)
-               for camera in truth.values()):
+        if all(
+            board_in_view(camera, outline_base, T_base_chart=T_base_chart)
+            for camera in truth.values()
+        ):
             charts.append(T_base_chart)
     params: dict[str, int | float | str] = {
-        'width': width, 'baseline_m': baseline, 'vergence_deg': float(np.degrees(vergence)),
-        'views': views, 'noise': noise, 'chart': f'{rows}x{cols} @ {spacing * 1000:g} mm',
+        'width': width,
+        'baseline_m': baseline,
+        'vergence_deg': float(np.degrees(vergence)),
+        'views': views,
+        'noise': noise,
+        'chart': f'{rows}x{cols} @ {spacing * 1000:g} mm',
         'f_left': float(lenses['left'][0][0, 0]),
-        'k1_left': float(lenses['left'][1][0]), 'k1_right': float(lenses['right'][1][0])}
+        'k1_left': float(lenses['left'][1][0]),
+        'k1_right': float(lenses['right'][1][0]),
+    }
     if 'aux' in cameras:
-        params.update(aux_oblique_deg=float(np.degrees(oblique)),
-                      aux_width=int(lenses['aux'][2][0]), f_aux=float(lenses['aux'][0][0, 0]))
+        params.update(
+            aux_oblique_deg=float(np.degrees(oblique)),
+            aux_width=int(lenses['aux'][2][0]),
+            f_aux=float(lenses['aux'][0][0, 0]),
+        )
     return Rig(truth, charts, int(rows), int(cols), float(spacing), noise, params)
 
 
 def _undistortion_map(camera: PinholeCamera) -> FloatArray:
     """Normalised undistorted (x, y) at the pixel centres -1..W, -1..H: (H + 2, W + 2, 2)."""
-    u, v = np.meshgrid(np.arange(-1, camera.width + 1, dtype=float),
-                       np.arange(-1, camera.height + 1, dtype=float))
+    u, v = np.meshgrid(
+        np.arange(-1, camera.width + 1, dtype=float), np.arange(-1, camera.height + 1, dtype=float)
+    )
     xy = camera.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
     return xy.reshape(camera.height + 2, camera.width + 2, 2)
 
@@ -186,8 +233,9 @@ def _bilinear(grid: FloatArray, u: FloatArray, v: FloatArray) -> FloatArray:
     i = np.clip(np.floor(gu).astype(int), 0, cols - 2)
     j = np.clip(np.floor(gv).astype(int), 0, rows - 2)
     fu, fv = (gu - i)[..., None], (gv - j)[..., None]
-    return ((grid[j, i] * (1 - fu) + grid[j, i + 1] * fu) * (1 - fv)
-            + (grid[j + 1, i] * (1 - fu) + grid[j + 1, i + 1] * fu) * fv)
+    return (grid[j, i] * (1 - fu) + grid[j, i + 1] * fu) * (1 - fv) + (
+        grid[j + 1, i] * (1 - fu) + grid[j + 1, i + 1] * fu
+    ) * fv
 
 
 class ChartRenderer:
@@ -201,8 +249,13 @@ class ChartRenderer:
         # id(camera) -> (camera, its undistortion map); holding the camera keeps its id unique
         self._maps: dict[int, tuple[PinholeCamera, FloatArray]] = {}
 
-    def render(self, camera: PinholeCamera, T_base_chart: FloatArray,
-               rng: np.random.Generator | None = None, noise: float = 0.0) -> GreyImage:
+    def render(
+        self,
+        camera: PinholeCamera,
+        T_base_chart: FloatArray,
+        rng: np.random.Generator | None = None,
+        noise: float = 0.0,
+    ) -> GreyImage:
         """(H, W) uint8 image of the chart at ``T_base_chart``; Gaussian noise ``noise``
         grey levels from ``rng``, then rounding (the camera's quantisation)."""
         from sensor_sim.chart import chart_plate_extent
@@ -214,8 +267,9 @@ class ChartRenderer:
         image = np.full((camera.height, camera.width), BACKGROUND_GREY)
         T_camera_chart = camera.T_camera_base @ T_base_chart
         (x0, x1), (y0, y1) = chart_plate_extent(self.rows, self.cols, self.spacing)
-        plate = np.array([(x, y, 0.0) for x in np.linspace(x0, x1, 9)
-                          for y in np.linspace(y0, y1, 9)])
+        plate = np.array(
+            [(x, y, 0.0) for x in np.linspace(x0, x1, 9) for y in np.linspace(y0, y1, 9)]
+        )
         pixels, _ = camera.project(plate @ T_base_chart[:3, :3].T + T_base_chart[:3, 3])
         pixels = pixels[np.all(np.isfinite(pixels), axis=1)]
         if len(pixels) == 0:
@@ -231,11 +285,18 @@ class ChartRenderer:
         cu, cv = np.meshgrid(np.arange(u0, u1 + 1) - 0.5, np.arange(v0, v1 + 1) - 0.5)
         corner_grey = sample(_bilinear(grid, cu, cv))
         block = corner_grey[:-1, :-1].copy()
-        mixed = ((corner_grey[:-1, :-1] != corner_grey[1:, :-1])
-                 | (corner_grey[:-1, :-1] != corner_grey[:-1, 1:])
-                 | (corner_grey[:-1, :-1] != corner_grey[1:, 1:]))
-        mixed = mixed | np.roll(mixed, 1, 0) | np.roll(mixed, -1, 0) | np.roll(mixed, 1, 1) \
-            | np.roll(mixed, -1, 1)  # an edge may pass between the corners of a pixel
+        mixed = (
+            (corner_grey[:-1, :-1] != corner_grey[1:, :-1])
+            | (corner_grey[:-1, :-1] != corner_grey[:-1, 1:])
+            | (corner_grey[:-1, :-1] != corner_grey[1:, 1:])
+        )
+        mixed = (
+            mixed
+            | np.roll(mixed, 1, 0)
+            | np.roll(mixed, -1, 0)
+            | np.roll(mixed, 1, 1)
+            | np.roll(mixed, -1, 1)
+        )  # an edge may pass between the corners of a pixel
         r, c = np.nonzero(mixed)
         s = self.supersample
         offsets = (np.arange(s) + 0.5) / s - 0.5
@@ -259,8 +320,12 @@ class ChartRenderer:
                 depth = (normal @ origin) / (normal[0] * x + normal[1] * y + normal[2])
             chart_x = depth * (R[0, 0] * x + R[1, 0] * y + R[2, 0]) - R[:, 0] @ origin
             chart_y = depth * (R[0, 1] * x + R[1, 1] * y + R[2, 1]) - R[:, 1] @ origin
-            albedo = chart_albedo(np.column_stack([chart_x.ravel(), chart_y.ravel()]),
-                                  self.rows, self.cols, self.spacing).reshape(x.shape)
+            albedo = chart_albedo(
+                np.column_stack([chart_x.ravel(), chart_y.ravel()]),
+                self.rows,
+                self.cols,
+                self.spacing,
+            ).reshape(x.shape)
             grey = np.where(albedo > 0.5, WHITE_GREY, BLACK_GREY)
             return np.where(np.isfinite(albedo) & (depth > 0), grey, BACKGROUND_GREY)
 
@@ -278,23 +343,34 @@ def render_rig(rig: Rig, seed: int = 0, supersample: int = 4) -> list[dict[str, 
     """Every view of every camera: [{name: (H, W) uint8}], noise from ``seed``."""
     rng = np.random.default_rng(seed)
     renderer = ChartRenderer(rig.rows, rig.cols, rig.spacing, supersample)
-    return [{name: renderer.render(camera, T, rng, rig.noise)
-             for name, camera in rig.cameras.items()} for T in rig.T_base_chart]
+    return [
+        {name: renderer.render(camera, T, rng, rig.noise) for name, camera in rig.cameras.items()}
+        for T in rig.T_base_chart
+    ]
 
 
 def true_corners(rig: Rig) -> list[dict[str, FloatArray]]:
     """[{name: (rows * cols, 2)}] true corner pixels of every view and camera."""
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
-    return [{name: camera.project(chart @ T[:3, :3].T + T[:3, 3])[0]
-             for name, camera in rig.cameras.items()} for T in rig.T_base_chart]
+    return [
+        {
+            name: camera.project(chart @ T[:3, :3].T + T[:3, 3])[0]
+            for name, camera in rig.cameras.items()
+        }
+        for T in rig.T_base_chart
+    ]
 
 
 def _angle_deg(R: FloatArray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
-def score_rig(truth: Mapping[str, PinholeCamera], estimate: Mapping[str, PinholeCamera],
-              absolute: bool = False, reference: str = 'left') -> dict[str, float]:
+def score_rig(
+    truth: Mapping[str, PinholeCamera],
+    estimate: Mapping[str, PinholeCamera],
+    absolute: bool = False,
+    reference: str = 'left',
+) -> dict[str, float]:
     """Errors of a calibrated rig against the truth, worst camera per figure.
 
     Args:
@@ -322,8 +398,9 @@ def score_rig(truth: Mapping[str, PinholeCamera], estimate: Mapping[str, Pinhole
         xy = true.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
         d_true = distort_normalized(xy, true.D) * [true.K[0, 0], true.K[1, 1]]
         d_est = distort_normalized(xy, est.D) * [true.K[0, 0], true.K[1, 1]]
-        out['distortion'] = max(out['distortion'],
-                                float(np.max(np.linalg.norm(d_true - d_est, axis=1))))
+        out['distortion'] = max(
+            out['distortion'], float(np.max(np.linalg.norm(d_true - d_est, axis=1)))
+        )
         if absolute:
             T_true, T_est = true.T_base_camera, est.T_base_camera
         else:
@@ -331,8 +408,7 @@ def score_rig(truth: Mapping[str, PinholeCamera], estimate: Mapping[str, Pinhole
                 continue
             T_true = np.linalg.inv(truth[reference].T_base_camera) @ true.T_base_camera
             T_est = np.linalg.inv(estimate[reference].T_base_camera) @ est.T_base_camera
-        out['position'] = max(out['position'], float(np.linalg.norm(T_true[:3, 3]
-                                                                    - T_est[:3, 3])))
+        out['position'] = max(out['position'], float(np.linalg.norm(T_true[:3, 3] - T_est[:3, 3])))
         out['rotation'] = max(out['rotation'], _angle_deg(T_true[:3, :3].T @ T_est[:3, :3]))
     if 'left' in truth and 'right' in truth:
         b_true = np.linalg.norm(truth['left'].centre_base - truth['right'].centre_base)
@@ -342,9 +418,11 @@ def score_rig(truth: Mapping[str, PinholeCamera], estimate: Mapping[str, Pinhole
     return out
 
 
-def rectified_row_error(truth: Mapping[str, PinholeCamera],
-                        estimate: Mapping[str, PinholeCamera],
-                        stereo_rectification: Rectification) -> float:
+def rectified_row_error(
+    truth: Mapping[str, PinholeCamera],
+    estimate: Mapping[str, PinholeCamera],
+    stereo_rectification: Rectification,
+) -> float:
     """RMS |v_left - v_right| [px] of true correspondences (points 1..3 m in front of the
     true left camera, seen by both) rectified with the estimated pair."""
     rng = np.random.default_rng(0)
@@ -352,8 +430,11 @@ def rectified_row_error(truth: Mapping[str, PinholeCamera],
     u = rng.uniform(0, left.width - 1, 400)
     v = rng.uniform(0, left.height - 1, 400)
     rays = left.pixel_rays_base(np.column_stack([u, v]))
-    depth = rng.uniform(0.5, 3.0, 400)[:, None] * np.linalg.norm(
-        left.centre_base - right.centre_base) / 0.1
+    depth = (
+        rng.uniform(0.5, 3.0, 400)[:, None]
+        * np.linalg.norm(left.centre_base - right.centre_base)
+        / 0.1
+    )
     points = left.centre_base + rays * depth
     uv_l, _ = left.project(points)
     uv_r, d_r = right.project(points)

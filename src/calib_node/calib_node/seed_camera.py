@@ -9,6 +9,7 @@ yaw, pitch, roll [rad] with R = Rz(alpha) Ry(beta) Rx(gamma) [C], and the transl
 [unit], where R, T map world to camera: X = R x + T. Units are the thesis's (1 unit = 1 mm
 in the ch4_calibration scenario). Images are non-inverted: Xu = f X / Z.
 """
+
 from __future__ import annotations
 
 from typing import NamedTuple
@@ -23,17 +24,45 @@ DISTORTIONS = ('implicit', 'explicit')
 
 # Tables 4.1 / 4.2 [T]. Right gamma = k = 0.15152 looks like a copy error; used as
 # printed (A4.8).
-LEFT_TRUTH = np.array([20.0, 19.0, 200.0, 200.0, 10.0, 0.15152, 0.0, 0.0, 0.0,
-                       60.0, 35.0, 1210.0])
-RIGHT_TRUTH = np.array([256.0, 192.0, 144.0, 144.0, 25.0, 0.15152, -1.90, 0.20916, 0.15152,
-                        -38.0, 35.0, 1210.0])
+LEFT_TRUTH = np.array([20.0, 19.0, 200.0, 200.0, 10.0, 0.15152, 0.0, 0.0, 0.0, 60.0, 35.0, 1210.0])
+RIGHT_TRUTH = np.array(
+    [256.0, 192.0, 144.0, 144.0, 25.0, 0.15152, -1.90, 0.20916, 0.15152, -38.0, 35.0, 1210.0]
+)
 # (12, 2) rows of [lower, upper], same order as the parameters.
-LEFT_BOUNDS = np.array([[0, 50], [0, 50], [0, 300], [0, 300], [0, 50], [0, 1],
-                        [-np.pi, np.pi], [-np.pi, np.pi], [-np.pi, np.pi],
-                        [0, 100], [0, 100], [0, 1600]], dtype=float)
-RIGHT_BOUNDS = np.array([[0, 300], [0, 300], [0, 300], [0, 300], [0, 50], [0, 1],
-                         [-np.pi, np.pi], [-np.pi, np.pi], [-np.pi, np.pi],
-                         [-100, 100], [0, 100], [0, 1600]], dtype=float)
+LEFT_BOUNDS = np.array(
+    [
+        [0, 50],
+        [0, 50],
+        [0, 300],
+        [0, 300],
+        [0, 50],
+        [0, 1],
+        [-np.pi, np.pi],
+        [-np.pi, np.pi],
+        [-np.pi, np.pi],
+        [0, 100],
+        [0, 100],
+        [0, 1600],
+    ],
+    dtype=float,
+)
+RIGHT_BOUNDS = np.array(
+    [
+        [0, 300],
+        [0, 300],
+        [0, 300],
+        [0, 300],
+        [0, 50],
+        [0, 1],
+        [-np.pi, np.pi],
+        [-np.pi, np.pi],
+        [-np.pi, np.pi],
+        [-100, 100],
+        [0, 100],
+        [0, 1600],
+    ],
+    dtype=float,
+)
 for _array in (LEFT_TRUTH, RIGHT_TRUTH, LEFT_BOUNDS, RIGHT_BOUNDS):
     _array.setflags(write=False)
 
@@ -79,7 +108,7 @@ def distorted_radius(r_u: npt.ArrayLike, k: npt.ArrayLike) -> FloatArray:
     positive = k > 0
     s = np.sqrt(3 * np.where(positive, k, 1.0))
     r = np.where(positive, 2 / s * np.sinh(np.arcsinh(1.5 * s * r_u) / 3), r_u)
-    return r - (k * r ** 3 + r - r_u) / (3 * k * r ** 2 + 1)
+    return r - (k * r**3 + r - r_u) / (3 * k * r**2 + 1)
 
 
 def camera_points(params: FloatArray, points_world: FloatArray) -> FloatArray:
@@ -92,8 +121,9 @@ def camera_points(params: FloatArray, points_world: FloatArray) -> FloatArray:
     return X
 
 
-def _check(params: npt.ArrayLike, points_world: npt.ArrayLike,
-           distortion: str) -> tuple[FloatArray, FloatArray]:
+def _check(
+    params: npt.ArrayLike, points_world: npt.ArrayLike, distortion: str
+) -> tuple[FloatArray, FloatArray]:
     params = np.asarray(params, dtype=float)
     points_world = np.asarray(points_world, dtype=float)
     if params.ndim != 2 or params.shape[1] != 12:
@@ -107,8 +137,9 @@ def _check(params: npt.ArrayLike, points_world: npt.ArrayLike,
     return params, points_world
 
 
-def project_with_depth(params: npt.ArrayLike, points_world: npt.ArrayLike,
-                       distortion: str = 'implicit') -> tuple[FloatArray, FloatArray]:
+def project_with_depth(
+    params: npt.ArrayLike, points_world: npt.ArrayLike, distortion: str = 'implicit'
+) -> tuple[FloatArray, FloatArray]:
     """Like :func:`project_seed`, also returning the camera depths Z (P, N) [unit]."""
     params, points_world = _check(params, points_world, distortion)
     X = camera_points(params, points_world)
@@ -126,8 +157,9 @@ def project_with_depth(params: npt.ArrayLike, points_world: npt.ArrayLike,
     return uv, Z
 
 
-def project_seed(params: npt.ArrayLike, points_world: npt.ArrayLike,
-                 distortion: str = 'implicit') -> FloatArray:
+def project_seed(
+    params: npt.ArrayLike, points_world: npt.ArrayLike, distortion: str = 'implicit'
+) -> FloatArray:
     """Pixels of N world points in each of P cameras (§3.2, 4.2.1-4.2.4).
 
     Args:
@@ -151,11 +183,15 @@ def identifiable(params: npt.ArrayLike) -> Identifiable:
     if params.shape[-1] != 12:
         raise ValueError(f'params: expected shape (..., 12), got {params.shape}')
     f = params[..., 4]
-    return Identifiable(fx=f * params[..., 2], fy=f * params[..., 3],
-                        kappa=params[..., 5] * f ** 2, u0=params[..., 0].copy(),
-                        v0=params[..., 1].copy(),
-                        R=rpy_to_matrix(params[..., 8], params[..., 7], params[..., 6]),
-                        T=params[..., 9:12].copy())
+    return Identifiable(
+        fx=f * params[..., 2],
+        fy=f * params[..., 3],
+        kappa=params[..., 5] * f**2,
+        u0=params[..., 0].copy(),
+        v0=params[..., 1].copy(),
+        R=rpy_to_matrix(params[..., 8], params[..., 7], params[..., 6]),
+        T=params[..., 9:12].copy(),
+    )
 
 
 class PopulationCost:
@@ -171,13 +207,16 @@ class PopulationCost:
     +inf. ``distortion='explicit'`` (r = r_u) falls back to :func:`project_with_depth`.
     """
 
-    def __init__(self, points_world: npt.ArrayLike, pixels: npt.ArrayLike,
-                 distortion: str = 'implicit') -> None:
+    def __init__(
+        self, points_world: npt.ArrayLike, pixels: npt.ArrayLike, distortion: str = 'implicit'
+    ) -> None:
         self.points_t = np.ascontiguousarray(np.asarray(points_world, dtype=float).T)  # 3 N
         pixels = np.asarray(pixels, dtype=float)
         if self.points_t.shape[0] != 3 or pixels.shape != (self.points_t.shape[1], 2):
-            raise ValueError(f'points_world (N, 3) and pixels (N, 2) expected, got '
-                             f'{self.points_t.T.shape} and {pixels.shape}')
+            raise ValueError(
+                f'points_world (N, 3) and pixels (N, 2) expected, got '
+                f'{self.points_t.T.shape} and {pixels.shape}'
+            )
         if distortion not in DISTORTIONS:
             raise ValueError(f'distortion: expected one of {DISTORTIONS}, got {distortion!r}')
         self.points_world = self.points_t.T

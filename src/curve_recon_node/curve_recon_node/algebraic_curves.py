@@ -9,6 +9,7 @@ decreasing power of X, i.e. for n = 2: 1, X, Y, X^2, XY, Y^2 and for n = 3 then
 X^3, X^2 Y, X Y^2, Y^3. The thesis's conic (3.4.1) A X^2 + B Y^2 + C XY + D X + E Y + F is
 a = (F, D, E, A, C, B) in this order.
 """
+
 from __future__ import annotations
 
 from functools import lru_cache
@@ -27,8 +28,9 @@ def monomial_exponents(degree: int) -> IntArray:
     """(M, 2) int exponents (j, l) of X^j Y^l, j + l <= degree, in the module's order;
     M = (degree + 1)(degree + 2) / 2."""
     if int(degree) != degree or degree < 1:
-        raise InvalidInput(f'degree: expected an integer >= 1, got {degree!r}',
-                           key='degree', value=degree)
+        raise InvalidInput(
+            f'degree: expected an integer >= 1, got {degree!r}', key='degree', value=degree
+        )
     return _exponents(int(degree))
 
 
@@ -43,8 +45,7 @@ def _exponents(degree: int) -> IntArray:
 def _as_xy(xy: npt.ArrayLike) -> FloatArray:
     xy = np.asarray(xy, dtype=float)
     if xy.ndim != 2 or xy.shape[1] != 2:
-        raise InvalidInput(f'xy: expected shape (N, 2), got {xy.shape}', key='xy',
-                           value=xy.shape)
+        raise InvalidInput(f'xy: expected shape (N, 2), got {xy.shape}', key='xy', value=xy.shape)
     return xy
 
 
@@ -69,8 +70,11 @@ def check_coefficients(a: npt.ArrayLike, degree: int) -> FloatArray:
     a = np.asarray(a, dtype=float)
     size = len(monomial_exponents(degree))
     if a.shape != (size,):
-        raise InvalidInput(f'coefficients: expected shape ({size},) for degree {degree}, '
-                           f'got {a.shape}', key='coefficients', value=a.shape)
+        raise InvalidInput(
+            f'coefficients: expected shape ({size},) for degree {degree}, got {a.shape}',
+            key='coefficients',
+            value=a.shape,
+        )
     return a
 
 
@@ -79,8 +83,7 @@ def _shift_scale_matrix(mean: FloatArray, scale: float, degree: int) -> FloatArr
     rows, columns, total, binomial, power_x, power_y = _shift_scale_terms(int(degree))
     size = len(monomial_exponents(degree))
     T = np.zeros((size, size))
-    T[rows, columns] = (scale ** total * binomial * (-mean[0]) ** power_x
-                        * (-mean[1]) ** power_y)
+    T[rows, columns] = scale**total * binomial * (-mean[0]) ** power_x * (-mean[1]) ** power_y
     return T
 
 
@@ -92,9 +95,12 @@ def _shift_scale_terms(degree: int) -> tuple[IntArray, ...]:
     occurs once)."""
     exponents = monomial_exponents(degree)
     index = {tuple(e): i for i, e in enumerate(exponents)}
-    terms = [(row, index[p, q], jx + jy, comb(jx, p) * comb(jy, q), jx - p, jy - q)
-             for row, (jx, jy) in enumerate(exponents)
-             for p in range(jx + 1) for q in range(jy + 1)]
+    terms = [
+        (row, index[p, q], jx + jy, comb(jx, p) * comb(jy, q), jx - p, jy - q)
+        for row, (jx, jy) in enumerate(exponents)
+        for p in range(jx + 1)
+        for q in range(jy + 1)
+    ]
     return tuple(np.array(column) for column in zip(*terms))
 
 
@@ -117,8 +123,11 @@ def fit_implicit_curve(xy: npt.ArrayLike, degree: int, fit: str = 'taubin') -> F
     xy = _as_xy(xy)
     size = len(monomial_exponents(degree))
     if len(xy) < size - 1:
-        raise InvalidInput(f'xy: a degree-{degree} curve needs at least {size - 1} points, '
-                           f'got {len(xy)}', key='xy', value=len(xy))
+        raise InvalidInput(
+            f'xy: a degree-{degree} curve needs at least {size - 1} points, got {len(xy)}',
+            key='xy',
+            value=len(xy),
+        )
     if fit not in FITS:
         raise InvalidInput(f'fit: expected one of {FITS}, got {fit!r}', key='fit', value=fit)
     mean = xy.mean(axis=0)
@@ -140,6 +149,7 @@ def _taubin(M: FloatArray, xy: FloatArray, degree: int) -> FloatArray:
     a_rest, which leaves the symmetric-definite problem (M_c^T M_c) a = lambda N a with
     the centred monomials M_c and N positive definite; its smallest lambda is the fit."""
     from scipy.linalg import eigh
+
     jx, jy = monomial_exponents(degree).T
     px, py = powers(xy[:, 0], degree), powers(xy[:, 1], degree)
     Dx = (jx * px[:, np.maximum(jx - 1, 0)] * py[:, jy])[:, 1:]
@@ -147,8 +157,7 @@ def _taubin(M: FloatArray, xy: FloatArray, degree: int) -> FloatArray:
     rest_mean = M[:, 1:].mean(axis=0)
     centred = M[:, 1:] - rest_mean
     try:
-        _, vectors = eigh(centred.T @ centred, Dx.T @ Dx + Dy.T @ Dy,
-                          subset_by_index=[0, 0])
+        _, vectors = eigh(centred.T @ centred, Dx.T @ Dx + Dy.T @ Dy, subset_by_index=[0, 0])
     except np.linalg.LinAlgError:  # too few distinct points for N to be definite
         return np.linalg.svd(M, full_matrices=False)[2][-1]
     rest = vectors[:, 0]
@@ -167,8 +176,8 @@ def curve_gradient(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int) -> FloatArr
     jx, jy = monomial_exponents(degree).T
     x, y = xy[:, None, 0], xy[:, None, 1]
     # terms with a zero exponent are multiplied by 0, so clipping it at 0 is safe
-    d_dx = jx * x ** np.maximum(jx - 1, 0) * y ** jy
-    d_dy = jy * x ** jx * y ** np.maximum(jy - 1, 0)
+    d_dx = jx * x ** np.maximum(jx - 1, 0) * y**jy
+    d_dy = jy * x**jx * y ** np.maximum(jy - 1, 0)
     return np.column_stack([d_dx @ a, d_dy @ a])
 
 
@@ -176,12 +185,14 @@ def sampson_distance(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int) -> FloatA
     """First-order geometric distance |g| / ||grad g|| of (N, 2) points to the curve, (N,),
     in the units of ``xy`` (normalised image units: pixels / f)."""
     with np.errstate(divide='ignore', invalid='ignore'):
-        return (np.abs(evaluate_curve(a, xy, degree))
-                / np.linalg.norm(curve_gradient(a, xy, degree), axis=1))
+        return np.abs(evaluate_curve(a, xy, degree)) / np.linalg.norm(
+            curve_gradient(a, xy, degree), axis=1
+        )
 
 
-def project_to_curve(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int,
-                     iterations: int = 5) -> FloatArray:
+def project_to_curve(
+    a: npt.ArrayLike, xy: npt.ArrayLike, degree: int, iterations: int = 5
+) -> FloatArray:
     """Move (N, 2) points onto the curve by repeated first-order (Sampson) steps
     xy <- xy - g grad g / ||grad g||^2; returns (N, 2). Use it on noisy image-1 samples so
     that their rays lie on cone 1. Points where the gradient vanishes are left as they are.
@@ -190,7 +201,8 @@ def project_to_curve(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int,
     for _ in range(iterations):
         gradient = curve_gradient(a, xy, degree)
         norm2 = np.sum(gradient**2, axis=1)
-        step = np.divide(evaluate_curve(a, xy, degree), norm2, out=np.zeros(len(xy)),
-                         where=norm2 > 0)
+        step = np.divide(
+            evaluate_curve(a, xy, degree), norm2, out=np.zeros(len(xy)), where=norm2 > 0
+        )
         xy -= step[:, None] * gradient
     return xy

@@ -19,6 +19,7 @@ Both select among candidates with a third view (Sampson distance to its curve, `
 normalised image units = pixels / f). With two views a conic's ray meets the second cone at
 the true point and at a point of a 'ghost' conic (A3.17), so only unambiguous rays are kept.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -67,25 +68,39 @@ def _homogeneous_exponents(degree: int) -> IntArray:
     return np.column_stack([jl, degree - jl.sum(axis=1)])
 
 
-def _to_camera(R_camera_base: npt.ArrayLike, centre_base: npt.ArrayLike,
-               points_base: npt.ArrayLike) -> FloatArray:
+def _to_camera(
+    R_camera_base: npt.ArrayLike, centre_base: npt.ArrayLike, points_base: npt.ArrayLike
+) -> FloatArray:
     points_base = np.asarray(points_base, dtype=float)
     if points_base.ndim != 2 or points_base.shape[1] != 3:
-        raise InvalidInput(f'points_base: expected shape (N, 3), got {points_base.shape}',
-                           key='points_base', value=points_base.shape)
+        raise InvalidInput(
+            f'points_base: expected shape (N, 3), got {points_base.shape}',
+            key='points_base',
+            value=points_base.shape,
+        )
     return (points_base - np.asarray(centre_base, dtype=float)) @ np.asarray(R_camera_base).T
 
 
-def cone_value(a: npt.ArrayLike, degree: int, R_camera_base: npt.ArrayLike,
-               centre_base: npt.ArrayLike, points_base: npt.ArrayLike) -> FloatArray:
+def cone_value(
+    a: npt.ArrayLike,
+    degree: int,
+    R_camera_base: npt.ArrayLike,
+    centre_base: npt.ArrayLike,
+    points_base: npt.ArrayLike,
+) -> FloatArray:
     """Cone polynomial G at (N, 3) base points, shape (N,) [m^degree]."""
     a = check_coefficients(a, degree)
     x = _to_camera(R_camera_base, centre_base, points_base)
     return np.prod(x[:, None, :] ** _homogeneous_exponents(degree), axis=2) @ a
 
 
-def cone_gradient(a: npt.ArrayLike, degree: int, R_camera_base: npt.ArrayLike,
-                  centre_base: npt.ArrayLike, points_base: npt.ArrayLike) -> FloatArray:
+def cone_gradient(
+    a: npt.ArrayLike,
+    degree: int,
+    R_camera_base: npt.ArrayLike,
+    centre_base: npt.ArrayLike,
+    points_base: npt.ArrayLike,
+) -> FloatArray:
     """Gradient of G with respect to the base point, shape (N, 3) [m^(degree - 1)]."""
     a = check_coefficients(a, degree)
     x = _to_camera(R_camera_base, centre_base, points_base)
@@ -94,8 +109,7 @@ def cone_gradient(a: npt.ArrayLike, degree: int, R_camera_base: npt.ArrayLike,
     for axis in range(3):
         lowered = exponents.copy()
         lowered[:, axis] = np.maximum(lowered[:, axis] - 1, 0)  # factor 0 where it was 0
-        grad_camera[:, axis] = (exponents[:, axis]
-                                * np.prod(x[:, None, :] ** lowered, axis=2)) @ a
+        grad_camera[:, axis] = (exponents[:, axis] * np.prod(x[:, None, :] ** lowered, axis=2)) @ a
     return grad_camera @ np.asarray(R_camera_base)
 
 
@@ -104,13 +118,16 @@ def _view(view: ViewLike, degree: int) -> CurveView:
     R = np.asarray(R, dtype=float)
     c = np.asarray(c, dtype=float)
     if R.shape != (3, 3) or c.shape != (3,):
-        raise InvalidInput(f'view: expected R_camera_base (3, 3) and centre_base (3,), got '
-                           f'{R.shape} and {c.shape}', key='view', value=(R.shape, c.shape))
+        raise InvalidInput(
+            f'view: expected R_camera_base (3, 3) and centre_base (3,), got '
+            f'{R.shape} and {c.shape}',
+            key='view',
+            value=(R.shape, c.shape),
+        )
     return CurveView(check_coefficients(a, degree), R, c)
 
 
-def _camera_xy_depth(view: CurveView,
-                     points_base: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+def _camera_xy_depth(view: CurveView, points_base: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Normalised image coordinates (N, 2) and depth (N,) [m] of base points in a view."""
     x = _to_camera(view.R_camera_base, view.centre_base, points_base)
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -130,13 +147,17 @@ def _rays_base(view1: CurveView, samples_xy1: npt.ArrayLike) -> FloatArray:
     """Unit-depth ray directions R1^T (X, Y, 1) of (N, 2) image-1 samples, (N, 3)."""
     samples_xy1 = np.asarray(samples_xy1, dtype=float)
     if samples_xy1.ndim != 2 or samples_xy1.shape[1] != 2:
-        raise InvalidInput(f'samples_xy1: expected shape (N, 2), got {samples_xy1.shape}',
-                           key='samples_xy1', value=samples_xy1.shape)
+        raise InvalidInput(
+            f'samples_xy1: expected shape (N, 2), got {samples_xy1.shape}',
+            key='samples_xy1',
+            value=samples_xy1.shape,
+        )
     return np.column_stack([samples_xy1, np.ones(len(samples_xy1))]) @ view1.R_camera_base
 
 
-def _select(candidates: Sequence[FloatArray], view3: CurveView | None, degree: int,
-            tol3: float) -> tuple[FloatArray, SelectionInfo]:
+def _select(
+    candidates: Sequence[FloatArray], view3: CurveView | None, degree: int, tol3: float
+) -> tuple[FloatArray, SelectionInfo]:
     """Pick one point per sample from ``candidates`` (list of (K_i, 3) arrays).
 
     Returns (points (K, 3), info dict)."""
@@ -159,18 +180,27 @@ def _select(candidates: Sequence[FloatArray], view3: CurveView | None, degree: i
             index.append(i)
         else:
             n_ambiguous += 1
-    info: SelectionInfo = {'sample_index': np.array(index, dtype=int),
-                           'n_samples': len(candidates),
-                           'n_candidates': sum(len(c) for c in candidates),
-                           'n_without_candidates': sum(len(c) == 0 for c in candidates),
-                           'n_rejected_view3': n_rejected,
-                           'n_ambiguous': n_ambiguous}
+    info: SelectionInfo = {
+        'sample_index': np.array(index, dtype=int),
+        'n_samples': len(candidates),
+        'n_candidates': sum(len(c) for c in candidates),
+        'n_without_candidates': sum(len(c) == 0 for c in candidates),
+        'n_rejected_view3': n_rejected,
+        'n_ambiguous': n_ambiguous,
+    }
     return np.array(points).reshape(-1, 3), info
 
 
-def reconstruct_ray_roots(view1: ViewLike, view2: ViewLike, view3: ViewLike | None = None,
-                          *, degree: int, samples_xy1: npt.ArrayLike, tol3: float = 1e-3,
-                          imag_tol: float = 1e-7) -> tuple[FloatArray, SelectionInfo]:
+def reconstruct_ray_roots(
+    view1: ViewLike,
+    view2: ViewLike,
+    view3: ViewLike | None = None,
+    *,
+    degree: int,
+    samples_xy1: npt.ArrayLike,
+    tol3: float = 1e-3,
+    imag_tol: float = 1e-7,
+) -> tuple[FloatArray, SelectionInfo]:
     """Reconstruct curve points from the real roots of G2 along image-1 rays.
 
     For each image-1 sample (X, Y) the ray x(s) = c1 + s R1^T (X, Y, 1) lies on cone 1 and s
@@ -198,8 +228,9 @@ def reconstruct_ray_roots(view1: ViewLike, view2: ViewLike, view3: ViewLike | No
     rays = _rays_base(view1, samples_xy1)
     nodes = np.arange(degree + 1.0)  # s values; exact for a degree-n polynomial
     points = view1.centre_base + nodes[:, None, None] * rays  # (n + 1, N, 3)
-    h = cone_value(view2.coefficients, degree, view2.R_camera_base, view2.centre_base,
-                   points.reshape(-1, 3)).reshape(len(nodes), -1)
+    h = cone_value(
+        view2.coefficients, degree, view2.R_camera_base, view2.centre_base, points.reshape(-1, 3)
+    ).reshape(len(nodes), -1)
     coefficients = np.linalg.solve(np.vander(nodes, increasing=True), h)  # (n + 1, N)
     candidates = []
     for ray, c in zip(rays, coefficients.T):
@@ -212,11 +243,18 @@ def reconstruct_ray_roots(view1: ViewLike, view2: ViewLike, view3: ViewLike | No
     return _select(candidates, view3, degree, tol3)
 
 
-def reconstruct_cone_lsq(view1: ViewLike, view2: ViewLike, view3: ViewLike | None = None,
-                         *, degree: int, samples_xy1: npt.ArrayLike,
-                         seed_depths: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
-                         eps_F: float = 1e-20, dedup_tol: float = 1e-6,
-                         tol3: float = 1e-3) -> tuple[FloatArray, SelectionInfo]:
+def reconstruct_cone_lsq(
+    view1: ViewLike,
+    view2: ViewLike,
+    view3: ViewLike | None = None,
+    *,
+    degree: int,
+    samples_xy1: npt.ArrayLike,
+    seed_depths: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
+    eps_F: float = 1e-20,
+    dedup_tol: float = 1e-6,
+    tol3: float = 1e-3,
+) -> tuple[FloatArray, SelectionInfo]:
     """Reconstruct curve points by minimising F = G1^2 + G2^2 (the thesis's ``f_min``).
 
     Seeds are s R1^T (X, Y, 1) + c1 for each image-1 sample and each depth s in
@@ -240,23 +278,40 @@ def reconstruct_cone_lsq(view1: ViewLike, view2: ViewLike, view3: ViewLike | Non
     # (G1, G2, 0): the zero row lets MINPACK's Levenberg-Marquardt (which needs as many
     # residuals as unknowns) take minimum-norm steps towards S1 ∩ S2 from the seed
     def residual(x: FloatArray) -> FloatArray:
-        return np.array([cone_value(v.coefficients, degree, v.R_camera_base, v.centre_base,
-                                    x[None])[0] for v in cones] + [0.0])
+        return np.array(
+            [
+                cone_value(v.coefficients, degree, v.R_camera_base, v.centre_base, x[None])[0]
+                for v in cones
+            ]
+            + [0.0]
+        )
 
     def jacobian(x: FloatArray) -> FloatArray:
-        return np.vstack([cone_gradient(v.coefficients, degree, v.R_camera_base,
-                                        v.centre_base, x[None]) for v in cones]
-                         + [np.zeros((1, 3))])
+        return np.vstack(
+            [
+                cone_gradient(v.coefficients, degree, v.R_camera_base, v.centre_base, x[None])
+                for v in cones
+            ]
+            + [np.zeros((1, 3))]
+        )
 
     candidates = []
     for ray in rays:
         kept: list[FloatArray] = []
         for s in seed_depths:
-            result = least_squares(residual, view1.centre_base + s * ray, jac=jacobian,
-                                   method='lm', xtol=1e-15, ftol=1e-15, gtol=1e-15)
+            result = least_squares(
+                residual,
+                view1.centre_base + s * ray,
+                jac=jacobian,
+                method='lm',
+                xtol=1e-15,
+                ftol=1e-15,
+                gtol=1e-15,
+            )
             x = result.x
             if 2 * result.cost >= eps_F or any(
-                    _camera_xy_depth(v, x[None])[1][0] <= 0 for v in cones):
+                _camera_xy_depth(v, x[None])[1][0] <= 0 for v in cones
+            ):
                 continue
             if all(np.linalg.norm(x - k) > dedup_tol for k in kept):
                 kept.append(x)

@@ -11,6 +11,7 @@ is the chain (spurs and double responses fall off it); a chain whose two ends ar
 
 Pixels are (u, v) = (column, row), pixel centres at integers (OpenCV convention).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -57,12 +58,13 @@ def line_response(contrast_grey: float, line_width_px: float, sigma: float) -> f
     ``line_width_px`` gives at its centre after Gaussian smoothing with ``sigma`` [px]:
     the difference of G' at the two bar edges."""
     half = 0.5 * float(line_width_px)
-    g_prime = half / (np.sqrt(2 * np.pi) * sigma**3) * np.exp(-half**2 / (2 * sigma**2))
+    g_prime = half / (np.sqrt(2 * np.pi) * sigma**3) * np.exp(-(half**2) / (2 * sigma**2))
     return contrast_grey * 2.0 * g_prime
 
 
-def ridge_points(image: npt.ArrayLike, line_width_px: float = 3.0,
-                 min_contrast_grey: float = 8.0) -> tuple[FloatArray, FloatArray, FloatArray]:
+def ridge_points(
+    image: npt.ArrayLike, line_width_px: float = 3.0, min_contrast_grey: float = 8.0
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Subpixel centre points of thin dark lines (Steger).
 
     Args:
@@ -77,8 +79,11 @@ def ridge_points(image: npt.ArrayLike, line_width_px: float = 3.0,
     """
     image = np.asarray(image)
     if image.ndim != 2 or min(image.shape) < 8:
-        raise InvalidInput(f'image: expected a 2D grey image, got shape {image.shape}',
-                           key='image', value=image.shape)
+        raise InvalidInput(
+            f'image: expected a 2D grey image, got shape {image.shape}',
+            key='image',
+            value=image.shape,
+        )
     sigma = line_sigma(line_width_px)
     smooth = cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma)
     # central differences of the smoothed image: derivatives of the Gaussian-filtered image
@@ -99,7 +104,7 @@ def ridge_points(image: npt.ArrayLike, line_width_px: float = 3.0,
         return np.empty((0, 2)), np.empty(0), np.empty((0, 2))
     u, v = found.reshape(-1, 2).T
     a, b, c = hxx[v, u], hxy[v, u], hyy[v, u]
-    lam_c = 0.5 * (a + c) + np.sqrt((0.5 * (a - c))**2 + b**2)
+    lam_c = 0.5 * (a + c) + np.sqrt((0.5 * (a - c)) ** 2 + b**2)
     candidate = lam_c > threshold
     u, v, a, b, c, lam_c = (x[candidate] for x in (u, v, a, b, c, lam_c))
     # eigenvector of lam: (b, lam - a) or (lam - c, b), whichever is better conditioned
@@ -122,8 +127,9 @@ def ridge_points(image: npt.ArrayLike, line_width_px: float = 3.0,
     return points.astype(float), strength.astype(float), normal[inside]
 
 
-def link_chains(points: npt.ArrayLike, link_radius_px: float = 2.0,
-                min_points: int = 20) -> list[Chain]:
+def link_chains(
+    points: npt.ArrayLike, link_radius_px: float = 2.0, min_points: int = 20
+) -> list[Chain]:
     """Order (N, 2) subpixel points into chains (list of ``Chain``, longest first).
 
     Each connected group of points (neighbours within ``link_radius_px``) becomes the
@@ -168,8 +174,9 @@ def link_chains(points: npt.ArrayLike, link_radius_px: float = 2.0,
 def _farthest(tree_graph: csr_matrix, source: int) -> tuple[int, np.ndarray]:
     """Vertex of a tree (symmetric sparse matrix) farthest (by path length) from
     ``source``, and predecessors."""
-    distance, predecessors = dijkstra(tree_graph, directed=True, indices=source,
-                                      return_predecessors=True)
+    distance, predecessors = dijkstra(
+        tree_graph, directed=True, indices=source, return_predecessors=True
+    )
     distance[~np.isfinite(distance)] = -1.0
     return int(np.argmax(distance)), predecessors
 
@@ -184,8 +191,7 @@ def resample_chain(chain: Chain, step_px: float = 1.0) -> Chain:
         return chain
     count = int(np.floor(arc[-1] / step_px))
     s = np.linspace(0.0, arc[-1], count + (0 if chain.closed else 1), endpoint=not chain.closed)
-    resampled = np.column_stack([np.interp(s, arc, pixels[:, 0]),
-                                 np.interp(s, arc, pixels[:, 1])])
+    resampled = np.column_stack([np.interp(s, arc, pixels[:, 0]), np.interp(s, arc, pixels[:, 1])])
     return Chain(resampled, chain.closed)
 
 
@@ -194,15 +200,18 @@ def trim_chain(chain: Chain, trim_px: float) -> Chain | None:
     returned as they are); None if nothing is left."""
     if chain.closed or trim_px <= 0:
         return chain
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(chain.pixels, axis=0),
-                                                          axis=1))])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(chain.pixels, axis=0), axis=1))])
     keep = (arc >= trim_px) & (arc <= arc[-1] - trim_px)
     return Chain(chain.pixels[keep], False) if keep.sum() >= 2 else None
 
 
-def extract_chains(image: npt.ArrayLike, line_width_px: float = 3.0,
-                   min_contrast_grey: float = 8.0, min_chain_px: float = 40.0,
-                   link_radius_px: float = 2.0) -> list[Chain]:
+def extract_chains(
+    image: npt.ArrayLike,
+    line_width_px: float = 3.0,
+    min_contrast_grey: float = 8.0,
+    min_chain_px: float = 40.0,
+    link_radius_px: float = 2.0,
+) -> list[Chain]:
     """The dark curve chains of one image: ridge points linked into chains at least
     ``min_chain_px`` long [px], longest first.
 

@@ -10,6 +10,7 @@ throttled, with a diagnostic, and the node keeps serving).
 ~/reconstruct never blocks an executor thread: its requests are answered later, from the
 worker or the timeout timer (``DeferredServiceExecutor``).
 """
+
 import threading
 import time
 from collections import deque
@@ -80,6 +81,7 @@ SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are ans
 @dataclass
 class _Capture:
     """A synchronized capture for the worker, with the ~/reconstruct calls it answers."""
+
     stamp_ns: int
     messages: dict  # camera name -> Image
     names: tuple  # the cameras to use
@@ -96,46 +98,118 @@ class CurveReconNode(Node):
     def __init__(self):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(self, [
-            Param('degree', 2, 'Degree n of the implicit image curves (2 conics, 3 cubics).',
-                  range=(1, 6)),
-            Param('method', 'ray_roots', 'Cone intersection: ray_roots (roots of the view-2 '
-                  'cone along view-1 rays, ours) or cone_lsq (minimise S1^2 + S2^2, thesis).',
-                  choices=METHODS),
-            Param('third_view_tolerance', 2.0, '[px] Largest distance of a point\'s '
-                  'projection to the third view\'s curve.', range=(1e-3, 100.0)),
-            Param('spacing', 0.005, '[m] Waypoint spacing along the curve.',
-                  range=(1e-4, 1.0)),
-            Param('views', 3, 'Views to use: 3 (left, right, aux) or 2 (left, right).',
-                  range=(2, 3), on_change=self._on_views_change),
-            Param('line_width_px', 3.0, '[px] Width of the drawn curve in the images.',
-                  range=(1.0, 30.0)),
-            Param('min_contrast', 8.0, '[grey levels] Faintest line taken as the curve.',
-                  range=(0.5, 255.0)),
-            Param('min_curve_pixels', 60.0, '[px] Shortest image chain taken as the curve.',
-                  range=(5.0, 1e5)),
-            Param('fit_tolerance_px', 0.1, '[px] RMS residual above which a chain is split '
-                  'into pieces (piecewise fit).', range=(1e-3, 100.0)),
-            Param('min_piece_points', 30, 'Chain points below which a piece is not split.',
-                  range=(8, 100000)),
-            Param('refine', True, 'Refine points by minimising their pixel distances to the '
-                  'curves of all views.'),
-            Param('smoothing_window', 0.02, '[m] Window of the smoothing along the curve '
-                  'before resampling.', range=(0.0, 1.0)),
-            Param('use_depth_normals', True, 'Approach direction from /depth/fused surface '
-                  'normals when available (else base -z).'),
-            Param('normal_window_px', 15, '[px] Depth window for a normal\'s plane fit.',
-                  range=(3, 101)),
-            Param('sync_max_wait', 1.0, '[s] How long an incomplete capture waits for its '
-                  'other images.', range=(0.01, 60.0)),
-            Param('aux_wait', 2.0, '[s] With views 3, how long to wait for the aux camera\'s '
-                  'calibration before reconstructing from two views.', range=(0.0, 600.0)),
-            Param('service_timeout', 20.0, '[s] Longest a reconstruct call waits for its '
-                  'capture and result.', range=(0.1, 600.0)),
-        ], self.diagnostics)
+        self.params = NodeParameters(
+            self,
+            [
+                Param(
+                    'degree',
+                    2,
+                    'Degree n of the implicit image curves (2 conics, 3 cubics).',
+                    range=(1, 6),
+                ),
+                Param(
+                    'method',
+                    'ray_roots',
+                    'Cone intersection: ray_roots (roots of the view-2 '
+                    'cone along view-1 rays, ours) or cone_lsq (minimise S1^2 + S2^2, thesis).',
+                    choices=METHODS,
+                ),
+                Param(
+                    'third_view_tolerance',
+                    2.0,
+                    "[px] Largest distance of a point's projection to the third view's curve.",
+                    range=(1e-3, 100.0),
+                ),
+                Param(
+                    'spacing', 0.005, '[m] Waypoint spacing along the curve.', range=(1e-4, 1.0)
+                ),
+                Param(
+                    'views',
+                    3,
+                    'Views to use: 3 (left, right, aux) or 2 (left, right).',
+                    range=(2, 3),
+                    on_change=self._on_views_change,
+                ),
+                Param(
+                    'line_width_px',
+                    3.0,
+                    '[px] Width of the drawn curve in the images.',
+                    range=(1.0, 30.0),
+                ),
+                Param(
+                    'min_contrast',
+                    8.0,
+                    '[grey levels] Faintest line taken as the curve.',
+                    range=(0.5, 255.0),
+                ),
+                Param(
+                    'min_curve_pixels',
+                    60.0,
+                    '[px] Shortest image chain taken as the curve.',
+                    range=(5.0, 1e5),
+                ),
+                Param(
+                    'fit_tolerance_px',
+                    0.1,
+                    '[px] RMS residual above which a chain is split into pieces (piecewise fit).',
+                    range=(1e-3, 100.0),
+                ),
+                Param(
+                    'min_piece_points',
+                    30,
+                    'Chain points below which a piece is not split.',
+                    range=(8, 100000),
+                ),
+                Param(
+                    'refine',
+                    True,
+                    'Refine points by minimising their pixel distances to the '
+                    'curves of all views.',
+                ),
+                Param(
+                    'smoothing_window',
+                    0.02,
+                    '[m] Window of the smoothing along the curve before resampling.',
+                    range=(0.0, 1.0),
+                ),
+                Param(
+                    'use_depth_normals',
+                    True,
+                    'Approach direction from /depth/fused surface '
+                    'normals when available (else base -z).',
+                ),
+                Param(
+                    'normal_window_px',
+                    15,
+                    "[px] Depth window for a normal's plane fit.",
+                    range=(3, 101),
+                ),
+                Param(
+                    'sync_max_wait',
+                    1.0,
+                    '[s] How long an incomplete capture waits for its other images.',
+                    range=(0.01, 60.0),
+                ),
+                Param(
+                    'aux_wait',
+                    2.0,
+                    "[s] With views 3, how long to wait for the aux camera's "
+                    'calibration before reconstructing from two views.',
+                    range=(0.0, 600.0),
+                ),
+                Param(
+                    'service_timeout',
+                    20.0,
+                    '[s] Longest a reconstruct call waits for its capture and result.',
+                    range=(0.1, 600.0),
+                ),
+            ],
+            self.diagnostics,
+        )
         p = self.params
-        self.cameras = CalibratedCameras(self, CAMERA_NAMES, self.diagnostics,
-                                         self._on_calibration_change)
+        self.cameras = CalibratedCameras(
+            self, CAMERA_NAMES, self.diagnostics, self._on_calibration_change
+        )
         self.sync_lock = threading.Lock()
         self.sync = self._new_sync(p.views)
         self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
@@ -156,51 +230,73 @@ class CurveReconNode(Node):
         sensors = MutuallyExclusiveCallbackGroup()
         # all three cameras, so `views` can change at run time; the sync takes the used ones
         for name in CAMERA_NAMES:
-            self.create_subscription(Image, IMAGE_TOPICS[name], partial(self._on_image, name),
-                                     DEFAULT_QOS, callback_group=sensors)
+            self.create_subscription(
+                Image,
+                IMAGE_TOPICS[name],
+                partial(self._on_image, name),
+                DEFAULT_QOS,
+                callback_group=sensors,
+            )
         # its own group: behind a backlog of images (served first, in subscription
         # order) a chart pose could come later than CHART_POSE_GRACE
-        self.create_subscription(PoseStamped, TARGET_POSE_TOPIC, self._on_target_pose,
-                                 DEFAULT_QOS, callback_group=MutuallyExclusiveCallbackGroup())
-        self.create_subscription(Image, FUSED_DEPTH_TOPIC, self._on_depth, DEFAULT_QOS,
-                                 callback_group=sensors)
-        self.create_subscription(CameraInfo, DEPTH_INFO_TOPIC, self._on_depth_info,
-                                 DEFAULT_QOS, callback_group=sensors)
+        self.create_subscription(
+            PoseStamped,
+            TARGET_POSE_TOPIC,
+            self._on_target_pose,
+            DEFAULT_QOS,
+            callback_group=MutuallyExclusiveCallbackGroup(),
+        )
+        self.create_subscription(
+            Image, FUSED_DEPTH_TOPIC, self._on_depth, DEFAULT_QOS, callback_group=sensors
+        )
+        self.create_subscription(
+            CameraInfo, DEPTH_INFO_TOPIC, self._on_depth_info, DEFAULT_QOS, callback_group=sensors
+        )
         self.depth_info = None
         self.waypoint_publisher = self.create_publisher(
-            Path, WAYPOINTS_TOPIC, LATCHED_QOS, publisher_class=CountingPublisher)
+            Path, WAYPOINTS_TOPIC, LATCHED_QOS, publisher_class=CountingPublisher
+        )
         self.points_publisher = self.create_publisher(
-            PointCloud2, CURVE_POINTS_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher)
+            PointCloud2, CURVE_POINTS_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
+        )
         self.reconstruct_service = self.create_service(
-            Trigger, '/curve_recon_node/reconstruct',
+            Trigger,
+            '/curve_recon_node/reconstruct',
             DeferredCallback(self._on_reconstruct_request, self._on_reconstruct_blocking),
-            callback_group=ReentrantCallbackGroup())
+            callback_group=ReentrantCallbackGroup(),
+        )
         self.create_timer(1.0, self._publish_status, callback_group=sensors)
-        self.create_timer(SERVICE_POLL_PERIOD, self._answer_timed_out_requests,
-                          callback_group=sensors)
+        self.create_timer(
+            SERVICE_POLL_PERIOD, self._answer_timed_out_requests, callback_group=sensors
+        )
         # The newest capture waits while one is reconstructed; one it replaces hands its
         # service calls on to the next.
-        self.worker = Worker(self._serve, self._on_worker_error, 'reconstruction',
-                             on_drop=self._requests_wait_for_the_next)
+        self.worker = Worker(
+            self._serve,
+            self._on_worker_error,
+            'reconstruction',
+            on_drop=self._requests_wait_for_the_next,
+        )
         self.get_logger().info(
             f'ready: method {p.method}, degree {p.degree}, {p.views} views, spacing '
-            f'{p.spacing} m; waiting for the calibration and a capture')
+            f'{p.spacing} m; waiting for the calibration and a capture'
+        )
 
     # --- inputs ----------------------------------------------------------------------
 
     def _new_sync(self, views):
         keys = CAMERA_NAMES if views == 3 else CAMERA_NAMES[:2]
         self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
-        return ExactTimeSync(keys, self._on_capture, queue_size=10,
-                             max_wait=self.params.sync_max_wait)
+        return ExactTimeSync(
+            keys, self._on_capture, queue_size=10, max_wait=self.params.sync_max_wait
+        )
 
     def _on_views_change(self, views):
         # a new sync for the new set of cameras: captures pending in the old one lack a
         # view (or have one too many) and are dropped with it
         with self.sync_lock:
             self.sync = self._new_sync(views)
-        self.get_logger().info(f'views set to {views}: synchronizing '
-                               f'{", ".join(self.sync.keys)}')
+        self.get_logger().info(f'views set to {views}: synchronizing {", ".join(self.sync.keys)}')
 
     @guarded('calibration change')
     def _on_calibration_change(self, name):
@@ -276,36 +372,52 @@ class CurveReconNode(Node):
     def _on_depth(self, msg):
         try:
             if msg.encoding != '32FC1':
-                raise InvalidInput(f'expected 32FC1 depth, got {msg.encoding!r}',
-                                   key='encoding', value=msg.encoding)
+                raise InvalidInput(
+                    f'expected 32FC1 depth, got {msg.encoding!r}',
+                    key='encoding',
+                    value=msg.encoding,
+                )
             depth = image_to_numpy(msg).astype(float)
             if self.depth_info is None:
-                raise InvalidInput(f'no valid {DEPTH_INFO_TOPIC} yet: the depth image '
-                                   'cannot be used', key='camera_info')
+                raise InvalidInput(
+                    f'no valid {DEPTH_INFO_TOPIC} yet: the depth image cannot be used',
+                    key='camera_info',
+                )
             K, width, height = self.depth_info
             if depth.shape != (height, width):
-                raise InvalidInput(f'depth is {depth.shape[1]}x{depth.shape[0]} but its '
-                                   f'camera_info says {width}x{height}', key='size')
+                raise InvalidInput(
+                    f'depth is {depth.shape[1]}x{depth.shape[0]} but its '
+                    f'camera_info says {width}x{height}',
+                    key='size',
+                )
             depth, removed = usable_depth(depth)
             if not np.isfinite(depth).any():
                 raise InvalidInput(
                     'no usable depth: every value is NaN, not positive or outside '
                     f'[{DEPTH_RANGE_M[0]:g}, {DEPTH_RANGE_M[1]:g}] m ({removed})',
-                    key='depth', value=removed)
+                    key='depth',
+                    value=removed,
+                )
             if any(removed.values()):
                 # the rest of the image still serves; these pixels never give a normal
                 self.diagnostics.reject(
-                    'depth values', f'{FUSED_DEPTH_TOPIC}: ignored for approach axes: '
+                    'depth values',
+                    f'{FUSED_DEPTH_TOPIC}: ignored for approach axes: '
                     f'{removed["not_positive"]} zero or negative, {removed["too_far"]} '
                     f'beyond {DEPTH_RANGE_M[1]:g} m, {removed["too_near"]} nearer than '
-                    f'{DEPTH_RANGE_M[0]:g} m')
+                    f'{DEPTH_RANGE_M[0]:g} m',
+                )
         except InvalidInput as error:
             self.diagnostics.reject(FUSED_DEPTH_TOPIC, error)
             return
         first = self.depth is None
         self.depth = (depth, K, stamp_to_ns(msg.header.stamp))
-        if first and self.last_result is not None and self.params.use_depth_normals \
-                and not self.normals_published:
+        if (
+            first
+            and self.last_result is not None
+            and self.params.use_depth_normals
+            and not self.normals_published
+        ):
             # (a capture that is waiting will use the depth anyway)
             self.worker.submit_if_idle(_REPUBLISH_WITH_NORMALS)
 
@@ -314,12 +426,14 @@ class CurveReconNode(Node):
         """A ~/reconstruct call (DeferredServiceExecutor): queue its reply for the next
         capture; the worker answers it, or _answer_timed_out_requests after
         ``service_timeout``."""
+
         def reply(success, message):
             response = Trigger.Response(success=success, message=message)
             try:
                 self.reconstruct_service.send_response(response, header)
             except Exception as error:  # noqa: BLE001 - the caller may be gone
                 self.diagnostics.reject('reconstruct reply', error)
+
         self._queue_request(reply)
 
     def _queue_request(self, reply):
@@ -335,6 +449,7 @@ class CurveReconNode(Node):
         def reply(success, message):
             result.update(success=success, message=message)
             done.set()
+
         self._queue_request(reply)
         done.wait(self.params.service_timeout + 2 * SERVICE_POLL_PERIOD + 1.0)
         response.success = result.get('success', False)
@@ -350,9 +465,9 @@ class CurveReconNode(Node):
         if not expired:
             return
         missing = self.cameras.missing()
-        message = ('no synchronized capture within '
-                   f'{self.params.service_timeout:g} s'
-                   + (f' (not calibrated: {", ".join(missing)})' if missing else ''))
+        message = f'no synchronized capture within {self.params.service_timeout:g} s' + (
+            f' (not calibrated: {", ".join(missing)})' if missing else ''
+        )
         for reply, _ in expired:
             reply(False, message)
 
@@ -401,11 +516,18 @@ class CurveReconNode(Node):
     def _settings(self):
         p = self.params
         return ReconstructionSettings(
-            degree=p.degree, method=p.method, third_view_tolerance=p.third_view_tolerance,
-            spacing=p.spacing, line_width_px=p.line_width_px, min_contrast=p.min_contrast,
-            min_curve_pixels=p.min_curve_pixels, fit_tolerance_px=p.fit_tolerance_px,
-            min_piece_points=p.min_piece_points, refine=p.refine,
-            smoothing_window=p.smoothing_window)
+            degree=p.degree,
+            method=p.method,
+            third_view_tolerance=p.third_view_tolerance,
+            spacing=p.spacing,
+            line_width_px=p.line_width_px,
+            min_contrast=p.min_contrast,
+            min_curve_pixels=p.min_curve_pixels,
+            fit_tolerance_px=p.fit_tolerance_px,
+            min_piece_points=p.min_piece_points,
+            refine=p.refine,
+            smoothing_window=p.smoothing_window,
+        )
 
     def _reconstruct(self, stamp_ns, messages, names):
         """Reconstruct one capture and publish; returns (success, message)."""
@@ -424,7 +546,8 @@ class CurveReconNode(Node):
                     size_error = InvalidInput(
                         f'{name} image is {images[name].shape[1]}x{images[name].shape[0]}'
                         f' but its camera_info says {camera.width}x{camera.height}',
-                        key='size')
+                        key='size',
+                    )
                     self.diagnostics.reject(IMAGE_TOPICS[name], size_error)
                     return False, str(size_error)
             result = reconstruct_capture(images, cameras, self._settings(), names)
@@ -438,18 +561,25 @@ class CurveReconNode(Node):
         self.last_result = (stamp_ns, result, names)
         stats = result.stats
         shape = 'closed loop' if result.closed else 'open curve'
-        message = (f'published {len(result.waypoints_base)} waypoints ({shape}, '
-                   f'{stats["length_m"]:.2f} m) from {len(names)} views in '
-                   f'{stats["time_ms"]:.0f} ms')
+        message = (
+            f'published {len(result.waypoints_base)} waypoints ({shape}, '
+            f'{stats["length_m"]:.2f} m) from {len(names)} views in '
+            f'{stats["time_ms"]:.0f} ms'
+        )
         self.get_logger().info(message + f'; approach from {normals_source}')
-        values = dict(stats, normals=normals_source, stamp_ns=stamp_ns,
-                      method=self.params.method, degree=self.params.degree,
-                      stage_ms=', '.join(f'{stage} {ms:.1f}'
-                                         for stage, ms in stats['stage_ms'].items()))
+        values = dict(
+            stats,
+            normals=normals_source,
+            stamp_ns=stamp_ns,
+            method=self.params.method,
+            degree=self.params.degree,
+            stage_ms=', '.join(f'{stage} {ms:.1f}' for stage, ms in stats['stage_ms'].items()),
+        )
         level = 'warn' if len(names) == 2 and stats.get('ambiguous') else 'ok'
         if len(names) == 2:
-            message += (f'; two views only: {stats.get("ambiguous", 0)} samples ambiguous '
-                        'and dropped')
+            message += (
+                f'; two views only: {stats.get("ambiguous", 0)} samples ambiguous and dropped'
+            )
         self.diagnostics.publish('reconstruction', level, message, values)
         return True, message
 
@@ -467,8 +597,9 @@ class CurveReconNode(Node):
         T_base_rect[:3, :3] = T_base_left[:3, :3] @ left.R.T  # x_rect = R_left x_left
         T_base_rect[:3, 3] = T_base_left[:3, 3]
         try:
-            normals = normals_from_depth(waypoints, depth, K, T_base_rect,
-                                         self.params.normal_window_px)
+            normals = normals_from_depth(
+                waypoints, depth, K, T_base_rect, self.params.normal_window_px
+            )
         except InvalidInput as error:  # checked on arrival: only a changed rig gets here
             self.diagnostics.reject(FUSED_DEPTH_TOPIC, error)
             return None
@@ -480,8 +611,9 @@ class CurveReconNode(Node):
         approach = self._approach_directions(result.waypoints_base)
         frames = waypoint_frames(result.waypoints_base, result.closed, approach)
         self.waypoint_publisher.publish(matrices_to_path(frames, stamp_ns, BASE_FRAME))
-        self.points_publisher.publish(points_to_pointcloud2(result.points_base, stamp_ns,
-                                                            BASE_FRAME))
+        self.points_publisher.publish(
+            points_to_pointcloud2(result.points_base, stamp_ns, BASE_FRAME)
+        )
         self.normals_published = approach is not None
         if approach is None:
             return 'base -z (no depth normals)'
@@ -494,31 +626,52 @@ class CurveReconNode(Node):
         stamp_ns, result, names = self.last_result
         source = self._publish(stamp_ns, result)
         if self.normals_published:
-            self.get_logger().info(f'fused depth arrived: republished '
-                                   f'{len(result.waypoints_base)} waypoints with {source}')
+            self.get_logger().info(
+                f'fused depth arrived: republished '
+                f'{len(result.waypoints_base)} waypoints with {source}'
+            )
 
     @guarded('status')
     def _publish_status(self):
         missing = self.cameras.missing()
-        values = {'matched': self.sync.matched, 'dropped': self.sync.dropped,
-                  'pending': self.sync.pending, 'skipped_chart_captures': self.skipped_chart,
-                  'dropped_work': self.worker.dropped,
-                  'waiting_requests': len(self.service_requests),
-                  'depth': 'yes' if self.depth is not None else 'no'}
-        needed = [n for n in missing if n in ('left', 'right')
-                  or (n == 'aux' and self.params.views == 3)]
+        values = {
+            'matched': self.sync.matched,
+            'dropped': self.sync.dropped,
+            'pending': self.sync.pending,
+            'skipped_chart_captures': self.skipped_chart,
+            'dropped_work': self.worker.dropped,
+            'waiting_requests': len(self.service_requests),
+            'depth': 'yes' if self.depth is not None else 'no',
+        }
+        needed = [
+            n for n in missing if n in ('left', 'right') or (n == 'aux' and self.params.views == 3)
+        ]
         if needed:
-            self.diagnostics.publish('status', 'warn', 'no camera info yet: waiting for the '
-                                     f'calibration of {", ".join(needed)}', values)
-        elif (self.sync.dropped > self.last_match[1] and time.monotonic() - self.last_match[0]
-              > 2 * self.params.sync_max_wait):
             self.diagnostics.publish(
-                'status', 'warn', 'images not synchronized: '
+                'status',
+                'warn',
+                f'no camera info yet: waiting for the calibration of {", ".join(needed)}',
+                values,
+            )
+        elif (
+            self.sync.dropped > self.last_match[1]
+            and time.monotonic() - self.last_match[0] > 2 * self.params.sync_max_wait
+        ):
+            self.diagnostics.publish(
+                'status',
+                'warn',
+                'images not synchronized: '
                 f'{self.sync.dropped - self.last_match[1]} dropped since the last complete '
-                'capture (stamps must be identical)', values)
+                'capture (stamps must be identical)',
+                values,
+            )
         else:
-            self.diagnostics.publish('status', 'ok', 'waypoints published'
-                                     if self.last_result else 'waiting for a capture', values)
+            self.diagnostics.publish(
+                'status',
+                'ok',
+                'waypoints published' if self.last_result else 'waiting for a capture',
+                values,
+            )
 
     def close(self):
         self.stopping.set()

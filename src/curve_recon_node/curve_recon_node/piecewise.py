@@ -27,6 +27,7 @@ point to minimise its summed squared distances to the curves of all views, in pi
 (ALGORITHMS §8: the geometric reprojection error), which removes the bad conditioning
 of the two-view intersection where the curve runs along the epipolar lines.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -72,14 +73,24 @@ class PiecewiseCurve:
         overlap: fraction of a piece's length shared with each neighbour.
     """
 
-    def __init__(self, xy: npt.ArrayLike, closed: bool, degree: int, focal_px: float,
-                 fit_tolerance_px: float = 0.1, min_piece_points: int = 30,
-                 overlap: float = 0.25) -> None:
+    def __init__(
+        self,
+        xy: npt.ArrayLike,
+        closed: bool,
+        degree: int,
+        focal_px: float,
+        fit_tolerance_px: float = 0.1,
+        min_piece_points: int = 30,
+        overlap: float = 0.25,
+    ) -> None:
         xy = np.asarray(xy, dtype=float)
         size = len(monomial_exponents(degree))
         if xy.ndim != 2 or xy.shape[1] != 2 or len(xy) < max(size, 3):
-            raise InvalidInput(f'chain: expected (N >= {max(size, 3)}, 2) points, got '
-                               f'{xy.shape}', key='chain', value=xy.shape)
+            raise InvalidInput(
+                f'chain: expected (N >= {max(size, 3)}, 2) points, got {xy.shape}',
+                key='chain',
+                value=xy.shape,
+            )
         self.xy = xy.copy()
         self.closed = bool(closed)
         self.degree = int(degree)
@@ -107,8 +118,9 @@ class PiecewiseCurve:
         self.member = np.isfinite(centrality)  # (P, N): chain point in piece's support
         self.coefficient_matrix = np.array([p.coefficients for p in self.pieces])
         # (P, 2, 2) lower and upper corner of each piece's chain points [normalised]
-        self.piece_boxes = np.array([[self.xy[p.indices].min(axis=0),
-                                      self.xy[p.indices].max(axis=0)] for p in self.pieces])
+        self.piece_boxes = np.array(
+            [[self.xy[p.indices].min(axis=0), self.xy[p.indices].max(axis=0)] for p in self.pieces]
+        )
 
     # --- fitting ---------------------------------------------------------------------
 
@@ -129,9 +141,9 @@ class PiecewiseCurve:
             a = fit_implicit_curve(self.xy[indices], self.degree, fit)
             # Sampson distances |g| / ||grad g|| of the piece's chain points
             with np.errstate(divide='ignore', invalid='ignore'):
-                residual = (np.abs(self._monomials[indices] @ a)
-                            / np.hypot(self._monomials_dx[indices] @ a,
-                                       self._monomials_dy[indices] @ a))
+                residual = np.abs(self._monomials[indices] @ a) / np.hypot(
+                    self._monomials_dx[indices] @ a, self._monomials_dy[indices] @ a
+                )
             rms = float(np.sqrt(np.mean(residual**2)) * self.focal_px)
             if best is None or rms < best[1]:
                 best = (a, rms)
@@ -179,7 +191,7 @@ class PiecewiseCurve:
         a = self.coefficient_matrix[self.owner[index]]
         mono, mono_gradients = _monomials_and_gradients(xy, self.degree)
         gradient = np.einsum('qmk,qm->qk', mono_gradients, a)
-        norm = np.sqrt(gradient[:, 0]**2 + gradient[:, 1]**2)
+        norm = np.sqrt(gradient[:, 0] ** 2 + gradient[:, 1] ** 2)
         with np.errstate(divide='ignore', invalid='ignore'):
             return np.einsum('qm,qm->q', mono, a) / norm, gradient / norm[:, None]
 
@@ -221,8 +233,9 @@ class View:
         distance, _ = self.curve.distance(xy)
         return np.nan_to_num(np.abs(distance) * self.curve.focal_px, nan=np.inf)
 
-    def in_support(self, points_base: npt.ArrayLike, pieces: npt.ArrayLike,
-                   support_px: float) -> npt.NDArray[np.bool_]:
+    def in_support(
+        self, points_base: npt.ArrayLike, pieces: npt.ArrayLike, support_px: float
+    ) -> npt.NDArray[np.bool_]:
         """(N,) bool: each point's projection has its nearest chain point in piece
         ``pieces[i]``'s support and within ``support_px`` of the chain."""
         xy, _ = self.project(points_base)
@@ -236,8 +249,9 @@ class View:
         result = np.zeros(len(xy), dtype=bool)
         if ok.any():
             index, distance = self.curve.nearest(xy[ok])
-            result[ok] = (self.curve.member[pieces[ok], index]
-                          & (distance * self.curve.focal_px <= support_px))
+            result[ok] = self.curve.member[pieces[ok], index] & (
+                distance * self.curve.focal_px <= support_px
+            )
         return result
 
 
@@ -256,8 +270,9 @@ def _cone_values(coefficients: FloatArray, degree: int, x_camera: FloatArray) ->
     return np.einsum('qm,qm->q', _cone_monomials(x_camera, degree), coefficients)
 
 
-def _cone_gradients(coefficients: FloatArray, degree: int, x_camera: FloatArray,
-                    R_camera_base: np.ndarray) -> FloatArray:
+def _cone_gradients(
+    coefficients: FloatArray, degree: int, x_camera: FloatArray, R_camera_base: np.ndarray
+) -> FloatArray:
     """Gradient (Q, 3) in base coordinates of each row's cone at its camera point."""
     jl = monomial_exponents(degree)
     exponents = np.column_stack([jl, degree - jl.sum(axis=1)])
@@ -265,9 +280,11 @@ def _cone_gradients(coefficients: FloatArray, degree: int, x_camera: FloatArray,
     for axis in range(3):
         lowered = exponents.copy()
         lowered[:, axis] = np.maximum(lowered[:, axis] - 1, 0)
-        grad[:, axis] = np.einsum('qm,qm->q', exponents[:, axis]
-                                  * np.prod(x_camera[:, None, :] ** lowered, axis=2),
-                                  coefficients)
+        grad[:, axis] = np.einsum(
+            'qm,qm->q',
+            exponents[:, axis] * np.prod(x_camera[:, None, :] ** lowered, axis=2),
+            coefficients,
+        )
     return grad @ R_camera_base
 
 
@@ -284,18 +301,17 @@ def _real_positive_roots(poly: FloatArray) -> tuple[IntArray, FloatArray]:
     n = p.shape[1] - 1
     # effective degree: highest coefficient above 1e-12 (relative)
     significant = np.abs(p) > 1e-12
-    degree = np.where(significant.any(axis=1),
-                      n - np.argmax(significant[:, ::-1], axis=1), 0)
+    degree = np.where(significant.any(axis=1), n - np.argmax(significant[:, ::-1], axis=1), 0)
     for d in range(1, n + 1):
         sel = np.nonzero(degree == d)[0]
         if len(sel) == 0:
             continue
-        c = p[sel, :d + 1]
+        c = p[sel, : d + 1]
         if d <= 2:
             r, real_roots = _real_roots_up_to_quadratic(c)
         else:
             companion = np.zeros((len(sel), d, d))
-            companion[:, 0, :] = -c[:, d - 1::-1] / c[:, d:d + 1]
+            companion[:, 0, :] = -c[:, d - 1 :: -1] / c[:, d : d + 1]
             companion[:, np.arange(1, d), np.arange(d - 1)] = 1.0
             eig = np.linalg.eigvals(companion)  # (S, d)
             r, k = np.nonzero(np.abs(eig.imag) <= 1e-7 * (1 + np.abs(eig.real)))
@@ -349,10 +365,17 @@ def _rays(view1: View, samples: IntArray) -> FloatArray:
     return np.column_stack([xy, np.ones(len(xy))]) @ view1.R_camera_base
 
 
-def reconstruct_ray_roots(view1: View, view2: View, view3: View | None = None, *,
-                          samples: npt.ArrayLike | None = None, tol3_px: float = 2.0,
-                          support_px: float = 3.0, distinct_m: float = 2e-3,
-                          max_depth: float = np.inf) -> tuple[FloatArray, CandidateInfo]:
+def reconstruct_ray_roots(
+    view1: View,
+    view2: View,
+    view3: View | None = None,
+    *,
+    samples: npt.ArrayLike | None = None,
+    tol3_px: float = 2.0,
+    support_px: float = 3.0,
+    distinct_m: float = 2e-3,
+    max_depth: float = np.inf,
+) -> tuple[FloatArray, CandidateInfo]:
     """Candidates from the real roots of each view-2 piece's cone along view-1 rays.
 
     Args:
@@ -376,10 +399,12 @@ def reconstruct_ray_roots(view1: View, view2: View, view3: View | None = None, *
     nodes = np.arange(degree + 1.0)
     # every (ray, piece) pair: evaluate the cone at n + 1 depths and solve exactly; the
     # camera-2 points of a ray do not depend on the piece, so their monomials are shared
-    x_cam = ((view1.centre_base + nodes[:, None, None] * rays[None] - view2.centre_base)
-             @ view2.R_camera_base.T)  # (n + 1, R, 3)
-    values = (_cone_monomials(x_cam.reshape(-1, 3), degree)
-              @ curve2.coefficient_matrix.T).reshape(len(nodes), -1)  # (n + 1, R P)
+    x_cam = (
+        view1.centre_base + nodes[:, None, None] * rays[None] - view2.centre_base
+    ) @ view2.R_camera_base.T  # (n + 1, R, 3)
+    values = (_cone_monomials(x_cam.reshape(-1, 3), degree) @ curve2.coefficient_matrix.T).reshape(
+        len(nodes), -1
+    )  # (n + 1, R P)
     poly = np.linalg.solve(np.vander(nodes, increasing=True), values).T
     ray_index = np.repeat(np.arange(len(samples)), n_pieces)
     piece_index = np.tile(np.arange(n_pieces), len(samples))
@@ -390,17 +415,25 @@ def reconstruct_ray_roots(view1: View, view2: View, view3: View | None = None, *
     plausible = (depth2 > 0) & (depth < max_depth)
     rows, points = rows[plausible], points[plausible]
     keep = view2.in_support(points, piece_index[rows], support_px)
-    return select_candidates(ray_index[rows][keep], points[keep], len(samples), samples,
-                             view3, tol3_px, distinct_m)
+    return select_candidates(
+        ray_index[rows][keep], points[keep], len(samples), samples, view3, tol3_px, distinct_m
+    )
 
 
-def reconstruct_cone_lsq(view1: View, view2: View, view3: View | None = None, *,
-                         samples: npt.ArrayLike | None = None, tol3_px: float = 2.0,
-                         support_px: float = 3.0, on_curve_px: float = 0.5,
-                         distinct_m: float = 2e-3,
-                         seed_depths: Sequence[float] | FloatArray = (0.25, 0.5, 1.0, 2.0, 4.0),
-                         iterations: int = 25,
-                         max_depth: float = np.inf) -> tuple[FloatArray, CandidateInfo]:
+def reconstruct_cone_lsq(
+    view1: View,
+    view2: View,
+    view3: View | None = None,
+    *,
+    samples: npt.ArrayLike | None = None,
+    tol3_px: float = 2.0,
+    support_px: float = 3.0,
+    on_curve_px: float = 0.5,
+    distinct_m: float = 2e-3,
+    seed_depths: Sequence[float] | FloatArray = (0.25, 0.5, 1.0, 2.0, 4.0),
+    iterations: int = 25,
+    max_depth: float = np.inf,
+) -> tuple[FloatArray, CandidateInfo]:
     """The thesis's method: minima of F = G1^2 + G2^2 from seeds on the view-1 rays.
 
     For each view-1 chain point, its owning view-1 piece's cone G1 and every view-2
@@ -431,8 +464,13 @@ def reconstruct_cone_lsq(view1: View, view2: View, view3: View | None = None, *,
         x1 = (x - view1.centre_base) @ view1.R_camera_base.T
         x2 = (x - view2.centre_base) @ view2.R_camera_base.T
         r = np.column_stack([_cone_values(a1, degree, x1), _cone_values(a2, degree, x2)])
-        J = np.stack([_cone_gradients(a1, degree, x1, view1.R_camera_base),
-                      _cone_gradients(a2, degree, x2, view2.R_camera_base)], axis=1)
+        J = np.stack(
+            [
+                _cone_gradients(a1, degree, x1, view1.R_camera_base),
+                _cone_gradients(a2, degree, x2, view2.R_camera_base),
+            ],
+            axis=1,
+        )
         return r, J
 
     damping = np.full(len(x), 1e-3)
@@ -443,22 +481,34 @@ def reconstruct_cone_lsq(view1: View, view2: View, view3: View | None = None, *,
         JJt = J @ np.swapaxes(J, 1, 2)
         mu = (damping * np.trace(JJt, axis1=1, axis2=2))[:, None, None] * np.eye(2) + 1e-300
         with np.errstate(all='ignore'):
-            step = -np.einsum('qij,qj->qi', np.swapaxes(J, 1, 2),
-                              np.linalg.solve(JJt + mu, r[:, :, None])[:, :, 0])
+            step = -np.einsum(
+                'qij,qj->qi',
+                np.swapaxes(J, 1, 2),
+                np.linalg.solve(JJt + mu, r[:, :, None])[:, :, 0],
+            )
         trial = x + np.nan_to_num(step)
         r_t, J_t = residual_and_jacobian(trial)
         cost_t = np.sum(r_t**2, axis=1)
         better = cost_t < cost
-        x[better], r[better], J[better], cost[better] = (trial[better], r_t[better],
-                                                          J_t[better], cost_t[better])
+        x[better], r[better], J[better], cost[better] = (
+            trial[better],
+            r_t[better],
+            J_t[better],
+            cost_t[better],
+        )
         damping = np.where(better, damping * 0.3, damping * 10.0)
         damping = np.clip(damping, 1e-12, 1e6)
     _, depth1 = view1.project(x)
     _, depth2 = view2.project(x)
-    keep = ((depth1 > 0) & (depth1 < max_depth) & (depth2 > 0)
-            & (view1.distance_px(x) <= on_curve_px) & (view2.distance_px(x) <= on_curve_px)
-            & view2.in_support(x, piece2, support_px)
-            & view1.in_support(x, piece1, support_px))
+    keep = (
+        (depth1 > 0)
+        & (depth1 < max_depth)
+        & (depth2 > 0)
+        & (view1.distance_px(x) <= on_curve_px)
+        & (view2.distance_px(x) <= on_curve_px)
+        & view2.in_support(x, piece2, support_px)
+        & view1.in_support(x, piece1, support_px)
+    )
     # a minimum need not lie on its seed's ray: file it under the view-1 chain point its
     # projection is nearest to, which keeps the output ordered along the curve
     chain_index, _ = c1.nearest(view1.project(x[keep])[0])
@@ -466,13 +516,15 @@ def reconstruct_cone_lsq(view1: View, view2: View, view3: View | None = None, *,
     position[samples] = np.arange(len(samples))
     sample_of = position[chain_index]
     inside = sample_of >= 0
-    return select_candidates(sample_of[inside], x[keep][inside], len(samples), samples,
-                             view3, tol3_px, distinct_m)
+    return select_candidates(
+        sample_of[inside], x[keep][inside], len(samples), samples, view3, tol3_px, distinct_m
+    )
 
 
 def _epipolar_distance_px(view1: View, view2: View, rays: FloatArray) -> FloatArray:
     """Distance [px] of every view-2 chain point to the epipolar line of every view-1
     ray (R, 3): (R, N2)."""
+
     def homogeneous(points_base: FloatArray) -> FloatArray:
         x = (points_base - view2.centre_base) @ view2.R_camera_base.T
         return x  # homogeneous image point (x, y, z) of view 2
@@ -484,9 +536,15 @@ def _epipolar_distance_px(view1: View, view2: View, rays: FloatArray) -> FloatAr
     return np.abs(lines @ xy1.T) * view2.curve.focal_px
 
 
-def select_candidates(ray_of_candidate: IntArray, candidates: FloatArray, n_samples: int,
-                      samples: IntArray, view3: View | None, tol3_px: float,
-                      distinct_m: float) -> tuple[FloatArray, CandidateInfo]:
+def select_candidates(
+    ray_of_candidate: IntArray,
+    candidates: FloatArray,
+    n_samples: int,
+    samples: IntArray,
+    view3: View | None,
+    tol3_px: float,
+    distinct_m: float,
+) -> tuple[FloatArray, CandidateInfo]:
     """One point per view-1 sample from its candidates.
 
     With ``view3``: the candidate nearest view 3's curve, if within ``tol3_px``. Without:
@@ -497,12 +555,10 @@ def select_candidates(ray_of_candidate: IntArray, candidates: FloatArray, n_samp
     chain indices, ``third_view_px`` (K,), ``n_samples``, ``n_candidates``,
     ``n_without_candidates``, ``n_rejected_view3``, ``n_ambiguous``.
     """
-    distance3 = (view3.distance_px(candidates) if view3 is not None
-                 else np.zeros(len(candidates)))
+    distance3 = view3.distance_px(candidates) if view3 is not None else np.zeros(len(candidates))
     # by sample, then (three views) by third-view distance: each sample's best candidate
     # comes first in its group
-    order = np.lexsort((distance3, ray_of_candidate) if view3 is not None
-                       else (ray_of_candidate,))
+    order = np.lexsort((distance3, ray_of_candidate) if view3 is not None else (ray_of_candidate,))
     ray_of_candidate, candidates = ray_of_candidate[order], candidates[order]
     distance3 = distance3[order]
     first = np.nonzero(np.diff(ray_of_candidate, prepend=-1))[0]  # start of each group
@@ -524,16 +580,25 @@ def select_candidates(ray_of_candidate: IntArray, candidates: FloatArray, n_samp
         ambiguous = int((~accepted).sum())
         points, d3 = group_mean[accepted], np.zeros(int(accepted.sum()))
     index = samples[ray_of_candidate[first[accepted]]]
-    info: CandidateInfo = {'sample_index': np.asarray(index, dtype=int), 'third_view_px': d3,
-                           'n_samples': n_samples, 'n_candidates': len(candidates),
-                           'n_without_candidates': empty, 'n_rejected_view3': rejected,
-                           'n_ambiguous': ambiguous}
+    info: CandidateInfo = {
+        'sample_index': np.asarray(index, dtype=int),
+        'third_view_px': d3,
+        'n_samples': n_samples,
+        'n_candidates': len(candidates),
+        'n_without_candidates': empty,
+        'n_rejected_view3': rejected,
+        'n_ambiguous': ambiguous,
+    }
     return np.asarray(points, dtype=float).reshape(-1, 3), info
 
 
-def refine_points(points_base: npt.ArrayLike, views: Sequence[View],
-                  tangents: FloatArray | None = None, iterations: int = 3,
-                  max_step_m: float = 0.01) -> tuple[FloatArray, FloatArray, FloatArray]:
+def refine_points(
+    points_base: npt.ArrayLike,
+    views: Sequence[View],
+    tangents: FloatArray | None = None,
+    iterations: int = 3,
+    max_step_m: float = 0.01,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Move each point to minimise sum_k (f_k d_k)^2, its squared distances [px] to the
     curves of all ``views`` (d_k the signed Sampson distance in view k, f_k its focal
     length): minimum-norm Gauss-Newton steps, batched. The along-curve direction is
@@ -627,8 +692,9 @@ def _eigenvector_3x3(A: FloatArray, eigenvalue: FloatArray) -> FloatArray:
     """Unit eigenvectors (S, 3) of symmetric (S, 3, 3) matrices for simple eigenvalues
     (S,): the longest cross product of two rows of A - eigenvalue I."""
     M = A - eigenvalue[:, None, None] * np.eye(3)
-    candidates = np.stack([_cross(M[:, 0], M[:, 1]), _cross(M[:, 0], M[:, 2]),
-                           _cross(M[:, 1], M[:, 2])], axis=1)
+    candidates = np.stack(
+        [_cross(M[:, 0], M[:, 1]), _cross(M[:, 0], M[:, 2]), _cross(M[:, 1], M[:, 2])], axis=1
+    )
     lengths = np.sqrt(np.sum(candidates**2, axis=2))
     best = np.argmax(lengths, axis=1)
     rows = np.arange(len(M))
@@ -649,6 +715,10 @@ def _determinant_3x3(M: FloatArray) -> FloatArray:
 
 def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
     """Row-wise cross products of (S, 3) arrays (np.cross costs more on small batches)."""
-    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
-                            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
+    return np.column_stack(
+        [
+            a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1],
+            a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0],
+        ]
+    )

@@ -2,6 +2,7 @@
 third-view selection, refinement, smoothing and resampling. Plain numpy, no ROS: the node
 converts messages and calls ``reconstruct_capture``.
 """
+
 from __future__ import annotations
 
 import time
@@ -90,13 +91,18 @@ class StageClock:
         self._last = now
 
 
-def view_curve(image: npt.ArrayLike, camera: PinholeCamera, settings: ReconstructionSettings,
-               clock: StageClock | None = None) -> tuple[View | None, int]:
+def view_curve(
+    image: npt.ArrayLike,
+    camera: PinholeCamera,
+    settings: ReconstructionSettings,
+    clock: StageClock | None = None,
+) -> tuple[View | None, int]:
     """The longest curve chain of one image as a ``View`` (undistorted with the camera),
     or None if there is none. ``clock`` (a ``StageClock``) gets the stages' times."""
     clock = StageClock() if clock is None else clock
-    chains = extract_chains(image, settings.line_width_px, settings.min_contrast,
-                            settings.min_curve_pixels)
+    chains = extract_chains(
+        image, settings.line_width_px, settings.min_contrast, settings.min_curve_pixels
+    )
     clock.lap('extraction')
     if not chains:
         return None, 0
@@ -104,15 +110,26 @@ def view_curve(image: npt.ArrayLike, camera: PinholeCamera, settings: Reconstruc
     xy = camera.undistort_pixels(chain.pixels)
     focal = 0.5 * (camera.K[0, 0] + camera.K[1, 1])
     clock.lap('undistortion')
-    curve = PiecewiseCurve(xy, chain.closed, settings.degree, focal,
-                           settings.fit_tolerance_px, settings.min_piece_points)
+    curve = PiecewiseCurve(
+        xy,
+        chain.closed,
+        settings.degree,
+        focal,
+        settings.fit_tolerance_px,
+        settings.min_piece_points,
+    )
     clock.lap('piecewise fits')
     T_camera_base = camera.T_camera_base
     return View(curve, T_camera_base[:3, :3], camera.centre_base), len(chains)
 
 
-def _second_pair(views: Sequence[View], points: FloatArray, info: CandidateInfo, tol3_px: float,
-                 settings: ReconstructionSettings) -> tuple[FloatArray, CandidateInfo]:
+def _second_pair(
+    views: Sequence[View],
+    points: FloatArray,
+    info: CandidateInfo,
+    tol3_px: float,
+    settings: ReconstructionSettings,
+) -> tuple[FloatArray, CandidateInfo]:
     """Samples that views 1 and 2 left unreconstructed (where the curve runs along
     their epipolar lines the two cones meet at a grazing angle, so the root is off and
     view 3 rejects it) get a second chance from views 1 and 3, checked by view 2: with
@@ -122,24 +139,36 @@ def _second_pair(views: Sequence[View], points: FloatArray, info: CandidateInfo,
     missing = np.setdiff1d(np.arange(info['n_samples']), info['sample_index'])
     if len(missing) < 3:
         return points, info
-    more, more_info = reconstruct_ray_roots(views[0], views[2], views[1], samples=missing,
-                                            tol3_px=tol3_px,
-                                            max_depth=settings.depth_range[1])
+    more, more_info = reconstruct_ray_roots(
+        views[0],
+        views[2],
+        views[1],
+        samples=missing,
+        tol3_px=tol3_px,
+        max_depth=settings.depth_range[1],
+    )
     if not len(more):
         return points, info
     index = np.concatenate([info['sample_index'], more_info['sample_index']])
     order = np.argsort(index, kind='stable')
-    merged: CandidateInfo = {**info, 'sample_index': index[order],
-                             'third_view_px': np.concatenate([info['third_view_px'],
-                                                              more_info['third_view_px']])[order],
-                             'n_candidates': info['n_candidates'] + more_info['n_candidates'],
-                             'n_second_pair': len(more)}
+    merged: CandidateInfo = {
+        **info,
+        'sample_index': index[order],
+        'third_view_px': np.concatenate([info['third_view_px'], more_info['third_view_px']])[
+            order
+        ],
+        'n_candidates': info['n_candidates'] + more_info['n_candidates'],
+        'n_second_pair': len(more),
+    }
     return np.vstack([points, more])[order], merged
 
 
-def reconstruct_capture(images: Mapping[str, npt.ArrayLike], cameras: Mapping[str, PinholeCamera],
-                        settings: ReconstructionSettings,
-                        names: Sequence[str] = ('left', 'right', 'aux')) -> Reconstruction:
+def reconstruct_capture(
+    images: Mapping[str, npt.ArrayLike],
+    cameras: Mapping[str, PinholeCamera],
+    settings: ReconstructionSettings,
+    names: Sequence[str] = ('left', 'right', 'aux'),
+) -> Reconstruction:
     """Reconstruct the curve seen in ``images`` {name: (H, W) grey} by ``cameras`` {name:
     PinholeCamera with pose}; ``names`` are the views used, view 1 first (2 or 3).
 
@@ -148,53 +177,77 @@ def reconstruct_capture(images: Mapping[str, npt.ArrayLike], cameras: Mapping[st
     started = time.perf_counter()
     clock = StageClock()
     if settings.method not in METHODS:
-        raise InvalidInput(f'method: expected one of {METHODS}, got {settings.method!r}',
-                           key='method', value=settings.method)
+        raise InvalidInput(
+            f'method: expected one of {METHODS}, got {settings.method!r}',
+            key='method',
+            value=settings.method,
+        )
     views, chain_counts = [], {}
     for name in names:
         view, count = view_curve(images[name], cameras[name], settings, clock)
         chain_counts[name] = count
         if view is None:
             seen = [n for n in names if chain_counts.get(n)]
-            raise NoCurve(f'no curve in the {name} image (curve found in: '
-                          f'{", ".join(seen) or "no view"})', key='no curve', value=name)
+            raise NoCurve(
+                f'no curve in the {name} image (curve found in: {", ".join(seen) or "no view"})',
+                key='no curve',
+                value=name,
+            )
         views.append(view)
     view3 = views[2] if len(views) > 2 else None
     tol3 = settings.third_view_tolerance
     if settings.method == 'ray_roots':
-        points, info = reconstruct_ray_roots(views[0], views[1], view3, tol3_px=tol3,
-                                             max_depth=settings.depth_range[1])
+        points, info = reconstruct_ray_roots(
+            views[0], views[1], view3, tol3_px=tol3, max_depth=settings.depth_range[1]
+        )
         if view3 is not None:
             points, info = _second_pair(views, points, info, tol3, settings)
     else:
         # the thesis's "suitable initial roots": log-spaced depths on each view-1 ray
         seeds = np.geomspace(*settings.depth_range, settings.seeds)
-        points, info = reconstruct_cone_lsq(views[0], views[1], view3, tol3_px=tol3,
-                                            seed_depths=seeds,
-                                            max_depth=settings.depth_range[1])
+        points, info = reconstruct_cone_lsq(
+            views[0],
+            views[1],
+            view3,
+            tol3_px=tol3,
+            seed_depths=seeds,
+            max_depth=settings.depth_range[1],
+        )
     clock.lap(settings.method)
     fraction = len(points) / max(info['n_samples'], 1)
     stats: dict[str, Any] = {
-        'views': len(views), 'pieces': '/'.join(str(len(v.curve.pieces)) for v in views),
-        'samples': info['n_samples'], 'candidates': info['n_candidates'],
+        'views': len(views),
+        'pieces': '/'.join(str(len(v.curve.pieces)) for v in views),
+        'samples': info['n_samples'],
+        'candidates': info['n_candidates'],
         'rejected_by_third_view': info['n_rejected_view3'],
         'ambiguous': info['n_ambiguous'],
         'from_views_1_3': info.get('n_second_pair', 0),
         'without_candidates': info['n_without_candidates'],
-        'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views)}
+        'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views),
+    }
     # two views: reconstruct where the intersection is unique and report the rest as
     # ambiguous (stats), so only the three-view case needs most samples to succeed
     if (view3 is not None and fraction < settings.min_fraction) or len(points) < 10:
-        raise NoCurve(f'only {len(points)} of {info["n_samples"]} curve samples were '
-                      f'reconstructed ({info["n_rejected_view3"]} rejected by the third '
-                      f'view, {info["n_ambiguous"]} ambiguous): the views do not show one '
-                      'curve', key='no curve', value=stats)
+        raise NoCurve(
+            f'only {len(points)} of {info["n_samples"]} curve samples were '
+            f'reconstructed ({info["n_rejected_view3"]} rejected by the third '
+            f'view, {info["n_ambiguous"]} ambiguous): the views do not show one '
+            'curve',
+            key='no curve',
+            value=stats,
+        )
     sample_index = info['sample_index']
     if settings.refine:
         closed = views[0].curve.closed
-        rough, _ = smooth_along_curve(points, closed, settings.smoothing_window,
-                                      sample_index, len(views[0].curve.xy) if closed
-                                      else None, passes=1)
+        rough, _ = smooth_along_curve(
+            points,
+            closed,
+            settings.smoothing_window,
+            sample_index,
+            len(views[0].curve.xy) if closed else None,
+            passes=1,
+        )
         refined, residuals, before = refine_points(points, views, tangents(rough, closed))
         # a refined point that cannot come within REFINED_RESIDUAL_PX of every view's
         # curve (or several times the typical residual) lies on no common curve: a root
@@ -202,8 +255,9 @@ def reconstruct_capture(images: Mapping[str, npt.ArrayLike], cameras: Mapping[st
         # smoothing may follow, and a cluster of them splits the curve into runs.
         worst = np.max(np.abs(residuals), axis=1)
         finite = np.isfinite(worst)
-        limit = max(REFINED_RESIDUAL_PX,
-                    5 * float(np.median(worst[finite])) if finite.any() else 0.0)
+        limit = max(
+            REFINED_RESIDUAL_PX, 5 * float(np.median(worst[finite])) if finite.any() else 0.0
+        )
         good = finite & (worst <= limit)
         stats_rejected_refined = int((finite & ~good).sum())
         points, residuals, sample_index = refined[good], residuals[good], sample_index[good]
@@ -213,15 +267,15 @@ def reconstruct_capture(images: Mapping[str, npt.ArrayLike], cameras: Mapping[st
         stats_rejected_refined = 0
     stats['off_curve_after_refinement'] = stats_rejected_refined
     stats['rms_residual_px_before'] = float(np.sqrt(np.mean(before**2)))
-    stats['rms_residual_px'] = '/'.join(f'{r:.3f}' for r in
-                                        np.sqrt(np.mean(residuals**2, axis=0)))
+    stats['rms_residual_px'] = '/'.join(f'{r:.3f}' for r in np.sqrt(np.mean(residuals**2, axis=0)))
     closed = views[0].curve.closed
     n_chain = len(views[0].curve.xy)
     max_gap = 4 * settings.spacing + settings.smoothing_window  # [m]
     # outliers first (isolated points where three cones happen to meet off the curve):
     # each would otherwise open the loop or split the curve at its two jumps
-    _, inlier = smooth_along_curve(points, closed, settings.smoothing_window, sample_index,
-                                   period=n_chain if closed else None)
+    _, inlier = smooth_along_curve(
+        points, closed, settings.smoothing_window, sample_index, period=n_chain if closed else None
+    )
     points, sample_index = points[inlier], sample_index[inlier]
     alone = stranded_runs(points, closed, max_gap)
     stats['outliers'] = int((~inlier).sum() + alone.sum())
@@ -235,20 +289,36 @@ def reconstruct_capture(images: Mapping[str, npt.ArrayLike], cameras: Mapping[st
     stats['points_in_other_segments'] = len(ordered) - len(longest)
     ordered, parameter = ordered[longest], parameter[longest]
     if len(ordered) < 5:
-        raise NoCurve(f'the longest gap-free piece of the curve has only {len(ordered)} '
-                      'points', key='no curve', value=stats)
-    smoothed, kept = smooth_along_curve(ordered, closed, settings.smoothing_window,
-                                        parameter, period=n_chain if closed else None)
+        raise NoCurve(
+            f'the longest gap-free piece of the curve has only {len(ordered)} points',
+            key='no curve',
+            value=stats,
+        )
+    smoothed, kept = smooth_along_curve(
+        ordered, closed, settings.smoothing_window, parameter, period=n_chain if closed else None
+    )
     waypoints = resample(without_reversals(smoothed, closed), closed, settings.spacing)
     # the published raw points: those that passed the third view and the outlier test
     points = ordered[kept]
     clock.lap('ordering, smoothing, resampling')
     stats['outliers'] += int((~kept).sum())
-    stats.update({'points': len(points), 'closed': closed,
-                  'waypoints': len(waypoints),
-                  'length_m': float(np.sum(np.linalg.norm(np.diff(
-                      np.vstack([waypoints, waypoints[:1]]) if closed else waypoints,
-                      axis=0), axis=1))),
-                  'time_ms': 1e3 * (time.perf_counter() - started),
-                  'stage_ms': clock.stage_ms})
+    stats.update(
+        {
+            'points': len(points),
+            'closed': closed,
+            'waypoints': len(waypoints),
+            'length_m': float(
+                np.sum(
+                    np.linalg.norm(
+                        np.diff(
+                            np.vstack([waypoints, waypoints[:1]]) if closed else waypoints, axis=0
+                        ),
+                        axis=1,
+                    )
+                )
+            ),
+            'time_ms': 1e3 * (time.perf_counter() - started),
+            'stage_ms': clock.stage_ms,
+        }
+    )
     return Reconstruction(waypoints, closed, points, stats)

@@ -3,6 +3,7 @@ matching of view-1 chain points along view 2's chain polyline, cv2.triangulatePo
 and view 3 to choose among several crossings (and to reject points off its chain), on
 the same extracted chains and calibration the node uses (issue 14).
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
@@ -24,8 +25,9 @@ def _closed_polyline(xy: FloatArray, closed: bool) -> FloatArray:
     return np.vstack([xy, xy[:1]]) if closed else xy
 
 
-def densify_polyline(xy: FloatArray, breaks: Iterable[int] | None = None,
-                     per: int = 20) -> FloatArray:
+def densify_polyline(
+    xy: FloatArray, breaks: Iterable[int] | None = None, per: int = 20
+) -> FloatArray:
     """``per`` points per segment of a polyline (N, 2); no segment ends at an index in
     ``breaks`` (the polyline jumps there)."""
     breaks = set() if breaks is None else set(int(b) for b in breaks)
@@ -36,11 +38,15 @@ def densify_polyline(xy: FloatArray, breaks: Iterable[int] | None = None,
     return np.vstack([dense.reshape(-1, 2), xy[-1:]])
 
 
-def triangulate_chains(xy_views: Sequence[npt.ArrayLike], R_camera_base: Sequence[np.ndarray],
-                       centre_base: Sequence[npt.ArrayLike], closed: Sequence[bool],
-                       focal_px: float, tol3_px: float = 2.0,
-                       breaks: Sequence[int] | np.ndarray | None = None
-                       ) -> tuple[FloatArray, IntArray]:
+def triangulate_chains(
+    xy_views: Sequence[npt.ArrayLike],
+    R_camera_base: Sequence[np.ndarray],
+    centre_base: Sequence[npt.ArrayLike],
+    closed: Sequence[bool],
+    focal_px: float,
+    tol3_px: float = 2.0,
+    breaks: Sequence[int] | np.ndarray | None = None,
+) -> tuple[FloatArray, IntArray]:
     """Point-based reconstruction of a curve from its chains in two or three views.
 
     Args:
@@ -58,8 +64,10 @@ def triangulate_chains(xy_views: Sequence[npt.ArrayLike], R_camera_base: Sequenc
     views, view-1 points whose epipolar line crosses view 2's chain more than once are
     dropped (ambiguous).
     """
-    P = [np.hstack([R, (-R @ np.asarray(c, float))[:, None]])
-         for R, c in zip(R_camera_base, centre_base)]
+    P = [
+        np.hstack([R, (-R @ np.asarray(c, float))[:, None]])
+        for R, c in zip(R_camera_base, centre_base)
+    ]
     xy1 = np.asarray(xy_views[0], float)
     xy2 = _closed_polyline(np.asarray(xy_views[1], float), closed[1])
     R1, R2 = R_camera_base[0], R_camera_base[1]
@@ -87,8 +95,9 @@ def triangulate_chains(xy_views: Sequence[npt.ArrayLike], R_camera_base: Sequenc
         x3 = (X - c3) @ R3.T
         with np.errstate(divide='ignore', invalid='ignore'):
             proj3 = x3[:, :2] / x3[:, 2:]
-        dense3 = cKDTree(densify_polyline(_closed_polyline(np.asarray(xy_views[2], float),
-                                                           closed[2]), breaks))
+        dense3 = cKDTree(
+            densify_polyline(_closed_polyline(np.asarray(xy_views[2], float), closed[2]), breaks)
+        )
         d3 = dense3.query(np.nan_to_num(proj3, nan=1e9))[0] * focal_px
         d3[~(x3[:, 2] > 0)] = np.inf
     else:
@@ -106,6 +115,11 @@ def triangulate_chains(xy_views: Sequence[npt.ArrayLike], R_camera_base: Sequenc
 def triangulate_views(views: Sequence[View], tol3_px: float = 2.0) -> tuple[FloatArray, IntArray]:
     """``triangulate_chains`` on the node's ``piecewise.View`` objects (their chains as
     extracted and undistorted)."""
-    return triangulate_chains([v.curve.xy for v in views], [v.R_camera_base for v in views],
-                              [v.centre_base for v in views], [v.curve.closed for v in views],
-                              views[-1].curve.focal_px, tol3_px)
+    return triangulate_chains(
+        [v.curve.xy for v in views],
+        [v.R_camera_base for v in views],
+        [v.centre_base for v in views],
+        [v.curve.closed for v in views],
+        views[-1].curve.focal_px,
+        tol3_px,
+    )

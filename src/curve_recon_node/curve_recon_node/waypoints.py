@@ -4,6 +4,7 @@ surface normals from a depth image.
 
 Points arrive ordered along the curve (by the view-1 chain point they came from).
 """
+
 from __future__ import annotations
 
 from typing import cast
@@ -20,8 +21,9 @@ BoolArray = npt.NDArray[np.bool_]
 def _as_points(points: npt.ArrayLike) -> FloatArray:
     points = np.asarray(points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 3:
-        raise InvalidInput(f'points: expected shape (N, 3), got {points.shape}',
-                           key='points', value=points.shape)
+        raise InvalidInput(
+            f'points: expected shape (N, 3), got {points.shape}', key='points', value=points.shape
+        )
     return points
 
 
@@ -35,16 +37,19 @@ def arc_length(points: npt.ArrayLike, closed: bool) -> tuple[FloatArray, float]:
     return s, total
 
 
-def open_at_largest_gap(points: npt.ArrayLike, closed: bool, max_gap_m: float,
-                        parameter: npt.ArrayLike | None = None
-                        ) -> tuple[FloatArray, bool, FloatArray]:
+def open_at_largest_gap(
+    points: npt.ArrayLike, closed: bool, max_gap_m: float, parameter: npt.ArrayLike | None = None
+) -> tuple[FloatArray, bool, FloatArray]:
     """A closed sequence with a gap wider than ``max_gap_m`` [m] cannot be trusted as a
     loop: roll it to start after its widest gap and open it. Returns (points, closed,
     parameter) with ``parameter`` (N,) (default: the index) rolled alike and made
     increasing."""
     points = _as_points(points)
-    parameter = (np.arange(len(points), dtype=float) if parameter is None
-                 else np.asarray(parameter, dtype=float))
+    parameter = (
+        np.arange(len(points), dtype=float)
+        if parameter is None
+        else np.asarray(parameter, dtype=float)
+    )
     if not closed or len(points) < 3:
         return points, closed, parameter
     gaps = np.linalg.norm(np.roll(points, -1, axis=0) - points, axis=1)
@@ -57,8 +62,9 @@ def open_at_largest_gap(points: npt.ArrayLike, closed: bool, max_gap_m: float,
     return np.roll(points, -(widest + 1), axis=0), False, rolled
 
 
-def stranded_runs(points: npt.ArrayLike, closed: bool, max_gap_m: float,
-                  min_points: int = 5) -> BoolArray:
+def stranded_runs(
+    points: npt.ArrayLike, closed: bool, max_gap_m: float, min_points: int = 5
+) -> BoolArray:
     """Mask (N,) of the points in runs of fewer than ``min_points`` cut off on both sides
     by steps longer than ``max_gap_m`` [m] (around the loop if ``closed``): a few points
     on their own are no evidence of the curve (a wrong root the outlier test could not
@@ -109,10 +115,15 @@ def split_at_gaps(points: npt.ArrayLike, max_gap_m: float) -> list[npt.NDArray[n
     return np.split(np.arange(len(points)), cuts)
 
 
-def smooth_along_curve(points: npt.ArrayLike, closed: bool, window_m: float,
-                       parameter: npt.ArrayLike | None = None, period: float | None = None,
-                       reject_sigma: float = 4.0,
-                       passes: int = 2) -> tuple[FloatArray, BoolArray]:
+def smooth_along_curve(
+    points: npt.ArrayLike,
+    closed: bool,
+    window_m: float,
+    parameter: npt.ArrayLike | None = None,
+    period: float | None = None,
+    reject_sigma: float = 4.0,
+    passes: int = 2,
+) -> tuple[FloatArray, BoolArray]:
     """Local quadratic regression of each coordinate against a curve parameter (tricube
     weights over a window of about ``window_m`` [m]); points whose residual exceeds
     ``reject_sigma`` robust standard deviations (and 0.5 mm) are dropped between passes.
@@ -158,8 +169,9 @@ def smooth_along_curve(points: npt.ArrayLike, closed: bool, window_m: float,
     return smoothed, kept
 
 
-def _local_quadratic(values: FloatArray, t: FloatArray, half: float,
-                     period: float | None) -> FloatArray:
+def _local_quadratic(
+    values: FloatArray, t: FloatArray, half: float, period: float | None
+) -> FloatArray:
     """Value at each t of the tricube-weighted quadratic fit of ``values`` (N, C) over
     |dt| < ``half``; ``period`` for a periodic parameter (else None). Points are sorted by
     t, so each window is a band of neighbours: all fits at once from weighted moments."""
@@ -178,12 +190,12 @@ def _local_quadratic(values: FloatArray, t: FloatArray, half: float,
         valid = (index >= 0) & (index < n)
         index = np.clip(index, 0, n - 1)
         dt = t[index] - t[:, None]
-    w = np.where(valid, np.clip(1 - (np.abs(dt) / half)**3, 0.0, None)**3, 0.0)
+    w = np.where(valid, np.clip(1 - (np.abs(dt) / half) ** 3, 0.0, None) ** 3, 0.0)
     weighted_powers = [w]  # w dt^p, p = 0..4, by repeated products
     for _ in range(4):
         weighted_powers.append(weighted_powers[-1] * dt)
     moments = np.stack([wp.sum(axis=1) for wp in weighted_powers], axis=1)  # (N, 5)
-    normal = np.stack([moments[:, r:r + 3] for r in range(3)], axis=1)
+    normal = np.stack([moments[:, r : r + 3] for r in range(3)], axis=1)
     normal += 1e-12 * np.trace(normal, axis1=1, axis2=2)[:, None, None] * np.eye(3)
     # only the fit's value at dt = 0 is wanted, e0^T normal^-1 rhs: by Cramer's rule the
     # first row of the inverse is (column 1 x column 2) / det, so each neighbour's weight
@@ -204,8 +216,9 @@ def resample(points: npt.ArrayLike, closed: bool, spacing_m: float) -> FloatArra
     is not repeated. Returns (M, 3)."""
     points = _as_points(points)
     if spacing_m <= 0:
-        raise InvalidInput(f'spacing: must be > 0, got {spacing_m}', key='spacing',
-                           value=spacing_m)
+        raise InvalidInput(
+            f'spacing: must be > 0, got {spacing_m}', key='spacing', value=spacing_m
+        )
     if closed:
         points = np.vstack([points, points[:1]])
     s, total = arc_length(points, False)
@@ -224,8 +237,9 @@ def tangents(points: npt.ArrayLike, closed: bool) -> FloatArray:
     tangent along the curve is taken; raises InvalidInput if all points coincide."""
     points = _as_points(points)
     if len(points) < 2:
-        raise InvalidInput(f'tangents: need at least 2 points, got {len(points)}',
-                           key='points', value=len(points))
+        raise InvalidInput(
+            f'tangents: need at least 2 points, got {len(points)}', key='points', value=len(points)
+        )
     if closed:
         t = np.roll(points, -1, axis=0) - np.roll(points, 1, axis=0)
     else:
@@ -234,8 +248,7 @@ def tangents(points: npt.ArrayLike, closed: bool) -> FloatArray:
     scale = max(float(np.ptp(points, axis=0).max()), 1e-300)
     zero = ~(norm > 1e-9 * scale)
     if zero.all():
-        raise InvalidInput('tangents: all points coincide', key='points',
-                           value=points[0].tolist())
+        raise InvalidInput('tangents: all points coincide', key='points', value=points[0].tolist())
     if zero.any():
         nonzero = np.nonzero(~zero)[0]
         nearest = nonzero[np.abs(np.arange(len(t))[:, None] - nonzero[None]).argmin(axis=1)]
@@ -243,8 +256,9 @@ def tangents(points: npt.ArrayLike, closed: bool) -> FloatArray:
     return t / norm[:, None]
 
 
-def waypoint_frames(points: npt.ArrayLike, closed: bool,
-                    approach_base: npt.ArrayLike | None = None) -> FloatArray:
+def waypoint_frames(
+    points: npt.ArrayLike, closed: bool, approach_base: npt.ArrayLike | None = None
+) -> FloatArray:
     """Poses (N, 4, 4) in base: origin at the point, x along the tangent, z the approach
     direction made orthogonal to x, y = z x x.
 
@@ -281,10 +295,11 @@ def depth_points_rect(depth_m: npt.ArrayLike, K_rect: npt.ArrayLike) -> FloatArr
     frame [m]."""
     depth_m = np.asarray(depth_m, dtype=float)
     if depth_m.ndim != 2:
-        raise InvalidInput(f'depth: expected (H, W), got {depth_m.shape}', key='depth',
-                           value=depth_m.shape)
+        raise InvalidInput(
+            f'depth: expected (H, W), got {depth_m.shape}', key='depth', value=depth_m.shape
+        )
     K = np.asarray(K_rect, dtype=float)
-    v, u = np.mgrid[0:depth_m.shape[0], 0:depth_m.shape[1]]
+    v, u = np.mgrid[0 : depth_m.shape[0], 0 : depth_m.shape[1]]
     y = (v - K[1, 2]) / K[1, 1]
     x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
     return np.stack([x * depth_m, y * depth_m, depth_m], axis=2)
@@ -293,8 +308,9 @@ def depth_points_rect(depth_m: npt.ArrayLike, K_rect: npt.ArrayLike) -> FloatArr
 DEPTH_RANGE_M = (1e-3, 100.0)  # [m] depths outside are not a surface seen by a camera
 
 
-def usable_depth(depth_m: npt.ArrayLike, depth_range: tuple[float, float] = DEPTH_RANGE_M
-                 ) -> tuple[FloatArray, dict[str, int]]:
+def usable_depth(
+    depth_m: npt.ArrayLike, depth_range: tuple[float, float] = DEPTH_RANGE_M
+) -> tuple[FloatArray, dict[str, int]]:
     """The depth image (H, W) with every value that cannot be a seen surface set to NaN
     (NaN stays unknown, REP 118), and the counts of what was removed: {'not_positive':
     zero or negative, 'too_far': beyond ``depth_range[1]`` [m] or infinite, 'too_near':
@@ -305,8 +321,11 @@ def usable_depth(depth_m: npt.ArrayLike, depth_range: tuple[float, float] = DEPT
         too_far = depth_m > depth_range[1]
         too_near = (depth_m > 0) & (depth_m < depth_range[0])
     depth_m[not_positive | too_far | too_near] = np.nan
-    return depth_m, {'not_positive': int(not_positive.sum()), 'too_far': int(too_far.sum()),
-                     'too_near': int(too_near.sum())}
+    return depth_m, {
+        'not_positive': int(not_positive.sum()),
+        'too_far': int(too_far.sum()),
+        'too_near': int(too_near.sum()),
+    }
 
 
 def check_depth_intrinsics(K_rect: npt.ArrayLike, width: int, height: int) -> None:
@@ -318,21 +337,40 @@ def check_depth_intrinsics(K_rect: npt.ArrayLike, width: int, height: int) -> No
         raise InvalidInput('depth intrinsics: K must be a finite 3x3 matrix', key='K')
     limit = 1e6  # [px] no lens has a focal length of a million pixels
     if not (0 < K[0, 0] < limit and 0 < K[1, 1] < limit):
-        raise InvalidInput(f'depth intrinsics: focal lengths {K[0, 0]:g}, {K[1, 1]:g} px '
-                           f'must be in (0, {limit:g})', key='K', value=K.tolist())
-    if not (abs(K[0, 1]) < limit and -width <= K[0, 2] <= 2 * width
-            and -height <= K[1, 2] <= 2 * height):
-        raise InvalidInput(f'depth intrinsics: principal point ({K[0, 2]:g}, {K[1, 2]:g}) '
-                           f'or skew {K[0, 1]:g} implausible for {width}x{height}', key='K',
-                           value=K.tolist())
+        raise InvalidInput(
+            f'depth intrinsics: focal lengths {K[0, 0]:g}, {K[1, 1]:g} px '
+            f'must be in (0, {limit:g})',
+            key='K',
+            value=K.tolist(),
+        )
+    if not (
+        abs(K[0, 1]) < limit
+        and -width <= K[0, 2] <= 2 * width
+        and -height <= K[1, 2] <= 2 * height
+    ):
+        raise InvalidInput(
+            f'depth intrinsics: principal point ({K[0, 2]:g}, {K[1, 2]:g}) '
+            f'or skew {K[0, 1]:g} implausible for {width}x{height}',
+            key='K',
+            value=K.tolist(),
+        )
     if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
-        raise InvalidInput('depth intrinsics: K must be upper triangular with K[2, 2] = 1',
-                           key='K', value=K.tolist())
+        raise InvalidInput(
+            'depth intrinsics: K must be upper triangular with K[2, 2] = 1',
+            key='K',
+            value=K.tolist(),
+        )
 
 
-def normals_from_depth(points_base: npt.ArrayLike, depth_m: npt.ArrayLike,
-                       K_rect: npt.ArrayLike, T_base_rect: npt.ArrayLike, window_px: int = 9,
-                       min_valid: int = 12, max_depth_mismatch: float = 0.1) -> FloatArray:
+def normals_from_depth(
+    points_base: npt.ArrayLike,
+    depth_m: npt.ArrayLike,
+    K_rect: npt.ArrayLike,
+    T_base_rect: npt.ArrayLike,
+    window_px: int = 9,
+    min_valid: int = 12,
+    max_depth_mismatch: float = 0.1,
+) -> FloatArray:
     """Surface normals (N, 3) in base at ``points_base`` from a depth image.
 
     Each point is projected into the rectified frame (pose ``T_base_rect`` (4, 4), the
@@ -347,8 +385,9 @@ def normals_from_depth(points_base: npt.ArrayLike, depth_m: npt.ArrayLike,
     points_base = _as_points(points_base)
     depth_m = np.asarray(depth_m, dtype=float)
     if depth_m.ndim != 2:
-        raise InvalidInput(f'depth: expected (H, W), got {depth_m.shape}', key='depth',
-                           value=depth_m.shape)
+        raise InvalidInput(
+            f'depth: expected (H, W), got {depth_m.shape}', key='depth', value=depth_m.shape
+        )
     H, W = depth_m.shape
     check_depth_intrinsics(K_rect, W, H)
     depth_m, _ = usable_depth(depth_m)
@@ -367,7 +406,7 @@ def normals_from_depth(points_base: npt.ArrayLike, depth_m: npt.ArrayLike,
         if not (half <= u < W - half - 0.5 and half <= v < H - half - 0.5):
             continue  # also false for NaN
         ui, vi = int(round(u)), int(round(v))
-        patch = cloud[vi - half:vi + half + 1, ui - half:ui + half + 1].reshape(-1, 3)
+        patch = cloud[vi - half : vi + half + 1, ui - half : ui + half + 1].reshape(-1, 3)
         patch = patch[np.all(np.isfinite(patch), axis=1)]
         if len(patch) < min_valid:
             continue

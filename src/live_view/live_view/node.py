@@ -25,6 +25,7 @@ the oldest beyond that (inside foxglove-sdk, which does not report how many).
 /diagnostics, every ``DIAGNOSTICS_PERIOD``: the URL, clients, channels, messages
 forwarded per topic, transforms sent and rejected inputs.
 """
+
 import sys
 import threading
 import time
@@ -74,9 +75,11 @@ def frame_transform(pose_stamped, child_frame_id):
     stamp = pose_stamped.header.stamp
     return FrameTransform(
         timestamp=Timestamp(sec=stamp.sec, nsec=stamp.nanosec),
-        parent_frame_id=pose_stamped.header.frame_id, child_frame_id=child_frame_id,
+        parent_frame_id=pose_stamped.header.frame_id,
+        child_frame_id=child_frame_id,
         translation=Vector3(x=p.x, y=p.y, z=p.z),
-        rotation=Quaternion(x=q.x, y=q.y, z=q.z, w=q.w))
+        rotation=Quaternion(x=q.x, y=q.y, z=q.z, w=q.w),
+    )
 
 
 class _Forwarded:
@@ -122,17 +125,36 @@ class LiveViewNode(Node):
     def __init__(self, **kwargs):
         super().__init__(self.node_name, **kwargs)
         self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(self, [
-            Param('address', '127.0.0.1', 'Address the WebSocket server listens on; '
-                  '0.0.0.0 opens it to the network (on purpose: anyone there can watch).',
-                  read_only=True),
-            Param('port', 8765, 'TCP port of the WebSocket server (foxglove_bridge\'s); 0 = '
-                  'any free port (logged).', range=(0, 65535), read_only=True),
-            *topic_selection_params('serve', 'served', 0.5),
-            Param('message_backlog_size', 300, 'Messages queued per client at most; a slow '
-                  'client loses the oldest beyond this (10 s of three 30 Hz cameras).',
-                  range=(1, 100000), read_only=True),
-        ], self.diagnostics)
+        self.params = NodeParameters(
+            self,
+            [
+                Param(
+                    'address',
+                    '127.0.0.1',
+                    'Address the WebSocket server listens on; '
+                    '0.0.0.0 opens it to the network (on purpose: anyone there can watch).',
+                    read_only=True,
+                ),
+                Param(
+                    'port',
+                    8765,
+                    "TCP port of the WebSocket server (foxglove_bridge's); 0 = "
+                    'any free port (logged).',
+                    range=(0, 65535),
+                    read_only=True,
+                ),
+                *topic_selection_params('serve', 'served', 0.5),
+                Param(
+                    'message_backlog_size',
+                    300,
+                    'Messages queued per client at most; a slow '
+                    'client loses the oldest beyond this (10 s of three 30 Hz cameras).',
+                    range=(1, 100000),
+                    read_only=True,
+                ),
+            ],
+            self.diagnostics,
+        )
         self._discovery = TopicDiscovery(self, self.params, 'serving')
         self._lock = threading.Lock()  # the server's threads and the executor's
         self._forwarded = {}  # topic -> _Forwarded
@@ -142,28 +164,36 @@ class LiveViewNode(Node):
         self._wake = self.create_guard_condition(self._update_subscriptions)
         try:
             self._server = foxglove.start_server(
-                name='vgm live_view', host=self.params.address, port=self.params.port,
+                name='vgm live_view',
+                host=self.params.address,
+                port=self.params.port,
                 # No Capability.Time: the app then times messages by their log time
                 # (the receive time here), as with foxglove_bridge on wall-clock time.
                 server_listener=_Listener(self),
                 supported_encodings=['cdr'],
-                message_backlog_size=self.params.message_backlog_size)
+                message_backlog_size=self.params.message_backlog_size,
+            )
         except Exception as error:  # noqa: BLE001 -- the SDK raises a bare RuntimeError
             raise LiveViewStartupError(
-                f'cannot serve on {self.params.address}:{self.params.port}: {error}') from None
+                f'cannot serve on {self.params.address}:{self.params.port}: {error}'
+            ) from None
         self.url = f'ws://{self.params.address}:{self._server.port}'
         self._transforms = FrameTransformsChannel(TRANSFORMS_TOPIC)
         for name, topic in POSE_TOPICS.items():
             self.create_subscription(
-                PoseStamped, topic, partial(self._on_camera_pose, topic, OPTICAL_FRAMES[name]),
-                LATCHED_QOS)
+                PoseStamped,
+                topic,
+                partial(self._on_camera_pose, topic, OPTICAL_FRAMES[name]),
+                LATCHED_QOS,
+            )
         self.create_subscription(PoseStamped, TOOL_POSE_TOPIC, self._on_tool_pose, DEFAULT_QOS)
         self.create_timer(self.params.discovery_period, self._discover)
         self.create_timer(CAMERA_TRANSFORM_PERIOD, self._send_camera_transforms)
         self.create_timer(DIAGNOSTICS_PERIOD, self._publish_status)
         self.get_logger().info(
             f'serving the graph to Foxglove at {self.url} (open Foxglove, "Open connection", '
-            f'Foxglove WebSocket, {self.url})')
+            f'Foxglove WebSocket, {self.url})'
+        )
         self._discover()
 
     # -- topics (executor thread) ------------------------------------------------------
@@ -175,10 +205,13 @@ class LiveViewNode(Node):
     def _advertise(self, topic):
         encoding, text = topic.definition
         channel = foxglove.Channel(
-            topic.name, message_encoding='cdr',
-            schema=foxglove.Schema(name=topic.type_name, encoding=encoding, data=text.encode()))
-        forwarded = _Forwarded(channel, topic.message_type,
-                               subscription_qos(p.qos_profile for p in topic.publishers))
+            topic.name,
+            message_encoding='cdr',
+            schema=foxglove.Schema(name=topic.type_name, encoding=encoding, data=text.encode()),
+        )
+        forwarded = _Forwarded(
+            channel, topic.message_type, subscription_qos(p.qos_profile for p in topic.publishers)
+        )
         with self._lock:
             self._forwarded[topic.name] = forwarded
         self.get_logger().info(f'serving {topic.name} [{topic.type_name}]')
@@ -194,7 +227,8 @@ class LiveViewNode(Node):
             if topic in watched and f.subscription is None:
                 # A transient-local subscription receives the latched value again.
                 f.subscription = self.create_subscription(
-                    f.message_type, topic, partial(self._on_message, f), f.qos, raw=True)
+                    f.message_type, topic, partial(self._on_message, f), f.qos, raw=True
+                )
             elif topic not in watched and f.subscription is not None:
                 self.destroy_subscription(f.subscription)
                 f.subscription = None
@@ -216,8 +250,11 @@ class LiveViewNode(Node):
             forwarded = self._forwarded.get(topic)
         if topic == TRANSFORMS_TOPIC:
             self._send_camera_transforms()
-        elif forwarded is not None and forwarded.subscription is not None \
-                and forwarded.last is not None:
+        elif (
+            forwarded is not None
+            and forwarded.subscription is not None
+            and forwarded.last is not None
+        ):
             data, log_time_ns = forwarded.last
             # Everyone subscribed gets it again: harmless for a latched value.
             forwarded.channel.log(data, log_time=log_time_ns)
@@ -236,8 +273,10 @@ class LiveViewNode(Node):
     def _on_camera_pose(self, topic, frame, msg):
         try:
             if msg.header.frame_id != BASE_FRAME:
-                raise InvalidInput(f'camera pose must be in {BASE_FRAME}, got '
-                                   f'{msg.header.frame_id!r}', key='frame_id')
+                raise InvalidInput(
+                    f'camera pose must be in {BASE_FRAME}, got {msg.header.frame_id!r}',
+                    key='frame_id',
+                )
             transform = frame_transform(msg, frame)
         except InvalidInput as error:
             self.diagnostics.reject(topic, error)
@@ -270,9 +309,13 @@ class LiveViewNode(Node):
         with self._lock:
             forwarded = dict(self._forwarded)
             clients = len(self._client_topics)
-        values = {'url': self.url, 'clients': clients, 'channels': len(forwarded) + 1,
-                  'transforms sent': self._transforms_sent,
-                  'backlog per client': self.params.message_backlog_size}
+        values = {
+            'url': self.url,
+            'clients': clients,
+            'channels': len(forwarded) + 1,
+            'transforms sent': self._transforms_sent,
+            'backlog per client': self.params.message_backlog_size,
+        }
         for topic, f in sorted(forwarded.items()):
             values[topic] = f'{f.forwarded} forwarded of {f.received}'
         if self._discovery.skipped:

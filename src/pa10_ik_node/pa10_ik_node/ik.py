@@ -16,6 +16,7 @@ primal-dual network integrated exactly (``primal_dual_velocity``), its literal
 fixed-step rules (``primal_dual_velocity_fixed_step``, which diverge at the thesis's
 values, A7.4) and damped least squares as the reference (``dls_velocity``). No ROS here.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -60,8 +61,9 @@ class PrimalDualInfo:
     t_final: float
 
 
-def _check_problem(J: npt.ArrayLike, W: npt.ArrayLike | None = None,
-                   rdot_d: npt.ArrayLike | None = None) -> list[FloatArray]:
+def _check_problem(
+    J: npt.ArrayLike, W: npt.ArrayLike | None = None, rdot_d: npt.ArrayLike | None = None
+) -> list[FloatArray]:
     """Float copies of the problem data; raises ``InvalidInput`` naming the expected shape."""
     J = np.array(J, dtype=float)
     if J.ndim != 2 or J.shape[0] != TWIST_DIM:
@@ -76,8 +78,9 @@ def _check_problem(J: npt.ArrayLike, W: npt.ArrayLike | None = None,
     if rdot_d is not None:
         rdot_d = np.array(rdot_d, dtype=float)
         if rdot_d.shape != (TWIST_DIM,):
-            raise InvalidInput(f'rdot_d must have shape (6,), got {rdot_d.shape}',
-                               'rdot_d', rdot_d)
+            raise InvalidInput(
+                f'rdot_d must have shape (6,), got {rdot_d.shape}', 'rdot_d', rdot_d
+            )
         arrays.append(rdot_d)
     for array in arrays:
         if not np.all(np.isfinite(array)):
@@ -94,8 +97,9 @@ def _initial(value: npt.ArrayLike | None, size: int, key: str) -> FloatArray:
     return value
 
 
-def kkt_velocity(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLike,
-                 rcond: float = 1e-10) -> tuple[FloatArray, FloatArray]:
+def kkt_velocity(
+    J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLike, rcond: float = 1e-10
+) -> tuple[FloatArray, FloatArray]:
     """Solve the KKT system of min 1/2 qdot^T W qdot s.t. J qdot = rdot_d directly.
 
     Solves ``[[W, J^T], [J, 0]] [qdot; lam] = [0; rdot_d]`` in the minimum-norm least-
@@ -123,8 +127,9 @@ def kkt_velocity(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLike,
     return solution[:n], solution[n:]
 
 
-def null_space_positive(J: npt.ArrayLike, W: npt.ArrayLike, tol: float = 1e-9,
-                        rcond: float | None = None) -> tuple[bool, float]:
+def null_space_positive(
+    J: npt.ArrayLike, W: npt.ArrayLike, tol: float = 1e-9, rcond: float | None = None
+) -> tuple[bool, float]:
     """Whether ``W`` is positive definite on null(J) (Finsler's condition, A7.3).
 
     Args:
@@ -156,12 +161,19 @@ def absolute_weights(W: FloatArray) -> FloatArray:
     return (V * np.abs(eigenvalues)) @ V.T
 
 
-def primal_dual_velocity(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLike,
-                         K: float = 100.0, v0: npt.ArrayLike | None = None,
-                         u0: npt.ArrayLike | None = None, t_final: float = 1e5,
-                         tol: float = 1e-6, weights_fallback: npt.ArrayLike | None = None,
-                         null_space_tol: float = 1e-9, max_gain: float = 1e6
-                         ) -> tuple[FloatArray, FloatArray, PrimalDualInfo]:
+def primal_dual_velocity(
+    J: npt.ArrayLike,
+    W: npt.ArrayLike,
+    rdot_d: npt.ArrayLike,
+    K: float = 100.0,
+    v0: npt.ArrayLike | None = None,
+    u0: npt.ArrayLike | None = None,
+    t_final: float = 1e5,
+    tol: float = 1e-6,
+    weights_fallback: npt.ArrayLike | None = None,
+    null_space_tol: float = 1e-9,
+    max_gain: float = 1e6,
+) -> tuple[FloatArray, FloatArray, PrimalDualInfo]:
     """The thesis's continuous primal-dual network (7.4.9-7.4.12), integrated exactly.
 
     With ``H = W + K J^T J`` the network is
@@ -207,8 +219,11 @@ def primal_dual_velocity(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLi
     positive, min_eig = null_space_positive(J, W, null_space_tol)
     W_used = W
     if not positive:
-        W_used = absolute_weights(W) if weights_fallback is None else _check_problem(
-            J, weights_fallback)[1]
+        W_used = (
+            absolute_weights(W)
+            if weights_fallback is None
+            else _check_problem(J, weights_fallback)[1]
+        )
     gain = float(K)
     min_h_eig = np.linalg.eigvalsh(W_used + gain * J.T @ J)[0]
     while positive and min_h_eig <= 0 and 2 * gain <= max_gain:
@@ -228,15 +243,21 @@ def primal_dual_velocity(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLi
     stationarity = float(np.linalg.norm(W_used @ v + J.T @ u))
     info = PrimalDualInfo(
         converged=bool(constraint <= tol and stationarity <= tol),
-        constraint_residual=constraint, stationarity_residual=stationarity,
-        null_space_positive=positive, min_null_eigenvalue=min_eig,
-        fallback_used=not positive, gain=gain, min_h_eigenvalue=float(min_h_eig),
-        t_final=float(t_final))
+        constraint_residual=constraint,
+        stationarity_residual=stationarity,
+        null_space_positive=positive,
+        min_null_eigenvalue=min_eig,
+        fallback_used=not positive,
+        gain=gain,
+        min_h_eigenvalue=float(min_h_eig),
+        t_final=float(t_final),
+    )
     return v, u, info
 
 
-def fixed_step_matrix(J: npt.ArrayLike, W: npt.ArrayLike, K: float = 100.0, mu: float = 0.02,
-                      eta: float = 0.02) -> FloatArray:
+def fixed_step_matrix(
+    J: npt.ArrayLike, W: npt.ArrayLike, K: float = 100.0, mu: float = 0.02, eta: float = 0.02
+) -> FloatArray:
     """The (n+6, n+6) linear part of the literal learning rules of §6.5 on ``(qdot, lam)``.
 
     Its spectral radius decides whether ``primal_dual_velocity_fixed_step`` converges
@@ -244,15 +265,22 @@ def fixed_step_matrix(J: npt.ArrayLike, W: npt.ArrayLike, K: float = 100.0, mu: 
     """
     J, W = _check_problem(J, W)
     n = J.shape[1]
-    return np.block([[np.eye(n) - mu * (W + K * J.T @ J), -mu * J.T],
-                     [eta * J, np.eye(TWIST_DIM)]])
+    return np.block(
+        [[np.eye(n) - mu * (W + K * J.T @ J), -mu * J.T], [eta * J, np.eye(TWIST_DIM)]]
+    )
 
 
-def primal_dual_velocity_fixed_step(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: npt.ArrayLike,
-                                    K: float = 100.0, mu: float = 0.02, eta: float = 0.02,
-                                    iterations: int = 100, v0: npt.ArrayLike | None = None,
-                                    u0: npt.ArrayLike | None = None
-                                    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+def primal_dual_velocity_fixed_step(
+    J: npt.ArrayLike,
+    W: npt.ArrayLike,
+    rdot_d: npt.ArrayLike,
+    K: float = 100.0,
+    mu: float = 0.02,
+    eta: float = 0.02,
+    iterations: int = 100,
+    v0: npt.ArrayLike | None = None,
+    u0: npt.ArrayLike | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The thesis's discrete learning rules of §6.5, taken literally.
 
         qdot_{k+1} = qdot_k - mu [W qdot_k + J^T lam_k + K J^T (J qdot_k - rdot_d)]
@@ -276,8 +304,7 @@ def primal_dual_velocity_fixed_step(J: npt.ArrayLike, W: npt.ArrayLike, rdot_d: 
     norms = [np.hypot(np.linalg.norm(qdot), np.linalg.norm(lam))]
     for _ in range(int(iterations)):
         residual = J @ qdot - rdot_d
-        qdot, lam = (qdot - mu * (W @ qdot + J.T @ lam + K * J.T @ residual),
-                     lam + eta * residual)
+        qdot, lam = (qdot - mu * (W @ qdot + J.T @ lam + K * J.T @ residual), lam + eta * residual)
         norms.append(np.hypot(np.linalg.norm(qdot), np.linalg.norm(lam)))
     return qdot, lam, np.array(norms)
 
@@ -295,7 +322,7 @@ def dls_velocity(J: npt.ArrayLike, twist: npt.ArrayLike, damping: float) -> Floa
     J, twist = _check_problem(J, rdot_d=twist)
     if not damping >= 0:
         raise InvalidInput(f'damping must be >= 0, got {damping}', 'damping', damping)
-    gram = J @ J.T + damping ** 2 * np.eye(TWIST_DIM)
+    gram = J @ J.T + damping**2 * np.eye(TWIST_DIM)
     return J.T @ np.linalg.solve(gram, twist)
 
 
@@ -314,8 +341,7 @@ def pose_error(T_current: npt.ArrayLike, T_desired: npt.ArrayLike) -> FloatArray
     T_desired = np.asarray(T_desired, dtype=float)
     for key, T in (('T_current', T_current), ('T_desired', T_desired)):
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise InvalidInput(f'{key} must be a finite (4, 4) array, got shape {T.shape}',
-                               key, T)
+            raise InvalidInput(f'{key} must be a finite (4, 4) array, got shape {T.shape}', key, T)
     position_error = T_desired[:3, 3] - T_current[:3, 3]
     R_error = T_desired[:3, :3] @ T_current[:3, :3].T
     orientation_error = Rotation.from_matrix(R_error).as_rotvec()
@@ -327,8 +353,9 @@ def pose_error(T_current: npt.ArrayLike, T_desired: npt.ArrayLike) -> FloatArray
 METHODS = ('ours', 'primal_dual', 'dls')
 
 
-def closed_form_velocity(J: FloatArray, W_inverse: FloatArray, twist: FloatArray,
-                         damping: float = 0.0) -> FloatArray:
+def closed_form_velocity(
+    J: FloatArray, W_inverse: FloatArray, twist: FloatArray, damping: float = 0.0
+) -> FloatArray:
     """Closed-form KKT point for a positive definite W, with optional damping.
 
         qdot = W^-1 J^T (J W^-1 J^T + damping^2 I)^-1 twist
@@ -349,12 +376,13 @@ def closed_form_velocity(J: FloatArray, W_inverse: FloatArray, twist: FloatArray
     JWinv = J @ W_inverse
     gram = JWinv @ J.T
     if damping > 0:
-        gram = gram + damping ** 2 * np.eye(len(gram))
+        gram = gram + damping**2 * np.eye(len(gram))
     return JWinv.T @ np.linalg.solve(gram, twist)
 
 
-def adaptive_damping(J: FloatArray, W_inverse: FloatArray, sigma_threshold: float,
-                     max_damping: float) -> tuple[float, float]:
+def adaptive_damping(
+    J: FloatArray, W_inverse: FloatArray, sigma_threshold: float, max_damping: float
+) -> tuple[float, float]:
     """Damping that is 0 while the smallest singular value of J W^-1/2 exceeds
     ``sigma_threshold`` and grows smoothly to ``max_damping`` at a singularity
     (Nakamura and Hanafusa's rule): lambda^2 = (1 - (sigma/threshold)^2) max_damping^2.
@@ -402,12 +430,19 @@ class RateSolver:
         sigma_threshold: smallest singular value below which ``ours`` damps.
     """
 
-    def __init__(self, method: str, weights: npt.ArrayLike, K: float = 100.0,
-                 damping: float = 0.05, sigma_threshold: float = 0.05,
-                 network_time: float = 1e4) -> None:
+    def __init__(
+        self,
+        method: str,
+        weights: npt.ArrayLike,
+        K: float = 100.0,
+        damping: float = 0.05,
+        sigma_threshold: float = 0.05,
+        network_time: float = 1e4,
+    ) -> None:
         if method not in METHODS:
-            raise InvalidInput(f'method must be one of {METHODS}, got {method!r}', 'method',
-                               method)
+            raise InvalidInput(
+                f'method must be one of {METHODS}, got {method!r}', 'method', method
+            )
         weights = np.array(weights, dtype=float)
         if weights.ndim != 1 or not np.all(np.isfinite(weights)) or np.any(weights == 0):
             raise InvalidInput('weights must be finite and non-zero', 'weights', weights)
@@ -436,11 +471,16 @@ class RateSolver:
             v0, u0 = self._network_state or (None, None)
             with np.errstate(over='ignore', invalid='ignore'):
                 qdot, lam, result = primal_dual_velocity(
-                    J6, self.W, twist6, K=self.K, v0=v0, u0=u0, t_final=self.network_time)
-            info.update(null_space_positive=result.null_space_positive,
-                        min_null_eigenvalue=result.min_null_eigenvalue,
-                        fallback_used=result.fallback_used, converged=result.converged,
-                        gain=result.gain, diverged=False)
+                    J6, self.W, twist6, K=self.K, v0=v0, u0=u0, t_final=self.network_time
+                )
+            info.update(
+                null_space_positive=result.null_space_positive,
+                min_null_eigenvalue=result.min_null_eigenvalue,
+                fallback_used=result.fallback_used,
+                converged=result.converged,
+                gain=result.gain,
+                diverged=False,
+            )
             if result.min_h_eigenvalue <= 0 or not np.all(np.isfinite(qdot)):
                 # H = W + K J^T J indefinite even at the largest K (near a singularity):
                 # the network is unstable and its state blows up. Restart it cold and
@@ -452,26 +492,33 @@ class RateSolver:
             return qdot, info
         return self._ours(J, twist, self.weights, info), info
 
-    def _ours(self, J: FloatArray, twist: FloatArray, weights: FloatArray,
-              info: dict[str, Any]) -> FloatArray:
+    def _ours(
+        self, J: FloatArray, twist: FloatArray, weights: FloatArray, info: dict[str, Any]
+    ) -> FloatArray:
         if np.all(weights > 0):
             W_inverse = np.diag(1.0 / weights)
-            damping, sigma_min = adaptive_damping(J, W_inverse, self.sigma_threshold,
-                                                  self.damping)
+            damping, sigma_min = adaptive_damping(J, W_inverse, self.sigma_threshold, self.damping)
             info.update(damping=damping, sigma_min=sigma_min)
             return closed_form_velocity(J, W_inverse, twist, damping)
         J6, twist6 = _pad_to_twist(J, twist)
         W = np.diag(weights)
-        positive, _ = null_space_positive(J6[:len(J)], W)
+        positive, _ = null_space_positive(J6[: len(J)], W)
         info['null_space_positive'] = positive
         if not positive:
             return self._ours(J, twist, np.abs(weights), info)
         return kkt_velocity(J6, W, twist6)[0]
 
-    def solve_limited(self, J: FloatArray, twist: FloatArray, q: FloatArray, lower: FloatArray,
-                      upper: FloatArray, velocity_limits: FloatArray,
-                      limit_horizon: float = 0.1, margin: float = 0.02
-                      ) -> tuple[FloatArray, dict[str, Any]]:
+    def solve_limited(
+        self,
+        J: FloatArray,
+        twist: FloatArray,
+        q: FloatArray,
+        lower: FloatArray,
+        upper: FloatArray,
+        velocity_limits: FloatArray,
+        limit_horizon: float = 0.1,
+        margin: float = 0.02,
+    ) -> tuple[FloatArray, dict[str, Any]]:
         """``solve`` within position limits (``ours``: clamp and re-solve; the others:
         uniform scaling) and velocity limits (uniform scaling).
 
@@ -499,8 +546,7 @@ class RateSolver:
                 fixed = np.clip(qdot, low, high) * locked
                 free = ~locked
                 qdot = fixed.copy()
-                qdot[free] = self._ours(J[:, free], twist - J @ fixed, self.weights[free],
-                                        {})
+                qdot[free] = self._ours(J[:, free], twist - J @ fixed, self.weights[free], {})
         info['locked'] = int(locked.sum())
         # Uniform scaling into the velocity limits keeps the direction of the task
         # velocity; the position bounds are then enforced joint by joint (for ``ours``

@@ -7,6 +7,7 @@ time_from_start: the joint_trajectory_controller convention), the measured tool 
 ``tracking.TrackingController``; the velocity IK is ``ik.RateSolver``. This file only
 declares parameters, converts messages and calls them.
 """
+
 import time
 from collections import deque
 
@@ -69,82 +70,214 @@ class Pa10IkNode(Node):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
         positive = (1e-9, 1e9)
-        self.params = NodeParameters(self, [
-            Param('robot', 'pa10', "Kinematic model: 'pa10', 'pa10_thesis' or a URDF path.",
-                  read_only=True),
-            Param('tool_length', 0.1, '[m] Flange to tool tip; must match the scenario\'s '
-                  'robot.tool_length.', range=(0.0, 1.0), read_only=True),
-            Param('tip_frame', 'tool0', 'Tip frame of the URDF (z = approach axis).',
-                  read_only=True),
-            Param('rate', 100.0, '[Hz] Control rate.', range=(100.0, 1000.0),
-                  read_only=True),
-            Param('method', 'ours', 'Velocity IK: ours (closed-form KKT + feedback, joint '
-                  'limits), primal_dual (the thesis network), dls (reference).',
-                  choices=METHODS, on_change=lambda _: self._rebuild_solver()),
-            Param('weights', [1.0] * 7, 'Diagonal of W (may be indefinite, e.g. the '
-                  f'thesis {THESIS_WEIGHTS}).', check=_check_weights,
-                  on_change=lambda _: self._rebuild_solver()),
-            Param('K', 100.0, 'Penalty gain of the primal-dual network.', range=positive,
-                  on_change=lambda _: self._rebuild_solver()),
-            Param('mu', 0.02, 'Step size of the thesis\'s fixed-step rule for qdot (the '
-                  'benchmark only: the node integrates the network exactly).',
-                  range=positive),
-            Param('eta', 0.02, 'Step size of the thesis\'s fixed-step rule for lambda '
-                  '(benchmark only).', range=positive),
-            Param('damping', 0.05, 'DLS damping; largest adaptive damping of ours.',
-                  range=(0.0, 10.0), on_change=lambda _: self._rebuild_solver()),
-            Param('desired_force', 5.0, '[N] Contact force to hold.', range=(0.01, 200.0),
-                  on_change=lambda v: self._configure(desired_force=v)),
-            Param('contact_stiffness', 2000.0, '[N/m] Stiffness estimate (feed-forward '
-                  'depth; the integral law corrects its error).', range=(1.0, 1e7),
-                  on_change=lambda v: self._configure(stiffness=v)),
-            Param('force_gain', 5.0, '[1/s] Integral gain of the force law.',
-                  range=(0.0, 100.0), on_change=lambda v: self._configure(force_gain=v)),
-            Param('force_law', 'integral', "Force law: 'integral' (ours: depth = "
-                  "desired_force / contact_stiffness + integral of the force error) or 'tilt' "
-                  "(the thesis's 7.3.15: the motion PQ' tilted by phi into / out of the "
-                  'surface; acts only while moving along the path).', choices=FORCE_LAWS,
-                  on_change=lambda v: self._configure(force_law=v)),
-            Param('speed', 0.015, '[m/s] Speed along the path.', range=(1e-4, 0.2),
-                  on_change=lambda v: self._configure(speed=v)),
-            Param('adapt_response', False, 'Measure how much of the commanded motion the '
-                  'arm makes and scale commands up for an arm slower than commanded (at most '
-                  '2.5 times, within the joint speed limits). Off by default: on a loaded '
-                  'machine late commands make any arm look slow.',
-                  on_change=lambda v: self._configure(adapt_response=v)),
-            Param('pose_integral_gain', 20.0, '[1/s^2] Integral of the tip\'s error across '
-                  'the approach axis while tracking (a slow arm trails its reference '
-                  'otherwise); 0 turns it off.', range=(0.0, 200.0),
-                  on_change=lambda v: self._configure(pose_integral_gain=v)),
-            Param('pose_gain', 10.0, '[1/s] Pose feedback gain.', range=(0.1, 50.0),
-                  on_change=lambda v: self._configure(pose_gain=v)),
-            Param('max_joint_velocity', 1.0, '[rad/s] Cap on every joint speed (on top of '
-                  'the model\'s limits).', range=(0.01, 10.0), read_only=True),
-            Param('track_spin', False, 'Also track the spin about the approach axis '
-                  '(6 constraints, as the seed); false leaves it free.',
-                  on_change=lambda v: self._configure(track_spin=v)),
-            Param('standoff', 0.03, '[m] Pre-contact pose above the first waypoint.',
-                  range=(0.005, 0.2), on_change=lambda v: self._configure(standoff=v)),
-            Param('descent_speed', 0.01, '[m/s] Descent to contact and lift-off speed.',
-                  range=(1e-4, 0.1), on_change=lambda v: self._configure(descent_speed=v)),
-            Param('lift_height', 0.03, '[m] Lift-off along the approach axis when done.',
-                  range=(0.0, 0.2), on_change=lambda v: self._configure(lift_height=v)),
-            Param('max_position_error', 0.01, '[m] Tip farther than this from its '
-                  'reference for error_timeout: failure.', range=(1e-4, 1.0),
-                  on_change=lambda v: self._configure(max_position_error=v)),
-            Param('error_timeout', 1.0, '[s] See max_position_error.', range=(0.01, 60.0),
-                  on_change=lambda v: self._configure(error_timeout=v)),
-            Param('pressure_timeout', 1.0, '[s] Pressure (or joint state) older than this '
-                  'while active: stop.', range=(0.01, 60.0)),
-            Param('command_horizon', 0.05, '[s] time_from_start of the commanded point.',
-                  range=(0.001, 1.0)),
-            Param('auto_start', False, 'Start as soon as valid waypoints, joint states and '
-                  'pressure are there.'),
-            Param('diagnostics_rate', 2.0, '[Hz] Rate of the tracking diagnostics.',
-                  range=(0.1, 50.0), read_only=True),
-            *subscriber_gate_params('Run the loop (and publish /tool_pose) only once '
-                                    '/tool_pose has'),
-        ], self.diagnostics)
+        self.params = NodeParameters(
+            self,
+            [
+                Param(
+                    'robot',
+                    'pa10',
+                    "Kinematic model: 'pa10', 'pa10_thesis' or a URDF path.",
+                    read_only=True,
+                ),
+                Param(
+                    'tool_length',
+                    0.1,
+                    "[m] Flange to tool tip; must match the scenario's robot.tool_length.",
+                    range=(0.0, 1.0),
+                    read_only=True,
+                ),
+                Param(
+                    'tip_frame',
+                    'tool0',
+                    'Tip frame of the URDF (z = approach axis).',
+                    read_only=True,
+                ),
+                Param('rate', 100.0, '[Hz] Control rate.', range=(100.0, 1000.0), read_only=True),
+                Param(
+                    'method',
+                    'ours',
+                    'Velocity IK: ours (closed-form KKT + feedback, joint '
+                    'limits), primal_dual (the thesis network), dls (reference).',
+                    choices=METHODS,
+                    on_change=lambda _: self._rebuild_solver(),
+                ),
+                Param(
+                    'weights',
+                    [1.0] * 7,
+                    f'Diagonal of W (may be indefinite, e.g. the thesis {THESIS_WEIGHTS}).',
+                    check=_check_weights,
+                    on_change=lambda _: self._rebuild_solver(),
+                ),
+                Param(
+                    'K',
+                    100.0,
+                    'Penalty gain of the primal-dual network.',
+                    range=positive,
+                    on_change=lambda _: self._rebuild_solver(),
+                ),
+                Param(
+                    'mu',
+                    0.02,
+                    "Step size of the thesis's fixed-step rule for qdot (the "
+                    'benchmark only: the node integrates the network exactly).',
+                    range=positive,
+                ),
+                Param(
+                    'eta',
+                    0.02,
+                    "Step size of the thesis's fixed-step rule for lambda (benchmark only).",
+                    range=positive,
+                ),
+                Param(
+                    'damping',
+                    0.05,
+                    'DLS damping; largest adaptive damping of ours.',
+                    range=(0.0, 10.0),
+                    on_change=lambda _: self._rebuild_solver(),
+                ),
+                Param(
+                    'desired_force',
+                    5.0,
+                    '[N] Contact force to hold.',
+                    range=(0.01, 200.0),
+                    on_change=lambda v: self._configure(desired_force=v),
+                ),
+                Param(
+                    'contact_stiffness',
+                    2000.0,
+                    '[N/m] Stiffness estimate (feed-forward '
+                    'depth; the integral law corrects its error).',
+                    range=(1.0, 1e7),
+                    on_change=lambda v: self._configure(stiffness=v),
+                ),
+                Param(
+                    'force_gain',
+                    5.0,
+                    '[1/s] Integral gain of the force law.',
+                    range=(0.0, 100.0),
+                    on_change=lambda v: self._configure(force_gain=v),
+                ),
+                Param(
+                    'force_law',
+                    'integral',
+                    "Force law: 'integral' (ours: depth = "
+                    "desired_force / contact_stiffness + integral of the force error) or 'tilt' "
+                    "(the thesis's 7.3.15: the motion PQ' tilted by phi into / out of the "
+                    'surface; acts only while moving along the path).',
+                    choices=FORCE_LAWS,
+                    on_change=lambda v: self._configure(force_law=v),
+                ),
+                Param(
+                    'speed',
+                    0.015,
+                    '[m/s] Speed along the path.',
+                    range=(1e-4, 0.2),
+                    on_change=lambda v: self._configure(speed=v),
+                ),
+                Param(
+                    'adapt_response',
+                    False,
+                    'Measure how much of the commanded motion the '
+                    'arm makes and scale commands up for an arm slower than commanded (at most '
+                    '2.5 times, within the joint speed limits). Off by default: on a loaded '
+                    'machine late commands make any arm look slow.',
+                    on_change=lambda v: self._configure(adapt_response=v),
+                ),
+                Param(
+                    'pose_integral_gain',
+                    20.0,
+                    "[1/s^2] Integral of the tip's error across "
+                    'the approach axis while tracking (a slow arm trails its reference '
+                    'otherwise); 0 turns it off.',
+                    range=(0.0, 200.0),
+                    on_change=lambda v: self._configure(pose_integral_gain=v),
+                ),
+                Param(
+                    'pose_gain',
+                    10.0,
+                    '[1/s] Pose feedback gain.',
+                    range=(0.1, 50.0),
+                    on_change=lambda v: self._configure(pose_gain=v),
+                ),
+                Param(
+                    'max_joint_velocity',
+                    1.0,
+                    "[rad/s] Cap on every joint speed (on top of the model's limits).",
+                    range=(0.01, 10.0),
+                    read_only=True,
+                ),
+                Param(
+                    'track_spin',
+                    False,
+                    'Also track the spin about the approach axis '
+                    '(6 constraints, as the seed); false leaves it free.',
+                    on_change=lambda v: self._configure(track_spin=v),
+                ),
+                Param(
+                    'standoff',
+                    0.03,
+                    '[m] Pre-contact pose above the first waypoint.',
+                    range=(0.005, 0.2),
+                    on_change=lambda v: self._configure(standoff=v),
+                ),
+                Param(
+                    'descent_speed',
+                    0.01,
+                    '[m/s] Descent to contact and lift-off speed.',
+                    range=(1e-4, 0.1),
+                    on_change=lambda v: self._configure(descent_speed=v),
+                ),
+                Param(
+                    'lift_height',
+                    0.03,
+                    '[m] Lift-off along the approach axis when done.',
+                    range=(0.0, 0.2),
+                    on_change=lambda v: self._configure(lift_height=v),
+                ),
+                Param(
+                    'max_position_error',
+                    0.01,
+                    '[m] Tip farther than this from its reference for error_timeout: failure.',
+                    range=(1e-4, 1.0),
+                    on_change=lambda v: self._configure(max_position_error=v),
+                ),
+                Param(
+                    'error_timeout',
+                    1.0,
+                    '[s] See max_position_error.',
+                    range=(0.01, 60.0),
+                    on_change=lambda v: self._configure(error_timeout=v),
+                ),
+                Param(
+                    'pressure_timeout',
+                    1.0,
+                    '[s] Pressure (or joint state) older than this while active: stop.',
+                    range=(0.01, 60.0),
+                ),
+                Param(
+                    'command_horizon',
+                    0.05,
+                    '[s] time_from_start of the commanded point.',
+                    range=(0.001, 1.0),
+                ),
+                Param(
+                    'auto_start',
+                    False,
+                    'Start as soon as valid waypoints, joint states and pressure are there.',
+                ),
+                Param(
+                    'diagnostics_rate',
+                    2.0,
+                    '[Hz] Rate of the tracking diagnostics.',
+                    range=(0.1, 50.0),
+                    read_only=True,
+                ),
+                *subscriber_gate_params(
+                    'Run the loop (and publish /tool_pose) only once /tool_pose has'
+                ),
+            ],
+            self.diagnostics,
+        )
         p = self.params
         try:
             self.robot = load_robot(p.robot, p.tool_length, p.tip_frame)
@@ -152,15 +285,26 @@ class Pa10IkNode(Node):
             raise InvalidInput(f'parameter robot: {error}', 'robot', p.robot) from None
         self.params.add_check(self._one_weight_per_joint)
         self.controller = TrackingController(
-            self.robot, self._make_solver(), TrackingConfig(
-                desired_force=p.desired_force, stiffness=p.contact_stiffness,
-                force_gain=p.force_gain, force_law=p.force_law, speed=p.speed,
-                pose_gain=p.pose_gain, adapt_response=p.adapt_response,
+            self.robot,
+            self._make_solver(),
+            TrackingConfig(
+                desired_force=p.desired_force,
+                stiffness=p.contact_stiffness,
+                force_gain=p.force_gain,
+                force_law=p.force_law,
+                speed=p.speed,
+                pose_gain=p.pose_gain,
+                adapt_response=p.adapt_response,
                 pose_integral_gain=p.pose_integral_gain,
-                track_spin=p.track_spin, standoff=p.standoff, descent_speed=p.descent_speed,
-                lift_height=p.lift_height, max_position_error=p.max_position_error,
-                error_timeout=p.error_timeout),
-            max_joint_velocity=p.max_joint_velocity)
+                track_spin=p.track_spin,
+                standoff=p.standoff,
+                descent_speed=p.descent_speed,
+                lift_height=p.lift_height,
+                max_position_error=p.max_position_error,
+                error_timeout=p.error_timeout,
+            ),
+            max_joint_velocity=p.max_joint_velocity,
+        )
         self.joint_index = {name: i for i, name in enumerate(self.robot.joint_names)}
         self.q = None  # measured joints, robot order [rad]
         self.force = 0.0  # [N]
@@ -174,17 +318,21 @@ class Pa10IkNode(Node):
         self.last_failure_condition = ''
 
         self.command_publisher = self.create_publisher(
-            JointTrajectory, JOINT_TRAJECTORY_TOPIC, DEFAULT_QOS,
-            publisher_class=CountingPublisher)
-        self.pose_publisher = self.create_publisher(PoseStamped, TOOL_POSE_TOPIC, DEFAULT_QOS,
-                                                   publisher_class=CountingPublisher)
-        self.pose_gate = SubscriberGate(self, [self.pose_publisher, self.command_publisher],
-                                        p.min_subscribers, p.subscriber_timeout,
-                                        p.wait_for_nodes, counted=[self.pose_publisher])
-        self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joint_state,
-                                 DEFAULT_QOS)
-        self.create_subscription(WrenchStamped, PRESSURE_TOPIC, self._on_pressure,
-                                 DEFAULT_QOS)
+            JointTrajectory, JOINT_TRAJECTORY_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
+        )
+        self.pose_publisher = self.create_publisher(
+            PoseStamped, TOOL_POSE_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
+        )
+        self.pose_gate = SubscriberGate(
+            self,
+            [self.pose_publisher, self.command_publisher],
+            p.min_subscribers,
+            p.subscriber_timeout,
+            p.wait_for_nodes,
+            counted=[self.pose_publisher],
+        )
+        self.create_subscription(JointState, JOINT_STATES_TOPIC, self._on_joint_state, DEFAULT_QOS)
+        self.create_subscription(WrenchStamped, PRESSURE_TOPIC, self._on_pressure, DEFAULT_QOS)
         self.create_subscription(Path, WAYPOINTS_TOPIC, self._on_waypoints, LATCHED_QOS)
         self.create_service(Trigger, '~/start_tracking', self._on_start)
         self.create_service(Trigger, '~/stop', self._on_stop)
@@ -195,7 +343,8 @@ class Pa10IkNode(Node):
         self.get_logger().info(
             f'robot {p.robot} (tool {p.tool_length} m), method {p.method}, {p.rate:g} Hz, '
             f'desired force {p.desired_force} N, speed {p.speed} m/s, '
-            f'auto_start {p.auto_start}')
+            f'auto_start {p.auto_start}'
+        )
 
     # --- parameters ------------------------------------------------------------------
 
@@ -241,9 +390,12 @@ class Pa10IkNode(Node):
             raise InvalidInput(f'unknown joint names {unknown}', 'name', unknown)
         missing = sorted(set(self.joint_index) - set(names))
         if missing or len(names) != len(msg.position):
-            raise InvalidInput(f'need one position for each of {self.robot.n_joints} '
-                               f'joints (missing {missing}, {len(msg.position)} '
-                               f'positions for {len(names)} names)', 'position')
+            raise InvalidInput(
+                f'need one position for each of {self.robot.n_joints} '
+                f'joints (missing {missing}, {len(msg.position)} '
+                f'positions for {len(names)} names)',
+                'position',
+            )
         q = np.empty(self.robot.n_joints)
         for name, value in zip(names, msg.position):
             q[self.joint_index[name]] = value
@@ -257,7 +409,9 @@ class Pa10IkNode(Node):
                 f'{self.robot.joint_names[i]} at {q[i]:.6g} rad is more than '
                 f'{JOINT_LIMIT_SLACK_RAD} rad outside its limits '
                 f'[{self.robot.lower_limits[i]:.4g}, {self.robot.upper_limits[i]:.4g}]',
-                'position', q[i])
+                'position',
+                q[i],
+            )
         return q
 
     @guarded(PRESSURE_TOPIC)
@@ -265,11 +419,18 @@ class Pa10IkNode(Node):
         force = msg.wrench.force.z
         frame = msg.header.frame_id
         if frame != self.params.tip_frame:
-            error = InvalidInput(f'frame {frame!r}, expected the tip frame '
-                                 f'{self.params.tip_frame!r}', 'frame_id', frame)
+            error = InvalidInput(
+                f'frame {frame!r}, expected the tip frame {self.params.tip_frame!r}',
+                'frame_id',
+                frame,
+            )
         elif not (np.isfinite(force) and abs(force) <= MAX_FORCE_N):
-            error = InvalidInput(f'force.z is {force} N, beyond the sanity bound '
-                                 f'+-{MAX_FORCE_N:g} N (a broken sensor)', 'force.z', force)
+            error = InvalidInput(
+                f'force.z is {force} N, beyond the sanity bound '
+                f'+-{MAX_FORCE_N:g} N (a broken sensor)',
+                'force.z',
+                force,
+            )
         else:
             self.force = float(force)
             self.pressure_time = time.monotonic()
@@ -280,8 +441,11 @@ class Pa10IkNode(Node):
     def _on_waypoints(self, msg):
         try:
             if msg.header.frame_id != BASE_FRAME:
-                raise InvalidInput(f'frame {msg.header.frame_id!r}, expected {BASE_FRAME!r}',
-                                   'frame_id', msg.header.frame_id)
+                raise InvalidInput(
+                    f'frame {msg.header.frame_id!r}, expected {BASE_FRAME!r}',
+                    'frame_id',
+                    msg.header.frame_id,
+                )
             waypoints = validate_waypoints(path_to_matrices(msg))
         except InvalidInput as error:
             self.diagnostics.reject(WAYPOINTS_TOPIC, error)
@@ -293,8 +457,10 @@ class Pa10IkNode(Node):
             except InvalidInput as error:
                 self.diagnostics.reject(WAYPOINTS_TOPIC, error)
                 return
-            self.get_logger().info(f'took over a new path of {len(waypoints)} waypoints at '
-                                   f'progress {self.controller.progress:.3f}')
+            self.get_logger().info(
+                f'took over a new path of {len(waypoints)} waypoints at '
+                f'progress {self.controller.progress:.3f}'
+            )
         self.waypoints = waypoints
         self.get_logger().info(f'waypoints: {len(waypoints)} poses')
 
@@ -350,25 +516,29 @@ class Pa10IkNode(Node):
         if self.q is None or not self.pose_gate.is_open():
             return
         controller = self.controller
-        if self.params.auto_start and controller.phase == 'idle' and \
-                not self._missing_inputs():
+        if self.params.auto_start and controller.phase == 'idle' and not self._missing_inputs():
             self._start()
         # The step the timer really took (a loaded machine runs it late), bounded so one
         # long stall does not become a jump: the reference then moves at the set speed.
         now = time.monotonic()
-        stalled = self.last_step is not None and \
-            now - self.last_step > self.params.pressure_timeout / 2
+        stalled = (
+            self.last_step is not None and now - self.last_step > self.params.pressure_timeout / 2
+        )
         dt = self.dt if self.last_step is None else min(now - self.last_step, 3 * self.dt)
         self.last_step = now
         # After a stall of this node's own executor the sensors' newest messages are still
         # queued behind this timer: judge their freshness on the next step.
         if controller.phase in ACTIVE_PHASES and not stalled:
             if not self._fresh(self.pressure_time):
-                controller.stop(f'stale pressure: no /tool/pressure for more than '
-                                f'{self.params.pressure_timeout} s')
+                controller.stop(
+                    f'stale pressure: no /tool/pressure for more than '
+                    f'{self.params.pressure_timeout} s'
+                )
             elif not self._fresh(self.joint_state_time):
-                controller.stop(f'stale joint states: no /joint_states for more than '
-                                f'{self.params.pressure_timeout} s')
+                controller.stop(
+                    f'stale joint states: no /joint_states for more than '
+                    f'{self.params.pressure_timeout} s'
+                )
             if controller.phase == 'stopped':
                 self._hold()
         q = self.q
@@ -381,12 +551,14 @@ class Pa10IkNode(Node):
                 self.null_space_failures += 1
                 self.last_failure_condition = (
                     'W + K J^T J not positive definite at any K (near a singularity): the '
-                    'network diverges; used the KKT solution')
+                    'network diverges; used the KKT solution'
+                )
             elif info.get('null_space_positive') is False:
                 self.null_space_failures += 1
                 self.last_failure_condition = (
                     f'W not positive on null(J) (min eigenvalue '
-                    f'{info.get("min_null_eigenvalue", float("nan")):.3g}); fell back to |W|')
+                    f'{info.get("min_null_eigenvalue", float("nan")):.3g}); fell back to |W|'
+                )
             if controller.phase in ('stopped', 'failed'):
                 self._hold()
             else:
@@ -394,19 +566,23 @@ class Pa10IkNode(Node):
             T = info['T']
         else:
             T = self.robot.forward_kinematics(q)
-        self.pose_publisher.publish(matrix_to_pose_stamped(
-            T, self.get_clock().now().nanoseconds, BASE_FRAME))
+        self.pose_publisher.publish(
+            matrix_to_pose_stamped(T, self.get_clock().now().nanoseconds, BASE_FRAME)
+        )
         self._log_phase_change()
 
     def _command(self, q, qdot, horizon=None):
         horizon = self.params.command_horizon if horizon is None else horizon
         seconds = int(horizon)
         point = JointTrajectoryPoint(
-            positions=(q + qdot * horizon).tolist(), velocities=qdot.tolist(),
-            time_from_start=Duration(sec=seconds, nanosec=int((horizon - seconds) * 1e9)))
+            positions=(q + qdot * horizon).tolist(),
+            velocities=qdot.tolist(),
+            time_from_start=Duration(sec=seconds, nanosec=int((horizon - seconds) * 1e9)),
+        )
         # A zero stamp: start now (joint_trajectory_controller convention).
-        self.command_publisher.publish(JointTrajectory(
-            joint_names=list(self.robot.joint_names), points=[point]))
+        self.command_publisher.publish(
+            JointTrajectory(joint_names=list(self.robot.joint_names), points=[point])
+        )
 
     def _hold(self):
         """Zero velocity at the measured position, now (time_from_start 0: a position
@@ -419,18 +595,22 @@ class Pa10IkNode(Node):
         the arm at its measured position, report, keep serving."""
         reason = f'{what}: {type(error).__name__}: {error}'
         self.internal_errors += 1
-        self.get_logger().error(f'internal error in {reason} ({self.internal_errors} so '
-                                'far); the arm holds', throttle_duration_sec=2.0)
+        self.get_logger().error(
+            f'internal error in {reason} ({self.internal_errors} so far); the arm holds',
+            throttle_duration_sec=2.0,
+        )
         try:
             if self.controller.phase in (*ACTIVE_PHASES, 'done'):
                 self.controller.fail(reason)
             self._hold()
-            self.diagnostics.publish('internal error', 'error', reason,
-                                     {'count': self.internal_errors})
+            self.diagnostics.publish(
+                'internal error', 'error', reason, {'count': self.internal_errors}
+            )
             self._log_phase_change()
         except Exception as second:  # noqa: BLE001 - e.g. a publisher already destroyed
-            self.get_logger().error(f'could not stop after the internal error: {second}',
-                                    throttle_duration_sec=2.0)
+            self.get_logger().error(
+                f'could not stop after the internal error: {second}', throttle_duration_sec=2.0
+            )
 
     def _log_phase_change(self):
         controller = self.controller
@@ -449,7 +629,8 @@ class Pa10IkNode(Node):
             rms, force_band = controller.stats.summary()
             self.get_logger().info(
                 f'tracking done: rms position error {rms * 1e3:.3f} mm, force within '
-                f'+-{force_band:.3f} N of desired ({self.params.desired_force} N)')
+                f'+-{force_band:.3f} N of desired ({self.params.desired_force} N)'
+            )
         self._publish_diagnostics()
 
     @guarded('diagnostics')
@@ -467,7 +648,8 @@ class Pa10IkNode(Node):
             'force_error_N': f'{self.force - self.params.desired_force:.4f}',
             'arm_response': f'{controller.response:.3f}',
             'phi_rad': f'{info.get("phi", float("nan")):.5f}',
-            'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}' if self.step_times
+            'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}'
+            if self.step_times
             else 'nan',
             'method': self.params.method,
             'force_law': self.params.force_law,

@@ -5,6 +5,7 @@ surface, x along the tangent, z the approach direction into the surface. A path 
 ends meet (closer than ``closed_tolerance``) is a loop and is followed once around, back
 to its start.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -29,15 +30,19 @@ def validate_waypoints(waypoints: npt.ArrayLike, min_spacing: float = 1e-6) -> F
     """
     T = np.array(waypoints, dtype=float)
     if T.ndim != 3 or T.shape[1:] != (4, 4) or len(T) == 0:
-        raise InvalidInput(f'waypoints must be a non-empty (N, 4, 4) array, got shape '
-                           f'{T.shape}', 'waypoints', T.shape)
+        raise InvalidInput(
+            f'waypoints must be a non-empty (N, 4, 4) array, got shape {T.shape}',
+            'waypoints',
+            T.shape,
+        )
     if not np.all(np.isfinite(T)):
         raise InvalidInput('waypoints must be finite', 'waypoints')
     R = T[:, :3, :3]
     if np.max(np.abs(R @ np.transpose(R, (0, 2, 1)) - np.eye(3))) > 1e-4:
         raise InvalidInput('waypoint rotations must be orthonormal', 'waypoints')
-    keep = np.concatenate([[True], np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
-                           > min_spacing])
+    keep = np.concatenate(
+        [[True], np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1) > min_spacing]
+    )
     T = T[keep]
     if len(T) < 2:
         raise InvalidInput('the path needs at least 2 distinct waypoints', 'waypoints')
@@ -49,7 +54,10 @@ def validate_waypoints(waypoints: npt.ArrayLike, min_spacing: float = 1e-6) -> F
         raise InvalidInput(
             f'the path runs along its approach axis at waypoint {worst} ('
             f'{np.degrees(np.arccos(min(along[worst], 1.0))):.1f} deg from it): waypoints '
-            'must lie on the surface, z the approach into it', 'waypoints', worst)
+            'must lie on the surface, z the approach into it',
+            'waypoints',
+            worst,
+        )
     return T
 
 
@@ -86,19 +94,18 @@ class WaypointPath:
         """(point (3,), approach (3,) unit, tangent (3,) unit) at arc length ``s`` [m]
         (clamped to the path)."""
         s = float(np.clip(s, 0.0, self.length))
-        i = int(np.clip(np.searchsorted(self.arc, s, side='right') - 1, 0,
-                        len(self.arc) - 2))
+        i = int(np.clip(np.searchsorted(self.arc, s, side='right') - 1, 0, len(self.arc) - 2))
         h = self.arc[i + 1] - self.arc[i]
         t = (s - self.arc[i]) / h if h > 0 else 0.0
         point = self.points[i] + t * (self.points[i + 1] - self.points[i])
         approach = self.approach[i] + t * (self.approach[i + 1] - self.approach[i])
         approach /= np.linalg.norm(approach)
-        tangent = (self.points[i + 1] - self.points[i]) / h if h > 0 else np.array(
-            [1.0, 0.0, 0.0])
+        tangent = (self.points[i + 1] - self.points[i]) / h if h > 0 else np.array([1.0, 0.0, 0.0])
         return point, approach, tangent
 
-    def nearest(self, point: FloatArray, around: float | None = None,
-                window: float | None = None) -> tuple[float, float]:
+    def nearest(
+        self, point: FloatArray, around: float | None = None, window: float | None = None
+    ) -> tuple[float, float]:
         """Arc length [m] of the path point nearest to ``point`` (3,) and its distance [m].
 
         With ``around`` and ``window`` [m], only segments within ``window`` of arc length

@@ -12,6 +12,7 @@ tangent-plane construction of §6.4; the depth along the approach axis from the 
 reference pose and its feed-forward twist into joint velocities through ``RateSolver``
 (pose feedback, so no drift accumulates).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -42,8 +43,9 @@ def perpendicular(v: npt.ArrayLike) -> FloatArray:
     return _unit(np.cross(v, other), 'v x e')
 
 
-def next_target_on_tangent_plane(P: npt.ArrayLike, normal: npt.ArrayLike, Q: npt.ArrayLike
-                                 ) -> tuple[FloatArray, FloatArray]:
+def next_target_on_tangent_plane(
+    P: npt.ArrayLike, normal: npt.ArrayLike, Q: npt.ArrayLike
+) -> tuple[FloatArray, FloatArray]:
     """Next target Q' on the tangent plane at P and the tool frame E there (§6.4 steps 1-4).
 
     Simplification of step 3: Q is projected orthogonally onto the plane
@@ -79,9 +81,15 @@ def force_tilt_angle(measured_force: float, desired_force: float) -> float:
     return np.pi * (measured_force - desired_force) / (2.0 * desired_force)
 
 
-def approach_correction(integral: float, measured_force: float, desired_force: float,
-                        stiffness: float, dt: float, gain: float = 5.0, max_depth: float = 0.01
-                        ) -> tuple[float, float]:
+def approach_correction(
+    integral: float,
+    measured_force: float,
+    desired_force: float,
+    stiffness: float,
+    dt: float,
+    gain: float = 5.0,
+    max_depth: float = 0.01,
+) -> tuple[float, float]:
     """Commanded depth [m] beyond the surface along the approach axis (PI force law).
 
     depth = desired_force / stiffness (feed-forward from the stiffness estimate) + integral,
@@ -102,8 +110,9 @@ def approach_correction(integral: float, measured_force: float, desired_force: f
     return depth, integral
 
 
-def tilted_motion(measured_force: float, desired_force: float, advance: float
-                  ) -> tuple[float, float, float]:
+def tilted_motion(
+    measured_force: float, desired_force: float, advance: float
+) -> tuple[float, float, float]:
     """The thesis's force rule (7.3.15, §6.4 step 7) applied to one step of the motion PQ'.
 
     At each new contact point the thesis rotates the tool frame E about its y axis by
@@ -121,8 +130,7 @@ def tilted_motion(measured_force: float, desired_force: float, advance: float
     Returns:
         (phi [rad], tangential advance [m], depth change [m] along z_E).
     """
-    phi = float(np.clip(force_tilt_angle(measured_force, desired_force),
-                        -np.pi / 2, np.pi / 2))
+    phi = float(np.clip(force_tilt_angle(measured_force, desired_force), -np.pi / 2, np.pi / 2))
     return phi, advance * np.cos(phi), -advance * np.sin(phi)
 
 
@@ -189,12 +197,15 @@ class TrackingStats:
         """(rms position error [m], largest |force error| [N]); NaN when empty."""
         if not self.position_errors:
             return float('nan'), float('nan')
-        return (float(np.sqrt(np.mean(np.square(self.position_errors)))),
-                float(np.max(np.abs(self.force_errors))))
+        return (
+            float(np.sqrt(np.mean(np.square(self.position_errors)))),
+            float(np.max(np.abs(self.force_errors))),
+        )
 
 
-def spin_free_task(J: FloatArray, twist: FloatArray, T_desired: FloatArray
-                   ) -> tuple[FloatArray, FloatArray]:
+def spin_free_task(
+    J: FloatArray, twist: FloatArray, T_desired: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """The 5 constraints that leave the spin about the desired approach axis free.
 
     The angular rows are expressed in the desired frame's (x, y, z) and the z row is
@@ -230,8 +241,13 @@ class TrackingController:
         progress: 0..1 along the path (tracking); stats: ``TrackingStats``.
     """
 
-    def __init__(self, robot: RobotModel, solver: RateSolver, config: TrackingConfig | None = None,
-                 max_joint_velocity: float | None = None) -> None:
+    def __init__(
+        self,
+        robot: RobotModel,
+        solver: RateSolver,
+        config: TrackingConfig | None = None,
+        max_joint_velocity: float | None = None,
+    ) -> None:
         self.robot, self.solver = robot, solver
         self.config = TrackingConfig() if config is None else config
         self.configure()  # validates force_law
@@ -283,7 +299,10 @@ class TrackingController:
             raise Unreachable(
                 f'waypoint {min(worst, len(path.points) - 1)} at {points[worst].round(3)} is '
                 f'{distances[worst]:.3f} m from the shoulder, beyond the reach '
-                f'{self.reach:.3f} m - {c.reach_margin} m margin', 'waypoints', points[worst])
+                f'{self.reach:.3f} m - {c.reach_margin} m margin',
+                'waypoints',
+                points[worst],
+            )
 
     def start(self, waypoints: npt.ArrayLike) -> None:
         """Begin the task on ``waypoints`` (N, 4, 4). Raises ``InvalidInput`` /
@@ -304,8 +323,11 @@ class TrackingController:
             self.path = path
             return
         fraction = self.travelled / old.length if old.length > 0 else 0.0
-        around = (self.s_start + fraction * path.length) % path.length if path.closed \
+        around = (
+            (self.s_start + fraction * path.length) % path.length
+            if path.closed
             else fraction * path.length
+        )
         s_near, _ = path.nearest(tip, around, window=0.25 * path.length)
         self.path = path
         self.travelled = fraction * path.length
@@ -354,8 +376,9 @@ class TrackingController:
         T[:3, 3] = position
         return T
 
-    def step(self, q: npt.ArrayLike, measured_force: float, dt: float
-             ) -> tuple[FloatArray, dict[str, Any]]:
+    def step(
+        self, q: npt.ArrayLike, measured_force: float, dt: float
+    ) -> tuple[FloatArray, dict[str, Any]]:
         """One control step at joints ``q`` (n,) [rad] with the measured force [N] over
         ``dt`` [s]. Returns (qdot (n,) [rad/s], info dict)."""
         q = self.robot.check_q(q)
@@ -364,9 +387,12 @@ class TrackingController:
         self.time_in_phase += dt
         self.last_dt = dt
         info: dict[str, Any] = {  # str, floats and (4, 4) poses, the solver's info
-            'phase': self.phase, 'phi': force_tilt_angle(measured_force, c.desired_force),
-            'force_error': measured_force - c.desired_force, 'T': T,
-            'position_error': float('nan')}
+            'phase': self.phase,
+            'phi': force_tilt_angle(measured_force, c.desired_force),
+            'force_error': measured_force - c.desired_force,
+            'T': T,
+            'position_error': float('nan'),
+        }
         if self.phase not in ACTIVE_PHASES and self.phase != 'done':
             return np.zeros(self.robot.n_joints), info
         target = self._reference(T, measured_force, dt, info)
@@ -379,8 +405,10 @@ class TrackingController:
         qdot, solve_info = self._solve(q, T, T_d, feed_forward, free_move)
         info.update(solve_info)
         qdot = self._compensated(qdot)
-        self.last_tip, self.last_tip_velocity = T[:3, 3].copy(), \
-            (self.robot.jacobian(q) @ qdot)[:3]
+        self.last_tip, self.last_tip_velocity = (
+            T[:3, 3].copy(),
+            (self.robot.jacobian(q) @ qdot)[:3],
+        )
         info['response'] = self.response
         return qdot, info
 
@@ -412,8 +440,9 @@ class TrackingController:
         over = np.max(np.abs(scaled) / self.velocity_limits)
         return scaled / over if over > 1.0 else scaled
 
-    def _reference(self, T: FloatArray, force: float, dt: float, info: dict[str, Any]
-                   ) -> _Reference | None:
+    def _reference(
+        self, T: FloatArray, force: float, dt: float, info: dict[str, Any]
+    ) -> _Reference | None:
         """(T_desired, feed-forward twist (6,), free_move) of the current phase; None
         if the phase machine stopped."""
         if self.phase == 'approach':
@@ -424,8 +453,9 @@ class TrackingController:
             return self._tracking_reference(T, force, dt, info)
         return self._lift(T, dt)  # done: lift off along the approach axis and hold
 
-    def _approach_reference(self, T: FloatArray, force: float, dt: float,
-                            info: dict[str, Any]) -> _Reference | None:
+    def _approach_reference(
+        self, T: FloatArray, force: float, dt: float, info: dict[str, Any]
+    ) -> _Reference | None:
         """Approach: a free-space move to the pre-contact pose ``standoff`` above the first
         waypoint, then the descent (``_descend``)."""
         c = self.config
@@ -440,8 +470,10 @@ class TrackingController:
                 self.reference_depth = float(np.dot(tip - P0, z0))
                 self.best_distance, self.stall_time = np.inf, 0.0
             elif not self._progressing(distance + 0.05 * angle, dt):
-                self.fail(f'cannot reach the pre-contact pose: {distance * 1e3:.1f} mm '
-                          f'away, no progress for {c.error_timeout * 2:.1f} s')
+                self.fail(
+                    f'cannot reach the pre-contact pose: {distance * 1e3:.1f} mm '
+                    f'away, no progress for {c.error_timeout * 2:.1f} s'
+                )
                 return None
             else:
                 return T_d, np.zeros(6), True
@@ -452,8 +484,8 @@ class TrackingController:
         settled in its band (or ``contact_timeout``), then start tracking."""
         c = self.config
         depth, self.integral = approach_correction(
-            self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
-            c.max_depth)
+            self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain, c.max_depth
+        )
         P0, z0, _ = self._sample(0.0)
         in_band = abs(force - c.desired_force) <= c.force_tolerance * c.desired_force
         self.settled_time = self.settled_time + dt if in_band else 0.0
@@ -464,8 +496,9 @@ class TrackingController:
         T_d = self._frame(0.0, P0 + depth * z0)
         return self._checked(T, T_d, np.zeros(6), dt)
 
-    def _tracking_reference(self, T: FloatArray, force: float, dt: float,
-                            info: dict[str, Any]) -> _Reference | None:
+    def _tracking_reference(
+        self, T: FloatArray, force: float, dt: float, info: dict[str, Any]
+    ) -> _Reference | None:
         """Tracking: the reference runs along the path at the ramped ``speed`` (waiting
         for a lagging tip) at the force law's depth; done once the path is travelled."""
         c = self.config
@@ -474,8 +507,8 @@ class TrackingController:
         tip = T[:3, 3]
         if c.force_law != 'tilt':
             self.depth, self.integral = approach_correction(
-                self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain,
-                c.max_depth)
+                self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain, c.max_depth
+            )
         remaining = path.length - self.travelled
         speed = c.speed * min(1.0, max(self.time_in_phase / c.ramp_time, 0.05))
         motion = self._advance_reference(tip, force, speed, remaining, dt)
@@ -493,14 +526,14 @@ class TrackingController:
         speed = min(speed, remaining / dt) if dt > 0 else speed
         along = self._along_path(tangent, z, T_d)
         velocity = speed * (direction[0] * along + direction[1] * z)
-        feed_forward = np.concatenate([velocity if moving else np.zeros(3),
-                                       np.zeros(3)])
+        feed_forward = np.concatenate([velocity if moving else np.zeros(3), np.zeros(3)])
         self._record_tracking_errors(tip, force, info)
         self._finish_when_travelled(T_d, tip, dt)
         return self._checked(T, T_d, feed_forward, dt)
 
-    def _advance_reference(self, tip: FloatArray, force: float, speed: float, remaining: float,
-                           dt: float) -> tuple[tuple[float, float], bool] | None:
+    def _advance_reference(
+        self, tip: FloatArray, force: float, speed: float, remaining: float, dt: float
+    ) -> tuple[tuple[float, float], bool] | None:
         """Move the reference ``s_ref`` on by ``speed`` [m/s] unless the tip lags it by
         ``governor_distance`` or more; under the tilt law the step is tilted into / out of
         the surface. Returns (direction of motion in E, advanced), or None after failing
@@ -514,8 +547,10 @@ class TrackingController:
         advanced = lag < c.governor_distance
         self.wait_time = 0.0 if advanced else self.wait_time + dt
         if self.wait_time > 2 * c.error_timeout:
-            self.fail(f'the tool tip lags its reference by {lag * 1e3:.1f} mm (measured) '
-                      f'for {self.wait_time:.1f} s: the arm does not follow')
+            self.fail(
+                f'the tool tip lags its reference by {lag * 1e3:.1f} mm (measured) '
+                f'for {self.wait_time:.1f} s: the arm does not follow'
+            )
             return None
         if advanced:  # the reference waits for a lagging tip
             advance = min(speed * dt, remaining)
@@ -537,14 +572,14 @@ class TrackingController:
         along_norm = np.linalg.norm(along)
         return along / along_norm if along_norm > 1e-9 else T_d[:3, 0]
 
-    def _record_tracking_errors(self, tip: FloatArray, force: float, info: dict[str, Any]
-                                ) -> None:
+    def _record_tracking_errors(self, tip: FloatArray, force: float, info: dict[str, Any]) -> None:
         """The tip's lateral distance [m] to the path near the reference (into ``info``
         and the stats) and the force error [N]."""
         path = self.path
         assert path is not None  # tracking runs on the started path
-        s_near, _ = path.nearest(tip, self.s_ref % path.length if path.closed
-                                 else self.s_ref, window=0.05)
+        s_near, _ = path.nearest(
+            tip, self.s_ref % path.length if path.closed else self.s_ref, window=0.05
+        )
         lateral = path.lateral_distance(tip, s_near)
         info['position_error'] = lateral
         self.stats.position_errors.append(lateral)
@@ -561,8 +596,15 @@ class TrackingController:
                 self.lift_reference = 0.0
             self.T_end = T_d.copy()
 
-    def _descend(self, T: FloatArray, P0: FloatArray, z0: FloatArray, force: float, dt: float,
-                 info: dict[str, Any]) -> _Reference | None:
+    def _descend(
+        self,
+        T: FloatArray,
+        P0: FloatArray,
+        z0: FloatArray,
+        force: float,
+        dt: float,
+        info: dict[str, Any],
+    ) -> _Reference | None:
         """Descent along the first approach axis until the measured force reaches the
         desired one, judged on the measured tip: the reference runs at most
         ``governor_distance`` ahead of it (an arm slower than commanded is waited for),
@@ -577,19 +619,24 @@ class TrackingController:
         depth = float(np.dot(tip - P0, z0))  # [m] measured, > 0 past the first waypoint
         info['measured_depth'] = depth
         if depth > c.max_depth:
-            self.fail(f'no contact: the tip is {depth * 1e3:.1f} mm past the first waypoint '
-                      f'along its approach axis (measured) with {force:.2f} N of the '
-                      f'desired {c.desired_force:g} N')
+            self.fail(
+                f'no contact: the tip is {depth * 1e3:.1f} mm past the first waypoint '
+                f'along its approach axis (measured) with {force:.2f} N of the '
+                f'desired {c.desired_force:g} N'
+            )
             return None
         if not self._progressing(-depth - max(force, 0.0) / c.stiffness, dt):
-            self.fail(f'descent stalled: the tip moved less than 1 mm along the approach '
-                      f'axis in {2 * c.error_timeout:.1f} s (at {depth * 1e3:.1f} mm from the '
-                      f'first waypoint, {force:.2f} N)')
+            self.fail(
+                f'descent stalled: the tip moved less than 1 mm along the approach '
+                f'axis in {2 * c.error_timeout:.1f} s (at {depth * 1e3:.1f} mm from the '
+                f'first waypoint, {force:.2f} N)'
+            )
             return None
         slow = np.clip(1.0 - force / c.desired_force, 0.2, 1.0)
         previous = self.reference_depth
-        self.reference_depth = max(previous, min(previous + c.descent_speed * slow * dt,
-                                                 depth + c.governor_distance))
+        self.reference_depth = max(
+            previous, min(previous + c.descent_speed * slow * dt, depth + c.governor_distance)
+        )
         rate = (self.reference_depth - previous) / dt if dt > 0 else 0.0
         T_d = self._frame(0.0, P0 + self.reference_depth * z0)
         feed_forward = np.concatenate([rate * z0, np.zeros(3)])
@@ -609,13 +656,16 @@ class TrackingController:
             if lifted >= c.lift_height - 0.0005:
                 self.stage = 'lifted'
             elif not self._progressing(c.lift_height - lifted, dt):
-                self.fail(f'lift-off stalled: the tip rose {lifted * 1e3:.1f} of '
-                          f'{c.lift_height * 1e3:.0f} mm, no progress for '
-                          f'{2 * c.error_timeout:.1f} s')
+                self.fail(
+                    f'lift-off stalled: the tip rose {lifted * 1e3:.1f} of '
+                    f'{c.lift_height * 1e3:.0f} mm, no progress for '
+                    f'{2 * c.error_timeout:.1f} s'
+                )
                 return None
-            self.lift_reference = max(previous, min(previous + c.descent_speed * dt,
-                                                    lifted + c.governor_distance,
-                                                    c.lift_height))
+            self.lift_reference = max(
+                previous,
+                min(previous + c.descent_speed * dt, lifted + c.governor_distance, c.lift_height),
+            )
         T_d[:3, 3] -= self.lift_reference * z
         feed_forward = np.zeros(6)
         if dt > 0:
@@ -630,22 +680,30 @@ class TrackingController:
             self.stall_time += dt
         return self.stall_time < 2 * self.config.error_timeout
 
-    def _checked(self, T: FloatArray, T_d: FloatArray, feed_forward: FloatArray, dt: float
-                 ) -> _Reference | None:
+    def _checked(
+        self, T: FloatArray, T_d: FloatArray, feed_forward: FloatArray, dt: float
+    ) -> _Reference | None:
         """The reference, unless the tip has been farther than max_position_error from it
         for error_timeout (the arm cannot follow: out of reach, at its limits)."""
         error = np.linalg.norm(T_d[:3, 3] - T[:3, 3])
-        self.error_time = self.error_time + dt if error > self.config.max_position_error \
-            else 0.0
+        self.error_time = self.error_time + dt if error > self.config.max_position_error else 0.0
         if self.error_time > self.config.error_timeout:
-            self.fail(f'cannot follow the path: the tool tip is {error * 1e3:.1f} mm from '
-                      f'its reference at {T_d[:3, 3].round(3)} (out of reach or at the '
-                      'joint limits)')
+            self.fail(
+                f'cannot follow the path: the tool tip is {error * 1e3:.1f} mm from '
+                f'its reference at {T_d[:3, 3].round(3)} (out of reach or at the '
+                'joint limits)'
+            )
             return None
         return T_d, feed_forward, False
 
-    def _solve(self, q: FloatArray, T: FloatArray, T_d: FloatArray, feed_forward: FloatArray,
-               free_move: bool) -> tuple[FloatArray, dict[str, Any]]:
+    def _solve(
+        self,
+        q: FloatArray,
+        T: FloatArray,
+        T_d: FloatArray,
+        feed_forward: FloatArray,
+        free_move: bool,
+    ) -> tuple[FloatArray, dict[str, Any]]:
         c = self.config
         error = pose_error(T, T_d)
         if not c.track_spin:
@@ -676,7 +734,7 @@ class TrackingController:
         else:
             task = twist
         qdot, solve_info = self.solver.solve_limited(
-            J, task, q, self.robot.lower_limits, self.robot.upper_limits,
-            self.velocity_limits)
+            J, task, q, self.robot.lower_limits, self.robot.upper_limits, self.velocity_limits
+        )
         solve_info['twist'] = twist
         return qdot, solve_info

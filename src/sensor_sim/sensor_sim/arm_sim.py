@@ -14,6 +14,7 @@ than commanded: ``speed_scale`` < 1 scales the commanded velocity (velocity mode
 makes the position follow its set point with a first-order lag (position mode: each step
 closes only that fraction of the gap).
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -51,20 +52,29 @@ class SimulatedArm:
             mode or a speed_scale outside (0, 1].
     """
 
-    def __init__(self, joint_names: Iterable[str], lower_limits: npt.ArrayLike,
-                 upper_limits: npt.ArrayLike, velocity_limits: npt.ArrayLike,
-                 q0: npt.ArrayLike, mode: str = 'position', speed_scale: float = 1.0) -> None:
+    def __init__(
+        self,
+        joint_names: Iterable[str],
+        lower_limits: npt.ArrayLike,
+        upper_limits: npt.ArrayLike,
+        velocity_limits: npt.ArrayLike,
+        q0: npt.ArrayLike,
+        mode: str = 'position',
+        speed_scale: float = 1.0,
+    ) -> None:
         if mode not in ARM_MODES:
             raise InvalidInput(f'mode must be one of {ARM_MODES}, got {mode!r}', 'mode', mode)
         if not (isinstance(speed_scale, (int, float)) and 0.0 < speed_scale <= 1.0):
-            raise InvalidInput(f'speed_scale must be in (0, 1], got {speed_scale!r}',
-                               'speed_scale', speed_scale)
+            raise InvalidInput(
+                f'speed_scale must be in (0, 1], got {speed_scale!r}', 'speed_scale', speed_scale
+            )
         self.mode, self.speed_scale = mode, float(speed_scale)
         self.joint_names = tuple(joint_names)
         n = len(self.joint_names)
         if len(set(self.joint_names)) != n:
-            raise InvalidInput(f'duplicate joint names {self.joint_names}',
-                               'joint_names', self.joint_names)
+            raise InvalidInput(
+                f'duplicate joint names {self.joint_names}', 'joint_names', self.joint_names
+            )
         self._lower = _read_only(_vector(lower_limits, n, 'lower_limits'))
         self._upper = _read_only(_vector(upper_limits, n, 'upper_limits'))
         self._qdot_max = _read_only(_vector(velocity_limits, n, 'velocity_limits'))
@@ -78,11 +88,19 @@ class SimulatedArm:
         self.hold()
 
     @classmethod
-    def from_robot_model(cls, robot: RobotModel, q0: npt.ArrayLike, mode: str = 'position',
-                         speed_scale: float = 1.0) -> Self:
+    def from_robot_model(
+        cls, robot: RobotModel, q0: npt.ArrayLike, mode: str = 'position', speed_scale: float = 1.0
+    ) -> Self:
         """An arm with the joints and limits of a ``vgm_common.robot_model.RobotModel``."""
-        return cls(robot.joint_names, robot.lower_limits, robot.upper_limits,
-                   robot.velocity_limits, q0, mode, speed_scale)
+        return cls(
+            robot.joint_names,
+            robot.lower_limits,
+            robot.upper_limits,
+            robot.velocity_limits,
+            q0,
+            mode,
+            speed_scale,
+        )
 
     @property
     def q(self) -> FloatArray:
@@ -98,9 +116,14 @@ class SimulatedArm:
         """Replace the command by holding the current position."""
         self._set_command(np.zeros(1), self._q[np.newaxis], None, start_time=-np.inf)
 
-    def set_trajectory(self, joint_names: str | Iterable[str], times_from_start: npt.ArrayLike,
-                       positions: npt.ArrayLike, velocities: npt.ArrayLike | None = None,
-                       start_time: float = 0.0) -> None:
+    def set_trajectory(
+        self,
+        joint_names: str | Iterable[str],
+        times_from_start: npt.ArrayLike,
+        positions: npt.ArrayLike,
+        velocities: npt.ArrayLike | None = None,
+        start_time: float = 0.0,
+    ) -> None:
         """Replace the command by a trajectory.
 
         Args:
@@ -125,33 +148,46 @@ class SimulatedArm:
         times = _array(times_from_start, 'times_from_start')
         n_points, n = len(times), len(order)
         if times.shape != (n_points,) or n_points == 0:
-            raise InvalidInput(f'times_from_start must be a non-empty 1-D list, got shape '
-                               f'{times.shape}', 'times_from_start', times_from_start)
+            raise InvalidInput(
+                f'times_from_start must be a non-empty 1-D list, got shape {times.shape}',
+                'times_from_start',
+                times_from_start,
+            )
         if times[0] < 0 or np.any(np.diff(times) <= 0):
-            raise InvalidInput(f'times_from_start must be >= 0 and strictly increasing, got '
-                               f'{times}', 'times_from_start', times_from_start)
+            raise InvalidInput(
+                f'times_from_start must be >= 0 and strictly increasing, got {times}',
+                'times_from_start',
+                times_from_start,
+            )
         positions = _array(positions, 'positions')
         if positions.shape != (n_points, n):
-            raise InvalidInput(f'positions must have shape ({n_points}, {n}), got '
-                               f'{positions.shape}', 'positions', positions)
+            raise InvalidInput(
+                f'positions must have shape ({n_points}, {n}), got {positions.shape}',
+                'positions',
+                positions,
+            )
         if velocities is not None and np.size(velocities) == 0:
             velocities = None
         if velocities is not None:
             velocities = _array(velocities, 'velocities')
             if velocities.shape != (n_points, n):
-                raise InvalidInput(f'velocities must have shape ({n_points}, {n}), got '
-                                   f'{velocities.shape}', 'velocities', velocities)
+                raise InvalidInput(
+                    f'velocities must have shape ({n_points}, {n}), got {velocities.shape}',
+                    'velocities',
+                    velocities,
+                )
             velocities = velocities[:, order]
             too_fast = np.abs(velocities) > IMPLAUSIBLE_SPEED * self._qdot_max
             if np.any(too_fast):
                 raise InvalidInput(
                     f'velocities up to {np.abs(velocities).max():.3g} rad/s: beyond '
                     f'{IMPLAUSIBLE_SPEED:g} times the joint limits, not a command to follow',
-                    'velocities', velocities)
+                    'velocities',
+                    velocities,
+                )
         start = _array(start_time, 'start_time')
         if start.shape != ():
-            raise InvalidInput(f'start_time must be a number, got {start}',
-                               'start_time', start)
+            raise InvalidInput(f'start_time must be a number, got {start}', 'start_time', start)
         self._set_command(times, positions[:, order], velocities, start)
 
     def step(self, t: float, dt: float) -> tuple[FloatArray, FloatArray]:
@@ -175,15 +211,23 @@ class SimulatedArm:
         self._q = q_new
         return self.q, self.qdot
 
-    def follow_velocity(self, joint_names: str | Iterable[str], qdot: npt.ArrayLike, t: float,
-                        period: float, horizon: float = 0.05, substeps: int = 2) -> float:
+    def follow_velocity(
+        self,
+        joint_names: str | Iterable[str],
+        qdot: npt.ArrayLike,
+        t: float,
+        period: float,
+        horizon: float = 0.05,
+        substeps: int = 2,
+    ) -> float:
         """One control period of a velocity controller in an offline closed loop (tests,
         bench): the command pa10_ik_node sends (q + qdot * horizon at ``horizon`` [s] with
         velocity qdot, from time ``t``), followed in ``substeps`` steps as sensor_sim's
         faster loop does. Returns the time after the period [s]."""
         velocity = np.asarray(qdot)
-        self.set_trajectory(joint_names, [horizon], [self._q + horizon * velocity],
-                            [velocity], start_time=t)
+        self.set_trajectory(
+            joint_names, [horizon], [self._q + horizon * velocity], [velocity], start_time=t
+        )
         for _ in range(substeps):
             t += period / substeps
             self.step(t, period / substeps)
@@ -220,11 +264,20 @@ class SimulatedArm:
         # Cubic Hermite basis on [0, 1]; velocities scale by the segment length h.
         h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
         h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
-        return (h00 * positions[i] + h10 * h * velocities[i]
-                + h01 * positions[i + 1] + h11 * h * velocities[i + 1])
+        return (
+            h00 * positions[i]
+            + h10 * h * velocities[i]
+            + h01 * positions[i + 1]
+            + h11 * h * velocities[i + 1]
+        )
 
-    def _set_command(self, times: FloatArray, positions: FloatArray,
-                     velocities: FloatArray | None, start_time: float | FloatArray) -> None:
+    def _set_command(
+        self,
+        times: FloatArray,
+        positions: FloatArray,
+        velocities: FloatArray | None,
+        start_time: float | FloatArray,
+    ) -> None:
         if times[0] > 0:
             # As joint_trajectory_controller does: start from where the arm is.
             times = np.concatenate([[0.0], times])

@@ -9,6 +9,7 @@ The print: (rows + 1) x (cols + 1) squares, the square diagonally outside corner
 (negative x and y) black, alternating; a white margin one square wide all round. The
 chart is a finite plate exactly as large as the print.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -28,12 +29,12 @@ def chart_corners_chart(rows: int, cols: int, spacing: float) -> FloatArray:
     return np.column_stack([c * spacing, r * spacing, np.zeros(rows * cols)])
 
 
-def chart_plate_extent(rows: int, cols: int,
-                       spacing: float) -> tuple[tuple[float, float], tuple[float, float]]:
+def chart_plate_extent(
+    rows: int, cols: int, spacing: float
+) -> tuple[tuple[float, float], tuple[float, float]]:
     """The plate ((x_min, x_max), (y_min, y_max)) in the chart frame [m]."""
     border = (1 + MARGIN_SQUARES) * spacing
-    return ((-border, (cols - 1) * spacing + border),
-            (-border, (rows - 1) * spacing + border))
+    return ((-border, (cols - 1) * spacing + border), (-border, (rows - 1) * spacing + border))
 
 
 def chart_albedo(xy_chart: npt.ArrayLike, rows: int, cols: int, spacing: float) -> FloatArray:

@@ -5,6 +5,7 @@ penetration is the tip's depth below the surface along the normal
 (``surfaces.signed_height_base``: first order in the distance, exact for planes). The
 pressure sensor's noise is added by the caller.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -45,13 +46,19 @@ def contact_force(tip_base: npt.ArrayLike, surface: Surface, stiffness: float) -
     normal = surfaces.normal_base(surface, tip)[0]
     normal.setflags(write=False)
     penetration = max(0.0, -signed_height) if np.isfinite(signed_height) else 0.0
-    return ContactState(force=float(stiffness * penetration), penetration=float(penetration),
-                        normal_base=normal)
+    return ContactState(
+        force=float(stiffness * penetration), penetration=float(penetration), normal_base=normal
+    )
 
 
-def joint_vector_pressing(robot: RobotModel, surface: Surface, q_start: npt.ArrayLike,
-                          q_end: npt.ArrayLike, penetration: float,
-                          iterations: int = 60) -> FloatArray:
+def joint_vector_pressing(
+    robot: RobotModel,
+    surface: Surface,
+    q_start: npt.ArrayLike,
+    q_end: npt.ArrayLike,
+    penetration: float,
+    iterations: int = 60,
+) -> FloatArray:
     """The joint vector on the straight joint-space line ``q_start -> q_end`` whose tool tip
     is ``penetration`` [m] below the surface (bisection; for demos and tests that need a
     known contact without an IK solver).

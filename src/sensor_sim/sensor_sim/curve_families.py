@@ -21,6 +21,7 @@ plumb_bob k1 in [-0.4, 0.1], a baseline of 0.04-0.3 m (at most half the viewing
 distance), toed in on the curve; the aux camera oblique, 20-45 deg off the left view and
 off the baseline's line. Every curve point is inside every image with a margin.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -100,8 +101,7 @@ def _torus_knot(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool
     p, q = 2, 3
     R, r = 0.3 * size, 0.12 * size * rng.uniform(0.8, 1.2)
     rho = R + r * np.cos(q * t)
-    return np.column_stack([rho * np.cos(p * t), rho * np.sin(p * t),
-                            r * np.sin(q * t)]), True
+    return np.column_stack([rho * np.cos(p * t), rho * np.sin(p * t), r * np.sin(q * t)]), True
 
 
 def _sphere_loop(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
@@ -109,8 +109,9 @@ def _sphere_loop(rng: np.random.Generator, size: float) -> tuple[FloatArray, boo
     radius = 0.5 * size
     lobes = int(rng.integers(2, 4))
     latitude = rng.uniform(0.25, 0.5) * np.sin(lobes * t) + rng.uniform(-0.2, 0.2)
-    points = radius * np.column_stack([np.cos(latitude) * np.cos(t),
-                                       np.cos(latitude) * np.sin(t), np.sin(latitude)])
+    points = radius * np.column_stack(
+        [np.cos(latitude) * np.cos(t), np.cos(latitude) * np.sin(t), np.sin(latitude)]
+    )
     return points - points.mean(axis=0), True
 
 
@@ -125,8 +126,7 @@ def _saddle_loop(rng: np.random.Generator, size: float) -> tuple[FloatArray, boo
 def _inflection(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
     s = np.linspace(-1, 1, SAMPLES)
     sway = rng.uniform(0.1, 0.25)
-    return np.column_stack([0.5 * s, 0.2 * np.sin(np.pi * s),
-                            sway * (s**2 - 1 / 3)]) * size, False
+    return np.column_stack([0.5 * s, 0.2 * np.sin(np.pi * s), sway * (s**2 - 1 / 3)]) * size, False
 
 
 def _near_straight(rng: np.random.Generator, size: float) -> tuple[FloatArray, bool]:
@@ -142,7 +142,7 @@ def _near_straight(rng: np.random.Generator, size: float) -> tuple[FloatArray, b
     direction = np.array([np.cos(bend), np.sin(bend)])
     last = end + np.linspace(0, straight, SAMPLES - 2 * n)[:, None] * direction
     xy = np.vstack([first, arc, last])
-    lift = rng.uniform(-0.1, 0.1) * size * np.linspace(0, 1, len(xy))**2
+    lift = rng.uniform(-0.1, 0.1) * size * np.linspace(0, 1, len(xy)) ** 2
     points = np.column_stack([xy, lift])
     return points - points.mean(axis=0), False
 
@@ -152,18 +152,25 @@ def _self_approaching(rng: np.random.Generator, size: float) -> tuple[FloatArray
     size of each other."""
     t = np.linspace(0, 2 * np.pi, SAMPLES, endpoint=False)
     waist = rng.uniform(0.15, 0.25)
-    r = 0.5 * size * (waist + (1 - waist) * np.cos(t)**2)
-    points = np.column_stack([r * np.cos(t) * 1.4, r * np.sin(t),
-                              0.08 * size * np.sin(2 * t)])
+    r = 0.5 * size * (waist + (1 - waist) * np.cos(t) ** 2)
+    points = np.column_stack([r * np.cos(t) * 1.4, r * np.sin(t), 0.08 * size * np.sin(2 * t)])
     return points, True
 
 
 FAMILIES: dict[str, Family | None] = {
-    'ellipse': _ellipse, 'parabola': _parabola, 'hyperbola': _hyperbola,
-    'planar_cubic': _planar_cubic, 'helix': _helix, 'twisted_cubic': _twisted_cubic,
-    'torus_knot': _torus_knot, 'sphere_loop': _sphere_loop, 'saddle_loop': _saddle_loop,
-    'inflection': _inflection, 'near_straight': _near_straight,
-    'self_approaching': _self_approaching, 'surface_loop': None,
+    'ellipse': _ellipse,
+    'parabola': _parabola,
+    'hyperbola': _hyperbola,
+    'planar_cubic': _planar_cubic,
+    'helix': _helix,
+    'twisted_cubic': _twisted_cubic,
+    'torus_knot': _torus_knot,
+    'sphere_loop': _sphere_loop,
+    'saddle_loop': _saddle_loop,
+    'inflection': _inflection,
+    'near_straight': _near_straight,
+    'self_approaching': _self_approaching,
+    'surface_loop': None,
 }
 PLANAR = ('ellipse', 'parabola', 'hyperbola', 'planar_cubic')
 # the implicit degree the node is told, as a user would set `degree`
@@ -194,26 +201,40 @@ def random_rotation(rng: np.random.Generator) -> FloatArray:
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
     w, x, y, z = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
-def _camera(rng: np.random.Generator, position: npt.ArrayLike, target: npt.ArrayLike,
-            up: npt.ArrayLike) -> PinholeCamera:
+def _camera(
+    rng: np.random.Generator, position: npt.ArrayLike, target: npt.ArrayLike, up: npt.ArrayLike
+) -> PinholeCamera:
     f = rng.uniform(400.0, 1400.0)
-    K = np.array([[f, 0, WIDTH / 2 + rng.uniform(-8, 8)],
-                  [0, f * rng.uniform(0.995, 1.005), HEIGHT / 2 + rng.uniform(-8, 8)],
-                  [0, 0, 1]])
+    K = np.array(
+        [
+            [f, 0, WIDTH / 2 + rng.uniform(-8, 8)],
+            [0, f * rng.uniform(0.995, 1.005), HEIGHT / 2 + rng.uniform(-8, 8)],
+            [0, 0, 1],
+        ]
+    )
     k1 = rng.uniform(-0.4, 0.1)
     D = np.array([k1, -0.2 * k1 * rng.uniform(0, 1), 0.0, 0.0, 0.0])
     T = make_transform(look_at_rotation(position, target, up), position)
     return PinholeCamera(WIDTH, HEIGHT, K, D, T)
 
 
-def generate_rig(rng: np.random.Generator, points_base: FloatArray, closed: bool,
-                 min_gap_px: float | None = None, fill: tuple[float, float] = (0.45, 0.7),
-                 tries: int = 300) -> dict[str, PinholeCamera]:
+def generate_rig(
+    rng: np.random.Generator,
+    points_base: FloatArray,
+    closed: bool,
+    min_gap_px: float | None = None,
+    fill: tuple[float, float] = (0.45, 0.7),
+    tries: int = 300,
+) -> dict[str, PinholeCamera]:
     """Three cameras {'left', 'right', 'aux'} seeing ``points_base`` (N, 3) from above,
     each filling ``fill`` of its image's width with the curve, every point inside every
     image by IMAGE_MARGIN_PX, and, given ``min_gap_px``, the curve's image nowhere
@@ -226,8 +247,13 @@ def generate_rig(rng: np.random.Generator, points_base: FloatArray, closed: bool
     for _ in range(tries):
         elevation = rng.uniform(np.radians(45), np.radians(80))
         azimuth = rng.uniform(-np.pi, np.pi)
-        view = np.array([np.cos(elevation) * np.cos(azimuth),
-                         np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+        view = np.array(
+            [
+                np.cos(elevation) * np.cos(azimuth),
+                np.cos(elevation) * np.sin(azimuth),
+                np.sin(elevation),
+            ]
+        )
         left_probe = _camera(rng, centre + view, centre, (0, 0, 1))
         f_left = left_probe.K[0, 0]
         distance = f_left * size / (rng.uniform(*fill) * WIDTH)
@@ -235,29 +261,39 @@ def generate_rig(rng: np.random.Generator, points_base: FloatArray, closed: bool
         x_left = left_probe.T_base_camera[:3, 0]
         baseline = rng.uniform(0.04, min(0.3, 0.5 * distance)) if distance > 0.08 else 0.04
         aim = centre + rng.normal(scale=0.03 * size, size=3)
-        left = replace(left_probe, T_base_camera=make_transform(
-            look_at_rotation(left_position, aim, (0, 0, 1)), left_position))
+        left = replace(
+            left_probe,
+            T_base_camera=make_transform(
+                look_at_rotation(left_position, aim, (0, 0, 1)), left_position
+            ),
+        )
         right_position = left_position + baseline * x_left
         right = _camera(rng, right_position, aim, (0, 0, 1))
         right = replace(right, K=_scaled_focal(right.K, f_left * rng.uniform(0.9, 1.1)))
         # aux: 20-45 deg off the left view, turned away from the baseline's line
         off = np.radians(rng.uniform(20, 45))
         y_left = left_probe.T_base_camera[:3, 1]
-        side = np.cos(rng.uniform(-0.6, 0.6)) * y_left * rng.choice([-1, 1]) \
-            + 0.3 * x_left
+        side = np.cos(rng.uniform(-0.6, 0.6)) * y_left * rng.choice([-1, 1]) + 0.3 * x_left
         side /= np.linalg.norm(side)
         aux_view = np.cos(off) * view + np.sin(off) * side
         aux_view /= np.linalg.norm(aux_view)
         aux_probe = _camera(rng, centre + aux_view, centre, (0, 0, 1))
         aux_distance = aux_probe.K[0, 0] * size / (rng.uniform(*fill) * WIDTH)
-        aux = replace(aux_probe, T_base_camera=make_transform(
-            look_at_rotation(centre + aux_distance * aux_view, centre, (0, 0, 1)),
-            centre + aux_distance * aux_view))
+        aux = replace(
+            aux_probe,
+            T_base_camera=make_transform(
+                look_at_rotation(centre + aux_distance * aux_view, centre, (0, 0, 1)),
+                centre + aux_distance * aux_view,
+            ),
+        )
         cameras = {'left': left, 'right': right, 'aux': aux}
         if all(_inside(camera, points_base) for camera in cameras.values()) and (
-                min_gap_px is None or all(_simple_in_image(camera, points_base, closed,
-                                                           min_gap_px)
-                                          for camera in cameras.values())):
+            min_gap_px is None
+            or all(
+                _simple_in_image(camera, points_base, closed, min_gap_px)
+                for camera in cameras.values()
+            )
+        ):
             return cameras
     raise InvalidInput(f'no rig within {tries} draws sees the whole curve', key='rig')
 
@@ -274,12 +310,19 @@ def _inside(camera: PinholeCamera, points_base: FloatArray) -> bool:
     if not np.all(depth > 0) or not np.all(np.isfinite(pixels)):
         return False
     m = IMAGE_MARGIN_PX
-    return bool(np.all((pixels[:, 0] > m) & (pixels[:, 0] < camera.width - m)
-                       & (pixels[:, 1] > m) & (pixels[:, 1] < camera.height - m)))
+    return bool(
+        np.all(
+            (pixels[:, 0] > m)
+            & (pixels[:, 0] < camera.width - m)
+            & (pixels[:, 1] > m)
+            & (pixels[:, 1] < camera.height - m)
+        )
+    )
 
 
-def _simple_in_image(camera: PinholeCamera, points_base: FloatArray, closed: bool,
-                     min_gap_px: float) -> bool:
+def _simple_in_image(
+    camera: PinholeCamera, points_base: FloatArray, closed: bool, min_gap_px: float
+) -> bool:
     """True unless two parts of the projected curve more than 4 ``min_gap_px`` apart
     along it come within ``min_gap_px`` of each other."""
     pixels, _ = camera.project(points_base)
@@ -296,20 +339,30 @@ def _simple_in_image(camera: PinholeCamera, points_base: FloatArray, closed: boo
     return not np.any(along > 4 * min_gap_px)
 
 
-def generate_case(family: str, seed: int, noise_grey: float | None = None,
-                  line_width_px: float | None = None,
-                  contrast_grey: float | None = None) -> CurveCase:
+def generate_case(
+    family: str,
+    seed: int,
+    noise_grey: float | None = None,
+    line_width_px: float | None = None,
+    contrast_grey: float | None = None,
+) -> CurveCase:
     """The draw ``seed`` of ``family`` (see FAMILIES): curve, rig, backdrop, line width
     (1.5-5 px), contrast (10-80 grey levels) and image noise (0-4 grey levels); give
     ``noise_grey`` / ``line_width_px`` / ``contrast_grey`` to fix one."""
     if family not in FAMILIES:
-        raise InvalidInput(f'family: expected one of {", ".join(FAMILIES)}, got '
-                           f'{family!r}', key='family', value=family)
+        raise InvalidInput(
+            f'family: expected one of {", ".join(FAMILIES)}, got {family!r}',
+            key='family',
+            value=family,
+        )
     rng = np.random.default_rng([seed, sorted(FAMILIES).index(family)])
     base = load_scenario(resolve_scenario_path('default'))
     # always drawn, so fixing one leaves the rest of the draw as it is
-    width, contrast, noise = (rng.uniform(1.5, 5.0), rng.uniform(10.0, 80.0),
-                              rng.uniform(0.0, 4.0))
+    width, contrast, noise = (
+        rng.uniform(1.5, 5.0),
+        rng.uniform(10.0, 80.0),
+        rng.uniform(0.0, 4.0),
+    )
     width = width if line_width_px is None else float(line_width_px)
     contrast = contrast if contrast_grey is None else float(contrast_grey)
     noise = noise if noise_grey is None else float(noise_grey)
@@ -317,9 +370,10 @@ def generate_case(family: str, seed: int, noise_grey: float | None = None,
     draw = FAMILIES[family]
     if draw is None:  # 'surface_loop'
         params: dict[str, CurveParameter] = {
-            'center': rng.uniform(-0.08, 0.08, 2), 'radii':
-            np.array([rng.uniform(0.2, 0.34), rng.uniform(0.12, 0.22)]),
-            'angle': rng.uniform(-np.pi, np.pi)}
+            'center': rng.uniform(-0.08, 0.08, 2),
+            'radii': np.array([rng.uniform(0.2, 0.34), rng.uniform(0.12, 0.22)]),
+            'angle': rng.uniform(-np.pi, np.pi),
+        }
         curve = Curve('surface_loop', width, 1.0, SAMPLES, params)
         truth = curve_polylines(curve, base.surface)[0][:-1]
         surface, closed = base.surface, True
@@ -328,8 +382,7 @@ def generate_case(family: str, seed: int, noise_grey: float | None = None,
         local, closed = draw(rng, size)
         centre = np.array([0.6, 0.0, 0.3]) + rng.uniform(-0.05, 0.05, 3)
         truth = centre + local @ random_rotation(rng).T
-        curve = Curve('points', width, 1.0, len(truth),
-                      {'points': truth, 'closed': closed})
+        curve = Curve('points', width, 1.0, len(truth), {'points': truth, 'closed': closed})
         surface = None
     # the gap the image curve keeps to itself: two line widths and the blur around them
     min_gap = None if family == 'torus_knot' else 2 * width + 4
@@ -341,17 +394,32 @@ def generate_case(family: str, seed: int, noise_grey: float | None = None,
     # (the surface reads about 255 albedo (0.6 + ambient) where the curve is)
     fraction = float(np.clip(contrast / (255.0 * albedo * 0.65), 0.02, 0.95))
     curve = replace(curve, line_width_px=width, contrast=fraction)
-    scenario = replace(base, name=f'{family}_{seed}', curve=curve, cameras=cameras,
-                       surface=surface, noise=Noise(noise, base.noise.pressure_sigma),
-                       seed=int(seed), calibration=None)
+    scenario = replace(
+        base,
+        name=f'{family}_{seed}',
+        curve=curve,
+        cameras=cameras,
+        surface=surface,
+        noise=Noise(noise, base.noise.pressure_sigma),
+        seed=int(seed),
+        calibration=None,
+    )
     size_m = float(np.linalg.norm(np.ptp(truth, axis=0)))
-    return CurveCase(family, int(seed), scenario, truth, closed,
-                     DEGREE.get(family, 3 if family != 'surface_loop' else 2),
-                     width, contrast, noise, size_m)
+    return CurveCase(
+        family,
+        int(seed),
+        scenario,
+        truth,
+        closed,
+        DEGREE.get(family, 3 if family != 'surface_loop' else 2),
+        width,
+        contrast,
+        noise,
+        size_m,
+    )
 
 
-def _backdrop(points_base: FloatArray, camera: PinholeCamera,
-              rng: np.random.Generator) -> Surface:
+def _backdrop(points_base: FloatArray, camera: PinholeCamera, rng: np.random.Generator) -> Surface:
     """A plane behind the curve, facing the camera, wide enough for every view."""
     centre = points_base.mean(axis=0)
     toward_camera = camera.centre_base - centre
@@ -368,5 +436,11 @@ def _backdrop(points_base: FloatArray, camera: PinholeCamera,
     R = np.column_stack([x, np.cross(z, x), z])
     scale = 1.0
     half = 4 * distance + 1.0
-    return Surface('plane', make_transform(R, origin), scale, ((-half, half), (-half, half)),
-                   albedo=rng.uniform(0.55, 0.9), roughness=rng.uniform(0.0, 0.3))
+    return Surface(
+        'plane',
+        make_transform(R, origin),
+        scale,
+        ((-half, half), (-half, half)),
+        albedo=rng.uniform(0.55, 0.9),
+        roughness=rng.uniform(0.0, 0.3),
+    )

@@ -21,6 +21,7 @@ Kinds (see ``sensor_sim.scenario._parse_curve`` for the keys):
   base_link; closed.
 - ``points``: the file's points in base_link, in order; closed if ``closed``.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
@@ -46,8 +47,9 @@ def curve_is_closed(curve: Curve) -> bool:
     return curve.kind in ('ellipse', 'circle', 'surface_loop')
 
 
-def curve_polylines(curve: Curve, surface: Surface,
-                    samples: int | None = None) -> list[FloatArray]:
+def curve_polylines(
+    curve: Curve, surface: Surface, samples: int | None = None
+) -> list[FloatArray]:
     """The curve's pieces as polylines in base_link.
 
     Args:
@@ -73,8 +75,10 @@ def curve_polylines(curve: Curve, surface: Surface,
     pieces = _pieces(curve, surface)
     lengths = [_arc_length(evaluate, t0, t1, 1000)[1][-1] for evaluate, t0, t1 in pieces]
     counts = _split(samples, lengths)
-    return [_sample_uniform_arc_length(evaluate, t0, t1, n, closed)
-            for (evaluate, t0, t1), n in zip(pieces, counts)]
+    return [
+        _sample_uniform_arc_length(evaluate, t0, t1, n, closed)
+        for (evaluate, t0, t1), n in zip(pieces, counts)
+    ]
 
 
 def curve_points_base(curve: Curve, surface: Surface) -> FloatArray:
@@ -85,8 +89,9 @@ def curve_points_base(curve: Curve, surface: Surface) -> FloatArray:
     ``curve_polylines`` to get the pieces apart.
     """
     closed = curve_is_closed(curve)
-    return np.vstack([piece[:-1] if closed else piece
-                      for piece in curve_polylines(curve, surface)])
+    return np.vstack(
+        [piece[:-1] if closed else piece for piece in curve_polylines(curve, surface)]
+    )
 
 
 def _pieces(curve: Curve, surface: Surface) -> list[Piece]:
@@ -97,12 +102,22 @@ def _pieces(curve: Curve, surface: Surface) -> list[Piece]:
         coefficients = np.asarray(params['coefficients'], dtype=float)
         t0, t1 = _array_param(params, 't_range')
         # coefficients[:, k] multiplies t^k.
-        return [(lambda t: np.vander(t, coefficients.shape[1], increasing=True)
-                 @ coefficients.T, t0, t1)]
+        return [
+            (
+                lambda t: np.vander(t, coefficients.shape[1], increasing=True) @ coefficients.T,
+                t0,
+                t1,
+            )
+        ]
     if kind == 'ellipse':
         center, axis_a, axis_b = params['center'], params['axis_a'], params['axis_b']
-        return [(lambda t: center + np.outer(np.cos(t), axis_a) + np.outer(np.sin(t), axis_b),
-                 0.0, 2 * np.pi)]
+        return [
+            (
+                lambda t: center + np.outer(np.cos(t), axis_a) + np.outer(np.sin(t), axis_b),
+                0.0,
+                2 * np.pi,
+            )
+        ]
     if kind == 'circle':
         center, radius = params['center'], params['radius']
         normal = params['normal'] / np.linalg.norm(params['normal'])
@@ -110,15 +125,20 @@ def _pieces(curve: Curve, surface: Surface) -> list[Piece]:
         u = np.cross(normal, helper)
         u /= np.linalg.norm(u)
         v = np.cross(normal, u)
-        return [(lambda t: center + radius * (np.outer(np.cos(t), u) + np.outer(np.sin(t), v)),
-                 0.0, 2 * np.pi)]
+        return [
+            (
+                lambda t: center + radius * (np.outer(np.cos(t), u) + np.outer(np.sin(t), v)),
+                0.0,
+                2 * np.pi,
+            )
+        ]
     if kind == 'line_pair':
-        return [(_segment(start, end), 0.0, 1.0)
-                for start, end in _array_param(params, 'segments')]
+        return [
+            (_segment(start, end), 0.0, 1.0) for start, end in _array_param(params, 'segments')
+        ]
     if kind == 'surface_loop':
         return [(lambda t: _surface_loop(params, surface, t), 0.0, 2 * np.pi)]
-    raise ScenarioError(f'curve.type: unknown curve kind {kind!r}', key='curve.type',
-                        value=kind)
+    raise ScenarioError(f'curve.type: unknown curve kind {kind!r}', key='curve.type', value=kind)
 
 
 def _segment(a: FloatArray, b: FloatArray) -> CurveFunction:
@@ -126,18 +146,22 @@ def _segment(a: FloatArray, b: FloatArray) -> CurveFunction:
     return lambda t: a + np.outer(t, b - a)
 
 
-def _surface_loop(params: Mapping[str, CurveParameter], surface: Surface,
-                  t: FloatArray) -> FloatArray:
+def _surface_loop(
+    params: Mapping[str, CurveParameter], surface: Surface, t: FloatArray
+) -> FloatArray:
     c, s = np.cos(params['angle']), np.sin(params['angle'])
     center, radii = _array_param(params, 'center'), _array_param(params, 'radii')
     local = np.column_stack([radii[0] * np.cos(t), radii[1] * np.sin(t)])
     xy = center + local @ np.array([[c, s], [-s, c]])
     points = surfaces.surface_points_base(surface, xy)
     if not np.all(np.isfinite(points)):
-        raise ScenarioError('curve: the surface_loop leaves the surface\'s domain '
-                            f'(center {center.tolist()}, radii '
-                            f'{radii.tolist()}, surface extent {surface.extent})',
-                            key='curve.radii', value=radii)
+        raise ScenarioError(
+            "curve: the surface_loop leaves the surface's domain "
+            f'(center {center.tolist()}, radii '
+            f'{radii.tolist()}, surface extent {surface.extent})',
+            key='curve.radii',
+            value=radii,
+        )
     return points
 
 
@@ -146,8 +170,9 @@ def _array_param(params: Mapping[str, CurveParameter], key: str) -> FloatArray:
     return cast(FloatArray, params[key])
 
 
-def _arc_length(evaluate: CurveFunction, t0: float, t1: float,
-                n: int) -> tuple[FloatArray, FloatArray]:
+def _arc_length(
+    evaluate: CurveFunction, t0: float, t1: float, n: int
+) -> tuple[FloatArray, FloatArray]:
     """Parameters (n,) from t0 to t1 and the cumulative chord length (n,) [m] at each."""
     t = np.linspace(t0, t1, n)
     points = evaluate(t)
@@ -166,8 +191,9 @@ def _split(samples: int, lengths: Sequence[float]) -> list[int]:
     return counts.tolist()
 
 
-def _sample_uniform_arc_length(evaluate: CurveFunction, t0: float, t1: float, n: int,
-                               closed: bool) -> FloatArray:
+def _sample_uniform_arc_length(
+    evaluate: CurveFunction, t0: float, t1: float, n: int, closed: bool
+) -> FloatArray:
     """n samples evenly spaced in arc length (a closed piece gets its first point appended)."""
     t_dense, s_dense = _arc_length(evaluate, t0, t1, _DENSE_FACTOR * n + 1)
     total = s_dense[-1]

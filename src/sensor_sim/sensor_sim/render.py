@@ -30,6 +30,7 @@ pixels around it); a segment is drawn when both its ends are visible.
 ``add_noise`` turns a clean image into the published uint8 image; randomness comes only
 from the generator the caller passes.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
@@ -68,8 +69,9 @@ _Array = TypeVar('_Array', bound=np.ndarray)
 _NORMAL_QUANTILES = ndtri((np.arange(65536) + 0.5) / 65536).astype(np.float32)
 
 
-def add_noise(clean: npt.ArrayLike, sigma: float,
-              rng: np.random.Generator) -> npt.NDArray[np.uint8]:
+def add_noise(
+    clean: npt.ArrayLike, sigma: float, rng: np.random.Generator
+) -> npt.NDArray[np.uint8]:
     """Camera image from a clean render: clean + N(0, sigma^2), rounded, clipped.
 
     Args:
@@ -111,14 +113,21 @@ class SceneRenderer:
     renderer from one thread.
     """
 
-    def __init__(self, scenario: Scenario, variant: str = 'oren_nayar',
-                 supersample: int = 4) -> None:
+    def __init__(
+        self, scenario: Scenario, variant: str = 'oren_nayar', supersample: int = 4
+    ) -> None:
         if variant not in ON_VARIANTS:
-            raise InvalidInput(f'variant must be one of {ON_VARIANTS}, got {variant!r}',
-                               key='variant', value=variant)
+            raise InvalidInput(
+                f'variant must be one of {ON_VARIANTS}, got {variant!r}',
+                key='variant',
+                value=variant,
+            )
         if int(supersample) < 1:
-            raise InvalidInput(f'supersample must be >= 1, got {supersample!r}',
-                               key='supersample', value=supersample)
+            raise InvalidInput(
+                f'supersample must be >= 1, got {supersample!r}',
+                key='supersample',
+                value=supersample,
+            )
         self.scenario = scenario
         self.variant = variant
         self.supersample = int(supersample)
@@ -167,27 +176,39 @@ class SceneRenderer:
         """
         calibration = _calibration(self.scenario)
         if not 0 <= pose_index < len(calibration.T_base_chart):
-            raise InvalidInput(f'chart pose index {pose_index} out of range '
-                               f'0..{len(calibration.T_base_chart) - 1}',
-                               key='pose_index', value=pose_index)
+            raise InvalidInput(
+                f'chart pose index {pose_index} out of range '
+                f'0..{len(calibration.T_base_chart) - 1}',
+                key='pose_index',
+                value=pose_index,
+            )
         key = (name, pose_index)
         if key not in self._charts:
-            image = _render_chart(self.scenario, self._camera(name), self._view(name),
-                                  calibration.T_base_chart[pose_index], self.supersample)
+            image = _render_chart(
+                self.scenario,
+                self._camera(name),
+                self._view(name),
+                calibration.T_base_chart[pose_index],
+                self.supersample,
+            )
             self._charts[key] = _read_only(image)
         return self._charts[key]
 
     def _camera(self, name: str) -> PinholeCamera:
         if name not in self.scenario.cameras:
-            raise InvalidInput(f'unknown camera {name!r}; expected one of '
-                               f'{self.camera_names}', key='camera', value=name)
+            raise InvalidInput(
+                f'unknown camera {name!r}; expected one of {self.camera_names}',
+                key='camera',
+                value=name,
+            )
         return self.scenario.cameras[name]
 
     def _view(self, name: str) -> _View:
         camera = self._camera(name)
         if name not in self._views:
-            self._views[name] = _render_view(self.scenario, camera,
-                                             self.curve_polylines_base(), self.variant)
+            self._views[name] = _render_view(
+                self.scenario, camera, self.curve_polylines_base(), self.variant
+            )
         return self._views[name]
 
 
@@ -203,16 +224,18 @@ def _read_only(array: _Array) -> _Array:
     return array
 
 
-def _render_view(scenario: Scenario, camera: PinholeCamera, curve_pieces: Sequence[FloatArray],
-                 variant: str) -> _View:
+def _render_view(
+    scenario: Scenario, camera: PinholeCamera, curve_pieces: Sequence[FloatArray], variant: str
+) -> _View:
     height, width = camera.height, camera.width
     # Undistorted normalised coordinates at pixel centres -1..W, -1..H: the inner part
     # gives the pixel rays, the border lets chart supersamples interpolate at the edges.
     u, v = np.meshgrid(np.arange(-1.0, width + 1), np.arange(-1.0, height + 1))
     normalized = camera.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
     normalized = normalized.reshape(height + 2, width + 2, 2)
-    rays_camera = np.concatenate([normalized[1:-1, 1:-1].reshape(-1, 2),
-                                  np.ones((height * width, 1))], axis=1)
+    rays_camera = np.concatenate(
+        [normalized[1:-1, 1:-1].reshape(-1, 2), np.ones((height * width, 1))], axis=1
+    )
     # With rays of unit optical-axis component, the ray parameter t is the depth.
     directions_base = rays_camera @ camera.T_base_camera[:3, :3].T
     origin = camera.centre_base
@@ -224,21 +247,24 @@ def _render_view(scenario: Scenario, camera: PinholeCamera, curve_pieces: Sequen
     image = image.reshape(height, width)
     depth = ray_depth.reshape(height, width).astype(np.float32)
     _draw_curve(image, depth, camera, curve_pieces, scenario.curve)
-    return _View(normalized=_read_only(normalized),
-                 hit_base=_read_only(hit_base.reshape(height, width, 3)),
-                 depth=_read_only(depth), image=_read_only(image))
+    return _View(
+        normalized=_read_only(normalized),
+        hit_base=_read_only(hit_base.reshape(height, width, 3)),
+        depth=_read_only(depth),
+        image=_read_only(image),
+    )
 
 
-def _shade_surface(scenario: Scenario, points_base: FloatArray, camera_centre: FloatArray,
-                   variant: str) -> FloatArray:
+def _shade_surface(
+    scenario: Scenario, points_base: FloatArray, camera_centre: FloatArray, variant: str
+) -> FloatArray:
     """Grey levels (N,) of surface points seen from ``camera_centre``."""
     surface, lighting = scenario.surface, scenario.lighting
     views = camera_centre - points_base
     views /= np.linalg.norm(views, axis=1, keepdims=True)
     normals = surfaces.normal_base(surface, points_base)
     normals *= np.where(np.sum(normals * views, axis=1) < 0, -1.0, 1.0)[:, None]
-    reflectance = oren_nayar(normals, lighting.direction_base, views, surface.roughness,
-                             variant)
+    reflectance = oren_nayar(normals, lighting.direction_base, views, surface.roughness, variant)
     grey = 255.0 * surface.albedo * (lighting.intensity * reflectance + lighting.ambient)
     return np.clip(grey, 0.0, 255.0)
 
@@ -249,11 +275,15 @@ def _dense_curve(scenario: Scenario) -> list[FloatArray]:
     linearly (their polyline is the curve)."""
     curve, surface = scenario.curve, scenario.surface
     pieces = curves.curve_polylines(curve, surface)
-    longest = max(_longest_projected_segment(camera, piece)
-                  for camera in scenario.cameras.values() for piece in pieces)
+    longest = max(
+        _longest_projected_segment(camera, piece)
+        for camera in scenario.cameras.values()
+        for piece in pieces
+    )
     if curve.kind != 'points' and longest > MAX_SEGMENT_PX:
-        samples = min(int(np.ceil(curve.samples * 1.2 * longest / MAX_SEGMENT_PX)),
-                      MAX_CURVE_SAMPLES)
+        samples = min(
+            int(np.ceil(curve.samples * 1.2 * longest / MAX_SEGMENT_PX)), MAX_CURVE_SAMPLES
+        )
         pieces = curves.curve_polylines(curve, surface, samples=samples)
     for camera in scenario.cameras.values():
         pieces = [_subdivide(camera, piece) for piece in pieces]
@@ -271,36 +301,48 @@ def _subdivide(camera: PinholeCamera, points_base: FloatArray) -> FloatArray:
     """Split segments whose projection is longer than MAX_SEGMENT_PX, linearly in 3D."""
     pixels, _ = camera.project(points_base)
     lengths = np.linalg.norm(np.diff(pixels, axis=0), axis=1)
-    parts = np.where(np.isfinite(lengths),
-                     np.ceil(np.nan_to_num(lengths) / MAX_SEGMENT_PX), 1).astype(int)
+    parts = np.where(
+        np.isfinite(lengths), np.ceil(np.nan_to_num(lengths) / MAX_SEGMENT_PX), 1
+    ).astype(int)
     parts = np.clip(parts, 1, MAX_CURVE_SAMPLES // len(points_base) + 1)
     if np.all(parts == 1):
         return points_base
     segment = np.repeat(np.arange(len(parts)), parts)
     # Fraction along each segment: 0, 1/k, ..., (k-1)/k.
-    fraction = (np.arange(len(segment)) - np.repeat(np.cumsum(parts) - parts, parts)) \
-        / np.repeat(parts, parts)
+    fraction = (np.arange(len(segment)) - np.repeat(np.cumsum(parts) - parts, parts)) / np.repeat(
+        parts, parts
+    )
     start, end = points_base[segment], points_base[segment + 1]
     return np.vstack([start + fraction[:, None] * (end - start), points_base[-1:]])
 
 
-def _draw_curve(image: FloatArray, depth: npt.NDArray[np.float32], camera: PinholeCamera,
-                pieces: Sequence[FloatArray], curve: Curve) -> None:
+def _draw_curve(
+    image: FloatArray,
+    depth: npt.NDArray[np.float32],
+    camera: PinholeCamera,
+    pieces: Sequence[FloatArray],
+    curve: Curve,
+) -> None:
     """Darken ``image`` (H, W) in place along the visible curve."""
     height, width = image.shape
     # Nothing in front where the ray missed: treat as infinitely far.
     far_depth = np.where(np.isfinite(depth), depth, np.inf)
     padded = np.pad(far_depth, 1, mode='edge')
-    neighbourhood_max = np.max([padded[dv:dv + height, du:du + width]
-                                for dv in range(3) for du in range(3)], axis=0)
+    neighbourhood_max = np.max(
+        [padded[dv : dv + height, du : du + width] for dv in range(3) for du in range(3)], axis=0
+    )
     piece_starts, piece_ends = [], []
     for piece in pieces:
         pixels, point_depth = camera.project(piece)
         visible = np.isfinite(pixels).all(axis=1) & (point_depth > 0)
         col = np.clip(np.rint(np.nan_to_num(pixels[:, 0])), 0, width - 1).astype(int)
         row = np.clip(np.rint(np.nan_to_num(pixels[:, 1])), 0, height - 1).astype(int)
-        in_image = ((pixels[:, 0] > -0.5) & (pixels[:, 0] < width - 0.5)
-                    & (pixels[:, 1] > -0.5) & (pixels[:, 1] < height - 0.5))
+        in_image = (
+            (pixels[:, 0] > -0.5)
+            & (pixels[:, 0] < width - 0.5)
+            & (pixels[:, 1] > -0.5)
+            & (pixels[:, 1] < height - 0.5)
+        )
         surface_depth = np.where(in_image, neighbourhood_max[row, col], np.inf)
         absolute, relative = DEPTH_TOLERANCE
         visible &= point_depth <= surface_depth + absolute + relative * point_depth
@@ -324,7 +366,7 @@ def _draw_curve(image: FloatArray, depth: npt.NDArray[np.float32], camera: Pinho
     # Chunks bound the memory of the (segments x stencil) arrays.
     chunk = max(1, _STENCIL_ELEMENTS // du.size)
     for first in range(0, len(starts), chunk):
-        chunk_starts, chunk_ends = starts[first:first + chunk], ends[first:first + chunk]
+        chunk_starts, chunk_ends = starts[first : first + chunk], ends[first : first + chunk]
         midpoints = np.rint((chunk_starts + chunk_ends) / 2).astype(int)
         cols = midpoints[:, :1] + du.ravel()
         rows = midpoints[:, 1:] + dv.ravel()
@@ -335,8 +377,9 @@ def _draw_curve(image: FloatArray, depth: npt.NDArray[np.float32], camera: Pinho
     image *= 1.0 - curve.contrast * coverage
 
 
-def _point_segment_distance(cols: npt.NDArray[np.int_], rows: npt.NDArray[np.int_],
-                            starts: FloatArray, ends: FloatArray) -> FloatArray:
+def _point_segment_distance(
+    cols: npt.NDArray[np.int_], rows: npt.NDArray[np.int_], starts: FloatArray, ends: FloatArray
+) -> FloatArray:
     """Distance [px] of pixel centres (M, K) to the M segments starts -> ends (M, 2)."""
     direction = ends - starts
     length2 = np.sum(direction * direction, axis=1)
@@ -347,8 +390,13 @@ def _point_segment_distance(cols: npt.NDArray[np.int_], rows: npt.NDArray[np.int
     return np.hypot(px - s * direction[:, :1], py - s * direction[:, 1:])
 
 
-def _render_chart(scenario: Scenario, camera: PinholeCamera, view: _View,
-                  T_base_chart: FloatArray, supersample: int) -> FloatArray:
+def _render_chart(
+    scenario: Scenario,
+    camera: PinholeCamera,
+    view: _View,
+    T_base_chart: FloatArray,
+    supersample: int,
+) -> FloatArray:
     """Chart-over-scene image; see ``SceneRenderer.chart_image``.
 
     Only pixels that can be mixed are supersampled: a pixel that no edge of the print
@@ -368,7 +416,7 @@ def _render_chart(scenario: Scenario, camera: PinholeCamera, view: _View,
     scene_grey = image[v0:v1, u0:u1]
 
     # Pixel corners: midpoints of four pixel centres of the undistortion map (from -1).
-    centres = view.normalized[v0:v1 + 2, u0:u1 + 2]
+    centres = view.normalized[v0 : v1 + 2, u0 : u1 + 2]
     corners = 0.25 * (centres[:-1, :-1] + centres[1:, :-1] + centres[:-1, 1:] + centres[1:, 1:])
     corner_grey, corner_depth = sample(corners[..., 0], corners[..., 1])
     height, width = scene_grey.shape
@@ -395,8 +443,9 @@ def _render_chart(scenario: Scenario, camera: PinholeCamera, view: _View,
     return image
 
 
-def _chart_sampler(scenario: Scenario, camera: PinholeCamera,
-                   T_base_chart: FloatArray) -> ChartSampler:
+def _chart_sampler(
+    scenario: Scenario, camera: PinholeCamera, T_base_chart: FloatArray
+) -> ChartSampler:
     """A function (x, y) -> (grey, depth) for rays (x, y, 1) of ``camera``'s optical
     frame: the chart's grey level where the ray meets the plate, and the hit's depth [m]
     (+inf off the plate or behind the camera)."""
@@ -407,8 +456,10 @@ def _chart_sampler(scenario: Scenario, camera: PinholeCamera,
     normal = R[:, 2]
     printed = normal @ origin > 0  # the camera is on the chart's -z side
     face_normal_base = T_base_chart[:3, 2] * (-1.0 if printed else 1.0)
-    irradiance = (lighting.intensity * max(0.0, face_normal_base @ lighting.direction_base)
-                  + lighting.ambient)
+    irradiance = (
+        lighting.intensity * max(0.0, face_normal_base @ lighting.direction_base)
+        + lighting.ambient
+    )
 
     def sample(x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
         # Plate plane n . p = n . origin; with rays (x, y, 1) the ray parameter is depth.
@@ -417,8 +468,9 @@ def _chart_sampler(scenario: Scenario, camera: PinholeCamera,
         # Chart-frame coordinates of the hit: R^T (depth * ray - origin).
         chart_x = depth * (R[0, 0] * x + R[1, 0] * y + R[2, 0]) - R[:, 0] @ origin
         chart_y = depth * (R[0, 1] * x + R[1, 1] * y + R[2, 1]) - R[:, 1] @ origin
-        albedo = chart.chart_albedo(np.column_stack([chart_x.ravel(), chart_y.ravel()]),
-                                    rows, cols, spacing).reshape(x.shape)
+        albedo = chart.chart_albedo(
+            np.column_stack([chart_x.ravel(), chart_y.ravel()]), rows, cols, spacing
+        ).reshape(x.shape)
         on_plate = np.isfinite(albedo) & (depth > 0)
         if not printed:
             albedo = np.full(x.shape, CHART_BACK_ALBEDO)
@@ -428,16 +480,23 @@ def _chart_sampler(scenario: Scenario, camera: PinholeCamera,
     return sample
 
 
-def _pixels_on_print_edges(camera: PinholeCamera, T_base_chart: FloatArray, rows: int,
-                           cols: int, spacing: float, box: PixelBox) -> npt.NDArray[np.bool_]:
+def _pixels_on_print_edges(
+    camera: PinholeCamera,
+    T_base_chart: FloatArray,
+    rows: int,
+    cols: int,
+    spacing: float,
+    box: PixelBox,
+) -> npt.NDArray[np.bool_]:
     """Boolean mask of ``box``: pixels within one pixel of the projection of an edge of the
     print (square sides, plate outline), sampled every half pixel."""
     (u0, u1), (v0, v1) = box
     (x0, x1), (y0, y1) = chart.chart_plate_extent(rows, cols, spacing)
-    lines = ([((i * spacing, y0), (i * spacing, y1)) for i in range(-1, cols + 1)]
-             + [((x0, j * spacing), (x1, j * spacing)) for j in range(-1, rows + 1)]
-             + [((x0, y0), (x1, y0)), ((x0, y1), (x1, y1)), ((x0, y0), (x0, y1)),
-                ((x1, y0), (x1, y1))])
+    lines = (
+        [((i * spacing, y0), (i * spacing, y1)) for i in range(-1, cols + 1)]
+        + [((x0, j * spacing), (x1, j * spacing)) for j in range(-1, rows + 1)]
+        + [((x0, y0), (x1, y0)), ((x0, y1), (x1, y1)), ((x0, y0), (x0, y1)), ((x1, y0), (x1, y1))]
+    )
     mask = np.zeros((v1 - v0, u1 - u0), bool)
     for start, end in lines:
         ends_base = _chart_to_base(T_base_chart, np.array([start, end]))
@@ -446,8 +505,9 @@ def _pixels_on_print_edges(camera: PinholeCamera, T_base_chart: FloatArray, rows
         # A line reaching behind the camera has no finite length: sample it finely.
         count = int(np.ceil(length / 0.5)) + 2 if np.isfinite(length) else 4000
         s = np.linspace(0.0, 1.0, min(count, 20000))[:, None]
-        pixels, depth = camera.project(_chart_to_base(
-            T_base_chart, (1 - s) * np.array(start) + s * np.array(end)))
+        pixels, depth = camera.project(
+            _chart_to_base(T_base_chart, (1 - s) * np.array(start) + s * np.array(end))
+        )
         pixels = pixels[depth > 0]
         for dr in (-1, 0, 1):
             for dc in (-1, 0, 1):
@@ -463,17 +523,21 @@ def _chart_to_base(T_base_chart: FloatArray, xy_chart: FloatArray) -> FloatArray
     return xy_chart @ T_base_chart[:3, :2].T + T_base_chart[:3, 3]
 
 
-def _chart_pixel_box(camera: PinholeCamera, T_base_chart: FloatArray, rows: int, cols: int,
-                     spacing: float) -> PixelBox | None:
+def _chart_pixel_box(
+    camera: PinholeCamera, T_base_chart: FloatArray, rows: int, cols: int, spacing: float
+) -> PixelBox | None:
     """((u0, u1), (v0, v1)) pixel index ranges holding the plate's image, the whole image
     if the plate reaches behind the camera, None if it is entirely behind or outside."""
     (x0, x1), (y0, y1) = chart.chart_plate_extent(rows, cols, spacing)
     s = np.linspace(0.0, 1.0, 65)
-    outline = np.concatenate([
-        np.column_stack([x0 + s * (x1 - x0), np.full_like(s, y0)]),
-        np.column_stack([x0 + s * (x1 - x0), np.full_like(s, y1)]),
-        np.column_stack([np.full_like(s, x0), y0 + s * (y1 - y0)]),
-        np.column_stack([np.full_like(s, x1), y0 + s * (y1 - y0)])])
+    outline = np.concatenate(
+        [
+            np.column_stack([x0 + s * (x1 - x0), np.full_like(s, y0)]),
+            np.column_stack([x0 + s * (x1 - x0), np.full_like(s, y1)]),
+            np.column_stack([np.full_like(s, x0), y0 + s * (y1 - y0)]),
+            np.column_stack([np.full_like(s, x1), y0 + s * (y1 - y0)]),
+        ]
+    )
     pixels, depth = camera.project(_chart_to_base(T_base_chart, outline))
     if np.all(depth <= 0):
         return None
@@ -490,8 +554,9 @@ def _chart_pixel_box(camera: PinholeCamera, T_base_chart: FloatArray, rows: int,
     return (u0, u1), (v0, v1)
 
 
-def _interpolate_normalized(normalized: FloatArray, u: FloatArray,
-                            v: FloatArray) -> tuple[FloatArray, FloatArray]:
+def _interpolate_normalized(
+    normalized: FloatArray, u: FloatArray, v: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """Undistorted coordinates (x (N,), y (N,)) at pixel positions (u, v) (N,), by
     bilinear interpolation of the map of pixel centres -1..W, -1..H.
 

@@ -6,6 +6,7 @@
 in docs/SCENARIO.md; units are SI (metres, radians, newtons, seconds) unless a key says
 otherwise.
 """
+
 from __future__ import annotations
 
 import math
@@ -28,8 +29,7 @@ from vgm_common.geometry import (
 )
 
 SURFACE_TYPES = ('plane', 'S1', 'S2', 'S3', 'vase', 'sphere', 'heightmap')
-CURVE_TYPES = ('parabola', 'ellipse', 'circle', 'line_pair', 'cubic', 'surface_loop',
-               'points')
+CURVE_TYPES = ('parabola', 'ellipse', 'circle', 'line_pair', 'cubic', 'surface_loop', 'points')
 CAMERA_NAMES = ('left', 'right', 'aux')
 CHART_PATTERNS = ('chessboard',)
 CurveParameter = FloatArray | float | bool  # a value of Curve.params
@@ -131,16 +131,23 @@ class _Section:
     def raw(self, name: str, default: object = ...) -> Any:
         if name not in self.data:
             if default is ...:
-                raise ScenarioError(f'{self.path(name)}: required key is missing',
-                                    key=self.path(name))
+                raise ScenarioError(
+                    f'{self.path(name)}: required key is missing', key=self.path(name)
+                )
             return default
         return self.data[name]
 
     def section(self, name: str, default: object = ...) -> _Section:
         return _Section(self.raw(name, default), self.path(name))
 
-    def number(self, name: str, default: object = ..., minimum: float | None = None,
-               maximum: float | None = None, positive: bool = False) -> float:
+    def number(
+        self,
+        name: str,
+        default: object = ...,
+        minimum: float | None = None,
+        maximum: float | None = None,
+        positive: bool = False,
+    ) -> float:
         value = self.raw(name, default)
         key = self.path(name)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -172,19 +179,26 @@ class _Section:
             raise ScenarioError(f'{key}: expected true or false, got {value!r}', key=key)
         return value
 
-    def string(self, name: str, default: object = ...,
-               choices: Sequence[str] | None = None) -> str:
+    def string(
+        self, name: str, default: object = ..., choices: Sequence[str] | None = None
+    ) -> str:
         value = self.raw(name, default)
         key = self.path(name)
         if not isinstance(value, str):
             raise ScenarioError(f'{key}: expected a string, got {value!r}', key=key)
         if choices is not None and value not in choices:
-            raise ScenarioError(f'{key}: expected one of {", ".join(choices)}, got {value!r}',
-                                key=key)
+            raise ScenarioError(
+                f'{key}: expected one of {", ".join(choices)}, got {value!r}', key=key
+            )
         return value
 
-    def vector(self, name: str, length: int | None = None, default: object = ...,
-               shape: tuple[int, ...] | None = None) -> FloatArray:
+    def vector(
+        self,
+        name: str,
+        length: int | None = None,
+        default: object = ...,
+        shape: tuple[int, ...] | None = None,
+    ) -> FloatArray:
         value = self.raw(name, default)
         key = self.path(name)
         try:
@@ -192,8 +206,9 @@ class _Section:
                 raise TypeError
             array = np.array(value, dtype=float)
         except (TypeError, ValueError):
-            raise ScenarioError(f'{key}: expected a list of numbers, got {value!r}',
-                                key=key) from None
+            raise ScenarioError(
+                f'{key}: expected a list of numbers, got {value!r}', key=key
+            ) from None
         expected = shape or ((length,) if length else None)
         if (expected and array.shape != expected) or (not expected and array.ndim != 1):
             want = 'x'.join(map(str, expected)) if expected else 'a flat list'
@@ -210,16 +225,18 @@ class _Section:
             position = pose.vector('position', 3)
             target = pose.vector('look_at', 3)
             if np.linalg.norm(target - position) < 1e-9:
-                raise ScenarioError(f'{pose.path("look_at")}: equals position',
-                                    key=pose.path('look_at'))
+                raise ScenarioError(
+                    f'{pose.path("look_at")}: equals position', key=pose.path('look_at')
+                )
             up = pose.vector('up', 3, default=[0.0, 0.0, 1.0])
             return make_transform(look_at_rotation(position, target, up), position)
         xyz = pose.vector('xyz', 3)
         if pose.has('quaternion'):
             q = pose.vector('quaternion', 4)
             if np.linalg.norm(q) < 1e-9:
-                raise ScenarioError(f'{pose.path("quaternion")}: zero quaternion',
-                                    key=pose.path('quaternion'))
+                raise ScenarioError(
+                    f'{pose.path("quaternion")}: zero quaternion', key=pose.path('quaternion')
+                )
             return make_transform(quaternion_to_matrix(q), xyz)
         return make_transform(rpy_to_matrix(*pose.vector('rpy', 3, default=[0, 0, 0])), xyz)
 
@@ -241,8 +258,7 @@ def parse_scenario(data: object, path: str | Path = Path('scenario.yaml')) -> Sc
     root = _Section(data, '')
     base_dir = Path(path).parent
     surface = _parse_surface(root.section('surface'), base_dir)
-    cameras = {name: _parse_camera(root.section('cameras').section(name))
-               for name in CAMERA_NAMES}
+    cameras = {name: _parse_camera(root.section('cameras').section(name)) for name in CAMERA_NAMES}
     lighting = root.section('lighting')
     direction = lighting.vector('direction', 3)
     if np.linalg.norm(direction) < 1e-9:
@@ -257,13 +273,18 @@ def parse_scenario(data: object, path: str | Path = Path('scenario.yaml')) -> Sc
         surface=surface,
         curve=_parse_curve(root.section('curve'), base_dir),
         cameras=cameras,
-        lighting=Lighting(direction / np.linalg.norm(direction),
-                          lighting.number('intensity', default=1.0, minimum=0.0),
-                          lighting.number('ambient', default=0.05, minimum=0.0)),
-        noise=Noise(noise.number('image_sigma', default=0.0, minimum=0.0),
-                    noise.number('pressure_sigma', default=0.0, minimum=0.0)),
-        calibration=(_parse_calibration(root.section('calibration'))
-                     if root.has('calibration') else None),
+        lighting=Lighting(
+            direction / np.linalg.norm(direction),
+            lighting.number('intensity', default=1.0, minimum=0.0),
+            lighting.number('ambient', default=0.05, minimum=0.0),
+        ),
+        noise=Noise(
+            noise.number('image_sigma', default=0.0, minimum=0.0),
+            noise.number('pressure_sigma', default=0.0, minimum=0.0),
+        ),
+        calibration=(
+            _parse_calibration(root.section('calibration')) if root.has('calibration') else None
+        ),
         robot=_parse_robot(robot, base_dir),
         contact_stiffness=root.section('contact').number('stiffness', positive=True),
     )
@@ -286,15 +307,18 @@ def _parse_robot(section: _Section, base_dir: Path) -> Robot:
     try:
         robot = load_robot(model, tool_length)
     except InvalidInput as error:
-        raise ScenarioError(f'{section.path("model")}: {error}',
-                            key=section.path('model')) from None
+        raise ScenarioError(
+            f'{section.path("model")}: {error}', key=section.path('model')
+        ) from None
     outside = (initial_joints < robot.lower_limits) | (initial_joints > robot.upper_limits)
     if np.any(outside):
         i = int(np.flatnonzero(outside)[0])
-        raise ScenarioError(f'{section.path("initial_joints")}: {robot.joint_names[i]} at '
-                            f'{initial_joints[i]} rad is outside its limits '
-                            f'[{robot.lower_limits[i]:.4g}, {robot.upper_limits[i]:.4g}]',
-                            key=section.path('initial_joints'))
+        raise ScenarioError(
+            f'{section.path("initial_joints")}: {robot.joint_names[i]} at '
+            f'{initial_joints[i]} rad is outside its limits '
+            f'[{robot.lower_limits[i]:.4g}, {robot.upper_limits[i]:.4g}]',
+            key=section.path('initial_joints'),
+        )
     return Robot(model, initial_joints, tool_length)
 
 
@@ -303,8 +327,9 @@ def _parse_surface(section: _Section, base_dir: Path) -> Surface:
     extent = section.vector('extent', shape=(2, 2), default=[[-1, 1], [-1, 1]])
     for axis, (low, high) in zip('xy', extent):
         if not low < high:
-            raise ScenarioError(f'{section.path("extent")}: {axis} range must increase',
-                                key=section.path('extent'))
+            raise ScenarioError(
+                f'{section.path("extent")}: {axis} range must increase', key=section.path('extent')
+            )
     heights, cell = None, 1.0
     if kind == 'heightmap':
         file_key = section.path('file')
@@ -312,11 +337,13 @@ def _parse_surface(section: _Section, base_dir: Path) -> Surface:
         try:
             heights = np.load(file) if file.suffix == '.npy' else _read_csv(file)
         except (OSError, ValueError) as error:
-            raise ScenarioError(f'{file_key}: cannot read height map {file}: {error}',
-                                key=file_key) from None
+            raise ScenarioError(
+                f'{file_key}: cannot read height map {file}: {error}', key=file_key
+            ) from None
         if heights.ndim != 2 or min(heights.shape) < 2 or not np.all(np.isfinite(heights)):
-            raise ScenarioError(f'{file_key}: expected a finite 2D grid of at least 2x2',
-                                key=file_key)
+            raise ScenarioError(
+                f'{file_key}: expected a finite 2D grid of at least 2x2', key=file_key
+            )
         heights.setflags(write=False)
         cell = section.number('cell', positive=True)
     return Surface(
@@ -338,42 +365,59 @@ def _parse_curve(section: _Section, base_dir: Path) -> Curve:
     if kind in ('parabola', 'cubic'):
         degree = 2 if kind == 'parabola' else 3
         coefficients = section.vector('coefficients', shape=(3, degree + 1))
-        params = {'coefficients': coefficients,
-                  't_range': section.vector('t_range', 2, default=[-1.0, 1.0])}
+        params = {
+            'coefficients': coefficients,
+            't_range': section.vector('t_range', 2, default=[-1.0, 1.0]),
+        }
     elif kind == 'ellipse':
-        params = {'center': section.vector('center', 3), 'axis_a': section.vector('axis_a', 3),
-                  'axis_b': section.vector('axis_b', 3)}
+        params = {
+            'center': section.vector('center', 3),
+            'axis_a': section.vector('axis_a', 3),
+            'axis_b': section.vector('axis_b', 3),
+        }
     elif kind == 'circle':
-        params = {'center': section.vector('center', 3), 'normal': section.vector('normal', 3),
-                  'radius': section.number('radius', positive=True)}
+        params = {
+            'center': section.vector('center', 3),
+            'normal': section.vector('normal', 3),
+            'radius': section.number('radius', positive=True),
+        }
         if np.linalg.norm(params['normal']) < 1e-9:
-            raise ScenarioError(f'{section.path("normal")}: must not be zero',
-                                key=section.path('normal'))
+            raise ScenarioError(
+                f'{section.path("normal")}: must not be zero', key=section.path('normal')
+            )
     elif kind == 'line_pair':
         params = {'segments': section.vector('segments', shape=(2, 2, 3))}
     elif kind == 'surface_loop':
-        params = {'center': section.vector('center', 2), 'radii': section.vector('radii', 2),
-                  'angle': section.number('angle', default=0.0)}
+        params = {
+            'center': section.vector('center', 2),
+            'radii': section.vector('radii', 2),
+            'angle': section.number('angle', default=0.0),
+        }
         if np.any(params['radii'] <= 0):
-            raise ScenarioError(f'{section.path("radii")}: must be positive',
-                                key=section.path('radii'))
+            raise ScenarioError(
+                f'{section.path("radii")}: must be positive', key=section.path('radii')
+            )
     elif kind == 'points':
         file_key = section.path('file')
         file = base_dir / section.string('file')
         try:
             points = _read_csv(file)
         except (OSError, ValueError) as error:
-            raise ScenarioError(f'{file_key}: cannot read curve points {file}: {error}',
-                                key=file_key) from None
+            raise ScenarioError(
+                f'{file_key}: cannot read curve points {file}: {error}', key=file_key
+            ) from None
         if points.shape[1] != 3 or len(points) < 2 or not np.all(np.isfinite(points)):
-            raise ScenarioError(f'{file_key}: expected finite x,y,z rows (at least 2)',
-                                key=file_key)
+            raise ScenarioError(
+                f'{file_key}: expected finite x,y,z rows (at least 2)', key=file_key
+            )
         params = {'points': points, 'closed': section.boolean('closed', default=False)}
-    return Curve(kind=kind,
-                 line_width_px=section.number('line_width_px', default=3.0, positive=True),
-                 contrast=section.number('contrast', default=0.7, minimum=0.0, maximum=1.0),
-                 samples=section.integer('samples', default=2000, minimum=2),
-                 params=params)
+    return Curve(
+        kind=kind,
+        line_width_px=section.number('line_width_px', default=3.0, positive=True),
+        contrast=section.number('contrast', default=0.7, minimum=0.0, maximum=1.0),
+        samples=section.integer('samples', default=2000, minimum=2),
+        params=params,
+    )
 
 
 def _read_csv(file: str | Path) -> FloatArray:
@@ -402,8 +446,9 @@ def _parse_camera(section: _Section) -> PinholeCamera:
     height = section.integer('height', minimum=1)
     fx = section.number('fx', positive=True)
     fy = section.number('fy', positive=True)
-    K = np.array([[fx, 0.0, section.number('cx')], [0.0, fy, section.number('cy')],
-                  [0.0, 0.0, 1.0]])
+    K = np.array(
+        [[fx, 0.0, section.number('cx')], [0.0, fy, section.number('cy')], [0.0, 0.0, 1.0]]
+    )
     # plumb_bob: D = (k1, k2, p1, p2, k3); division (the thesis's chapter 4): D = (kappa,)
     model = section.string('distortion_model', default='plumb_bob', choices=DISTORTION_MODELS)
     size = DISTORTION_SIZES[model]
@@ -415,16 +460,22 @@ def _parse_calibration(section: _Section) -> Calibration:
     rows = section.integer('rows', minimum=2)
     cols = section.integer('cols', minimum=2)
     if (rows + cols) % 2 == 0:
-        raise ScenarioError(f'{section.path("rows")}: rows + cols must be odd so the '
-                            'chessboard has no 180-degree symmetry', key=section.path('rows'))
+        raise ScenarioError(
+            f'{section.path("rows")}: rows + cols must be odd so the '
+            'chessboard has no 180-degree symmetry',
+            key=section.path('rows'),
+        )
     poses = section.raw('poses')
     if not isinstance(poses, list) or not poses:
-        raise ScenarioError(f'{section.path("poses")}: expected a non-empty list of poses',
-                            key=section.path('poses'))
+        raise ScenarioError(
+            f'{section.path("poses")}: expected a non-empty list of poses',
+            key=section.path('poses'),
+        )
     pose_list = _Section({str(i): p for i, p in enumerate(poses)}, section.path('poses'))
     return Calibration(
         pattern=section.string('pattern', default='chessboard', choices=CHART_PATTERNS),
-        rows=rows, cols=cols,
+        rows=rows,
+        cols=cols,
         spacing=section.number('spacing', positive=True),
         captures_per_pose=section.integer('captures_per_pose', default=1, minimum=1),
         T_base_chart=tuple(pose_list.pose(str(i)) for i in range(len(poses))),
@@ -446,9 +497,12 @@ def _check_cameras_see_surface(scenario: Scenario) -> None:
         u, v = pixel[0]
         if not (depth[0] > 0 and 0 <= u < camera.width and 0 <= v < camera.height):
             key = f'cameras.{name}.pose'
-            raise ScenarioError(f'{key}: camera {name} looks away from the scene (the '
-                                f'surface centre {np.round(centre, 3).tolist()} is not in '
-                                'its image)', key=key)
+            raise ScenarioError(
+                f'{key}: camera {name} looks away from the scene (the '
+                f'surface centre {np.round(centre, 3).tolist()} is not in '
+                'its image)',
+                key=key,
+            )
 
 
 def resolve_scenario_path(name_or_path: str | Path) -> Path:
@@ -458,11 +512,14 @@ def resolve_scenario_path(name_or_path: str | Path) -> Path:
     if path.suffix in ('.yaml', '.yml') or path.exists():
         return path
     from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+
     try:
         share = Path(get_package_share_directory('sensor_sim'))
     except PackageNotFoundError:
-        raise ScenarioError(f'scenario {name_or_path!r} is not a file and sensor_sim is '
-                            'not installed to look it up by name') from None
+        raise ScenarioError(
+            f'scenario {name_or_path!r} is not a file and sensor_sim is '
+            'not installed to look it up by name'
+        ) from None
     shipped = share / 'scenarios' / f'{name_or_path}.yaml'
     if not shipped.exists():
         names = sorted(p.stem for p in (share / 'scenarios').glob('*.yaml'))

@@ -10,6 +10,7 @@ every resolution sees the same scene), noise, ``textured`` (a random albedo patt
 ``curve`` (a dark ellipse drawn on the surface, like the scenarios' curve), and a
 principal-point offset of the right camera. Every random choice takes ``seed``.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -43,8 +44,9 @@ class StereoScene(NamedTuple):
     roughness: float
 
 
-def _height_function(kind: str, rng: np.random.Generator,
-                     half: float) -> tuple[HeightFunction, DomainFunction | None]:
+def _height_function(
+    kind: str, rng: np.random.Generator, half: float
+) -> tuple[HeightFunction, DomainFunction | None]:
     """h(X, Y) [m] toward the camera and its gradient, over |X|, |Y| <= ``half``, and where
     the surface is within that square (None: all of it)."""
     if kind == 'bumps':
@@ -56,11 +58,12 @@ def _height_function(kind: str, rng: np.random.Generator,
         def h(X: FloatArray, Y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
             value, gx, gy = np.zeros_like(X), np.zeros_like(X), np.zeros_like(X)
             for (cx, cy), s, a in zip(centres, sigmas, amps):
-                g = a * np.exp(-((X - cx)**2 + (Y - cy)**2) / (2 * s**2))
+                g = a * np.exp(-((X - cx) ** 2 + (Y - cy) ** 2) / (2 * s**2))
                 value += g
                 gx -= g * (X - cx) / s**2
                 gy -= g * (Y - cy) / s**2
             return value, gx, gy
+
         return h, None
     if kind == 'ridges':
         angle = rng.uniform(0, np.pi)
@@ -71,12 +74,14 @@ def _height_function(kind: str, rng: np.random.Generator,
         def h(X: FloatArray, Y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
             phase = k * (c * X + s * Y)
             return a * np.cos(phase), -a * k * c * np.sin(phase), -a * k * s * np.sin(phase)
+
         return h, None
     if kind == 'saddle':
         a = rng.uniform(0.2, 0.35) / half
 
         def h(X: FloatArray, Y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
             return a * (X**2 - Y**2), 2 * a * X, -2 * a * Y
+
         return h, None
     if kind == 'sphere':  # a hemisphere of radius ``half``, its rim hidden (< 0.95 r)
         radius = half
@@ -85,34 +90,59 @@ def _height_function(kind: str, rng: np.random.Generator,
             r2 = np.minimum(X**2 + Y**2, 0.9 * radius**2)
             cap = np.sqrt(radius**2 - r2)
             return cap, -X / cap, -Y / cap
+
         return h, lambda X, Y: X**2 + Y**2 <= 0.9 * radius**2
     if kind == 'vase':
         # Zhang et al.: sqrt(f(y)^2 - x^2), y in [0, 1] down the image
         def h(X: FloatArray, Y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
             x, y = X / (2 * half), Y / (2 * half) + 0.5
-            f = 0.15 - 0.1 * y * (6 * y + 1)**2 * (y - 1)**2 * (3 * y - 2)
-            df = -0.1 * ((6 * y + 1)**2 * (y - 1)**2 * (3 * y - 2)
-                         + y * 12 * (6 * y + 1) * (y - 1)**2 * (3 * y - 2)
-                         + y * (6 * y + 1)**2 * 2 * (y - 1) * (3 * y - 2)
-                         + y * (6 * y + 1)**2 * (y - 1)**2 * 3)
+            f = 0.15 - 0.1 * y * (6 * y + 1) ** 2 * (y - 1) ** 2 * (3 * y - 2)
+            df = -0.1 * (
+                (6 * y + 1) ** 2 * (y - 1) ** 2 * (3 * y - 2)
+                + y * 12 * (6 * y + 1) * (y - 1) ** 2 * (3 * y - 2)
+                + y * (6 * y + 1) ** 2 * 2 * (y - 1) * (3 * y - 2)
+                + y * (6 * y + 1) ** 2 * (y - 1) ** 2 * 3
+            )
             inside = np.maximum(f**2 - x**2, 1e-4)
             value = np.sqrt(inside)
             # d/dX = d/dx / (2 half), and h = 2 half sqrt(.): the factors cancel
             return 2 * half * value, -x / value, f * df / value
-        return h, lambda X, Y: ((np.abs(Y) <= half)
-                                & (np.abs(X) < 2 * half * np.abs(
-                                    0.15 - 0.1 * (Y / (2 * half) + 0.5)
-                                    * (6 * (Y / (2 * half) + 0.5) + 1)**2
-                                    * (Y / (2 * half) - 0.5)**2
-                                    * (3 * (Y / (2 * half) + 0.5) - 2)) * 0.97))
+
+        return h, lambda X, Y: (
+            (np.abs(Y) <= half)
+            & (
+                np.abs(X)
+                < 2
+                * half
+                * np.abs(
+                    0.15
+                    - 0.1
+                    * (Y / (2 * half) + 0.5)
+                    * (6 * (Y / (2 * half) + 0.5) + 1) ** 2
+                    * (Y / (2 * half) - 0.5) ** 2
+                    * (3 * (Y / (2 * half) + 0.5) - 2)
+                )
+                * 0.97
+            )
+        )
     raise InvalidInput(f'kind must be one of {KINDS}, got {kind!r}', key='kind')
 
 
-def draw_scene(kind: str = 'bumps', seed: int = 0, size: tuple[int, int] = (320, 240),
-               noise: float = 1.0, light: npt.ArrayLike = (-0.3, -0.3, -0.9),
-               textured: bool = False, curve: bool = True, distance: float = 0.8,
-               baseline: float = 0.08, cx_offset: float = 0.0, albedo: float = 0.8,
-               ambient: float = 0.08, roughness: float = 0.3) -> StereoScene:
+def draw_scene(
+    kind: str = 'bumps',
+    seed: int = 0,
+    size: tuple[int, int] = (320, 240),
+    noise: float = 1.0,
+    light: npt.ArrayLike = (-0.3, -0.3, -0.9),
+    textured: bool = False,
+    curve: bool = True,
+    distance: float = 0.8,
+    baseline: float = 0.08,
+    cx_offset: float = 0.0,
+    albedo: float = 0.8,
+    ambient: float = 0.08,
+    roughness: float = 0.3,
+) -> StereoScene:
     """One ``StereoScene``: the surface Z = distance - h(X, Y) over a square seen by
     ~60 % of the image width, the rest background (black + noise)."""
     width, height = (int(v) for v in size)
@@ -124,14 +154,14 @@ def draw_scene(kind: str = 'bumps', seed: int = 0, size: tuple[int, int] = (320,
     half = 0.3 * distance * height / focal  # the square spans 60 % of the image height
     h, domain = _height_function(kind, rng, half)
     light_unit = np.asarray(light, dtype=float) / np.linalg.norm(light)
-    pattern_k = rng.uniform(2 * np.pi / (0.3 * half), 2 * np.pi / (0.1 * half), (6, 2)) * \
-        rng.choice([-1, 1], (6, 2))
+    pattern_k = rng.uniform(
+        2 * np.pi / (0.3 * half), 2 * np.pi / (0.1 * half), (6, 2)
+    ) * rng.choice([-1, 1], (6, 2))
     pattern_phase = rng.uniform(0, 2 * np.pi, 6)
     ellipse = rng.uniform(0.45, 0.75, 2) * half
     grey_noise_rng = np.random.default_rng([seed, 1])
 
-    def view(centre_x: float,
-             K_view: FloatArray) -> tuple[npt.NDArray[np.uint8], FloatArray]:
+    def view(centre_x: float, K_view: FloatArray) -> tuple[npt.NDArray[np.uint8], FloatArray]:
         v, u = np.mgrid[:height, :width].astype(float)
         xn, yn = (u - K_view[0, 2]) / K_view[0, 0], (v - K_view[1, 2]) / K_view[1, 1]
         Z = np.full(u.shape, distance)
@@ -151,8 +181,10 @@ def draw_scene(kind: str = 'bumps', seed: int = 0, size: tuple[int, int] = (320,
         shade = oren_nayar(normals, light_unit, views, roughness)
         a = np.full(u.shape, albedo)
         if textured:
-            pattern = np.mean([np.sin(kx * X + ky * Y + p) for (kx, ky), p
-                               in zip(pattern_k, pattern_phase)], axis=0)
+            pattern = np.mean(
+                [np.sin(kx * X + ky * Y + p) for (kx, ky), p in zip(pattern_k, pattern_phase)],
+                axis=0,
+            )
             a = a * (1 + 0.6 * pattern)
         if curve:  # a dark line ~4 mm wide on the surface
             radius = np.hypot(X / ellipse[0], Y / ellipse[1])
@@ -164,5 +196,6 @@ def draw_scene(kind: str = 'bumps', seed: int = 0, size: tuple[int, int] = (320,
 
     left, depth = view(0.0, K)
     right, _ = view(baseline, K_right)
-    return StereoScene(left, right, depth, K, K_right, baseline, light_unit, albedo, ambient,
-                       roughness)
+    return StereoScene(
+        left, right, depth, K, K_right, baseline, light_unit, albedo, ambient, roughness
+    )

@@ -6,6 +6,7 @@ scenario (``captures_per_pose`` captures each, ``/calibration/target_pose`` stam
 the images), then the scene with the curve is captured until shutdown. The arm runs
 throughout at ``joint_state_rate``.
 """
+
 import threading
 import time
 from pathlib import Path
@@ -54,50 +55,89 @@ class SensorSim(Node):
 
     def __init__(self):
         super().__init__(self.node_name)
-        self.params = NodeParameters(self, [
-            Param('scenario', 'default', 'Scenario file, or the name of a shipped one.',
-                  read_only=True),
-            Param('calibration_phase', True, 'Show the chart at every stage pose first.',
-                  read_only=True),
-            Param('rate', 0.0, 'Camera frame rate [Hz]; 0 takes the scenario rate.',
-                  range=(0.0, 200.0), read_only=True),
-            Param('joint_state_rate', 200.0, 'Arm simulation, /joint_states and '
-                  '/tool/pressure rate [Hz].', range=(100.0, 1000.0), read_only=True),
-            Param('ground_truth_dir', '', 'Where the true cameras, curve and depth maps are '
-                  'written for tests and benchmarks; empty: not written.', read_only=True),
-            *subscriber_gate_params('Publish only once every camera topic has'),
-            Param('arm_mode', 'position', "The simulated arm follows the commanded "
-                  "'position' (set points) or only the commanded 'velocity'.",
-                  choices=ARM_MODES, read_only=True),
-            Param('arm_speed_scale', 1.0, 'Fraction of the commanded motion the arm '
-                  'makes (< 1: an arm slower than commanded).', range=(0.01, 1.0),
-                  read_only=True),
-        ])
+        self.params = NodeParameters(
+            self,
+            [
+                Param(
+                    'scenario',
+                    'default',
+                    'Scenario file, or the name of a shipped one.',
+                    read_only=True,
+                ),
+                Param(
+                    'calibration_phase',
+                    True,
+                    'Show the chart at every stage pose first.',
+                    read_only=True,
+                ),
+                Param(
+                    'rate',
+                    0.0,
+                    'Camera frame rate [Hz]; 0 takes the scenario rate.',
+                    range=(0.0, 200.0),
+                    read_only=True,
+                ),
+                Param(
+                    'joint_state_rate',
+                    200.0,
+                    'Arm simulation, /joint_states and /tool/pressure rate [Hz].',
+                    range=(100.0, 1000.0),
+                    read_only=True,
+                ),
+                Param(
+                    'ground_truth_dir',
+                    '',
+                    'Where the true cameras, curve and depth maps are '
+                    'written for tests and benchmarks; empty: not written.',
+                    read_only=True,
+                ),
+                *subscriber_gate_params('Publish only once every camera topic has'),
+                Param(
+                    'arm_mode',
+                    'position',
+                    'The simulated arm follows the commanded '
+                    "'position' (set points) or only the commanded 'velocity'.",
+                    choices=ARM_MODES,
+                    read_only=True,
+                ),
+                Param(
+                    'arm_speed_scale',
+                    1.0,
+                    'Fraction of the commanded motion the arm '
+                    'makes (< 1: an arm slower than commanded).',
+                    range=(0.01, 1.0),
+                    read_only=True,
+                ),
+            ],
+        )
         self.scenario = load_scenario(resolve_scenario_path(self.params.scenario))
         self.get_logger().info(f'scenario {self.scenario.name} ({self.scenario.path})')
         # Publishers first: subscribers (a recorder) discover and match them while the
         # scene renders, so not even the first capture is lost.
-        self.image_publishers = {name: self.create_publisher(Image, IMAGE_TOPICS[name],
-                                                             DEFAULT_QOS)
-                                 for name in CAMERA_NAMES}
+        self.image_publishers = {
+            name: self.create_publisher(Image, IMAGE_TOPICS[name], DEFAULT_QOS)
+            for name in CAMERA_NAMES
+        }
         self.target_pose_publisher = self.create_publisher(
-            PoseStamped, TARGET_POSE_TOPIC, DEFAULT_QOS)
-        self.joint_state_publisher = self.create_publisher(JointState, JOINT_STATES_TOPIC,
-                                                           DEFAULT_QOS)
-        self.pressure_publisher = self.create_publisher(WrenchStamped, PRESSURE_TOPIC,
-                                                        DEFAULT_QOS)
+            PoseStamped, TARGET_POSE_TOPIC, DEFAULT_QOS
+        )
+        self.joint_state_publisher = self.create_publisher(
+            JointState, JOINT_STATES_TOPIC, DEFAULT_QOS
+        )
+        self.pressure_publisher = self.create_publisher(WrenchStamped, PRESSURE_TOPIC, DEFAULT_QOS)
         started = time.monotonic()
         self.renderer = SceneRenderer(self.scenario)
-        self.calibration_phase = self.params.calibration_phase and \
-            self.scenario.calibration is not None
+        self.calibration_phase = (
+            self.params.calibration_phase and self.scenario.calibration is not None
+        )
         self._render_everything()
         self.get_logger().info(f'rendered the scene in {time.monotonic() - started:.2f} s')
 
         robot = self.scenario.robot
         self.robot = load_robot(robot.model, robot.tool_length)
-        self.arm = SimulatedArm.from_robot_model(self.robot, robot.initial_joints,
-                                                 self.params.arm_mode,
-                                                 self.params.arm_speed_scale)
+        self.arm = SimulatedArm.from_robot_model(
+            self.robot, robot.initial_joints, self.params.arm_mode, self.params.arm_speed_scale
+        )
         self.diagnostics = Diagnostics(self)
         if self.params.ground_truth_dir:
             self._write_ground_truth(Path(self.params.ground_truth_dir))
@@ -109,18 +149,37 @@ class SensorSim(Node):
         self.frame_index = 0
         self.capture_lock, self.arm_lock = threading.Lock(), threading.Lock()
         self.gate = SubscriberGate(
-            self, [*self.image_publishers.values(), self.target_pose_publisher,
-                   self.joint_state_publisher, self.pressure_publisher],
-            self.params.min_subscribers, self.params.subscriber_timeout,
-            self.params.wait_for_nodes, counted=self.image_publishers.values())
+            self,
+            [
+                *self.image_publishers.values(),
+                self.target_pose_publisher,
+                self.joint_state_publisher,
+                self.pressure_publisher,
+            ],
+            self.params.min_subscribers,
+            self.params.subscriber_timeout,
+            self.params.wait_for_nodes,
+            counted=self.image_publishers.values(),
+        )
         self.closed = False
-        self.published = {topic: 0 for topic in (*IMAGE_TOPICS.values(), TARGET_POSE_TOPIC,
-                                                 JOINT_STATES_TOPIC, PRESSURE_TOPIC)}
+        self.published = {
+            topic: 0
+            for topic in (
+                *IMAGE_TOPICS.values(),
+                TARGET_POSE_TOPIC,
+                JOINT_STATES_TOPIC,
+                PRESSURE_TOPIC,
+            )
+        }
         self.rng_pressure = np.random.default_rng([self.scenario.seed, 1_000_003])
 
-        self.create_subscription(JointTrajectory, JOINT_TRAJECTORY_TOPIC,
-                                 self._on_joint_trajectory, DEFAULT_QOS,
-                                 callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_subscription(
+            JointTrajectory,
+            JOINT_TRAJECTORY_TOPIC,
+            self._on_joint_trajectory,
+            DEFAULT_QOS,
+            callback_group=MutuallyExclusiveCallbackGroup(),
+        )
         self.arm_period = 1.0 / self.params.joint_state_rate
         self.last_arm_time = None
         # The arm runs in its own thread on an absolute schedule: an executor timer at
@@ -129,12 +188,14 @@ class SensorSim(Node):
         self.arm_thread.start()
         self.create_timer(1.0, self._publish_diagnostics)
         frame_rate = self.params.rate or self.scenario.rate
-        self.create_timer(1.0 / frame_rate, self._capture,
-                          callback_group=MutuallyExclusiveCallbackGroup())
+        self.create_timer(
+            1.0 / frame_rate, self._capture, callback_group=MutuallyExclusiveCallbackGroup()
+        )
         self.get_logger().info(
             f'publishing 3 cameras at {frame_rate:g} Hz ({self.chart_frames} calibration '
             f'captures first), joint states at {self.params.joint_state_rate:g} Hz, arm '
-            f'{robot.model} following {self.params.arm_mode}s x{self.params.arm_speed_scale:g}')
+            f'{robot.model} following {self.params.arm_mode}s x{self.params.arm_speed_scale:g}'
+        )
 
     # --- cameras ---------------------------------------------------------------------
 
@@ -163,27 +224,33 @@ class SensorSim(Node):
         calibration = self.scenario.calibration
         if k < self.chart_frames and calibration is not None:  # the calibration phase
             pose_index = k // calibration.captures_per_pose
-            self.target_pose_publisher.publish(matrix_to_pose_stamped(
-                calibration.T_base_chart[pose_index], stamp_ns, BASE_FRAME))
+            self.target_pose_publisher.publish(
+                matrix_to_pose_stamped(calibration.T_base_chart[pose_index], stamp_ns, BASE_FRAME)
+            )
             self.published[TARGET_POSE_TOPIC] += 1
             if k + 1 == self.chart_frames:
                 self.get_logger().info('calibration phase done: showing the scene')
         for camera_index, name in enumerate(CAMERA_NAMES):
-            clean = (self.renderer.scene_image(name) if pose_index is None
-                     else self.renderer.chart_image(name, pose_index))
+            clean = (
+                self.renderer.scene_image(name)
+                if pose_index is None
+                else self.renderer.chart_image(name, pose_index)
+            )
             # Same scenario, seed and frame: the same noise, bit for bit.
             rng = np.random.default_rng([self.scenario.seed, k, camera_index])
             pixels = add_noise(clean, self.scenario.noise.image_sigma, rng)
             self.image_publishers[name].publish(
-                numpy_to_image(pixels, 'mono8', stamp_ns, OPTICAL_FRAMES[name]))
+                numpy_to_image(pixels, 'mono8', stamp_ns, OPTICAL_FRAMES[name])
+            )
             self.published[IMAGE_TOPICS[name]] += 1
 
     # --- arm and pressure sensor ---------------------------------------------------
 
     def _on_joint_trajectory(self, msg):
         try:
-            times = np.array([p.time_from_start.sec + p.time_from_start.nanosec * 1e-9
-                              for p in msg.points])
+            times = np.array(
+                [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in msg.points]
+            )
             positions = [list(p.positions) for p in msg.points]
             velocities = [list(p.velocities) for p in msg.points]
             if any(len(v) != len(p) for v, p in zip(velocities, positions) if v):
@@ -191,10 +258,13 @@ class SensorSim(Node):
             has_velocities = bool(msg.points) and all(velocities)
             start = stamp_to_ns(msg.header.stamp) * 1e-9 or self._now()
             with self.arm_lock:
-                self.arm.set_trajectory(list(msg.joint_names), times,
-                                        np.array(positions, dtype=float),
-                                        np.array(velocities, dtype=float) if has_velocities
-                                        else None, start)
+                self.arm.set_trajectory(
+                    list(msg.joint_names),
+                    times,
+                    np.array(positions, dtype=float),
+                    np.array(velocities, dtype=float) if has_velocities else None,
+                    start,
+                )
         except (InvalidInput, ValueError) as error:
             with self.arm_lock:
                 self.arm.hold()
@@ -224,18 +294,25 @@ class SensorSim(Node):
         self.last_arm_time = now
         q, qdot = self.arm.step(now, max(dt, 0.0))
         stamp_ns = int(now * 1e9)
-        self.joint_state_publisher.publish(JointState(
-            header=make_header(stamp_ns, BASE_FRAME), name=list(self.robot.joint_names),
-            position=q.tolist(), velocity=qdot.tolist()))
+        self.joint_state_publisher.publish(
+            JointState(
+                header=make_header(stamp_ns, BASE_FRAME),
+                name=list(self.robot.joint_names),
+                position=q.tolist(),
+                velocity=qdot.tolist(),
+            )
+        )
         self.published[JOINT_STATES_TOPIC] += 1
 
         T_base_tool = self.robot.forward_kinematics(q)
-        contact = contact_force(T_base_tool[:3, 3], self.scenario.surface,
-                                self.scenario.contact_stiffness)
+        contact = contact_force(
+            T_base_tool[:3, 3], self.scenario.surface, self.scenario.contact_stiffness
+        )
         force = contact.force
         if force > 0:
-            force = max(0.0, force + self.rng_pressure.normal(
-                0.0, self.scenario.noise.pressure_sigma))
+            force = max(
+                0.0, force + self.rng_pressure.normal(0.0, self.scenario.noise.pressure_sigma)
+            )
         wrench = WrenchStamped(header=make_header(stamp_ns, TOOL_FRAME))
         wrench.wrench.force.z = float(force)
         self.pressure_publisher.publish(wrench)
@@ -243,10 +320,16 @@ class SensorSim(Node):
 
     def _publish_diagnostics(self):
         phase = 'calibration' if self.frame_index < self.chart_frames else 'scene'
-        self.diagnostics.publish('simulation', 'ok', f'{phase} phase',
-                                 {**self.published, 'phase': phase,
-                                  **{f'rejected {k}': v
-                                     for k, v in self.diagnostics.rejected.items()}})
+        self.diagnostics.publish(
+            'simulation',
+            'ok',
+            f'{phase} phase',
+            {
+                **self.published,
+                'phase': phase,
+                **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()},
+            },
+        )
 
     def close(self):
         """Final counts, so a recording can be checked for lost messages
@@ -263,15 +346,23 @@ class SensorSim(Node):
 
     def _write_ground_truth(self, directory):
         directory.mkdir(parents=True, exist_ok=True)
-        cameras = {name: {'width': cam.width, 'height': cam.height, 'K': cam.K.tolist(),
-                          'distortion_model': cam.distortion_model, 'D': cam.D.tolist(),
-                          'T_base_camera': cam.T_base_camera.tolist()}
-                   for name, cam in self.scenario.cameras.items()}
+        cameras = {
+            name: {
+                'width': cam.width,
+                'height': cam.height,
+                'K': cam.K.tolist(),
+                'distortion_model': cam.distortion_model,
+                'D': cam.D.tolist(),
+                'T_base_camera': cam.T_base_camera.tolist(),
+            }
+            for name, cam in self.scenario.cameras.items()
+        }
         (directory / 'cameras.yaml').write_text(yaml.safe_dump(cameras))
         if all(c.distortion_model == 'plumb_bob' for c in self.scenario.cameras.values()):
             # The true rig as a calibration file: calib_node's `calibration_file` loads it.
-            write_calibration(directory / 'true_calibration', self.scenario.cameras,
-                              OPTICAL_FRAMES)
+            write_calibration(
+                directory / 'true_calibration', self.scenario.cameras, OPTICAL_FRAMES
+            )
         pieces = curve_polylines(self.scenario.curve, self.scenario.surface)
         np.savez(directory / 'curve_base.npz', *pieces)
         for name in CAMERA_NAMES:

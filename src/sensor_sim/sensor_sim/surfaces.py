@@ -23,6 +23,7 @@ Kinds (ALGORITHMS.md §6.6 for S1-S3):
 - ``heightmap``: bilinear interpolation of ``Surface.heights`` (rows along y, grid spacing
   ``cell``, node (row 0, col 0) at the extent's minimum corner).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -40,8 +41,9 @@ BoolArray = npt.NDArray[np.bool_]
 
 # Vase profile f(y) = 0.15 - 0.1 y (6y+1)^2 (y-1)^2 (3y-2) as a polynomial, so that its
 # derivative is exact.
-_VASE_PROFILE = 0.15 - 0.1 * (Polynomial([0, 1]) * Polynomial([1, 6]) ** 2
-                              * Polynomial([-1, 1]) ** 2 * Polynomial([-2, 3]))
+_VASE_PROFILE = 0.15 - 0.1 * (
+    Polynomial([0, 1]) * Polynomial([1, 6]) ** 2 * Polynomial([-1, 1]) ** 2 * Polynomial([-2, 3])
+)
 _VASE_PROFILE_DERIVATIVE = _VASE_PROFILE.deriv()
 
 # Ray marching: tiles per axis with their own slope bounds, samples per axis of the grid
@@ -70,9 +72,12 @@ def domain_box(surface: Surface) -> Box:
         x1 = min(x1, x0 + (cols - 1) * surface.cell)
         y1 = min(y1, y0 + (rows - 1) * surface.cell)
     if not (x0 < x1 and y0 < y1):
-        raise InvalidInput(f'surface {surface.kind}: the extent {surface.extent} does not '
-                           'overlap the surface\'s own domain', key='surface.extent',
-                           value=surface.extent)
+        raise InvalidInput(
+            f'surface {surface.kind}: the extent {surface.extent} does not '
+            "overlap the surface's own domain",
+            key='surface.extent',
+            value=surface.extent,
+        )
     return (x0, x1), (y0, y1)
 
 
@@ -102,8 +107,9 @@ def gradient(surface: Surface, xy_units: npt.ArrayLike) -> FloatArray:
     return height_and_gradient(surface, xy_units)[1]
 
 
-def height_and_gradient(surface: Surface,
-                        xy_units: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+def height_and_gradient(
+    surface: Surface, xy_units: npt.ArrayLike
+) -> tuple[FloatArray, FloatArray]:
     """h (N,) and its gradient (N, 2) at (N, 2) surface-unit points; NaN outside."""
     xy = np.asarray(xy_units, dtype=float).reshape(-1, 2)
     inside = in_domain(surface, xy)
@@ -121,13 +127,13 @@ def _heights(surface: Surface, x: FloatArray, y: FloatArray) -> FloatArray:
     if kind == 'plane':
         return np.zeros_like(x)
     if kind == 'S1':
-        return -(x + y ** 3)
+        return -(x + y**3)
     if kind == 'S2':
         return x * x * y * np.sin(x / 3) + np.cos(y * y)
     if kind == 'S3':
         return x * y + 0.5 * x - 0.6
     if kind == 'sphere':
-        return np.sqrt(np.maximum(surface.radius ** 2 - x * x - y * y, 0.0))
+        return np.sqrt(np.maximum(surface.radius**2 - x * x - y * y, 0.0))
     if kind == 'paraboloid':
         return -(x * x + y * y) / (2.0 * surface.radius)
     if kind == 'vase':
@@ -144,11 +150,12 @@ def _gradients(surface: Surface, x: FloatArray, y: FloatArray, h: FloatArray) ->
     if kind == 'plane':
         return np.zeros((len(x), 2))
     if kind == 'S1':
-        return np.column_stack([-np.ones_like(x), -3 * y ** 2])
+        return np.column_stack([-np.ones_like(x), -3 * y**2])
     if kind == 'S2':
         s, c = np.sin(x / 3), np.cos(x / 3)
-        return np.column_stack([2 * x * y * s + x * x * y * c / 3,
-                                x * x * s - 2 * y * np.sin(y * y)])
+        return np.column_stack(
+            [2 * x * y * s + x * x * y * c / 3, x * x * s - 2 * y * np.sin(y * y)]
+        )
     if kind == 'S3':
         return np.column_stack([y + 0.5, x])
     if kind == 'sphere':
@@ -236,8 +243,9 @@ def signed_height_base(surface: Surface, points_base: npt.ArrayLike) -> FloatArr
     return (local[:, 2] - h) * surface.scale / np.sqrt(1 + np.sum(grad * grad, axis=1))
 
 
-def intersect_rays(surface: Surface, origin_base: npt.ArrayLike,
-                   directions_base: npt.ArrayLike) -> FloatArray:
+def intersect_rays(
+    surface: Surface, origin_base: npt.ArrayLike, directions_base: npt.ArrayLike
+) -> FloatArray:
     """First intersection of rays from one origin with the surface.
 
     Args:
@@ -286,7 +294,7 @@ def _intersect_plane(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArr
 def _intersect_sphere(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
     # |o + t d|^2 = r^2 with unit d: t = -b -+ sqrt(b^2 - c).
     b = d @ o
-    c = o @ o - surface.radius ** 2
+    c = o @ o - surface.radius**2
     with np.errstate(invalid='ignore'):
         root = np.sqrt(b * b - c)
     t = np.full(len(d), np.nan)
@@ -295,8 +303,7 @@ def _intersect_sphere(surface: Surface, o: FloatArray, d: FloatArray) -> FloatAr
     # overwritten by the near root where that one is valid.
     for t_candidate in (-b + root, -b - root):
         point = o + t_candidate[:, None] * d
-        valid = ((t_candidate > 0) & (point[:, 2] >= 0)
-                 & in_domain(surface, point[:, :2]))
+        valid = (t_candidate > 0) & (point[:, 2] >= 0) & in_domain(surface, point[:, :2])
         t[valid] = t_candidate[valid]
     return t
 
@@ -337,17 +344,19 @@ def _with_neighbours(tiles: FloatArray, reduce: np.ufunc) -> FloatArray:
     out = tiles.copy()
     for dr in range(3):
         for dc in range(3):
-            out = reduce(out, padded[dr:dr + rows, dc:dc + cols])
+            out = reduce(out, padded[dr : dr + rows, dc : dc + cols])
     return out
 
 
-def _tile_and_exit(position: FloatArray, direction: FloatArray,
-                   tile_size: float) -> tuple[npt.NDArray[np.int_], FloatArray]:
+def _tile_and_exit(
+    position: FloatArray, direction: FloatArray, tile_size: float
+) -> tuple[npt.NDArray[np.int_], FloatArray]:
     """Along one axis: the tile (N,) a ray at ``position`` (N,) [from the domain's min]
     is moving through, and the ray length (N,) to that tile's far edge."""
     cell = position / tile_size
-    index = np.clip(np.where(direction < 0, np.ceil(cell) - 1, np.floor(cell)),
-                    0, _BOUND_TILES - 1)
+    index = np.clip(
+        np.where(direction < 0, np.ceil(cell) - 1, np.floor(cell)), 0, _BOUND_TILES - 1
+    )
     edge = (index + (direction > 0)) * tile_size
     with np.errstate(divide='ignore', invalid='ignore'):
         length = np.where(direction != 0, (edge - position) / direction, np.inf)
@@ -376,8 +385,9 @@ def _march(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
         t_enter, t_exit = np.maximum(t_enter, t_in), np.minimum(t_exit, t_out)
     min_step = _MIN_STEP_FRACTION * max(x1 - x0, y1 - y0, z_hi - z_lo)
 
-    def closing_rate(direction: FloatArray, g: FloatArray, range_x: FloatArray,
-                     range_y: FloatArray) -> FloatArray:
+    def closing_rate(
+        direction: FloatArray, g: FloatArray, range_x: FloatArray, range_y: FloatArray
+    ) -> FloatArray:
         """Fastest rate (N,) at which the gap g = z - h can close along unit rays.
 
         Along a ray z - h changes at d_z - h_x d_x - h_y d_y; over slope ranges (N, 2)
@@ -385,9 +395,11 @@ def _march(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
         """
         x_a, x_b = direction[:, 0] * range_x[:, 0], direction[:, 0] * range_x[:, 1]
         y_a, y_b = direction[:, 1] * range_y[:, 0], direction[:, 1] * range_y[:, 1]
-        rate = np.where(g > 0,
-                        -direction[:, 2] + np.maximum(x_a, x_b) + np.maximum(y_a, y_b),
-                        direction[:, 2] - np.minimum(x_a, x_b) - np.minimum(y_a, y_b))
+        rate = np.where(
+            g > 0,
+            -direction[:, 2] + np.maximum(x_a, x_b) + np.maximum(y_a, y_b),
+            direction[:, 2] - np.minimum(x_a, x_b) - np.minimum(y_a, y_b),
+        )
         return np.maximum(rate, 1e-12)
 
     whole_x = np.array([slope_x[..., 0].min(), slope_x[..., 1].max()])
@@ -400,9 +412,10 @@ def _march(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
         direction = d[index]
         i, exit_x = _tile_and_exit(o[0] + t * direction[:, 0] - x0, direction[:, 0], tile_w)
         j, exit_y = _tile_and_exit(o[1] + t * direction[:, 1] - y0, direction[:, 1], tile_h)
-        in_tile = np.minimum(np.abs(g) / closing_rate(direction, g, slope_x[j, i],
-                                                      slope_y[j, i]),
-                             np.minimum(exit_x, exit_y))
+        in_tile = np.minimum(
+            np.abs(g) / closing_rate(direction, g, slope_x[j, i], slope_y[j, i]),
+            np.minimum(exit_x, exit_y),
+        )
         anywhere = np.abs(g) / closing_rate(direction, g, whole_x[None], whole_y[None])
         return np.maximum(in_tile, anywhere)
 
@@ -411,8 +424,9 @@ def _march(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
         point = o + t[:, None] * d[index]
         # The marched kinds' domain is the whole box; clipping only undoes rounding at its
         # faces.
-        return point[:, 2] - _heights(surface, np.clip(point[:, 0], x0, x1),
-                                      np.clip(point[:, 1], y0, y1))
+        return point[:, 2] - _heights(
+            surface, np.clip(point[:, 0], x0, x1), np.clip(point[:, 1], y0, y1)
+        )
 
     result = np.full(len(d), np.nan)
     active = np.flatnonzero(t_enter < t_exit)
@@ -436,14 +450,25 @@ def _march(surface: Surface, o: FloatArray, d: FloatArray) -> FloatArray:
         keep = ~crossed & (t_next < t_exit[active])
         active, t, g = active[keep], t_next[keep], g_next[keep]
     index = np.concatenate(bracketed)
-    result[index] = _refine(gap, index, np.concatenate(lo), np.concatenate(hi),
-                            np.concatenate(g_lo), np.concatenate(g_hi))
+    result[index] = _refine(
+        gap,
+        index,
+        np.concatenate(lo),
+        np.concatenate(hi),
+        np.concatenate(g_lo),
+        np.concatenate(g_hi),
+    )
     return result
 
 
-def _refine(gap: Callable[[FloatArray, npt.NDArray[np.intp]], FloatArray],
-            index: npt.NDArray[np.intp], a: FloatArray, b: FloatArray, g_a: FloatArray,
-            g_b: FloatArray) -> FloatArray:
+def _refine(
+    gap: Callable[[FloatArray, npt.NDArray[np.intp]], FloatArray],
+    index: npt.NDArray[np.intp],
+    a: FloatArray,
+    b: FloatArray,
+    g_a: FloatArray,
+    g_b: FloatArray,
+) -> FloatArray:
     """Root of ``gap`` on brackets [a, b] (g_a, g_b of opposite signs or g_a == 0) by the
     Illinois variant of regula falsi, all rays at once."""
     root = np.where(g_a == 0, a, b)

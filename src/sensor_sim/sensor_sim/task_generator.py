@@ -13,6 +13,7 @@ orientation). No ROS. Every random choice takes a ``numpy.random.Generator``.
   elbow opened to 60 % of its angle), as waypoints (origin on the surface, x along
   the tangent, z into the surface: INTERFACES.md /curve/waypoints).
 """
+
 from __future__ import annotations
 
 import importlib.metadata
@@ -76,17 +77,27 @@ def random_pa10_like_arm(rng: np.random.Generator, name: str = 'pa10_random') ->
     real = PARAMETER_SETS['pa10']
     factors = rng.uniform(1 - LINK_SPREAD, 1 + LINK_SPREAD, 4)
     params = Pa10Parameters(*(np.array([real.d1, real.d3, real.d5, real.d7]) * factors))
-    upper = np.maximum(PA10_UPPER_LIMITS_RAD * rng.uniform(0.6, 1.0, 7),
-                       np.abs(PA10_START_JOINTS) + 0.5)
-    lower = -np.maximum(-PA10_LOWER_LIMITS_RAD * rng.uniform(0.6, 1.0, 7),
-                        np.abs(PA10_START_JOINTS) + 0.5)
+    upper = np.maximum(
+        PA10_UPPER_LIMITS_RAD * rng.uniform(0.6, 1.0, 7), np.abs(PA10_START_JOINTS) + 0.5
+    )
+    lower = -np.maximum(
+        -PA10_LOWER_LIMITS_RAD * rng.uniform(0.6, 1.0, 7), np.abs(PA10_START_JOINTS) + 0.5
+    )
     velocity = PA10_VELOCITY_LIMITS_RAD_S * rng.uniform(0.5, 1.5, 7)
     tool = float(rng.uniform(*TOOL_RANGE_M))
     urdf = pa10_like_urdf(params, tool, lower, upper, velocity, name=name)
-    description = (f'd = ({params.d1:.3f}, {params.d3:.3f}, {params.d5:.3f}, '
-                   f'{params.d7:.3f}) m, tool {tool:.3f} m')
-    return GeneratedArm(name, urdf, PA10_START_JOINTS.copy(), description,
-                        (params.d1, params.d3, params.d5, params.d7), tool)
+    description = (
+        f'd = ({params.d1:.3f}, {params.d3:.3f}, {params.d5:.3f}, '
+        f'{params.d7:.3f}) m, tool {tool:.3f} m'
+    )
+    return GeneratedArm(
+        name,
+        urdf,
+        PA10_START_JOINTS.copy(),
+        description,
+        (params.d1, params.d3, params.d5, params.d7),
+        tool,
+    )
 
 
 def panda_arm() -> GeneratedArm:
@@ -99,15 +110,20 @@ def panda_arm() -> GeneratedArm:
         path = importlib.metadata.distribution('example-robot-data').locate_file(PANDA_URDF)
         text = path.read_text()
     except (importlib.metadata.PackageNotFoundError, OSError) as err:
-        raise InvalidInput(f'the Panda URDF of example-robot-data is not available: {err}',
-                           'robot') from err
-    return GeneratedArm('panda', urdf_with_tool0(text, 'panda_hand_tcp'),
-                        PANDA_START_JOINTS.copy(), 'Franka Panda (example-robot-data), '
-                        'tool0 at panda_hand_tcp')
+        raise InvalidInput(
+            f'the Panda URDF of example-robot-data is not available: {err}', 'robot'
+        ) from err
+    return GeneratedArm(
+        'panda',
+        urdf_with_tool0(text, 'panda_hand_tcp'),
+        PANDA_START_JOINTS.copy(),
+        'Franka Panda (example-robot-data), tool0 at panda_hand_tcp',
+    )
 
 
-def stretched_joints(start_joints: npt.ArrayLike, elbow_index: int = 3,
-                     factor: float = 0.6) -> FloatArray:
+def stretched_joints(
+    start_joints: npt.ArrayLike, elbow_index: int = 3, factor: float = 0.6
+) -> FloatArray:
     """The start pose with the elbow (joint 4 of the PA-10 and the Panda) opened to
     ``factor`` of its angle: a pose within the limits near the arm's reach."""
     q = np.array(start_joints, dtype=float)
@@ -115,8 +131,14 @@ def stretched_joints(start_joints: npt.ArrayLike, elbow_index: int = 3,
     return q
 
 
-def posed_surface(kind: str, robot: RobotModel, placement_joints: npt.ArrayLike,
-                  tilt_rad: float, rng: np.random.Generator, ahead_m: float = 0.1) -> Surface:
+def posed_surface(
+    kind: str,
+    robot: RobotModel,
+    placement_joints: npt.ArrayLike,
+    tilt_rad: float,
+    rng: np.random.Generator,
+    ahead_m: float = 0.1,
+) -> Surface:
     """A surface of ``kind`` whose normal under its centre (surface units (0, 0)) is
     tilted by ``tilt_rad`` from the tool's axis at ``placement_joints`` (about a random
     axis across it, random spin about the normal), the centre ``ahead_m`` [m] ahead of
@@ -142,8 +164,15 @@ def posed_surface(kind: str, robot: RobotModel, placement_joints: npt.ArrayLike,
         'plane': (1.0, ((-0.3, 0.3), (-0.3, 0.3)), 1.0),
         'paraboloid': (1.0, ((-0.15, 0.15), (-0.15, 0.15)), float(rng.uniform(0.08, 0.3))),
     }.get(kind, (0.2, ((-0.5, 0.5), (-0.5, 0.5)), 1.0))
-    surface = Surface(kind=kind, T_base_surface=np.eye(4), scale=scale, extent=extent,
-                      albedo=0.8, roughness=0.0, radius=radius)
+    surface = Surface(
+        kind=kind,
+        T_base_surface=np.eye(4),
+        scale=scale,
+        extent=extent,
+        albedo=0.8,
+        roughness=0.0,
+        radius=radius,
+    )
     normal_local = normal_base(surface, surface_points_base(surface, [[0.0, 0.0]]))[0]
     align, _ = Rotation.align_vectors([normal_wanted], [normal_local])
     spin = Rotation.from_rotvec(rng.uniform(-np.pi, np.pi) * normal_wanted)
@@ -181,20 +210,22 @@ def path_xy_m(shape: str, rng: np.random.Generator) -> tuple[FloatArray, bool]:
     raise InvalidInput(f'shape must be one of {PATH_SHAPES}', 'shape', shape)
 
 
-def surface_waypoints(surface: Surface, xy_m: npt.ArrayLike, closed: bool,
-                      spacing_m: float = WAYPOINT_SPACING_M) -> FloatArray:
+def surface_waypoints(
+    surface: Surface, xy_m: npt.ArrayLike, closed: bool, spacing_m: float = WAYPOINT_SPACING_M
+) -> FloatArray:
     """Waypoints (N, 4, 4) about every ``spacing_m`` [m] along the dense surface-frame
     path ``xy_m`` [m] (divided by the surface's scale into surface units): origin on the
     surface, z = -normal, x along the path across z. A closed path's first point is not
     repeated."""
     points = surface_points_base(surface, np.asarray(xy_m) / surface.scale)
     if not np.all(np.isfinite(points)):
-        raise InvalidInput('the path leaves the surface\'s domain', 'path')
+        raise InvalidInput("the path leaves the surface's domain", 'path')
     steps = np.linalg.norm(np.diff(points, axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(steps)])
     count = max(int(round(arc[-1] / spacing_m)), 2)
-    keep = np.searchsorted(arc, np.linspace(0.0, arc[-1], count + 1 - int(closed),
-                                            endpoint=not closed))
+    keep = np.searchsorted(
+        arc, np.linspace(0.0, arc[-1], count + 1 - int(closed), endpoint=not closed)
+    )
     points = points[np.clip(keep, 0, len(points) - 1)]
     approach = -normal_base(surface, points)
     ahead = np.roll(points, -1, axis=0) - points
@@ -231,15 +262,25 @@ class TrackingControllerLike(Protocol):
 
     def stop(self, reason: str = ...) -> None: ...
 
-    def step(self, q: FloatArray, measured_force: float,
-             dt: float) -> tuple[FloatArray, Mapping[str, Any]]: ...
+    def step(
+        self, q: FloatArray, measured_force: float, dt: float
+    ) -> tuple[FloatArray, Mapping[str, Any]]: ...
 
 
-def run_closed_loop(controller: TrackingControllerLike, robot: RobotModel, arm: SimulatedArm,
-                    surface: Surface, stiffness: float, dt: float = 0.01,
-                    max_time: float = 120.0, stop_at_progress: float | None = None,
-                    pressure_sigma: float = 0.0, rng: np.random.Generator | None = None,
-                    hold_time: float = 0.5, substeps: int = 2) -> LoopLog:
+def run_closed_loop(
+    controller: TrackingControllerLike,
+    robot: RobotModel,
+    arm: SimulatedArm,
+    surface: Surface,
+    stiffness: float,
+    dt: float = 0.01,
+    max_time: float = 120.0,
+    stop_at_progress: float | None = None,
+    pressure_sigma: float = 0.0,
+    rng: np.random.Generator | None = None,
+    hold_time: float = 0.5,
+    substeps: int = 2,
+) -> LoopLog:
     """``controller`` (a pa10_ik_node TrackingController, started) against ``arm`` (a
     ``SimulatedArm``) and the spring contact on ``surface``: control every ``dt`` [s], the
     arm stepped ``substeps`` times per period, the command as pa10_ik_node sends it (a
@@ -276,8 +317,11 @@ def run_closed_loop(controller: TrackingControllerLike, robot: RobotModel, arm: 
             t = arm.follow_velocity(names, qdot, t, dt, substeps=substeps)
         tip = robot.forward_kinematics(arm.q)[:3, 3]
         true_force = contact_force(tip, surface, stiffness).force
-        force = max(0.0, true_force + rng.normal(0.0, pressure_sigma)) if true_force > 0 \
-            and pressure_sigma > 0 else true_force
+        force = (
+            max(0.0, true_force + rng.normal(0.0, pressure_sigma))
+            if true_force > 0 and pressure_sigma > 0
+            else true_force
+        )
         log.phases.append(info['phase'])
         log.tips.append(tip)
         log.forces.append(true_force)
@@ -291,8 +335,9 @@ def run_closed_loop(controller: TrackingControllerLike, robot: RobotModel, arm: 
     return log
 
 
-def path_errors(tips: npt.ArrayLike, surface: Surface, path_base: FloatArray,
-                within_m: float = 0.002) -> tuple[FloatArray, float]:
+def path_errors(
+    tips: npt.ArrayLike, surface: Surface, path_base: FloatArray, within_m: float = 0.002
+) -> tuple[FloatArray, float]:
     """Distances [m] (K,) of the tips' (K, 3) foot points on the surface (along the
     normal) to the dense path polyline ``path_base`` (M, 3), and the fraction of the
     path's points that some foot point came within ``within_m`` [m] of."""
@@ -311,9 +356,14 @@ def path_errors(tips: npt.ArrayLike, surface: Surface, path_base: FloatArray,
     return distances, float(np.mean(near < within_m))
 
 
-def tracking_metrics(log: LoopLog, surface: Surface, path_base: FloatArray,
-                     desired_force: float, robot: RobotModel,
-                     within_m: float = 0.002) -> dict[str, float]:
+def tracking_metrics(
+    log: LoopLog,
+    surface: Surface,
+    path_base: FloatArray,
+    desired_force: float,
+    robot: RobotModel,
+    within_m: float = 0.002,
+) -> dict[str, float]:
     """The issue-13 goals of one run, measured on the true state while tracking.
 
     Args:
@@ -333,22 +383,29 @@ def tracking_metrics(log: LoopLog, surface: Surface, path_base: FloatArray,
     result: dict[str, float] = {'tracking_steps': int(tracking.sum())}
     if len(tips):
         distances, passed = path_errors(tips, surface, path_base, within_m)
-        result.update(rms_mm=float(np.sqrt(np.mean(distances ** 2)) * 1e3),
-                      max_mm=float(distances.max() * 1e3),
-                      passed_fraction=passed,
-                      force_p95_pct=float(np.percentile(np.abs(forces - desired_force), 95)
-                                          / desired_force * 100))
+        result.update(
+            rms_mm=float(np.sqrt(np.mean(distances**2)) * 1e3),
+            max_mm=float(distances.max() * 1e3),
+            passed_fraction=passed,
+            force_p95_pct=float(
+                np.percentile(np.abs(forces - desired_force), 95) / desired_force * 100
+            ),
+        )
     else:
-        result.update(rms_mm=float('nan'), max_mm=float('nan'), passed_fraction=0.0,
-                      force_p95_pct=float('nan'))
+        result.update(
+            rms_mm=float('nan'),
+            max_mm=float('nan'),
+            passed_fraction=0.0,
+            force_p95_pct=float('nan'),
+        )
     qdot = np.array(log.qdot_commanded)
     q = np.array(log.q)
     result.update(
         velocity_ratio=float(np.max(np.abs(qdot) / robot.velocity_limits)),
-        limit_margin_rad=float(np.min(np.minimum(q - robot.lower_limits,
-                                                 robot.upper_limits - q))),
+        limit_margin_rad=float(np.min(np.minimum(q - robot.lower_limits, robot.upper_limits - q))),
         step_ms_median=float(np.median(log.step_times) * 1e3),
-        stop_latency_ms=float(log.stop_latency * 1e3))
+        stop_latency_ms=float(log.stop_latency * 1e3),
+    )
     return result
 
 
@@ -369,8 +426,10 @@ class CaseSpec:
 
     @property
     def label(self) -> str:
-        return (f'{self.arm.name} / {self.surface_kind} {np.degrees(self.tilt_rad):.0f} deg / '
-                f'{self.path_shape} / {self.arm_mode} x{self.speed_scale:g}')
+        return (
+            f'{self.arm.name} / {self.surface_kind} {np.degrees(self.tilt_rad):.0f} deg / '
+            f'{self.path_shape} / {self.arm_mode} x{self.speed_scale:g}'
+        )
 
 
 @dataclass(frozen=True)
@@ -388,8 +447,9 @@ class BuiltCase:
     def simulated_arm(self) -> SimulatedArm:
         from sensor_sim.arm_sim import SimulatedArm
 
-        return SimulatedArm.from_robot_model(self.robot, self.spec.arm.start_joints,
-                                             self.spec.arm_mode, self.spec.speed_scale)
+        return SimulatedArm.from_robot_model(
+            self.robot, self.spec.arm.start_joints, self.spec.arm_mode, self.spec.speed_scale
+        )
 
 
 def generate_cases(seed: int, random_arms: int = 3, with_panda: bool = True) -> list[CaseSpec]:
@@ -403,11 +463,25 @@ def generate_cases(seed: int, random_arms: int = 3, with_panda: bool = True) -> 
     cases = []
     for i, arm in enumerate(arms):
         for j, kind in enumerate(SURFACE_KINDS):
-            tilt = 0.0 if j == 0 else np.radians(45.0) if j == len(SURFACE_KINDS) - 1 \
+            tilt = (
+                0.0
+                if j == 0
+                else np.radians(45.0)
+                if j == len(SURFACE_KINDS) - 1
                 else float(rng.uniform(0.0, np.radians(45.0)))
+            )
             mode, scale = ARM_SIMULATIONS[(i + j) % len(ARM_SIMULATIONS)]
-            cases.append(CaseSpec(arm, kind, tilt, PATH_SHAPES[(i + 2 * j) % len(PATH_SHAPES)],
-                                  mode, scale, int(rng.integers(2 ** 31))))
+            cases.append(
+                CaseSpec(
+                    arm,
+                    kind,
+                    tilt,
+                    PATH_SHAPES[(i + 2 * j) % len(PATH_SHAPES)],
+                    mode,
+                    scale,
+                    int(rng.integers(2**31)),
+                )
+            )
     return cases
 
 
@@ -429,4 +503,3 @@ def build_case(spec: CaseSpec, directory: str | os.PathLike[str]) -> BuiltCase:
     if closed:
         path_base = np.vstack([path_base, path_base[:1]])
     return BuiltCase(spec, robot, surface, waypoints, path_base, closed)
-

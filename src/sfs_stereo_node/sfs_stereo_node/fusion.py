@@ -3,6 +3,7 @@ chapter's error metrics (§4.5).
 
 Depth maps are (H, W) float arrays; sparse stereo depth is NaN where absent.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -33,12 +34,17 @@ class DepthErrors(NamedTuple):
     rms: float  # sqrt(mean (Z' - G)^2)
 
 
-def _check_pair(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike
-                ) -> tuple[FloatArray, FloatArray, BoolArray]:
+def _check_pair(
+    Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike
+) -> tuple[FloatArray, FloatArray, BoolArray]:
     Z_sfs, Z_stereo = np.asarray(Z_sfs, dtype=float), np.asarray(Z_stereo, dtype=float)
     if Z_sfs.ndim != 2 or Z_sfs.shape != Z_stereo.shape:
-        raise InvalidInput(f'Z_sfs {Z_sfs.shape} and Z_stereo {Z_stereo.shape}: expected '
-                           'two (H, W) maps of one shape', key='Z_sfs', value=Z_sfs.shape)
+        raise InvalidInput(
+            f'Z_sfs {Z_sfs.shape} and Z_stereo {Z_stereo.shape}: expected '
+            'two (H, W) maps of one shape',
+            key='Z_sfs',
+            value=Z_sfs.shape,
+        )
     mask = np.isfinite(Z_stereo)
     if not mask.any():
         raise InvalidInput('Z_stereo has no finite point', key='Z_stereo')
@@ -49,8 +55,9 @@ def _sigmoid(a: FloatArray) -> FloatArray:
     return 1.0 / (1.0 + np.exp(-a))
 
 
-def _forward(params: Sequence[FloatArray], x: FloatArray
-             ) -> tuple[FloatArray, FloatArray, FloatArray]:
+def _forward(
+    params: Sequence[FloatArray], x: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Batched 1-6-3-1 network: x (R, N) -> output (R, N) and the hidden activations."""
     W1, b1, W2, b2, W3, b3 = params  # (R,6), (R,6), (R,3,6), (R,3), (R,3), (R,)
     h1 = _sigmoid(x[..., None] * W1[:, None, :] + b1[:, None, :])  # (R, N, 6)
@@ -58,9 +65,15 @@ def _forward(params: Sequence[FloatArray], x: FloatArray
     return np.einsum('rnk,rk->rn', h2, W3) + b3[:, None], h1, h2
 
 
-def train_row_networks(x: FloatArray, t: FloatArray, mask: BoolArray, rng: np.random.Generator,
-                       hidden: tuple[int, int] = (6, 3), learning_rate: float = 0.5,
-                       epochs: int = 2000) -> tuple[list[FloatArray], FloatArray, FloatArray]:
+def train_row_networks(
+    x: FloatArray,
+    t: FloatArray,
+    mask: BoolArray,
+    rng: np.random.Generator,
+    hidden: tuple[int, int] = (6, 3),
+    learning_rate: float = 0.5,
+    epochs: int = 2000,
+) -> tuple[list[FloatArray], FloatArray, FloatArray]:
     """Train one network per row at once by full-batch back-propagation (§4.4).
 
     ``x``, ``t`` (R, N) scaled inputs and targets, ``mask`` (R, N) bool training points
@@ -69,9 +82,14 @@ def train_row_networks(x: FloatArray, t: FloatArray, mask: BoolArray, rng: np.ra
     """
     R = x.shape[0]
     n1, n2 = hidden
-    params = [rng.normal(0, 1.0, (R, n1)), np.zeros((R, n1)),
-              rng.normal(0, n1**-0.5, (R, n2, n1)), np.zeros((R, n2)),
-              rng.normal(0, n2**-0.5, (R, n2)), np.zeros(R)]
+    params = [
+        rng.normal(0, 1.0, (R, n1)),
+        np.zeros((R, n1)),
+        rng.normal(0, n1**-0.5, (R, n2, n1)),
+        np.zeros((R, n2)),
+        rng.normal(0, n2**-0.5, (R, n2)),
+        np.zeros(R),
+    ]
     weight = mask / np.maximum(mask.sum(axis=1, keepdims=True), 1)  # per-row mean
     losses: list[FloatArray] = []
     for _ in range(epochs + 1):
@@ -83,16 +101,26 @@ def train_row_networks(x: FloatArray, t: FloatArray, mask: BoolArray, rng: np.ra
         g_y = 2 * weight * err  # (R, N) dLoss/dy
         g_a2 = g_y[..., None] * params[4][:, None, :] * h2 * (1 - h2)  # (R, N, 3)
         g_a1 = np.einsum('rnk,rkj->rnj', g_a2, params[2]) * h1 * (1 - h1)  # (R, N, 6)
-        grads = [np.einsum('rnj,rn->rj', g_a1, x), g_a1.sum(axis=1),
-                 np.einsum('rnk,rnj->rkj', g_a2, h1), g_a2.sum(axis=1),
-                 np.einsum('rn,rnk->rk', g_y, h2), g_y.sum(axis=1)]
+        grads = [
+            np.einsum('rnj,rn->rj', g_a1, x),
+            g_a1.sum(axis=1),
+            np.einsum('rnk,rnj->rkj', g_a2, h1),
+            g_a2.sum(axis=1),
+            np.einsum('rn,rnk->rk', g_y, h2),
+            g_y.sum(axis=1),
+        ]
         params = [w - learning_rate * g for w, g in zip(params, grads)]
     return params, losses[0], losses[-1]
 
 
-def fuse_mlp_rows(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, rng: np.random.Generator,
-                  hidden: tuple[int, int] = (6, 3), learning_rate: float = 0.5,
-                  epochs: int = 2000) -> RowFusion:
+def fuse_mlp_rows(
+    Z_sfs: npt.ArrayLike,
+    Z_stereo: npt.ArrayLike,
+    rng: np.random.Generator,
+    hidden: tuple[int, int] = (6, 3),
+    learning_rate: float = 0.5,
+    epochs: int = 2000,
+) -> RowFusion:
     """The seed's ``mlp_rows`` fusion: per image row, a network maps Z_sfs to Z_stereo.
 
     Each row is min-max scaled to [0, 1] (inputs over the whole row of ``Z_sfs``, targets
@@ -109,26 +137,29 @@ def fuse_mlp_rows(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, rng: np.random.
     x_lo, x_span = x_lo[rows, None], np.maximum(x_hi - x_lo, 1e-12)[rows, None]
     t_span = np.maximum(t_hi - t_lo, 1e-12)[:, None]
     t = np.where(mask[rows], (Z_stereo[rows] - t_lo[:, None]) / t_span, 0.0)
-    params, loss0, loss1 = train_row_networks((Z_sfs[rows] - x_lo) / x_span, t, mask[rows],
-                                              rng, hidden, learning_rate, epochs)
+    params, loss0, loss1 = train_row_networks(
+        (Z_sfs[rows] - x_lo) / x_span, t, mask[rows], rng, hidden, learning_rate, epochs
+    )
     # nearest trained row (index into ``rows``) for every image row
     source = np.argmin(np.abs(np.arange(Z_sfs.shape[0])[:, None] - rows[None, :]), axis=1)
     y, _, _ = _forward([w[source] for w in params], (Z_sfs - x_lo[source]) / x_span[source])
     loss_initial, loss_final = np.full(len(trained), np.nan), np.full(len(trained), np.nan)
     loss_initial[rows], loss_final[rows] = loss0, loss1
-    return RowFusion(y * t_span[source] + t_lo[source, None], trained, loss_initial,
-                     loss_final)
+    return RowFusion(y * t_span[source] + t_lo[source, None], trained, loss_initial, loss_final)
 
 
 def _difference_operators(H: int, W: int) -> tuple[sp.spmatrix, sp.spmatrix]:
     """Sparse forward differences along x (columns) and y (rows) of a row-major (H, W)."""
+
     def diff(n: int) -> sp.spmatrix:
         return sp.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], shape=(n - 1, n))
+
     return sp.kron(sp.eye(H), diff(W)), sp.kron(diff(H), sp.eye(W))
 
 
-def fuse_least_squares(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, weight: float = 1.0
-                       ) -> FloatArray:
+def fuse_least_squares(
+    Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, weight: float = 1.0
+) -> FloatArray:
     """Dense depth Z minimising sum_stereo (Z - Z_s)^2 + weight ||grad Z - grad(a Z_sfs + b)||^2.
 
     (a, b) is the least-squares affine fit of Z_sfs to the stereo points, made first;
@@ -147,8 +178,9 @@ def fuse_least_squares(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, weight: fl
     return spsolve(lhs.tocsc(), rhs).reshape(Z_sfs.shape)
 
 
-def depth_error_stats(Z: npt.ArrayLike, G: npt.ArrayLike, mask: BoolArray | None = None
-                      ) -> DepthErrors:
+def depth_error_stats(
+    Z: npt.ArrayLike, G: npt.ArrayLike, mask: BoolArray | None = None
+) -> DepthErrors:
     """§4.5 errors of an estimate ``Z`` against ground truth ``G``, both (H, W), over the
     bool ``mask`` (default: where both are finite). Z is first mapped linearly so that its
     range over the mask becomes G's. Returns ``DepthErrors``."""
@@ -160,24 +192,33 @@ def depth_error_stats(Z: npt.ArrayLike, G: npt.ArrayLike, mask: BoolArray | None
         raise InvalidInput('depth_error_stats: empty mask or constant estimate', key='mask')
     mapped = g.min() + (z - z.min()) * np.ptp(g) / np.ptp(z)
     err = mapped - g
-    return DepthErrors(float(np.mean(np.abs(err))), float(np.std(np.abs(err))),
-                       float(np.sqrt(np.mean(err**2))))
+    return DepthErrors(
+        float(np.mean(np.abs(err))), float(np.std(np.abs(err))), float(np.sqrt(np.mean(err**2)))
+    )
 
 
-def _normalized_blur(values: np.ndarray, weights: np.ndarray, sigma: float
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _normalized_blur(
+    values: np.ndarray, weights: np.ndarray, sigma: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Gaussian-weighted local mean of ``values`` where ``weights`` > 0 (normalised
     convolution); also returns the local weight (the blurred weights)."""
     ksize = int(2 * np.ceil(3 * sigma) + 1)
-    blur = lambda a: cv2.GaussianBlur(a, (ksize, ksize), sigma,  # noqa: E731
-                                      borderType=cv2.BORDER_CONSTANT)
+
+    def blur(a: np.ndarray) -> np.ndarray:
+        return cv2.GaussianBlur(a, (ksize, ksize), sigma, borderType=cv2.BORDER_CONSTANT)
+
     w = blur(weights)
     with np.errstate(invalid='ignore', divide='ignore'):
         return blur(values * weights) / w, w
 
 
-def fuse_local_affine(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, sigma: float = 12.0,
-                      prior: float = 0.5, residual_sigma: float = 4.0) -> FloatArray:
+def fuse_local_affine(
+    Z_sfs: npt.ArrayLike,
+    Z_stereo: npt.ArrayLike,
+    sigma: float = 12.0,
+    prior: float = 0.5,
+    residual_sigma: float = 4.0,
+) -> FloatArray:
     """Our fusion: SFS shape mapped onto the stereo points by a spatially varying affine
     map, then the remaining residual interpolated (all by Gaussian normalised
     convolution, O(HW), no solver).
@@ -205,8 +246,9 @@ def fuse_local_affine(Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike, sigma: floa
     ksize = int(2 * np.ceil(3 * sigma) + 1)
 
     def blur(a: np.ndarray) -> FloatArray:
-        return cv2.GaussianBlur(a, (ksize, ksize), sigma,
-                                borderType=cv2.BORDER_CONSTANT).astype(float)
+        return cv2.GaussianBlur(a, (ksize, ksize), sigma, borderType=cv2.BORDER_CONSTANT).astype(
+            float
+        )
 
     # Gaussian-weighted sums, scaled so that one point at the centre weighs 1.
     scale = 2 * np.pi * sigma**2

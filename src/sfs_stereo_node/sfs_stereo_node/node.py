@@ -7,6 +7,7 @@ Only the newest synchronized pair is processed, in a worker thread: pairs arrivi
 one is processed replace the waiting one and are counted as dropped, so there is never a
 backlog, whatever the per-frame time.
 """
+
 import threading
 import time
 from functools import partial
@@ -71,101 +72,242 @@ class SfsStereoNode(Node):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
         d = DepthConfig()
-        self.params = NodeParameters(self, [
-            Param('window', d.window, 'SSD window side [px] (3 = thesis); odd.',
-                  range=(1, 15), check=lambda v: None if v % 2 else 'must be odd'),
-            Param('max_disparity', d.max_disparity, 'Largest disparity searched [px, full '
-                  'resolution].', range=(1, 1024)),
-            Param('min_disparity', d.min_disparity, 'Smallest disparity searched [px, full '
-                  'resolution].', range=(0, 1023)),
-            Param('match_threshold', d.match_threshold, 'Largest normalised SSD cost of a '
-                  'confident match (sigma_thr).', range=(1e-6, 10.0)),
-            Param('min_texture', d.min_texture, 'Least grey-level std in the window of a '
-                  'confident match [grey levels], a floor under texture_snr; 0 disables.',
-                  range=(0.0, 255.0)),
-            Param('texture_snr', d.texture_snr, 'Least window std of a confident match, in '
-                  'units of the image noise std estimated from each image (contrast and '
-                  'resolution relative); 0 disables.', range=(0.0, 100.0)),
-            Param('min_support', d.min_support, 'Fraction of matches backed by their '
-                  'neighbours below which the pair looks unmatched (a warning).',
-                  range=(0.0, 1.0)),
-            Param('max_pixels', d.max_pixels, 'Images with more pixels are refused before '
-                  'any work (memory bound).', range=(64, 100_000_000)),
-            Param('uniqueness', d.uniqueness, 'Best cost must be this fraction below the '
-                  'best cost more than 1 px away; 0 disables.', range=(0.0, 0.99)),
-            Param('left_right_check', d.left_right_check, 'Keep only matches the right '
-                  'image picks back (within 1 px).'),
-            Param('light_direction', list(d.light_direction), 'Unit vector from the '
-                  'surface toward the light in the LEFT optical frame (x right, y down, z '
-                  'forward).', check=_check_light),
-            Param('albedo', d.albedo, 'Surface albedo.', range=(0.01, 1.0)),
-            Param('ambient', d.ambient, 'Ambient light as a fraction of the source '
-                  '(grey = 255 albedo (R + ambient)).', range=(0.0, 1.0)),
-            Param('roughness', d.roughness, 'Oren-Nayar sigma [rad].', range=(0.0, 1.5)),
-            Param('fusion', d.fusion, 'Fusion of SFS and stereo: shading_refine = ours '
-                  '(default, variational shading refinement); mlp_rows = thesis per-row '
-                  'networks; local_affine; least_squares.', choices=FUSIONS),
-            Param('min_depth', d.min_depth, 'Nearest surface depth the rig sees [m]: '
-                  'limits the disparity search; 0 = no limit.', range=(0.0, 100.0)),
-            Param('max_depth', d.max_depth, 'Farthest surface depth [m]; 0 = no limit.',
-                  range=(0.0, 1000.0)),
-            Param('refine_shading_sigma', d.refine_shading_sigma, 'shading_refine: image '
-                  'noise + model error [grey levels].', range=(0.01, 100.0)),
-            Param('refine_stereo_sigma', d.refine_stereo_sigma, 'shading_refine: stereo '
-                  'depth noise [m].', range=(1e-5, 1.0)),
-            Param('refine_curvature_sigma', d.refine_curvature_sigma, 'shading_refine: '
-                  'thin-plate prior, second difference of depth [m/px^2 at the output '
-                  'resolution].', range=(1e-7, 1.0)),
-            Param('refine_finest_steps', d.refine_finest_steps, 'shading_refine: Gauss-'
-                  'Newton steps on the full grid (0 = coarser levels only, faster).',
-                  range=(0, 20)),
-            Param('stereo', d.stereo, 'Matcher: ssd = thesis normalised SSD; sgbm = '
-                  'cv2.StereoSGBM reference.', choices=STEREOS),
-            Param('seed', d.seed, 'Seed of the mlp_rows network initialisation.',
-                  range=(0, 2**31 - 1)),
-            Param('sfs_iterations', d.sfs_iterations, 'Jacobi-Newton iterations of SFS.',
-                  range=(1, 5000)),
-            Param('sfs_max_step', d.sfs_max_step, 'Largest SFS height step per '
-                  'iteration [px units] (damping).', range=(0.01, 100.0)),
-            Param('sfs_downsample', d.sfs_downsample, 'SFS runs on the processing grid '
-                  'reduced by this factor (speed).', range=(1, 8)),
-            Param('downsample', d.downsample, 'Processing (and output) resolution = '
-                  'rectified image / this.', range=(1, 8)),
-            Param('min_intensity', d.min_intensity, 'Darker pixels are not surface '
-                  '(background, shadow) [grey levels 0..255]: NaN in the depth images.',
-                  range=(0.0, 255.0)),
-            Param('mlp_epochs', d.mlp_epochs, 'Training epochs of mlp_rows.',
-                  range=(1, 100000)),
-            Param('fusion_sigma', d.fusion_sigma, 'local_affine neighbourhood [px].',
-                  range=(1.0, 500.0)),
-            Param('fusion_weight', d.fusion_weight, 'least_squares gradient weight.',
-                  range=(1e-6, 1e6)),
-            Param('sync_max_wait', 1.0, 'Longest wait for the other image of a pair [s].',
-                  range=(0.01, 60.0), read_only=True),
-            Param('log_every', 10.0, 'Seconds between INFO lines on processed frames.',
-                  range=(0.0, 3600.0)),
-            Param('max_rate', 0.0, 'Process at most this many pairs per second of image '
-                  'time: the first pair of each 1/max_rate slot of stamps [Hz]; 0 = as fast '
-                  'as they come. Frees the CPU for other nodes; chosen by stamps, a replayed '
-                  'bag gives the same frames.', range=(0.0, 100.0)),
-        ], self.diagnostics)
+        self.params = NodeParameters(
+            self,
+            [
+                Param(
+                    'window',
+                    d.window,
+                    'SSD window side [px] (3 = thesis); odd.',
+                    range=(1, 15),
+                    check=lambda v: None if v % 2 else 'must be odd',
+                ),
+                Param(
+                    'max_disparity',
+                    d.max_disparity,
+                    'Largest disparity searched [px, full resolution].',
+                    range=(1, 1024),
+                ),
+                Param(
+                    'min_disparity',
+                    d.min_disparity,
+                    'Smallest disparity searched [px, full resolution].',
+                    range=(0, 1023),
+                ),
+                Param(
+                    'match_threshold',
+                    d.match_threshold,
+                    'Largest normalised SSD cost of a confident match (sigma_thr).',
+                    range=(1e-6, 10.0),
+                ),
+                Param(
+                    'min_texture',
+                    d.min_texture,
+                    'Least grey-level std in the window of a '
+                    'confident match [grey levels], a floor under texture_snr; 0 disables.',
+                    range=(0.0, 255.0),
+                ),
+                Param(
+                    'texture_snr',
+                    d.texture_snr,
+                    'Least window std of a confident match, in '
+                    'units of the image noise std estimated from each image (contrast and '
+                    'resolution relative); 0 disables.',
+                    range=(0.0, 100.0),
+                ),
+                Param(
+                    'min_support',
+                    d.min_support,
+                    'Fraction of matches backed by their '
+                    'neighbours below which the pair looks unmatched (a warning).',
+                    range=(0.0, 1.0),
+                ),
+                Param(
+                    'max_pixels',
+                    d.max_pixels,
+                    'Images with more pixels are refused before any work (memory bound).',
+                    range=(64, 100_000_000),
+                ),
+                Param(
+                    'uniqueness',
+                    d.uniqueness,
+                    'Best cost must be this fraction below the '
+                    'best cost more than 1 px away; 0 disables.',
+                    range=(0.0, 0.99),
+                ),
+                Param(
+                    'left_right_check',
+                    d.left_right_check,
+                    'Keep only matches the right image picks back (within 1 px).',
+                ),
+                Param(
+                    'light_direction',
+                    list(d.light_direction),
+                    'Unit vector from the '
+                    'surface toward the light in the LEFT optical frame (x right, y down, z '
+                    'forward).',
+                    check=_check_light,
+                ),
+                Param('albedo', d.albedo, 'Surface albedo.', range=(0.01, 1.0)),
+                Param(
+                    'ambient',
+                    d.ambient,
+                    'Ambient light as a fraction of the source (grey = 255 albedo (R + ambient)).',
+                    range=(0.0, 1.0),
+                ),
+                Param('roughness', d.roughness, 'Oren-Nayar sigma [rad].', range=(0.0, 1.5)),
+                Param(
+                    'fusion',
+                    d.fusion,
+                    'Fusion of SFS and stereo: shading_refine = ours '
+                    '(default, variational shading refinement); mlp_rows = thesis per-row '
+                    'networks; local_affine; least_squares.',
+                    choices=FUSIONS,
+                ),
+                Param(
+                    'min_depth',
+                    d.min_depth,
+                    'Nearest surface depth the rig sees [m]: '
+                    'limits the disparity search; 0 = no limit.',
+                    range=(0.0, 100.0),
+                ),
+                Param(
+                    'max_depth',
+                    d.max_depth,
+                    'Farthest surface depth [m]; 0 = no limit.',
+                    range=(0.0, 1000.0),
+                ),
+                Param(
+                    'refine_shading_sigma',
+                    d.refine_shading_sigma,
+                    'shading_refine: image noise + model error [grey levels].',
+                    range=(0.01, 100.0),
+                ),
+                Param(
+                    'refine_stereo_sigma',
+                    d.refine_stereo_sigma,
+                    'shading_refine: stereo depth noise [m].',
+                    range=(1e-5, 1.0),
+                ),
+                Param(
+                    'refine_curvature_sigma',
+                    d.refine_curvature_sigma,
+                    'shading_refine: '
+                    'thin-plate prior, second difference of depth [m/px^2 at the output '
+                    'resolution].',
+                    range=(1e-7, 1.0),
+                ),
+                Param(
+                    'refine_finest_steps',
+                    d.refine_finest_steps,
+                    'shading_refine: Gauss-'
+                    'Newton steps on the full grid (0 = coarser levels only, faster).',
+                    range=(0, 20),
+                ),
+                Param(
+                    'stereo',
+                    d.stereo,
+                    'Matcher: ssd = thesis normalised SSD; sgbm = cv2.StereoSGBM reference.',
+                    choices=STEREOS,
+                ),
+                Param(
+                    'seed',
+                    d.seed,
+                    'Seed of the mlp_rows network initialisation.',
+                    range=(0, 2**31 - 1),
+                ),
+                Param(
+                    'sfs_iterations',
+                    d.sfs_iterations,
+                    'Jacobi-Newton iterations of SFS.',
+                    range=(1, 5000),
+                ),
+                Param(
+                    'sfs_max_step',
+                    d.sfs_max_step,
+                    'Largest SFS height step per iteration [px units] (damping).',
+                    range=(0.01, 100.0),
+                ),
+                Param(
+                    'sfs_downsample',
+                    d.sfs_downsample,
+                    'SFS runs on the processing grid reduced by this factor (speed).',
+                    range=(1, 8),
+                ),
+                Param(
+                    'downsample',
+                    d.downsample,
+                    'Processing (and output) resolution = rectified image / this.',
+                    range=(1, 8),
+                ),
+                Param(
+                    'min_intensity',
+                    d.min_intensity,
+                    'Darker pixels are not surface '
+                    '(background, shadow) [grey levels 0..255]: NaN in the depth images.',
+                    range=(0.0, 255.0),
+                ),
+                Param(
+                    'mlp_epochs', d.mlp_epochs, 'Training epochs of mlp_rows.', range=(1, 100000)
+                ),
+                Param(
+                    'fusion_sigma',
+                    d.fusion_sigma,
+                    'local_affine neighbourhood [px].',
+                    range=(1.0, 500.0),
+                ),
+                Param(
+                    'fusion_weight',
+                    d.fusion_weight,
+                    'least_squares gradient weight.',
+                    range=(1e-6, 1e6),
+                ),
+                Param(
+                    'sync_max_wait',
+                    1.0,
+                    'Longest wait for the other image of a pair [s].',
+                    range=(0.01, 60.0),
+                    read_only=True,
+                ),
+                Param(
+                    'log_every',
+                    10.0,
+                    'Seconds between INFO lines on processed frames.',
+                    range=(0.0, 3600.0),
+                ),
+                Param(
+                    'max_rate',
+                    0.0,
+                    'Process at most this many pairs per second of image '
+                    'time: the first pair of each 1/max_rate slot of stamps [Hz]; 0 = as fast '
+                    'as they come. Frees the CPU for other nodes; chosen by stamps, a replayed '
+                    'bag gives the same frames.',
+                    range=(0.0, 100.0),
+                ),
+            ],
+            self.diagnostics,
+        )
         self.params.add_check(_ordered_ranges)
         self.cameras = CalibratedCameras(self, ('left', 'right'), self.diagnostics)
         self.publishers_ = {
-            key: self.create_publisher(kind, topic, DEFAULT_QOS,
-                                       publisher_class=CountingPublisher)
-            for key, kind, topic in (('disparity', DisparityImage, DISPARITY_TOPIC),
-                                     ('stereo', Image, STEREO_DEPTH_TOPIC),
-                                     ('sfs', Image, SFS_DEPTH_TOPIC),
-                                     ('fused', Image, FUSED_DEPTH_TOPIC),
-                                     ('info', CameraInfo, DEPTH_INFO_TOPIC),
-                                     ('left_rect', Image, LEFT_RECT_TOPIC))}
-        self.sync = ExactTimeSync(('left', 'right'), self._on_pair, queue_size=10,
-                                  max_wait=self.params.sync_max_wait)
+            key: self.create_publisher(kind, topic, DEFAULT_QOS, publisher_class=CountingPublisher)
+            for key, kind, topic in (
+                ('disparity', DisparityImage, DISPARITY_TOPIC),
+                ('stereo', Image, STEREO_DEPTH_TOPIC),
+                ('sfs', Image, SFS_DEPTH_TOPIC),
+                ('fused', Image, FUSED_DEPTH_TOPIC),
+                ('info', CameraInfo, DEPTH_INFO_TOPIC),
+                ('left_rect', Image, LEFT_RECT_TOPIC),
+            )
+        }
+        self.sync = ExactTimeSync(
+            ('left', 'right'), self._on_pair, queue_size=10, max_wait=self.params.sync_max_wait
+        )
         self.sync_lock = threading.Lock()
         for name in ('left', 'right'):
-            self.create_subscription(Image, IMAGE_TOPICS[name], partial(self._on_image, name),
-                                     DEFAULT_QOS)
+            self.create_subscription(
+                Image, IMAGE_TOPICS[name], partial(self._on_image, name), DEFAULT_QOS
+            )
         self.maps = None
         self.maps_key = None
         self.processed = self.failed = self.throttled = 0
@@ -180,11 +322,11 @@ class SfsStereoNode(Node):
         self.last_log = -float('inf')
         # the newest pair only: pairs arriving while one is processed replace the waiting
         # one (worker.dropped)
-        self.worker = Worker(lambda pair: self._process(*pair), self._on_pair_error,
-                                   'depth')
+        self.worker = Worker(lambda pair: self._process(*pair), self._on_pair_error, 'depth')
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info('waiting for calibrated camera_info + pose of left and '
-                               'right, and image pairs')
+        self.get_logger().info(
+            'waiting for calibrated camera_info + pose of left and right, and image pairs'
+        )
 
     # --- input ------------------------------------------------------------------------
 
@@ -193,9 +335,14 @@ class SfsStereoNode(Node):
             self.sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
             if self.sync.dropped > self.sync_dropped_reported:
                 self.sync_dropped_reported = self.sync.dropped
-                self.diagnostics.reject('stereo pair', InvalidInput(
-                    'image without a partner of identical stamp dropped '
-                    f'({self.sync.dropped} so far)', key='stamp'))
+                self.diagnostics.reject(
+                    'stereo pair',
+                    InvalidInput(
+                        'image without a partner of identical stamp dropped '
+                        f'({self.sync.dropped} so far)',
+                        key='stamp',
+                    ),
+                )
 
     def _on_pair(self, stamp_ns, messages):
         if self.params.max_rate > 0:
@@ -208,13 +355,17 @@ class SfsStereoNode(Node):
 
     def _on_pair_error(self, error):
         self.failed += 1
-        self.diagnostics.reject('stereo pair', error if isinstance(error, InvalidInput)
-                                else f'{type(error).__name__}: {error}')
+        self.diagnostics.reject(
+            'stereo pair',
+            error if isinstance(error, InvalidInput) else f'{type(error).__name__}: {error}',
+        )
 
     def _rectified_pair(self, left_shape):
         if not self.cameras.ready:
-            raise InvalidInput(f'no calibration yet for {", ".join(self.cameras.missing())} '
-                               '(camera_info + pose)', key='camera_info')
+            raise InvalidInput(
+                f'no calibration yet for {", ".join(self.cameras.missing())} (camera_info + pose)',
+                key='camera_info',
+            )
         key = (self.cameras.version, left_shape)
         if self.maps_key != key:
             self.maps = None
@@ -222,12 +373,22 @@ class SfsStereoNode(Node):
             for name, calibrated in (('left', left), ('right', right)):
                 size = (calibrated.camera.height, calibrated.camera.width)
                 if size != left_shape:
-                    raise InvalidInput(f'{name} camera_info is {size[1]}x{size[0]} but the '
-                                       f'images are {left_shape[1]}x{left_shape[0]}',
-                                       key='size')
+                    raise InvalidInput(
+                        f'{name} camera_info is {size[1]}x{size[0]} but the '
+                        f'images are {left_shape[1]}x{left_shape[0]}',
+                        key='size',
+                    )
             self.maps = rectification_maps(
-                left.camera.K, left.camera.D, left.R, left.P, right.camera.K,
-                right.camera.D, right.R, right.P, (left_shape[1], left_shape[0]))
+                left.camera.K,
+                left.camera.D,
+                left.R,
+                left.P,
+                right.camera.K,
+                right.camera.D,
+                right.R,
+                right.P,
+                (left_shape[1], left_shape[0]),
+            )
             self.maps_key = key
         return self.maps
 
@@ -235,31 +396,53 @@ class SfsStereoNode(Node):
         for name in ('left', 'right'):  # before any conversion: a bound on memory
             msg = messages[name]
             if msg.width * msg.height > self.params.max_pixels:
-                raise InvalidInput(f'{name} image {msg.width}x{msg.height} has more than '
-                                   f'max_pixels {self.params.max_pixels} pixels', key='size')
+                raise InvalidInput(
+                    f'{name} image {msg.width}x{msg.height} has more than '
+                    f'max_pixels {self.params.max_pixels} pixels',
+                    key='size',
+                )
         left, right = (image_to_grey(messages[n]) for n in ('left', 'right'))
         if left.shape[:2] != right.shape[:2]:
-            raise InvalidInput(f'left {left.shape[1]}x{left.shape[0]} and right '
-                               f'{right.shape[1]}x{right.shape[0]} images differ in size',
-                               key='size')
+            raise InvalidInput(
+                f'left {left.shape[1]}x{left.shape[0]} and right '
+                f'{right.shape[1]}x{right.shape[0]} images differ in size',
+                key='size',
+            )
         pair = self._rectified_pair(left.shape[:2])
         p = self.params
         config = DepthConfig(
-            window=p.window, max_disparity=p.max_disparity, min_disparity=p.min_disparity,
-            match_threshold=p.match_threshold, min_texture=p.min_texture,
-            uniqueness=p.uniqueness, left_right_check=p.left_right_check,
-            light_direction=tuple(p.light_direction), albedo=p.albedo, ambient=p.ambient,
-            roughness=p.roughness, fusion=p.fusion, stereo=p.stereo, seed=p.seed,
-            sfs_iterations=p.sfs_iterations, sfs_max_step=p.sfs_max_step,
-            sfs_downsample=p.sfs_downsample, downsample=p.downsample,
-            min_intensity=p.min_intensity, mlp_epochs=p.mlp_epochs,
-            fusion_sigma=p.fusion_sigma, fusion_weight=p.fusion_weight,
-            min_depth=p.min_depth, max_depth=p.max_depth, texture_snr=p.texture_snr,
-            min_support=p.min_support, max_pixels=p.max_pixels,
+            window=p.window,
+            max_disparity=p.max_disparity,
+            min_disparity=p.min_disparity,
+            match_threshold=p.match_threshold,
+            min_texture=p.min_texture,
+            uniqueness=p.uniqueness,
+            left_right_check=p.left_right_check,
+            light_direction=tuple(p.light_direction),
+            albedo=p.albedo,
+            ambient=p.ambient,
+            roughness=p.roughness,
+            fusion=p.fusion,
+            stereo=p.stereo,
+            seed=p.seed,
+            sfs_iterations=p.sfs_iterations,
+            sfs_max_step=p.sfs_max_step,
+            sfs_downsample=p.sfs_downsample,
+            downsample=p.downsample,
+            min_intensity=p.min_intensity,
+            mlp_epochs=p.mlp_epochs,
+            fusion_sigma=p.fusion_sigma,
+            fusion_weight=p.fusion_weight,
+            min_depth=p.min_depth,
+            max_depth=p.max_depth,
+            texture_snr=p.texture_snr,
+            min_support=p.min_support,
+            max_pixels=p.max_pixels,
             refine_shading_sigma=p.refine_shading_sigma,
             refine_stereo_sigma=p.refine_stereo_sigma,
             refine_curvature_sigma=p.refine_curvature_sigma,
-            refine_finest_steps=p.refine_finest_steps)
+            refine_finest_steps=p.refine_finest_steps,
+        )
         result = process_pair(left, right, pair, (left.shape[1], left.shape[0]), config)
         self._publish(stamp_ns, result)
         self.processed += 1
@@ -281,16 +464,21 @@ class SfsStereoNode(Node):
                 f'frame {self.processed}: {result.depth_stereo.shape[1]}x'
                 f'{result.depth_stereo.shape[0]}, match density {result.density:.3f}, '
                 f'fused by {self.last_fusion}, '
-                f'{result.timings["total"] * 1000:.0f} ms, {self.worker.dropped} dropped')
+                f'{result.timings["total"] * 1000:.0f} ms, {self.worker.dropped} dropped'
+            )
 
     def _publish(self, stamp_ns, result):
         h, w = result.depth_stereo.shape
         header = make_header(stamp_ns, DEPTH_FRAME)
-        disparity = DisparityImage(header=header, f=float(result.focal_px),
-                                   t=float(result.baseline_m))
+        disparity = DisparityImage(
+            header=header, f=float(result.focal_px), t=float(result.baseline_m)
+        )
         disparity.image = numpy_to_image(
             np.where(np.isfinite(result.disparity), result.disparity, INVALID_DISPARITY),
-            '32FC1', stamp_ns, DEPTH_FRAME)
+            '32FC1',
+            stamp_ns,
+            DEPTH_FRAME,
+        )
         x, y, ww, hh = result.valid_window
         disparity.valid_window.x_offset, disparity.valid_window.y_offset = x, y
         disparity.valid_window.width, disparity.valid_window.height = ww, hh
@@ -298,32 +486,48 @@ class SfsStereoNode(Node):
         disparity.min_disparity = float(self.params.min_disparity / factor)
         disparity.max_disparity = float(self.params.max_disparity / factor)
         disparity.delta_d = 0.1  # subpixel parabola refinement, about 0.1 px
-        info = CameraInfo(header=header, height=h, width=w, distortion_model='plumb_bob',
-                          d=[0.0] * 5, k=result.P[:3, :3].flatten().tolist(),
-                          r=np.eye(3).flatten().tolist(), p=result.P.flatten().tolist())
+        info = CameraInfo(
+            header=header,
+            height=h,
+            width=w,
+            distortion_model='plumb_bob',
+            d=[0.0] * 5,
+            k=result.P[:3, :3].flatten().tolist(),
+            r=np.eye(3).flatten().tolist(),
+            p=result.P.flatten().tolist(),
+        )
         self.publishers_['disparity'].publish(disparity)
-        for key, depth in (('stereo', result.depth_stereo), ('sfs', result.depth_sfs),
-                           ('fused', result.depth_fused)):
+        for key, depth in (
+            ('stereo', result.depth_stereo),
+            ('sfs', result.depth_sfs),
+            ('fused', result.depth_fused),
+        ):
             if depth is None:  # nothing to scale it: the reason is in /diagnostics
                 continue
-            self.publishers_[key].publish(numpy_to_image(depth, '32FC1', stamp_ns,
-                                                         DEPTH_FRAME))
+            self.publishers_[key].publish(numpy_to_image(depth, '32FC1', stamp_ns, DEPTH_FRAME))
         self.publishers_['info'].publish(info)
         # The host image of the stereo coding nodes: the disparity's grid and stamp.
-        self.publishers_['left_rect'].publish(numpy_to_image(result.left_rect, 'mono8',
-                                                             stamp_ns, DEPTH_FRAME))
+        self.publishers_['left_rect'].publish(
+            numpy_to_image(result.left_rect, 'mono8', stamp_ns, DEPTH_FRAME)
+        )
 
     def _publish_diagnostics(self):
-        values = {'frames processed': self.processed, 'frames dropped (busy)': self.worker.dropped,
-                  'frames skipped (max_rate)': self.throttled,
-                  'pairs failed': self.failed, 'unpaired images dropped': self.sync.dropped,
-                  'match density': f'{self.last_density:.4f}',
-                  'fused by': self.last_fusion,
-                  **{k: f'{v:.4f}' if isinstance(v, float) else v
-                     for k, v in self.last_confidence.items()},
-                  'warnings': ' | '.join(self.last_warnings),
-                  **{f'time {k} [ms]': f'{v * 1000:.1f}' for k, v in self.last_timings.items()},
-                  **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()}}
+        values = {
+            'frames processed': self.processed,
+            'frames dropped (busy)': self.worker.dropped,
+            'frames skipped (max_rate)': self.throttled,
+            'pairs failed': self.failed,
+            'unpaired images dropped': self.sync.dropped,
+            'match density': f'{self.last_density:.4f}',
+            'fused by': self.last_fusion,
+            **{
+                k: f'{v:.4f}' if isinstance(v, float) else v
+                for k, v in self.last_confidence.items()
+            },
+            'warnings': ' | '.join(self.last_warnings),
+            **{f'time {k} [ms]': f'{v * 1000:.1f}' for k, v in self.last_timings.items()},
+            **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()},
+        }
         if not self.cameras.ready:
             level, message = 'warn', f'no calibration for {", ".join(self.cameras.missing())}'
         elif not self.processed:
@@ -336,9 +540,11 @@ class SfsStereoNode(Node):
 
     def close(self):
         self.worker.close()
-        self.get_logger().info(f'processed {self.processed} pairs, dropped '
-                               f'{self.worker.dropped}, '
-                               f'failed {self.failed}')
+        self.get_logger().info(
+            f'processed {self.processed} pairs, dropped '
+            f'{self.worker.dropped}, '
+            f'failed {self.failed}'
+        )
 
 
 def main(args=None):

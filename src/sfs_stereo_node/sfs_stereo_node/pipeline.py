@@ -5,6 +5,7 @@ Everything lives in the rectified LEFT frame (ROS convention; the thesis's choic
 right image as reference is internal to it), at the processing resolution: the rectified
 full-resolution images averaged over ``downsample`` x ``downsample`` blocks.
 """
+
 from __future__ import annotations
 
 import time
@@ -115,8 +116,7 @@ def _valid_window(mask: npt.NDArray[np.bool_]) -> tuple[int, int, int, int]:
     rows, cols = np.flatnonzero(mask.all(axis=1)), np.flatnonzero(mask.all(axis=0))
     if not len(rows) or not len(cols):
         return (0, 0, 0, 0)
-    return (int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1),
-            int(rows[-1] - rows[0] + 1))
+    return (int(cols[0]), int(rows[0]), int(cols[-1] - cols[0] + 1), int(rows[-1] - rows[0] + 1))
 
 
 def _oriented(image: np.ndarray, pair: RectifiedPair) -> np.ndarray:
@@ -144,8 +144,11 @@ def disparity_band(pair: RectifiedPair, config: DepthConfig, factor: int) -> tup
     if config.max_depth > 0:
         d_min = max(d_min, fb / config.max_depth)
     if not d_min < d_max:
-        raise InvalidInput(f'empty disparity band: {d_min:.1f}..{d_max:.1f} px (check '
-                           'min/max_disparity against min/max_depth)', key='max_disparity')
+        raise InvalidInput(
+            f'empty disparity band: {d_min:.1f}..{d_max:.1f} px (check '
+            'min/max_disparity against min/max_depth)',
+            key='max_disparity',
+        )
     offset = pair.disparity_offset
     return int(np.floor(offset + d_min)) - 1, int(np.ceil(offset + d_max)) + 1
 
@@ -154,14 +157,22 @@ def check_size(width: int, height: int, config: DepthConfig) -> None:
     """Refuses, before any work, images whose pixels or whose matching memory (a few
     float32 images per pixel plus the coarsest level's band) exceed the bounds."""
     if width * height > config.max_pixels:
-        raise InvalidInput(f'image {width}x{height} has {width * height} pixels, more than '
-                           f'max_pixels {config.max_pixels}', key='size',
-                           value=(width, height))
+        raise InvalidInput(
+            f'image {width}x{height} has {width * height} pixels, more than '
+            f'max_pixels {config.max_pixels}',
+            key='size',
+            value=(width, height),
+        )
 
 
-def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: RectifiedPair,
-                 raw_size: tuple[int, int], config: DepthConfig,
-                 rng: np.random.Generator | None = None) -> DepthResult:
+def process_pair(
+    left_raw: npt.ArrayLike,
+    right_raw: npt.ArrayLike,
+    pair: RectifiedPair,
+    raw_size: tuple[int, int],
+    config: DepthConfig,
+    rng: np.random.Generator | None = None,
+) -> DepthResult:
     """Run the pipeline on one raw pair of grey images (2-D arrays, 0..255).
 
     ``pair`` a full-resolution ``RectifiedPair``; ``raw_size`` (width, height) of the raw
@@ -181,20 +192,26 @@ def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: Rectif
     for raw, maps in ((left_raw, pair.maps_left), (right_raw, pair.maps_right)):
         rect = rectify(to_grey(raw), maps)
         if factor > 1:
-            rect = cv2.resize(rect[:h * factor, :w * factor], (w, h),
-                              interpolation=cv2.INTER_AREA)
+            rect = cv2.resize(
+                rect[: h * factor, : w * factor], (w, h), interpolation=cv2.INTER_AREA
+            )
         images.append(rect.astype(np.float32))
     left, right = images
-    valid = rectified_valid_mask(small.maps_left, raw_size) & \
-        rectified_valid_mask(small.maps_right, raw_size)
+    valid = rectified_valid_mask(small.maps_left, raw_size) & rectified_valid_mask(
+        small.maps_right, raw_size
+    )
     if small.maps_left is None:
         valid = np.ones((h, w), dtype=bool)
-    surface = cv2.morphologyEx((left > config.min_intensity).astype(np.uint8),
-                               cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)).astype(bool)
+    surface = cv2.morphologyEx(
+        (left > config.min_intensity).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)
+    ).astype(bool)
     surface &= cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     if surface.sum() < 16:
-        raise InvalidInput(f'no surface seen: fewer than 16 pixels brighter than '
-                           f'min_intensity {config.min_intensity:g}', key='image')
+        raise InvalidInput(
+            f'no surface seen: fewer than 16 pixels brighter than '
+            f'min_intensity {config.min_intensity:g}',
+            key='image',
+        )
     timings['rectify'] = time.perf_counter() - started
 
     t = time.perf_counter()
@@ -202,11 +219,11 @@ def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: Rectif
     left_o, right_o = _oriented(left, small), _oriented(right, small)
     confidence: dict[str, float] = {}
     if config.stereo == 'sgbm':
-        raw_disparity = sgbm_disparity(left_o, right_o, d_hi, window=max(config.window, 3),
-                                       min_disparity=d_lo)
+        raw_disparity = sgbm_disparity(
+            left_o, right_o, d_hi, window=max(config.window, 3), min_disparity=d_lo
+        )
         with np.errstate(invalid='ignore'):
-            raw_disparity[(raw_disparity <= d_lo + 0.5) | (raw_disparity >= d_hi - 0.5)] = \
-                np.nan
+            raw_disparity[(raw_disparity <= d_lo + 0.5) | (raw_disparity >= d_hi - 0.5)] = np.nan
         support, raw_count = 1.0, 0
     else:
         # The thesis normalises the other image onto the reference's histogram (5.2.2).
@@ -214,12 +231,24 @@ def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: Rectif
         # darker background) would bend the line.
         seen_left = left_o[left_o > config.min_intensity]
         seen_right = right_o[right_o > config.min_intensity]
-        alpha, beta = (histogram_line_fit(seen_left[None], seen_right[None])
-                       if min(len(seen_left), len(seen_right)) > 16 else (1.0, 0.0))
+        alpha, beta = (
+            histogram_line_fit(seen_left[None], seen_right[None])
+            if min(len(seen_left), len(seen_right)) > 16
+            else (1.0, 0.0)
+        )
         matches, levels = match_pyramid(
-            left_o, alpha * right_o + beta, d_lo, d_hi, config.window,
-            config.match_threshold, config.texture_snr, config.min_texture,
-            config.uniqueness, config.left_right_check, config.full_band_layers)
+            left_o,
+            alpha * right_o + beta,
+            d_lo,
+            d_hi,
+            config.window,
+            config.match_threshold,
+            config.texture_snr,
+            config.min_texture,
+            config.uniqueness,
+            config.left_right_check,
+            config.full_band_layers,
+        )
         raw_count = int(np.isfinite(matches.disparity).sum())
         raw_disparity, support = coherent_matches(matches.disparity)
         distinct = matches.distinctiveness[np.isfinite(raw_disparity)]
@@ -234,19 +263,31 @@ def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: Rectif
     confidence['match density'] = density
     timings['stereo'] = time.perf_counter() - t
     if support < config.min_support and raw_count >= 8:
-        warnings.append(f'pair looks unmatched (noise, or not a pair of one scene): only '
-                        f'{100 * support:.0f} % of the matches are backed by their '
-                        f'neighbours (min_support {100 * config.min_support:.0f} %)')
-    result = DepthResult(disparity=disparity.astype(np.float32),
-                         depth_stereo=depth_stereo.astype(np.float32), depth_sfs=None,
-                         depth_fused=None, surface=surface, focal_px=small.focal_px,
-                         baseline_m=small.baseline_m, P=small.P_left,
-                         valid_window=_valid_window(valid), density=density, timings=timings,
-                         confidence=confidence,
-                         left_rect=np.clip(np.rint(left), 0, 255).astype(np.uint8))
+        warnings.append(
+            f'pair looks unmatched (noise, or not a pair of one scene): only '
+            f'{100 * support:.0f} % of the matches are backed by their '
+            f'neighbours (min_support {100 * config.min_support:.0f} %)'
+        )
+    result = DepthResult(
+        disparity=disparity.astype(np.float32),
+        depth_stereo=depth_stereo.astype(np.float32),
+        depth_sfs=None,
+        depth_fused=None,
+        surface=surface,
+        focal_px=small.focal_px,
+        baseline_m=small.baseline_m,
+        P=small.P_left,
+        valid_window=_valid_window(valid),
+        density=density,
+        timings=timings,
+        confidence=confidence,
+        left_rect=np.clip(np.rint(left), 0, 255).astype(np.uint8),
+    )
     if matched.sum() < 8:
-        warnings.append(f'only {int(matched.sum())} confident stereo matches: nothing '
-                        'fixes the depth scale, no SFS or fused depth')
+        warnings.append(
+            f'only {int(matched.sum())} confident stereo matches: nothing '
+            'fixes the depth scale, no SFS or fused depth'
+        )
         timings['total'] = time.perf_counter() - started
         return result._replace(warnings=tuple(warnings))
 
@@ -261,17 +302,37 @@ def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: Rectif
     max_step = config.sfs_max_step
     if k > 1:  # Tsai-Shah needs ~image-width iterations: a coarser grid is k^3 cheaper
         hs, ws = h // k, w // k
-        E_small = cv2.resize(E[:hs * k, :ws * k], (ws, hs), interpolation=cv2.INTER_AREA)
-        mask_small = cv2.resize(surface[:hs * k, :ws * k].astype(np.float32), (ws, hs),
-                                interpolation=cv2.INTER_AREA) > 0.5
-        height_small = sfs_depth(E_small, light_gradient(light), config.albedo,
-                                 config.roughness, config.sfs_iterations, tol=1e-4,
-                                 max_step=max_step, mask=mask_small)
+        E_small = cv2.resize(E[: hs * k, : ws * k], (ws, hs), interpolation=cv2.INTER_AREA)
+        mask_small = (
+            cv2.resize(
+                surface[: hs * k, : ws * k].astype(np.float32),
+                (ws, hs),
+                interpolation=cv2.INTER_AREA,
+            )
+            > 0.5
+        )
+        height_small = sfs_depth(
+            E_small,
+            light_gradient(light),
+            config.albedo,
+            config.roughness,
+            config.sfs_iterations,
+            tol=1e-4,
+            max_step=max_step,
+            mask=mask_small,
+        )
         height = k * cv2.resize(height_small, (w, h), interpolation=cv2.INTER_LINEAR)
     else:
-        height = sfs_depth(E, light_gradient(light), config.albedo, config.roughness,
-                           config.sfs_iterations, tol=1e-4, max_step=max_step,
-                           mask=surface)
+        height = sfs_depth(
+            E,
+            light_gradient(light),
+            config.albedo,
+            config.roughness,
+            config.sfs_iterations,
+            tol=1e-4,
+            max_step=max_step,
+            mask=surface,
+        )
     # Height toward the viewer, in pixel units: depth grows as height falls.
     relief = np.where(surface, -height, np.nan)
     on = matched & surface
@@ -284,14 +345,15 @@ def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: Rectif
     filled = np.where(surface, depth_sfs, np.nanmean(depth_sfs))
     fusion = config.fusion
     try:
-        fused = _fuse(fusion, left, stereo_on_surface, surface, depth_sfs, filled, small,
-                      light, config, rng)
+        fused = _fuse(
+            fusion, left, stereo_on_surface, surface, depth_sfs, filled, small, light, config, rng
+        )
     except InvalidInput as error:
-        warnings.append(f'{fusion} fusion could not run ({error}): fused depth by '
-                        'local_affine instead')
+        warnings.append(
+            f'{fusion} fusion could not run ({error}): fused depth by local_affine instead'
+        )
         fusion = 'local_affine'
-        fused = fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface,
-                                               config.fusion_sigma)
+        fused = fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface, config.fusion_sigma)
     fused = np.where(surface, fused, np.nan)
     # How much of the fused surface stereo backs: pixels within 2 % of the image width
     # of a confident match.
@@ -300,27 +362,45 @@ def process_pair(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike, pair: Rectif
     confidence['fused backed by stereo'] = float((distance[surface] <= reach).mean())
     timings['fusion'] = time.perf_counter() - t
     timings['total'] = time.perf_counter() - started
-    return result._replace(depth_sfs=depth_sfs.astype(np.float32),
-                           depth_fused=fused.astype(np.float32), fusion=fusion,
-                           warnings=tuple(warnings))
+    return result._replace(
+        depth_sfs=depth_sfs.astype(np.float32),
+        depth_fused=fused.astype(np.float32),
+        fusion=fusion,
+        warnings=tuple(warnings),
+    )
 
 
-def _fuse(fusion: str, left: Float32Array, stereo_on_surface: FloatArray,
-          surface: npt.NDArray[np.bool_], depth_sfs: FloatArray, filled: FloatArray,
-          small: RectifiedPair, light: FloatArray, config: DepthConfig,
-          rng: np.random.Generator | None) -> FloatArray:
+def _fuse(
+    fusion: str,
+    left: Float32Array,
+    stereo_on_surface: FloatArray,
+    surface: npt.NDArray[np.bool_],
+    depth_sfs: FloatArray,
+    filled: FloatArray,
+    small: RectifiedPair,
+    light: FloatArray,
+    config: DepthConfig,
+    rng: np.random.Generator | None,
+) -> FloatArray:
     if fusion == 'shading_refine':
         model = ShadingModel(light, config.albedo, config.ambient, config.roughness)
-        return refine_depth(left, stereo_on_surface, surface, small.P_left[:3, :3], model,
-                            sigma_i=config.refine_shading_sigma,
-                            sigma_z=config.refine_stereo_sigma,
-                            curvature_sigma=config.refine_curvature_sigma,
-                            finest_steps=config.refine_finest_steps,
-                            search_axis=0 if small.transpose else 1).depth
+        return refine_depth(
+            left,
+            stereo_on_surface,
+            surface,
+            small.P_left[:3, :3],
+            model,
+            sigma_i=config.refine_shading_sigma,
+            sigma_z=config.refine_stereo_sigma,
+            curvature_sigma=config.refine_curvature_sigma,
+            finest_steps=config.refine_finest_steps,
+            search_axis=0 if small.transpose else 1,
+        ).depth
     if fusion == 'mlp_rows':
         rng = rng if rng is not None else np.random.default_rng(config.seed)
-        return fusion_cores.fuse_mlp_rows(filled, stereo_on_surface, rng,
-                                          epochs=config.mlp_epochs).depth
+        return fusion_cores.fuse_mlp_rows(
+            filled, stereo_on_surface, rng, epochs=config.mlp_epochs
+        ).depth
     if fusion == 'least_squares':
         return fusion_cores.fuse_least_squares(filled, stereo_on_surface, config.fusion_weight)
     return fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface, config.fusion_sigma)

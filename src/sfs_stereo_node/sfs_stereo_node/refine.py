@@ -30,6 +30,7 @@ Coarse to fine: the start is a robust (IRLS) thin-plate interpolation of the ste
 depths (block medians) on the coarsest grid; each finer level starts from the coarser
 solution (bilinear) and takes a few Gauss-Newton steps.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -72,8 +73,15 @@ class RefineResult(NamedTuple):
     levels: list[tuple[int, int, int]]  # per level: (width, unknowns, Gauss-Newton steps)
 
 
-def predicted_grey(Z: FloatArray, Zu: FloatArray, Zv: FloatArray, u: FloatArray, v: FloatArray,
-                   K: FloatArray, model: ShadingModel) -> FloatArray:
+def predicted_grey(
+    Z: FloatArray,
+    Zu: FloatArray,
+    Zv: FloatArray,
+    u: FloatArray,
+    v: FloatArray,
+    K: FloatArray,
+    model: ShadingModel,
+) -> FloatArray:
     """Grey levels the renderer gives a surface point of depth ``Z`` with image-plane
     depth derivatives ``Zu``, ``Zv`` [m/px] at pixel (``u``, ``v``) of the camera ``K``
     (all broadcast arrays); clipped to [0, 255] as the renderer does."""
@@ -93,8 +101,9 @@ def _grid_index(mask: BoolArray) -> IndexArray:
     return index
 
 
-def _first_derivative(mask: BoolArray, index: IndexArray, axis: int
-                      ) -> tuple[sp.csr_matrix, BoolArray]:
+def _first_derivative(
+    mask: BoolArray, index: IndexArray, axis: int
+) -> tuple[sp.csr_matrix, BoolArray]:
     """Sparse derivative along ``axis`` (1 = u, columns; 0 = v, rows) of the unknowns
     (the ``mask`` pixels): central where both neighbours are unknowns, one-sided where
     one is; ``has`` marks rows with a derivative."""
@@ -116,15 +125,19 @@ def _first_derivative(mask: BoolArray, index: IndexArray, axis: int
     both = f & b
     only_f, only_b = f & ~b, b & ~f
     idx = index.ravel()
-    for sel, terms in ((both, ((step, 0.5), (-step, -0.5))),
-                       (only_f, ((step, 1.0), (0, -1.0))),
-                       (only_b, ((0, 1.0), (-step, -1.0)))):
+    for sel, terms in (
+        (both, ((step, 0.5), (-step, -0.5))),
+        (only_f, ((step, 1.0), (0, -1.0))),
+        (only_b, ((0, 1.0), (-step, -1.0))),
+    ):
         for offset, value in terms:
             rows.append(n[sel])
             cols.append(idx[flat[sel] + offset])
             vals.append(np.full(int(sel.sum()), value))
-    D = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(len(flat), len(flat)))
+    D = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(len(flat), len(flat)),
+    )
     return D, f | b
 
 
@@ -134,15 +147,17 @@ def _second_differences(mask: BoolArray, index: IndexArray) -> sp.csr_matrix:
     H, W = mask.shape
     blocks = []
     idx = index.ravel()
-    stencils = (((0, -1, 1.0), (0, 0, -2.0), (0, 1, 1.0)),
-                ((-1, 0, 1.0), (0, 0, -2.0), (1, 0, 1.0)),
-                ((0, 0, 1.0), (0, 1, -1.0), (1, 0, -1.0), (1, 1, 1.0)))
+    stencils = (
+        ((0, -1, 1.0), (0, 0, -2.0), (0, 1, 1.0)),
+        ((-1, 0, 1.0), (0, 0, -2.0), (1, 0, 1.0)),
+        ((0, 0, 1.0), (0, 1, -1.0), (1, 0, -1.0), (1, 1, 1.0)),
+    )
     for stencil in stencils:
         ok = mask.copy()
         for dv, du, _ in stencil:
             shifted = np.zeros_like(mask)
-            src = mask[max(dv, 0):H + min(dv, 0), max(du, 0):W + min(du, 0)]
-            shifted[max(-dv, 0):H + min(-dv, 0), max(-du, 0):W + min(-du, 0)] = src
+            src = mask[max(dv, 0) : H + min(dv, 0), max(du, 0) : W + min(du, 0)]
+            shifted[max(-dv, 0) : H + min(-dv, 0), max(-du, 0) : W + min(-du, 0)] = src
             ok &= shifted
         centres = np.flatnonzero(ok.ravel())
         n = len(centres)
@@ -153,8 +168,9 @@ def _second_differences(mask: BoolArray, index: IndexArray) -> sp.csr_matrix:
     return sp.vstack(blocks).tocsr()
 
 
-def dark_line_mask(image: npt.ArrayLike, surface: BoolArray, size: int = 7,
-                   threshold: float = 8.0) -> BoolArray:
+def dark_line_mask(
+    image: npt.ArrayLike, surface: BoolArray, size: int = 7, threshold: float = 8.0
+) -> BoolArray:
     """Pixels on thin dark lines (the drawn curve): black-hat of a ``size`` square
     structuring element above ``threshold`` grey levels, dilated by one pixel."""
     kernel = np.ones((size, size), np.uint8)
@@ -171,8 +187,9 @@ def horizontal_texture(image: npt.ArrayLike, axis: int = 1) -> FloatArray:
     it is small, and matches there slide along the edge. ``axis`` 0: |dI/dv|, for a
     search along the columns (a vertical baseline)."""
     dx, dy = (1, 0) if axis == 1 else (0, 1)
-    gradient = np.abs(cv2.Sobel(np.asarray(image, dtype=np.float32), cv2.CV_32F, dx, dy,
-                                ksize=3)) / 8.0
+    gradient = (
+        np.abs(cv2.Sobel(np.asarray(image, dtype=np.float32), cv2.CV_32F, dx, dy, ksize=3)) / 8.0
+    )
     return cv2.blur(gradient, (3, 3)).astype(float)
 
 
@@ -180,29 +197,30 @@ def _fill(Z: FloatArray, mask: BoolArray) -> FloatArray:
     """``Z`` with every pixel outside ``mask`` set to its nearest mask pixel's value."""
     if mask.all():
         return Z
-    _, labels = cv2.distanceTransformWithLabels((~mask).astype(np.uint8), cv2.DIST_L2, 3,
-                                                labelType=cv2.DIST_LABEL_PIXEL)
+    _, labels = cv2.distanceTransformWithLabels(
+        (~mask).astype(np.uint8), cv2.DIST_L2, 3, labelType=cv2.DIST_LABEL_PIXEL
+    )
     values = np.zeros(labels.max() + 1)
     values[labels[mask]] = Z[mask]
     return values[labels]
 
 
-def _downsample(array: np.ndarray, factor: int, interpolation: int = cv2.INTER_AREA
-                ) -> FloatArray:
+def _downsample(array: np.ndarray, factor: int, interpolation: int = cv2.INTER_AREA) -> FloatArray:
     H, W = array.shape
     h, w = H // factor, W // factor
-    return cv2.resize(np.ascontiguousarray(array[:h * factor, :w * factor],
-                                           dtype=np.float32), (w, h),
-                      interpolation=interpolation).astype(float)
+    return cv2.resize(
+        np.ascontiguousarray(array[: h * factor, : w * factor], dtype=np.float32),
+        (w, h),
+        interpolation=interpolation,
+    ).astype(float)
 
 
-def _block_median(Z: FloatArray, valid: BoolArray, factor: int
-                  ) -> tuple[FloatArray, FloatArray]:
+def _block_median(Z: FloatArray, valid: BoolArray, factor: int) -> tuple[FloatArray, FloatArray]:
     """Median of the ``valid`` values of ``Z`` in each ``factor`` x ``factor`` block (a
     median, so one wrong match does not drag its block) and their count."""
     H, W = Z.shape
     h, w = H // factor, W // factor
-    rows, cols = np.nonzero(valid[:h * factor, :w * factor])
+    rows, cols = np.nonzero(valid[: h * factor, : w * factor])
     if not len(rows):
         return np.full((h, w), np.nan), np.zeros((h, w))
     block = (rows // factor) * w + cols // factor
@@ -221,13 +239,15 @@ def _block_median(Z: FloatArray, valid: BoolArray, factor: int
 
 def _robust_scale(residual: FloatArray, floor: float) -> float:
     """Cauchy scale from the residuals' median absolute value, at least ``floor``."""
-    return max(floor, 2.0 * 1.4826 * float(np.median(np.abs(residual)))) \
-        if len(residual) else floor
+    return (
+        max(floor, 2.0 * 1.4826 * float(np.median(np.abs(residual)))) if len(residual) else floor
+    )
 
 
 def _level_K(K: FloatArray, factor: int) -> FloatArray:
-    S = np.array([[1.0 / factor, 0, 0.5 / factor - 0.5], [0, 1.0 / factor, 0.5 / factor - 0.5],
-                  [0, 0, 1]])
+    S = np.array(
+        [[1.0 / factor, 0, 0.5 / factor - 0.5], [0, 1.0 / factor, 0.5 / factor - 0.5], [0, 0, 1]]
+    )
     return S @ K
 
 
@@ -241,8 +261,9 @@ class _Level(NamedTuple):
     factor: int
 
 
-def step_edges(image: npt.ArrayLike, surface: BoolArray, lines: BoolArray,
-               threshold: float = 15.0) -> BoolArray:
+def step_edges(
+    image: npt.ArrayLike, surface: BoolArray, lines: BoolArray, threshold: float = 15.0
+) -> BoolArray:
     """Likely occlusion boundaries inside the surface: a 3 x 3 morphological gradient
     above ``threshold`` [grey levels] that is not a drawn dark line and not the
     surface's own outline (3 px). Depth is not tied across them."""
@@ -254,8 +275,15 @@ def step_edges(image: npt.ArrayLike, surface: BoolArray, lines: BoolArray,
     return (gradient > threshold) & interior & ~near_line
 
 
-def _levels(image: FloatArray, Z_stereo: FloatArray, surface: BoolArray, K: FloatArray,
-            lines: BoolArray, min_width: int, cuts: BoolArray | None = None) -> list[_Level]:
+def _levels(
+    image: FloatArray,
+    Z_stereo: FloatArray,
+    surface: BoolArray,
+    K: FloatArray,
+    lines: BoolArray,
+    min_width: int,
+    cuts: BoolArray | None = None,
+) -> list[_Level]:
     H, W = image.shape
     factors = [1]
     while W // (factors[-1] * 2) >= min_width:
@@ -279,19 +307,22 @@ def _levels(image: FloatArray, Z_stereo: FloatArray, surface: BoolArray, K: Floa
         inner = cv2.erode(surf.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         shade = clean & inner & (img < 254.0)
         stereo = np.where(surf, stereo, np.nan)
-        out.append(_Level(img, surf, shade, stereo, np.where(surf, count, 0.0),
-                          _level_K(K, k), k))
+        out.append(_Level(img, surf, shade, stereo, np.where(surf, count, 0.0), _level_K(K, k), k))
     return out[::-1]
 
 
-def _initial_depth(level: _Level, sigma_z: float, curvature_sigma: float,
-                   robust_iterations: int = 6) -> FloatArray:
+def _initial_depth(
+    level: _Level, sigma_z: float, curvature_sigma: float, robust_iterations: int = 6
+) -> FloatArray:
     """Thin-plate interpolation of the stereo depths on the level's surface."""
     index = _grid_index(level.surface)
     has = np.isfinite(level.stereo[level.surface])
     if has.sum() < 3:
-        raise InvalidInput(f'only {int(has.sum())} stereo depths on the coarsest grid: '
-                           'too few to start the shading refinement', key='Z_stereo')
+        raise InvalidInput(
+            f'only {int(has.sum())} stereo depths on the coarsest grid: '
+            'too few to start the shading refinement',
+            key='Z_stereo',
+        )
     D2 = _second_differences(level.surface, index) / curvature_sigma
     smooth = D2.T @ D2
     w0 = np.where(has, level.stereo_count[level.surface], 0.0) / sigma_z**2
@@ -305,12 +336,11 @@ def _initial_depth(level: _Level, sigma_z: float, curvature_sigma: float,
         z = spsolve(A.tocsc(), w * target + prior_weight * prior_depth)
         r = (z - target)[has]
         scale = _robust_scale(r, 3 * sigma_z)
-        w = w0 * np.where(has, 1.0 / (1.0 + ((z - target) / scale)**2), 0.0)
+        w = w0 * np.where(has, 1.0 / (1.0 + ((z - target) / scale) ** 2), 0.0)
     return z
 
 
-def _jacobi_cg(A: sp.csr_matrix, b: FloatArray, iterations: int, rtol: float = 1e-4
-               ) -> FloatArray:
+def _jacobi_cg(A: sp.csr_matrix, b: FloatArray, iterations: int, rtol: float = 1e-4) -> FloatArray:
     """x ~ A^-1 b for a symmetric positive definite sparse ``A`` by Jacobi-preconditioned
     conjugate gradients from x = 0. Own loop with plain numpy reductions: scipy's cg
     calls BLAS dot products, whose threads stall on a loaded machine."""
@@ -334,9 +364,17 @@ def _jacobi_cg(A: sp.csr_matrix, b: FloatArray, iterations: int, rtol: float = 1
     return x
 
 
-def _gauss_newton(level: _Level, z: FloatArray, model: ShadingModel, sigma_i: float,
-                  sigma_z: float, curvature_sigma: float, steps: int, cauchy: float,
-                  max_step: float | None) -> tuple[FloatArray, float]:
+def _gauss_newton(
+    level: _Level,
+    z: FloatArray,
+    model: ShadingModel,
+    sigma_i: float,
+    sigma_z: float,
+    curvature_sigma: float,
+    steps: int,
+    cauchy: float,
+    max_step: float | None,
+) -> tuple[FloatArray, float]:
     mask = level.surface
     index = _grid_index(mask)
     Du, has_u = _first_derivative(mask, index, axis=1)
@@ -361,17 +399,21 @@ def _gauss_newton(level: _Level, z: FloatArray, model: ShadingModel, sigma_i: fl
         # Model derivatives w.r.t. Zu, Zv by central differences; the model depends on
         # (Zu/Z, Zv/Z) only, so dI/dZ = -(Zu dI/dZu + Zv dI/dZv) / Z.
         h = 1e-4 * Zs
-        g_u = (predicted_grey(Zs, Zu + h, Zv, u_s, v_s, K, model)
-               - predicted_grey(Zs, Zu - h, Zv, u_s, v_s, K, model)) / (2 * h)
-        g_v = (predicted_grey(Zs, Zu, Zv + h, u_s, v_s, K, model)
-               - predicted_grey(Zs, Zu, Zv - h, u_s, v_s, K, model)) / (2 * h)
+        g_u = (
+            predicted_grey(Zs, Zu + h, Zv, u_s, v_s, K, model)
+            - predicted_grey(Zs, Zu - h, Zv, u_s, v_s, K, model)
+        ) / (2 * h)
+        g_v = (
+            predicted_grey(Zs, Zu, Zv + h, u_s, v_s, K, model)
+            - predicted_grey(Zs, Zu, Zv - h, u_s, v_s, K, model)
+        ) / (2 * h)
         g_z = -(Zu * g_u + Zv * g_v) / Zs
         # Cauchy scale from the residuals themselves while they are large (a poor start
         # is not outvoted by its own misfit), cauchy sigma_i once they are small.
-        weight = 1.0 / (1.0 + (r / _robust_scale(r, cauchy * sigma_i))**2) / sigma_i**2
+        weight = 1.0 / (1.0 + (r / _robust_scale(r, cauchy * sigma_i)) ** 2) / sigma_i**2
         r_z = (z - target)[has]
         scale = _robust_scale(r_z, cauchy * sigma_z)
-        w_z = w_stereo * np.where(has, 1.0 / (1.0 + ((z - target) / scale)**2), 0.0)
+        w_z = w_stereo * np.where(has, 1.0 / (1.0 + ((z - target) / scale) ** 2), 0.0)
         J = sp.diags(g_z) @ S + sp.diags(g_u) @ (S @ Du) + sp.diags(g_v) @ (S @ Dv)
         JW = J.T @ sp.diags(weight)
         # + a 1 m prior on the update keeps A positive definite where a pixel has lost
@@ -391,9 +433,9 @@ def _gauss_newton(level: _Level, z: FloatArray, model: ShadingModel, sigma_i: fl
     return z, rms
 
 
-def _checked_refine_inputs(image: npt.ArrayLike, Z_stereo: npt.ArrayLike,
-                          surface: npt.ArrayLike, K: np.ndarray
-                          ) -> tuple[FloatArray, FloatArray, BoolArray]:
+def _checked_refine_inputs(
+    image: npt.ArrayLike, Z_stereo: npt.ArrayLike, surface: npt.ArrayLike, K: np.ndarray
+) -> tuple[FloatArray, FloatArray, BoolArray]:
     """``image``, ``Z_stereo`` as float and ``surface`` as bool arrays of one (H, W) shape.
 
     Raises:
@@ -403,15 +445,17 @@ def _checked_refine_inputs(image: npt.ArrayLike, Z_stereo: npt.ArrayLike,
     Z_stereo = np.asarray(Z_stereo, dtype=float)
     surface = np.asarray(surface, dtype=bool)
     if image.ndim != 2 or image.shape != Z_stereo.shape or image.shape != surface.shape:
-        raise InvalidInput(f'image {image.shape}, Z_stereo {Z_stereo.shape} and surface '
-                           f'{surface.shape}: expected one (H, W) shape', key='image')
+        raise InvalidInput(
+            f'image {image.shape}, Z_stereo {Z_stereo.shape} and surface '
+            f'{surface.shape}: expected one (H, W) shape',
+            key='image',
+        )
     if not np.all(np.isfinite(K)) or not (K[0, 0] > 0 and K[1, 1] > 0):
         raise InvalidInput('K must be finite with fx, fy > 0', key='K')
     return image, Z_stereo, surface
 
 
-def _without_false_matches(Z_stereo: FloatArray, surface: BoolArray, sigma_z: float
-                           ) -> FloatArray:
+def _without_false_matches(Z_stereo: FloatArray, surface: BoolArray, sigma_z: float) -> FloatArray:
     """``Z_stereo`` [m] with NaN where a depth is more than 6 robust standard deviations
     (+ 3 ``sigma_z``) from the median of the surface's depths."""
     # Global gate: depths more than 6 robust standard deviations from the median match
@@ -436,25 +480,40 @@ def _upsampled_start(Z: FloatArray, prev: _Level, level: _Level) -> FloatArray:
     coarser level ``prev``: filled off its surface, doubled bilinearly, edge rows and
     columns repeated where the finer grid is larger."""
     Zfill = _fill(np.nan_to_num(Z), prev.surface)
-    up = cv2.resize(Zfill, (prev.surface.shape[1] * 2, prev.surface.shape[0] * 2),
-                    interpolation=cv2.INTER_LINEAR)
+    up = cv2.resize(
+        Zfill,
+        (prev.surface.shape[1] * 2, prev.surface.shape[0] * 2),
+        interpolation=cv2.INTER_LINEAR,
+    )
     H, W = level.surface.shape
     Zfull = np.empty((H, W))
-    Zfull[:up.shape[0], :up.shape[1]] = up[:H, :W]
+    Zfull[: up.shape[0], : up.shape[1]] = up[:H, :W]
     if up.shape[0] < H:
-        Zfull[up.shape[0]:] = Zfull[up.shape[0] - 1]
+        Zfull[up.shape[0] :] = Zfull[up.shape[0] - 1]
     if up.shape[1] < W:
-        Zfull[:, up.shape[1]:] = Zfull[:, up.shape[1] - 1:up.shape[1]]
+        Zfull[:, up.shape[1] :] = Zfull[:, up.shape[1] - 1 : up.shape[1]]
     return Zfull[level.surface]
 
 
-def refine_depth(image: npt.ArrayLike, Z_stereo: npt.ArrayLike, surface: npt.ArrayLike,
-                 K: np.ndarray, model: ShadingModel, sigma_i: float = 2.0,
-                 sigma_z: float = 0.002, curvature_sigma: float = 1e-4,
-                 steps: Sequence[int] = (12, 6, 3), min_width: int = 40, cauchy: float = 3.0,
-                 max_step: float | None = 0.02, finest_steps: int = 1,
-                 min_stereo_gradient: float = 5.0, edge_threshold: float = 15.0,
-                 lines: BoolArray | None = None, search_axis: int = 1) -> RefineResult:
+def refine_depth(
+    image: npt.ArrayLike,
+    Z_stereo: npt.ArrayLike,
+    surface: npt.ArrayLike,
+    K: np.ndarray,
+    model: ShadingModel,
+    sigma_i: float = 2.0,
+    sigma_z: float = 0.002,
+    curvature_sigma: float = 1e-4,
+    steps: Sequence[int] = (12, 6, 3),
+    min_width: int = 40,
+    cauchy: float = 3.0,
+    max_step: float | None = 0.02,
+    finest_steps: int = 1,
+    min_stereo_gradient: float = 5.0,
+    edge_threshold: float = 15.0,
+    lines: BoolArray | None = None,
+    search_axis: int = 1,
+) -> RefineResult:
     """Shading-refined metric depth (module docstring) of one image.
 
     ``image`` (H, W) grey levels 0..255 of the reference camera (rectified);
@@ -474,15 +533,15 @@ def refine_depth(image: npt.ArrayLike, Z_stereo: npt.ArrayLike, surface: npt.Arr
     if lines is None:
         lines = dark_line_mask(image, surface)
     if min_stereo_gradient > 0:
-        Z_stereo = np.where(horizontal_texture(image, search_axis) >= min_stereo_gradient,
-                            Z_stereo, np.nan)
+        Z_stereo = np.where(
+            horizontal_texture(image, search_axis) >= min_stereo_gradient, Z_stereo, np.nan
+        )
     Z_stereo = _without_false_matches(Z_stereo, surface, sigma_z)
     cuts = step_edges(image, surface, lines, edge_threshold) if edge_threshold > 0 else None
     if cuts is not None:  # matches beside an occlusion take the foreground's depth
         Z_stereo = _without_matches_beside_cuts(Z_stereo, cuts)
-    levels = _levels(image, Z_stereo, surface, np.asarray(K, dtype=float), lines, min_width,
-                     cuts)
-    z = _initial_depth(levels[0], sigma_z, curvature_sigma * levels[0].factor**2)
+    levels = _levels(image, Z_stereo, surface, np.asarray(K, dtype=float), lines, min_width, cuts)
+    z = _initial_depth(levels[0], sigma_z, curvature_sigma * levels[0].factor ** 2)
     Z = np.full(levels[0].surface.shape, np.nan)
     Z[levels[0].surface] = z
     report: list[tuple[int, int, int]] = []
@@ -491,15 +550,24 @@ def refine_depth(image: npt.ArrayLike, Z_stereo: npt.ArrayLike, surface: npt.Arr
         if i > 0:
             z = _upsampled_start(Z, levels[i - 1], level)
         n_steps = finest_steps if level.factor == 1 else steps[min(i, len(steps) - 1)]
-        z, rms = _gauss_newton(level, z, model, sigma_i, sigma_z,
-                               curvature_sigma * level.factor**2, n_steps, cauchy,
-                               max_step)
+        z, rms = _gauss_newton(
+            level,
+            z,
+            model,
+            sigma_i,
+            sigma_z,
+            curvature_sigma * level.factor**2,
+            n_steps,
+            cauchy,
+            max_step,
+        )
         Z = np.full(level.surface.shape, np.nan)
         Z[level.surface] = z
         report.append((level.surface.shape[1], int(level.surface.sum()), n_steps))
     if cuts is not None and cuts.any():  # the cut pixels take their nearest neighbour's depth
         Z = np.where(surface, _fill(np.nan_to_num(Z), levels[-1].surface), np.nan)
     if not np.all(np.isfinite(Z[surface])) or not np.all(Z[surface] > 0):
-        raise InvalidInput('shading refinement diverged (non-finite or non-positive depth)',
-                           key='Z')
+        raise InvalidInput(
+            'shading refinement diverged (non-finite or non-positive depth)', key='Z'
+        )
     return RefineResult(Z, rms, report)

@@ -5,6 +5,7 @@ Gradients are per pixel: p = dZ/dx along columns, q = dZ/dy along rows, surface 
 (-p, -q, 1), light (-ps, -qs, 1), viewer (0, 0, 1); Z is the height towards the viewer.
 The source radiance E0 is taken as pi, so R = albedo cos(theta_i) when roughness = 0.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -17,9 +18,15 @@ from vgm_common.geometry import FloatArray
 from vgm_common.reflectance import oren_nayar_terms
 
 
-def reflectance_terms(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: float, albedo: float,
-                      roughness: float, variant: str = 'thesis'
-                      ) -> tuple[FloatArray, FloatArray]:
+def reflectance_terms(
+    p: npt.ArrayLike,
+    q: npt.ArrayLike,
+    ps: float,
+    qs: float,
+    albedo: float,
+    roughness: float,
+    variant: str = 'thesis',
+) -> tuple[FloatArray, FloatArray]:
     """(M, cos_theta_i) of (5.3.5), R = M cos_theta_i, on broadcast arrays p, q: the
     shared Oren-Nayar model with normal (-p, -q, 1), light (-ps, -qs, 1), viewer (0, 0, 1).
 
@@ -34,9 +41,15 @@ def reflectance_terms(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: float, 
     return albedo * M, cos_i
 
 
-def reflectance_terms_fast(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: float,
-                           albedo: float, roughness: float, variant: str = 'thesis'
-                           ) -> tuple[FloatArray, FloatArray]:
+def reflectance_terms_fast(
+    p: npt.ArrayLike,
+    q: npt.ArrayLike,
+    ps: float,
+    qs: float,
+    albedo: float,
+    roughness: float,
+    variant: str = 'thesis',
+) -> tuple[FloatArray, FloatArray]:
     """``reflectance_terms`` in closed form for the fixed viewer (0, 0, 1): the same
     Oren-Nayar values (equal to rounding, unit-tested) without building normal vectors
     or calling arccos, ~4x faster; sfs_depth's inner loop uses it.
@@ -50,7 +63,7 @@ def reflectance_terms_fast(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: fl
     norm_n = np.sqrt(1.0 + grad2)
     norm_s = np.sqrt(1.0 + ps * ps + qs * qs)
     cos_i = (1.0 + p * ps + q * qs) / (norm_n * norm_s)
-    s2 = roughness ** 2
+    s2 = roughness**2
     A, B = 1 - 0.5 * s2 / (s2 + 0.33), 0.45 * s2 / (s2 + 0.09)
     if B == 0:
         return albedo * np.full(cos_i.shape, A), cos_i
@@ -61,18 +74,28 @@ def reflectance_terms_fast(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: fl
     lengths = np.sqrt(sin2_i * sin2_r)
     with np.errstate(divide='ignore', invalid='ignore'):
         cos_phi = np.where(lengths > 1e-12, (1.0 / norm_s - cos_i * cos_r) / lengths, 0.0)
-        sin_alpha = np.sqrt(np.maximum(1.0 - np.minimum(ci, cr)**2, 0.0))
+        sin_alpha = np.sqrt(np.maximum(1.0 - np.minimum(ci, cr) ** 2, 0.0))
         cos_beta = np.maximum(ci, cr)
         sin_beta = np.sqrt(np.maximum(1.0 - cos_beta**2, 0.0))
         f_beta = sin_beta / cos_beta if variant == 'oren_nayar' else sin_beta
     if variant not in ('oren_nayar', 'thesis'):
-        raise InvalidInput(f'variant: expected oren_nayar or thesis, got {variant!r}',
-                           key='variant', value=variant)
+        raise InvalidInput(
+            f'variant: expected oren_nayar or thesis, got {variant!r}',
+            key='variant',
+            value=variant,
+        )
     return albedo * (A + B * np.maximum(0.0, cos_phi) * sin_alpha * f_beta), cos_i
 
 
-def reflectance(p: npt.ArrayLike, q: npt.ArrayLike, ps: float, qs: float, albedo: float,
-                roughness: float, variant: str = 'thesis') -> FloatArray:
+def reflectance(
+    p: npt.ArrayLike,
+    q: npt.ArrayLike,
+    ps: float,
+    qs: float,
+    albedo: float,
+    roughness: float,
+    variant: str = 'thesis',
+) -> FloatArray:
     """Image irradiance R(p, q) = M max(0, cos_theta_i) (5.3.5), attached shadows at 0."""
     M, cos_i = reflectance_terms(p, q, ps, qs, albedo, roughness, variant)
     return M * np.maximum(cos_i, 0.0)
@@ -85,8 +108,11 @@ def light_gradient(light_optical: Sequence[float] | np.ndarray) -> tuple[float, 
     the camera's side of the scene (lz < 0)."""
     lx, ly, lz = (float(v) for v in np.ravel(light_optical))
     if not lz < -1e-3 * np.sqrt(lx**2 + ly**2 + lz**2):
-        raise InvalidInput(f'light direction {light_optical} is not on the camera side '
-                           '(z must be < 0 in the optical frame)', key='light_direction')
+        raise InvalidInput(
+            f'light direction {light_optical} is not on the camera side '
+            '(z must be < 0 in the optical frame)',
+            key='light_direction',
+        )
     return lx / lz, ly / lz
 
 
@@ -104,8 +130,7 @@ def upwind_signs(light: tuple[float, float]) -> tuple[float, float]:
     return (1.0 if ps >= 0 else -1.0), (1.0 if qs >= 0 else -1.0)
 
 
-def _gradients(Z: FloatArray, sx: float = 1.0, sy: float = 1.0
-               ) -> tuple[FloatArray, FloatArray]:
+def _gradients(Z: FloatArray, sx: float = 1.0, sy: float = 1.0) -> tuple[FloatArray, FloatArray]:
     """p = sx (Z(x, y) - Z(x - sx, y)), q = sy (Z(x, y) - Z(x, y - sy)); missing
     neighbours count as 0. sx = sy = 1 are the thesis's backward differences."""
     if sx > 0:
@@ -119,10 +144,19 @@ def _gradients(Z: FloatArray, sx: float = 1.0, sy: float = 1.0
     return p, q
 
 
-def sfs_depth(E: npt.ArrayLike, light: tuple[float, float], albedo: float = 1.0,
-              roughness: float = 0.0, iterations: int = 200, tol: float = 1e-4,
-              eps_c: float = 1e-3, variant: str = 'thesis', mask: npt.ArrayLike | None = None,
-              upwind: bool = True, max_step: float | None = None) -> FloatArray:
+def sfs_depth(
+    E: npt.ArrayLike,
+    light: tuple[float, float],
+    albedo: float = 1.0,
+    roughness: float = 0.0,
+    iterations: int = 200,
+    tol: float = 1e-4,
+    eps_c: float = 1e-3,
+    variant: str = 'thesis',
+    mask: npt.ArrayLike | None = None,
+    upwind: bool = True,
+    max_step: float | None = None,
+) -> FloatArray:
     """Relative height map from one image by the Jacobi-Newton iteration (5.3.11).
 
     ``E`` (H, W) irradiance scaled to [0, 1]; ``light`` (ps, qs). Starts from Z = 0 and
@@ -143,8 +177,9 @@ def sfs_depth(E: npt.ArrayLike, light: tuple[float, float], albedo: float = 1.0,
     """
     E = np.asarray(E, dtype=float)
     if E.ndim != 2:
-        raise InvalidInput(f'E: expected an (H, W) image, got shape {E.shape}', key='E',
-                           value=E.shape)
+        raise InvalidInput(
+            f'E: expected an (H, W) image, got shape {E.shape}', key='E', value=E.shape
+        )
     if mask is not None and np.shape(mask) != E.shape:
         raise InvalidInput(f'mask {np.shape(mask)} differs from E {E.shape}', key='mask')
     ps, qs = light
@@ -157,8 +192,10 @@ def sfs_depth(E: npt.ArrayLike, light: tuple[float, float], albedo: float = 1.0,
         f = E - M * np.maximum(cos_i, 0.0)
         pq = 1 + p**2 + q**2
         # df/dZ = -(sx dR/dp + sy dR/dq), M held constant (A5.2)
-        df = -M * ((sx * ps + sy * qs) / (np.sqrt(pq) * norm_s)
-                   - (sx * p + sy * q) * (1 + p * ps + q * qs) / (pq**1.5 * norm_s))
+        df = -M * (
+            (sx * ps + sy * qs) / (np.sqrt(pq) * norm_s)
+            - (sx * p + sy * q) * (1 + p * ps + q * qs) / (pq**1.5 * norm_s)
+        )
         df = np.where(np.abs(df) < eps_c, np.where(df < 0, -eps_c, eps_c), df)
         step = f / df
         if max_step:

@@ -3,6 +3,7 @@
 Images are (H, W) float arrays of a rectified pair, x = column, y = row. The right image
 is the reference (A5.5): right pixel x matches left pixel x + d, d >= 0 [px].
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -21,13 +22,17 @@ Float32Array = npt.NDArray[np.float32]  # the matcher's working images and cost 
 def _check_image(image: npt.ArrayLike, name: str) -> FloatArray:
     image = np.asarray(image, dtype=float)
     if image.ndim != 2:
-        raise InvalidInput(f'{name}: expected an (H, W) image, got shape {image.shape}',
-                           key=name, value=image.shape)
+        raise InvalidInput(
+            f'{name}: expected an (H, W) image, got shape {image.shape}',
+            key=name,
+            value=image.shape,
+        )
     return image
 
 
-def histogram_line_fit(I_ref: npt.ArrayLike, I_other: npt.ArrayLike, quantiles: int = 256
-                       ) -> tuple[float, float]:
+def histogram_line_fit(
+    I_ref: npt.ArrayLike, I_other: npt.ArrayLike, quantiles: int = 256
+) -> tuple[float, float]:
     """Line alpha, beta with alpha * I_other + beta ~ I_ref in distribution (5.2.2, A5.7).
 
     Grey levels of equal cumulative-histogram value (``quantiles`` levels at (k + 1/2) / n)
@@ -44,12 +49,18 @@ def histogram_line_fit(I_ref: npt.ArrayLike, I_other: npt.ArrayLike, quantiles: 
 def _box_sum(image: FloatArray, window: int) -> np.ndarray:
     """Sums over the window x window patch centred on every pixel of a 2-D float64 image,
     zeros outside (cv2.boxFilter, unnormalised, constant border)."""
-    return cv2.boxFilter(image, cv2.CV_64F, (window, window), normalize=False,
-                         borderType=cv2.BORDER_CONSTANT)
+    return cv2.boxFilter(
+        image, cv2.CV_64F, (window, window), normalize=False, borderType=cv2.BORDER_CONSTANT
+    )
 
 
-def normalized_ssd_volume(I_left: npt.ArrayLike, I_right: npt.ArrayLike, max_disparity: int,
-                          window: int = 3, min_disparity: int = 0) -> FloatArray:
+def normalized_ssd_volume(
+    I_left: npt.ArrayLike,
+    I_right: npt.ArrayLike,
+    max_disparity: int,
+    window: int = 3,
+    min_disparity: int = 0,
+) -> FloatArray:
     """Normalised SSD cost (5.2.3 with A5.5, A5.6) for d = 0..max_disparity.
 
     C(x, y, d) = sum_w (I_r(x+i, y+j) - I_l(x+d+i, y+j))^2
@@ -61,43 +72,59 @@ def normalized_ssd_volume(I_left: npt.ArrayLike, I_right: npt.ArrayLike, max_dis
     """
     I_left, I_right = _check_image(I_left, 'I_left'), _check_image(I_right, 'I_right')
     if I_left.shape != I_right.shape:
-        raise InvalidInput(f'I_left {I_left.shape} and I_right {I_right.shape} differ',
-                           key='I_left', value=I_left.shape)
-    if window < 1 or window % 2 == 0 or max_disparity < 0 or \
-            not 0 <= min_disparity <= max_disparity:
-        raise InvalidInput(f'window must be odd >= 1 and 0 <= min_disparity <= '
-                           f'max_disparity, got {window}, {min_disparity}, {max_disparity}',
-                           key='window', value=window)
+        raise InvalidInput(
+            f'I_left {I_left.shape} and I_right {I_right.shape} differ',
+            key='I_left',
+            value=I_left.shape,
+        )
+    if (
+        window < 1
+        or window % 2 == 0
+        or max_disparity < 0
+        or not 0 <= min_disparity <= max_disparity
+    ):
+        raise InvalidInput(
+            f'window must be odd >= 1 and 0 <= min_disparity <= '
+            f'max_disparity, got {window}, {min_disparity}, {max_disparity}',
+            key='window',
+            value=window,
+        )
     H, W = I_right.shape
     r = window // 2
     cost = np.full((max_disparity + 1, H, W), np.inf)
     # Columns -r..W+r-1, so windows at the image's sides see I_l(x + d + i) where it exists.
     left = np.pad(I_left, ((0, 0), (r, r + max_disparity)))
     right = np.pad(I_right, ((0, 0), (r, r)))
-    energy_right = _box_sum(right**2, window)[:, r:r + W]
+    energy_right = _box_sum(right**2, window)[:, r : r + W]
     # Window energies of the shifted left image are columns of ONE box sum over the
     # padded left image (the kept columns' windows lie inside every shifted view).
     energy_left = _box_sum(left**2, window)
     for d in range(min_disparity, min(max_disparity + 1, W)):
-        shifted = left[:, d:d + W + 2 * r]  # shifted(x) = I_l(x + d), 0 beyond the image
-        ssd = _box_sum((right - shifted) ** 2, window)[:, r:r + W]
-        energy = energy_right * energy_left[:, d + r:d + r + W]
+        shifted = left[:, d : d + W + 2 * r]  # shifted(x) = I_l(x + d), 0 beyond the image
+        ssd = _box_sum((right - shifted) ** 2, window)[:, r : r + W]
+        energy = energy_right * energy_left[:, d + r : d + r + W]
         with np.errstate(divide='ignore', invalid='ignore'):
             layer = ssd / np.sqrt(energy)
         layer[~(energy > 0)] = np.inf
-        layer[:, W - d:] = np.inf
+        layer[:, W - d :] = np.inf
         cost[d] = layer
     return cost
 
 
-def left_reference_volume(I_left: npt.ArrayLike, I_right: npt.ArrayLike, max_disparity: int,
-                          window: int = 3, min_disparity: int = 0) -> FloatArray:
+def left_reference_volume(
+    I_left: npt.ArrayLike,
+    I_right: npt.ArrayLike,
+    max_disparity: int,
+    window: int = 3,
+    min_disparity: int = 0,
+) -> FloatArray:
     """The same normalised SSD with the LEFT image as reference (ROS convention):
     C_L(x, y, d) compares left pixel x with right pixel x - d. Mirroring both images
     swaps their roles, so this is ``normalized_ssd_volume`` on the mirrored pair."""
     I_left, I_right = _check_image(I_left, 'I_left'), _check_image(I_right, 'I_right')
-    cost = normalized_ssd_volume(I_right[:, ::-1], I_left[:, ::-1], max_disparity, window,
-                                 min_disparity)
+    cost = normalized_ssd_volume(
+        I_right[:, ::-1], I_left[:, ::-1], max_disparity, window, min_disparity
+    )
     return np.ascontiguousarray(cost[:, :, ::-1])
 
 
@@ -110,10 +137,16 @@ def window_std(image: npt.ArrayLike, window: int) -> np.ndarray:
     return np.sqrt(np.maximum(mean_sq - mean**2, 0.0))
 
 
-def confident_disparity(cost: npt.ArrayLike, threshold: float,
-                        texture: npt.ArrayLike | None = None, min_texture: float = 0.0,
-                        uniqueness: float = 0.0, left_right_check: bool = True,
-                        lr_tolerance: float = 1, subpixel: bool = True) -> FloatArray:
+def confident_disparity(
+    cost: npt.ArrayLike,
+    threshold: float,
+    texture: npt.ArrayLike | None = None,
+    min_texture: float = 0.0,
+    uniqueness: float = 0.0,
+    left_right_check: bool = True,
+    lr_tolerance: float = 1,
+    subpixel: bool = True,
+) -> FloatArray:
     """Left-reference disparity from a left-reference cost volume (``left_reference_volume``):
     the thesis's selection (C(d0) < threshold, d0 > 0) made confident.
 
@@ -126,8 +159,9 @@ def confident_disparity(cost: npt.ArrayLike, threshold: float,
     """
     cost = np.asarray(cost, dtype=float)
     if cost.ndim != 3:
-        raise InvalidInput(f'cost: expected (D+1, H, W), got {cost.shape}', key='cost',
-                           value=cost.shape)
+        raise InvalidInput(
+            f'cost: expected (D+1, H, W), got {cost.shape}', key='cost', value=cost.shape
+        )
     n_disp, H, W = cost.shape
     # Layers below min_disparity are all +inf (not searched): leave them out of every
     # reduction below (same result; a pixel whose costs are all inf is rejected anyway).
@@ -150,7 +184,7 @@ def confident_disparity(cost: npt.ArrayLike, threshold: float,
         # cost_right[d, y, xr] = C_L(xr + d, y, d): the right image's own costs
         cost_right = np.full_like(cost, np.inf)
         for d in range(first, min(n_disp, W)):
-            cost_right[d - first, :, :W - d] = cost[d - first, :, d:]
+            cost_right[d - first, :, : W - d] = cost[d - first, :, d:]
         d_right = np.argmin(cost_right, axis=0) + first
         x_right = np.maximum(np.arange(W)[None, :] - d0, 0)
         d_back = np.take_along_axis(d_right, x_right, axis=1)
@@ -161,18 +195,25 @@ def confident_disparity(cost: npt.ArrayLike, threshold: float,
         # d0 - 1 below the searched layers reads +inf there, as in the full volume
         lo = np.take_along_axis(cost, np.clip(d0 - 1 - first, 0, None)[None], axis=0)[0]
         lo = np.where(d0 - 1 < first, np.inf, lo)
-        hi = np.take_along_axis(cost, np.clip(d0 + 1 - first, 0, n_disp - 1 - first)[None],
-                                axis=0)[0]
+        hi = np.take_along_axis(
+            cost, np.clip(d0 + 1 - first, 0, n_disp - 1 - first)[None], axis=0
+        )[0]
         with np.errstate(invalid='ignore', divide='ignore'):
             curvature = lo - 2 * c0 + hi
-            offset = np.where(inner & np.isfinite(curvature) & (curvature > 0),
-                              0.5 * (lo - hi) / curvature, 0.0)
+            offset = np.where(
+                inner & np.isfinite(curvature) & (curvature > 0), 0.5 * (lo - hi) / curvature, 0.0
+            )
         disparity += np.clip(np.nan_to_num(offset), -0.5, 0.5)
     return np.where(keep, disparity, np.nan)
 
 
-def sgbm_disparity(I_left: npt.ArrayLike, I_right: npt.ArrayLike, max_disparity: int,
-                   window: int = 5, min_disparity: int = 0) -> FloatArray:
+def sgbm_disparity(
+    I_left: npt.ArrayLike,
+    I_right: npt.ArrayLike,
+    max_disparity: int,
+    window: int = 5,
+    min_disparity: int = 0,
+) -> FloatArray:
     """Reference dense matcher: OpenCV's StereoSGBM on the rectified pair (left
     reference), P1 = 8 w^2, P2 = 32 w^2 as OpenCV's sample suggests. Inputs are grey
     levels (any range; rescaled to uint8). Returns (H, W) float [px], NaN where invalid."""
@@ -183,18 +224,26 @@ def sgbm_disparity(I_left: npt.ArrayLike, I_right: npt.ArrayLike, max_disparity:
     right8 = np.clip((I_right - lo) * scale, 0, 255).astype(np.uint8)
     count = max_disparity - min_disparity + 1
     count = int(np.ceil(count / 16) * 16)  # SGBM wants a multiple of 16
-    matcher = cv2.StereoSGBM.create(minDisparity=int(min_disparity), numDisparities=count,
-                                    blockSize=int(window), P1=8 * window**2,
-                                    P2=32 * window**2, uniquenessRatio=10,
-                                    speckleWindowSize=50, speckleRange=2, disp12MaxDiff=1,
-                                    mode=cv2.STEREO_SGBM_MODE_SGBM)
+    matcher = cv2.StereoSGBM.create(
+        minDisparity=int(min_disparity),
+        numDisparities=count,
+        blockSize=int(window),
+        P1=8 * window**2,
+        P2=32 * window**2,
+        uniquenessRatio=10,
+        speckleWindowSize=50,
+        speckleRange=2,
+        disp12MaxDiff=1,
+        mode=cv2.STEREO_SGBM_MODE_SGBM,
+    )
     disparity = matcher.compute(left8, right8).astype(float) / 16.0
     # SGBM marks invalid pixels with min_disparity - 1
     return np.where(disparity > min_disparity - 1, disparity, np.nan)
 
 
-def sparse_disparity(cost: npt.ArrayLike, threshold: float, left_right_check: bool = False,
-                     lr_tolerance: float = 0) -> FloatArray:
+def sparse_disparity(
+    cost: npt.ArrayLike, threshold: float, left_right_check: bool = False, lr_tolerance: float = 0
+) -> FloatArray:
     """Confident right-image disparity from a (D+1, H, W) cost volume (§4.2 step 5).
 
     d0 = argmin_d C; a pixel is kept where C(d0) < threshold and d0 > 0. With
@@ -204,8 +253,9 @@ def sparse_disparity(cost: npt.ArrayLike, threshold: float, left_right_check: bo
     """
     cost = np.asarray(cost, dtype=float)
     if cost.ndim != 3:
-        raise InvalidInput(f'cost: expected (D+1, H, W), got {cost.shape}', key='cost',
-                           value=cost.shape)
+        raise InvalidInput(
+            f'cost: expected (D+1, H, W), got {cost.shape}', key='cost', value=cost.shape
+        )
     n_disp, H, W = cost.shape
     d0 = np.argmin(cost, axis=0)
     c0 = np.take_along_axis(cost, d0[None], axis=0)[0]
@@ -213,7 +263,7 @@ def sparse_disparity(cost: npt.ArrayLike, threshold: float, left_right_check: bo
     if left_right_check:
         cost_left = np.full_like(cost, np.inf)  # cost_left[d, y, xl] = C(xl - d, y, d)
         for d in range(min(n_disp, W)):
-            cost_left[d, :, d:] = cost[d, :, :W - d]
+            cost_left[d, :, d:] = cost[d, :, : W - d]
         d_left = np.argmin(cost_left, axis=0)
         x_left = np.minimum(np.arange(W)[None, :] + d0, W - 1)
         d_back = np.take_along_axis(d_left, x_left, axis=1)
@@ -221,8 +271,7 @@ def sparse_disparity(cost: npt.ArrayLike, threshold: float, left_right_check: bo
     return np.where(keep, d0.astype(float), np.nan)
 
 
-def depth_from_disparity(disparity: npt.ArrayLike, f_px: float, baseline_m: float
-                         ) -> FloatArray:
+def depth_from_disparity(disparity: npt.ArrayLike, f_px: float, baseline_m: float) -> FloatArray:
     """Depth Z = f b / d (5.2.5) in the unit of ``baseline_m`` [m]; NaN where d is NaN or
     d <= 0. ``disparity`` [px] of any shape, ``f_px`` the focal length [px]."""
     disparity = np.asarray(disparity, dtype=float)
@@ -231,6 +280,7 @@ def depth_from_disparity(disparity: npt.ArrayLike, f_px: float, baseline_m: floa
 
 
 # --- the fast matcher: band-limited cost volume with OpenCV box filters --------------
+
 
 def noise_sigma(image: npt.ArrayLike, flat_fraction: float = 0.25) -> float:
     """Robust estimate of the image noise std [grey levels] (Immerkaer 1996: the
@@ -257,20 +307,23 @@ class Matches(NamedTuple):
 
 
 def _inverse_energy(image: Float32Array, size: tuple[int, int]) -> Float32Array:
-    energy = cv2.boxFilter(image * image, cv2.CV_32F, size, normalize=False,
-                           borderType=cv2.BORDER_REFLECT)
+    energy = cv2.boxFilter(
+        image * image, cv2.CV_32F, size, normalize=False, borderType=cv2.BORDER_REFLECT
+    )
     with np.errstate(divide='ignore'):
-        return np.where(energy > 0, 1.0 / np.sqrt(np.maximum(energy, 1e-30)),
-                        np.inf).astype(np.float32)
+        return np.where(energy > 0, 1.0 / np.sqrt(np.maximum(energy, 1e-30)), np.inf).astype(
+            np.float32
+        )
 
 
 def _columns(d: int, W: int) -> tuple[slice, slice]:
     """(left columns, right columns) that disparity d pairs: right x = left x - d."""
-    return ((slice(d, W), slice(0, W - d)) if d >= 0 else (slice(0, W + d), slice(-d, W)))
+    return (slice(d, W), slice(0, W - d)) if d >= 0 else (slice(0, W + d), slice(-d, W))
 
 
-def cost_layers(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int,
-                window: int = 3) -> Iterator[tuple[int, int, Float32Array]]:
+def cost_layers(
+    I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int, window: int = 3
+) -> Iterator[tuple[int, int, Float32Array]]:
     """Yield (k, d, layer) for the integer raw disparities d = d_lo + k up to d_hi (any
     sign): the left-reference normalised SSD (the thesis's cost, 5.2.3) comparing left
     pixel x with right pixel x - d, float32 (H, W), +inf where x - d leaves the image
@@ -279,11 +332,17 @@ def cost_layers(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: 
     I_left = np.ascontiguousarray(_check_image(I_left, 'I_left'), dtype=np.float32)
     I_right = np.ascontiguousarray(_check_image(I_right, 'I_right'), dtype=np.float32)
     if I_left.shape != I_right.shape:
-        raise InvalidInput(f'I_left {I_left.shape} and I_right {I_right.shape} differ',
-                           key='I_left', value=I_left.shape)
+        raise InvalidInput(
+            f'I_left {I_left.shape} and I_right {I_right.shape} differ',
+            key='I_left',
+            value=I_left.shape,
+        )
     if window < 1 or window % 2 == 0 or d_hi < d_lo:
-        raise InvalidInput(f'window must be odd >= 1 and d_lo <= d_hi, got {window}, '
-                           f'{d_lo}, {d_hi}', key='window', value=window)
+        raise InvalidInput(
+            f'window must be odd >= 1 and d_lo <= d_hi, got {window}, {d_lo}, {d_hi}',
+            key='window',
+            value=window,
+        )
     H, W = I_left.shape
     size = (window, window)
     inv_left, inv_right = _inverse_energy(I_left, size), _inverse_energy(I_right, size)
@@ -292,27 +351,37 @@ def cost_layers(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: 
         if abs(d) < W - window:
             left_cols, right_cols = _columns(d, W)
             diff = I_left[:, left_cols] - I_right[:, right_cols]
-            ssd = cv2.boxFilter(diff * diff, cv2.CV_32F, size, normalize=False,
-                                borderType=cv2.BORDER_REFLECT)
+            ssd = cv2.boxFilter(
+                diff * diff, cv2.CV_32F, size, normalize=False, borderType=cv2.BORDER_REFLECT
+            )
             part = ssd * inv_left[:, left_cols] * inv_right[:, right_cols]
             part[np.isnan(part)] = np.inf
             layer[:, left_cols] = part
         yield k, d, layer
 
 
-def band_cost_volume(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int,
-                     window: int = 3) -> Float32Array:
+def band_cost_volume(
+    I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int, window: int = 3
+) -> Float32Array:
     """The (d_hi - d_lo + 1, H, W) float32 stack of ``cost_layers`` (for tests and
     inspection; the matcher streams the layers instead of storing them)."""
-    return np.stack([layer for _, _, layer in cost_layers(I_left, I_right, d_lo, d_hi,
-                                                           window)])
+    return np.stack([layer for _, _, layer in cost_layers(I_left, I_right, d_lo, d_hi, window)])
 
 
-def match_band(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int,
-               window: int = 3, threshold: float = np.inf,
-               texture: npt.ArrayLike | None = None, min_texture: float = 0.0,
-               uniqueness: float = 0.0, left_right_check: bool = True,
-               lr_tolerance: float = 1, subpixel: bool = True) -> Matches:
+def match_band(
+    I_left: npt.ArrayLike,
+    I_right: npt.ArrayLike,
+    d_lo: int,
+    d_hi: int,
+    window: int = 3,
+    threshold: float = np.inf,
+    texture: npt.ArrayLike | None = None,
+    min_texture: float = 0.0,
+    uniqueness: float = 0.0,
+    left_right_check: bool = True,
+    lr_tolerance: float = 1,
+    subpixel: bool = True,
+) -> Matches:
     """Confident left-reference raw disparity over the band d_lo..d_hi: the thesis's
     selection (best normalised SSD cost below ``threshold``) made confident as
     ``confident_disparity`` describes (texture, uniqueness against the best cost more
@@ -373,14 +442,18 @@ def match_band(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: i
         with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
             cost_lo, cost_hi = lo.astype(float), hi.astype(float)
             curvature = cost_lo - 2 * cost0 + cost_hi
-            offset = np.where(np.isfinite(curvature) & (curvature > 0),
-                              0.5 * (cost_lo - cost_hi) / curvature, 0.0)
+            offset = np.where(
+                np.isfinite(curvature) & (curvature > 0),
+                0.5 * (cost_lo - cost_hi) / curvature,
+                0.0,
+            )
         disparity += np.clip(np.nan_to_num(offset), -0.5, 0.5)
     return Matches(np.where(keep, disparity, np.nan), cost0, distinct)
 
 
-def coherent_matches(disparity: npt.ArrayLike, radius: int = 2, tolerance: float = 1.0,
-                     min_support: int = 2) -> tuple[FloatArray, float]:
+def coherent_matches(
+    disparity: npt.ArrayLike, radius: int = 2, tolerance: float = 1.0, min_support: int = 2
+) -> tuple[FloatArray, float]:
     """``disparity`` with the matches that no neighbour backs removed: a match is kept
     when at least ``min_support`` other matches within ``radius`` px lie within
     ``tolerance`` px of its disparity (false matches are isolated; on a surface,
@@ -400,16 +473,26 @@ def coherent_matches(disparity: npt.ArrayLike, radius: int = 2, tolerance: float
         for dx in range(side):
             if dy == radius and dx == radius:
                 continue
-            nd, nv = padded_d[dy:dy + H, dx:dx + W], padded_v[dy:dy + H, dx:dx + W]
+            nd, nv = padded_d[dy : dy + H, dx : dx + W], padded_v[dy : dy + H, dx : dx + W]
             support += nv * (np.abs(nd - d) <= tolerance)
     backed = valid & (support >= min_support)
     return np.where(backed, disparity, np.nan), float(backed.sum() / valid.sum())
 
 
-def _match_tiles(I_left: Float32Array, I_right: Float32Array, centre: FloatArray,
-                 have: npt.NDArray[np.bool_], window: int, threshold: float,
-                 texture: np.ndarray, min_texture: float, uniqueness: float,
-                 left_right_check: bool, radius: int, tile: int = 64) -> Matches:
+def _match_tiles(
+    I_left: Float32Array,
+    I_right: Float32Array,
+    centre: FloatArray,
+    have: npt.NDArray[np.bool_],
+    window: int,
+    threshold: float,
+    texture: np.ndarray,
+    min_texture: float,
+    uniqueness: float,
+    left_right_check: bool,
+    radius: int,
+    tile: int = 64,
+) -> Matches:
     """``match_band`` tile by tile, each ``tile`` x ``tile`` block searching only the
     disparities its predicted ``centre`` (where ``have``) spans, +- ``radius``: exact
     constant-disparity windows, left-right check and band-edge rejection as on the
@@ -429,8 +512,18 @@ def _match_tiles(I_left: Float32Array, I_right: Float32Array, centre: FloatArray
             hi = int(np.max(centre[r0:r1, c0:c1][known])) + radius
             rows = slice(max(r0 - margin, 0), min(r1 + margin, H))
             a, b = max(c0 - margin - max(hi, 0), 0), min(c1 + margin - min(lo, 0), W)
-            m = match_band(I_left[rows, a:b], I_right[rows, a:b], lo, hi, window, threshold,
-                           texture[rows, a:b], min_texture, uniqueness, left_right_check)
+            m = match_band(
+                I_left[rows, a:b],
+                I_right[rows, a:b],
+                lo,
+                hi,
+                window,
+                threshold,
+                texture[rows, a:b],
+                min_texture,
+                uniqueness,
+                left_right_check,
+            )
             inner = (slice(r0 - rows.start, r1 - rows.start), slice(c0 - a, c1 - a))
             disparity[r0:r1, c0:c1] = m.disparity[inner]
             cost[r0:r1, c0:c1] = m.cost[inner]
@@ -440,15 +533,28 @@ def _match_tiles(I_left: Float32Array, I_right: Float32Array, centre: FloatArray
 
 def _half(image: np.ndarray) -> np.ndarray:
     H, W = image.shape
-    return cv2.resize(np.ascontiguousarray(image[:H // 2 * 2, :W // 2 * 2], dtype=np.float32),
-                      (W // 2, H // 2), interpolation=cv2.INTER_AREA)
+    return cv2.resize(
+        np.ascontiguousarray(image[: H // 2 * 2, : W // 2 * 2], dtype=np.float32),
+        (W // 2, H // 2),
+        interpolation=cv2.INTER_AREA,
+    )
 
 
-def match_pyramid(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi: int,
-                  window: int = 3, threshold: float = np.inf, texture_snr: float = 0.0,
-                  min_texture: float = 0.0, uniqueness: float = 0.0,
-                  left_right_check: bool = True, max_full_band: int = 24,
-                  min_width: int = 96, radius: int = 2) -> tuple[Matches, int]:
+def match_pyramid(
+    I_left: npt.ArrayLike,
+    I_right: npt.ArrayLike,
+    d_lo: int,
+    d_hi: int,
+    window: int = 3,
+    threshold: float = np.inf,
+    texture_snr: float = 0.0,
+    min_texture: float = 0.0,
+    uniqueness: float = 0.0,
+    left_right_check: bool = True,
+    max_full_band: int = 24,
+    min_width: int = 96,
+    radius: int = 2,
+) -> tuple[Matches, int]:
     """``match_band`` made fast for wide bands: while the band has more than
     ``max_full_band`` layers (and the half image keeps ``min_width`` px), the whole
     band is searched on the image halved (INTER_AREA; disparities halve), and the
@@ -467,13 +573,34 @@ def match_pyramid(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi
 
     texture = window_std(I_left, window)
     if d_hi - d_lo + 1 <= max_full_band or W // 2 < min_width:
-        matches = match_band(I_left, I_right, d_lo, d_hi, window, threshold, texture,
-                             texture_floor(I_left), uniqueness, left_right_check)
+        matches = match_band(
+            I_left,
+            I_right,
+            d_lo,
+            d_hi,
+            window,
+            threshold,
+            texture,
+            texture_floor(I_left),
+            uniqueness,
+            left_right_check,
+        )
         return matches, 1
-    coarse, levels = match_pyramid(_half(I_left), _half(I_right), int(np.floor(d_lo / 2)),
-                                   int(np.ceil(d_hi / 2)), window, threshold, texture_snr,
-                                   min_texture, uniqueness, left_right_check, max_full_band,
-                                   min_width, radius)
+    coarse, levels = match_pyramid(
+        _half(I_left),
+        _half(I_right),
+        int(np.floor(d_lo / 2)),
+        int(np.ceil(d_hi / 2)),
+        window,
+        threshold,
+        texture_snr,
+        min_texture,
+        uniqueness,
+        left_right_check,
+        max_full_band,
+        min_width,
+        radius,
+    )
     found = np.isfinite(coarse.disparity)
     # Fill one-pixel holes of the coarse map (its texture test is stricter: averaging
     # halves the shading gradients) from the nearest coarse match.
@@ -482,18 +609,35 @@ def match_pyramid(I_left: npt.ArrayLike, I_right: npt.ArrayLike, d_lo: int, d_hi
     total = cv2.boxFilter(filled, -1, (3, 3), normalize=False)
     with np.errstate(invalid='ignore', divide='ignore'):
         near = np.where(found, filled, np.where(count > 0, total / count, np.nan))
-    up = cv2.resize(np.nan_to_num(near, nan=-1e6).astype(np.float32), (W // 2 * 2, H // 2 * 2),
-                    interpolation=cv2.INTER_NEAREST)
+    up = cv2.resize(
+        np.nan_to_num(near, nan=-1e6).astype(np.float32),
+        (W // 2 * 2, H // 2 * 2),
+        interpolation=cv2.INTER_NEAREST,
+    )
     predicted = np.full((H, W), -1e6, np.float32)
-    predicted[:up.shape[0], :up.shape[1]] = up
+    predicted[: up.shape[0], : up.shape[1]] = up
     have = predicted > -1e5
     centre = np.rint(np.where(have, 2 * predicted, 0.0))
-    fine = _match_tiles(I_left, I_right, centre, have, window, threshold, texture,
-                        texture_floor(I_left), uniqueness, left_right_check, radius)
+    fine = _match_tiles(
+        I_left,
+        I_right,
+        centre,
+        have,
+        window,
+        threshold,
+        texture,
+        texture_floor(I_left),
+        uniqueness,
+        left_right_check,
+        radius,
+    )
     # only where the coarse level found the pixel's match and the fine one agrees
     keep = have & (np.abs(fine.disparity - centre) <= radius)
     disparity, cost = fine.disparity, fine.cost
-    distinct = np.maximum(fine.distinctiveness, cv2.resize(
-        coarse.distinctiveness.astype(np.float32), (W, H),
-        interpolation=cv2.INTER_NEAREST).astype(float))
+    distinct = np.maximum(
+        fine.distinctiveness,
+        cv2.resize(
+            coarse.distinctiveness.astype(np.float32), (W, H), interpolation=cv2.INTER_NEAREST
+        ).astype(float),
+    )
     return Matches(np.where(keep, disparity, np.nan), cost, distinct), levels + 1

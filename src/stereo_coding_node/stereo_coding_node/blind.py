@@ -13,6 +13,7 @@ marked image from an unmarked or wrong-key one (false alarm 2^-32 per image).
 Nothing but the key and the step is shared: the decoder needs neither the original
 image nor the disparity (blind).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -83,33 +84,39 @@ def disparity_code(disparity_px: npt.ArrayLike) -> Bits:
     d = np.asarray(disparity_px, dtype=float)
     rows, cols = code_grid(d.shape)
     padded = np.full((rows * CELL_PX, cols * CELL_PX), np.nan)
-    padded[:d.shape[0], :d.shape[1]] = np.where(np.isfinite(d) & (d >= 0), d, np.nan)
-    windows = padded.reshape(rows, CELL_PX, cols, CELL_PX).transpose(0, 2, 1, 3).reshape(
-        rows, cols, -1)
+    padded[: d.shape[0], : d.shape[1]] = np.where(np.isfinite(d) & (d >= 0), d, np.nan)
+    windows = (
+        padded.reshape(rows, CELL_PX, cols, CELL_PX).transpose(0, 2, 1, 3).reshape(rows, cols, -1)
+    )
     inside = np.zeros_like(padded, dtype=bool)
-    inside[:d.shape[0], :d.shape[1]] = True
+    inside[: d.shape[0], : d.shape[1]] = True
     area = inside.reshape(rows, CELL_PX, cols, CELL_PX).sum(axis=(1, 3))
     count = np.isfinite(windows).sum(axis=2)
     # Unknown pixels sort last: the median of the known ones is at (count - 1) / 2.
     ordered = np.sort(windows, axis=2)
     low_i = np.clip((count - 1) // 2, 0, None)
     high_i = np.clip(count // 2, 0, None)
-    median = 0.5 * (np.take_along_axis(ordered, low_i[..., None], 2)[..., 0]
-                    + np.take_along_axis(ordered, high_i[..., None], 2)[..., 0])
+    median = 0.5 * (
+        np.take_along_axis(ordered, low_i[..., None], 2)[..., 0]
+        + np.take_along_axis(ordered, high_i[..., None], 2)[..., 0]
+    )
     cells = np.where((count > 0) & (count >= MIN_VALID_FRACTION * area), median, np.nan)
     valid = np.isfinite(cells)
     low = np.floor(np.nanmin(cells) / RANGE_UNIT_PX) if valid.any() else 0
     high = np.ceil(np.nanmax(cells) / RANGE_UNIT_PX) if valid.any() else 0
     low, high = int(np.clip(low, 0, 65535)), int(np.clip(high, 0, 65535))
-    top = 2 ** LEVEL_BITS - 1
+    top = 2**LEVEL_BITS - 1
     span = max(high - low, 1) * RANGE_UNIT_PX
-    levels = np.where(valid, 1 + np.rint((np.nan_to_num(cells) - low * RANGE_UNIT_PX) / span
-                                          * (top - 1)), 0)
+    levels = np.where(
+        valid, 1 + np.rint((np.nan_to_num(cells) - low * RANGE_UNIT_PX) / span * (top - 1)), 0
+    )
     levels = np.clip(levels, 0, top).astype(np.uint16)
-    body = np.concatenate([_to_bits(np.array([low, high]), 16),
-                           _to_bits(levels.ravel(), LEVEL_BITS)])
+    body = np.concatenate(
+        [_to_bits(np.array([low, high]), 16), _to_bits(levels.ravel(), LEVEL_BITS)]
+    )
     message = np.packbits(body).tobytes() + zlib.crc32(np.packbits(body).tobytes()).to_bytes(
-        4, 'big')
+        4, 'big'
+    )
     return np.unpackbits(np.frombuffer(bytes(_RS.encode(message)), np.uint8))
 
 
@@ -126,21 +133,21 @@ def disparity_from_code(bits: npt.ArrayLike, shape: tuple[int, ...]) -> FloatArr
         return None
     rows, cols = code_grid(shape)
     levels = _from_bits(body[HEADER_BITS:], LEVEL_BITS).reshape(rows, cols).astype(float)
-    top = 2 ** LEVEL_BITS - 1
+    top = 2**LEVEL_BITS - 1
     span = max(high - low, 1) * RANGE_UNIT_PX
     cells = np.where(levels > 0, low * RANGE_UNIT_PX + (levels - 1) / (top - 1) * span, np.nan)
     return _upsample_cells(cells, shape)
 
 
-def encode(image: npt.ArrayLike, disparity_px: npt.ArrayLike, key: str,
-           step: float = DEFAULT_STEP) -> npt.NDArray[np.uint8]:
+def encode(
+    image: npt.ArrayLike, disparity_px: npt.ArrayLike, key: str, step: float = DEFAULT_STEP
+) -> npt.NDArray[np.uint8]:
     """Embed the disparity code of ``disparity_px`` (H, W) [px] in ``image`` (H, W)
     uint8. Returns the coded (H, W) uint8 image."""
     image = _check_grey(image)
     disparity_px = np.asarray(disparity_px, dtype=float)
     if disparity_px.shape != image.shape:
-        raise CodingError(f'disparity {disparity_px.shape} and image {image.shape} differ '
-                          'in size')
+        raise CodingError(f'disparity {disparity_px.shape} and image {image.shape} differ in size')
     bits = disparity_code(disparity_px)
     blocks, coefficients = _band_coefficients(image)
     slots = _slot_layout(coefficients.shape[:2], bits.size, key)
@@ -148,11 +155,13 @@ def encode(image: npt.ArrayLike, disparity_px: npt.ArrayLike, key: str,
     lattice_offset = (slots.dither + 0.5 * bits[slots.bit_of_slot]) * step
     change = step * np.rint((values - lattice_offset) / step) + lattice_offset - values
     # Only the band coefficients change: add their basis functions, scaled.
-    blocks = blocks + np.einsum('rcb,bij->ricj', change.reshape(coefficients.shape),
-                                _BAND_BASIS, optimize=True)
+    blocks = blocks + np.einsum(
+        'rcb,bij->ricj', change.reshape(coefficients.shape), _BAND_BASIS, optimize=True
+    )
     marked = image.astype(float)
-    marked[:blocks.shape[0] * BLOCK, :blocks.shape[2] * BLOCK] = blocks.reshape(
-        blocks.shape[0] * BLOCK, blocks.shape[2] * BLOCK)
+    marked[: blocks.shape[0] * BLOCK, : blocks.shape[2] * BLOCK] = blocks.reshape(
+        blocks.shape[0] * BLOCK, blocks.shape[2] * BLOCK
+    )
     return np.clip(np.rint(marked), 0, 255).astype(np.uint8)
 
 
@@ -180,13 +189,22 @@ def decode(image: npt.ArrayLike, key: str, step: float = DEFAULT_STEP) -> Detect
     confidence, bits, soft = best
     raw_ber = float(np.mean((soft < 0) != bits[slots.bit_of_slot]))
     disparity = disparity_from_code(bits, image.shape)
-    return Detection(found=disparity is not None, confidence=confidence, raw_ber=raw_ber,
-                     disparity_px=disparity, bits=bits)
+    return Detection(
+        found=disparity is not None,
+        confidence=confidence,
+        raw_ber=raw_ber,
+        disparity_px=disparity,
+        bits=bits,
+    )
 
 
-def decode_rotated(image: npt.ArrayLike, key: str, step: float = DEFAULT_STEP,
-                   max_degrees: float = 15.0,
-                   step_degrees: float = 0.1) -> tuple[Detection, float]:
+def decode_rotated(
+    image: npt.ArrayLike,
+    key: str,
+    step: float = DEFAULT_STEP,
+    max_degrees: float = 15.0,
+    step_degrees: float = 0.1,
+) -> tuple[Detection, float]:
     """Resynchronisation for a rotated image: rotate back by every angle of a grid over
     +-``max_degrees`` (the copies only agree within ~0.1 deg of the true angle), keep the
     angle where the copies agree best, and decode there (Reed-Solomon and the CRC still
@@ -247,7 +265,7 @@ def _band_coefficients(image: np.ndarray) -> tuple[FloatArray, FloatArray]:
     rows, cols = image.shape[0] // BLOCK, image.shape[1] // BLOCK
     if rows == 0 or cols == 0:
         raise CodingError(f'image {image.shape} is smaller than one {BLOCK}x{BLOCK} block')
-    blocks = image[:rows * BLOCK, :cols * BLOCK].astype(float).reshape(rows, BLOCK, cols, BLOCK)
+    blocks = image[: rows * BLOCK, : cols * BLOCK].astype(float).reshape(rows, BLOCK, cols, BLOCK)
     coefficients = np.einsum('ricj,bij->rcb', blocks, _BAND_BASIS, optimize=True)
     return blocks, coefficients
 
@@ -268,8 +286,10 @@ def _slot_layout(block_grid: tuple[int, ...], n_bits: int, key: str) -> _Slots:
     if cache_key not in _SLOT_CACHE:
         n_slots = block_grid[0] * block_grid[1] * len(BANDS)
         if n_slots < n_bits:
-            raise CodingError(f'an image of {block_grid[0] * BLOCK}x{block_grid[1] * BLOCK} '
-                              f'px has {n_slots} coefficients for {n_bits} bits')
+            raise CodingError(
+                f'an image of {block_grid[0] * BLOCK}x{block_grid[1] * BLOCK} '
+                f'px has {n_slots} coefficients for {n_bits} bits'
+            )
         seed = int.from_bytes(hashlib.sha256(str(key).encode()).digest()[:8], 'little')
         rng = np.random.default_rng(seed)
         bit_of_slot = np.empty(n_slots, dtype=np.int64)
@@ -307,7 +327,7 @@ def _checked_body(bits: npt.ArrayLike, shape: tuple[int, ...]) -> Bits | None:
     body, crc = message[:-4], message[-4:]
     if zlib.crc32(body).to_bytes(4, 'big') != crc:
         return None
-    return np.unpackbits(np.frombuffer(body, np.uint8))[:_body_bits(shape)]
+    return np.unpackbits(np.frombuffer(body, np.uint8))[: _body_bits(shape)]
 
 
 def _upsample_cells(cells: FloatArray, shape: tuple[int, ...]) -> FloatArray:
@@ -317,7 +337,8 @@ def _upsample_cells(cells: FloatArray, shape: tuple[int, ...]) -> FloatArray:
     x = (np.arange(W) + 0.5) / CELL_PX - 0.5
     known = np.isfinite(cells)
     nearest_known = known[np.clip(np.rint(y).astype(int), 0, cells.shape[0] - 1)][
-        :, np.clip(np.rint(x).astype(int), 0, cells.shape[1] - 1)]
+        :, np.clip(np.rint(x).astype(int), 0, cells.shape[1] - 1)
+    ]
     filled = np.where(known, cells, np.nanmean(cells) if known.any() else 0.0)
     dense = cv2.resize(filled.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
     return np.where(nearest_known, dense.astype(float), np.nan)
@@ -326,6 +347,5 @@ def _upsample_cells(cells: FloatArray, shape: tuple[int, ...]) -> FloatArray:
 def _check_grey(image: npt.ArrayLike) -> npt.NDArray[np.uint8]:
     image = np.asarray(image)
     if image.ndim != 2 or image.dtype != np.uint8:
-        raise CodingError(f'expected an (H, W) uint8 grey image, got {image.dtype} '
-                          f'{image.shape}')
+        raise CodingError(f'expected an (H, W) uint8 grey image, got {image.dtype} {image.shape}')
     return image

@@ -1,6 +1,7 @@
 """The channel a coded image goes through (thesis Table 6.3's attacks, JPEG qualities,
 noise levels) and the measures of chapter 6: PSNR, SSIM, the uncentred correlation
 (6.6.1). Plain numpy/OpenCV, seeded where random."""
+
 from __future__ import annotations
 
 from typing import cast
@@ -55,7 +56,7 @@ def crop_centre(image: np.ndarray, area_fraction: float = 0.25) -> np.ndarray:
     H, W = image.shape
     h, w = int(round(H * np.sqrt(area_fraction))), int(round(W * np.sqrt(area_fraction)))
     top, left = (H - h) // 2, (W - w) // 2
-    out[top:top + h, left:left + w] = 0
+    out[top : top + h, left : left + w] = 0
     return out
 
 
@@ -83,7 +84,7 @@ def extra_attacks(image: np.ndarray, seed: int = 0) -> dict[str, np.ndarray]:
 def psnr(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
     """PSNR [dB] of two 8-bit images (inf if equal)."""
     mse = np.mean((np.asarray(a, float) - np.asarray(b, float)) ** 2)
-    return float('inf') if mse == 0 else float(10 * np.log10(255.0 ** 2 / mse))
+    return float('inf') if mse == 0 else float(10 * np.log10(255.0**2 / mse))
 
 
 def ssim(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
@@ -92,10 +93,9 @@ def ssim(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
     c1, c2 = (0.01 * 255) ** 2, (0.03 * 255) ** 2
     blur = lambda x: cv2.GaussianBlur(x, (11, 11), 1.5)  # noqa: E731
     mu_a, mu_b = blur(a), blur(b)
-    var_a, var_b = blur(a * a) - mu_a ** 2, blur(b * b) - mu_b ** 2
+    var_a, var_b = blur(a * a) - mu_a**2, blur(b * b) - mu_b**2
     cov = blur(a * b) - mu_a * mu_b
-    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)
-         / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2)))
+    s = (2 * mu_a * mu_b + c1) * (2 * cov + c2) / ((mu_a**2 + mu_b**2 + c1) * (var_a + var_b + c2))
     return float(s.mean())
 
 
@@ -105,5 +105,5 @@ def correlation(w: npt.ArrayLike, w_extracted: npt.ArrayLike) -> float:
     w, e = np.asarray(w, float), np.asarray(w_extracted, float)
     n = min(w.size, e.size)
     w, e = w[:n], e[:n]
-    denominator = np.sqrt(np.sum(w ** 2) * np.sum(e ** 2))
+    denominator = np.sqrt(np.sum(w**2) * np.sum(e**2))
     return float(np.sum(w * e) / denominator) if denominator > 0 else 0.0

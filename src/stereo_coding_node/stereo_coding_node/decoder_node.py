@@ -7,6 +7,7 @@ right view synthesised from both, /stereo/decoded/right/image_rect.
 wrong-key image gives "no watermark" and nothing on the decoded topics (method ours: a
 CRC-32 decides). Method thesis is non-blind: it always extracts something, as the
 thesis's scheme does; it needs the encoder's ``key_file``."""
+
 import os
 import time
 
@@ -47,36 +48,56 @@ class StereoDecodingNode(Node):
     def __init__(self):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(self, common_params() + [
-            Param('transport', 'raw', 'raw = /stereo/coded/image; compressed = '
-                  '/stereo/coded/image/compressed (JPEG).', choices=('raw', 'compressed'),
-                  read_only=True),
-            Param('focal_px', 0.0, 'f of the decoded DisparityImage [px] (0 = unknown).',
-                  range=(0.0, 1e6)),
-            Param('baseline_m', 0.0, 'T of the decoded DisparityImage [m] (0 = unknown).',
-                  range=(0.0, 1e3)),
-        ], self.diagnostics)
+        self.params = NodeParameters(
+            self,
+            common_params()
+            + [
+                Param(
+                    'transport',
+                    'raw',
+                    'raw = /stereo/coded/image; compressed = '
+                    '/stereo/coded/image/compressed (JPEG).',
+                    choices=('raw', 'compressed'),
+                    read_only=True,
+                ),
+                Param(
+                    'focal_px',
+                    0.0,
+                    'f of the decoded DisparityImage [px] (0 = unknown).',
+                    range=(0.0, 1e6),
+                ),
+                Param(
+                    'baseline_m',
+                    0.0,
+                    'T of the decoded DisparityImage [m] (0 = unknown).',
+                    range=(0.0, 1e3),
+                ),
+            ],
+            self.diagnostics,
+        )
         self.publishers_ = {
-            key: self.create_publisher(kind, topic, DEFAULT_QOS,
-                                       publisher_class=CountingPublisher)
+            key: self.create_publisher(kind, topic, DEFAULT_QOS, publisher_class=CountingPublisher)
             for key, kind, topic in (
                 ('disparity', DisparityImage, DECODED_DISPARITY_TOPIC),
                 ('left', Image, DECODED_LEFT_TOPIC),
-                ('right', Image, DECODED_RIGHT_TOPIC))}
+                ('right', Image, DECODED_RIGHT_TOPIC),
+            )
+        }
         self.worker = Worker(self._process, self._on_error, 'stereo decoding')
         if self.params.transport == 'compressed':
-            self.create_subscription(CompressedImage, CODED_COMPRESSED_TOPIC,
-                                     self._on_coded, DEFAULT_QOS)
+            self.create_subscription(
+                CompressedImage, CODED_COMPRESSED_TOPIC, self._on_coded, DEFAULT_QOS
+            )
         else:
             self.create_subscription(Image, CODED_IMAGE_TOPIC, self._on_coded, DEFAULT_QOS)
         # ((path, mtime, size), ThesisKey)
-        self.key_cache: tuple[tuple[str, int, int] | None, thesis.ThesisKey | None] = (
-            None, None)
+        self.key_cache: tuple[tuple[str, int, int] | None, thesis.ThesisKey | None] = (None, None)
         self.decoded = self.unmarked = self.failed = 0
         self.last = {}
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f'method {self.params.method}: waiting for the coded image '
-                               f'({self.params.transport})')
+        self.get_logger().info(
+            f'method {self.params.method}: waiting for the coded image ({self.params.transport})'
+        )
 
     def _on_coded(self, msg):
         self.worker.submit(msg)
@@ -90,8 +111,9 @@ class StereoDecodingNode(Node):
     def _thesis_key(self):
         path = self.params.key_file
         if not path:
-            raise CodingError('method thesis needs key_file (written by the encoder)',
-                              key='key_file')
+            raise CodingError(
+                'method thesis needs key_file (written by the encoder)', key='key_file'
+            )
         try:
             status = os.stat(path)
             signature = (path, status.st_mtime_ns, status.st_size)
@@ -106,8 +128,9 @@ class StereoDecodingNode(Node):
             coded = compressed_to_grey(msg)
         else:
             if msg.encoding not in GREY_ENCODINGS:
-                raise CodingError(f'{CODED_IMAGE_TOPIC} must be mono8, got {msg.encoding!r}',
-                                  key='encoding')
+                raise CodingError(
+                    f'{CODED_IMAGE_TOPIC} must be mono8, got {msg.encoding!r}', key='encoding'
+                )
             coded = image_to_numpy(msg)
         stamp_ns, frame = stamp_to_ns(msg.header.stamp), msg.header.frame_id
         started = time.perf_counter()
@@ -122,9 +145,12 @@ class StereoDecodingNode(Node):
             found, confidence = detection.found, detection.confidence
             values = {'raw bit error rate': f'{detection.raw_ber:.4f}'}
         elapsed = time.perf_counter() - started
-        self.last = {'watermark': 'found' if found else 'none',
-                     'confidence': f'{confidence:.3f}', 'decode [ms]': f'{1000 * elapsed:.1f}',
-                     **values}
+        self.last = {
+            'watermark': 'found' if found else 'none',
+            'confidence': f'{confidence:.3f}',
+            'decode [ms]': f'{1000 * elapsed:.1f}',
+            **values,
+        }
         if not found:
             self.unmarked += 1
             self.diagnostics.publish('watermark', 'warn', 'no watermark', self.last)
@@ -134,31 +160,48 @@ class StereoDecodingNode(Node):
         self.diagnostics.publish('watermark', 'ok', 'watermark found', self.last)
         right = synthesise_right(left, disparity)
         known = np.isfinite(disparity)
-        out = DisparityImage(header=make_header(stamp_ns, frame), f=float(p.focal_px),
-                             T=float(p.baseline_m), min_disparity=0.0,
-                             max_disparity=float(np.max(disparity[known])) if known.any()
-                             else 0.0, delta_d=1.0)
-        out.image = numpy_to_image(np.where(known, disparity, INVALID_DISPARITY)
-                                   .astype(np.float32), '32FC1', stamp_ns, frame)
+        out = DisparityImage(
+            header=make_header(stamp_ns, frame),
+            f=float(p.focal_px),
+            T=float(p.baseline_m),
+            min_disparity=0.0,
+            max_disparity=float(np.max(disparity[known])) if known.any() else 0.0,
+            delta_d=1.0,
+        )
+        out.image = numpy_to_image(
+            np.where(known, disparity, INVALID_DISPARITY).astype(np.float32),
+            '32FC1',
+            stamp_ns,
+            frame,
+        )
         out.valid_window.width, out.valid_window.height = coded.shape[1], coded.shape[0]
         self.publishers_['disparity'].publish(out)
         self.publishers_['left'].publish(numpy_to_image(left, 'mono8', stamp_ns, frame))
         self.publishers_['right'].publish(numpy_to_image(right, 'mono8', stamp_ns, frame))
 
     def _publish_diagnostics(self):
-        values = {'method': self.params.method, 'decoded': self.decoded,
-                  'no watermark': self.unmarked, 'failed': self.failed,
-                  'dropped (newer input)': self.worker.dropped, **self.last,
-                  **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()}}
+        values = {
+            'method': self.params.method,
+            'decoded': self.decoded,
+            'no watermark': self.unmarked,
+            'failed': self.failed,
+            'dropped (newer input)': self.worker.dropped,
+            **self.last,
+            **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()},
+        }
         level = 'ok' if self.decoded else 'warn'
-        message = (f'{self.decoded} images decoded' if self.decoded
-                   else 'no watermarked image decoded yet')
+        message = (
+            f'{self.decoded} images decoded'
+            if self.decoded
+            else 'no watermarked image decoded yet'
+        )
         self.diagnostics.publish('decoding', level, message, values)
 
     def close(self):
         self.worker.close()
-        self.get_logger().info(f'decoded {self.decoded}, no watermark {self.unmarked}, '
-                               f'failed {self.failed}')
+        self.get_logger().info(
+            f'decoded {self.decoded}, no watermark {self.unmarked}, failed {self.failed}'
+        )
 
 
 def main(args=None):

@@ -7,6 +7,7 @@ sorted by descending eigenvalue, are discrete Hermite-Gauss vectors of orders 0,
 N - 2 and then N - 1 (odd N) or N (even N). ``K_a = sum_j exp(-i o_j a) v_j v_j^T`` is
 unitary, ``K_a K_b = K_(a+b)`` and ``K_(pi/2)`` is the unitary DFT.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence

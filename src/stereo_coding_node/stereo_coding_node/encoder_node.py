@@ -5,6 +5,7 @@ publishes the left image carrying its disparity on /stereo/coded/image (mono8) a
 ``method: ours`` (default) is blind and keyed (``key``); ``method: thesis`` is the
 thesis's non-blind ZIG-ZAG + DFrFT + SVD scheme, whose side information is written to
 ``key_file`` for the decoder."""
+
 import os
 import time
 
@@ -40,21 +41,44 @@ GREY_ENCODINGS = ('mono8', '8UC1')
 def common_params():
     """The parameters both coding nodes declare (they must agree on them)."""
     return [
-        Param('method', 'ours', 'ours = blind keyed QIM in the 8x8 DCT mid band; thesis = '
-              'ZIG-ZAG + DFrFT + SVD, non-blind (key_file).', choices=METHODS),
-        Param('key', 'vgm-stereo', 'Shared secret of method ours: seeds where and how the '
-              'bits are hidden.', check=lambda v: None if v else 'must not be empty'),
-        Param('strength', 0.0, 'Embedding strength; 0 = the method\'s default. thesis: '
-              'alpha_w (0.45); ours: QIM step [grey levels] (28, about 43 dB).',
-              range=(0.0, 128.0)),
-        Param('key_file', '', 'method thesis: the side information (.npz) the encoder '
-              'writes and the decoder reads.'),
-        Param('frft_angles', list(thesis.DEFAULT_ANGLES), 'method thesis: DFrFT angles '
-              '(a, b) [rad] (order 2a/pi), not given by the thesis.',
-              check=lambda v: None if len(v) == 2 else 'needs two angles'),
-        Param('watermark_scale', 'pixels', 'method thesis: how the disparity becomes the '
-              'watermark (unstated in the thesis): pixels, full_range [0, 255], unit [0, 1].',
-              choices=thesis.WATERMARK_SCALES),
+        Param(
+            'method',
+            'ours',
+            'ours = blind keyed QIM in the 8x8 DCT mid band; thesis = '
+            'ZIG-ZAG + DFrFT + SVD, non-blind (key_file).',
+            choices=METHODS,
+        ),
+        Param(
+            'key',
+            'vgm-stereo',
+            'Shared secret of method ours: seeds where and how the bits are hidden.',
+            check=lambda v: None if v else 'must not be empty',
+        ),
+        Param(
+            'strength',
+            0.0,
+            "Embedding strength; 0 = the method's default. thesis: "
+            'alpha_w (0.45); ours: QIM step [grey levels] (28, about 43 dB).',
+            range=(0.0, 128.0),
+        ),
+        Param(
+            'key_file',
+            '',
+            'method thesis: the side information (.npz) the encoder writes and the decoder reads.',
+        ),
+        Param(
+            'frft_angles',
+            list(thesis.DEFAULT_ANGLES),
+            'method thesis: DFrFT angles (a, b) [rad] (order 2a/pi), not given by the thesis.',
+            check=lambda v: None if len(v) == 2 else 'needs two angles',
+        ),
+        Param(
+            'watermark_scale',
+            'pixels',
+            'method thesis: how the disparity becomes the '
+            'watermark (unstated in the thesis): pixels, full_range [0, 255], unit [0, 1].',
+            choices=thesis.WATERMARK_SCALES,
+        ),
     ]
 
 
@@ -70,39 +94,66 @@ class StereoCodingNode(Node):
     def __init__(self):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(self, common_params() + [
-            Param('jpeg_quality', 90, 'JPEG quality of /stereo/coded/image/compressed.',
-                  range=(1, 100)),
-            Param('sync_max_wait', 1.0, 'Longest wait for the image or disparity of a '
-                  'stamp [s].', range=(0.01, 60.0), read_only=True),
-        ], self.diagnostics)
+        self.params = NodeParameters(
+            self,
+            common_params()
+            + [
+                Param(
+                    'jpeg_quality',
+                    90,
+                    'JPEG quality of /stereo/coded/image/compressed.',
+                    range=(1, 100),
+                ),
+                Param(
+                    'sync_max_wait',
+                    1.0,
+                    'Longest wait for the image or disparity of a stamp [s].',
+                    range=(0.01, 60.0),
+                    read_only=True,
+                ),
+            ],
+            self.diagnostics,
+        )
         self.coded_publisher = self.create_publisher(
-            Image, CODED_IMAGE_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher)
+            Image, CODED_IMAGE_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
+        )
         self.compressed_publisher = self.create_publisher(
-            CompressedImage, CODED_COMPRESSED_TOPIC, DEFAULT_QOS,
-            publisher_class=CountingPublisher)
-        self.sync = ExactTimeSync(('image', 'disparity'), self._on_pair, queue_size=10,
-                                  max_wait=self.params.sync_max_wait)
+            CompressedImage, CODED_COMPRESSED_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
+        )
+        self.sync = ExactTimeSync(
+            ('image', 'disparity'),
+            self._on_pair,
+            queue_size=10,
+            max_wait=self.params.sync_max_wait,
+        )
         self.sync_dropped_reported = 0
         self.worker = Worker(self._process, self._on_error, 'stereo coding')
-        self.create_subscription(Image, LEFT_RECT_TOPIC,
-                                 lambda m: self._on_input('image', m), DEFAULT_QOS)
-        self.create_subscription(DisparityImage, DISPARITY_TOPIC,
-                                 lambda m: self._on_input('disparity', m), DEFAULT_QOS)
+        self.create_subscription(
+            Image, LEFT_RECT_TOPIC, lambda m: self._on_input('image', m), DEFAULT_QOS
+        )
+        self.create_subscription(
+            DisparityImage, DISPARITY_TOPIC, lambda m: self._on_input('disparity', m), DEFAULT_QOS
+        )
         self.coded = self.failed = 0
         self.last = {}
         self.create_timer(1.0, self._publish_diagnostics)
-        self.get_logger().info(f'method {self.params.method}: waiting for '
-                               f'{LEFT_RECT_TOPIC} + {DISPARITY_TOPIC}')
+        self.get_logger().info(
+            f'method {self.params.method}: waiting for {LEFT_RECT_TOPIC} + {DISPARITY_TOPIC}'
+        )
 
     def _on_input(self, key, msg):
         stamp = stamp_to_ns(msg.header.stamp)
         self.sync.add(key, stamp, msg, time.monotonic())
         if self.sync.dropped > self.sync_dropped_reported:
             self.sync_dropped_reported = self.sync.dropped
-            self.diagnostics.reject('input pair', InvalidInput(
-                'image or disparity without a partner of identical stamp dropped '
-                f'({self.sync.dropped} so far)', key='stamp'))
+            self.diagnostics.reject(
+                'input pair',
+                InvalidInput(
+                    'image or disparity without a partner of identical stamp dropped '
+                    f'({self.sync.dropped} so far)',
+                    key='stamp',
+                ),
+            )
 
     def _on_pair(self, stamp_ns, messages):
         self.worker.submit((stamp_ns, messages))
@@ -117,26 +168,35 @@ class StereoCodingNode(Node):
         stamp_ns, messages = item
         image_msg, disparity_msg = messages['image'], messages['disparity']
         if image_msg.encoding not in GREY_ENCODINGS:
-            raise CodingError(f'{LEFT_RECT_TOPIC} must be mono8, got '
-                              f'{image_msg.encoding!r}', key='encoding')
+            raise CodingError(
+                f'{LEFT_RECT_TOPIC} must be mono8, got {image_msg.encoding!r}', key='encoding'
+            )
         if disparity_msg.image.encoding != '32FC1':
-            raise CodingError(f'{DISPARITY_TOPIC} image must be 32FC1, got '
-                              f'{disparity_msg.image.encoding!r}', key='encoding')
+            raise CodingError(
+                f'{DISPARITY_TOPIC} image must be 32FC1, got {disparity_msg.image.encoding!r}',
+                key='encoding',
+            )
         left = image_to_numpy(image_msg)
         disparity = image_to_numpy(disparity_msg.image).astype(float)
         if disparity.shape != left.shape:
-            raise CodingError(f'disparity {disparity.shape[1]}x{disparity.shape[0]} and image '
-                              f'{left.shape[1]}x{left.shape[0]} differ in size', key='size')
+            raise CodingError(
+                f'disparity {disparity.shape[1]}x{disparity.shape[0]} and image '
+                f'{left.shape[1]}x{left.shape[0]} differ in size',
+                key='size',
+            )
         # stereo_msgs: values below min_disparity mark unknown pixels.
         disparity[~(disparity >= disparity_msg.min_disparity)] = np.nan
         started = time.perf_counter()
         p = self.params
         if p.method == 'thesis':
             if not p.key_file:
-                raise CodingError('method thesis needs key_file (where the side '
-                                  'information is written)', key='key_file')
-            coded, key = thesis.encode(left, disparity, tuple(p.frft_angles),
-                                       effective_strength(p), p.watermark_scale)
+                raise CodingError(
+                    'method thesis needs key_file (where the side information is written)',
+                    key='key_file',
+                )
+            coded, key = thesis.encode(
+                left, disparity, tuple(p.frft_angles), effective_strength(p), p.watermark_scale
+            )
             self._write_key(key, p.key_file)
             reference = thesis.zigzag_degrade(left)
         else:
@@ -146,11 +206,14 @@ class StereoCodingNode(Node):
         frame = image_msg.header.frame_id
         self.coded_publisher.publish(numpy_to_image(coded, 'mono8', stamp_ns, frame))
         self.compressed_publisher.publish(
-            grey_to_compressed_jpeg(coded, p.jpeg_quality, stamp_ns, frame))
+            grey_to_compressed_jpeg(coded, p.jpeg_quality, stamp_ns, frame)
+        )
         mse = float(np.mean((coded.astype(float) - reference) ** 2))
         self.coded += 1
-        self.last = {'psnr [dB]': f'{10 * np.log10(255 ** 2 / max(mse, 1e-12)):.2f}',
-                     'encode [ms]': f'{1000 * elapsed:.1f}'}
+        self.last = {
+            'psnr [dB]': f'{10 * np.log10(255**2 / max(mse, 1e-12)):.2f}',
+            'encode [ms]': f'{1000 * elapsed:.1f}',
+        }
         if p.method == 'ours':
             self.last['payload bits'] = blind.payload_bits(left.shape)
 
@@ -161,14 +224,20 @@ class StereoCodingNode(Node):
             key.save(temporary)
             os.replace(temporary, path)
         except OSError as error:
-            raise CodingError(f'cannot write key_file {path}: {error.strerror}',
-                              key='key_file') from None
+            raise CodingError(
+                f'cannot write key_file {path}: {error.strerror}', key='key_file'
+            ) from None
 
     def _publish_diagnostics(self):
-        values = {'method': self.params.method, 'coded': self.coded, 'failed': self.failed,
-                  'dropped (newer input)': self.worker.dropped,
-                  'dropped (no partner)': self.sync.dropped, **self.last,
-                  **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()}}
+        values = {
+            'method': self.params.method,
+            'coded': self.coded,
+            'failed': self.failed,
+            'dropped (newer input)': self.worker.dropped,
+            'dropped (no partner)': self.sync.dropped,
+            **self.last,
+            **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()},
+        }
         level = 'ok' if self.coded else 'warn'
         message = f'{self.coded} images coded' if self.coded else 'no image coded yet'
         self.diagnostics.publish('coding', level, message, values)

@@ -1,5 +1,6 @@
 """This package's errors: both derive from vgm_common's InvalidInput, so nodes catch
 VgmError, report a diagnostic and keep serving."""
+
 from vgm_common.errors import InvalidInput
 
 

@@ -1,5 +1,6 @@
 """The right view synthesised from the left image and its disparity (left reference, a
 left pixel at column x appears at x - d in the right image)."""
+
 from __future__ import annotations
 
 import numpy as np

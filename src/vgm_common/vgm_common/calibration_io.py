@@ -11,6 +11,7 @@ Two formats:
   ``pose_in_base_link: {position: [x, y, z], orientation: [x, y, z, w]}`` (the optical
   frame in base_link), and optional ``quality`` (e.g. reprojection RMS per camera).
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -41,31 +42,43 @@ def _matrix(rows: int, cols: int, values: npt.ArrayLike) -> dict[str, int | list
     return {'rows': rows, 'cols': cols, 'data': [float(v) for v in np.ravel(values)]}
 
 
-def camera_yaml_dict(camera: PinholeCamera, camera_name: str, R: npt.ArrayLike | None = None,
-                     P: npt.ArrayLike | None = None) -> dict[str, object]:
+def camera_yaml_dict(
+    camera: PinholeCamera,
+    camera_name: str,
+    R: npt.ArrayLike | None = None,
+    P: npt.ArrayLike | None = None,
+) -> dict[str, object]:
     """The camera_calibration_parsers mapping of a plumb_bob PinholeCamera."""
     if camera.distortion_model != 'plumb_bob':
-        raise InvalidInput(f'{camera_name}: only plumb_bob cameras can be written, got '
-                           f'{camera.distortion_model!r}', key='distortion_model')
+        raise InvalidInput(
+            f'{camera_name}: only plumb_bob cameras can be written, got '
+            f'{camera.distortion_model!r}',
+            key='distortion_model',
+        )
     R = np.eye(3) if R is None else np.asarray(R, dtype=float)
     P = np.hstack([camera.K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=float)
-    return {'image_width': int(camera.width), 'image_height': int(camera.height),
-            'camera_name': camera_name, 'camera_matrix': _matrix(3, 3, camera.K),
-            'distortion_model': 'plumb_bob',
-            'distortion_coefficients': _matrix(1, len(camera.D), camera.D),
-            'rectification_matrix': _matrix(3, 3, R), 'projection_matrix': _matrix(3, 4, P)}
+    return {
+        'image_width': int(camera.width),
+        'image_height': int(camera.height),
+        'camera_name': camera_name,
+        'camera_matrix': _matrix(3, 3, camera.K),
+        'distortion_model': 'plumb_bob',
+        'distortion_coefficients': _matrix(1, len(camera.D), camera.D),
+        'rectification_matrix': _matrix(3, 3, R),
+        'projection_matrix': _matrix(3, 4, P),
+    }
 
 
-def _read_matrix(entry: Mapping[str, Any], key: str,
-                 shape: tuple[int, ...] | None) -> FloatArray:
+def _read_matrix(entry: Mapping[str, Any], key: str, shape: tuple[int, ...] | None) -> FloatArray:
     try:
         value = entry[key]
         data = np.array(value['data'], dtype=float)
         if shape is not None:
             data = data.reshape(shape)
     except (KeyError, TypeError, ValueError) as error:
-        raise InvalidInput(f'{key}: expected {{rows, cols, data}} of shape {shape} ({error})',
-                           key=key) from None
+        raise InvalidInput(
+            f'{key}: expected {{rows, cols, data}} of shape {shape} ({error})', key=key
+        ) from None
     if not np.all(np.isfinite(data)):
         raise InvalidInput(f'{key}: non-finite values', key=key)
     return data
@@ -76,17 +89,20 @@ def camera_from_yaml_dict(entry: object, T_base_camera: FloatArray | None = None
     if not isinstance(entry, dict):
         raise InvalidInput('camera entry must be a mapping', key='camera')
     if entry.get('distortion_model', 'plumb_bob') != 'plumb_bob':
-        raise InvalidInput(f'unsupported distortion model {entry["distortion_model"]!r}',
-                           key='distortion_model')
+        raise InvalidInput(
+            f'unsupported distortion model {entry["distortion_model"]!r}', key='distortion_model'
+        )
     K = _read_matrix(entry, 'camera_matrix', (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
-        raise InvalidInput(f'camera_matrix is not an intrinsic matrix: {K.tolist()}',
-                           key='camera_matrix')
+        raise InvalidInput(
+            f'camera_matrix is not an intrinsic matrix: {K.tolist()}', key='camera_matrix'
+        )
     try:
         width, height = int(entry['image_width']), int(entry['image_height'])
     except (KeyError, TypeError, ValueError):
-        raise InvalidInput('image_width and image_height are required integers',
-                           key='image_width') from None
+        raise InvalidInput(
+            'image_width and image_height are required integers', key='image_width'
+        ) from None
     if width <= 0 or height <= 0:
         raise InvalidInput('image size must be positive', key='image_width')
     D = _read_matrix(entry, 'distortion_coefficients', None)
@@ -96,10 +112,16 @@ def camera_from_yaml_dict(entry: object, T_base_camera: FloatArray | None = None
     return PinholeCamera(width, height, K, D, T), R, P
 
 
-def write_camera_yaml(path: str | Path, camera: PinholeCamera, camera_name: str,
-                      R: npt.ArrayLike | None = None, P: npt.ArrayLike | None = None) -> None:
-    Path(path).write_text(yaml.safe_dump(camera_yaml_dict(camera, camera_name, R, P),
-                                         sort_keys=False))
+def write_camera_yaml(
+    path: str | Path,
+    camera: PinholeCamera,
+    camera_name: str,
+    R: npt.ArrayLike | None = None,
+    P: npt.ArrayLike | None = None,
+) -> None:
+    Path(path).write_text(
+        yaml.safe_dump(camera_yaml_dict(camera, camera_name, R, P), sort_keys=False)
+    )
 
 
 def read_camera_yaml(path: str | Path) -> CameraEntry:
@@ -107,10 +129,13 @@ def read_camera_yaml(path: str | Path) -> CameraEntry:
     return camera_from_yaml_dict(yaml.safe_load(Path(path).read_text()))
 
 
-def write_calibration(directory: str | Path, cameras: Mapping[str, PinholeCamera],
-                      frame_ids: Mapping[str, str],
-                      rectification: Mapping[str, Rectification] | None = None,
-                      quality: Mapping[str, Mapping[str, float]] | None = None) -> Path:
+def write_calibration(
+    directory: str | Path,
+    cameras: Mapping[str, PinholeCamera],
+    frame_ids: Mapping[str, str],
+    rectification: Mapping[str, Rectification] | None = None,
+    quality: Mapping[str, Mapping[str, float]] | None = None,
+) -> Path:
     """Write ``calibration.yaml`` and one camera_calibration_parsers file per camera.
 
     Args:
@@ -136,7 +161,8 @@ def write_calibration(directory: str | Path, cameras: Mapping[str, PinholeCamera
         entry['frame_id'] = frame_ids[name]
         entry['pose_in_base_link'] = {
             'position': [float(v) for v in T[:3, 3]],
-            'orientation': [float(v) for v in matrix_to_quaternion(T[:3, :3])]}
+            'orientation': [float(v) for v in matrix_to_quaternion(T[:3, :3])],
+        }
         if quality and name in quality:
             entry['quality'] = {k: float(v) for k, v in quality[name].items()}
         rig[name] = entry
@@ -154,11 +180,13 @@ def read_calibration(path: str | Path) -> dict[str, CameraEntry]:
     try:
         document = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as error:
-        raise InvalidInput(f'cannot read calibration file {path}: {error}',
-                           key='calibration_file') from None
+        raise InvalidInput(
+            f'cannot read calibration file {path}: {error}', key='calibration_file'
+        ) from None
     if not isinstance(document, dict) or not isinstance(document.get('cameras'), dict):
-        raise InvalidInput(f'{path}: expected a top-level "cameras" mapping',
-                           key='calibration_file')
+        raise InvalidInput(
+            f'{path}: expected a top-level "cameras" mapping', key='calibration_file'
+        )
     rig: dict[str, CameraEntry] = {}
     for name, entry in document['cameras'].items():
         try:
@@ -166,23 +194,32 @@ def read_calibration(path: str | Path) -> dict[str, CameraEntry]:
             position = np.array(pose['position'], dtype=float).reshape(3)
             quaternion = np.array(pose['orientation'], dtype=float).reshape(4)
         except (KeyError, TypeError, ValueError):
-            raise InvalidInput(f'{path}: cameras.{name}.pose_in_base_link needs position [3] '
-                               'and orientation [x, y, z, w]', key=f'cameras.{name}') from None
-        if not (np.all(np.isfinite(position)) and np.all(np.isfinite(quaternion))
-                and abs(np.linalg.norm(quaternion) - 1) < 1e-6):
-            raise InvalidInput(f'{path}: cameras.{name}.pose_in_base_link is not a finite '
-                               'pose with a unit quaternion', key=f'cameras.{name}')
+            raise InvalidInput(
+                f'{path}: cameras.{name}.pose_in_base_link needs position [3] '
+                'and orientation [x, y, z, w]',
+                key=f'cameras.{name}',
+            ) from None
+        if not (
+            np.all(np.isfinite(position))
+            and np.all(np.isfinite(quaternion))
+            and abs(np.linalg.norm(quaternion) - 1) < 1e-6
+        ):
+            raise InvalidInput(
+                f'{path}: cameras.{name}.pose_in_base_link is not a finite '
+                'pose with a unit quaternion',
+                key=f'cameras.{name}',
+            )
         T = make_transform(quaternion_to_matrix(quaternion), position)
         try:
             rig[name] = camera_from_yaml_dict(entry, T)
         except InvalidInput as error:
-            raise InvalidInput(f'{path}: cameras.{name}: {error}',
-                               key=f'cameras.{name}') from None
+            raise InvalidInput(f'{path}: cameras.{name}: {error}', key=f'cameras.{name}') from None
     return rig
 
 
-def stereo_rectification(left: PinholeCamera, right: PinholeCamera, alpha: float = 0.0
-                         ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+def stereo_rectification(
+    left: PinholeCamera, right: PinholeCamera, alpha: float = 0.0
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """The rectified stereo pair of two plumb_bob PinholeCameras with poses (ROS
     convention, as cv2.stereoRectify computes it): {'left': (R1, P1), 'right': (R2, P2)}
     where R rotates the camera's optical frame into the rectified frame and the right P
@@ -190,6 +227,14 @@ def stereo_rectification(left: PinholeCamera, right: PinholeCamera, alpha: float
     T_right_left = right.T_camera_base @ left.T_base_camera
     size = (int(left.width), int(left.height))
     R1, R2, P1, P2, *_ = cv2.stereoRectify(
-        left.K, left.D, right.K, right.D, size, T_right_left[:3, :3],
-        T_right_left[:3, 3].reshape(3, 1), flags=cv2.CALIB_ZERO_DISPARITY, alpha=alpha)
+        left.K,
+        left.D,
+        right.K,
+        right.D,
+        size,
+        T_right_left[:3, :3],
+        T_right_left[:3, 3].reshape(3, 1),
+        flags=cv2.CALIB_ZERO_DISPARITY,
+        alpha=alpha,
+    )
     return {'left': (R1, P1), 'right': (R2, P2)}

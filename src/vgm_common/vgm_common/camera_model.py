@@ -14,6 +14,7 @@ x = (X/Z, Y/Z):
   projecting solves a cubic and undistorting is explicit, x_u = x_d (1 + kappa |x_d|^2).
   The thesis's k (focal-plane units) gives kappa = k f^2.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -64,14 +65,14 @@ def division_distorted_radius(r_u: npt.ArrayLike, kappa: float) -> FloatArray:
             r = 2 / s * np.cos(np.arccos(-1.5 * s * r_u) / 3 - 2 * np.pi / 3)
     # One Newton step removes the cancellation of the cos form near r = 0 and leaves
     # both forms at rounding error, so project and undistort_pixels invert each other.
-    return r - (kappa * r ** 3 + r - r_u) / (3 * kappa * r ** 2 + 1)
+    return r - (kappa * r**3 + r - r_u) / (3 * kappa * r**2 + 1)
 
 
 def distort_division(xy: npt.ArrayLike, kappa: float) -> FloatArray:
     """Apply the division model to (N, 2) undistorted normalised points."""
     xy = np.asarray(xy, dtype=float)
     r_d = division_distorted_radius(np.hypot(xy[:, 0], xy[:, 1]), kappa)
-    return xy / (1 + kappa * r_d ** 2)[:, None]
+    return xy / (1 + kappa * r_d**2)[:, None]
 
 
 @dataclass(frozen=True)
@@ -95,12 +96,16 @@ class PinholeCamera:
             array.setflags(write=False)
             object.__setattr__(self, name, array)
         if self.distortion_model not in DISTORTION_MODELS:
-            raise InvalidInput(f'distortion_model: expected one of '
-                               f'{", ".join(DISTORTION_MODELS)}, got {self.distortion_model!r}',
-                               key='distortion_model', value=self.distortion_model)
+            raise InvalidInput(
+                f'distortion_model: expected one of '
+                f'{", ".join(DISTORTION_MODELS)}, got {self.distortion_model!r}',
+                key='distortion_model',
+                value=self.distortion_model,
+            )
         if self.distortion_model == 'division' and self.D.shape != (1,):
-            raise InvalidInput(f'D: the division model takes D = (kappa,), got {self.D}',
-                               key='D', value=self.D)
+            raise InvalidInput(
+                f'D: the division model takes D = (kappa,), got {self.D}', key='D', value=self.D
+            )
 
     @property
     def T_camera_base(self) -> FloatArray:
@@ -126,11 +131,15 @@ class PinholeCamera:
         with np.errstate(divide='ignore', invalid='ignore'):
             xy = points_camera[:, :2] / depth[:, None]
         xy[depth <= 0] = np.nan
-        xy_d = (distort_division(xy, self.D[0]) if self.distortion_model == 'division'
-                else distort_normalized(xy, self.D))
+        xy_d = (
+            distort_division(xy, self.D[0])
+            if self.distortion_model == 'division'
+            else distort_normalized(xy, self.D)
+        )
         K = self.K
-        pixels = np.column_stack([K[0, 0] * xy_d[:, 0] + K[0, 1] * xy_d[:, 1] + K[0, 2],
-                                  K[1, 1] * xy_d[:, 1] + K[1, 2]])
+        pixels = np.column_stack(
+            [K[0, 0] * xy_d[:, 0] + K[0, 1] * xy_d[:, 1] + K[0, 2], K[1, 1] * xy_d[:, 1] + K[1, 2]]
+        )
         return pixels, depth
 
     def undistort_pixels(self, pixels: npt.ArrayLike) -> FloatArray:

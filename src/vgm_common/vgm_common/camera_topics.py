@@ -1,6 +1,7 @@
 """``CalibratedCameras``: what a node needs to know of the calibrated rig, assembled
 from the latched CameraInfo and pose topics calib_node publishes (their names and frames
 are in ``vgm_common.topics``)."""
+
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
@@ -45,9 +46,13 @@ class CalibratedCameras:
     previous calibration stays). ``version`` increases whenever a camera changes, so
     users can rebuild cached maps; ``on_change(name)`` is called then, if given."""
 
-    def __init__(self, node: Node, names: Iterable[str] = CAMERA_NAMES,
-                 diagnostics: Diagnostics | None = None,
-                 on_change: Callable[[str], None] | None = None) -> None:
+    def __init__(
+        self,
+        node: Node,
+        names: Iterable[str] = CAMERA_NAMES,
+        diagnostics: Diagnostics | None = None,
+        on_change: Callable[[str], None] | None = None,
+    ) -> None:
         self.names = tuple(names)
         self._diagnostics = diagnostics
         self._on_change = on_change
@@ -56,10 +61,12 @@ class CalibratedCameras:
         self._cameras: dict[str, CalibratedCamera] = {}
         self.version = 0
         for name in self.names:
-            node.create_subscription(CameraInfo, CAMERA_INFO_TOPICS[name],
-                                     partial(self._on_info, name), LATCHED_QOS)
-            node.create_subscription(PoseStamped, POSE_TOPICS[name],
-                                     partial(self._on_pose, name), LATCHED_QOS)
+            node.create_subscription(
+                CameraInfo, CAMERA_INFO_TOPICS[name], partial(self._on_info, name), LATCHED_QOS
+            )
+            node.create_subscription(
+                PoseStamped, POSE_TOPICS[name], partial(self._on_pose, name), LATCHED_QOS
+            )
 
     @property
     def ready(self) -> bool:
@@ -88,8 +95,10 @@ class CalibratedCameras:
     def _on_pose(self, name: str, msg: PoseStamped) -> None:
         try:
             if msg.header.frame_id != BASE_FRAME:
-                raise InvalidInput(f'camera pose must be in {BASE_FRAME}, got '
-                                   f'{msg.header.frame_id!r}', key='frame_id')
+                raise InvalidInput(
+                    f'camera pose must be in {BASE_FRAME}, got {msg.header.frame_id!r}',
+                    key='frame_id',
+                )
             T = pose_to_matrix(msg.pose)
         except InvalidInput as error:
             self._reject(POSE_TOPICS[name], error)
@@ -102,7 +111,8 @@ class CalibratedCameras:
             return
         info = self._infos[name]
         self._cameras[name] = CalibratedCamera(
-            camera_info_to_camera(info, self._poses[name]), *camera_info_rectification(info))
+            camera_info_to_camera(info, self._poses[name]), *camera_info_rectification(info)
+        )
         self.version += 1
         if self._on_change is not None:
             self._on_change(name)

@@ -4,6 +4,7 @@ Every ``*_to_numpy`` / ``*_from_msg`` function validates its message and raises
 ``InvalidInput`` naming the problem; every ``*_to_msg`` function copies the caller's
 data (messages never alias numpy arrays the caller may change).
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -29,10 +30,17 @@ from vgm_common.geometry import (
 
 # encoding -> (numpy dtype, channels), REP 118 and sensor_msgs/image_encodings.
 IMAGE_ENCODINGS: dict[str, tuple[type[np.generic], int]] = {
-    'mono8': (np.uint8, 1), 'mono16': (np.uint16, 1),
-    'rgb8': (np.uint8, 3), 'bgr8': (np.uint8, 3), 'rgba8': (np.uint8, 4), 'bgra8': (np.uint8, 4),
-    '8UC1': (np.uint8, 1), '8UC3': (np.uint8, 3), '16UC1': (np.uint16, 1),
-    '32FC1': (np.float32, 1), '64FC1': (np.float64, 1),
+    'mono8': (np.uint8, 1),
+    'mono16': (np.uint16, 1),
+    'rgb8': (np.uint8, 3),
+    'bgr8': (np.uint8, 3),
+    'rgba8': (np.uint8, 4),
+    'bgra8': (np.uint8, 4),
+    '8UC1': (np.uint8, 1),
+    '8UC3': (np.uint8, 3),
+    '16UC1': (np.uint16, 1),
+    '32FC1': (np.float32, 1),
+    '64FC1': (np.float64, 1),
 }
 
 
@@ -50,24 +58,33 @@ def make_header(stamp_ns: int, frame_id: str) -> Header:
 
 # --- sensor_msgs/Image -------------------------------------------------------------
 
+
 def check_image(msg: Image) -> tuple[np.dtype, int, int]:
     """Raise InvalidInput unless ``msg`` is a well-formed Image (known encoding, non-empty,
     step and data length consistent); returns (dtype, channels, row bytes). Cheap: the
     pixels are not touched, so a node can check every image as it arrives."""
     if msg.encoding not in IMAGE_ENCODINGS:
-        raise InvalidInput(f'unsupported image encoding {msg.encoding!r}', key='encoding',
-                           value=msg.encoding)
+        raise InvalidInput(
+            f'unsupported image encoding {msg.encoding!r}', key='encoding', value=msg.encoding
+        )
     scalar_type, channels = IMAGE_ENCODINGS[msg.encoding]
     dtype = np.dtype(scalar_type).newbyteorder('>' if msg.is_bigendian else '<')
     row_bytes = msg.width * channels * dtype.itemsize
     if msg.width == 0 or msg.height == 0:
         raise InvalidInput('empty image (width or height is 0)', key='size')
     if msg.step < row_bytes:
-        raise InvalidInput(f'image step {msg.step} is smaller than width * pixel size '
-                           f'{row_bytes}', key='step', value=msg.step)
+        raise InvalidInput(
+            f'image step {msg.step} is smaller than width * pixel size {row_bytes}',
+            key='step',
+            value=msg.step,
+        )
     if len(msg.data) != msg.step * msg.height:
-        raise InvalidInput(f'image data has {len(msg.data)} bytes, expected step * height '
-                           f'= {msg.step * msg.height}', key='data', value=len(msg.data))
+        raise InvalidInput(
+            f'image data has {len(msg.data)} bytes, expected step * height '
+            f'= {msg.step * msg.height}',
+            key='data',
+            value=len(msg.data),
+        )
     return dtype, channels, row_bytes
 
 
@@ -76,12 +93,19 @@ def image_to_numpy(msg: Image) -> np.ndarray:
     dtype, channels, row_bytes = check_image(msg)
     rows = np.frombuffer(bytes(msg.data), dtype=np.uint8).reshape(msg.height, msg.step)
     pixels = rows[:, :row_bytes].copy().view(dtype).astype(dtype.newbyteorder('='))
-    return pixels.reshape(msg.height, msg.width, channels) if channels > 1 else \
-        pixels.reshape(msg.height, msg.width)
+    return (
+        pixels.reshape(msg.height, msg.width, channels)
+        if channels > 1
+        else pixels.reshape(msg.height, msg.width)
+    )
 
 
-_GREY_WEIGHTS = {'rgb8': (0.299, 0.587, 0.114), 'rgba8': (0.299, 0.587, 0.114),
-                 'bgr8': (0.114, 0.587, 0.299), 'bgra8': (0.114, 0.587, 0.299)}
+_GREY_WEIGHTS = {
+    'rgb8': (0.299, 0.587, 0.114),
+    'rgba8': (0.299, 0.587, 0.114),
+    'bgr8': (0.114, 0.587, 0.299),
+    'bgra8': (0.114, 0.587, 0.299),
+}
 
 
 GREY_ENCODINGS = ('mono8', 'mono16', '8UC1', '16UC1', *_GREY_WEIGHTS)
@@ -91,9 +115,12 @@ def check_grey_image(msg: Image) -> None:
     """``check_image``, and an encoding ``image_to_grey`` converts; raises InvalidInput."""
     check_image(msg)
     if msg.encoding not in GREY_ENCODINGS:
-        raise InvalidInput(f'image encoding {msg.encoding!r} is not grey or 8-bit colour '
-                           f'({", ".join(GREY_ENCODINGS)})', key='encoding',
-                           value=msg.encoding)
+        raise InvalidInput(
+            f'image encoding {msg.encoding!r} is not grey or 8-bit colour '
+            f'({", ".join(GREY_ENCODINGS)})',
+            key='encoding',
+            value=msg.encoding,
+        )
 
 
 def image_to_grey(msg: Image) -> npt.NDArray[np.float32]:
@@ -105,8 +132,9 @@ def image_to_grey(msg: Image) -> npt.NDArray[np.float32]:
         return array.astype(np.float32)
     if msg.encoding in ('mono16', '16UC1'):
         return array.astype(np.float32) * np.float32(255.0 / 65535.0)
-    return (array[:, :, :3].astype(np.float32)
-            @ np.array(_GREY_WEIGHTS[msg.encoding], dtype=np.float32))
+    return array[:, :, :3].astype(np.float32) @ np.array(
+        _GREY_WEIGHTS[msg.encoding], dtype=np.float32
+    )
 
 
 def numpy_to_image(array: npt.ArrayLike, encoding: str, stamp_ns: int, frame_id: str) -> Image:
@@ -117,39 +145,59 @@ def numpy_to_image(array: npt.ArrayLike, encoding: str, stamp_ns: int, frame_id:
     array = np.ascontiguousarray(array, dtype=dtype)
     if array.ndim != (2 if channels == 1 else 3) or (channels > 1 and array.shape[2] != channels):
         raise InvalidInput(f'array of shape {array.shape} does not fit encoding {encoding}')
-    msg = Image(header=make_header(stamp_ns, frame_id), height=array.shape[0],
-                width=array.shape[1], encoding=encoding, is_bigendian=0,
-                step=array.shape[1] * channels * array.itemsize)
+    msg = Image(
+        header=make_header(stamp_ns, frame_id),
+        height=array.shape[0],
+        width=array.shape[1],
+        encoding=encoding,
+        is_bigendian=0,
+        step=array.shape[1] * channels * array.itemsize,
+    )
     msg.data = array.tobytes()
     return msg
 
 
 # --- sensor_msgs/CameraInfo ----------------------------------------------------------
 
-def camera_info_to_camera(msg: CameraInfo,
-                          T_base_camera: FloatArray | None = None) -> PinholeCamera:
+
+def camera_info_to_camera(
+    msg: CameraInfo, T_base_camera: FloatArray | None = None
+) -> PinholeCamera:
     """CameraInfo -> PinholeCamera (raw, unrectified intrinsics K and plumb_bob D).
 
     K must be upper-triangular with positive focal lengths and K[2, 2] = 1. The model
     names the coefficients: plumb_bob takes exactly five (k1, k2, t1, t2, k3); no model
     ('') means no distortion, with D empty or all zero."""
     K = np.array(msg.k, dtype=float).reshape(3, 3)
-    if (not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1
-            or np.any(K[[1, 2, 2], [0, 0, 1]] != 0)):
-        raise InvalidInput(f'camera_info K is not a valid intrinsic matrix (upper-triangular, '
-                           f'fx, fy > 0, K[2][2] = 1): {K.tolist()}', key='k')
+    if (
+        not np.all(np.isfinite(K))
+        or K[0, 0] <= 0
+        or K[1, 1] <= 0
+        or K[2, 2] != 1
+        or np.any(K[[1, 2, 2], [0, 0, 1]] != 0)
+    ):
+        raise InvalidInput(
+            f'camera_info K is not a valid intrinsic matrix (upper-triangular, '
+            f'fx, fy > 0, K[2][2] = 1): {K.tolist()}',
+            key='k',
+        )
     if msg.distortion_model not in ('plumb_bob', ''):
-        raise InvalidInput(f'unsupported distortion model {msg.distortion_model!r}',
-                           key='distortion_model')
+        raise InvalidInput(
+            f'unsupported distortion model {msg.distortion_model!r}', key='distortion_model'
+        )
     D = np.zeros(5)
     if msg.distortion_model == 'plumb_bob':
         if len(msg.d) != 5:
-            raise InvalidInput(f'camera_info D has {len(msg.d)} coefficients: plumb_bob '
-                               'takes 5 (k1, k2, t1, t2, k3)', key='d')
+            raise InvalidInput(
+                f'camera_info D has {len(msg.d)} coefficients: plumb_bob '
+                'takes 5 (k1, k2, t1, t2, k3)',
+                key='d',
+            )
         D[:] = msg.d
     elif any(msg.d):
-        raise InvalidInput('camera_info D has coefficients but no distortion_model',
-                           key='distortion_model')
+        raise InvalidInput(
+            'camera_info D has coefficients but no distortion_model', key='distortion_model'
+        )
     if not np.all(np.isfinite(D)):
         raise InvalidInput('camera_info D contains non-finite values', key='d')
     if msg.width == 0 or msg.height == 0:
@@ -171,38 +219,53 @@ def camera_info_rectification(msg: CameraInfo) -> tuple[FloatArray, FloatArray]:
     elif not is_rotation(R, tol=1e-6):
         raise InvalidInput(f'camera_info R is not a rotation: {R.tolist()}', key='r')
     if P[0, 0] <= 0 or P[1, 1] <= 0 or np.any(P[2] != (0, 0, 1, 0)):
-        raise InvalidInput(f'camera_info P is not a projection matrix (fx, fy > 0, last row '
-                           f'0 0 1 0): {P.tolist()}', key='p')
+        raise InvalidInput(
+            f'camera_info P is not a projection matrix (fx, fy > 0, last row '
+            f'0 0 1 0): {P.tolist()}',
+            key='p',
+        )
     return R, P
 
 
-def camera_to_camera_info(camera: PinholeCamera, stamp_ns: int, frame_id: str,
-                          R: npt.ArrayLike | None = None,
-                          P: npt.ArrayLike | None = None) -> CameraInfo:
+def camera_to_camera_info(
+    camera: PinholeCamera,
+    stamp_ns: int,
+    frame_id: str,
+    R: npt.ArrayLike | None = None,
+    P: npt.ArrayLike | None = None,
+) -> CameraInfo:
     """PinholeCamera -> CameraInfo. R (3x3) and P (3x4) default to the unrectified
     identity and [K | 0]."""
     R = np.eye(3) if R is None else np.asarray(R, dtype=float)
     P = np.hstack([camera.K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=float)
     D = np.zeros(5)
-    D[:len(camera.D)] = camera.D  # plumb_bob's five, a shorter D padded with zeros
-    return CameraInfo(header=make_header(stamp_ns, frame_id), height=camera.height,
-                      width=camera.width, distortion_model='plumb_bob',
-                      d=D.tolist(), k=camera.K.flatten().tolist(),
-                      r=R.flatten().tolist(), p=P.flatten().tolist())
+    D[: len(camera.D)] = camera.D  # plumb_bob's five, a shorter D padded with zeros
+    return CameraInfo(
+        header=make_header(stamp_ns, frame_id),
+        height=camera.height,
+        width=camera.width,
+        distortion_model='plumb_bob',
+        d=D.tolist(),
+        k=camera.K.flatten().tolist(),
+        r=R.flatten().tolist(),
+        p=P.flatten().tolist(),
+    )
 
 
 # --- geometry_msgs/Pose, nav_msgs/Path -------------------------------------------------
 
+
 def pose_to_matrix(pose: Pose) -> FloatArray:
     """geometry_msgs/Pose -> 4x4; rejects non-finite values and non-unit quaternions."""
-    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z,
-                  pose.orientation.w])
+    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
     t = np.array([pose.position.x, pose.position.y, pose.position.z])
     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
         raise InvalidInput('pose has non-finite values', key='pose')
     if abs(np.linalg.norm(q) - 1.0) > 1e-3:
-        raise InvalidInput(f'pose orientation is not a unit quaternion (norm '
-                           f'{np.linalg.norm(q):.4g})', key='orientation')
+        raise InvalidInput(
+            f'pose orientation is not a unit quaternion (norm {np.linalg.norm(q):.4g})',
+            key='orientation',
+        )
     return make_transform(quaternion_to_matrix(q), t)
 
 
@@ -228,25 +291,35 @@ def path_to_matrices(msg: Path) -> FloatArray:
     return np.stack([pose_to_matrix(p.pose) for p in msg.poses])
 
 
-def matrices_to_path(T_frame_poses: Iterable[FloatArray], stamp_ns: int,
-                     frame_id: str) -> Path:
+def matrices_to_path(T_frame_poses: Iterable[FloatArray], stamp_ns: int, frame_id: str) -> Path:
     header = make_header(stamp_ns, frame_id)
-    return Path(header=header, poses=[PoseStamped(header=header, pose=matrix_to_pose(T))
-                                      for T in T_frame_poses])
+    return Path(
+        header=header,
+        poses=[PoseStamped(header=header, pose=matrix_to_pose(T)) for T in T_frame_poses],
+    )
 
 
 # --- sensor_msgs/PointCloud2 (x, y, z float32) ---------------------------------------
 
-_XYZ_FIELDS = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
-               for i, n in enumerate('xyz')]
+_XYZ_FIELDS = [
+    PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+    for i, n in enumerate('xyz')
+]
 
 
 def points_to_pointcloud2(points: npt.ArrayLike, stamp_ns: int, frame_id: str) -> PointCloud2:
     """(N, 3) points [m] -> unorganised PointCloud2 with float32 x, y, z."""
     points = np.ascontiguousarray(points, dtype='<f4').reshape(-1, 3)
-    msg = PointCloud2(header=make_header(stamp_ns, frame_id), height=1, width=len(points),
-                      fields=list(_XYZ_FIELDS), is_bigendian=False, point_step=12,
-                      row_step=12 * len(points), is_dense=bool(np.all(np.isfinite(points))))
+    msg = PointCloud2(
+        header=make_header(stamp_ns, frame_id),
+        height=1,
+        width=len(points),
+        fields=list(_XYZ_FIELDS),
+        is_bigendian=False,
+        point_step=12,
+        row_step=12 * len(points),
+        is_dense=bool(np.all(np.isfinite(points))),
+    )
     msg.data = points.tobytes()
     return msg
 
@@ -260,38 +333,53 @@ def pointcloud2_to_points(msg: PointCloud2) -> npt.NDArray[np.float32]:
             raise InvalidInput(f'point cloud lacks a float32 {name!r} field', key='fields')
     count = msg.width * msg.height
     if len(msg.data) < count * msg.point_step:
-        raise InvalidInput('point cloud data is shorter than width * height * point_step',
-                           key='data')
-    dtype = np.dtype({'names': list('xyz'), 'formats': ['>f4' if msg.is_bigendian else '<f4'] * 3,
-                      'offsets': [offsets[n].offset for n in 'xyz'],
-                      'itemsize': msg.point_step})
+        raise InvalidInput(
+            'point cloud data is shorter than width * height * point_step', key='data'
+        )
+    dtype = np.dtype(
+        {
+            'names': list('xyz'),
+            'formats': ['>f4' if msg.is_bigendian else '<f4'] * 3,
+            'offsets': [offsets[n].offset for n in 'xyz'],
+            'itemsize': msg.point_step,
+        }
+    )
     records = np.frombuffer(bytes(msg.data), dtype=dtype, count=count)
     return np.column_stack([records[n] for n in 'xyz']).astype(np.float32)
 
 
 # --- sensor_msgs/CompressedImage (image_transport's compressed plugin) --------------
 
-def grey_to_compressed_jpeg(array: npt.ArrayLike, quality: int, stamp_ns: int,
-                            frame_id: str) -> CompressedImage:
+
+def grey_to_compressed_jpeg(
+    array: npt.ArrayLike, quality: int, stamp_ns: int, frame_id: str
+) -> CompressedImage:
     """(H, W) uint8 grey image -> CompressedImage, JPEG at ``quality`` (1..100), with the
     format string of image_transport's compressed plugin ('mono8; jpeg compressed mono8')."""
     import cv2  # only the nodes that compress need it
+
     array = np.ascontiguousarray(array)
     if array.ndim != 2 or array.dtype != np.uint8:
         raise InvalidInput(f'expected an (H, W) uint8 image, got {array.dtype} {array.shape}')
     ok, data = cv2.imencode('.jpg', array, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise InvalidInput('JPEG encoding failed')
-    return CompressedImage(header=make_header(stamp_ns, frame_id),
-                           format='mono8; jpeg compressed mono8', data=data.tobytes())
+    return CompressedImage(
+        header=make_header(stamp_ns, frame_id),
+        format='mono8; jpeg compressed mono8',
+        data=data.tobytes(),
+    )
 
 
 def compressed_to_grey(msg: CompressedImage) -> npt.NDArray[np.uint8]:
     """CompressedImage (JPEG or PNG, any channels) -> (H, W) uint8 grey image."""
     import cv2
+
     data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
     image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data.size else None
     if image is None:
-        raise InvalidInput(f'compressed image ({msg.format!r}, {data.size} bytes) does not '
-                           'decode as JPEG or PNG', key='data')
+        raise InvalidInput(
+            f'compressed image ({msg.format!r}, {data.size} bytes) does not decode as JPEG or PNG',
+            key='data',
+        )
     return cast(npt.NDArray[np.uint8], image)  # IMREAD_GRAYSCALE decodes to 8 bits

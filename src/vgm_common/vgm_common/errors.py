@@ -1,5 +1,6 @@
 """The project's exception hierarchy. Nodes catch ``VgmError``, log it once (throttled),
 publish a diagnostic and keep serving; exceptions carry the data that explains them."""
+
 from __future__ import annotations
 
 from typing import Any

@@ -5,6 +5,7 @@ Conventions: a pose ``T_a_b`` is a 4x4 homogeneous matrix mapping coordinates in
 ROS (REP 103): ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``. Quaternions are ``(x, y, z, w)``
 as in geometry_msgs.
 """
+
 from __future__ import annotations
 
 from typing import Literal
@@ -20,9 +21,11 @@ def _rotation(angle: npt.ArrayLike, axis: Literal['x', 'y', 'z']) -> FloatArray:
     (3, 3), or (*S, 3, 3) for arrays of angles."""
     c, s = np.cos(angle), np.sin(angle)
     zero, one = np.zeros_like(c), np.ones_like(c)
-    rows = {'x': ((one, zero, zero), (zero, c, -s), (zero, s, c)),
-            'y': ((c, zero, s), (zero, one, zero), (-s, zero, c)),
-            'z': ((c, -s, zero), (s, c, zero), (zero, zero, one))}[axis]
+    rows = {
+        'x': ((one, zero, zero), (zero, c, -s), (zero, s, c)),
+        'y': ((c, zero, s), (zero, one, zero), (-s, zero, c)),
+        'z': ((c, -s, zero), (s, c, zero), (zero, zero, one)),
+    }[axis]
     return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
@@ -38,8 +41,7 @@ def rot_z(angle: npt.ArrayLike) -> FloatArray:
     return _rotation(angle, 'z')
 
 
-def rpy_to_matrix(roll: npt.ArrayLike, pitch: npt.ArrayLike,
-                  yaw: npt.ArrayLike) -> FloatArray:
+def rpy_to_matrix(roll: npt.ArrayLike, pitch: npt.ArrayLike, yaw: npt.ArrayLike) -> FloatArray:
     """Rotation of fixed-axis roll, pitch, yaw [rad]: (3, 3), or (*S, 3, 3) for arrays of
     angles (a whole population of cameras at once)."""
     return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
@@ -48,11 +50,13 @@ def rpy_to_matrix(roll: npt.ArrayLike, pitch: npt.ArrayLike,
 def quaternion_to_matrix(q_xyzw: npt.ArrayLike) -> FloatArray:
     """3x3 rotation of a quaternion (x, y, z, w); it is normalised first."""
     x, y, z, w = np.asarray(q_xyzw, dtype=float) / np.linalg.norm(q_xyzw)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def matrix_to_quaternion(R: npt.ArrayLike) -> FloatArray:
@@ -74,8 +78,9 @@ def matrix_to_quaternion(R: npt.ArrayLike) -> FloatArray:
     return q if q[3] >= 0 else -q
 
 
-def look_at_rotation(position: npt.ArrayLike, target: npt.ArrayLike,
-                     up: npt.ArrayLike = (0.0, 0.0, 1.0)) -> FloatArray:
+def look_at_rotation(
+    position: npt.ArrayLike, target: npt.ArrayLike, up: npt.ArrayLike = (0.0, 0.0, 1.0)
+) -> FloatArray:
     """Rotation of a camera optical frame (z forward, x right, y down) at ``position``
     looking at ``target``, with image 'up' as close to ``up`` as possible."""
     z = np.asarray(target, dtype=float) - np.asarray(position, dtype=float)
@@ -111,5 +116,9 @@ def transform_points(T: FloatArray, points: npt.ArrayLike) -> FloatArray:
 def is_rotation(R: npt.ArrayLike, tol: float = 1e-6) -> bool:
     """True if R is a finite proper orthonormal 3x3 matrix."""
     R = np.asarray(R, dtype=float)
-    return (R.shape == (3, 3) and bool(np.all(np.isfinite(R)))
-            and np.allclose(R.T @ R, np.eye(3), atol=tol) and abs(np.linalg.det(R) - 1) < tol)
+    return (
+        R.shape == (3, 3)
+        and bool(np.all(np.isfinite(R)))
+        and np.allclose(R.T @ R, np.eye(3), atol=tol)
+        and abs(np.linalg.det(R) - 1) < tol
+    )

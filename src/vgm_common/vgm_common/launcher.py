@@ -11,6 +11,7 @@ exit status is non-zero if any node failed.
     vgm_launch graph.yaml [--nodes sensor_sim recorder] [--duration 30]
                [--set sensor_sim:scenario:=S1.yaml]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,8 +29,7 @@ from typing import IO, TextIO
 import yaml
 
 # Exit statuses that mean "stopped because we asked it to".
-_CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT,
-               128 + signal.SIGTERM}
+_CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
 
 
 class LaunchError(Exception):
@@ -44,8 +44,10 @@ def find_executable(name: str, prefixes: Iterable[str] | None = None) -> Path:
         for candidate in sorted(Path(prefix, 'lib').glob(f'*/{name}')):
             if candidate.is_file() and os.access(candidate, os.X_OK):
                 return candidate
-    raise LaunchError(f'no executable {name!r} under lib/<package>/ in AMENT_PREFIX_PATH '
-                      '(did you source ros2_ws/install/setup.bash?)')
+    raise LaunchError(
+        f'no executable {name!r} under lib/<package>/ in AMENT_PREFIX_PATH '
+        '(did you source ros2_ws/install/setup.bash?)'
+    )
 
 
 def node_names(params_file: str | Path) -> list[str]:
@@ -58,9 +60,14 @@ def node_names(params_file: str | Path) -> list[str]:
 class Launch:
     """Runs nodes as process groups; ``run()`` returns 0 if none failed."""
 
-    def __init__(self, params_file: str | Path, nodes: Iterable[str] | None = None,
-                 overrides: Iterable[str] = (), out: TextIO = sys.stdout,
-                 command_prefixes: Mapping[str, Sequence[str]] | None = None) -> None:
+    def __init__(
+        self,
+        params_file: str | Path,
+        nodes: Iterable[str] | None = None,
+        overrides: Iterable[str] = (),
+        out: TextIO = sys.stdout,
+        command_prefixes: Mapping[str, Sequence[str]] | None = None,
+    ) -> None:
         """``command_prefixes``: {node: argv} run before a node's executable, e.g.
         ``['ip', 'netns', 'exec', 'host_b']`` to start it on a simulated second host."""
         self.params_file = Path(params_file).resolve()
@@ -73,8 +80,9 @@ class Launch:
         for item in overrides:
             node, sep, assignment = item.partition(':')
             if not sep or ':=' not in assignment or node not in self.overrides:
-                raise LaunchError(f'--set {item!r}: expected NODE:PARAM:=VALUE '
-                                  'for a launched node')
+                raise LaunchError(
+                    f'--set {item!r}: expected NODE:PARAM:=VALUE for a launched node'
+                )
             self.overrides[node] += ['-p', assignment]
         self.command_prefixes = dict(command_prefixes or {})
         self.out = out
@@ -98,13 +106,26 @@ class Launch:
 
     def start(self) -> None:
         for name in self.nodes:
-            argv = [*self.command_prefixes.get(name, []), str(find_executable(name)),
-                    '--ros-args', '-r', f'__node:={name}',
-                    '--params-file', str(self.params_file), *self.overrides[name]]
+            argv = [
+                *self.command_prefixes.get(name, []),
+                str(find_executable(name)),
+                '--ros-args',
+                '-r',
+                f'__node:={name}',
+                '--params-file',
+                str(self.params_file),
+                *self.overrides[name],
+            ]
             self.processes[name] = subprocess.Popen(
-                argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL, text=True, bufsize=1,
-                preexec_fn=_own_group_die_with_parent, env=_node_environment())
+                argv,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                text=True,
+                bufsize=1,
+                preexec_fn=_own_group_die_with_parent,
+                env=_node_environment(),
+            )
         # Threads only after every fork: preexec_fn is unsafe while other threads run.
         for name, process in self.processes.items():
             pump = threading.Thread(target=self._pump, args=(name, process.stdout), daemon=True)
@@ -132,12 +153,15 @@ class Launch:
 
     def failed(self) -> list[str]:
         """Names of nodes that exited with an error (not because we stopped them)."""
-        return [name for name, p in self.processes.items()
-                if p.returncode is not None and p.returncode != 0
-                and not (self._stopping and p.returncode in _CLEAN_STOP)]
+        return [
+            name
+            for name, p in self.processes.items()
+            if p.returncode is not None
+            and p.returncode != 0
+            and not (self._stopping and p.returncode in _CLEAN_STOP)
+        ]
 
-    def run(self, duration: float | None = None,
-            until: Callable[[], bool] | None = None) -> int:
+    def run(self, duration: float | None = None, until: Callable[[], bool] | None = None) -> int:
         """Start, wait until Ctrl-C, ``duration`` [s], ``until()`` is true, a node
         failing, or all nodes exiting; then stop everything."""
         self.start()
@@ -158,8 +182,9 @@ class Launch:
             failed_before_stop = self.failed()
             self.stop()
         for name in failed_before_stop:
-            self._print('launch', f'{name} failed with exit status '
-                        f'{self.processes[name].returncode}\n')
+            self._print(
+                'launch', f'{name} failed with exit status {self.processes[name].returncode}\n'
+            )
         return 1 if failed_before_stop or self.failed() else 0
 
 
@@ -197,8 +222,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument('params_file', help='ROS 2 params file; top-level keys = nodes')
     parser.add_argument('--nodes', nargs='+', help='start only these nodes')
     parser.add_argument('--duration', type=float, help='stop everything after this [s]')
-    parser.add_argument('--set', action='append', default=[], metavar='NODE:PARAM:=VALUE',
-                        help='override one parameter of one node')
+    parser.add_argument(
+        '--set',
+        action='append',
+        default=[],
+        metavar='NODE:PARAM:=VALUE',
+        help='override one parameter of one node',
+    )
     args = parser.parse_args(argv)
     # SIGTERM stops the nodes as cleanly as Ctrl-C. SIGINT is set too: a shell starts a
     # background job (`vgm_launch ... &` in a script, nohup) with SIGINT ignored, Python

@@ -1,5 +1,6 @@
 """What every node does at its edges: typed parameters with descriptors and validation,
 diagnostics on /diagnostics, throttled rejection of bad input, and a clean ``main``."""
+
 from __future__ import annotations
 
 import array
@@ -118,8 +119,7 @@ class Param:
             if element is float:
                 value = [float(v) if _is_kind(v, int) else v for v in value]
             if not all(_is_kind(v, element) for v in value):
-                raise self._error(f'expected a list of {element.__name__}, got {value!r}',
-                                  value)
+                raise self._error(f'expected a list of {element.__name__}, got {value!r}', value)
         return value
 
     def descriptor(self) -> ParameterDescriptor:
@@ -128,15 +128,19 @@ class Param:
         # for a float) instead of rclpy raising a traceback at declaration.
         # An empty list is declared typed but unset and then set (NodeParameters), which
         # rclpy refuses for a read-only one: its read-only-ness is then ours to enforce.
-        descriptor = ParameterDescriptor(description=text,
-                                         read_only=self.read_only and self.default != [],
-                                         dynamic_typing=self.default != [])
+        descriptor = ParameterDescriptor(
+            description=text,
+            read_only=self.read_only and self.default != [],
+            dynamic_typing=self.default != [],
+        )
         if self.range and self.kind is int:
-            descriptor.integer_range = [IntegerRange(from_value=self.range[0],
-                                                     to_value=self.range[1])]
+            descriptor.integer_range = [
+                IntegerRange(from_value=self.range[0], to_value=self.range[1])
+            ]
         elif self.range and self.kind is float:  # `ros2 param describe` shows it
-            descriptor.floating_point_range = [FloatingPointRange(
-                from_value=float(self.range[0]), to_value=float(self.range[1]))]
+            descriptor.floating_point_range = [
+                FloatingPointRange(from_value=float(self.range[0]), to_value=float(self.range[1]))
+            ]
         return descriptor
 
 
@@ -148,8 +152,9 @@ class NodeParameters:
     set. Values that must go together (a minimum below its maximum, one weight per joint)
     are checked by ``add_check``."""
 
-    def __init__(self, node: Node, params: Sequence[Param],
-                 diagnostics: Diagnostics | None = None) -> None:
+    def __init__(
+        self, node: Node, params: Sequence[Param], diagnostics: Diagnostics | None = None
+    ) -> None:
         self._node = node
         self._params = {p.name: p for p in params}
         self._diagnostics = diagnostics
@@ -195,8 +200,9 @@ class NodeParameters:
                 if spec is None:
                     continue
                 if spec.read_only:
-                    return SetParametersResult(successful=False,
-                                               reason=f'{spec.name} is read-only')
+                    return SetParametersResult(
+                        successful=False, reason=f'{spec.name} is read-only'
+                    )
                 proposed[spec.name] = _coerce(spec, parameter.value)
             reasons = [reason for check in self._checks if (reason := check(proposed))]
             if reasons:
@@ -246,15 +252,32 @@ def subscriber_gate_params(what: str) -> list[Param]:
     ``wait_for_nodes`` and ``subscriber_timeout``; ``what`` says what waits and on which
     topics the count applies, e.g. 'Publish only once every camera topic has'."""
     return [
-        Param('min_subscribers', 0, f'{what} this many matched subscribers, at most '
-              'subscriber_timeout: a reliable publisher drops what it sends before '
-              'discovery. 0 = start at once.', range=(0, 100), read_only=True),
-        Param('wait_for_nodes', [], 'Also wait until each of these nodes (a name, or '
-              '/namespace/name) has a matched subscription on every topic the node '
-              'publishes, e.g. [recorder]: a count alone is met by other subscribers '
-              'while the recorder is still starting.', check=_node_names, read_only=True),
-        Param('subscriber_timeout', 30.0, '[s] Longest wait for min_subscribers and '
-              'wait_for_nodes.', range=(0.0, 3600.0), read_only=True),
+        Param(
+            'min_subscribers',
+            0,
+            f'{what} this many matched subscribers, at most '
+            'subscriber_timeout: a reliable publisher drops what it sends before '
+            'discovery. 0 = start at once.',
+            range=(0, 100),
+            read_only=True,
+        ),
+        Param(
+            'wait_for_nodes',
+            [],
+            'Also wait until each of these nodes (a name, or '
+            '/namespace/name) has a matched subscription on every topic the node '
+            'publishes, e.g. [recorder]: a count alone is met by other subscribers '
+            'while the recorder is still starting.',
+            check=_node_names,
+            read_only=True,
+        ),
+        Param(
+            'subscriber_timeout',
+            30.0,
+            '[s] Longest wait for min_subscribers and wait_for_nodes.',
+            range=(0.0, 3600.0),
+            read_only=True,
+        ),
     ]
 
 
@@ -279,9 +302,15 @@ class SubscriberGate:
     of ``publishers`` with every discovered subscription matched (the graph lists a
     subscription when it is discovered, the count says when it is matched)."""
 
-    def __init__(self, node: Node, publishers: Iterable[Publisher], min_subscribers: int,
-                 timeout: float, wait_for_nodes: Iterable[str] = (),
-                 counted: Iterable[Publisher] | None = None) -> None:
+    def __init__(
+        self,
+        node: Node,
+        publishers: Iterable[Publisher],
+        min_subscribers: int,
+        timeout: float,
+        wait_for_nodes: Iterable[str] = (),
+        counted: Iterable[Publisher] | None = None,
+    ) -> None:
         self._node, self._publishers = node, tuple(publishers)
         self._counted = self._publishers if counted is None else tuple(counted)
         self._min_subscribers, self._timeout = min_subscribers, timeout
@@ -291,17 +320,24 @@ class SubscriberGate:
 
     def missing(self) -> list[str]:
         """What the gate still waits for, as 'node on topic' / 'N of M on topic' texts."""
-        missing = [f'{p.get_subscription_count()} of {self._min_subscribers} subscribers '
-                   f'on {p.topic_name}' for p in self._counted
-                   if p.get_subscription_count() < self._min_subscribers]
+        missing = [
+            f'{p.get_subscription_count()} of {self._min_subscribers} subscribers '
+            f'on {p.topic_name}'
+            for p in self._counted
+            if p.get_subscription_count() < self._min_subscribers
+        ]
         if not self._wait_for_nodes:
             return missing
         for publisher in self._publishers:
             infos = self._node.get_subscriptions_info_by_topic(publisher.topic_name)
             names = {info.node_name for info in infos} | {
-                _full_node_name(info.node_namespace, info.node_name) for info in infos}
-            missing += [f'{name} on {publisher.topic_name}' for name in self._wait_for_nodes
-                        if name not in names]
+                _full_node_name(info.node_namespace, info.node_name) for info in infos
+            }
+            missing += [
+                f'{name} on {publisher.topic_name}'
+                for name in self._wait_for_nodes
+                if name not in names
+            ]
             if publisher.get_subscription_count() < len(infos):
                 missing.append(f'matching on {publisher.topic_name}')
         return missing
@@ -315,7 +351,8 @@ class SubscriberGate:
             return False
         if missing:
             self._node.get_logger().warning(
-                f'publishing after {waited:.1f} s without: {"; ".join(missing)}')
+                f'publishing after {waited:.1f} s without: {"; ".join(missing)}'
+            )
         elif self._min_subscribers or self._wait_for_nodes:
             self._node.get_logger().info(f'subscribers matched after {waited:.1f} s')
         self.opened.set()
@@ -349,26 +386,34 @@ class Diagnostics:
 
     UNSENT_LIMIT = 20
 
-    LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN,
-              'error': DiagnosticStatus.ERROR, 'stale': DiagnosticStatus.STALE}
+    LEVELS = {
+        'ok': DiagnosticStatus.OK,
+        'warn': DiagnosticStatus.WARN,
+        'error': DiagnosticStatus.ERROR,
+        'stale': DiagnosticStatus.STALE,
+    }
 
     def __init__(self, node: Node, hardware_id: str = 'simulation') -> None:
         self._node = node
         self._hardware_id = hardware_id
-        self._publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, DEFAULT_QOS,
-                                                publisher_class=CountingPublisher)
+        self._publisher = node.create_publisher(
+            DiagnosticArray, DIAGNOSTICS_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
+        )
         self._last_log: dict[str, float] = {}  # what -> time.monotonic() of its last log
         self._unsent: deque[DiagnosticArray] = deque(maxlen=self.UNSENT_LIMIT)
         self._lock = threading.Lock()  # nodes publish from worker threads too
         self.rejected: dict[str, int] = {}  # reason key -> count
 
-    def publish(self, name: str, level: str, message: str,
-                values: Mapping[str, object] | None = None) -> None:
-        status = DiagnosticStatus(level=self.LEVELS[level],
-                                  name=f'{self._node.get_name()}: {name}', message=message,
-                                  hardware_id=self._hardware_id,
-                                  values=[KeyValue(key=str(k), value=str(v))
-                                          for k, v in (values or {}).items()])
+    def publish(
+        self, name: str, level: str, message: str, values: Mapping[str, object] | None = None
+    ) -> None:
+        status = DiagnosticStatus(
+            level=self.LEVELS[level],
+            name=f'{self._node.get_name()}: {name}',
+            message=message,
+            hardware_id=self._hardware_id,
+            values=[KeyValue(key=str(k), value=str(v)) for k, v in (values or {}).items()],
+        )
         array = DiagnosticArray(status=[status])
         array.header.stamp = self._node.get_clock().now().to_msg()
         with self._lock:
@@ -386,10 +431,10 @@ class Diagnostics:
         now = time.monotonic()
         if now - self._last_log.get(what, -math.inf) >= throttle_s:
             self._last_log[what] = now
-            self._node.get_logger().warning(f'rejected {what}: {error} '
-                                            f'({self.rejected[what]} so far)')
-        self.publish(f'rejected {what}', 'warn', str(error),
-                     {'count': self.rejected[what]})
+            self._node.get_logger().warning(
+                f'rejected {what}: {error} ({self.rejected[what]} so far)'
+            )
+        self.publish(f'rejected {what}', 'warn', str(error), {'count': self.rejected[what]})
 
 
 _R = TypeVar('_R')
@@ -403,6 +448,7 @@ def guarded(what: str) -> Callable[[Callable[..., _R]], Callable[..., _R | None]
     diagnostic); a service callback ``(request, response)`` then answers success=false
     with the error. Expected bad input is rejected inside the callbacks with a better
     reason."""
+
     def decorate(callback: Callable[..., _R]) -> Callable[..., _R | None]:
         @functools.wraps(callback)
         def wrapper(self: Any, *args: Any) -> _R | None:  # self: the node, duck-typed
@@ -419,7 +465,9 @@ def guarded(what: str) -> Callable[[Callable[..., _R]], Callable[..., _R | None]
                     response.success, response.message = False, f'{what}: {error}'
                     return response
                 return None
+
         return wrapper
+
     return decorate
 
 
@@ -436,14 +484,14 @@ class DeferredServiceExecutor(MultiThreadedExecutor):
         try:
             with srv.handle:
                 # rclpy annotates srv_type with an unbound TypeVar; it is a service type.
-                request, header = srv.handle.service_take_request(
-                    srv.srv_type.Request)  # type: ignore[attr-defined]
+                request, header = srv.handle.service_take_request(srv.srv_type.Request)  # type: ignore[attr-defined]
         except InvalidHandle:
             return None
 
         async def _execute() -> None:
             if header is not None:
                 deferred(request, header)
+
         return _execute
 
 
@@ -452,8 +500,9 @@ class DeferredCallback:
     ``deferred_request(request, header)``; called as a plain callback (by another
     executor) it runs ``blocking(request, response)``, which waits on the calling thread."""
 
-    def __init__(self, deferred_request: Callable[[Any, Any], None],
-                 blocking: Callable[[Any, Any], Any]) -> None:  # ROS requests of any type
+    def __init__(
+        self, deferred_request: Callable[[Any, Any], None], blocking: Callable[[Any, Any], Any]
+    ) -> None:  # ROS requests of any type
         self.deferred_request = deferred_request
         self._blocking = blocking
 
@@ -466,6 +515,7 @@ def fastdds_profile() -> Path:
     enough for image bursts, 50 ms heartbeats), installed or in the source tree."""
     try:
         from ament_index_python.packages import get_package_share_directory
+
         return Path(get_package_share_directory('vgm_common')) / 'config' / 'fastdds.xml'
     except (ImportError, LookupError):
         return Path(__file__).resolve().parent.parent / 'config' / 'fastdds.xml'
@@ -516,8 +566,11 @@ POLL_PERIOD = 0.1  # [s] how often spinning checks a node's exit request
 _SignalHandler = Callable[[int, FrameType | None], Any] | int | signal.Handlers | None
 
 
-def run_node(node_class: Callable[[], Node], args: list[str] | None = None,
-             executor_class: Callable[[], Executor] = SingleThreadedExecutor) -> int:
+def run_node(
+    node_class: Callable[[], Node],
+    args: list[str] | None = None,
+    executor_class: Callable[[], Executor] = SingleThreadedExecutor,
+) -> int:
     """Construct and spin ``node_class`` until Ctrl-C, SIGTERM, external shutdown or the
     node's own exit request; returns the process exit status.
 
@@ -569,8 +622,7 @@ def run_node(node_class: Callable[[], Node], args: list[str] | None = None,
         drain = getattr(node, 'drain', None)
         if drain is not None:
             drained = getattr(node, 'drained', lambda: False)
-            _spin_until(executor, lambda: exit_requested.is_set() or drained(),
-                        timeout=drain())
+            _spin_until(executor, lambda: exit_requested.is_set() or drained(), timeout=drain())
     except VgmError as error:
         if node is None:
             rclpy.logging.get_logger(name).error(f'start-up error: {error}')
@@ -610,11 +662,13 @@ def check_params_files(argv: Sequence[str]) -> None:
         except yaml.YAMLError as error:
             mark = getattr(error, 'problem_mark', None)
             where = f' (line {mark.line + 1})' if mark else ''
-            raise VgmError(f'params file {path} is not valid YAML{where}: '
-                           f'{getattr(error, "problem", error)}') from None
+            raise VgmError(
+                f'params file {path} is not valid YAML{where}: {getattr(error, "problem", error)}'
+            ) from None
         if not isinstance(content, dict):
-            raise VgmError(f'params file {path} must map node names to '
-                           '{ros__parameters: {...}}')
+            raise VgmError(
+                f'params file {path} must map node names to {{ros__parameters: {{...}}}}'
+            )
 
 
 NAME_CHECK_PERIOD = 2.0  # [s]
@@ -631,9 +685,11 @@ def _name_clash_check(node: Node) -> Callable[[], None]:
         count = sum(1 for entry in node.get_node_names_and_namespaces() if entry == me)
         clashing = count > 1
         if clashing and not state['clashing']:
-            message = (f'{count} nodes named {node.get_fully_qualified_name()} run on this '
-                       'domain: their parameters and services are ambiguous; give one '
-                       'another name (--ros-args -r __node:=<name>)')
+            message = (
+                f'{count} nodes named {node.get_fully_qualified_name()} run on this '
+                'domain: their parameters and services are ambiguous; give one '
+                'another name (--ros-args -r __node:=<name>)'
+            )
             node.get_logger().error(message)
             diagnostics = getattr(node, 'diagnostics', None)
             if isinstance(diagnostics, Diagnostics):
@@ -643,8 +699,9 @@ def _name_clash_check(node: Node) -> Callable[[], None]:
     return check
 
 
-def _spin_until(executor: Executor, done: Callable[[], bool],
-                timeout: float | None = None) -> None:
+def _spin_until(
+    executor: Executor, done: Callable[[], bool], timeout: float | None = None
+) -> None:
     """Spin ``executor`` until ``done()`` is true, its context is shut down, or ``timeout``
     [s] passed (None: no limit)."""
     deadline = math.inf if timeout is None else time.monotonic() + timeout
@@ -657,8 +714,7 @@ def _spin_until(executor: Executor, done: Callable[[], bool],
 
 def _set_stop_signal_handler(handler: _SignalHandler) -> dict[signal.Signals, _SignalHandler]:
     """Handle SIGINT and SIGTERM with ``handler``; returns the previous handlers."""
-    return {signum: signal.signal(signum, handler)
-            for signum in (signal.SIGINT, signal.SIGTERM)}
+    return {signum: signal.signal(signum, handler) for signum in (signal.SIGINT, signal.SIGTERM)}
 
 
 def wait_for_delivery(node: Node, timeout: float = 2.0) -> bool:

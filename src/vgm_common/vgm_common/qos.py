@@ -4,6 +4,7 @@
 ``LATCHED_QOS``: reliable, transient-local, keep-last 1 (calibrations, waypoints):
 late joiners receive the last value.
 """
+
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 DEFAULT_QOS = QoSProfile(

@@ -7,6 +7,7 @@ alpha = max(theta_i, theta_r), beta = min(theta_i, theta_r); f = tan (``'oren_na
 the published model) or sin (``'thesis'``, as the thesis prints it). Lambert's
 cos(theta_i) when the roughness is 0. Albedo and source radiance are the caller's.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -18,22 +19,29 @@ from vgm_common.geometry import FloatArray
 VARIANTS = ('oren_nayar', 'thesis')
 
 
-def oren_nayar_terms(normals: npt.ArrayLike, light: npt.ArrayLike, views: npt.ArrayLike,
-                     roughness: float, variant: str = 'oren_nayar'
-                     ) -> tuple[FloatArray, FloatArray]:
+def oren_nayar_terms(
+    normals: npt.ArrayLike,
+    light: npt.ArrayLike,
+    views: npt.ArrayLike,
+    roughness: float,
+    variant: str = 'oren_nayar',
+) -> tuple[FloatArray, FloatArray]:
     """(M, cos_theta_i) on broadcast arrays of unit vectors (..., 3).
 
     ``cos_theta_i`` is not clamped (Tsai-Shah's residual uses it as is); ``M`` is the
     bracket above, exactly ``A`` (a constant array) when the roughness is 0.
     """
     if variant not in VARIANTS:
-        raise InvalidInput(f'variant: expected one of {VARIANTS}, got {variant!r}',
-                           key='variant', value=variant)
-    normals, light, views = np.broadcast_arrays(np.asarray(normals, dtype=float),
-                                                np.asarray(light, dtype=float),
-                                                np.asarray(views, dtype=float))
+        raise InvalidInput(
+            f'variant: expected one of {VARIANTS}, got {variant!r}', key='variant', value=variant
+        )
+    normals, light, views = np.broadcast_arrays(
+        np.asarray(normals, dtype=float),
+        np.asarray(light, dtype=float),
+        np.asarray(views, dtype=float),
+    )
     cos_i = np.sum(normals * light, axis=-1)
-    s2 = roughness ** 2
+    s2 = roughness**2
     A, B = 1 - 0.5 * s2 / (s2 + 0.33), 0.45 * s2 / (s2 + 0.09)
     if B == 0:
         return np.full(cos_i.shape, A), cos_i
@@ -46,14 +54,20 @@ def oren_nayar_terms(normals: npt.ArrayLike, light: npt.ArrayLike, views: npt.Ar
     view_tangent = views - cos_r[..., None] * normals
     lengths = np.linalg.norm(light_tangent, axis=-1) * np.linalg.norm(view_tangent, axis=-1)
     with np.errstate(divide='ignore', invalid='ignore'):
-        cos_phi = np.where(lengths > 1e-12,
-                           np.sum(light_tangent * view_tangent, axis=-1) / lengths, 0.0)
+        cos_phi = np.where(
+            lengths > 1e-12, np.sum(light_tangent * view_tangent, axis=-1) / lengths, 0.0
+        )
         f_beta = np.tan(beta) if variant == 'oren_nayar' else np.sin(beta)
     return A + B * np.maximum(0.0, cos_phi) * np.sin(alpha) * f_beta, cos_i
 
 
-def oren_nayar(normals: npt.ArrayLike, light: npt.ArrayLike, views: npt.ArrayLike,
-               roughness: float, variant: str = 'oren_nayar') -> FloatArray:
+def oren_nayar(
+    normals: npt.ArrayLike,
+    light: npt.ArrayLike,
+    views: npt.ArrayLike,
+    roughness: float,
+    variant: str = 'oren_nayar',
+) -> FloatArray:
     """Reflectance factor M cos(theta_i), without albedo; 0 where the light or the
     viewer is behind the surface."""
     M, cos_i = oren_nayar_terms(normals, light, views, roughness, variant)

@@ -6,6 +6,7 @@ outside the repository.
 ``opencv_sample_dir()`` returns the directory holding the files; it raises
 SampleDataError with the reason when they cannot be fetched (a test that needs them
 fails with that reason rather than skipping)."""
+
 from __future__ import annotations
 
 import os
@@ -22,7 +23,8 @@ DATA_IN_PACKAGE = Path('usr/share/doc/opencv-doc/examples/data')
 ALOE_FILES = ('aloeL.jpg', 'aloeR.jpg', 'aloeGT.png')
 STEREO_CALIBRATION_IDS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 11, 12, 13, 14)  # no 10 shipped
 STEREO_CALIBRATION_FILES = tuple(
-    f'{side}{index:02d}.jpg' for index in STEREO_CALIBRATION_IDS for side in ('left', 'right'))
+    f'{side}{index:02d}.jpg' for index in STEREO_CALIBRATION_IDS for side in ('left', 'right')
+)
 CHESSBOARD_INNER_CORNERS = (9, 6)  # of the stereo calibration photographs
 
 
@@ -45,8 +47,10 @@ def opencv_sample_dir() -> Path:
         return target
     for tool in ('apt-get', 'dpkg-deb'):
         if shutil.which(tool) is None:
-            raise SampleDataError(f'cannot fetch {PACKAGE}: {tool} is not on PATH '
-                                  '(a Debian machine is needed for the real-image data)')
+            raise SampleDataError(
+                f'cannot fetch {PACKAGE}: {tool} is not on PATH '
+                '(a Debian machine is needed for the real-image data)'
+            )
     with tempfile.TemporaryDirectory(prefix='vgm-opencv-doc-') as work_dir:
         work = Path(work_dir)
         _run(['apt-get', 'download', PACKAGE], cwd=work)
@@ -75,5 +79,4 @@ def _run(argv: list[str], cwd: Path) -> None:
         raise SampleDataError(f'{" ".join(argv)} failed: {error}') from error
     if result.returncode != 0:
         tail = (result.stderr or result.stdout).strip().splitlines()[-3:]
-        raise SampleDataError(f'{" ".join(argv)} exited {result.returncode}: '
-                              + ' | '.join(tail))
+        raise SampleDataError(f'{" ".join(argv)} exited {result.returncode}: ' + ' | '.join(tail))

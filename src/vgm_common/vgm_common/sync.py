@@ -6,6 +6,7 @@ A set is complete when every key has a message with the same stamp. Incomplete s
 are dropped once they are older than ``max_wait`` [s] (by the caller's clock) or when
 more than ``queue_size`` stamps are pending, and counted in ``dropped``.
 """
+
 from __future__ import annotations
 
 from collections import OrderedDict
@@ -19,8 +20,13 @@ SetCallback = Callable[[int, dict[str, Any]], None]
 class ExactTimeSync:
     """Pair messages of ``keys`` by identical stamp (int nanoseconds)."""
 
-    def __init__(self, keys: Iterable[str], callback: SetCallback, queue_size: int = 10,
-                 max_wait: float = 1.0) -> None:
+    def __init__(
+        self,
+        keys: Iterable[str],
+        callback: SetCallback,
+        queue_size: int = 10,
+        max_wait: float = 1.0,
+    ) -> None:
         self.keys = tuple(keys)
         self._callback = callback
         self._queue_size = queue_size

@@ -5,8 +5,11 @@
 BASE_FRAME = 'base_link'
 TOOL_FRAME = 'tool0'
 CAMERA_NAMES = ('left', 'right', 'aux')
-OPTICAL_FRAMES = {'left': 'stereo_left_optical_frame', 'right': 'stereo_right_optical_frame',
-                  'aux': 'aux_optical_frame'}
+OPTICAL_FRAMES = {
+    'left': 'stereo_left_optical_frame',
+    'right': 'stereo_right_optical_frame',
+    'aux': 'aux_optical_frame',
+}
 
 # --- cameras (sensor_sim, calib_node) --------------------------------------------------
 _CAMERA_NAMESPACES = {'left': '/stereo/left', 'right': '/stereo/right', 'aux': '/aux'}

@@ -1,5 +1,6 @@
 """Work taken off the executor thread: callbacks stay thin, a worker thread processes what
 they submit, a bounded number of items wait, and what does not fit is counted."""
+
 from __future__ import annotations
 
 import collections
@@ -18,12 +19,19 @@ class Worker:
     dropped item carried). ``on_error(error)`` gets any exception of ``process``, so the
     node keeps serving."""
 
-    def __init__(self, process: Callable[[Any], None], on_error: Callable[[Exception], None],
-                 name: str, capacity: int = 1, keep: str = 'newest',
-                 on_drop: Optional[Callable[[Any], None]] = None) -> None:
+    def __init__(
+        self,
+        process: Callable[[Any], None],
+        on_error: Callable[[Exception], None],
+        name: str,
+        capacity: int = 1,
+        keep: str = 'newest',
+        on_drop: Optional[Callable[[Any], None]] = None,
+    ) -> None:
         if capacity < 1 or keep not in KEEP_CHOICES:
-            raise ValueError(f'capacity {capacity} (>= 1), keep {keep!r} (one of '
-                             f'{", ".join(KEEP_CHOICES)})')
+            raise ValueError(
+                f'capacity {capacity} (>= 1), keep {keep!r} (one of {", ".join(KEEP_CHOICES)})'
+            )
         self._process, self._on_error, self._on_drop = process, on_error, on_drop
         self._capacity, self._keep = capacity, keep
         self._waiting: collections.deque[Any] = collections.deque()
