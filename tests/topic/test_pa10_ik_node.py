@@ -160,6 +160,8 @@ def test_tracks_a_piece_of_the_true_curve_on_s3_with_force(spawn, rclpy_node, tm
     rclpy_node.spin_until(
         lambda: len(probe.poses) > 10 and len(probe.pressures) > 10, 60, 'tool poses and pressure'
     )
+    # the latched path reaches the node once discovery matched it (CI: after the poses)
+    rclpy_node.spin_until(lambda: 'waypoints' in node.output(), 20, 'the path taken')
     response = probe.call('start_tracking')
     assert response.success, response.message
     rclpy_node.spin_until(lambda: probe.phase() == 'done', 90, 'phase done')
