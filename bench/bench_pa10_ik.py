@@ -39,12 +39,8 @@ REPO = Path(__file__).resolve().parents[1]
 for package in ('pa10_ik_node', 'sensor_sim', 'vgm_common'):
     sys.path.insert(0, str(REPO / 'src' / package))
 
-from pa10_ik_node.ik import (  # noqa: E402
-    RateSolver,
-    fixed_step_matrix,
-    pose_error,
-    primal_dual_velocity_fixed_step,
-)
+from pa10_ik_node.ik import RateSolver, pose_error  # noqa: E402
+from pa10_ik_node.thesis import fixed_step_matrix, primal_dual_velocity_fixed_step  # noqa: E402
 from pa10_ik_node.tracking import (  # noqa: E402
     TrackingConfig,
     TrackingController,

@@ -3,13 +3,10 @@
 import numpy as np
 import pytest
 
-from pa10_ik_node.ik import (
-    absolute_weights,
-    dls_velocity,
+from pa10_ik_node.ik import dls_velocity, pose_error
+from pa10_ik_node.problem import absolute_weights, kkt_velocity, null_space_positive
+from pa10_ik_node.thesis import (
     fixed_step_matrix,
-    kkt_velocity,
-    null_space_positive,
-    pose_error,
     primal_dual_velocity,
     primal_dual_velocity_fixed_step,
 )

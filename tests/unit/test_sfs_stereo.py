@@ -3,12 +3,7 @@
 import numpy as np
 import pytest
 
-from sfs_stereo_node.fusion import (
-    depth_error_stats,
-    fuse_least_squares,
-    fuse_mlp_rows,
-    train_row_networks,
-)
+from sfs_stereo_node.fusion import depth_error_stats, fuse_least_squares
 from sfs_stereo_node.sfs import reflectance, sfs_depth
 from sfs_stereo_node.stereo import (
     depth_from_disparity,
@@ -16,6 +11,7 @@ from sfs_stereo_node.stereo import (
     normalized_ssd_volume,
     sparse_disparity,
 )
+from sfs_stereo_node.thesis import fuse_mlp_rows, train_row_networks
 from vgm_common.errors import InvalidInput
 
 

@@ -6,7 +6,7 @@ the thesis methods (which must compute the same); all seeded, against ground tru
 import numpy as np
 import pytest
 
-from sfs_stereo_node.fusion import fuse_local_affine, fuse_mlp_rows
+from sfs_stereo_node.fusion import fuse_local_affine
 from sfs_stereo_node.rectify import (
     light_in_rectified_frame,
     raw_depth_to_rectified,
@@ -28,6 +28,7 @@ from sfs_stereo_node.stereo import (
     normalized_ssd_volume,
     window_std,
 )
+from sfs_stereo_node.thesis import fuse_mlp_rows
 from vgm_common.calibration_io import stereo_rectification
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput

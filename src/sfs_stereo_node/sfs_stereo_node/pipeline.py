@@ -17,6 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from sfs_stereo_node import fusion as fusion_cores
+from sfs_stereo_node import thesis
 from sfs_stereo_node.rectify import (
     RectifiedPair,
     light_in_rectified_frame,
@@ -398,9 +399,7 @@ def _fuse(
         ).depth
     if fusion == 'mlp_rows':
         rng = rng if rng is not None else np.random.default_rng(config.seed)
-        return fusion_cores.fuse_mlp_rows(
-            filled, stereo_on_surface, rng, epochs=config.mlp_epochs
-        ).depth
+        return thesis.fuse_mlp_rows(filled, stereo_on_surface, rng, epochs=config.mlp_epochs).depth
     if fusion == 'least_squares':
         return fusion_cores.fuse_least_squares(filled, stereo_on_surface, config.fusion_weight)
     return fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface, config.fusion_sigma)
