@@ -35,7 +35,6 @@ from calib_node.lxpm_ga import lxpm_ga, stereo_objective
 from calib_node.refine import (
     division_init,
     dlt_camera,
-    network_refine,
     opencv_reference,
     refine_seed_lm,
 )
@@ -48,6 +47,7 @@ from calib_node.seed_camera import (
     project_seed,
     seed_stereo_observations,
 )
+from calib_node.thesis import network_refine
 from sensor_sim.scenario import load_scenario, resolve_scenario_path
 
 RESULTS = Path(__file__).resolve().parent / 'results' / 'calib'

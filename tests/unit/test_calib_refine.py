@@ -111,7 +111,7 @@ def test_bad_input_raises():
 
 @pytest.mark.parametrize('weights, gain', [('structured', 3), ('free', 100)])
 def test_network_refinement_fits_the_projection_of_a_pinhole_camera(weights, gain):
-    from calib_node.refine import network_refine
+    from calib_node.thesis import network_refine
 
     rng = np.random.default_rng(5)
     for truth in TRUTH:
@@ -134,7 +134,7 @@ def test_network_refinement_fits_the_projection_of_a_pinhole_camera(weights, gai
 
 
 def test_network_refinement_keeps_the_start_when_it_would_get_worse():
-    from calib_node.refine import network_refine
+    from calib_node.thesis import network_refine
 
     pixels = project_seed(RIGHT_TRUTH[None], POINTS_WORLD)[0]
     start = RIGHT_TRUTH.copy()
@@ -155,7 +155,7 @@ def test_network_refinement_keeps_the_start_when_it_would_get_worse():
 
 
 def test_network_refinement_undistorts_with_the_start_camera():
-    from calib_node.refine import undistort_seed_pixels
+    from calib_node.thesis import undistort_seed_pixels
 
     pixels = project_seed(LEFT_TRUTH[None], POINTS_WORLD)[0]
     pinhole = LEFT_TRUTH.copy()

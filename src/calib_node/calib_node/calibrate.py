@@ -29,8 +29,9 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 
 from calib_node.lxpm_ga import lxpm_ga, rig_objective
-from calib_node.refine import dlt_camera, network_refine
+from calib_node.refine import dlt_camera
 from calib_node.seed_camera import identifiable
+from calib_node.thesis import network_refine
 from vgm_common.geometry import FloatArray, make_transform
 
 METHODS = ('lm', 'lxpm_ga', 'opencv')

@@ -31,7 +31,7 @@ from calib_node.calibrate import (
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
 from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS
-from calib_node.refine import NETWORK_ACCEPT, NETWORK_WEIGHTS
+from calib_node.thesis import NETWORK_ACCEPT, NETWORK_WEIGHTS
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.conversions import (

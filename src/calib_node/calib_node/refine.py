@@ -1,6 +1,7 @@
 """Chapter 4 "better" (ALGORITHMS.md §8): Levenberg-Marquardt refinement of a stereo
 calibration in the identifiable parameters (A4.1) of the full seed model (§3.2, A4.3),
-and an OpenCV reference (DLT initial guess, ``calibrateCamera``, ``stereoCalibrate``).
+its closed-form starts (DLT, division model) and an OpenCV reference (``calibrateCamera``,
+``stereoCalibrate``). The thesis's network refinement is in ``thesis``.
 
 Both cameras use the seed conventions: X = R x + T maps world to camera, pixels in
 [px], lengths in the thesis's unit. The DLT is the standard 3x4 projection estimate with
@@ -65,7 +66,7 @@ def _from_identifiable(z: FloatArray, f: float) -> FloatArray:
     return np.concatenate([z[0:2], z[2:4] / f, [f], [z[4] / f**2], z[5:11]])
 
 
-def _check_points(
+def check_points(
     points_world: npt.ArrayLike, *pixels: npt.ArrayLike
 ) -> tuple[FloatArray, list[FloatArray]]:
     points_world = np.asarray(points_world, dtype=float)
@@ -109,7 +110,7 @@ def refine_seed_lm(
         raise ValueError('params_left, params_right: expected shape (12,)')
     if any(p[4] <= 0 or p[5] < 0 for p in start):
         raise ValueError('params: need f > 0 and k >= 0')
-    points_world, observed = _check_points(points_world, pixels_left, pixels_right)
+    points_world, observed = check_points(points_world, pixels_left, pixels_right)
     focal = [p[4] for p in start]
 
     def cameras(x: FloatArray) -> list[FloatArray]:
@@ -174,7 +175,7 @@ def refine_seed_lm(
     return left, right, info
 
 
-def _normalise(points: FloatArray) -> FloatArray:
+def hartley_normalise(points: FloatArray) -> FloatArray:
     """Similarity T (d+1, d+1) moving (N, d) points to centroid 0, mean distance sqrt(d)."""
     d = points.shape[1]
     centre = points.mean(axis=0)
@@ -198,10 +199,10 @@ def dlt_camera(
     Returns:
         K (3, 3) upper triangular [px], R (3, 3) world -> camera, t (3,) [unit].
     """
-    points_world, (pixels,) = _check_points(points_world, pixels)
+    points_world, (pixels,) = check_points(points_world, pixels)
     if points_world.shape[0] < 6:
         raise ValueError('dlt_camera: needs at least 6 points')
-    T3, T2 = _normalise(points_world), _normalise(pixels)
+    T3, T2 = hartley_normalise(points_world), hartley_normalise(pixels)
     X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T
     x = np.column_stack([pixels, np.ones(len(pixels))]) @ T2.T
     zero = np.zeros_like(X)
@@ -244,7 +245,7 @@ def opencv_reference(
     Returns:
         :class:`OpenCVReference`.
     """
-    points_world, pixels = _check_points(points_world, pixels_left, pixels_right)
+    points_world, pixels = check_points(points_world, pixels_left, pixels_right)
     objects = [points_world.astype(np.float32).reshape(-1, 1, 3)]
     flags = cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
@@ -294,169 +295,6 @@ def opencv_reference(
     )
 
 
-class NetworkInfo(NamedTuple):
-    rms_before: float  # reprojection RMS [px] of the start camera (full seed model)
-    rms_after: float  # and of the network's camera
-    loss: np.ndarray  # (epochs,) mean network error 1/2 |d - O|^2 in normalised units
-    accepted: bool  # the network's camera was returned (else the start camera)
-
-
-NETWORK_ACCEPT = ('if_better', 'always')
-
-
-def undistort_seed_pixels(params: FloatArray, pixels: npt.ArrayLike) -> FloatArray:
-    """Remove the seed's division distortion from (N, 2) pixels of camera ``params`` (12,):
-    X_u = X_d (1 + k |X_d|^2) with X_d = ((u - u0) / Nx, (v - v0) / Ny) (4.2.3, explicit
-    in this direction)."""
-    u0, v0, Nx, Ny, k = params[0], params[1], params[2], params[3], params[5]
-    xy_d = (np.asarray(pixels, dtype=float) - [u0, v0]) / [Nx, Ny]
-    xy_u = xy_d * (1 + k * np.sum(xy_d**2, axis=1, keepdims=True))
-    return xy_u * [Nx, Ny] + [u0, v0]
-
-
-NETWORK_WEIGHTS = ('structured', 'free')
-
-
-def network_refine(
-    params: npt.ArrayLike,
-    points_world: npt.ArrayLike,
-    pixels: npt.ArrayLike,
-    epochs: int = 3000,
-    rate_D: float = 0.05,
-    rate_B: float = 0.05,
-    rate_gamma: float = 0.5,
-    weights: str = 'structured',
-    accept: str = 'if_better',
-) -> tuple[FloatArray, NetworkInfo]:
-    """The seed's neural refinement of one camera (ALGORITHMS.md §3.5, 4.5.1-4.5.7).
-
-    A linear network: hidden h_i = B W_i (B 4x4, the extrinsics [R T; 0 1]), output
-    O_i = gamma_i D h_i (D 3x4, the intrinsics [A | 0]), target d_i = (u_i, v_i, 1) with the
-    GA's distortion removed first (the network cannot model k; f and k keep their start
-    values). Full-batch gradient descent on E = 1/2 sum |d_i - O_i|^2 with the thesis's
-    updates (dD = eta_D gamma e h^T, dB = eta_B gamma D^T e W^T, dgamma = eta_g e^T D h),
-    averaged over the points, on Hartley-normalised inputs and targets, with a
-    backtracking factor on the rates (halved when a step would raise E) [C].
-
-    ``weights`` [C] (A4.10):
-
-    - ``'structured'`` (default): the weights *are* the matrices, as §3.5 states: only the
-      entries that stand for fx, fy, u0, v0 in D and for [R T] in B's top rows are
-      trained (the thesis's updates masked to them; D's zeros, D33 = 1 and B's last row
-      (0, 0, 0, 1) stay), which the similarity normalisations preserve. Read-out as §3.5:
-      D's entries, B's 3x3 block projected onto SO(3) by SVD (its scale, a gauge shared
-      with gamma, divided out of T too).
-    - ``'free'``: every entry of D and B trained; read-out by RQ of the product D B (the
-      data fix only the product; this moves the principal point freely and can wreck a
-      poor start).
-
-    Start [C]: B's top rows are divided by the mean start depth, so that gamma_i = 1 (the
-    thesis's start) is consistent (D h has third component about 1).
-
-    ``accept`` [C]: ``'if_better'`` (default) returns the network's camera only if its
-    full-model reprojection RMS is lower than the start's (the network fits targets
-    undistorted with the GA's k, which it cannot correct, so a poor k can make the
-    network's camera worse in the full model); ``'always'`` returns it regardless.
-
-    Args:
-        params: (12,) start camera in ``PARAM_NAMES`` order (the GA result).
-        points_world: (N, 3) [unit]; pixels: (N, 2) [px].
-
-    Returns:
-        (refined params (12,), :class:`NetworkInfo`).
-    """
-    from scipy.spatial.transform import Rotation
-
-    params = np.asarray(params, dtype=float)
-    if params.shape != (12,) or params[4] <= 0:
-        raise ValueError('params: expected shape (12,) with f > 0')
-    if weights not in NETWORK_WEIGHTS:
-        raise ValueError(f'weights: expected one of {NETWORK_WEIGHTS}, got {weights!r}')
-    if accept not in NETWORK_ACCEPT:
-        raise ValueError(f'accept: expected one of {NETWORK_ACCEPT}, got {accept!r}')
-    points_world, (pixels,) = _check_points(points_world, pixels)
-    start = identifiable(params)
-    targets = undistort_seed_pixels(params, pixels)
-    T3, T2 = _normalise(points_world), _normalise(targets)
-    W = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T  # (N, 4)
-    d = np.column_stack([targets, np.ones(len(targets))]) @ T2.T  # (N, 3)
-    B = np.eye(4)
-    B[:3, :3], B[:3, 3] = start.R, start.T
-    D = np.array([[start.fx, 0, start.u0, 0], [0, start.fy, start.v0, 0], [0, 0, 1, 0]])
-    B = B @ np.linalg.inv(T3)
-    D = T2 @ D
-    if weights == 'structured':
-        mask_D = np.zeros((3, 4))
-        mask_D[0, 0] = mask_D[1, 1] = mask_D[0, 2] = mask_D[1, 2] = 1.0
-        mask_B = np.zeros((4, 4))
-        mask_B[:3] = 1.0
-        B[:3] /= np.mean((W @ B.T)[:, 2])  # gauge: mean depth 1, so gamma = 1 fits
-    else:
-        mask_D, mask_B = np.ones((3, 4)), np.ones((4, 4))
-        # Gauge [C]: D B is all the data fix, so balance the two factors (hidden units of
-        # order 1, mean output depth 1) for a well-conditioned descent.
-        depth = np.mean((W @ B.T)[:, 2])
-        B[:3] /= depth
-        D[:, :3] *= depth
-        D /= np.mean((W @ B.T @ D.T)[:, 2])
-    gamma = np.ones(len(W))
-    count = len(W)
-    loss = np.empty(epochs)
-    rate = 1.0  # backtracking factor on the three rates [C]: halve when a step raises E
-
-    def error(
-        D: FloatArray, B: FloatArray, gamma: FloatArray
-    ) -> tuple[float, FloatArray, FloatArray, FloatArray]:
-        h = W @ B.T
-        Dh = h @ D.T
-        e = d - gamma[:, None] * Dh
-        return 0.5 * np.mean(np.sum(e**2, axis=1)), h, Dh, e
-
-    current, h, Dh, e = error(D, B, gamma)
-    for epoch in range(epochs):
-        ge = gamma[:, None] * e
-        steps = (
-            rate * rate_D * mask_D * (ge.T @ h) / count,
-            rate * rate_B * mask_B * (D.T @ ge.T @ W) / count,
-            rate * rate_gamma * np.sum(e * Dh, axis=1),
-        )
-        trial = error(D + steps[0], B + steps[1], gamma + steps[2])
-        if trial[0] <= current:
-            D, B, gamma = D + steps[0], B + steps[1], gamma + steps[2]
-            current, h, Dh, e = trial
-            rate = min(1.0, 1.5 * rate)
-        else:
-            rate *= 0.5
-        loss[epoch] = current
-    refined = params.copy()
-    if weights == 'structured':
-        A = (np.linalg.inv(T2) @ D)[:, :3]
-        A = A / A[2, 2]
-        extrinsic = B @ T3
-        extrinsic = extrinsic / extrinsic[3, 3]
-        U, singular, Vt = np.linalg.svd(extrinsic[:3, :3])
-        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
-        t = extrinsic[:3, 3] / np.mean(singular)
-        refined[0:2] = A[0, 2], A[1, 2]
-        refined[2:4] = A[0, 0] / params[4], A[1, 1] / params[4]
-    else:
-        K, R, t = decompose_projection(np.linalg.inv(T2) @ D @ B @ T3)
-        refined[0:2] = K[0, 2], K[1, 2]
-        refined[2:4] = K[0, 0] / params[4], K[1, 1] / params[4]
-    refined[6:9] = Rotation.from_matrix(R).as_euler('ZYX')  # alpha, beta, gamma
-    refined[9:12] = t
-    rms = [
-        float(
-            np.sqrt(
-                np.mean(np.sum((project_seed(p[None], points_world)[0] - pixels) ** 2, axis=1))
-            )
-        )
-        for p in (params, refined)
-    ]
-    accepted = accept == 'always' or rms[1] < rms[0]
-    return (refined if accepted else params.copy()), NetworkInfo(rms[0], rms[1], loss, accepted)
-
-
 def _null_vector(rows: FloatArray) -> FloatArray:
     """Unit vector minimising |rows @ x| (last right singular vector)."""
     return np.linalg.svd(rows, full_matrices=False)[2][-1]
@@ -500,10 +338,10 @@ def radial_division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike) -> 
     """
     from scipy.spatial.transform import Rotation
 
-    points_world, (pixels,) = _check_points(points_world, pixels)
+    points_world, (pixels,) = check_points(points_world, pixels)
     if points_world.shape[0] < 12:
         raise ValueError('radial_division_init: needs at least 12 points')
-    T3, T2 = _normalise(points_world), _normalise(pixels)
+    T3, T2 = hartley_normalise(points_world), hartley_normalise(pixels)
     X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T  # (N, 4)
     m = np.column_stack([pixels, np.ones(len(pixels))]) @ T2.T  # (N, 3)
     # Step 1: m~^T M X~ = 0 in normalised coordinates; back: M = T2^T M_n T3.
@@ -553,7 +391,7 @@ def _rac_pose(
     (2, 3), (t1, t2) and the aspect fy / fx from m_x (B X~) - m_y (A X~) = 0 with
     A ~ fx [r1 t1], B ~ fy [r2 t2] (8 unknowns, SVD null vector; exact without noise
     whatever the radial distortion)."""
-    T3 = _normalise(points_world)
+    T3 = hartley_normalise(points_world)
     X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T
     offsets = pixels - centre
     offsets = offsets / np.mean(np.linalg.norm(offsets, axis=1))
@@ -586,7 +424,7 @@ def division_init(
     """
     from scipy.spatial.transform import Rotation
 
-    points_world, (pixels,) = _check_points(points_world, pixels)
+    points_world, (pixels,) = check_points(points_world, pixels)
     low, high = pixels.min(axis=0), pixels.max(axis=0)
     size = np.maximum(high - low, 1.0)
     us = np.linspace(low[0] - size[0], high[0] + size[0], grid)
