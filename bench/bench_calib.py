@@ -11,7 +11,7 @@
 3. The node's setting: the default scenario's three plumb_bob cameras and 10 chart poses,
    exact corners plus sigma = 0 / 0.5 px noise, methods lm / opencv / lxpm_ga: relative
    errors of fx, fy, baseline; time.
-4. Generated rigs (issue 12, ``calib_rigs.py``): rendered charts through random rigs,
+4. Generated rigs (``calib_rigs.py``): rendered charts through random rigs,
    stage and handheld calibration against OpenCV on the same images (``--rigs N``).
 
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_calib.py
@@ -525,9 +525,7 @@ def main():
     parser.add_argument(
         '--sigmas', type=float, nargs='+', default=[0.0, 0.5, 1.0, 1.5, 2.0, 2.5, 3.0]
     )
-    parser.add_argument(
-        '--rigs', type=int, default=10, help='generated rigs (issue 12), 0 to skip'
-    )
+    parser.add_argument('--rigs', type=int, default=10, help='generated rigs, 0 to skip')
     parser.add_argument(
         '--plot-only', action='store_true', help='redraw the plots from the last calib.json'
     )
@@ -629,7 +627,7 @@ def main():
         from calib_rigs import rigs_table
 
         rig_lines, _ = rigs_table(args.rigs)
-        lines += ['', f'## Generated rigs (issue 12): {args.rigs} rigs, rendered charts', '']
+        lines += ['', f'## Generated rigs: {args.rigs} rigs, rendered charts', '']
         lines += rig_lines
     lines += ['', f'Bench run time: {time.perf_counter() - started:.0f} s.']
     (RESULTS / 'calib.md').write_text('\n'.join(lines) + '\n')

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Benchmark of curve_recon_node's cores (ALGORITHMS.md §2; issue 4).
+"""Benchmark of curve_recon_node's cores (ALGORITHMS.md §2).
 
 Part A, the thesis's chapter-3 experiments (figs 3.2-3.15) on image *coordinates*, as the
 thesis ran them: perfect and general stereo, parabola, ellipse, line pair, planar and
@@ -15,7 +15,7 @@ node's whole pipeline (extraction, piecewise fit, both methods, refinement, smoo
 resampling) against the ground truth, plus the point reference on the same extracted
 chains, and the time per 640x480 three-view capture.
 
-Part C, generated families (issue 14): every family of ``sensor_sim.curve_families``
+Part C, generated families: every family of ``sensor_sim.curve_families``
 (planar conics and cubics in any orientation, helices, twisted cubics, torus knots, loops
 on spheres and saddles, inflections, near-straight stretches, self-approaching loops,
 loops on S3), ``FAMILY_SEEDS`` draws each with a generated rig (f 400-1400 px, k1 in
@@ -721,7 +721,7 @@ def main_families(families=None):
     rows = run_generated_families(families)
     lines, summary, missed = summarise_families(rows)
     md = [
-        '# curve_recon_node bench, part C: generated curve families (issue 14)',
+        '# curve_recon_node bench, part C: generated curve families',
         '',
         'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
         f'bench/bench_curve_recon.py --part C` ({time.time() - started:.0f} s, seeded).',
@@ -739,7 +739,10 @@ def main_families(families=None):
         '',
     ]
     if missed:
-        md += ['Misses and their cause: see the README (curve_recon_node, issue 14).', '']
+        md += [
+            'Misses and their cause: see the README (curve_recon_node, generated families).',
+            '',
+        ]
     (OUT / 'families.md').write_text('\n'.join(md) + '\n')
     (OUT / 'families.json').write_text(json.dumps(rows, indent=1, default=float))
     print('\n'.join(md))

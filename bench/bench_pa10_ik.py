@@ -14,7 +14,7 @@ Part B: TrackingController with sensor_sim's arm and spring contact in-process o
 closed curves of the S1, S2 and default (S3) scenarios: force error and lateral error
 along the whole curve.
 
-Part C (issue 13, `--cases`): generated cases (sensor_sim.task_generator): PA-10-like
+Part C (`--cases`): generated cases (sensor_sim.task_generator): PA-10-like
 random arms and the Franka Panda x planes, paraboloid domes and S1-S3 tilted 0-45 deg x
 lines, arcs, figure eights, spirals and tight loops near the reach, the arm simulated
 following positions or velocities, at full or half the commanded speed; ours against
@@ -315,7 +315,7 @@ GOALS = {
 
 
 def run_case(built, method, stop_at_progress=None):
-    """One generated case under ``method``; the goal figures of issue 13."""
+    """One generated case under ``method``; its goal figures (README)."""
     desired, stiffness = 5.0, 2000.0
     solver_method, weights, changes = CASE_METHODS[method]
     controller = TrackingController(
@@ -394,7 +394,7 @@ def main_cases(seed=13, random_arms=2):
 
 def write_case_tables(rows, seed):
     lines = [
-        '# pa10_ik_node: generated cases (issue 13)',
+        '# pa10_ik_node: generated cases',
         '',
         'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
         'bench/bench_pa10_ik.py --cases-only`',

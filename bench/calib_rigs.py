@@ -1,4 +1,4 @@
-"""Generated rigs (issue 12): calib_node's stage and handheld calibrations against
+"""Generated rigs: calib_node's stage and handheld calibrations against
 OpenCV's calibrateCamera + stereoCalibrate, on the same rendered images, scored against
 the truth. Imported by bench_calib.py (``--rigs``) and the tests."""
 
@@ -257,7 +257,7 @@ def main():
     count = int(sys.argv[1]) if len(sys.argv) > 1 else 10
     lines, results = rigs_table(count)
     lines = [
-        '# calib_node on generated rigs (issue 12)',
+        '# calib_node on generated rigs',
         '',
         f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
         f'bench/calib_rigs.py {count}`.',

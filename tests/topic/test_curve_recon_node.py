@@ -596,7 +596,7 @@ def check_views_changed_at_run_time(session, ellipse):
 
 
 def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_setup, rclpy_node):
-    """Issue 18, wedges 3-6 and depth sanity, each of which killed or blocked the node:
+    """Wedges and depth sanity, each of which killed or blocked the node:
     ~/reconstruct calls waiting for a capture leave the executor free (get_parameters
     answers at once, every call is answered when a capture comes); /depth/camera_info
     with P of 1e308 and fused depth that is negative, zero or 1e30 m are rejected with a
@@ -624,7 +624,7 @@ def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_se
     assert node.alive() and 'Traceback' not in node.output()
 
 
-# --- generated draws unlike the shipped scenarios (issue 14) -------------------------
+# --- generated draws unlike the shipped scenarios -------------------------
 
 
 @pytest.mark.parametrize(

@@ -337,8 +337,8 @@ def get_parameter(rclpy_node, name, timeout=20):
 
 def test_failure_stop_start_failure_stop_keeps_serving(spawn, rclpy_node):
     """Both failure kinds (unreachable at start, no progress while running), each after
-    a stop: one process reaches 'stopped' and 'failed' several times (issue 18 crash 1:
-    one log call site at two severities killed it)."""
+    a stop: one process reaches 'stopped' and 'failed' several times (a crash
+    once: one log call site at two severities killed it)."""
     scenario = load_scenario(SCENARIO)
     node = start_node(spawn, '-p', 'error_timeout:=0.2')
     probe = Probe(rclpy_node)
@@ -382,7 +382,7 @@ def test_failure_stop_start_failure_stop_keeps_serving(spawn, rclpy_node):
 
 
 def test_path_along_its_approach_axis_is_rejected(fake_loop, rclpy_node):
-    """Issue 18 crash 2: 41 poses going down their own approach axis (identity
+    """A crash once: 41 poses going down their own approach axis (identity
     orientations) left the tool frame undefined inside the control timer."""
     node, probe, arm, scenario = fake_loop
     waypoints = np.tile(np.eye(4), (41, 1, 1))
@@ -598,9 +598,9 @@ def track_over_topics(
 
 
 def check_goals(tips, forces, scenario, path_base, what, rms_max, passed_min, p95_max):
-    """Issue 13's figures over topics (the goals are RMS 0.05 mm, 99 % passed, force p95
-    3 %; over topics on a loaded 2-core machine the tests allow what it reliably gives:
-    see README)."""
+    """The generated cases' goal figures over topics (the goals are RMS 0.05 mm, 99 %
+    passed, force p95 3 %; over topics on a loaded 2-core machine the tests allow what it
+    reliably gives: see README)."""
     distances, passed = task_generator.path_errors(tips, scenario.surface, path_base)
     rms = float(np.sqrt(np.mean(distances**2)))
     p95 = float(np.percentile(np.abs(forces - DESIRED_FORCE), 95)) / DESIRED_FORCE

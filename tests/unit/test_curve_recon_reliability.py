@@ -1,4 +1,4 @@
-"""Issue 18 for curve_recon_node's cores: implausible depth intrinsics and depth values
+"""Bad input to curve_recon_node's cores: implausible depth intrinsics and depth values
 are refused with a reason (never an OverflowError or a normal made from them), and any
 spacing in the parameter's range gives waypoints with proper rotations."""
 

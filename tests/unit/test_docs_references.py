@@ -64,3 +64,20 @@ def test_cited_docs_files_exist():
     cited = citations(r'\bdocs/([A-Za-z_][\w.-]*\w)')
     missing = sorted({(str(path), name) for path, name in cited if not (DOCS / name).exists()})
     assert not missing, f'not in docs/: {missing}'
+
+
+def test_cited_findings_exist():
+    """``A4.4``, ``A-G1``: the findings list of docs/ALGORITHMS.md (the thesis's gaps and
+    our resolutions), each a ``- **A4.4 ...**`` item there."""
+    text = (DOCS / 'ALGORITHMS.md').read_text()
+    defined = set(re.findall(r'^- \*\*(A\d+\.\d+|A-G\d+)\b', text, re.M))
+    cited = citations(r'(?<![\w.])(A\d+\.\d+|A-G\d+)(?![\w.]*\d)')
+    assert cited, 'no finding cited: the pattern is stale'
+    missing = sorted({(str(path), tag) for path, tag in cited if tag not in defined})
+    assert not missing, f'ALGORITHMS.md has no such finding: {missing}'
+
+
+def test_no_reference_to_the_issue_tracker():
+    """The tracker is not in the repository: code says what it means instead."""
+    cited = citations(r'\b([Ii]ssue \d+)\b')
+    assert not cited, f'references outside the repository: {cited}'

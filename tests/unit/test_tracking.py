@@ -323,7 +323,7 @@ def test_tilt_law_tracks_the_exact_s3_path_with_force_within_2_percent(robot, sc
     assert np.sqrt(np.mean(errors**2)) < 0.3e-3 and errors.max() < 1e-3
 
 
-# --- issue 13: measured-state phases, any 7-DOF arm, tilted surfaces -----------------
+# --- measured-state phases, any 7-DOF arm, tilted surfaces -----------------
 
 
 def run_generated(spec, tmp_path, **config):
@@ -347,9 +347,9 @@ def run_generated(spec, tmp_path, **config):
 
 
 def test_an_arm_slower_than_commanded_reaches_contact_on_its_measured_descent(robot, scenario):
-    """Issue 13 failure 1: the descent was counted by integrating the commanded speed, so
-    an arm making 10 % of its commands was declared 'no contact: descended 40 mm' at
-    3.5 N (and at 15 % it never finished its time-based lift-off)."""
+    """A failure seen on a user's arm: the descent was counted by integrating the
+    commanded speed, so an arm making 10 % of its commands was declared 'no contact:
+    descended 40 mm' at 3.5 N (and at 15 % it never finished its time-based lift-off)."""
     waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
     controller = TrackingController(
         robot,
@@ -405,7 +405,7 @@ GENERATED = task_generator.generate_cases(13)
 def test_generated_arm_surface_path_meets_the_goals(tmp_path, index, config):
     """Seeded draws of the bench's cases (a random PA-10-like arm and the Panda, tilted
     surfaces, velocity arms, one at half speed: that one needs adapt_response, without it
-    the tip runs 0.3 mm off the path): issue 13's goals."""
+    the tip runs 0.3 mm off the path): the goals of the generated cases (README)."""
     controller, log, metrics = run_generated(GENERATED[index], tmp_path, **config)
     assert controller.phase == 'done' and controller.stage == 'lifted', controller.reason
     assert metrics['rms_mm'] < 0.05

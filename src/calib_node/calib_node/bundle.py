@@ -1,4 +1,4 @@
-"""Handheld-chart calibration of a rig (issue 12): a Zhang start per camera
+"""Handheld-chart calibration of a rig: a Zhang start per camera
 (``cv2.calibrateCamera`` on its planar views), then one bundle adjustment over every
 camera's intrinsics and distortion, the rig's extrinsics and every chart pose. No rclpy.
 

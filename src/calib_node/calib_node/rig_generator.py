@@ -1,5 +1,5 @@
 """Random camera rigs and chessboard images rendered through their true cameras, for the
-bench and the tests (issue 12): focal lengths, image sizes, radial distortion, baselines,
+bench and the tests: focal lengths, image sizes, radial distortion, baselines,
 vergence, an oblique aux camera with its own lens, chart poses and image noise are drawn
 from a seeded generator. No rclpy.
 
@@ -116,7 +116,7 @@ def draw_rig(
     views: int | None = None,
     noise: float | None = None,
 ) -> Rig:
-    """A random rig and chart poses (issue 12's ranges), from an integer ``seed``.
+    """A random rig and chart poses (the ranges above), from an integer ``seed``.
 
     Left: width 640..1280 (4:3), f 400..1400 px, k1 in [-0.4, 0.1], k2 = -0.4 k1 * U(0, 1).
     Right: its own lens of the same size, baseline 0.04..0.3 m along left x, both toed in

@@ -1,4 +1,4 @@
-"""Curve pixels from an image: a thin dark line on a shaded surface (issue 4, step 1).
+"""Curve pixels from an image: a thin dark line on a shaded surface (step 1).
 
 The seed finds the curve with an edge detector (Canny). A drawn line has two edges, so
 here the line's *centre* is found instead, with Steger's ridge detector (1998): the

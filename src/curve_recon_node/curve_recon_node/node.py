@@ -1,5 +1,5 @@
 """curve_recon_node: reconstruct the curve drawn on the surface from its three calibrated
-views and publish tool waypoints (INTERFACES.md; ALGORITHMS.md §2; issue 4).
+views and publish tool waypoints (INTERFACES.md; ALGORITHMS.md §2).
 
 Inputs: the three images (exact-time sync), the calibrated rig (latched camera_info and
 pose topics), optionally /depth/fused + /depth/camera_info for surface normals.

@@ -1,5 +1,5 @@
-"""Piecewise algebraic image curves and 3D reconstruction from their cones (issue 4,
-steps 2-3; the seed's chapter 7 fits a long curve piece by piece).
+"""Piecewise algebraic image curves and 3D reconstruction from their cones (steps 2-3
+of the pipeline; the seed's chapter 7 fits a long curve piece by piece).
 
 A view's curve is one ordered chain of normalised image points (undistorted, f = 1). It
 is split into overlapping pieces until the degree-n fit of each piece has an RMS Sampson

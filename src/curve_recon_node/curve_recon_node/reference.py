@@ -1,7 +1,7 @@
 """The conventional peer of the curve reconstruction, for benches and tests: epipolar
 matching of view-1 chain points along view 2's chain polyline, cv2.triangulatePoints,
 and view 3 to choose among several crossings (and to reject points off its chain), on
-the same extracted chains and calibration the node uses (issue 14).
+the same extracted chains and calibration the node uses.
 """
 
 from __future__ import annotations

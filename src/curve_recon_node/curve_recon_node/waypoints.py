@@ -1,4 +1,4 @@
-"""From reconstructed 3D curve points to tool waypoints (issue 4, step 4): smoothing along
+"""From reconstructed 3D curve points to tool waypoints (step 4): smoothing along
 the curve, even resampling, orientation (x along the tangent, z into the surface), and
 surface normals from a depth image.
 

@@ -1,4 +1,4 @@
-"""Generated curve/rig draws for curve_recon_node's bench and tests (issue 14): curve
+"""Generated curve/rig draws for curve_recon_node's bench and tests: curve
 families in any orientation, seen by generated three-camera rigs, drawn with generated
 line widths, contrasts and noise. Seeded: ``generate_case(family, seed)`` is the same
 draw every time.

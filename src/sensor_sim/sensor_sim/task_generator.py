@@ -1,6 +1,6 @@
 """Seeded generators of force-tracking tasks: arms, posed surfaces and paths on them.
 
-For the tests and bench/bench_pa10_ik.py (issue 13: any 7-DOF arm, any surface
+For the tests and bench/bench_pa10_ik.py (any 7-DOF arm, any surface
 orientation). No ROS. Every random choice takes a ``numpy.random.Generator``.
 
 - Arms: PA-10-like URDFs (the PA-10's joint axes, link offsets within +-40 % of the real
