@@ -248,6 +248,7 @@ class TopicInfo:
     message_count: int = 0
 
     def as_metadata(self) -> dict[str, Any]:
+        """The topic's entry of ``topics_with_message_count`` in ``metadata.yaml``."""
         return {
             'topic_metadata': {
                 'name': self.name,
@@ -382,6 +383,7 @@ class BagWriter:
 
     @property
     def message_count(self) -> int:
+        """The number of messages written so far, all topics together."""
         return sum(t.message_count for t in self._topics.values())
 
     def topic_type(self, name: str) -> str | None:
@@ -396,6 +398,7 @@ class BagWriter:
 
     @property
     def closed(self) -> bool:
+        """True once ``close`` was called."""
         return self._closed
 
     def add_topic(
@@ -734,6 +737,7 @@ class BagReader:
 
     @property
     def message_count(self) -> int:
+        """The number of messages in the bag, all topics together."""
         return sum(t.message_count for t in self.topics)
 
     def topic(self, name: str) -> TopicInfo | None:

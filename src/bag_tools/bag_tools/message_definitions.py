@@ -1,4 +1,4 @@
-"""Message definitions and type hashes of installed ROS 2 interfaces, as rosbag2 stores them.
+r"""Message definitions and type hashes of installed ROS 2 interfaces, as rosbag2 stores them.
 
 Plain Python (no rclpy): reads the ``.msg``/``.idl`` files and the ``.json`` type
 descriptions that every interface package installs under ``share/<pkg>/msg/``.
@@ -8,7 +8,7 @@ descriptions that every interface package installs under ``share/<pkg>/msg/``.
 
 - the root type's ``.msg`` file text, verbatim (comments included);
 - then, for each dependency in *sorted* order, depth first, each type only once:
-  ``"\\n" + "=" * 80 + "\\n" + "MSG: <pkg>/<Type>\\n"`` followed by that type's text.
+  ``"\n" + "=" * 80 + "\n" + "MSG: <pkg>/<Type>\n"`` followed by that type's text.
   The name is spelled as the field type is written in the ``.msg`` file (``std_msgs/Header``,
   and ``<pkg>/<Type>`` for a same-package reference such as ``Point``), not ``pkg/msg/Type``.
 

@@ -160,6 +160,7 @@ class PlayerNode(Node):
 
     @property
     def exit_status(self):
+        """The process exit status: 1 if reading the bag failed, else 0."""
         return 0 if self.error is None else 1
 
     # -- publishers --------------------------------------------------------------------

@@ -249,6 +249,7 @@ class RecorderNode(Node):
 
     @property
     def exit_status(self):
+        """The process exit status: 1 once writing to the bag failed, else 0."""
         return 0 if self.write_error is None else 1
 
     # -- discovery (executor thread) -----------------------------------------------------

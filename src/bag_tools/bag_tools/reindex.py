@@ -80,6 +80,9 @@ def _chunk_compression(paths: Iterable[Path]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``reindex`` command: reindex the bag directory named in ``argv`` and print its
+    topics' message counts; returns the exit status (0 = reindexed, 1 = not a bag or
+    failed)."""
     parser = argparse.ArgumentParser(
         prog='reindex',
         description='Rebuild the summary and metadata.yaml of a bag whose '

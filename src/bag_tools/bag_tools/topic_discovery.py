@@ -100,6 +100,9 @@ def subscription_qos(publisher_qos_profiles: Iterable[QoSProfile]) -> QoSProfile
 
 
 class DiscoveredTopic(NamedTuple):
+    """A topic found to take: its name, its one type ``pkg/msg/Type``, that type's class and
+    definition, and its publishers."""
+
     name: str
     type_name: str
     message_type: Any  # the message class
@@ -121,6 +124,8 @@ class TopicDiscovery:
         self.skipped: set[str] = set()
 
     def wanted(self, name: str) -> bool:
+        """True if ``name`` is to be taken by the selection parameters: not excluded, listed
+        in ``topics`` if that is set, else not hidden unless ``include_hidden_topics``."""
         if name in self.excluded:
             return False
         if self.wanted_topics:
@@ -128,6 +133,7 @@ class TopicDiscovery:
         return self._include_hidden or not topic_is_hidden(name)
 
     def skip(self, name: str, reason: str) -> None:
+        """Skip ``name`` for good and log a warning with ``reason``."""
         self.skipped.add(name)
         self._node.get_logger().warning(f'not {self._doing} {name}: {reason}')
 

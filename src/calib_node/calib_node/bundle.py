@@ -59,6 +59,9 @@ def bundle_adjust_selected(
 
 
 class BundleResult(NamedTuple):
+    """A bundle adjustment's rig: every camera's fit in the reference frame, every view's
+    chart pose and the reprojection RMS [px]."""
+
     fits: dict[str, CameraFit]  # T_base_camera = T_ref_camera
     T_ref_chart: list[FloatArray]  # (4, 4) chart pose of every view in the reference frame
     reference: str  # 'base_link' or the name of the reference camera

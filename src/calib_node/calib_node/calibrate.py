@@ -48,6 +48,9 @@ class CalibrationError(ValueError):
 
 
 class CameraFit(NamedTuple):
+    """One camera's calibration: plumb_bob intrinsics, its pose in base_link and the fit's
+    reprojection RMS [px]."""
+
     K: np.ndarray  # (3, 3) [px]
     D: np.ndarray  # (5,) plumb_bob (k1, k2, p1, p2, k3)
     T_base_camera: np.ndarray  # (4, 4) optical frame in base_link
@@ -57,6 +60,9 @@ class CameraFit(NamedTuple):
 
 
 class GAOptions(NamedTuple):
+    """Settings of the thesis's method (:func:`calibrate_rig_ga`): the LX-PM GA's
+    (:func:`~calib_node.lxpm_ga.lxpm_ga`) and the network refinement's that follows it."""
+
     population: int = 240
     generations: int = 200
     crossover: float = 0.9
@@ -369,6 +375,9 @@ def tangential_pays(
 
 
 class RigResult(NamedTuple):
+    """Every camera's fit (:class:`CameraFit`), the method that gave them (``METHODS``)
+    and the wall time the calibration took [s]."""
+
     fits: dict[str, CameraFit]
     method: str
     seconds: float

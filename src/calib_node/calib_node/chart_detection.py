@@ -27,6 +27,9 @@ SHARPNESS_FAILED = 9999.0  # what estimateChessboardSharpness returns when it ca
 
 
 class Detection(NamedTuple):
+    """A chart detection in one image (:func:`detect_chessboard`): the corners in chart
+    order, or None and the reason it was rejected."""
+
     corners: Optional[np.ndarray]  # (rows * cols, 2) [px] in chart order (r * cols + c)
     reason: str  # why there is no detection ('' when found)
     sharpness: float  # OpenCV's edge width estimate [px] (nan when not measured)

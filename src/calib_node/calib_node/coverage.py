@@ -61,9 +61,11 @@ class Coverage:
         )
 
     def add(self, parameters: npt.ArrayLike) -> None:
+        """Keep a view's ``parameters`` (4,) (a copy); :meth:`is_new` is not checked."""
         self.kept.append(np.asarray(parameters, dtype=float).copy())
 
     def clear(self) -> None:
+        """Forget every kept view (progress back to 0)."""
         self.kept.clear()
 
     def progress(self) -> dict[str, float]:

@@ -24,6 +24,9 @@ Objective = Callable[[FloatArray], npt.ArrayLike]  # (P, D) population -> (P,) c
 
 
 class GAResult(NamedTuple):
+    """What :func:`lxpm_ga` found: the best individual, its cost and the best cost per
+    generation."""
+
     best: np.ndarray  # (D,) best individual found
     best_cost: float
     history: np.ndarray  # (generations,) best cost after each generation, non-increasing

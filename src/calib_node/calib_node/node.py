@@ -96,6 +96,10 @@ def _target_matrix(msg):
 
 
 class CalibNode(Node):
+    """Collects chart views from the paired images (and target poses), calibrates the rig
+    and publishes latched CameraInfo and camera poses; with ``calibration_file`` set,
+    publishes that calibration instead. Services ``~/calibrate`` and ``~/reset``."""
+
     node_name = 'calib_node'
 
     def __init__(self):
@@ -789,12 +793,16 @@ class CalibNode(Node):
         self.diagnostics.publish('views', level, message, values)
 
     def close(self):
+        """For run_node: stop waiting for target poses and close the worker (views still
+        queued are not processed)."""
         self.stopping.set()
         if not self.file_mode:
             self.worker.close()
 
 
 def main(args=None):
+    """Run calib_node until SIGINT/SIGTERM; exit status 2 on an unusable parameter or
+    calibration file at start-up (one line)."""
     return run_node(CalibNode, args, executor_class=lambda: MultiThreadedExecutor(3))
 
 

@@ -30,6 +30,9 @@ IDENTIFIABLE_NAMES = ('u0', 'v0', 'fx', 'fy', 'kappa', 'alpha', 'beta', 'gamma',
 
 
 class RefineInfo(NamedTuple):
+    """How :func:`refine_seed_lm` ended: each camera's RMS [px], the solver's iterations
+    and status, the standard errors and the refined cameras' identifiable parameters."""
+
     rms_left: float  # sqrt(mean |reprojection error|^2) over the points [px]
     rms_right: float
     iterations: int  # Jacobian evaluations of the solver
@@ -40,6 +43,9 @@ class RefineInfo(NamedTuple):
 
 
 class OpenCVReference(NamedTuple):
+    """OpenCV's stereo calibration (:func:`opencv_reference`): each camera's intrinsics,
+    distortion and world pose, the left-to-right transform and the RMS figures [px]."""
+
     K_left: np.ndarray  # (3, 3) [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] [px]
     K_right: np.ndarray
     dist_left: np.ndarray  # (5,) (k1, k2, p1, p2, k3), tangential fixed at 0
@@ -69,6 +75,11 @@ def _from_identifiable(z: FloatArray, f: float) -> FloatArray:
 def check_points(
     points_world: npt.ArrayLike, *pixels: npt.ArrayLike
 ) -> tuple[FloatArray, list[FloatArray]]:
+    """(N, 3) control points and each (N, 2) pixel array as float arrays.
+
+    Raises:
+        ValueError: points_world is not (N, 3) or a pixel array is not (N, 2).
+    """
     points_world = np.asarray(points_world, dtype=float)
     if points_world.ndim != 2 or points_world.shape[1] != 3:
         raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')

@@ -39,6 +39,9 @@ Rectification = Callable[
 
 
 class Rig(NamedTuple):
+    """A drawn rig (:func:`draw_rig`): the true cameras, the chart pose of every view, the
+    chart, the image noise and the drawn parameters."""
+
     cameras: dict[str, PinholeCamera]  # the truth, poses in base_link
     T_base_chart: list[FloatArray]  # (4, 4) chart frame in base_link, one per view
     rows: int

@@ -226,6 +226,8 @@ class PopulationCost:
         self.distortion = distortion
 
     def __call__(self, params: npt.ArrayLike) -> FloatArray:
+        """(P,) sums of squared reprojection errors [px^2] of (P, 12) params; +inf for an
+        individual that puts a point at Z <= 0."""
         params = np.asarray(params, dtype=float)
         if self.distortion != 'implicit':
             uv, Z = project_with_depth(params, self.points_world, self.distortion)

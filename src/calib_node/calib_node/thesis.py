@@ -16,6 +16,9 @@ from vgm_common.geometry import FloatArray
 
 
 class NetworkInfo(NamedTuple):
+    """How :func:`network_refine` went: the RMS [px] of the start camera and of the
+    network's, the loss per epoch and whether the network's camera was returned."""
+
     rms_before: float  # reprojection RMS [px] of the start camera (full seed model)
     rms_after: float  # and of the network's camera
     loss: np.ndarray  # (epochs,) mean network error 1/2 |d - O|^2 in normalised units

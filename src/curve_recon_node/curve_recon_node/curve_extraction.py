@@ -41,6 +41,8 @@ class Chain:
 
     @property
     def length_px(self) -> float:
+        """Length of the polyline through ``pixels`` [px], the closing step included when
+        ``closed``."""
         steps = np.linalg.norm(np.diff(self.pixels, axis=0), axis=1).sum()
         if self.closed:
             steps += np.linalg.norm(self.pixels[0] - self.pixels[-1])

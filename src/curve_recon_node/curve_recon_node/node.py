@@ -93,6 +93,11 @@ _REPUBLISH_WITH_NORMALS = object()
 
 
 class CurveReconNode(Node):
+    """Reconstructs the curve from a synchronized capture of the calibrated views (once
+    the calibration is ready or changes, and on ``/curve_recon_node/reconstruct``) and
+    publishes the waypoints (latched; approach axes from /depth/fused normals when
+    available) and the curve points."""
+
     node_name = 'curve_recon_node'
 
     def __init__(self):
@@ -674,6 +679,8 @@ class CurveReconNode(Node):
             )
 
     def close(self):
+        """For run_node: stop the worker and answer every waiting ~/reconstruct call with
+        a failure."""
         self.stopping.set()
         self.worker.close()
         with self.state_lock:
@@ -683,6 +690,8 @@ class CurveReconNode(Node):
 
 
 def main(args=None):
+    """Run curve_recon_node until SIGINT/SIGTERM; exit status 2 on an unusable parameter
+    at start-up (one line)."""
     return run_node(CurveReconNode, args, executor_class=lambda: DeferredServiceExecutor(3))
 
 

@@ -197,6 +197,8 @@ class PiecewiseCurve:
 
     @property
     def rms_px(self) -> float:
+        """The pieces' RMS Sampson residuals combined [px]: the root of their mean square,
+        each piece counting once whatever its number of points."""
         return float(np.sqrt(np.mean([p.rms_px**2 for p in self.pieces])))
 
 

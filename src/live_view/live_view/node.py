@@ -245,6 +245,9 @@ class LiveViewNode(Node):
     # -- clients (server threads) --------------------------------------------------------
 
     def client_subscribed(self, client_id, topic):
+        """Note that client ``client_id`` subscribed to ``topic`` and wake the executor to
+        subscribe it in ROS. ``/tf`` gets the camera transforms at once; a latched topic
+        already subscribed gets its last message again. Server thread."""
         with self._lock:
             self._client_topics.setdefault(client_id, set()).add(topic)
             forwarded = self._forwarded.get(topic)
@@ -261,6 +264,8 @@ class LiveViewNode(Node):
         self._wake.trigger()
 
     def client_unsubscribed(self, client_id, topic):
+        """Note that client ``client_id`` unsubscribed from ``topic`` and wake the executor
+        to drop the ROS subscription nobody watches any more. Server thread."""
         with self._lock:
             topics = self._client_topics.get(client_id, set())
             topics.discard(topic)

@@ -165,6 +165,7 @@ class RateSolver:
         self._network_state: tuple[FloatArray, FloatArray] | None = None
 
     def reset(self) -> None:
+        """Forget the primal_dual network's warm start: the next solve starts it cold."""
         self._network_state = None
 
     def solve(self, J: FloatArray, twist: FloatArray) -> tuple[FloatArray, dict[str, Any]]:

@@ -64,6 +64,11 @@ def _check_weights(values):
 
 
 class Pa10IkNode(Node):
+    """Follows the latched /curve/waypoints with the tool tip at ``rate``: approach,
+    contact at ``desired_force``, tracking and lift-off (``tracking.TrackingController``),
+    joint commands on /pa10_controller/joint_trajectory and the measured tool pose on
+    /tool_pose. Services ``~/start_tracking`` and ``~/stop``."""
+
     node_name = 'pa10_ik_node'
 
     def __init__(self):
@@ -666,6 +671,8 @@ class Pa10IkNode(Node):
 
 
 def main(args=None):
+    """Run pa10_ik_node until SIGINT/SIGTERM; exit status 2 on an unusable parameter or
+    robot model at start-up (one line)."""
     return run_node(Pa10IkNode, args)
 
 

@@ -51,6 +51,8 @@ def check_problem(
 
 
 def initial_vector(value: npt.ArrayLike | None, size: int, key: str) -> FloatArray:
+    """A start vector (size,): zeros for None, else a float copy of ``value``; raises
+    ``InvalidInput`` (under ``key``) naming the expected shape."""
     if value is None:
         return np.zeros(size)
     value = np.array(value, dtype=float)

@@ -344,6 +344,8 @@ class TrackingController:
         self.phase, self.reason = 'stopped', reason
 
     def fail(self, reason: str) -> None:
+        """End the task as failed, for ``reason``: the arm holds still until the next
+        start."""
         self.phase, self.reason = 'failed', reason
 
     def _enter(self, phase: str, stage: str = '') -> None:

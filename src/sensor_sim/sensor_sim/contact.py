@@ -24,6 +24,9 @@ if TYPE_CHECKING:  # pinocchio, imported only for the type
 
 @dataclass(frozen=True)
 class ContactState:
+    """The tool tip's contact with the surface: spring force, penetration and the surface
+    normal under the tip."""
+
     force: float  # [N] >= 0, along the surface normal
     penetration: float  # [m] >= 0: depth of the tip below the surface, 0 when not in contact
     normal_base: FloatArray  # (3,) unit surface normal under the tip (+z side); NaN off the domain

@@ -137,6 +137,7 @@ class SceneRenderer:
 
     @property
     def camera_names(self) -> tuple[str, ...]:
+        """Names of the scenario's cameras (``'left'``, ``'right'``, ``'aux'``)."""
         return tuple(self.scenario.cameras)
 
     def scene_image(self, name: str) -> FloatArray:

@@ -67,6 +67,9 @@ class Curve:
 
 @dataclass(frozen=True)
 class Lighting:
+    """The distant light: its direction in base_link, intensity and ambient term (grey
+    level = 255 albedo (intensity R + ambient), R the Oren-Nayar factor)."""
+
     direction_base: np.ndarray  # unit vector from the surface toward the (distant) light
     intensity: float
     ambient: float
@@ -74,12 +77,18 @@ class Lighting:
 
 @dataclass(frozen=True)
 class Noise:
+    """Standard deviations of the Gaussian sensor noise: on every pixel and on the pressure
+    sensor."""
+
     image_sigma: float  # [grey levels]
     pressure_sigma: float  # [N]
 
 
 @dataclass(frozen=True)
 class Calibration:
+    """The calibration stage: the chessboard (inner corners, square size), the captures
+    taken at each pose and the chart's stage poses in base_link."""
+
     pattern: str
     rows: int  # inner corners
     cols: int
@@ -90,6 +99,9 @@ class Calibration:
 
 @dataclass(frozen=True)
 class Robot:
+    """The arm: its model (checked to load when the scenario is), start joints and the tool
+    length added after ``tool0``."""
+
     model: str  # 'pa10', 'pa10_thesis' or a URDF path
     initial_joints: np.ndarray  # [rad] (7,)
     tool_length: float  # [m]
@@ -97,6 +109,9 @@ class Robot:
 
 @dataclass(frozen=True)
 class Scenario:
+    """A whole scenario file, validated: scene, cameras, light, noise, calibration stage,
+    arm and contact; see docs/SCENARIO.md."""
+
     name: str
     path: Path
     seed: int

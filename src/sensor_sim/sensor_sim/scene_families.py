@@ -32,6 +32,9 @@ DomainFunction = Callable[[FloatArray, FloatArray], npt.NDArray[np.bool_]]
 
 
 class StereoScene(NamedTuple):
+    """One rendered rectified pair: uint8 images, ground-truth depth along the left optical
+    axis, both intrinsics, the baseline and the shading parameters used."""
+
     left: npt.NDArray[np.uint8]  # (H, W)
     right: npt.NDArray[np.uint8]  # (H, W)
     depth: FloatArray  # (H, W) [m] along the left optical axis, NaN off the surface

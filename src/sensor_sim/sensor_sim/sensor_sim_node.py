@@ -51,6 +51,16 @@ from vgm_common.topics import (
 
 
 class SensorSim(Node):
+    """The synthetic rig: publishes the scenario's three camera images at the frame rate
+    (the chart at every stage pose first, with its pose), and the simulated arm's joint
+    states and the tool's pressure at ``joint_state_rate``, following the joint trajectories
+    it receives.
+
+    Raises:
+        ParameterError: invalid parameter value.
+        ScenarioError: no such scenario, or an invalid one.
+    """
+
     node_name = 'sensor_sim'
 
     def __init__(self):
@@ -374,6 +384,8 @@ class SensorSim(Node):
 
 
 def main(args=None):
+    """Run sensor_sim until SIGINT/SIGTERM; exit status 2 on an unusable parameter or
+    scenario at start-up (one line)."""
     return run_node(SensorSim, args, executor_class=lambda: MultiThreadedExecutor(2))
 
 

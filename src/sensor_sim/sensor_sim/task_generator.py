@@ -260,11 +260,16 @@ class TrackingControllerLike(Protocol):
     phase: str  # 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed', ...
     stage: str  # within the phase, e.g. 'lifted' once done
 
-    def stop(self, reason: str = ...) -> None: ...
+    def stop(self, reason: str = ...) -> None:
+        """Hold still from now on (``phase`` becomes 'stopped'); ``reason`` says why."""
+        ...
 
     def step(
         self, q: FloatArray, measured_force: float, dt: float
-    ) -> tuple[FloatArray, Mapping[str, Any]]: ...
+    ) -> tuple[FloatArray, Mapping[str, Any]]:
+        """One control step at joints ``q`` (n,) [rad] with the measured force [N] over
+        ``dt`` [s]. Returns (qdot (n,) [rad/s], info with at least ``'phase'``)."""
+        ...
 
 
 def run_closed_loop(
@@ -426,6 +431,8 @@ class CaseSpec:
 
     @property
     def label(self) -> str:
+        """The case in one line: arm / surface kind and tilt [deg] / path shape / arm mode
+        and speed scale."""
         return (
             f'{self.arm.name} / {self.surface_kind} {np.degrees(self.tilt_rad):.0f} deg / '
             f'{self.path_shape} / {self.arm_mode} x{self.speed_scale:g}'
@@ -445,6 +452,8 @@ class BuiltCase:
     closed: bool
 
     def simulated_arm(self) -> SimulatedArm:
+        """A new ``SimulatedArm`` of ``robot`` at the arm's start joints, in the spec's arm
+        mode and speed scale."""
         from sensor_sim.arm_sim import SimulatedArm
 
         return SimulatedArm.from_robot_model(

@@ -22,6 +22,9 @@ BoolArray = npt.NDArray[np.bool_]
 
 
 class DepthErrors(NamedTuple):
+    """§4.5 errors of a depth estimate against ground truth G (:func:`depth_error_stats`,
+    after the estimate's range is mapped onto G's), in G's unit."""
+
     mean: float  # mean |Z' - G| (Table 5.1)
     std: float  # std of |Z' - G| (Table 5.2)
     rms: float  # sqrt(mean (Z' - G)^2)
@@ -30,6 +33,8 @@ class DepthErrors(NamedTuple):
 def check_pair(
     Z_sfs: npt.ArrayLike, Z_stereo: npt.ArrayLike
 ) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """Both maps as float (H, W) arrays and the (H, W) mask of finite stereo depth; raises
+    ``InvalidInput`` if they are not two maps of one shape or no stereo depth is finite."""
     Z_sfs, Z_stereo = np.asarray(Z_sfs, dtype=float), np.asarray(Z_stereo, dtype=float)
     if Z_sfs.ndim != 2 or Z_sfs.shape != Z_stereo.shape:
         raise InvalidInput(

@@ -66,6 +66,10 @@ def _ordered_ranges(values):
 
 
 class SfsStereoNode(Node):
+    """Rectifies the newest synchronized left/right pair, matches it (SSD stereo), runs
+    shape from shading and fuses the two, in a worker; publishes the disparity, the three
+    depth maps, the rectified left image and /depth/camera_info (rectified left frame)."""
+
     node_name = 'sfs_stereo_node'
 
     def __init__(self):
@@ -539,6 +543,8 @@ class SfsStereoNode(Node):
         self.diagnostics.publish('depth', level, message, values)
 
     def close(self):
+        """For run_node: stop the worker (a waiting pair is not processed) and log the
+        pairs processed, dropped and failed."""
         self.worker.close()
         self.get_logger().info(
             f'processed {self.processed} pairs, dropped '
@@ -548,6 +554,8 @@ class SfsStereoNode(Node):
 
 
 def main(args=None):
+    """Run sfs_stereo_node until SIGINT/SIGTERM; exit status 2 on an unusable parameter
+    at start-up (one line)."""
     return run_node(SfsStereoNode, args)
 
 

@@ -85,6 +85,10 @@ Float32Array = npt.NDArray[np.float32]
 
 
 class DepthResult(NamedTuple):
+    """What :func:`process_pair` made of one pair, in the rectified left frame at
+    processing resolution (h, w): disparity, the depth maps [m], the camera, the match
+    density, the stage timings and why the result is less than asked for."""
+
     disparity: Float32Array  # (h, w) [px at processing resolution], NaN = no match;
     # the offset-corrected disparity of /stereo/disparity: Z = focal b / disparity
     depth_stereo: Float32Array  # (h, w) [m], NaN where no confident match

@@ -44,6 +44,9 @@ class RectifiedPair(NamedTuple):
 
 
 class PairGeometry(NamedTuple):
+    """A rectified pair's matching geometry (:func:`pair_geometry`): the fields of the
+    same names in :class:`RectifiedPair`."""
+
     focal_px: float
     baseline_m: float
     disparity_offset: float

@@ -68,6 +68,9 @@ class ShadingModel(NamedTuple):
 
 
 class RefineResult(NamedTuple):
+    """What :func:`refine_depth` made: the refined depth, the final shading residual and
+    what each level of the coarse-to-fine solve did."""
+
     depth: FloatArray  # (H, W) [m], NaN off the surface
     shading_rms: float  # RMS shading residual at the end [grey levels], shading pixels
     levels: list[tuple[int, int, int]]  # per level: (width, unknowns, Gauss-Newton steps)

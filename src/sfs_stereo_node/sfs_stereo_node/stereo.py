@@ -301,6 +301,9 @@ def noise_sigma(image: npt.ArrayLike, flat_fraction: float = 0.25) -> float:
 
 
 class Matches(NamedTuple):
+    """A matcher's result on the left image: the confident raw disparity, the best cost
+    and the distinctiveness of each pixel, all (H, W)."""
+
     disparity: FloatArray  # (H, W) raw disparity [px], NaN where not confident
     cost: FloatArray  # (H, W) best cost c0 (inf where nothing was searched)
     distinctiveness: FloatArray  # (H, W) 1 - c0 / c1, c1 the best cost > 1 px away

@@ -16,6 +16,9 @@ from vgm_common.geometry import FloatArray
 
 
 class RowFusion(NamedTuple):
+    """What :func:`fuse_mlp_rows` made: the fused depth, the rows that were trained and
+    each row's loss before and after training."""
+
     depth: FloatArray  # (H, W) fused depth, in the stereo depth's unit
     trained_rows: BoolArray  # (H,) rows with at least one stereo point
     loss_initial: FloatArray  # (H,) scaled mean squared error before training, NaN if untrained

@@ -38,6 +38,7 @@ def add_noise(image: np.ndarray, sigma: float, seed: int) -> npt.NDArray[np.uint
 
 
 def resize_half_and_back(image: np.ndarray) -> np.ndarray:
+    """Downscale a (H, W) image to half size (area) and back up to (H, W) (bilinear)."""
     H, W = image.shape
     half = cv2.resize(image, (W // 2, H // 2), interpolation=cv2.INTER_AREA)
     return cv2.resize(half, (W, H), interpolation=cv2.INTER_LINEAR)

@@ -43,6 +43,10 @@ INVALID_DISPARITY = -1.0  # below min_disparity (0), as stereo_image_proc marks 
 
 
 class StereoDecodingNode(Node):
+    """Looks for the watermark in each coded image (``transport``), in a worker; where it
+    finds one, publishes the decoded disparity, left image and synthesised right view,
+    and reports on /diagnostics whether and how confidently it found one."""
+
     node_name = 'stereo_decoding_node'
 
     def __init__(self):
@@ -198,6 +202,8 @@ class StereoDecodingNode(Node):
         self.diagnostics.publish('decoding', level, message, values)
 
     def close(self):
+        """For run_node: stop the worker (a waiting image is not decoded) and log the
+        counts."""
         self.worker.close()
         self.get_logger().info(
             f'decoded {self.decoded}, no watermark {self.unmarked}, failed {self.failed}'
@@ -205,6 +211,8 @@ class StereoDecodingNode(Node):
 
 
 def main(args=None):
+    """Run stereo_decoding_node until SIGINT/SIGTERM; exit status 2 on an unusable
+    parameter at start-up (one line)."""
     return run_node(StereoDecodingNode, args)
 
 

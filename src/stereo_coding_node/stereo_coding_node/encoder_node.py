@@ -83,12 +83,18 @@ def common_params():
 
 
 def effective_strength(params):
+    """The embedding strength of the nodes' ``params``: ``strength`` when > 0, else the
+    method's default (thesis: alpha_w; ours: the QIM step [grey levels])."""
     if params.strength > 0:
         return params.strength
     return thesis.THESIS_STRENGTH if params.method == 'thesis' else blind.DEFAULT_STEP
 
 
 class StereoCodingNode(Node):
+    """Pairs the rectified left image with the disparity of the same stamp, embeds the
+    disparity (``method``) in a worker and publishes the coded image, raw and JPEG; method
+    thesis also writes its side information to ``key_file``."""
+
     node_name = 'stereo_coding_node'
 
     def __init__(self):
@@ -243,11 +249,15 @@ class StereoCodingNode(Node):
         self.diagnostics.publish('coding', level, message, values)
 
     def close(self):
+        """For run_node: stop the worker (a waiting pair is not coded) and log the
+        counts."""
         self.worker.close()
         self.get_logger().info(f'coded {self.coded} images, failed {self.failed}')
 
 
 def main(args=None):
+    """Run stereo_coding_node until SIGINT/SIGTERM; exit status 2 on an unusable
+    parameter at start-up (one line)."""
     return run_node(StereoCodingNode, args)
 
 

@@ -119,6 +119,8 @@ def write_camera_yaml(
     R: npt.ArrayLike | None = None,
     P: npt.ArrayLike | None = None,
 ) -> None:
+    """Write the camera_calibration_parsers file of a plumb_bob ``camera`` (no pose) to
+    ``path``; default R = I, P = [K | 0]. Raises InvalidInput for another distortion model."""
     Path(path).write_text(
         yaml.safe_dump(camera_yaml_dict(camera, camera_name, R, P), sort_keys=False)
     )

@@ -109,6 +109,7 @@ class PinholeCamera:
 
     @property
     def T_camera_base(self) -> FloatArray:
+        """Inverse of ``T_base_camera`` (4x4): maps base_link points to the optical frame."""
         return invert_transform(self.T_base_camera)
 
     @property

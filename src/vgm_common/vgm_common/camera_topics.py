@@ -70,6 +70,7 @@ class CalibratedCameras:
 
     @property
     def ready(self) -> bool:
+        """True once every camera of ``names`` has a valid camera_info and pose."""
         return all(name in self._cameras for name in self.names)
 
     def missing(self) -> list[str]:
@@ -80,6 +81,7 @@ class CalibratedCameras:
         return self._cameras[name]
 
     def get(self, name: str) -> CalibratedCamera | None:
+        """The ``CalibratedCamera`` of ``name``, or None while it is not calibrated."""
         return self._cameras.get(name)
 
     def _on_info(self, name: str, msg: CameraInfo) -> None:

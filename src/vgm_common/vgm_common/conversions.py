@@ -45,14 +45,17 @@ IMAGE_ENCODINGS: dict[str, tuple[type[np.generic], int]] = {
 
 
 def stamp_to_ns(stamp: Time) -> int:
+    """builtin_interfaces/Time -> integer time [ns]."""
     return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 def ns_to_stamp(ns: int) -> Time:
+    """Integer time [ns] -> builtin_interfaces/Time."""
     return Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
 
 
 def make_header(stamp_ns: int, frame_id: str) -> Header:
+    """std_msgs/Header stamped ``stamp_ns`` [ns] in frame ``frame_id``."""
     return Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id)
 
 
@@ -270,6 +273,7 @@ def pose_to_matrix(pose: Pose) -> FloatArray:
 
 
 def matrix_to_pose(T: FloatArray) -> Pose:
+    """4x4 -> geometry_msgs/Pose; raises InvalidInput unless the rotation is orthonormal."""
     if not is_rotation(T[:3, :3]):
         raise InvalidInput('transform rotation is not orthonormal', key='rotation')
     x, y, z, w = matrix_to_quaternion(T[:3, :3])
@@ -281,6 +285,8 @@ def matrix_to_pose(T: FloatArray) -> Pose:
 
 
 def matrix_to_pose_stamped(T: FloatArray, stamp_ns: int, frame_id: str) -> PoseStamped:
+    """4x4 pose in ``frame_id`` -> geometry_msgs/PoseStamped stamped ``stamp_ns`` [ns];
+    raises InvalidInput unless the rotation is orthonormal."""
     return PoseStamped(header=make_header(stamp_ns, frame_id), pose=matrix_to_pose(T))
 
 
@@ -292,6 +298,8 @@ def path_to_matrices(msg: Path) -> FloatArray:
 
 
 def matrices_to_path(T_frame_poses: Iterable[FloatArray], stamp_ns: int, frame_id: str) -> Path:
+    """4x4 poses in ``frame_id`` -> nav_msgs/Path, every pose with the path's header
+    (``stamp_ns`` [ns]); raises InvalidInput unless each rotation is orthonormal."""
     header = make_header(stamp_ns, frame_id)
     return Path(
         header=header,

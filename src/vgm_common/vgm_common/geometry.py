@@ -30,14 +30,20 @@ def _rotation(angle: npt.ArrayLike, axis: Literal['x', 'y', 'z']) -> FloatArray:
 
 
 def rot_x(angle: npt.ArrayLike) -> FloatArray:
+    """Rotation(s) by ``angle`` [rad] about x: (3, 3), or (*S, 3, 3) for an array of
+    angles of shape S."""
     return _rotation(angle, 'x')
 
 
 def rot_y(angle: npt.ArrayLike) -> FloatArray:
+    """Rotation(s) by ``angle`` [rad] about y: (3, 3), or (*S, 3, 3) for an array of
+    angles of shape S."""
     return _rotation(angle, 'y')
 
 
 def rot_z(angle: npt.ArrayLike) -> FloatArray:
+    """Rotation(s) by ``angle`` [rad] about z: (3, 3), or (*S, 3, 3) for an array of
+    angles of shape S."""
     return _rotation(angle, 'z')
 
 
@@ -103,6 +109,7 @@ def make_transform(R: npt.ArrayLike, t: npt.ArrayLike) -> FloatArray:
 
 
 def invert_transform(T: FloatArray) -> FloatArray:
+    """Inverse of a rigid 4x4 transform: ``T_b_a`` from ``T_a_b``."""
     R, t = T[:3, :3], T[:3, 3]
     return make_transform(R.T, -R.T @ t)
 

@@ -33,6 +33,9 @@ _CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + si
 
 
 class LaunchError(Exception):
+    """The launch cannot go on: a bad params file or ``--set``, or a node's executable not
+    found; the message says which."""
+
     pass
 
 
@@ -51,6 +54,8 @@ def find_executable(name: str, prefixes: Iterable[str] | None = None) -> Path:
 
 
 def node_names(params_file: str | Path) -> list[str]:
+    """The node names of a params file: its top-level keys without a leading ``/``, less
+    the ``/**`` section. Raises LaunchError unless the file is a mapping."""
     data = yaml.safe_load(Path(params_file).read_text()) or {}
     if not isinstance(data, dict):
         raise LaunchError(f'{params_file}: expected node names as top-level keys')
@@ -105,6 +110,9 @@ class Launch:
             self._print(name, line)
 
     def start(self) -> None:
+        """Start every node, in order, as its own process group with the params file and
+        its overrides, and print its output prefixed with its name. Raises LaunchError if
+        a node's executable is not found."""
         for name in self.nodes:
             argv = [
                 *self.command_prefixes.get(name, []),
@@ -133,6 +141,7 @@ class Launch:
             self._pumps.append(pump)
 
     def log_text(self, name: str) -> str:
+        """Everything node ``name`` printed so far, as one string."""
         return ''.join(self.logs[name])
 
     def stop(self, timeout: float = 10.0) -> None:
@@ -218,6 +227,8 @@ def _signal_group(process: subprocess.Popen[str], sig: signal.Signals) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The ``vgm_launch`` command; returns the exit status: 0 = no node failed, 1 = one
+    did, 2 = bad params file or arguments, or a node's executable not found."""
     parser = argparse.ArgumentParser(prog='vgm_launch', description=__doc__.split('\n\n')[0])
     parser.add_argument('params_file', help='ROS 2 params file; top-level keys = nodes')
     parser.add_argument('--nodes', nargs='+', help='start only these nodes')

@@ -123,6 +123,9 @@ class Param:
         return value
 
     def descriptor(self) -> ParameterDescriptor:
+        """The ParameterDescriptor to declare it with: the description (plus the choices),
+        read-only (except an empty-list default, declared unset) and, for a number, its
+        range. Typing is dynamic, so that ``coerce`` reports a wrong kind in one line."""
         text = self.description + (f' One of: {", ".join(self.choices)}.' if self.choices else '')
         # Dynamic typing lets coerce() give the one-line error (and accept an integer
         # for a float) instead of rclpy raising a traceback at declaration.
@@ -243,6 +246,7 @@ class CountingPublisher(Publisher):
     sent = 0
 
     def publish(self, msg: Any) -> None:
+        """Publish ``msg`` and count it in ``sent``."""
         super().publish(msg)
         self.sent += 1
 
@@ -343,6 +347,9 @@ class SubscriberGate:
         return missing
 
     def is_open(self) -> bool:
+        """True once the gate is open: the subscribers are there or the timeout passed.
+        Opening logs how long it waited (a warning naming what is missing after a
+        timeout) and sets ``opened``; the gate then stays open."""
         if self.opened.is_set():
             return True
         missing = self.missing()
@@ -407,6 +414,9 @@ class Diagnostics:
     def publish(
         self, name: str, level: str, message: str, values: Mapping[str, object] | None = None
     ) -> None:
+        """Publish the status ``name`` (prefixed with the node's name) at ``level`` ('ok',
+        'warn', 'error' or 'stale') with ``message`` and ``values`` (as strings). Until a
+        subscriber has matched, the latest ``UNSENT_LIMIT`` arrays are held back."""
         status = DiagnosticStatus(
             level=self.LEVELS[level],
             name=f'{self._node.get_name()}: {name}',
@@ -507,6 +517,8 @@ class DeferredCallback:
         self._blocking = blocking
 
     def __call__(self, request: Any, response: Any) -> Any:
+        """Called as a plain service callback: ``blocking(request, response)``, on the
+        calling thread; returns its response."""
         return self._blocking(request, response)
 
 

@@ -67,4 +67,5 @@ class ExactTimeSync:
 
     @property
     def pending(self) -> int:
+        """The number of stamps waiting for their set to complete."""
         return len(self._pending)
