@@ -22,9 +22,8 @@ from typing import NamedTuple, cast
 import cv2
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import least_squares
 
-from calib_node.calibrate import CalibrationError, CameraFit, tangential_pays
+from calib_node.calibrate import CalibrationError, CameraFit, solve_lm, tangential_pays
 from vgm_common.geometry import FloatArray, invert_transform, make_transform
 
 INTRINSICS = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
@@ -182,17 +181,7 @@ def bundle_adjust(
         [np.asarray(views[i][names[c]], dtype=float).ravel() for c, i in pairs]
     )
     evaluate = _reprojection(chart, x0, free, pairs, observed, layout)
-    result = least_squares(
-        lambda xf: evaluate(xf)[0],
-        x0[free],
-        jac=lambda xf: evaluate(xf)[1],
-        method='lm',
-        x_scale='jac',
-        xtol=1e-12,
-        ftol=1e-12,
-        gtol=1e-12,
-        max_nfev=max_nfev,
-    )
+    result = solve_lm(evaluate, x0[free], max_nfev)
     x = x0.copy()
     x[free] = result.x
     if not np.all(np.isfinite(x)):

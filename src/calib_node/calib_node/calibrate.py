@@ -20,13 +20,13 @@ Methods (``METHODS``):
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
 import cv2
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import least_squares
+from scipy.optimize import OptimizeResult, least_squares
 
 from calib_node.lxpm_ga import lxpm_ga, rig_objective
 from calib_node.refine import dlt_camera
@@ -76,6 +76,26 @@ class GAOptions(NamedTuple):
     elitism: int = 1  # elite individuals kept [C] (A4.6)
     network_weights: str = 'structured'  # train only the matrices' entries, or 'free'
     network_accept: str = 'if_better'  # keep the network's camera only if its RMS is lower
+
+
+def solve_lm(
+    evaluate: Callable[[FloatArray], tuple[FloatArray, np.ndarray]],
+    x0: FloatArray,
+    max_nfev: int,
+) -> OptimizeResult:
+    """Levenberg-Marquardt on ``evaluate(x) -> (residuals, Jacobian)`` from ``x0``, the
+    calibrations' tolerances (1e-12 on x, cost and gradient; Jacobian scaling)."""
+    return least_squares(
+        lambda x: evaluate(x)[0],
+        x0,
+        jac=lambda x: evaluate(x)[1],
+        method='lm',
+        x_scale='jac',
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        max_nfev=max_nfev,
+    )
 
 
 def degeneracy(
@@ -169,17 +189,7 @@ def calibrate_camera_lm(
             cache[key] = ((uv.reshape(-1, 2) - pixels).ravel(), J[:, free])
         return cache[key]
 
-    result = least_squares(
-        lambda xf: evaluate(xf)[0],
-        x0[free],
-        jac=lambda xf: evaluate(xf)[1],
-        method='lm',
-        x_scale='jac',
-        xtol=1e-12,
-        ftol=1e-12,
-        gtol=1e-12,
-        max_nfev=500,
-    )
+    result = solve_lm(evaluate, x0[free], max_nfev=500)
     x = full(result.x)
     if not np.all(np.isfinite(x)) or x[6] <= 0 or x[7] <= 0:
         raise CalibrationError('LM diverged')
