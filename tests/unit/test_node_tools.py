@@ -435,3 +435,27 @@ def test_worker_keeping_the_oldest_refuses_when_full_and_idle_work_yields():
     assert taken == ['first', 'tidy up', 'second'] and worker.dropped == 1
     with pytest.raises(ValueError, match='keep'):
         Worker(process, lambda error: None, 'probe', keep='random')
+
+
+def test_worker_survives_a_failing_error_report(capfd):
+    from vgm_common.worker import Worker
+
+    done = threading.Event()
+
+    def process(item):
+        if item == 'bad':
+            raise ValueError('bad item')
+        done.set()
+
+    def broken_report(error):
+        raise RuntimeError('the report failed too')
+
+    worker = Worker(process, broken_report, 'probe')
+    worker.submit('bad')
+    deadline = time.monotonic() + 10.0
+    while 'the report failed too' not in capfd.readouterr().err:
+        assert time.monotonic() < deadline, 'the failing report was not printed'
+        time.sleep(0.01)
+    worker.submit('good')  # still serving
+    assert done.wait(10.0)
+    worker.close()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import traceback
 from typing import Any, Callable, Optional
 
 KEEP_CHOICES = ('newest', 'oldest')
@@ -77,7 +78,10 @@ class Worker:
             try:
                 self._process(item)
             except Exception as error:  # noqa: BLE001 - reported as a diagnostic, keep serving
-                self._on_error(error)
+                try:
+                    self._on_error(error)
+                except Exception:  # noqa: BLE001 - a failing report must not end the worker
+                    traceback.print_exc()
 
     def close(self) -> None:
         """Stop after the item being processed; waiting items are not processed."""
