@@ -14,6 +14,8 @@ What the test needs (chromium, the npm packages) is installed on first use into 
 outside git; when that fails the test fails with the reason.
 """
 
+import time
+
 import cv2
 import numpy as np
 import pytest
@@ -43,6 +45,18 @@ STREAMING_TOPICS = [
     '/diagnostics',
 ]
 APP_TIMEOUT = 120  # [s] the app loads a 20 MB bundle on a loaded 2-core machine
+# {topic: rate [Hz]} as the app's topic list shows them, or null until every streaming
+# topic has a rate
+LISTED_RATES = f"""(() => {{
+    const rates = {{}};
+    for (const topic of {STREAMING_TOPICS!r}) {{
+        const field = document.querySelector(
+            `[data-topic="${{topic}}"][data-topic-stat="frequency"]`);
+        const match = field && field.innerText.match(/([0-9.]+) Hz/);
+        if (!match || !(parseFloat(match[1]) > 0)) return null;
+        rates[topic] = parseFloat(match[1]);
+    }}
+    return rates; }})()"""
 BAG_CAPTURES = 10
 
 
@@ -125,21 +139,17 @@ def test_foxglove_app_live_and_zstd_bag(studio, spawn, rclpy_node, tmp_path):
         browser.navigate(
             f'{host.url}/?ds=foxglove-websocket&ds.url={relay.url}&layoutId={LAYOUT_ID}'
         )
-        rates = browser.wait_for(
-            f"""(() => {{
-            const rates = {{}};
-            for (const topic of {STREAMING_TOPICS!r}) {{
-                const field = document.querySelector(
-                    `[data-topic="${{topic}}"][data-topic-stat="frequency"]`);
-                const match = field && field.innerText.match(/([0-9.]+) Hz/);
-                if (!match || !(parseFloat(match[1]) > 0)) return null;
-                rates[topic] = parseFloat(match[1]);
-            }}
-            return rates; }})()""",
-            APP_TIMEOUT,
-            'every streaming topic listed with a rate',
-        )
+        rates = browser.wait_for(LISTED_RATES, APP_TIMEOUT, 'every streaming topic with a rate')
         assert relay.connections >= 1 and relay.frames_down > 0
+        # The app's rate is a windowed estimate: its first reading can be off (once: 9 Hz
+        # for a 5 Hz camera whose neighbours read 5). Read it again until it settles,
+        # for a bounded time, then judge the last reading.
+        settle_deadline = time.monotonic() + 30.0
+        while (
+            not 3.0 < rates['/stereo/left/image_raw'] < 7.0 and time.monotonic() < settle_deadline
+        ):
+            time.sleep(0.5)
+            rates = browser.evaluate(LISTED_RATES) or rates
         assert 3.0 < rates['/stereo/left/image_raw'] < 7.0, rates  # sensor_sim at 5 Hz
         assert rates['/joint_states'] > 50.0, rates  # 200 Hz published
         listed = browser.evaluate("""[...document.querySelectorAll(
