@@ -7,6 +7,7 @@ import os
 import signal
 import threading
 import time
+from dataclasses import dataclass
 
 import pytest
 import rclpy
@@ -15,6 +16,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from vgm_common.node_tools import (
+    ConfigParams,
     Diagnostics,
     NodeParameters,
     Param,
@@ -147,6 +149,26 @@ def test_values_that_must_go_together_are_checked_at_start_up_and_on_change(make
     assert result.successful, result.reason
     assert (params.weights, params.count) == ([1.0, 2.0, 3.0], 3)
     assert diagnostics.rejected == {'parameter change': 2}
+
+
+@dataclass(frozen=True)
+class ProbeSettings:
+    rate: float = 30.0
+    gains: tuple[float, float] = (1.0, 2.0)
+    internal: int = 7  # no parameter fills it
+
+
+def test_config_params_fill_a_core_s_settings_from_the_current_values(make_node):
+    settings = ConfigParams(ProbeSettings, renamed={'gains': 'weights'})
+    node = make_node(rate=50)
+    params = NodeParameters(node, probe_params())
+    assert settings.build(params) == ProbeSettings(rate=50.0, gains=(1.0, 2.0))
+    assert refusal(node, 'weights', [3.0, 4.0]) == ''
+    assert settings.fields(params) == {'rate': 50.0, 'gains': (3.0, 4.0)}  # tuple, as the core's
+    # A renamed field naming no field or no parameter would silently do nothing.
+    for renamed in ({'gains': 'weight'}, {'gain': 'weights'}):
+        with pytest.raises(ValueError, match='no such field or parameter'):
+            ConfigParams(ProbeSettings, renamed=renamed).build(params)
 
 
 def test_changes_are_checked_then_applied_and_reported(make_node):

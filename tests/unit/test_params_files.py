@@ -193,3 +193,30 @@ def test_every_params_file_is_checked():
         if path.parent.parent.name != 'vgm_common'
     }  # graph.yaml: the demo's values
     assert found == set(NODES)
+
+
+CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters fill
+    'calib_node.node:CalibNode': ['GA'],
+    'curve_recon_node.node:CurveReconNode': ['SETTINGS'],
+    'sfs_stereo_node.node:SfsStereoNode': ['DEPTH'],
+    'pa10_ik_node.node:Pa10IkNode': ['TRACKING'],
+}
+
+
+@pytest.mark.parametrize('class_path', sorted(CORE_SETTINGS))
+def test_parameters_default_to_the_core_settings(class_path, default_context):
+    """A parameter that fills a field of a core's settings has the core's default (one
+    source), and every renamed field names a declared parameter (else it does nothing)."""
+    module = importlib.import_module(class_path.split(':')[0])
+    declared = declared_defaults(class_path)
+    for binding_name in CORE_SETTINGS[class_path]:
+        binding = getattr(module, binding_name)
+        names = binding.param_names(declared)
+        assert names, f'{binding_name}: no parameter fills {binding.config_type.__name__}'
+        core = {  # parameter -> the core's default (a tuple is a list parameter)
+            param: list(value) if isinstance(value, tuple) else value
+            for field, value in binding.field_defaults().items()
+            if (param := names.get(field))
+        }
+        differ = {p: (declared[p], core[p]) for p in core if not same(declared[p], core[p])}
+        assert differ == {}, f'{binding_name}: (declared, core default) differ'

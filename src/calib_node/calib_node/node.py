@@ -44,6 +44,7 @@ from vgm_common.conversions import (
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.geometry import make_transform, quaternion_to_matrix, rpy_to_matrix
 from vgm_common.node_tools import (
+    ConfigParams,
     CountingPublisher,
     Diagnostics,
     NodeParameters,
@@ -68,6 +69,16 @@ CHART_SOURCES = ('auto', 'stage', 'handheld')
 TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
 RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
 VIEW_BACKLOG = 30  # image sets waiting for chart detection
+# The thesis method's settings: network_* fields are network.* parameters, the rest ga.*.
+GA = ConfigParams(
+    GAOptions,
+    renamed={
+        name: name.replace('network_', 'network.', 1)
+        if name.startswith('network_')
+        else f'ga.{name}'
+        for name in GAOptions._fields
+    },
+)
 
 
 def _rig_pose_check(value):
@@ -105,6 +116,7 @@ class CalibNode(Node):
     def __init__(self):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
+        ga = GA.defaults
         self.params = NodeParameters(
             self,
             [
@@ -216,67 +228,77 @@ class CalibNode(Node):
                     choices=LM_STARTS,
                 ),
                 Param('seed', 0, 'Random seed of the GA.', range=(0, 2**31 - 1)),
-                Param('ga.population', 240, 'GA population (thesis 240).', range=(4, 100000)),
-                Param('ga.generations', 200, 'GA generations (thesis 200).', range=(1, 100000)),
+                Param(
+                    'ga.population',
+                    ga.population,
+                    'GA population (thesis 240).',
+                    range=(4, 100000),
+                ),
+                Param(
+                    'ga.generations',
+                    ga.generations,
+                    'GA generations (thesis 200).',
+                    range=(1, 100000),
+                ),
                 Param(
                     'ga.crossover',
-                    0.9,
+                    ga.crossover,
                     'Laplace crossover probability per pair (thesis 0.9).',
                     range=(0.0, 1.0),
                 ),
                 Param(
                     'ga.mutation',
-                    0.005,
+                    ga.mutation,
                     'Power mutation probability per gene (thesis 0.005).',
                     range=(0.0, 1.0),
                 ),
                 Param(
                     'ga.pm_index',
-                    0.25,
+                    ga.pm_index,
                     'Power mutation index p, s = s1^(1/p) (not in the '
                     'thesis; ALGORITHMS.md A4.4).',
                     range=(1e-3, 100.0),
                 ),
                 Param(
                     'ga.lx_variant',
-                    'printed',
+                    ga.lx_variant,
                     'Laplace crossover: as printed in the thesis, '
                     'or the symmetric Laplace quantile (A4.5).',
                     choices=LX_VARIANTS,
                 ),
                 Param(
                     'ga.lx_draw',
-                    'gene',
+                    ga.lx_draw,
                     'Laplace spread phi drawn per gene (A4.5) or per parent pair.',
                     choices=LX_DRAWS,
                 ),
                 Param(
                     'ga.tournament',
-                    3,
+                    ga.tournament,
                     'Tournament size of the selection [C] (A4.6).',
                     range=(1, 1000),
                 ),
                 Param(
                     'ga.elitism',
-                    1,
+                    ga.elitism,
                     'Best individuals carried over each generation [C] (A4.6).',
                     range=(0, 1000),
                 ),
                 Param(
                     'ga.max_distance',
-                    3.0,
+                    ga.max_distance,
                     'Bound of the GA translation genes: camera to chart-centroid distance [m].',
                     range=(0.01, 1000.0),
                 ),
                 Param(
                     'network.epochs',
-                    3000,
+                    ga.network_epochs,
                     'Gradient-descent epochs of the thesis network refinement.',
                     range=(0, 1000000),
                 ),
                 Param(
                     'network.weights',
-                    'structured',
+                    ga.network_weights,
                     'structured: train only the entries of '
                     'D = [A | 0] and B = [R T; 0 1] that stand for parameters (ALGORITHMS.md '
                     '3.5); free: every weight, read out by RQ of D B.',
@@ -284,7 +306,7 @@ class CalibNode(Node):
                 ),
                 Param(
                     'network.accept',
-                    'if_better',
+                    ga.network_accept,
                     'if_better: keep the network camera only '
                     'if its full-model RMS is below the GA camera; always: keep it.',
                     choices=NETWORK_ACCEPT,
@@ -619,27 +641,12 @@ class CalibNode(Node):
                     seconds = time.perf_counter() - started
                 else:
                     reference = BASE_FRAME
-                    ga = GAOptions(
-                        self._param('ga.population'),
-                        self._param('ga.generations'),
-                        self._param('ga.crossover'),
-                        self._param('ga.mutation'),
-                        self._param('ga.pm_index'),
-                        self._param('ga.lx_variant'),
-                        self._param('ga.max_distance'),
-                        self._param('network.epochs'),
-                        self._param('ga.lx_draw'),
-                        self._param('ga.tournament'),
-                        self._param('ga.elitism'),
-                        self._param('network.weights'),
-                        self._param('network.accept'),
-                    )
                     result = calibrate_rig(
                         self._observations(views),
                         p.method,
                         p.seed,
                         p.lm_start,
-                        ga,
+                        GA.build(self.params),
                         p.fit_tangential,
                         p.fit_k3,
                         p.select_model,

@@ -51,6 +51,7 @@ from vgm_common.conversions import (
 )
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.node_tools import (
+    ConfigParams,
     CountingPublisher,
     DeferredCallback,
     DeferredServiceExecutor,
@@ -73,6 +74,10 @@ from vgm_common.topics import (
     WAYPOINTS_TOPIC,
 )
 from vgm_common.worker import Worker
+
+# The parameters that shape a reconstruction (min_fraction, depth_range, seeds keep the
+# core's defaults).
+SETTINGS = ConfigParams(ReconstructionSettings)
 
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are answered
@@ -103,30 +108,34 @@ class CurveReconNode(Node):
     def __init__(self):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
+        settings = SETTINGS.defaults
         self.params = NodeParameters(
             self,
             [
                 Param(
                     'degree',
-                    2,
+                    settings.degree,
                     'Degree n of the implicit image curves (2 conics, 3 cubics).',
                     range=(1, 6),
                 ),
                 Param(
                     'method',
-                    'ray_roots',
+                    settings.method,
                     'Cone intersection: ray_roots (roots of the view-2 '
                     'cone along view-1 rays, ours) or cone_lsq (minimise S1^2 + S2^2, thesis).',
                     choices=METHODS,
                 ),
                 Param(
                     'third_view_tolerance',
-                    2.0,
+                    settings.third_view_tolerance,
                     "[px] Largest distance of a point's projection to the third view's curve.",
                     range=(1e-3, 100.0),
                 ),
                 Param(
-                    'spacing', 0.005, '[m] Waypoint spacing along the curve.', range=(1e-4, 1.0)
+                    'spacing',
+                    settings.spacing,
+                    '[m] Waypoint spacing along the curve.',
+                    range=(1e-4, 1.0),
                 ),
                 Param(
                     'views',
@@ -137,43 +146,43 @@ class CurveReconNode(Node):
                 ),
                 Param(
                     'line_width_px',
-                    3.0,
+                    settings.line_width_px,
                     '[px] Width of the drawn curve in the images.',
                     range=(1.0, 30.0),
                 ),
                 Param(
                     'min_contrast',
-                    8.0,
+                    settings.min_contrast,
                     '[grey levels] Faintest line taken as the curve.',
                     range=(0.5, 255.0),
                 ),
                 Param(
                     'min_curve_pixels',
-                    60.0,
+                    settings.min_curve_pixels,
                     '[px] Shortest image chain taken as the curve.',
                     range=(5.0, 1e5),
                 ),
                 Param(
                     'fit_tolerance_px',
-                    0.1,
+                    settings.fit_tolerance_px,
                     '[px] RMS residual above which a chain is split into pieces (piecewise fit).',
                     range=(1e-3, 100.0),
                 ),
                 Param(
                     'min_piece_points',
-                    30,
+                    settings.min_piece_points,
                     'Chain points below which a piece is not split.',
                     range=(8, 100000),
                 ),
                 Param(
                     'refine',
-                    True,
+                    settings.refine,
                     'Refine points by minimising their pixel distances to the '
                     'curves of all views.',
                 ),
                 Param(
                     'smoothing_window',
-                    0.02,
+                    settings.smoothing_window,
                     '[m] Window of the smoothing along the curve before resampling.',
                     range=(0.0, 1.0),
                 ),
@@ -518,22 +527,6 @@ class CurveReconNode(Node):
                 self.auto_pending = False
         return success, message
 
-    def _settings(self):
-        p = self.params
-        return ReconstructionSettings(
-            degree=p.degree,
-            method=p.method,
-            third_view_tolerance=p.third_view_tolerance,
-            spacing=p.spacing,
-            line_width_px=p.line_width_px,
-            min_contrast=p.min_contrast,
-            min_curve_pixels=p.min_curve_pixels,
-            fit_tolerance_px=p.fit_tolerance_px,
-            min_piece_points=p.min_piece_points,
-            refine=p.refine,
-            smoothing_window=p.smoothing_window,
-        )
-
     def _reconstruct(self, stamp_ns, messages, names):
         """Reconstruct one capture and publish; returns (success, message)."""
         try:
@@ -555,7 +548,7 @@ class CurveReconNode(Node):
                     )
                     self.diagnostics.reject(IMAGE_TOPICS[name], size_error)
                     return False, str(size_error)
-            result = reconstruct_capture(images, cameras, self._settings(), names)
+            result = reconstruct_capture(images, cameras, SETTINGS.build(self.params), names)
             normals_source = self._publish(stamp_ns, result)
         except NoCurve as error:
             self.diagnostics.reject('no curve', error)

@@ -32,6 +32,7 @@ from pa10_ik_node.tracking import (
 from vgm_common.conversions import matrix_to_pose_stamped, path_to_matrices
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.node_tools import (
+    ConfigParams,
     CountingPublisher,
     Diagnostics,
     NodeParameters,
@@ -55,6 +56,8 @@ from vgm_common.topics import (
 MAX_FORCE_N = 1e4  # a pressure reading beyond this is a broken sensor, not a contact
 JOINT_LIMIT_SLACK_RAD = 0.1  # a measured joint this far outside its limits is no reading
 THESIS_WEIGHTS = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0]  # §6.6
+# The controller's settings that are parameters (the rest keep TrackingConfig's defaults).
+TRACKING = ConfigParams(TrackingConfig, renamed={'stiffness': 'contact_stiffness'})
 
 
 def _check_weights(values):
@@ -75,6 +78,7 @@ class Pa10IkNode(Node):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
         positive = (1e-9, 1e9)
+        tracking = TRACKING.defaults
         self.params = NodeParameters(
             self,
             [
@@ -142,67 +146,67 @@ class Pa10IkNode(Node):
                 ),
                 Param(
                     'desired_force',
-                    5.0,
+                    tracking.desired_force,
                     '[N] Contact force to hold.',
                     range=(0.01, 200.0),
-                    on_change=lambda v: self._configure(desired_force=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'contact_stiffness',
-                    2000.0,
+                    tracking.stiffness,
                     '[N/m] Stiffness estimate (feed-forward '
                     'depth; the integral law corrects its error).',
                     range=(1.0, 1e7),
-                    on_change=lambda v: self._configure(stiffness=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'force_gain',
-                    5.0,
+                    tracking.force_gain,
                     '[1/s] Integral gain of the force law.',
                     range=(0.0, 100.0),
-                    on_change=lambda v: self._configure(force_gain=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'force_law',
-                    'integral',
+                    tracking.force_law,
                     "Force law: 'integral' (ours: depth = "
                     "desired_force / contact_stiffness + integral of the force error) or 'tilt' "
                     "(the thesis's 7.3.15: the motion PQ' tilted by phi into / out of the "
                     'surface; acts only while moving along the path).',
                     choices=FORCE_LAWS,
-                    on_change=lambda v: self._configure(force_law=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'speed',
-                    0.015,
+                    tracking.speed,
                     '[m/s] Speed along the path.',
                     range=(1e-4, 0.2),
-                    on_change=lambda v: self._configure(speed=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'adapt_response',
-                    False,
+                    tracking.adapt_response,
                     'Measure how much of the commanded motion the '
                     'arm makes and scale commands up for an arm slower than commanded (at most '
                     '2.5 times, within the joint speed limits). Off by default: on a loaded '
                     'machine late commands make any arm look slow.',
-                    on_change=lambda v: self._configure(adapt_response=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'pose_integral_gain',
-                    20.0,
+                    tracking.pose_integral_gain,
                     "[1/s^2] Integral of the tip's error across "
                     'the approach axis while tracking (a slow arm trails its reference '
                     'otherwise); 0 turns it off.',
                     range=(0.0, 200.0),
-                    on_change=lambda v: self._configure(pose_integral_gain=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'pose_gain',
-                    10.0,
+                    tracking.pose_gain,
                     '[1/s] Pose feedback gain.',
                     range=(0.1, 50.0),
-                    on_change=lambda v: self._configure(pose_gain=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'max_joint_velocity',
@@ -213,45 +217,45 @@ class Pa10IkNode(Node):
                 ),
                 Param(
                     'track_spin',
-                    False,
+                    tracking.track_spin,
                     'Also track the spin about the approach axis '
                     '(6 constraints, as the seed); false leaves it free.',
-                    on_change=lambda v: self._configure(track_spin=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'standoff',
-                    0.03,
+                    tracking.standoff,
                     '[m] Pre-contact pose above the first waypoint.',
                     range=(0.005, 0.2),
-                    on_change=lambda v: self._configure(standoff=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'descent_speed',
-                    0.01,
+                    tracking.descent_speed,
                     '[m/s] Descent to contact and lift-off speed.',
                     range=(1e-4, 0.1),
-                    on_change=lambda v: self._configure(descent_speed=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'lift_height',
-                    0.03,
+                    tracking.lift_height,
                     '[m] Lift-off along the approach axis when done.',
                     range=(0.0, 0.2),
-                    on_change=lambda v: self._configure(lift_height=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'max_position_error',
-                    0.01,
+                    tracking.max_position_error,
                     '[m] Tip farther than this from its reference for error_timeout: failure.',
                     range=(1e-4, 1.0),
-                    on_change=lambda v: self._configure(max_position_error=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'error_timeout',
-                    1.0,
+                    tracking.error_timeout,
                     '[s] See max_position_error.',
                     range=(0.01, 60.0),
-                    on_change=lambda v: self._configure(error_timeout=v),
+                    on_change=self._reconfigure,
                 ),
                 Param(
                     'pressure_timeout',
@@ -292,22 +296,7 @@ class Pa10IkNode(Node):
         self.controller = TrackingController(
             self.robot,
             self._make_solver(),
-            TrackingConfig(
-                desired_force=p.desired_force,
-                stiffness=p.contact_stiffness,
-                force_gain=p.force_gain,
-                force_law=p.force_law,
-                speed=p.speed,
-                pose_gain=p.pose_gain,
-                adapt_response=p.adapt_response,
-                pose_integral_gain=p.pose_integral_gain,
-                track_spin=p.track_spin,
-                standoff=p.standoff,
-                descent_speed=p.descent_speed,
-                lift_height=p.lift_height,
-                max_position_error=p.max_position_error,
-                error_timeout=p.error_timeout,
-            ),
+            TRACKING.build(self.params),
             max_joint_velocity=p.max_joint_velocity,
         )
         self.joint_index = {name: i for i, name in enumerate(self.robot.joint_names)}
@@ -366,9 +355,10 @@ class Pa10IkNode(Node):
         if hasattr(self, 'controller'):
             self.controller.solver = self._make_solver()
 
-    def _configure(self, **changes):
+    def _reconfigure(self, _value):
+        """A tracking parameter changed: the controller takes them all anew."""
         if hasattr(self, 'controller'):
-            self.controller.configure(**changes)
+            self.controller.configure(**TRACKING.fields(self.params))
 
     # --- inputs ----------------------------------------------------------------------
 

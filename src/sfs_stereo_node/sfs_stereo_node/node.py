@@ -23,6 +23,7 @@ from vgm_common.camera_topics import CalibratedCameras
 from vgm_common.conversions import image_to_grey, make_header, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
 from vgm_common.node_tools import (
+    ConfigParams,
     CountingPublisher,
     Diagnostics,
     NodeParameters,
@@ -46,6 +47,7 @@ from vgm_common.worker import Worker
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
 INVALID_DISPARITY = -1.0  # below min_disparity, as stereo_image_proc marks no match
+DEPTH = ConfigParams(DepthConfig)  # every DepthConfig field but full_band_layers is a parameter
 
 
 def _check_light(value):
@@ -75,7 +77,7 @@ class SfsStereoNode(Node):
     def __init__(self):
         super().__init__(self.node_name)
         self.diagnostics = Diagnostics(self)
-        d = DepthConfig()
+        d = DEPTH.defaults
         self.params = NodeParameters(
             self,
             [
@@ -413,41 +415,9 @@ class SfsStereoNode(Node):
                 key='size',
             )
         pair = self._rectified_pair(left.shape[:2])
-        p = self.params
-        config = DepthConfig(
-            window=p.window,
-            max_disparity=p.max_disparity,
-            min_disparity=p.min_disparity,
-            match_threshold=p.match_threshold,
-            min_texture=p.min_texture,
-            uniqueness=p.uniqueness,
-            left_right_check=p.left_right_check,
-            light_direction=tuple(p.light_direction),
-            albedo=p.albedo,
-            ambient=p.ambient,
-            roughness=p.roughness,
-            fusion=p.fusion,
-            stereo=p.stereo,
-            seed=p.seed,
-            sfs_iterations=p.sfs_iterations,
-            sfs_max_step=p.sfs_max_step,
-            sfs_downsample=p.sfs_downsample,
-            downsample=p.downsample,
-            min_intensity=p.min_intensity,
-            mlp_epochs=p.mlp_epochs,
-            fusion_sigma=p.fusion_sigma,
-            fusion_weight=p.fusion_weight,
-            min_depth=p.min_depth,
-            max_depth=p.max_depth,
-            texture_snr=p.texture_snr,
-            min_support=p.min_support,
-            max_pixels=p.max_pixels,
-            refine_shading_sigma=p.refine_shading_sigma,
-            refine_stereo_sigma=p.refine_stereo_sigma,
-            refine_curvature_sigma=p.refine_curvature_sigma,
-            refine_finest_steps=p.refine_finest_steps,
+        result = process_pair(
+            left, right, pair, (left.shape[1], left.shape[0]), DEPTH.build(self.params)
         )
-        result = process_pair(left, right, pair, (left.shape[1], left.shape[0]), config)
         self._publish(stamp_ns, result)
         self.processed += 1
         self.last_timings = result.timings

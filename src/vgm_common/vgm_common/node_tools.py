@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import array
 import contextlib
+import dataclasses
 import functools
 import math
 import os
@@ -26,8 +27,8 @@ from collections.abc import (
 )
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import FrameType
-from typing import TYPE_CHECKING, Any, NoReturn, TypeVar
+from types import FrameType, MappingProxyType
+from typing import TYPE_CHECKING, Any, Generic, NoReturn, TypeVar
 
 import rclpy
 import yaml
@@ -186,6 +187,16 @@ class NodeParameters:
         except KeyError:
             raise AttributeError(name) from None
 
+    @property
+    def values(self) -> Mapping[str, Any]:
+        """The current values, name -> value (read-only)."""
+        return MappingProxyType(self._values)
+
+    @property
+    def declared(self) -> Mapping[str, Param]:
+        """The declared parameters, name -> Param (read-only)."""
+        return MappingProxyType(self._params)
+
     def add_check(self, check: Callable[[Mapping[str, Any]], str | None]) -> None:
         """``check(values)`` (name -> value) returns a reason if the values do not go
         together. It is run now, raising ParameterError (a start-up error), and on every
@@ -225,6 +236,60 @@ class NodeParameters:
             value = self._values[spec.name] = _coerce(spec, parameter.value)
             if spec.on_change is not None:
                 spec.on_change(value)
+
+
+Config = TypeVar('Config')
+
+
+@dataclass(frozen=True)
+class ConfigParams(Generic[Config]):
+    """How a core's settings (a dataclass or NamedTuple with a default for every field)
+    are filled from a node's parameters: a field takes the parameter of its own name, or
+    ``renamed[field]``; a field no parameter names keeps the core's default. The core's
+    defaults are the parameters' defaults (``Param('speed', TRACKING.defaults.speed,
+    ...)``), and a test checks each node's declared defaults against them."""
+
+    config_type: Callable[..., Config]
+    renamed: Mapping[str, str] = field(default_factory=dict)
+
+    @property
+    def defaults(self) -> Config:
+        """The core's settings with every field at its default."""
+        return self.config_type()
+
+    def field_defaults(self) -> dict[str, Any]:
+        """Field name -> the core's default, in the fields' order."""
+        defaults: Any = self.defaults
+        if dataclasses.is_dataclass(defaults):
+            return {f.name: getattr(defaults, f.name) for f in dataclasses.fields(defaults)}
+        return dict(defaults._asdict())  # a NamedTuple
+
+    def param_names(self, declared: Iterable[str]) -> dict[str, str]:
+        """Field -> parameter, for the fields whose parameter is in ``declared``. A
+        ``renamed`` entry naming no field or no declared parameter is a programming
+        error (the parameter would silently do nothing): ValueError."""
+        declared = set(declared)
+        fields = self.field_defaults()
+        wrong = [
+            f'{f} -> {p}' for f, p in self.renamed.items() if f not in fields or p not in declared
+        ]
+        if wrong:
+            raise ValueError(f'{self.config_type.__name__}: no such field or parameter: {wrong}')
+        names = {f: self.renamed.get(f, f) for f in fields}
+        return {f: p for f, p in names.items() if p in declared}
+
+    def fields(self, params: NodeParameters) -> dict[str, Any]:
+        """Field -> the current value of its parameter, for the fields that have one (a
+        list where the core's default is a tuple becomes a tuple)."""
+        defaults = self.field_defaults()
+        return {
+            f: tuple(params.values[p]) if isinstance(defaults[f], tuple) else params.values[p]
+            for f, p in self.param_names(params.declared).items()
+        }
+
+    def build(self, params: NodeParameters) -> Config:
+        """The core's settings from the parameters' current values."""
+        return self.config_type(**self.fields(params))
 
 
 def _coerce(spec: Param, value: Any) -> Any:
