@@ -44,12 +44,12 @@ from curve_recon_node.cones import plane_angle_error_deg
 from curve_recon_node.piecewise import (
     PiecewiseCurve,
     View,
-    reconstruct_cone_lsq,
     reconstruct_ray_roots,
     refine_points,
 )
 from curve_recon_node.pipeline import ReconstructionSettings, reconstruct_capture, view_curve
 from curve_recon_node.reference import triangulate_chains
+from curve_recon_node.thesis import reconstruct_cone_lsq
 from vgm_common.geometry import look_at_rotation, rot_x, rot_z
 
 OUT = Path(__file__).resolve().parent / 'results' / 'curve_recon'

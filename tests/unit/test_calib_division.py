@@ -1,11 +1,12 @@
-"""The closed-form start for the seed's division model (``refine.division_init``,
-``refine.radial_division_init``) and ours = that start + LM (``calibrate_seed_stereo``) on
-the thesis's setting: Tables 4.1 / 4.2 cameras, the 512 control points of §3.6."""
+"""The closed-form start for the seed's division model
+(``seed_calibration.division_init``, ``seed_calibration.radial_division_init``) and ours =
+that start + LM (``calibrate_seed_stereo``) on the thesis's setting: Tables 4.1 / 4.2
+cameras, the 512 control points of §3.6."""
 
 import numpy as np
 import pytest
 
-from calib_node.refine import (
+from calib_node.seed_calibration import (
     calibrate_seed_stereo,
     division_init,
     radial_division_init,

@@ -5,7 +5,7 @@ control points (§3.6)."""
 import numpy as np
 import pytest
 
-from calib_node.refine import dlt_camera, opencv_reference, refine_seed_lm
+from calib_node.seed_calibration import dlt_camera, opencv_reference, refine_seed_lm
 from calib_node.seed_camera import (
     LEFT_TRUTH,
     RIGHT_TRUTH,

@@ -13,10 +13,10 @@ from curve_recon_node.piecewise import (
     View,
     _real_positive_roots,
     pinv_solve,
-    reconstruct_cone_lsq,
     reconstruct_ray_roots,
     refine_points,
 )
+from curve_recon_node.thesis import reconstruct_cone_lsq
 from curve_recon_node.waypoints import (
     normals_from_depth,
     open_at_largest_gap,

@@ -14,7 +14,6 @@ from sfs_stereo_node.rectify import (
     rectify,
     scaled_pair,
 )
-from sfs_stereo_node.refine import ShadingModel, predicted_grey, refine_depth
 from sfs_stereo_node.sfs import (
     light_gradient,
     reflectance,
@@ -22,6 +21,7 @@ from sfs_stereo_node.sfs import (
     reflectance_terms_fast,
     sfs_depth,
 )
+from sfs_stereo_node.shading_refine import ShadingModel, predicted_grey, refine_depth
 from sfs_stereo_node.stereo import (
     confident_disparity,
     left_reference_volume,

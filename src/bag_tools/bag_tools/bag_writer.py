@@ -604,6 +604,17 @@ class BagMessage:
     log_time: int
     publish_time: int
 
+    @classmethod
+    def of(cls, schema: Schema | None, channel: Channel, message: Message) -> BagMessage:
+        """The ``BagMessage`` of an MCAP reader's (schema, channel, message) record."""
+        return cls(
+            channel.topic,
+            schema.name if schema else '',
+            message.data,
+            message.log_time,
+            message.publish_time,
+        )
+
 
 _FILE_INDEX_RE = re.compile(r'_(\d+)\.mcap$')
 
@@ -752,26 +763,11 @@ class BagReader:
         if _has_footer(path):
             with open(path, 'rb') as stream:
                 reader = SeekingReader(stream)
-                for schema, channel, message in reader.iter_messages(
-                    topics=topics, log_time_order=True
-                ):
-                    yield BagMessage(
-                        channel.topic,
-                        schema.name if schema else '',
-                        message.data,
-                        message.log_time,
-                        message.publish_time,
-                    )
+                records = reader.iter_messages(topics=topics, log_time_order=True)
+                yield from (BagMessage.of(*record) for record in records)
             return
-        records = sorted(_stream_records_tolerant(path, topics), key=lambda r: r[2].log_time)
-        for schema, channel, message in records:
-            yield BagMessage(
-                channel.topic,
-                schema.name if schema else '',
-                message.data,
-                message.log_time,
-                message.publish_time,
-            )
+        unindexed = _stream_records_tolerant(path, topics)
+        yield from (BagMessage.of(*r) for r in sorted(unindexed, key=lambda r: r[2].log_time))
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
         """Iterate ``BagMessage`` in log-time order over all files.

@@ -29,7 +29,7 @@ import numpy.typing as npt
 from scipy.optimize import OptimizeResult, least_squares
 
 from calib_node.lxpm_ga import lxpm_ga, rig_objective
-from calib_node.refine import dlt_camera
+from calib_node.seed_calibration import dlt_camera
 from calib_node.seed_camera import identifiable
 from calib_node.thesis import network_refine
 from vgm_common.geometry import FloatArray, make_transform

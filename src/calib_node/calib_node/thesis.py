@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from calib_node.refine import check_points, decompose_projection, hartley_normalise
+from calib_node.seed_calibration import check_points, decompose_projection, hartley_normalise
 from calib_node.seed_camera import identifiable, project_seed
 from vgm_common.geometry import FloatArray
 

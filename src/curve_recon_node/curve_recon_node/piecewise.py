@@ -15,10 +15,8 @@ Reconstruction (both ordered by the view-1 chain point each 3D point came from):
   point, substituted into each view-2 piece's cone, gives a degree-n polynomial in the
   ray depth; its real positive roots (companion-matrix eigenvalues, batched) inside the
   piece's support are the candidates;
-- ``reconstruct_cone_lsq`` (``method: cone_lsq``, the thesis): minimise G1^2 + G2^2 by
-  Levenberg-Marquardt (batched, minimum-norm damped Gauss-Newton steps) from seeds on the
-  view-1 ray at ``seed_depths``, for the view-1 piece of the point and each view-2 piece;
-  minima whose projections lie on both curves within ``on_curve_px`` are candidates.
+- ``thesis.reconstruct_cone_lsq`` (``method: cone_lsq``, the thesis): minimise
+  G1^2 + G2^2 from seeds on the view-1 rays, on the same pieces, cones and selection.
 
 View 3 then keeps per chain point the candidate whose projection is nearest view 3's
 curve, if nearer than ``tol3_px``. With two views, a chain point with several distinct
@@ -266,28 +264,10 @@ def _cone_monomials(x_camera: FloatArray, degree: int) -> FloatArray:
     return px[:, jx] * py[:, jy] * pz[:, degree - jx - jy]
 
 
-def _cone_values(coefficients: FloatArray, degree: int, x_camera: FloatArray) -> FloatArray:
+def cone_values(coefficients: FloatArray, degree: int, x_camera: FloatArray) -> FloatArray:
     """Cone polynomial of each row's piece at each row's camera point: (Q,) for
     coefficients (Q, M) and x_camera (Q, 3)."""
     return np.einsum('qm,qm->q', _cone_monomials(x_camera, degree), coefficients)
-
-
-def _cone_gradients(
-    coefficients: FloatArray, degree: int, x_camera: FloatArray, R_camera_base: np.ndarray
-) -> FloatArray:
-    """Gradient (Q, 3) in base coordinates of each row's cone at its camera point."""
-    jl = monomial_exponents(degree)
-    exponents = np.column_stack([jl, degree - jl.sum(axis=1)])
-    grad = np.empty_like(x_camera)
-    for axis in range(3):
-        lowered = exponents.copy()
-        lowered[:, axis] = np.maximum(lowered[:, axis] - 1, 0)
-        grad[:, axis] = np.einsum(
-            'qm,qm->q',
-            exponents[:, axis] * np.prod(x_camera[:, None, :] ** lowered, axis=2),
-            coefficients,
-        )
-    return grad @ R_camera_base
 
 
 def _real_positive_roots(poly: FloatArray) -> tuple[IntArray, FloatArray]:
@@ -361,7 +341,7 @@ class CandidateInfo(TypedDict):
     n_second_pair: NotRequired[int]
 
 
-def _rays(view1: View, samples: IntArray) -> FloatArray:
+def view1_rays(view1: View, samples: IntArray) -> FloatArray:
     """Unit-depth rays R1^T (X, Y, 1) of view-1 chain points ``samples`` (indices)."""
     xy = view1.curve.xy[samples]
     return np.column_stack([xy, np.ones(len(xy))]) @ view1.R_camera_base
@@ -394,7 +374,7 @@ def reconstruct_ray_roots(
         (points_base (K, 3), info) as ``select_candidates``.
     """
     samples = np.arange(len(view1.curve.xy)) if samples is None else np.asarray(samples)
-    rays = _rays(view1, samples)
+    rays = view1_rays(view1, samples)
     curve2 = view2.curve
     degree = curve2.degree
     n_pieces = len(curve2.pieces)
@@ -420,122 +400,6 @@ def reconstruct_ray_roots(
     return select_candidates(
         ray_index[rows][keep], points[keep], len(samples), samples, view3, tol3_px, distinct_m
     )
-
-
-def reconstruct_cone_lsq(
-    view1: View,
-    view2: View,
-    view3: View | None = None,
-    *,
-    samples: npt.ArrayLike | None = None,
-    tol3_px: float = 2.0,
-    support_px: float = 3.0,
-    on_curve_px: float = 0.5,
-    distinct_m: float = 2e-3,
-    seed_depths: Sequence[float] | FloatArray = (0.25, 0.5, 1.0, 2.0, 4.0),
-    iterations: int = 25,
-    max_depth: float = np.inf,
-) -> tuple[FloatArray, CandidateInfo]:
-    """The thesis's method: minima of F = G1^2 + G2^2 from seeds on the view-1 rays.
-
-    For each view-1 chain point, its owning view-1 piece's cone G1 and every view-2
-    piece's cone G2 are paired; each pair is refined from each seed s R1^T (X, Y, 1) + c1,
-    s in ``seed_depths`` [m], by damped minimum-norm Gauss-Newton steps (Levenberg-
-    Marquardt on the residual (G1, G2), batched over all seeds). A minimum is a candidate
-    if it lies in front of both cameras, its projections are within ``on_curve_px`` of
-    both curves and inside the two pieces' supports. Other arguments as
-    ``reconstruct_ray_roots``.
-    """
-    samples = np.arange(len(view1.curve.xy)) if samples is None else np.asarray(samples)
-    rays = _rays(view1, samples)
-    c1, c2 = view1.curve, view2.curve
-    degree = c1.degree
-    n_seeds = len(seed_depths)
-    # pair each ray only with the view-2 pieces its epipolar line crosses (within
-    # support_px of one of the piece's chain points): the others cannot meet it
-    near = _epipolar_distance_px(view1, view2, rays) <= support_px  # (R, N2)
-    pair_ray, pair_piece = np.nonzero((near.astype(float) @ c2.member.T.astype(float)) > 0)
-    ray_index = np.repeat(pair_ray, n_seeds)
-    piece2 = np.repeat(pair_piece, n_seeds)
-    seeds = np.tile(np.asarray(seed_depths, dtype=float), len(pair_ray))
-    piece1 = c1.owner[samples][ray_index]
-    a1, a2 = c1.coefficient_matrix[piece1], c2.coefficient_matrix[piece2]
-    x = view1.centre_base + seeds[:, None] * rays[ray_index]
-
-    def residual_and_jacobian(x: FloatArray) -> tuple[FloatArray, FloatArray]:
-        x1 = (x - view1.centre_base) @ view1.R_camera_base.T
-        x2 = (x - view2.centre_base) @ view2.R_camera_base.T
-        r = np.column_stack([_cone_values(a1, degree, x1), _cone_values(a2, degree, x2)])
-        J = np.stack(
-            [
-                _cone_gradients(a1, degree, x1, view1.R_camera_base),
-                _cone_gradients(a2, degree, x2, view2.R_camera_base),
-            ],
-            axis=1,
-        )
-        return r, J
-
-    damping = np.full(len(x), 1e-3)
-    r, J = residual_and_jacobian(x)
-    cost = np.sum(r**2, axis=1)
-    for _ in range(iterations):
-        # minimum-norm damped step dx = -J^T (J J^T + mu I)^-1 r (2 residuals, 3 unknowns)
-        JJt = J @ np.swapaxes(J, 1, 2)
-        mu = (damping * np.trace(JJt, axis1=1, axis2=2))[:, None, None] * np.eye(2) + 1e-300
-        with np.errstate(all='ignore'):
-            step = -np.einsum(
-                'qij,qj->qi',
-                np.swapaxes(J, 1, 2),
-                np.linalg.solve(JJt + mu, r[:, :, None])[:, :, 0],
-            )
-        trial = x + np.nan_to_num(step)
-        r_t, J_t = residual_and_jacobian(trial)
-        cost_t = np.sum(r_t**2, axis=1)
-        better = cost_t < cost
-        x[better], r[better], J[better], cost[better] = (
-            trial[better],
-            r_t[better],
-            J_t[better],
-            cost_t[better],
-        )
-        damping = np.where(better, damping * 0.3, damping * 10.0)
-        damping = np.clip(damping, 1e-12, 1e6)
-    _, depth1 = view1.project(x)
-    _, depth2 = view2.project(x)
-    keep = (
-        (depth1 > 0)
-        & (depth1 < max_depth)
-        & (depth2 > 0)
-        & (view1.distance_px(x) <= on_curve_px)
-        & (view2.distance_px(x) <= on_curve_px)
-        & view2.in_support(x, piece2, support_px)
-        & view1.in_support(x, piece1, support_px)
-    )
-    # a minimum need not lie on its seed's ray: file it under the view-1 chain point its
-    # projection is nearest to, which keeps the output ordered along the curve
-    chain_index, _ = c1.nearest(view1.project(x[keep])[0])
-    position = np.full(len(c1.xy), -1)
-    position[samples] = np.arange(len(samples))
-    sample_of = position[chain_index]
-    inside = sample_of >= 0
-    return select_candidates(
-        sample_of[inside], x[keep][inside], len(samples), samples, view3, tol3_px, distinct_m
-    )
-
-
-def _epipolar_distance_px(view1: View, view2: View, rays: FloatArray) -> FloatArray:
-    """Distance [px] of every view-2 chain point to the epipolar line of every view-1
-    ray (R, 3): (R, N2)."""
-
-    def homogeneous(points_base: FloatArray) -> FloatArray:
-        x = (points_base - view2.centre_base) @ view2.R_camera_base.T
-        return x  # homogeneous image point (x, y, z) of view 2
-
-    centre = homogeneous(view1.centre_base[None])[0]
-    lines = np.cross(centre[None], homogeneous(view1.centre_base + rays))  # (R, 3)
-    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1, keepdims=True), 1e-300)
-    xy1 = np.column_stack([view2.curve.xy, np.ones(len(view2.curve.xy))])
-    return np.abs(lines @ xy1.T) * view2.curve.focal_px
 
 
 def select_candidates(

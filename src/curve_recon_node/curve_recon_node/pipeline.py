@@ -18,10 +18,10 @@ from curve_recon_node.piecewise import (
     CandidateInfo,
     PiecewiseCurve,
     View,
-    reconstruct_cone_lsq,
     reconstruct_ray_roots,
     refine_points,
 )
+from curve_recon_node.thesis import reconstruct_cone_lsq
 from curve_recon_node.waypoints import (
     arc_length,
     open_at_largest_gap,

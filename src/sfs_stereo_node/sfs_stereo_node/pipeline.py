@@ -25,8 +25,8 @@ from sfs_stereo_node.rectify import (
     rectify,
     scaled_pair,
 )
-from sfs_stereo_node.refine import ShadingModel, refine_depth
 from sfs_stereo_node.sfs import light_gradient, sfs_depth
+from sfs_stereo_node.shading_refine import ShadingModel, refine_depth
 from sfs_stereo_node.stereo import (
     coherent_matches,
     depth_from_disparity,
@@ -115,6 +115,15 @@ def to_grey(image: npt.ArrayLike) -> Float32Array:
     if image.ndim == 3:
         image = cv2.cvtColor(image.astype(np.float32), cv2.COLOR_RGB2GRAY)
     return image.astype(np.float32) * scale
+
+
+def _coarser(image: np.ndarray, k: int) -> np.ndarray:
+    """``image`` averaged over k x k blocks (the rows and columns past the last whole
+    block dropped); itself for k = 1."""
+    if k == 1:
+        return image
+    h, w = image.shape[0] // k, image.shape[1] // k
+    return cv2.resize(image[: h * k, : w * k], (w, h), interpolation=cv2.INTER_AREA)
 
 
 def _valid_window(mask: npt.NDArray[np.bool_]) -> tuple[int, int, int, int]:
@@ -303,41 +312,23 @@ def process_pair(
     # most SFS_MAX_WIDTH px keeps sfs_iterations (and the per-iteration step, in that
     # grid's pixels) meaning the same at every resolution, and the time bounded.
     k = max(int(config.sfs_downsample), int(np.ceil(w / SFS_MAX_WIDTH)))
-    # SFS's height step is in pixel units of its grid: the damping follows the grid.
-    max_step = config.sfs_max_step
-    if k > 1:  # Tsai-Shah needs ~image-width iterations: a coarser grid is k^3 cheaper
-        hs, ws = h // k, w // k
-        E_small = cv2.resize(E[: hs * k, : ws * k], (ws, hs), interpolation=cv2.INTER_AREA)
-        mask_small = (
-            cv2.resize(
-                surface[: hs * k, : ws * k].astype(np.float32),
-                (ws, hs),
-                interpolation=cv2.INTER_AREA,
-            )
-            > 0.5
-        )
-        height_small = sfs_depth(
-            E_small,
-            light_gradient(light),
-            config.albedo,
-            config.roughness,
-            config.sfs_iterations,
-            tol=1e-4,
-            max_step=max_step,
-            mask=mask_small,
-        )
-        height = k * cv2.resize(height_small, (w, h), interpolation=cv2.INTER_LINEAR)
-    else:
-        height = sfs_depth(
-            E,
-            light_gradient(light),
-            config.albedo,
-            config.roughness,
-            config.sfs_iterations,
-            tol=1e-4,
-            max_step=max_step,
-            mask=surface,
-        )
+    # The height step (sfs_max_step, the damping) is in pixel units of the SFS grid.
+    E_grid, surface_grid = _coarser(E, k), _coarser(surface.astype(np.float32), k) > 0.5
+    height_grid = sfs_depth(
+        E_grid,
+        light_gradient(light),
+        config.albedo,
+        config.roughness,
+        config.sfs_iterations,
+        tol=1e-4,
+        max_step=config.sfs_max_step,
+        mask=surface_grid,
+    )
+    height = (
+        k * cv2.resize(height_grid, (w, h), interpolation=cv2.INTER_LINEAR)
+        if k > 1
+        else height_grid
+    )
     # Height toward the viewer, in pixel units: depth grows as height falls.
     relief = np.where(surface, -height, np.nan)
     on = matched & surface
