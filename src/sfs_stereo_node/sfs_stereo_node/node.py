@@ -47,7 +47,29 @@ from vgm_common.worker import Worker
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
 INVALID_DISPARITY = -1.0  # below min_disparity, as stereo_image_proc marks no match
-DEPTH = ConfigParams(DepthConfig)  # every DepthConfig field but full_band_layers is a parameter
+# Every DepthConfig field but full_band_layers is a parameter: the everyday ones by the
+# field's name, the advanced ones grouped by the stage they tune.
+DEPTH = ConfigParams(
+    DepthConfig,
+    renamed={
+        'texture_snr': 'ssd.texture_snr',
+        'min_texture': 'ssd.min_texture',
+        'uniqueness': 'ssd.uniqueness',
+        'left_right_check': 'ssd.left_right_check',
+        'min_support': 'ssd.min_support',
+        'refine_shading_sigma': 'refine.shading_sigma',
+        'refine_stereo_sigma': 'refine.stereo_sigma',
+        'refine_curvature_sigma': 'refine.curvature_sigma',
+        'refine_finest_steps': 'refine.finest_steps',
+        'sfs_iterations': 'sfs.iterations',
+        'sfs_max_step': 'sfs.max_step',
+        'sfs_downsample': 'sfs.downsample',
+        'mlp_epochs': 'mlp_rows.epochs',
+        'seed': 'mlp_rows.seed',
+        'fusion_sigma': 'local_affine.sigma',
+        'fusion_weight': 'least_squares.weight',
+    },
+)
 
 
 def _check_light(value):
@@ -107,14 +129,14 @@ class SfsStereoNode(Node):
                     range=(1e-6, 10.0),
                 ),
                 Param(
-                    'min_texture',
+                    'ssd.min_texture',
                     d.min_texture,
                     'Least grey-level std in the window of a '
                     'confident match [grey levels], a floor under texture_snr; 0 disables.',
                     range=(0.0, 255.0),
                 ),
                 Param(
-                    'texture_snr',
+                    'ssd.texture_snr',
                     d.texture_snr,
                     'Least window std of a confident match, in '
                     'units of the image noise std estimated from each image (contrast and '
@@ -122,7 +144,7 @@ class SfsStereoNode(Node):
                     range=(0.0, 100.0),
                 ),
                 Param(
-                    'min_support',
+                    'ssd.min_support',
                     d.min_support,
                     'Fraction of matches backed by their '
                     'neighbours below which the pair looks unmatched (a warning).',
@@ -135,14 +157,14 @@ class SfsStereoNode(Node):
                     range=(64, 100_000_000),
                 ),
                 Param(
-                    'uniqueness',
+                    'ssd.uniqueness',
                     d.uniqueness,
                     'Best cost must be this fraction below the '
                     'best cost more than 1 px away; 0 disables.',
                     range=(0.0, 0.99),
                 ),
                 Param(
-                    'left_right_check',
+                    'ssd.left_right_check',
                     d.left_right_check,
                     'Keep only matches the right image picks back (within 1 px).',
                 ),
@@ -184,19 +206,19 @@ class SfsStereoNode(Node):
                     range=(0.0, 1000.0),
                 ),
                 Param(
-                    'refine_shading_sigma',
+                    'refine.shading_sigma',
                     d.refine_shading_sigma,
                     'shading_refine: image noise + model error [grey levels].',
                     range=(0.01, 100.0),
                 ),
                 Param(
-                    'refine_stereo_sigma',
+                    'refine.stereo_sigma',
                     d.refine_stereo_sigma,
                     'shading_refine: stereo depth noise [m].',
                     range=(1e-5, 1.0),
                 ),
                 Param(
-                    'refine_curvature_sigma',
+                    'refine.curvature_sigma',
                     d.refine_curvature_sigma,
                     'shading_refine: '
                     'thin-plate prior, second difference of depth [m/px^2 at the output '
@@ -204,7 +226,7 @@ class SfsStereoNode(Node):
                     range=(1e-7, 1.0),
                 ),
                 Param(
-                    'refine_finest_steps',
+                    'refine.finest_steps',
                     d.refine_finest_steps,
                     'shading_refine: Gauss-'
                     'Newton steps on the full grid (0 = coarser levels only, faster).',
@@ -217,25 +239,25 @@ class SfsStereoNode(Node):
                     choices=STEREOS,
                 ),
                 Param(
-                    'seed',
+                    'mlp_rows.seed',
                     d.seed,
                     'Seed of the mlp_rows network initialisation.',
                     range=(0, 2**31 - 1),
                 ),
                 Param(
-                    'sfs_iterations',
+                    'sfs.iterations',
                     d.sfs_iterations,
                     'Jacobi-Newton iterations of SFS.',
                     range=(1, 5000),
                 ),
                 Param(
-                    'sfs_max_step',
+                    'sfs.max_step',
                     d.sfs_max_step,
                     'Largest SFS height step per iteration [px units] (damping).',
                     range=(0.01, 100.0),
                 ),
                 Param(
-                    'sfs_downsample',
+                    'sfs.downsample',
                     d.sfs_downsample,
                     'SFS runs on the processing grid reduced by this factor (speed).',
                     range=(1, 8),
@@ -254,16 +276,19 @@ class SfsStereoNode(Node):
                     range=(0.0, 255.0),
                 ),
                 Param(
-                    'mlp_epochs', d.mlp_epochs, 'Training epochs of mlp_rows.', range=(1, 100000)
+                    'mlp_rows.epochs',
+                    d.mlp_epochs,
+                    'Training epochs of mlp_rows.',
+                    range=(1, 100000),
                 ),
                 Param(
-                    'fusion_sigma',
+                    'local_affine.sigma',
                     d.fusion_sigma,
                     'local_affine neighbourhood [px].',
                     range=(1.0, 500.0),
                 ),
                 Param(
-                    'fusion_weight',
+                    'least_squares.weight',
                     d.fusion_weight,
                     'least_squares gradient weight.',
                     range=(1e-6, 1e6),
