@@ -1,20 +1,4 @@
-from glob import glob
-
+# The package is declared in setup.cfg (colcon runs this file).
 from setuptools import setup
 
-PACKAGE_NAME = 'pa10_ik_node'
-
-setup(
-    name=PACKAGE_NAME,
-    version='0.1.0',
-    packages=[PACKAGE_NAME],
-    data_files=[
-        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE_NAME]),
-        ('share/' + PACKAGE_NAME, ['package.xml']),
-        ('share/' + PACKAGE_NAME + '/params', glob('params/*')),
-    ],
-    install_requires=['setuptools'],
-    zip_safe=True,
-    license='Apache-2.0',
-    entry_points={'console_scripts': ['pa10_ik_node = pa10_ik_node.node:main']},
-)
+setup()
