@@ -58,14 +58,10 @@ def make_node(private_domain):
     rclpy.shutdown(context=context)
 
 
-def probe_params(changes=None):
-    """Parameters of every kind; ``changes`` collects (name, value) from on_change."""
-
-    def record(name):
-        return None if changes is None else lambda value: changes.append((name, value))
-
+def probe_params():
+    """Parameters of every kind."""
     return [
-        Param('rate', 30.0, '[Hz]', range=(0.0, 200.0), on_change=record('rate')),
+        Param('rate', 30.0, '[Hz]', range=(0.0, 200.0)),
         Param('count', 3, 'How many.', range=(1, 10)),
         Param('mode', 'fast', 'How.', choices=('fast', 'exact')),
         Param(
@@ -179,7 +175,8 @@ def test_changes_are_checked_then_applied_and_reported(make_node):
         lambda parameters: SetParametersResult(successful=not vetoed, reason='veto')
     )
     diagnostics = Diagnostics(node)
-    params = NodeParameters(node, probe_params(changes), diagnostics=diagnostics)
+    on_change = {'rate': lambda value: changes.append(('rate', value))}
+    params = NodeParameters(node, probe_params(), diagnostics, on_change)
 
     assert refusal(node, 'rate', 50) == ''  # an int for a float
     assert params.rate == 50.0 and changes == [('rate', 50.0)]
@@ -200,6 +197,9 @@ def test_changes_are_checked_then_applied_and_reported(make_node):
     vetoed = True
     assert refusal(node, 'rate', 60.0) == 'veto'
     assert params.rate == 50.0 and changes == [('rate', 50.0)]
+    # A hook on a name never declared would never run: a programming error.
+    with pytest.raises(ValueError, match='undeclared'):
+        NodeParameters(make_node(), probe_params(), on_change={'rates': changes.append})
 
 
 class _Ticker(Node):

@@ -32,13 +32,11 @@ import sys
 import threading
 import time
 
-from rclpy.node import Node
-
 from bag_tools.bag_writer import BagError, BagReader
 from bag_tools.message_definitions import DefinitionNotFoundError, type_hash
 from bag_tools.topic_discovery import import_message_type
 from vgm_common.errors import VgmError
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import GraphNode, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.topics import DIAGNOSTICS_TOPIC
 
@@ -62,7 +60,52 @@ def is_latched(topic_info):
     return bool(profiles) and all(p.get('durability') == 'transient_local' for p in profiles)
 
 
-class PlayerNode(Node):
+PARAMETERS = [
+    Param(
+        'bag',
+        '',
+        'Path of the bag directory (the one holding metadata.yaml).',
+        check=_required,
+        read_only=True,
+    ),
+    Param(
+        'rate',
+        1.0,
+        'Playback speed factor (2 = twice as fast); may be changed while playing.',
+        range=(MIN_RATE, MAX_RATE),
+    ),
+    Param('loop', False, 'Play the bag again and again.', read_only=True),
+    Param(
+        'topics',
+        [],
+        'Topics to play (exact names); empty = every recorded topic.',
+        read_only=True,
+    ),
+    Param(
+        'exclude',
+        ['/rosout', '/parameter_events', DIAGNOSTICS_TOPIC],
+        'Recorded topics not to play (exact names); [] = none.',
+        read_only=True,
+    ),
+    Param(
+        'exit_when_done',
+        True,
+        'Exit once the bag was played; false keeps latched topics available.',
+        read_only=True,
+    ),
+    Param(
+        'wait_for_subscribers',
+        5.0,
+        '[s] Before playing, wait at most this long '
+        'for every topic to have a subscriber, so the first messages are not lost '
+        'to discovery; 0 = do not wait.',
+        range=(0.0, 3600.0),
+        read_only=True,
+    ),
+]
+
+
+class PlayerNode(GraphNode):
     """Publishes the messages of one bag with the recorded timing.
 
     ``finished`` is set once playback ended (or failed); ``published`` counts per topic.
@@ -77,56 +120,7 @@ class PlayerNode(Node):
     node_name = 'player'
 
     def __init__(self, **kwargs):
-        super().__init__(self.node_name, **kwargs)
-        self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(
-            self,
-            [
-                Param(
-                    'bag',
-                    '',
-                    'Path of the bag directory (the one holding metadata.yaml).',
-                    check=_required,
-                    read_only=True,
-                ),
-                Param(
-                    'rate',
-                    1.0,
-                    'Playback speed factor (2 = twice as fast); may be changed while playing.',
-                    range=(MIN_RATE, MAX_RATE),
-                    on_change=self._set_rate,
-                ),
-                Param('loop', False, 'Play the bag again and again.', read_only=True),
-                Param(
-                    'topics',
-                    [],
-                    'Topics to play (exact names); empty = every recorded topic.',
-                    read_only=True,
-                ),
-                Param(
-                    'exclude',
-                    ['/rosout', '/parameter_events', DIAGNOSTICS_TOPIC],
-                    'Recorded topics not to play (exact names); [] = none.',
-                    read_only=True,
-                ),
-                Param(
-                    'exit_when_done',
-                    True,
-                    'Exit once the bag was played; false keeps latched topics available.',
-                    read_only=True,
-                ),
-                Param(
-                    'wait_for_subscribers',
-                    5.0,
-                    '[s] Before playing, wait at most this long '
-                    'for every topic to have a subscriber, so the first messages are not lost '
-                    'to discovery; 0 = do not wait.',
-                    range=(0.0, 3600.0),
-                    read_only=True,
-                ),
-            ],
-            diagnostics=self.diagnostics,
-        )
+        super().__init__(PARAMETERS, on_change={'rate': self._set_rate}, **kwargs)
         self.exit_when_done = self.params.exit_when_done
         self._loop = self.params.loop
         self._wait_for_subscribers = self.params.wait_for_subscribers

@@ -40,12 +40,10 @@ import sys
 import threading
 import time
 
-from rclpy.node import Node
-
 from bag_tools.bag_writer import BagError, BagWriter, header_stamp_ns, qos_profile
 from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
 from vgm_common.errors import VgmError
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import GraphNode, Param, run_node
 
 # After a stop request, keep taking the messages the middleware already holds until none
 # came for QUIET_PERIOD (a recorder behind the publishers must not lose its backlog), at
@@ -138,7 +136,58 @@ class _MessageQueue:
             self._condition.notify_all()
 
 
-class RecorderNode(Node):
+PARAMETERS = [
+    Param(
+        'bag_name',
+        '',
+        'Bag directory name; empty = rosbag2_YYYY_MM_DD-HH_MM_SS '
+        '(local time). Must not exist yet.',
+        check=_plain_directory_name,
+        read_only=True,
+    ),
+    Param(
+        'output_dir',
+        'bags',
+        'Directory the bag directory is created in (relative to the working directory).',
+        read_only=True,
+    ),
+    *topic_selection_params('record', 'recorded', 0.1, ', e.g. [/rosout]'),
+    Param(
+        'flush_period',
+        1.0,
+        '[s] The chunk being filled is written at least this '
+        'often (bounds what a crash loses); 0 = only when full (768 KiB).',
+        range=(0.0, 3600.0),
+        read_only=True,
+    ),
+    Param(
+        'max_file_size',
+        0,
+        '[bytes] Split to <bag_name>_<n+1>.mcap once a file reaches this size; 0 = never.',
+        range=(0, 2**62),
+        read_only=True,
+    ),
+    Param(
+        'compression',
+        'none',
+        'Chunk compression of the MCAP files: none '
+        '(rosbag2\'s default; "" says the same), zstd or lz4 (mcap\'s chunk '
+        'compression: every MCAP reader decompresses it).',
+        choices=('none', '', 'zstd', 'lz4'),
+        read_only=True,
+    ),
+    Param(
+        'max_cache_size',
+        100 * 1024 * 1024,
+        '[bytes] Messages waiting to be written; '
+        'beyond this the oldest are dropped (counted). 0 = unbounded.',
+        range=(0, 2**62),
+        read_only=True,
+    ),
+]
+
+
+class RecorderNode(GraphNode):
     """Discovers topics, subscribes to them raw and writes them to a bag.
 
     For ``vgm_common.node_tools.run_node``: ``exit_requested`` is set when writing fails,
@@ -152,62 +201,8 @@ class RecorderNode(Node):
     node_name = 'recorder'
 
     def __init__(self, **kwargs):
-        super().__init__(self.node_name, **kwargs)
+        super().__init__(PARAMETERS, **kwargs)
         # None can change while recording.
-        self.params = NodeParameters(
-            self,
-            [
-                Param(
-                    'bag_name',
-                    '',
-                    'Bag directory name; empty = rosbag2_YYYY_MM_DD-HH_MM_SS '
-                    '(local time). Must not exist yet.',
-                    check=_plain_directory_name,
-                    read_only=True,
-                ),
-                Param(
-                    'output_dir',
-                    'bags',
-                    'Directory the bag directory is created in (relative '
-                    'to the working directory).',
-                    read_only=True,
-                ),
-                *topic_selection_params('record', 'recorded', 0.1, ', e.g. [/rosout]'),
-                Param(
-                    'flush_period',
-                    1.0,
-                    '[s] The chunk being filled is written at least this '
-                    'often (bounds what a crash loses); 0 = only when full (768 KiB).',
-                    range=(0.0, 3600.0),
-                    read_only=True,
-                ),
-                Param(
-                    'max_file_size',
-                    0,
-                    '[bytes] Split to <bag_name>_<n+1>.mcap once a file '
-                    'reaches this size; 0 = never.',
-                    range=(0, 2**62),
-                    read_only=True,
-                ),
-                Param(
-                    'compression',
-                    'none',
-                    'Chunk compression of the MCAP files: none '
-                    '(rosbag2\'s default; "" says the same), zstd or lz4 (mcap\'s chunk '
-                    'compression: every MCAP reader decompresses it).',
-                    choices=('none', '', 'zstd', 'lz4'),
-                    read_only=True,
-                ),
-                Param(
-                    'max_cache_size',
-                    100 * 1024 * 1024,
-                    '[bytes] Messages waiting to be written; '
-                    'beyond this the oldest are dropped (counted). 0 = unbounded.',
-                    range=(0, 2**62),
-                    read_only=True,
-                ),
-            ],
-        )
         self._discovery = TopicDiscovery(self, self.params, 'recording')
         self._flush_period = self.params.flush_period  # [s]
         self._use_sim_time = self.get_parameter('use_sim_time').value
@@ -231,7 +226,6 @@ class RecorderNode(Node):
         self._bytes_written = 0  # serialized message bytes handed to the bag (writer thread)
         self.write_error = None
         self.exit_requested = threading.Event()
-        self.diagnostics = Diagnostics(self)
         self._writer_thread = threading.Thread(
             target=self._write_loop, name='bag_writer', daemon=True
         )

@@ -16,7 +16,6 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 
@@ -46,8 +45,7 @@ from vgm_common.geometry import make_transform, quaternion_to_matrix, rpy_to_mat
 from vgm_common.node_tools import (
     ConfigParams,
     CountingPublisher,
-    Diagnostics,
-    NodeParameters,
+    GraphNode,
     Param,
     ParameterError,
     run_node,
@@ -106,7 +104,227 @@ def _target_matrix(msg):
     return pose_to_matrix(msg.pose)
 
 
-class CalibNode(Node):
+PARAMETERS = [
+    Param(
+        'chart.rows',
+        6,
+        'Inner corners along the chart y axis (rows + cols odd).',
+        range=(2, 100),
+        read_only=True,
+    ),
+    Param(
+        'chart.cols',
+        9,
+        'Inner corners along the chart x axis.',
+        range=(2, 100),
+        read_only=True,
+    ),
+    Param(
+        'chart.spacing',
+        0.025,
+        'Chessboard square size [m].',
+        range=(1e-4, 10.0),
+        read_only=True,
+    ),
+    Param(
+        'chart.pattern',
+        'chessboard',
+        'Chart pattern.',
+        choices=('chessboard',),
+        read_only=True,
+    ),
+    Param(
+        'chart.source',
+        'auto',
+        'stage: views need a /calibration/target_pose '
+        'of their stamp; handheld: target poses are ignored, chart poses are '
+        'estimated; auto: stage once target poses arrive, handheld before.',
+        choices=CHART_SOURCES,
+        read_only=True,
+    ),
+    Param(
+        'rig_pose',
+        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        'The left camera optical '
+        'frame in base_link when no view has a target pose: x y z [m] roll pitch '
+        'yaw [rad], or x y z qx qy qz qw.',
+        check=_rig_pose_check,
+    ),
+    Param(
+        'cameras',
+        list(CAMERA_NAMES),
+        "The rig's cameras (left and right, aux optional).",
+        check=lambda v: None
+        if ({'left', 'right'} <= set(v) <= set(CAMERA_NAMES) and len(set(v)) == len(v))
+        else f'expected left, right and optionally aux, got {v}',
+        read_only=True,
+    ),
+    Param(
+        'min_coverage',
+        0.5,
+        'Handheld: each of x, y, size and skew must cover '
+        "this fraction of camera_calibration's ranges before calibrating.",
+        range=(0.0, 1.0),
+    ),
+    Param(
+        'select_views',
+        True,
+        'Handheld: keep a view only if it differs from the '
+        "kept ones (camera_calibration's rule); false keeps every view.",
+    ),
+    Param(
+        'min_views',
+        10,
+        'Views (captures with the chart found in at least one camera) needed to calibrate.',
+        range=(1, 10000),
+    ),
+    Param(
+        'auto_calibrate',
+        True,
+        'Calibrate as soon as min_views views are '
+        'collected (the calibrate service recalibrates on all views so far).',
+    ),
+    Param(
+        'calibration_file',
+        '',
+        'A calibration.yaml (or its directory) to publish '
+        'at start instead of calibrating; empty: calibrate from the chart.',
+        read_only=True,
+    ),
+    Param(
+        'output_dir',
+        '',
+        'Where calibration.yaml and left/right/aux.yaml '
+        '(camera_calibration_parsers) are written; empty: not written.',
+    ),
+    Param(
+        'method',
+        'lm',
+        'lm: DLT (or GA) start + Levenberg-Marquardt, plumb_bob '
+        '(ours); lxpm_ga: the thesis GA + network refinement; opencv: '
+        'cv2.calibrateCamera reference.',
+        choices=METHODS,
+    ),
+    Param(
+        'lm_start',
+        'dlt',
+        'Start of the lm method: closed-form DLT or the GA.',
+        choices=LM_STARTS,
+    ),
+    Param('seed', 0, 'Random seed of the GA.', range=(0, 2**31 - 1)),
+    Param(
+        'ga.population',
+        GA.defaults.population,
+        'GA population (thesis 240).',
+        range=(4, 100000),
+    ),
+    Param(
+        'ga.generations',
+        GA.defaults.generations,
+        'GA generations (thesis 200).',
+        range=(1, 100000),
+    ),
+    Param(
+        'ga.crossover',
+        GA.defaults.crossover,
+        'Laplace crossover probability per pair (thesis 0.9).',
+        range=(0.0, 1.0),
+    ),
+    Param(
+        'ga.mutation',
+        GA.defaults.mutation,
+        'Power mutation probability per gene (thesis 0.005).',
+        range=(0.0, 1.0),
+    ),
+    Param(
+        'ga.pm_index',
+        GA.defaults.pm_index,
+        'Power mutation index p, s = s1^(1/p) (not in the thesis; ALGORITHMS.md A4.4).',
+        range=(1e-3, 100.0),
+    ),
+    Param(
+        'ga.lx_variant',
+        GA.defaults.lx_variant,
+        'Laplace crossover: as printed in the thesis, or the symmetric Laplace quantile (A4.5).',
+        choices=LX_VARIANTS,
+    ),
+    Param(
+        'ga.lx_draw',
+        GA.defaults.lx_draw,
+        'Laplace spread phi drawn per gene (A4.5) or per parent pair.',
+        choices=LX_DRAWS,
+    ),
+    Param(
+        'ga.tournament',
+        GA.defaults.tournament,
+        'Tournament size of the selection [C] (A4.6).',
+        range=(1, 1000),
+    ),
+    Param(
+        'ga.elitism',
+        GA.defaults.elitism,
+        'Best individuals carried over each generation [C] (A4.6).',
+        range=(0, 1000),
+    ),
+    Param(
+        'ga.max_distance',
+        GA.defaults.max_distance,
+        'Bound of the GA translation genes: camera to chart-centroid distance [m].',
+        range=(0.01, 1000.0),
+    ),
+    Param(
+        'network.epochs',
+        GA.defaults.network_epochs,
+        'Gradient-descent epochs of the thesis network refinement.',
+        range=(0, 1000000),
+    ),
+    Param(
+        'network.weights',
+        GA.defaults.network_weights,
+        'structured: train only the entries of '
+        'D = [A | 0] and B = [R T; 0 1] that stand for parameters (ALGORITHMS.md '
+        '3.5); free: every weight, read out by RQ of D B.',
+        choices=NETWORK_WEIGHTS,
+    ),
+    Param(
+        'network.accept',
+        GA.defaults.network_accept,
+        'if_better: keep the network camera only '
+        'if its full-model RMS is below the GA camera; always: keep it.',
+        choices=NETWORK_ACCEPT,
+    ),
+    Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
+    Param(
+        'select_model',
+        True,
+        'lm: keep p1, p2 only where they lower the residual '
+        'enough (BIC); they otherwise trade against the principal point.',
+    ),
+    Param('fit_k3', False, 'Estimate k3 (else 0).'),
+    Param(
+        'max_rms_px',
+        2.0,
+        'A calibration whose reprojection RMS exceeds this in '
+        'any camera is refused (not published) [px].',
+        range=(0.0, 1e6),
+    ),
+    Param(
+        'max_blur_px',
+        4.0,
+        'Chart views whose edge width exceeds this are rejected as blurred [px].',
+        range=(0.5, 100.0),
+    ),
+    Param(
+        'sync_max_wait',
+        5.0,
+        'Incomplete capture sets are dropped after this [s].',
+        range=(0.01, 60.0),
+        read_only=True,
+    ),
+]
+
+
+class CalibNode(GraphNode):
     """Collects chart views from the paired images (and target poses), calibrates the rig
     and publishes latched CameraInfo and camera poses; with ``calibration_file`` set,
     publishes that calibration instead. Services ``~/calibrate`` and ``~/reset``."""
@@ -114,234 +332,7 @@ class CalibNode(Node):
     node_name = 'calib_node'
 
     def __init__(self):
-        super().__init__(self.node_name)
-        self.diagnostics = Diagnostics(self)
-        ga = GA.defaults
-        self.params = NodeParameters(
-            self,
-            [
-                Param(
-                    'chart.rows',
-                    6,
-                    'Inner corners along the chart y axis (rows + cols odd).',
-                    range=(2, 100),
-                    read_only=True,
-                ),
-                Param(
-                    'chart.cols',
-                    9,
-                    'Inner corners along the chart x axis.',
-                    range=(2, 100),
-                    read_only=True,
-                ),
-                Param(
-                    'chart.spacing',
-                    0.025,
-                    'Chessboard square size [m].',
-                    range=(1e-4, 10.0),
-                    read_only=True,
-                ),
-                Param(
-                    'chart.pattern',
-                    'chessboard',
-                    'Chart pattern.',
-                    choices=('chessboard',),
-                    read_only=True,
-                ),
-                Param(
-                    'chart.source',
-                    'auto',
-                    'stage: views need a /calibration/target_pose '
-                    'of their stamp; handheld: target poses are ignored, chart poses are '
-                    'estimated; auto: stage once target poses arrive, handheld before.',
-                    choices=CHART_SOURCES,
-                    read_only=True,
-                ),
-                Param(
-                    'rig_pose',
-                    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-                    'The left camera optical '
-                    'frame in base_link when no view has a target pose: x y z [m] roll pitch '
-                    'yaw [rad], or x y z qx qy qz qw.',
-                    check=_rig_pose_check,
-                ),
-                Param(
-                    'cameras',
-                    list(CAMERA_NAMES),
-                    "The rig's cameras (left and right, aux optional).",
-                    check=lambda v: None
-                    if ({'left', 'right'} <= set(v) <= set(CAMERA_NAMES) and len(set(v)) == len(v))
-                    else f'expected left, right and optionally aux, got {v}',
-                    read_only=True,
-                ),
-                Param(
-                    'min_coverage',
-                    0.5,
-                    'Handheld: each of x, y, size and skew must cover '
-                    "this fraction of camera_calibration's ranges before calibrating.",
-                    range=(0.0, 1.0),
-                ),
-                Param(
-                    'select_views',
-                    True,
-                    'Handheld: keep a view only if it differs from the '
-                    "kept ones (camera_calibration's rule); false keeps every view.",
-                ),
-                Param(
-                    'min_views',
-                    10,
-                    'Views (captures with the chart found in at least one '
-                    'camera) needed to calibrate.',
-                    range=(1, 10000),
-                ),
-                Param(
-                    'auto_calibrate',
-                    True,
-                    'Calibrate as soon as min_views views are '
-                    'collected (the calibrate service recalibrates on all views so far).',
-                ),
-                Param(
-                    'calibration_file',
-                    '',
-                    'A calibration.yaml (or its directory) to publish '
-                    'at start instead of calibrating; empty: calibrate from the chart.',
-                    read_only=True,
-                ),
-                Param(
-                    'output_dir',
-                    '',
-                    'Where calibration.yaml and left/right/aux.yaml '
-                    '(camera_calibration_parsers) are written; empty: not written.',
-                ),
-                Param(
-                    'method',
-                    'lm',
-                    'lm: DLT (or GA) start + Levenberg-Marquardt, plumb_bob '
-                    '(ours); lxpm_ga: the thesis GA + network refinement; opencv: '
-                    'cv2.calibrateCamera reference.',
-                    choices=METHODS,
-                ),
-                Param(
-                    'lm_start',
-                    'dlt',
-                    'Start of the lm method: closed-form DLT or the GA.',
-                    choices=LM_STARTS,
-                ),
-                Param('seed', 0, 'Random seed of the GA.', range=(0, 2**31 - 1)),
-                Param(
-                    'ga.population',
-                    ga.population,
-                    'GA population (thesis 240).',
-                    range=(4, 100000),
-                ),
-                Param(
-                    'ga.generations',
-                    ga.generations,
-                    'GA generations (thesis 200).',
-                    range=(1, 100000),
-                ),
-                Param(
-                    'ga.crossover',
-                    ga.crossover,
-                    'Laplace crossover probability per pair (thesis 0.9).',
-                    range=(0.0, 1.0),
-                ),
-                Param(
-                    'ga.mutation',
-                    ga.mutation,
-                    'Power mutation probability per gene (thesis 0.005).',
-                    range=(0.0, 1.0),
-                ),
-                Param(
-                    'ga.pm_index',
-                    ga.pm_index,
-                    'Power mutation index p, s = s1^(1/p) (not in the '
-                    'thesis; ALGORITHMS.md A4.4).',
-                    range=(1e-3, 100.0),
-                ),
-                Param(
-                    'ga.lx_variant',
-                    ga.lx_variant,
-                    'Laplace crossover: as printed in the thesis, '
-                    'or the symmetric Laplace quantile (A4.5).',
-                    choices=LX_VARIANTS,
-                ),
-                Param(
-                    'ga.lx_draw',
-                    ga.lx_draw,
-                    'Laplace spread phi drawn per gene (A4.5) or per parent pair.',
-                    choices=LX_DRAWS,
-                ),
-                Param(
-                    'ga.tournament',
-                    ga.tournament,
-                    'Tournament size of the selection [C] (A4.6).',
-                    range=(1, 1000),
-                ),
-                Param(
-                    'ga.elitism',
-                    ga.elitism,
-                    'Best individuals carried over each generation [C] (A4.6).',
-                    range=(0, 1000),
-                ),
-                Param(
-                    'ga.max_distance',
-                    ga.max_distance,
-                    'Bound of the GA translation genes: camera to chart-centroid distance [m].',
-                    range=(0.01, 1000.0),
-                ),
-                Param(
-                    'network.epochs',
-                    ga.network_epochs,
-                    'Gradient-descent epochs of the thesis network refinement.',
-                    range=(0, 1000000),
-                ),
-                Param(
-                    'network.weights',
-                    ga.network_weights,
-                    'structured: train only the entries of '
-                    'D = [A | 0] and B = [R T; 0 1] that stand for parameters (ALGORITHMS.md '
-                    '3.5); free: every weight, read out by RQ of D B.',
-                    choices=NETWORK_WEIGHTS,
-                ),
-                Param(
-                    'network.accept',
-                    ga.network_accept,
-                    'if_better: keep the network camera only '
-                    'if its full-model RMS is below the GA camera; always: keep it.',
-                    choices=NETWORK_ACCEPT,
-                ),
-                Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
-                Param(
-                    'select_model',
-                    True,
-                    'lm: keep p1, p2 only where they lower the residual '
-                    'enough (BIC); they otherwise trade against the principal point.',
-                ),
-                Param('fit_k3', False, 'Estimate k3 (else 0).'),
-                Param(
-                    'max_rms_px',
-                    2.0,
-                    'A calibration whose reprojection RMS exceeds this in '
-                    'any camera is refused (not published) [px].',
-                    range=(0.0, 1e6),
-                ),
-                Param(
-                    'max_blur_px',
-                    4.0,
-                    'Chart views whose edge width exceeds this are rejected as blurred [px].',
-                    range=(0.5, 100.0),
-                ),
-                Param(
-                    'sync_max_wait',
-                    5.0,
-                    'Incomplete capture sets are dropped after this [s].',
-                    range=(0.01, 60.0),
-                    read_only=True,
-                ),
-            ],
-            self.diagnostics,
-        )
+        super().__init__(PARAMETERS)
         p = self.params
         if (self._param('chart.rows') + self._param('chart.cols')) % 2 == 0:
             raise ParameterError(

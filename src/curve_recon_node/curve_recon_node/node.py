@@ -21,7 +21,6 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
@@ -55,8 +54,7 @@ from vgm_common.node_tools import (
     CountingPublisher,
     DeferredCallback,
     DeferredServiceExecutor,
-    Diagnostics,
-    NodeParameters,
+    GraphNode,
     Param,
     guarded,
     run_node,
@@ -97,7 +95,113 @@ class _Capture:
 _REPUBLISH_WITH_NORMALS = object()
 
 
-class CurveReconNode(Node):
+PARAMETERS = [
+    Param(
+        'degree',
+        SETTINGS.defaults.degree,
+        'Degree n of the implicit image curves (2 conics, 3 cubics).',
+        range=(1, 6),
+    ),
+    Param(
+        'method',
+        SETTINGS.defaults.method,
+        'Cone intersection: ray_roots (roots of the view-2 '
+        'cone along view-1 rays, ours) or cone_lsq (minimise S1^2 + S2^2, thesis).',
+        choices=METHODS,
+    ),
+    Param(
+        'third_view_tolerance',
+        SETTINGS.defaults.third_view_tolerance,
+        "[px] Largest distance of a point's projection to the third view's curve.",
+        range=(1e-3, 100.0),
+    ),
+    Param(
+        'spacing',
+        SETTINGS.defaults.spacing,
+        '[m] Waypoint spacing along the curve.',
+        range=(1e-4, 1.0),
+    ),
+    Param(
+        'views',
+        3,
+        'Views to use: 3 (left, right, aux) or 2 (left, right).',
+        range=(2, 3),
+    ),
+    Param(
+        'line_width_px',
+        SETTINGS.defaults.line_width_px,
+        '[px] Width of the drawn curve in the images.',
+        range=(1.0, 30.0),
+    ),
+    Param(
+        'min_contrast',
+        SETTINGS.defaults.min_contrast,
+        '[grey levels] Faintest line taken as the curve.',
+        range=(0.5, 255.0),
+    ),
+    Param(
+        'min_curve_pixels',
+        SETTINGS.defaults.min_curve_pixels,
+        '[px] Shortest image chain taken as the curve.',
+        range=(5.0, 1e5),
+    ),
+    Param(
+        'fit_tolerance_px',
+        SETTINGS.defaults.fit_tolerance_px,
+        '[px] RMS residual above which a chain is split into pieces (piecewise fit).',
+        range=(1e-3, 100.0),
+    ),
+    Param(
+        'min_piece_points',
+        SETTINGS.defaults.min_piece_points,
+        'Chain points below which a piece is not split.',
+        range=(8, 100000),
+    ),
+    Param(
+        'refine',
+        SETTINGS.defaults.refine,
+        'Refine points by minimising their pixel distances to the curves of all views.',
+    ),
+    Param(
+        'smoothing_window',
+        SETTINGS.defaults.smoothing_window,
+        '[m] Window of the smoothing along the curve before resampling.',
+        range=(0.0, 1.0),
+    ),
+    Param(
+        'use_depth_normals',
+        True,
+        'Approach direction from /depth/fused surface normals when available (else base -z).',
+    ),
+    Param(
+        'normal_window_px',
+        15,
+        "[px] Depth window for a normal's plane fit.",
+        range=(3, 101),
+    ),
+    Param(
+        'sync_max_wait',
+        1.0,
+        '[s] How long an incomplete capture waits for its other images.',
+        range=(0.01, 60.0),
+    ),
+    Param(
+        'aux_wait',
+        2.0,
+        "[s] With views 3, how long to wait for the aux camera's "
+        'calibration before reconstructing from two views.',
+        range=(0.0, 600.0),
+    ),
+    Param(
+        'service_timeout',
+        20.0,
+        '[s] Longest a reconstruct call waits for its capture and result.',
+        range=(0.1, 600.0),
+    ),
+]
+
+
+class CurveReconNode(GraphNode):
     """Reconstructs the curve from a synchronized capture of the calibrated views (once
     the calibration is ready or changes, and on ``/curve_recon_node/reconstruct``) and
     publishes the waypoints (latched; approach axes from /depth/fused normals when
@@ -106,120 +210,7 @@ class CurveReconNode(Node):
     node_name = 'curve_recon_node'
 
     def __init__(self):
-        super().__init__(self.node_name)
-        self.diagnostics = Diagnostics(self)
-        settings = SETTINGS.defaults
-        self.params = NodeParameters(
-            self,
-            [
-                Param(
-                    'degree',
-                    settings.degree,
-                    'Degree n of the implicit image curves (2 conics, 3 cubics).',
-                    range=(1, 6),
-                ),
-                Param(
-                    'method',
-                    settings.method,
-                    'Cone intersection: ray_roots (roots of the view-2 '
-                    'cone along view-1 rays, ours) or cone_lsq (minimise S1^2 + S2^2, thesis).',
-                    choices=METHODS,
-                ),
-                Param(
-                    'third_view_tolerance',
-                    settings.third_view_tolerance,
-                    "[px] Largest distance of a point's projection to the third view's curve.",
-                    range=(1e-3, 100.0),
-                ),
-                Param(
-                    'spacing',
-                    settings.spacing,
-                    '[m] Waypoint spacing along the curve.',
-                    range=(1e-4, 1.0),
-                ),
-                Param(
-                    'views',
-                    3,
-                    'Views to use: 3 (left, right, aux) or 2 (left, right).',
-                    range=(2, 3),
-                    on_change=self._on_views_change,
-                ),
-                Param(
-                    'line_width_px',
-                    settings.line_width_px,
-                    '[px] Width of the drawn curve in the images.',
-                    range=(1.0, 30.0),
-                ),
-                Param(
-                    'min_contrast',
-                    settings.min_contrast,
-                    '[grey levels] Faintest line taken as the curve.',
-                    range=(0.5, 255.0),
-                ),
-                Param(
-                    'min_curve_pixels',
-                    settings.min_curve_pixels,
-                    '[px] Shortest image chain taken as the curve.',
-                    range=(5.0, 1e5),
-                ),
-                Param(
-                    'fit_tolerance_px',
-                    settings.fit_tolerance_px,
-                    '[px] RMS residual above which a chain is split into pieces (piecewise fit).',
-                    range=(1e-3, 100.0),
-                ),
-                Param(
-                    'min_piece_points',
-                    settings.min_piece_points,
-                    'Chain points below which a piece is not split.',
-                    range=(8, 100000),
-                ),
-                Param(
-                    'refine',
-                    settings.refine,
-                    'Refine points by minimising their pixel distances to the '
-                    'curves of all views.',
-                ),
-                Param(
-                    'smoothing_window',
-                    settings.smoothing_window,
-                    '[m] Window of the smoothing along the curve before resampling.',
-                    range=(0.0, 1.0),
-                ),
-                Param(
-                    'use_depth_normals',
-                    True,
-                    'Approach direction from /depth/fused surface '
-                    'normals when available (else base -z).',
-                ),
-                Param(
-                    'normal_window_px',
-                    15,
-                    "[px] Depth window for a normal's plane fit.",
-                    range=(3, 101),
-                ),
-                Param(
-                    'sync_max_wait',
-                    1.0,
-                    '[s] How long an incomplete capture waits for its other images.',
-                    range=(0.01, 60.0),
-                ),
-                Param(
-                    'aux_wait',
-                    2.0,
-                    "[s] With views 3, how long to wait for the aux camera's "
-                    'calibration before reconstructing from two views.',
-                    range=(0.0, 600.0),
-                ),
-                Param(
-                    'service_timeout',
-                    20.0,
-                    '[s] Longest a reconstruct call waits for its capture and result.',
-                    range=(0.1, 600.0),
-                ),
-            ],
-            self.diagnostics,
-        )
+        super().__init__(PARAMETERS, on_change={'views': self._on_views_change})
         p = self.params
         self.cameras = CalibratedCameras(
             self, CAMERA_NAMES, self.diagnostics, self._on_calibration_change

@@ -36,13 +36,12 @@ from foxglove.channels import FrameTransformsChannel
 from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
 from foxglove.websocket import ServerListener
 from geometry_msgs.msg import PoseStamped
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy
 
 from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
 from vgm_common.conversions import pose_to_matrix
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import GraphNode, Param, run_node
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.topics import (
     BASE_FRAME,
@@ -112,7 +111,34 @@ class _Listener(ServerListener):
         self._live_view.client_unsubscribed(client.id, channel.topic)
 
 
-class LiveViewNode(Node):
+PARAMETERS = [
+    Param(
+        'address',
+        '127.0.0.1',
+        'Address the WebSocket server listens on; '
+        '0.0.0.0 opens it to the network (on purpose: anyone there can watch).',
+        read_only=True,
+    ),
+    Param(
+        'port',
+        8765,
+        "TCP port of the WebSocket server (foxglove_bridge's); 0 = any free port (logged).",
+        range=(0, 65535),
+        read_only=True,
+    ),
+    *topic_selection_params('serve', 'served', 0.5),
+    Param(
+        'message_backlog_size',
+        300,
+        'Messages queued per client at most; a slow '
+        'client loses the oldest beyond this (10 s of three 30 Hz cameras).',
+        range=(1, 100000),
+        read_only=True,
+    ),
+]
+
+
+class LiveViewNode(GraphNode):
     """Discovers topics, subscribes to them raw and forwards them to the Foxglove server.
 
     Raises:
@@ -123,38 +149,7 @@ class LiveViewNode(Node):
     node_name = 'live_view'
 
     def __init__(self, **kwargs):
-        super().__init__(self.node_name, **kwargs)
-        self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(
-            self,
-            [
-                Param(
-                    'address',
-                    '127.0.0.1',
-                    'Address the WebSocket server listens on; '
-                    '0.0.0.0 opens it to the network (on purpose: anyone there can watch).',
-                    read_only=True,
-                ),
-                Param(
-                    'port',
-                    8765,
-                    "TCP port of the WebSocket server (foxglove_bridge's); 0 = "
-                    'any free port (logged).',
-                    range=(0, 65535),
-                    read_only=True,
-                ),
-                *topic_selection_params('serve', 'served', 0.5),
-                Param(
-                    'message_backlog_size',
-                    300,
-                    'Messages queued per client at most; a slow '
-                    'client loses the oldest beyond this (10 s of three 30 Hz cameras).',
-                    range=(1, 100000),
-                    read_only=True,
-                ),
-            ],
-            self.diagnostics,
-        )
+        super().__init__(PARAMETERS, **kwargs)
         self._discovery = TopicDiscovery(self, self.params, 'serving')
         self._lock = threading.Lock()  # the server's threads and the executor's
         self._forwarded = {}  # topic -> _Forwarded

@@ -15,7 +15,6 @@ import numpy as np
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from nav_msgs.msg import Path
-from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
@@ -34,8 +33,7 @@ from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.node_tools import (
     ConfigParams,
     CountingPublisher,
-    Diagnostics,
-    NodeParameters,
+    GraphNode,
     Param,
     SubscriberGate,
     guarded,
@@ -66,7 +64,197 @@ def _check_weights(values):
     return None
 
 
-class Pa10IkNode(Node):
+POSITIVE = (1e-9, 1e9)
+PARAMETERS = [
+    Param(
+        'robot',
+        'pa10',
+        "Kinematic model: 'pa10', 'pa10_thesis' or a URDF path.",
+        read_only=True,
+    ),
+    Param(
+        'tool_length',
+        0.1,
+        "[m] Flange to tool tip; must match the scenario's robot.tool_length.",
+        range=(0.0, 1.0),
+        read_only=True,
+    ),
+    Param(
+        'tip_frame',
+        'tool0',
+        'Tip frame of the URDF (z = approach axis).',
+        read_only=True,
+    ),
+    Param('rate', 100.0, '[Hz] Control rate.', range=(100.0, 1000.0), read_only=True),
+    Param(
+        'method',
+        'ours',
+        'Velocity IK: ours (closed-form KKT + feedback, joint '
+        'limits), primal_dual (the thesis network), dls (reference).',
+        choices=METHODS,
+    ),
+    Param(
+        'weights',
+        [1.0] * 7,
+        f'Diagonal of W (may be indefinite, e.g. the thesis {THESIS_WEIGHTS}).',
+        check=_check_weights,
+    ),
+    Param(
+        'K',
+        100.0,
+        'Penalty gain of the primal-dual network.',
+        range=POSITIVE,
+    ),
+    Param(
+        'mu',
+        0.02,
+        "Step size of the thesis's fixed-step rule for qdot (the "
+        'benchmark only: the node integrates the network exactly).',
+        range=POSITIVE,
+    ),
+    Param(
+        'eta',
+        0.02,
+        "Step size of the thesis's fixed-step rule for lambda (benchmark only).",
+        range=POSITIVE,
+    ),
+    Param(
+        'damping',
+        0.05,
+        'DLS damping; largest adaptive damping of ours.',
+        range=(0.0, 10.0),
+    ),
+    Param(
+        'desired_force',
+        TRACKING.defaults.desired_force,
+        '[N] Contact force to hold.',
+        range=(0.01, 200.0),
+    ),
+    Param(
+        'contact_stiffness',
+        TRACKING.defaults.stiffness,
+        '[N/m] Stiffness estimate (feed-forward depth; the integral law corrects its error).',
+        range=(1.0, 1e7),
+    ),
+    Param(
+        'force_gain',
+        TRACKING.defaults.force_gain,
+        '[1/s] Integral gain of the force law.',
+        range=(0.0, 100.0),
+    ),
+    Param(
+        'force_law',
+        TRACKING.defaults.force_law,
+        "Force law: 'integral' (ours: depth = "
+        "desired_force / contact_stiffness + integral of the force error) or 'tilt' "
+        "(the thesis's 7.3.15: the motion PQ' tilted by phi into / out of the "
+        'surface; acts only while moving along the path).',
+        choices=FORCE_LAWS,
+    ),
+    Param(
+        'speed',
+        TRACKING.defaults.speed,
+        '[m/s] Speed along the path.',
+        range=(1e-4, 0.2),
+    ),
+    Param(
+        'adapt_response',
+        TRACKING.defaults.adapt_response,
+        'Measure how much of the commanded motion the '
+        'arm makes and scale commands up for an arm slower than commanded (at most '
+        '2.5 times, within the joint speed limits). Off by default: on a loaded '
+        'machine late commands make any arm look slow.',
+    ),
+    Param(
+        'pose_integral_gain',
+        TRACKING.defaults.pose_integral_gain,
+        "[1/s^2] Integral of the tip's error across "
+        'the approach axis while tracking (a slow arm trails its reference '
+        'otherwise); 0 turns it off.',
+        range=(0.0, 200.0),
+    ),
+    Param(
+        'pose_gain',
+        TRACKING.defaults.pose_gain,
+        '[1/s] Pose feedback gain.',
+        range=(0.1, 50.0),
+    ),
+    Param(
+        'max_joint_velocity',
+        1.0,
+        "[rad/s] Cap on every joint speed (on top of the model's limits).",
+        range=(0.01, 10.0),
+        read_only=True,
+    ),
+    Param(
+        'track_spin',
+        TRACKING.defaults.track_spin,
+        'Also track the spin about the approach axis '
+        '(6 constraints, as the seed); false leaves it free.',
+    ),
+    Param(
+        'standoff',
+        TRACKING.defaults.standoff,
+        '[m] Pre-contact pose above the first waypoint.',
+        range=(0.005, 0.2),
+    ),
+    Param(
+        'descent_speed',
+        TRACKING.defaults.descent_speed,
+        '[m/s] Descent to contact and lift-off speed.',
+        range=(1e-4, 0.1),
+    ),
+    Param(
+        'lift_height',
+        TRACKING.defaults.lift_height,
+        '[m] Lift-off along the approach axis when done.',
+        range=(0.0, 0.2),
+    ),
+    Param(
+        'max_position_error',
+        TRACKING.defaults.max_position_error,
+        '[m] Tip farther than this from its reference for error_timeout: failure.',
+        range=(1e-4, 1.0),
+    ),
+    Param(
+        'error_timeout',
+        TRACKING.defaults.error_timeout,
+        '[s] See max_position_error.',
+        range=(0.01, 60.0),
+    ),
+    Param(
+        'pressure_timeout',
+        1.0,
+        '[s] Pressure (or joint state) older than this while active: stop.',
+        range=(0.01, 60.0),
+    ),
+    Param(
+        'command_horizon',
+        0.05,
+        '[s] time_from_start of the commanded point.',
+        range=(0.001, 1.0),
+    ),
+    Param(
+        'auto_start',
+        False,
+        'Start as soon as valid waypoints, joint states and pressure are there.',
+    ),
+    Param(
+        'diagnostics_rate',
+        2.0,
+        '[Hz] Rate of the tracking diagnostics.',
+        range=(0.1, 50.0),
+        read_only=True,
+    ),
+    *subscriber_gate_params('Run the loop (and publish /tool_pose) only once /tool_pose has'),
+]
+
+# A change of these builds the solver anew; of the tracking ones, reconfigures the controller.
+SOLVER_PARAMETERS = ('method', 'weights', 'K', 'damping')
+TRACKING_PARAMETERS = tuple(TRACKING.param_names(p.name for p in PARAMETERS).values())
+
+
+class Pa10IkNode(GraphNode):
     """Follows the latched /curve/waypoints with the tool tip at ``rate``: approach,
     contact at ``desired_force``, tracking and lift-off (``tracking.TrackingController``),
     joint commands on /pa10_controller/joint_trajectory and the measured tool pose on
@@ -75,217 +263,10 @@ class Pa10IkNode(Node):
     node_name = 'pa10_ik_node'
 
     def __init__(self):
-        super().__init__(self.node_name)
-        self.diagnostics = Diagnostics(self)
-        positive = (1e-9, 1e9)
-        tracking = TRACKING.defaults
-        self.params = NodeParameters(
-            self,
-            [
-                Param(
-                    'robot',
-                    'pa10',
-                    "Kinematic model: 'pa10', 'pa10_thesis' or a URDF path.",
-                    read_only=True,
-                ),
-                Param(
-                    'tool_length',
-                    0.1,
-                    "[m] Flange to tool tip; must match the scenario's robot.tool_length.",
-                    range=(0.0, 1.0),
-                    read_only=True,
-                ),
-                Param(
-                    'tip_frame',
-                    'tool0',
-                    'Tip frame of the URDF (z = approach axis).',
-                    read_only=True,
-                ),
-                Param('rate', 100.0, '[Hz] Control rate.', range=(100.0, 1000.0), read_only=True),
-                Param(
-                    'method',
-                    'ours',
-                    'Velocity IK: ours (closed-form KKT + feedback, joint '
-                    'limits), primal_dual (the thesis network), dls (reference).',
-                    choices=METHODS,
-                    on_change=lambda _: self._rebuild_solver(),
-                ),
-                Param(
-                    'weights',
-                    [1.0] * 7,
-                    f'Diagonal of W (may be indefinite, e.g. the thesis {THESIS_WEIGHTS}).',
-                    check=_check_weights,
-                    on_change=lambda _: self._rebuild_solver(),
-                ),
-                Param(
-                    'K',
-                    100.0,
-                    'Penalty gain of the primal-dual network.',
-                    range=positive,
-                    on_change=lambda _: self._rebuild_solver(),
-                ),
-                Param(
-                    'mu',
-                    0.02,
-                    "Step size of the thesis's fixed-step rule for qdot (the "
-                    'benchmark only: the node integrates the network exactly).',
-                    range=positive,
-                ),
-                Param(
-                    'eta',
-                    0.02,
-                    "Step size of the thesis's fixed-step rule for lambda (benchmark only).",
-                    range=positive,
-                ),
-                Param(
-                    'damping',
-                    0.05,
-                    'DLS damping; largest adaptive damping of ours.',
-                    range=(0.0, 10.0),
-                    on_change=lambda _: self._rebuild_solver(),
-                ),
-                Param(
-                    'desired_force',
-                    tracking.desired_force,
-                    '[N] Contact force to hold.',
-                    range=(0.01, 200.0),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'contact_stiffness',
-                    tracking.stiffness,
-                    '[N/m] Stiffness estimate (feed-forward '
-                    'depth; the integral law corrects its error).',
-                    range=(1.0, 1e7),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'force_gain',
-                    tracking.force_gain,
-                    '[1/s] Integral gain of the force law.',
-                    range=(0.0, 100.0),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'force_law',
-                    tracking.force_law,
-                    "Force law: 'integral' (ours: depth = "
-                    "desired_force / contact_stiffness + integral of the force error) or 'tilt' "
-                    "(the thesis's 7.3.15: the motion PQ' tilted by phi into / out of the "
-                    'surface; acts only while moving along the path).',
-                    choices=FORCE_LAWS,
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'speed',
-                    tracking.speed,
-                    '[m/s] Speed along the path.',
-                    range=(1e-4, 0.2),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'adapt_response',
-                    tracking.adapt_response,
-                    'Measure how much of the commanded motion the '
-                    'arm makes and scale commands up for an arm slower than commanded (at most '
-                    '2.5 times, within the joint speed limits). Off by default: on a loaded '
-                    'machine late commands make any arm look slow.',
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'pose_integral_gain',
-                    tracking.pose_integral_gain,
-                    "[1/s^2] Integral of the tip's error across "
-                    'the approach axis while tracking (a slow arm trails its reference '
-                    'otherwise); 0 turns it off.',
-                    range=(0.0, 200.0),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'pose_gain',
-                    tracking.pose_gain,
-                    '[1/s] Pose feedback gain.',
-                    range=(0.1, 50.0),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'max_joint_velocity',
-                    1.0,
-                    "[rad/s] Cap on every joint speed (on top of the model's limits).",
-                    range=(0.01, 10.0),
-                    read_only=True,
-                ),
-                Param(
-                    'track_spin',
-                    tracking.track_spin,
-                    'Also track the spin about the approach axis '
-                    '(6 constraints, as the seed); false leaves it free.',
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'standoff',
-                    tracking.standoff,
-                    '[m] Pre-contact pose above the first waypoint.',
-                    range=(0.005, 0.2),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'descent_speed',
-                    tracking.descent_speed,
-                    '[m/s] Descent to contact and lift-off speed.',
-                    range=(1e-4, 0.1),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'lift_height',
-                    tracking.lift_height,
-                    '[m] Lift-off along the approach axis when done.',
-                    range=(0.0, 0.2),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'max_position_error',
-                    tracking.max_position_error,
-                    '[m] Tip farther than this from its reference for error_timeout: failure.',
-                    range=(1e-4, 1.0),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'error_timeout',
-                    tracking.error_timeout,
-                    '[s] See max_position_error.',
-                    range=(0.01, 60.0),
-                    on_change=self._reconfigure,
-                ),
-                Param(
-                    'pressure_timeout',
-                    1.0,
-                    '[s] Pressure (or joint state) older than this while active: stop.',
-                    range=(0.01, 60.0),
-                ),
-                Param(
-                    'command_horizon',
-                    0.05,
-                    '[s] time_from_start of the commanded point.',
-                    range=(0.001, 1.0),
-                ),
-                Param(
-                    'auto_start',
-                    False,
-                    'Start as soon as valid waypoints, joint states and pressure are there.',
-                ),
-                Param(
-                    'diagnostics_rate',
-                    2.0,
-                    '[Hz] Rate of the tracking diagnostics.',
-                    range=(0.1, 50.0),
-                    read_only=True,
-                ),
-                *subscriber_gate_params(
-                    'Run the loop (and publish /tool_pose) only once /tool_pose has'
-                ),
-            ],
-            self.diagnostics,
+        solver_hooks = dict.fromkeys(SOLVER_PARAMETERS, self._rebuild_solver)
+        super().__init__(
+            PARAMETERS,
+            on_change=solver_hooks | dict.fromkeys(TRACKING_PARAMETERS, self._reconfigure),
         )
         p = self.params
         try:
@@ -351,7 +332,7 @@ class Pa10IkNode(Node):
             return f"'weights' needs {self.robot.n_joints} values, got {len(values['weights'])}"
         return None
 
-    def _rebuild_solver(self):
+    def _rebuild_solver(self, _value):
         if hasattr(self, 'controller'):
             self.controller.solver = self._make_solver()
 

@@ -16,7 +16,6 @@ import yaml
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
-from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 from trajectory_msgs.msg import JointTrajectory
 
@@ -29,8 +28,7 @@ from vgm_common.calibration_io import write_calibration
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
 from vgm_common.node_tools import (
-    Diagnostics,
-    NodeParameters,
+    GraphNode,
     Param,
     SubscriberGate,
     run_node,
@@ -49,8 +47,60 @@ from vgm_common.topics import (
     TOOL_FRAME,
 )
 
+PARAMETERS = [
+    Param(
+        'scenario',
+        'default',
+        'Scenario file, or the name of a shipped one.',
+        read_only=True,
+    ),
+    Param(
+        'calibration_phase',
+        True,
+        'Show the chart at every stage pose first.',
+        read_only=True,
+    ),
+    Param(
+        'rate',
+        0.0,
+        'Camera frame rate [Hz]; 0 takes the scenario rate.',
+        range=(0.0, 200.0),
+        read_only=True,
+    ),
+    Param(
+        'joint_state_rate',
+        200.0,
+        'Arm simulation, /joint_states and /tool/pressure rate [Hz].',
+        range=(100.0, 1000.0),
+        read_only=True,
+    ),
+    Param(
+        'ground_truth_dir',
+        '',
+        'Where the true cameras, curve and depth maps are '
+        'written for tests and benchmarks; empty: not written.',
+        read_only=True,
+    ),
+    *subscriber_gate_params('Publish only once every camera topic has'),
+    Param(
+        'arm_mode',
+        'position',
+        'The simulated arm follows the commanded '
+        "'position' (set points) or only the commanded 'velocity'.",
+        choices=ARM_MODES,
+        read_only=True,
+    ),
+    Param(
+        'arm_speed_scale',
+        1.0,
+        'Fraction of the commanded motion the arm makes (< 1: an arm slower than commanded).',
+        range=(0.01, 1.0),
+        read_only=True,
+    ),
+]
 
-class SensorSim(Node):
+
+class SensorSim(GraphNode):
     """The synthetic rig: publishes the scenario's three camera images at the frame rate
     (the chart at every stage pose first, with its pose), and the simulated arm's joint
     states and the tool's pressure at ``joint_state_rate``, following the joint trajectories
@@ -64,62 +114,7 @@ class SensorSim(Node):
     node_name = 'sensor_sim'
 
     def __init__(self):
-        super().__init__(self.node_name)
-        self.params = NodeParameters(
-            self,
-            [
-                Param(
-                    'scenario',
-                    'default',
-                    'Scenario file, or the name of a shipped one.',
-                    read_only=True,
-                ),
-                Param(
-                    'calibration_phase',
-                    True,
-                    'Show the chart at every stage pose first.',
-                    read_only=True,
-                ),
-                Param(
-                    'rate',
-                    0.0,
-                    'Camera frame rate [Hz]; 0 takes the scenario rate.',
-                    range=(0.0, 200.0),
-                    read_only=True,
-                ),
-                Param(
-                    'joint_state_rate',
-                    200.0,
-                    'Arm simulation, /joint_states and /tool/pressure rate [Hz].',
-                    range=(100.0, 1000.0),
-                    read_only=True,
-                ),
-                Param(
-                    'ground_truth_dir',
-                    '',
-                    'Where the true cameras, curve and depth maps are '
-                    'written for tests and benchmarks; empty: not written.',
-                    read_only=True,
-                ),
-                *subscriber_gate_params('Publish only once every camera topic has'),
-                Param(
-                    'arm_mode',
-                    'position',
-                    'The simulated arm follows the commanded '
-                    "'position' (set points) or only the commanded 'velocity'.",
-                    choices=ARM_MODES,
-                    read_only=True,
-                ),
-                Param(
-                    'arm_speed_scale',
-                    1.0,
-                    'Fraction of the commanded motion the arm '
-                    'makes (< 1: an arm slower than commanded).',
-                    range=(0.01, 1.0),
-                    read_only=True,
-                ),
-            ],
-        )
+        super().__init__(PARAMETERS)
         self.scenario = load_scenario(resolve_scenario_path(self.params.scenario))
         self.get_logger().info(f'scenario {self.scenario.name} ({self.scenario.path})')
         # Publishers first: subscribers (a recorder) discover and match them while the
@@ -148,7 +143,6 @@ class SensorSim(Node):
         self.arm = SimulatedArm.from_robot_model(
             self.robot, robot.initial_joints, self.params.arm_mode, self.params.arm_speed_scale
         )
-        self.diagnostics = Diagnostics(self)
         if self.params.ground_truth_dir:
             self._write_ground_truth(Path(self.params.ground_truth_dir))
 

@@ -13,7 +13,6 @@ import time
 from functools import partial
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from stereo_msgs.msg import DisparityImage
 
@@ -25,8 +24,7 @@ from vgm_common.errors import InvalidInput
 from vgm_common.node_tools import (
     ConfigParams,
     CountingPublisher,
-    Diagnostics,
-    NodeParameters,
+    GraphNode,
     Param,
     run_node,
 )
@@ -89,7 +87,220 @@ def _ordered_ranges(values):
     return None
 
 
-class SfsStereoNode(Node):
+PARAMETERS = [
+    Param(
+        'window',
+        DEPTH.defaults.window,
+        'SSD window side [px] (3 = thesis); odd.',
+        range=(1, 15),
+        check=lambda v: None if v % 2 else 'must be odd',
+    ),
+    Param(
+        'max_disparity',
+        DEPTH.defaults.max_disparity,
+        'Largest disparity searched [px, full resolution].',
+        range=(1, 1024),
+    ),
+    Param(
+        'min_disparity',
+        DEPTH.defaults.min_disparity,
+        'Smallest disparity searched [px, full resolution].',
+        range=(0, 1023),
+    ),
+    Param(
+        'match_threshold',
+        DEPTH.defaults.match_threshold,
+        'Largest normalised SSD cost of a confident match (sigma_thr).',
+        range=(1e-6, 10.0),
+    ),
+    Param(
+        'ssd.min_texture',
+        DEPTH.defaults.min_texture,
+        'Least grey-level std in the window of a '
+        'confident match [grey levels], a floor under texture_snr; 0 disables.',
+        range=(0.0, 255.0),
+    ),
+    Param(
+        'ssd.texture_snr',
+        DEPTH.defaults.texture_snr,
+        'Least window std of a confident match, in '
+        'units of the image noise std estimated from each image (contrast and '
+        'resolution relative); 0 disables.',
+        range=(0.0, 100.0),
+    ),
+    Param(
+        'ssd.min_support',
+        DEPTH.defaults.min_support,
+        'Fraction of matches backed by their '
+        'neighbours below which the pair looks unmatched (a warning).',
+        range=(0.0, 1.0),
+    ),
+    Param(
+        'max_pixels',
+        DEPTH.defaults.max_pixels,
+        'Images with more pixels are refused before any work (memory bound).',
+        range=(64, 100_000_000),
+    ),
+    Param(
+        'ssd.uniqueness',
+        DEPTH.defaults.uniqueness,
+        'Best cost must be this fraction below the best cost more than 1 px away; 0 disables.',
+        range=(0.0, 0.99),
+    ),
+    Param(
+        'ssd.left_right_check',
+        DEPTH.defaults.left_right_check,
+        'Keep only matches the right image picks back (within 1 px).',
+    ),
+    Param(
+        'light_direction',
+        list(DEPTH.defaults.light_direction),
+        'Unit vector from the '
+        'surface toward the light in the LEFT optical frame (x right, y down, z '
+        'forward).',
+        check=_check_light,
+    ),
+    Param('albedo', DEPTH.defaults.albedo, 'Surface albedo.', range=(0.01, 1.0)),
+    Param(
+        'ambient',
+        DEPTH.defaults.ambient,
+        'Ambient light as a fraction of the source (grey = 255 albedo (R + ambient)).',
+        range=(0.0, 1.0),
+    ),
+    Param('roughness', DEPTH.defaults.roughness, 'Oren-Nayar sigma [rad].', range=(0.0, 1.5)),
+    Param(
+        'fusion',
+        DEPTH.defaults.fusion,
+        'Fusion of SFS and stereo: shading_refine = ours '
+        '(default, variational shading refinement); mlp_rows = thesis per-row '
+        'networks; local_affine; least_squares.',
+        choices=FUSIONS,
+    ),
+    Param(
+        'min_depth',
+        DEPTH.defaults.min_depth,
+        'Nearest surface depth the rig sees [m]: limits the disparity search; 0 = no limit.',
+        range=(0.0, 100.0),
+    ),
+    Param(
+        'max_depth',
+        DEPTH.defaults.max_depth,
+        'Farthest surface depth [m]; 0 = no limit.',
+        range=(0.0, 1000.0),
+    ),
+    Param(
+        'refine.shading_sigma',
+        DEPTH.defaults.refine_shading_sigma,
+        'shading_refine: image noise + model error [grey levels].',
+        range=(0.01, 100.0),
+    ),
+    Param(
+        'refine.stereo_sigma',
+        DEPTH.defaults.refine_stereo_sigma,
+        'shading_refine: stereo depth noise [m].',
+        range=(1e-5, 1.0),
+    ),
+    Param(
+        'refine.curvature_sigma',
+        DEPTH.defaults.refine_curvature_sigma,
+        'shading_refine: '
+        'thin-plate prior, second difference of depth [m/px^2 at the output '
+        'resolution].',
+        range=(1e-7, 1.0),
+    ),
+    Param(
+        'refine.finest_steps',
+        DEPTH.defaults.refine_finest_steps,
+        'shading_refine: Gauss-Newton steps on the full grid (0 = coarser levels only, faster).',
+        range=(0, 20),
+    ),
+    Param(
+        'stereo',
+        DEPTH.defaults.stereo,
+        'Matcher: ssd = thesis normalised SSD; sgbm = cv2.StereoSGBM reference.',
+        choices=STEREOS,
+    ),
+    Param(
+        'mlp_rows.seed',
+        DEPTH.defaults.seed,
+        'Seed of the mlp_rows network initialisation.',
+        range=(0, 2**31 - 1),
+    ),
+    Param(
+        'sfs.iterations',
+        DEPTH.defaults.sfs_iterations,
+        'Jacobi-Newton iterations of SFS.',
+        range=(1, 5000),
+    ),
+    Param(
+        'sfs.max_step',
+        DEPTH.defaults.sfs_max_step,
+        'Largest SFS height step per iteration [px units] (damping).',
+        range=(0.01, 100.0),
+    ),
+    Param(
+        'sfs.downsample',
+        DEPTH.defaults.sfs_downsample,
+        'SFS runs on the processing grid reduced by this factor (speed).',
+        range=(1, 8),
+    ),
+    Param(
+        'downsample',
+        DEPTH.defaults.downsample,
+        'Processing (and output) resolution = rectified image / this.',
+        range=(1, 8),
+    ),
+    Param(
+        'min_intensity',
+        DEPTH.defaults.min_intensity,
+        'Darker pixels are not surface '
+        '(background, shadow) [grey levels 0..255]: NaN in the depth images.',
+        range=(0.0, 255.0),
+    ),
+    Param(
+        'mlp_rows.epochs',
+        DEPTH.defaults.mlp_epochs,
+        'Training epochs of mlp_rows.',
+        range=(1, 100000),
+    ),
+    Param(
+        'local_affine.sigma',
+        DEPTH.defaults.fusion_sigma,
+        'local_affine neighbourhood [px].',
+        range=(1.0, 500.0),
+    ),
+    Param(
+        'least_squares.weight',
+        DEPTH.defaults.fusion_weight,
+        'least_squares gradient weight.',
+        range=(1e-6, 1e6),
+    ),
+    Param(
+        'sync_max_wait',
+        1.0,
+        'Longest wait for the other image of a pair [s].',
+        range=(0.01, 60.0),
+        read_only=True,
+    ),
+    Param(
+        'log_every',
+        10.0,
+        'Seconds between INFO lines on processed frames.',
+        range=(0.0, 3600.0),
+    ),
+    Param(
+        'max_rate',
+        0.0,
+        'Process at most this many pairs per second of image '
+        'time: the first pair of each 1/max_rate slot of stamps [Hz]; 0 = as fast '
+        'as they come. Frees the CPU for other nodes; chosen by stamps, a replayed '
+        'bag gives the same frames.',
+        range=(0.0, 100.0),
+    ),
+]
+
+
+class SfsStereoNode(GraphNode):
     """Rectifies the newest synchronized left/right pair, matches it (SSD stereo), runs
     shape from shading and fuses the two, in a worker; publishes the disparity, the three
     depth maps, the rectified left image and /depth/camera_info (rectified left frame)."""
@@ -97,227 +308,7 @@ class SfsStereoNode(Node):
     node_name = 'sfs_stereo_node'
 
     def __init__(self):
-        super().__init__(self.node_name)
-        self.diagnostics = Diagnostics(self)
-        d = DEPTH.defaults
-        self.params = NodeParameters(
-            self,
-            [
-                Param(
-                    'window',
-                    d.window,
-                    'SSD window side [px] (3 = thesis); odd.',
-                    range=(1, 15),
-                    check=lambda v: None if v % 2 else 'must be odd',
-                ),
-                Param(
-                    'max_disparity',
-                    d.max_disparity,
-                    'Largest disparity searched [px, full resolution].',
-                    range=(1, 1024),
-                ),
-                Param(
-                    'min_disparity',
-                    d.min_disparity,
-                    'Smallest disparity searched [px, full resolution].',
-                    range=(0, 1023),
-                ),
-                Param(
-                    'match_threshold',
-                    d.match_threshold,
-                    'Largest normalised SSD cost of a confident match (sigma_thr).',
-                    range=(1e-6, 10.0),
-                ),
-                Param(
-                    'ssd.min_texture',
-                    d.min_texture,
-                    'Least grey-level std in the window of a '
-                    'confident match [grey levels], a floor under texture_snr; 0 disables.',
-                    range=(0.0, 255.0),
-                ),
-                Param(
-                    'ssd.texture_snr',
-                    d.texture_snr,
-                    'Least window std of a confident match, in '
-                    'units of the image noise std estimated from each image (contrast and '
-                    'resolution relative); 0 disables.',
-                    range=(0.0, 100.0),
-                ),
-                Param(
-                    'ssd.min_support',
-                    d.min_support,
-                    'Fraction of matches backed by their '
-                    'neighbours below which the pair looks unmatched (a warning).',
-                    range=(0.0, 1.0),
-                ),
-                Param(
-                    'max_pixels',
-                    d.max_pixels,
-                    'Images with more pixels are refused before any work (memory bound).',
-                    range=(64, 100_000_000),
-                ),
-                Param(
-                    'ssd.uniqueness',
-                    d.uniqueness,
-                    'Best cost must be this fraction below the '
-                    'best cost more than 1 px away; 0 disables.',
-                    range=(0.0, 0.99),
-                ),
-                Param(
-                    'ssd.left_right_check',
-                    d.left_right_check,
-                    'Keep only matches the right image picks back (within 1 px).',
-                ),
-                Param(
-                    'light_direction',
-                    list(d.light_direction),
-                    'Unit vector from the '
-                    'surface toward the light in the LEFT optical frame (x right, y down, z '
-                    'forward).',
-                    check=_check_light,
-                ),
-                Param('albedo', d.albedo, 'Surface albedo.', range=(0.01, 1.0)),
-                Param(
-                    'ambient',
-                    d.ambient,
-                    'Ambient light as a fraction of the source (grey = 255 albedo (R + ambient)).',
-                    range=(0.0, 1.0),
-                ),
-                Param('roughness', d.roughness, 'Oren-Nayar sigma [rad].', range=(0.0, 1.5)),
-                Param(
-                    'fusion',
-                    d.fusion,
-                    'Fusion of SFS and stereo: shading_refine = ours '
-                    '(default, variational shading refinement); mlp_rows = thesis per-row '
-                    'networks; local_affine; least_squares.',
-                    choices=FUSIONS,
-                ),
-                Param(
-                    'min_depth',
-                    d.min_depth,
-                    'Nearest surface depth the rig sees [m]: '
-                    'limits the disparity search; 0 = no limit.',
-                    range=(0.0, 100.0),
-                ),
-                Param(
-                    'max_depth',
-                    d.max_depth,
-                    'Farthest surface depth [m]; 0 = no limit.',
-                    range=(0.0, 1000.0),
-                ),
-                Param(
-                    'refine.shading_sigma',
-                    d.refine_shading_sigma,
-                    'shading_refine: image noise + model error [grey levels].',
-                    range=(0.01, 100.0),
-                ),
-                Param(
-                    'refine.stereo_sigma',
-                    d.refine_stereo_sigma,
-                    'shading_refine: stereo depth noise [m].',
-                    range=(1e-5, 1.0),
-                ),
-                Param(
-                    'refine.curvature_sigma',
-                    d.refine_curvature_sigma,
-                    'shading_refine: '
-                    'thin-plate prior, second difference of depth [m/px^2 at the output '
-                    'resolution].',
-                    range=(1e-7, 1.0),
-                ),
-                Param(
-                    'refine.finest_steps',
-                    d.refine_finest_steps,
-                    'shading_refine: Gauss-'
-                    'Newton steps on the full grid (0 = coarser levels only, faster).',
-                    range=(0, 20),
-                ),
-                Param(
-                    'stereo',
-                    d.stereo,
-                    'Matcher: ssd = thesis normalised SSD; sgbm = cv2.StereoSGBM reference.',
-                    choices=STEREOS,
-                ),
-                Param(
-                    'mlp_rows.seed',
-                    d.seed,
-                    'Seed of the mlp_rows network initialisation.',
-                    range=(0, 2**31 - 1),
-                ),
-                Param(
-                    'sfs.iterations',
-                    d.sfs_iterations,
-                    'Jacobi-Newton iterations of SFS.',
-                    range=(1, 5000),
-                ),
-                Param(
-                    'sfs.max_step',
-                    d.sfs_max_step,
-                    'Largest SFS height step per iteration [px units] (damping).',
-                    range=(0.01, 100.0),
-                ),
-                Param(
-                    'sfs.downsample',
-                    d.sfs_downsample,
-                    'SFS runs on the processing grid reduced by this factor (speed).',
-                    range=(1, 8),
-                ),
-                Param(
-                    'downsample',
-                    d.downsample,
-                    'Processing (and output) resolution = rectified image / this.',
-                    range=(1, 8),
-                ),
-                Param(
-                    'min_intensity',
-                    d.min_intensity,
-                    'Darker pixels are not surface '
-                    '(background, shadow) [grey levels 0..255]: NaN in the depth images.',
-                    range=(0.0, 255.0),
-                ),
-                Param(
-                    'mlp_rows.epochs',
-                    d.mlp_epochs,
-                    'Training epochs of mlp_rows.',
-                    range=(1, 100000),
-                ),
-                Param(
-                    'local_affine.sigma',
-                    d.fusion_sigma,
-                    'local_affine neighbourhood [px].',
-                    range=(1.0, 500.0),
-                ),
-                Param(
-                    'least_squares.weight',
-                    d.fusion_weight,
-                    'least_squares gradient weight.',
-                    range=(1e-6, 1e6),
-                ),
-                Param(
-                    'sync_max_wait',
-                    1.0,
-                    'Longest wait for the other image of a pair [s].',
-                    range=(0.01, 60.0),
-                    read_only=True,
-                ),
-                Param(
-                    'log_every',
-                    10.0,
-                    'Seconds between INFO lines on processed frames.',
-                    range=(0.0, 3600.0),
-                ),
-                Param(
-                    'max_rate',
-                    0.0,
-                    'Process at most this many pairs per second of image '
-                    'time: the first pair of each 1/max_rate slot of stamps [Hz]; 0 = as fast '
-                    'as they come. Frees the CPU for other nodes; chosen by stamps, a replayed '
-                    'bag gives the same frames.',
-                    range=(0.0, 100.0),
-                ),
-            ],
-            self.diagnostics,
-        )
+        super().__init__(PARAMETERS)
         self.params.add_check(_ordered_ranges)
         self.cameras = CalibratedCameras(self, ('left', 'right'), self.diagnostics)
         self.publishers_ = {

@@ -12,7 +12,6 @@ import os
 import time
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image
 from stereo_msgs.msg import DisparityImage
 
@@ -28,7 +27,12 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.errors import VgmError
-from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import (
+    CountingPublisher,
+    GraphNode,
+    Param,
+    run_node,
+)
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.topics import (
     CODED_COMPRESSED_TOPIC,
@@ -42,7 +46,30 @@ from vgm_common.worker import Worker
 INVALID_DISPARITY = -1.0  # below min_disparity (0), as stereo_image_proc marks unknown
 
 
-class StereoDecodingNode(Node):
+PARAMETERS = common_params() + [
+    Param(
+        'transport',
+        'raw',
+        'raw = /stereo/coded/image; compressed = /stereo/coded/image/compressed (JPEG).',
+        choices=('raw', 'compressed'),
+        read_only=True,
+    ),
+    Param(
+        'focal_px',
+        0.0,
+        'f of the decoded DisparityImage [px] (0 = unknown).',
+        range=(0.0, 1e6),
+    ),
+    Param(
+        'baseline_m',
+        0.0,
+        'T of the decoded DisparityImage [m] (0 = unknown).',
+        range=(0.0, 1e3),
+    ),
+]
+
+
+class StereoDecodingNode(GraphNode):
     """Looks for the watermark in each coded image (``transport``), in a worker; where it
     finds one, publishes the decoded disparity, left image and synthesised right view,
     and reports on /diagnostics whether and how confidently it found one."""
@@ -50,35 +77,7 @@ class StereoDecodingNode(Node):
     node_name = 'stereo_decoding_node'
 
     def __init__(self):
-        super().__init__(self.node_name)
-        self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(
-            self,
-            common_params()
-            + [
-                Param(
-                    'transport',
-                    'raw',
-                    'raw = /stereo/coded/image; compressed = '
-                    '/stereo/coded/image/compressed (JPEG).',
-                    choices=('raw', 'compressed'),
-                    read_only=True,
-                ),
-                Param(
-                    'focal_px',
-                    0.0,
-                    'f of the decoded DisparityImage [px] (0 = unknown).',
-                    range=(0.0, 1e6),
-                ),
-                Param(
-                    'baseline_m',
-                    0.0,
-                    'T of the decoded DisparityImage [m] (0 = unknown).',
-                    range=(0.0, 1e3),
-                ),
-            ],
-            self.diagnostics,
-        )
+        super().__init__(PARAMETERS)
         self.publishers_ = {
             key: self.create_publisher(kind, topic, DEFAULT_QOS, publisher_class=CountingPublisher)
             for key, kind, topic in (

@@ -10,7 +10,6 @@ import os
 import time
 
 import numpy as np
-from rclpy.node import Node
 from sensor_msgs.msg import CompressedImage, Image
 from stereo_msgs.msg import DisparityImage
 
@@ -23,7 +22,12 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import CountingPublisher, Diagnostics, NodeParameters, Param, run_node
+from vgm_common.node_tools import (
+    CountingPublisher,
+    GraphNode,
+    Param,
+    run_node,
+)
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
@@ -90,7 +94,24 @@ def effective_strength(params):
     return thesis.THESIS_STRENGTH if params.method == 'thesis' else blind.DEFAULT_STEP
 
 
-class StereoCodingNode(Node):
+PARAMETERS = common_params() + [
+    Param(
+        'jpeg_quality',
+        90,
+        'JPEG quality of /stereo/coded/image/compressed.',
+        range=(1, 100),
+    ),
+    Param(
+        'sync_max_wait',
+        1.0,
+        'Longest wait for the image or disparity of a stamp [s].',
+        range=(0.01, 60.0),
+        read_only=True,
+    ),
+]
+
+
+class StereoCodingNode(GraphNode):
     """Pairs the rectified left image with the disparity of the same stamp, embeds the
     disparity (``method``) in a worker and publishes the coded image, raw and JPEG; method
     thesis also writes its side information to ``key_file``."""
@@ -98,28 +119,7 @@ class StereoCodingNode(Node):
     node_name = 'stereo_coding_node'
 
     def __init__(self):
-        super().__init__(self.node_name)
-        self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(
-            self,
-            common_params()
-            + [
-                Param(
-                    'jpeg_quality',
-                    90,
-                    'JPEG quality of /stereo/coded/image/compressed.',
-                    range=(1, 100),
-                ),
-                Param(
-                    'sync_max_wait',
-                    1.0,
-                    'Longest wait for the image or disparity of a stamp [s].',
-                    range=(0.01, 60.0),
-                    read_only=True,
-                ),
-            ],
-            self.diagnostics,
-        )
+        super().__init__(PARAMETERS)
         self.coded_publisher = self.create_publisher(
             Image, CODED_IMAGE_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
         )

@@ -28,7 +28,7 @@ from collections.abc import (
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType, MappingProxyType
-from typing import TYPE_CHECKING, Any, Generic, NoReturn, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, NoReturn, TypeVar
 
 import rclpy
 import yaml
@@ -52,6 +52,7 @@ from rclpy.executors import (
     MultiThreadedExecutor,
     SingleThreadedExecutor,
 )
+from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
 from rclpy.signals import SignalHandlerOptions
@@ -61,7 +62,6 @@ from vgm_common.qos import DEFAULT_QOS
 from vgm_common.topics import DIAGNOSTICS_TOPIC
 
 if TYPE_CHECKING:
-    from rclpy.node import Node
     from rclpy.service import Service
 
 
@@ -81,7 +81,6 @@ class Param:
     choices: Sequence[str] | None = None
     check: Callable[[Any], str | None] | None = None  # returns a reason if bad
     read_only: bool = False
-    on_change: Callable[[Any], None] | None = None  # called with the new value once set
     kind: type = field(init=False)
 
     def __post_init__(self) -> None:
@@ -152,16 +151,24 @@ class NodeParameters:
     """Declares ``params`` on ``node``, validates start-up values (raising
     ParameterError naming the parameter) and later changes (refused with a reason, and
     reported as rejected input to ``diagnostics`` if given). Current values are
-    attributes: ``self.params.rate``; a Param's ``on_change`` is called once a change is
-    set. Values that must go together (a minimum below its maximum, one weight per joint)
-    are checked by ``add_check``."""
+    attributes: ``self.params.rate``; ``on_change[name]``, if given, is called with a
+    parameter's new value once a change is set. Values that must go together (a minimum
+    below its maximum, one weight per joint) are checked by ``add_check``."""
 
     def __init__(
-        self, node: Node, params: Sequence[Param], diagnostics: Diagnostics | None = None
+        self,
+        node: Node,
+        params: Sequence[Param],
+        diagnostics: Diagnostics | None = None,
+        on_change: Mapping[str, Callable[[Any], None]] | None = None,
     ) -> None:
         self._node = node
         self._params = {p.name: p for p in params}
         self._diagnostics = diagnostics
+        self._on_change = dict(on_change or {})
+        unknown = set(self._on_change) - set(self._params)
+        if unknown:  # a programming error: the hook would never run
+            raise ValueError(f'on_change names undeclared parameters: {sorted(unknown)}')
         values: dict[str, Any] = {}
         for p in params:
             # rclpy cannot infer an array type from an empty default.
@@ -234,8 +241,27 @@ class NodeParameters:
             if spec is None:
                 continue
             value = self._values[spec.name] = _coerce(spec, parameter.value)
-            if spec.on_change is not None:
-                spec.on_change(value)
+            if spec.name in self._on_change:
+                self._on_change[spec.name](value)
+
+
+class GraphNode(Node):
+    """What every node of the graph starts with: a Node named by the class's
+    ``node_name``, its ``diagnostics`` (on /diagnostics) and its ``params``
+    (NodeParameters of ``parameters``, a refused change reported to the diagnostics;
+    ``on_change`` as there)."""
+
+    node_name: ClassVar[str]
+
+    def __init__(
+        self,
+        parameters: Sequence[Param],
+        on_change: Mapping[str, Callable[[Any], None]] | None = None,
+        **kwargs: Any,
+    ) -> None:
+        super().__init__(self.node_name, **kwargs)
+        self.diagnostics = Diagnostics(self)
+        self.params = NodeParameters(self, parameters, self.diagnostics, on_change)
 
 
 Config = TypeVar('Config')
