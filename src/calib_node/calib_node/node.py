@@ -333,19 +333,33 @@ class CalibNode(GraphNode):
 
     def __init__(self):
         super().__init__(PARAMETERS)
-        p = self.params
+        self.chart = self._chart()
+        self.names = tuple(n for n in CAMERA_NAMES if n in self._param('cameras'))
+        self.source = self._param('chart.source')
+        self._create_publishers()
+        self._init_state()
+        services = MutuallyExclusiveCallbackGroup()
+        self.create_service(Trigger, '~/calibrate', self._on_calibrate, callback_group=services)
+        self.create_service(Trigger, '~/reset', self._on_reset, callback_group=services)
+        self.file_mode = bool(self.params.calibration_file)
+        if self.file_mode:
+            self._publish_file(self.params.calibration_file)
+        else:
+            self._start_collecting()
+
+    def _chart(self):
+        """The chart's (N, 3) corner points [m], from chart.rows, cols, spacing."""
         if (self._param('chart.rows') + self._param('chart.cols')) % 2 == 0:
             raise ParameterError(
                 'parameters chart.rows + chart.cols must be odd (the '
                 'board must not be symmetric under a half turn)',
                 key='chart.rows',
             )
-        self.chart = chart_points(
+        return chart_points(
             self._param('chart.rows'), self._param('chart.cols'), self._param('chart.spacing')
         )
 
-        self.names = tuple(n for n in CAMERA_NAMES if n in self._param('cameras'))
-        self.source = self._param('chart.source')
+    def _create_publishers(self):
         self.info_publishers = {
             n: self.create_publisher(
                 CameraInfo, CAMERA_INFO_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher
@@ -358,6 +372,8 @@ class CalibNode(GraphNode):
             )
             for n in self.names
         }
+
+    def _init_state(self):
         self.lock = threading.Lock()  # views, image sizes, counters, targets
         self.detection_pool = ThreadPoolExecutor(len(self.names))
         self.calibration_lock = threading.Lock()  # one calibration at a time
@@ -376,14 +392,9 @@ class CalibNode(GraphNode):
         self.last_result = None
         self.auto_done_at = None  # view count of the last automatic calibration
         self.stopping = threading.Event()
-        services = MutuallyExclusiveCallbackGroup()
-        self.create_service(Trigger, '~/calibrate', self._on_calibrate, callback_group=services)
-        self.create_service(Trigger, '~/reset', self._on_reset, callback_group=services)
 
-        self.file_mode = bool(p.calibration_file)
-        if self.file_mode:
-            self._publish_file(p.calibration_file)
-            return
+    def _start_collecting(self):
+        p = self.params
         # Every stage view counts: when VIEW_BACKLOG wait, a new one is refused and reported.
         self.worker = Worker(
             lambda view: self._process_view(*view),

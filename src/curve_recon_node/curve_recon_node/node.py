@@ -215,8 +215,17 @@ class CurveReconNode(GraphNode):
         self.cameras = CalibratedCameras(
             self, CAMERA_NAMES, self.diagnostics, self._on_calibration_change
         )
+        self._init_state()
+        sensors = self._subscribe_inputs()
+        self._create_outputs(sensors)
+        self.get_logger().info(
+            f'ready: method {p.method}, degree {p.degree}, {p.views} views, spacing '
+            f'{p.spacing} m; waiting for the calibration and a capture'
+        )
+
+    def _init_state(self):
         self.sync_lock = threading.Lock()
-        self.sync = self._new_sync(p.views)
+        self.sync = self._new_sync(self.params.views)
         self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
         self.chart_stamps: deque[int] = deque(maxlen=200)  # [ns] stamps of chart poses
         self.skipped_chart = 0
@@ -231,7 +240,10 @@ class CurveReconNode(GraphNode):
         self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
         self.normals_published = False
         self.stopping = threading.Event()
+        self.depth_info = None  # CameraInfo of /depth/fused
 
+    def _subscribe_inputs(self):
+        """Subscribes to the cameras, chart poses and fused depth; returns their group."""
         sensors = MutuallyExclusiveCallbackGroup()
         # all three cameras, so `views` can change at run time; the sync takes the used ones
         for name in CAMERA_NAMES:
@@ -257,7 +269,10 @@ class CurveReconNode(GraphNode):
         self.create_subscription(
             CameraInfo, DEPTH_INFO_TOPIC, self._on_depth_info, DEFAULT_QOS, callback_group=sensors
         )
-        self.depth_info = None
+        return sensors
+
+    def _create_outputs(self, sensors):
+        """Publishers, the reconstruct service, the timers and the worker."""
         self.waypoint_publisher = self.create_publisher(
             Path, WAYPOINTS_TOPIC, LATCHED_QOS, publisher_class=CountingPublisher
         )
@@ -281,10 +296,6 @@ class CurveReconNode(GraphNode):
             self._on_worker_error,
             'reconstruction',
             on_drop=self._requests_wait_for_the_next,
-        )
-        self.get_logger().info(
-            f'ready: method {p.method}, degree {p.degree}, {p.views} views, spacing '
-            f'{p.spacing} m; waiting for the calibration and a capture'
         )
 
     # --- inputs ----------------------------------------------------------------------

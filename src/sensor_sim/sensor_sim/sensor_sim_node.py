@@ -119,6 +119,13 @@ class SensorSim(GraphNode):
         self.get_logger().info(f'scenario {self.scenario.name} ({self.scenario.path})')
         # Publishers first: subscribers (a recorder) discover and match them while the
         # scene renders, so not even the first capture is lost.
+        self._create_publishers()
+        self._render_scene()
+        self._build_arm()
+        self._init_state()
+        self._start()
+
+    def _create_publishers(self):
         self.image_publishers = {
             name: self.create_publisher(Image, IMAGE_TOPICS[name], DEFAULT_QOS)
             for name in CAMERA_NAMES
@@ -130,6 +137,8 @@ class SensorSim(GraphNode):
             JointState, JOINT_STATES_TOPIC, DEFAULT_QOS
         )
         self.pressure_publisher = self.create_publisher(WrenchStamped, PRESSURE_TOPIC, DEFAULT_QOS)
+
+    def _render_scene(self):
         started = time.monotonic()
         self.renderer = SceneRenderer(self.scenario)
         self.calibration_phase = (
@@ -138,6 +147,7 @@ class SensorSim(GraphNode):
         self._render_everything()
         self.get_logger().info(f'rendered the scene in {time.monotonic() - started:.2f} s')
 
+    def _build_arm(self):
         robot = self.scenario.robot
         self.robot = load_robot(robot.model, robot.tool_length)
         self.arm = SimulatedArm.from_robot_model(
@@ -146,6 +156,7 @@ class SensorSim(GraphNode):
         if self.params.ground_truth_dir:
             self._write_ground_truth(Path(self.params.ground_truth_dir))
 
+    def _init_state(self):
         calibration = self.scenario.calibration
         self.chart_frames = 0
         if self.calibration_phase and calibration is not None:
@@ -177,6 +188,8 @@ class SensorSim(GraphNode):
         }
         self.rng_pressure = np.random.default_rng([self.scenario.seed, 1_000_003])
 
+    def _start(self):
+        """Takes joint trajectories, starts the arm thread and the capture timer."""
         self.create_subscription(
             JointTrajectory,
             JOINT_TRAJECTORY_TOPIC,
@@ -198,7 +211,8 @@ class SensorSim(GraphNode):
         self.get_logger().info(
             f'publishing 3 cameras at {frame_rate:g} Hz ({self.chart_frames} calibration '
             f'captures first), joint states at {self.params.joint_state_rate:g} Hz, arm '
-            f'{robot.model} following {self.params.arm_mode}s x{self.params.arm_speed_scale:g}'
+            f'{self.scenario.robot.model} following {self.params.arm_mode}s '
+            f'x{self.params.arm_speed_scale:g}'
         )
 
     # --- cameras ---------------------------------------------------------------------
