@@ -615,9 +615,35 @@ class CalibNode(GraphNode):
 
     def _calibrate(self):
         """Calibrate on all views so far; returns (success, message)."""
-        p = self.params
         with self.lock:
             views = list(self.views)
+        refusal = self._not_ready(views)
+        if refusal:
+            return False, refusal
+        with self.calibration_lock:
+            try:
+                fits, reference, seconds = self._fit(views)
+                cameras = {
+                    name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D, fit.T_base_camera)
+                    for name, fit in fits.items()
+                }
+                rectification = stereo_rectification(cameras['left'], cameras['right'])
+            except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError) as error:
+                message = f'calibration failed on {len(views)} views: {error}'
+                self.get_logger().error(message)
+                self.diagnostics.publish(
+                    'calibration',
+                    'error',
+                    message,
+                    {'views': len(views), 'method': self.params.method},
+                )
+                return False, message
+            self._publish(cameras, rectification)
+            return True, self._report(views, fits, cameras, rectification, reference, seconds)
+
+    def _not_ready(self, views):
+        """Why ``views`` cannot be calibrated yet (coverage, then min_views), or ''."""
+        p = self.params
         missing = self._coverage_missing(views) if views else ''
         if missing:  # say what to do with the chart first: more views alike would not help
             message = (
@@ -631,92 +657,87 @@ class CalibNode(GraphNode):
                 message,
                 {'views': len(views), 'coverage': self.coverage.summary()},
             )
-            return False, message
+            return message
         if len(views) < p.min_views:
-            return False, f'{len(views)} views collected, min_views is {p.min_views}'
-        handheld = any(T is None for T, _ in views)
-        with self.calibration_lock:
-            try:
-                started = time.perf_counter()
-                if handheld:
-                    fits, reference = self._calibrate_handheld(views)
-                    seconds = time.perf_counter() - started
-                else:
-                    reference = BASE_FRAME
-                    result = calibrate_rig(
-                        self._observations(views),
-                        p.method,
-                        p.seed,
-                        p.lm_start,
-                        GA.build(self.params),
-                        p.fit_tangential,
-                        p.fit_k3,
-                        p.select_model,
-                    )
-                    fits, seconds = result.fits, result.seconds
-                worst = max(fits, key=lambda n: fits[n].rms_px)
-                if fits[worst].rms_px > p.max_rms_px:
-                    raise CalibrationError(
-                        f'{worst}: reprojection RMS {fits[worst].rms_px:.3g} px '
-                        f'exceeds max_rms_px {p.max_rms_px:g}'
-                    )
-                cameras = {
-                    name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D, fit.T_base_camera)
-                    for name, fit in fits.items()
-                }
-                rectification = stereo_rectification(cameras['left'], cameras['right'])
-            except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError) as error:
-                message = f'calibration failed on {len(views)} views: {error}'
-                self.get_logger().error(message)
-                self.diagnostics.publish(
-                    'calibration', 'error', message, {'views': len(views), 'method': p.method}
-                )
-                return False, message
-            self._publish(cameras, rectification)
-            quality = {
-                name: {
-                    'rms_px': fit.rms_px,
-                    'points': fit.points,
-                    'views': sum(name in corners for _, corners in views),
-                }
-                for name, fit in fits.items()
-            }
-            if p.output_dir:
-                try:
-                    write_calibration(
-                        p.output_dir, cameras, OPTICAL_FRAMES, rectification, quality
-                    )
-                except (OSError, VgmError) as error:
-                    self.diagnostics.publish(
-                        'calibration', 'error', f'cannot write {p.output_dir}: {error}'
-                    )
-            self.calibrations += 1
-            rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in fits.items())
-            baseline = np.linalg.norm(cameras['left'].centre_base - cameras['right'].centre_base)
-            mode = 'handheld' if handheld else 'stage'
-            message = (
-                f'calibrated {len(cameras)} cameras from {len(views)} views: rms '
-                f'{rms} px, baseline {baseline:.4f} m ({p.method}, {mode}, '
-                f'{seconds:.2f} s)'
+            return f'{len(views)} views collected, min_views is {p.min_views}'
+        return ''
+
+    def _fit(self, views):
+        """(fits {name: CameraFit}, reference frame, seconds) of the views: handheld or
+        stage; CalibrationError when a camera's RMS exceeds max_rms_px."""
+        p = self.params
+        started = time.perf_counter()
+        if any(T is None for T, _ in views):
+            fits, reference = self._calibrate_handheld(views)
+            seconds = time.perf_counter() - started
+        else:
+            reference = BASE_FRAME
+            result = calibrate_rig(
+                self._observations(views),
+                p.method,
+                p.seed,
+                p.lm_start,
+                GA.build(self.params),
+                p.fit_tangential,
+                p.fit_k3,
+                p.select_model,
             )
-            self.get_logger().info(message)
-            values = {
-                'views': len(views),
-                'method': p.method,
-                'chart source': mode,
-                'reference frame': reference,
-                'time_s': f'{seconds:.3f}',
-                'baseline_m': f'{baseline:.6f}',
+            fits, seconds = result.fits, result.seconds
+        worst = max(fits, key=lambda n: fits[n].rms_px)
+        if fits[worst].rms_px > p.max_rms_px:
+            raise CalibrationError(
+                f'{worst}: reprojection RMS {fits[worst].rms_px:.3g} px '
+                f'exceeds max_rms_px {p.max_rms_px:g}'
+            )
+        return fits, reference, seconds
+
+    def _report(self, views, fits, cameras, rectification, reference, seconds):
+        """Writes the calibration to output_dir (if set), logs it and publishes its
+        diagnostics; returns the message."""
+        p = self.params
+        quality = {
+            name: {
+                'rms_px': fit.rms_px,
+                'points': fit.points,
+                'views': sum(name in corners for _, corners in views),
             }
-            if handheld:
-                values['coverage'] = self.coverage.summary()
-            for name, fit in fits.items():
-                values[f'rms_px {name}'] = f'{fit.rms_px:.4f}'
-                values[f'points {name}'] = fit.points
-                values[f'views {name}'] = quality[name]['views']
-            self.last_result = values
-            self.diagnostics.publish('calibration', 'ok', message, values)
-            return True, message
+            for name, fit in fits.items()
+        }
+        if p.output_dir:
+            try:
+                write_calibration(p.output_dir, cameras, OPTICAL_FRAMES, rectification, quality)
+            except (OSError, VgmError) as error:
+                self.diagnostics.publish(
+                    'calibration', 'error', f'cannot write {p.output_dir}: {error}'
+                )
+        self.calibrations += 1
+        rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in fits.items())
+        baseline = np.linalg.norm(cameras['left'].centre_base - cameras['right'].centre_base)
+        handheld = any(T is None for T, _ in views)
+        mode = 'handheld' if handheld else 'stage'
+        message = (
+            f'calibrated {len(cameras)} cameras from {len(views)} views: rms '
+            f'{rms} px, baseline {baseline:.4f} m ({p.method}, {mode}, '
+            f'{seconds:.2f} s)'
+        )
+        self.get_logger().info(message)
+        values = {
+            'views': len(views),
+            'method': p.method,
+            'chart source': mode,
+            'reference frame': reference,
+            'time_s': f'{seconds:.3f}',
+            'baseline_m': f'{baseline:.6f}',
+        }
+        if handheld:
+            values['coverage'] = self.coverage.summary()
+        for name, fit in fits.items():
+            values[f'rms_px {name}'] = f'{fit.rms_px:.4f}'
+            values[f'points {name}'] = fit.points
+            values[f'views {name}'] = quality[name]['views']
+        self.last_result = values
+        self.diagnostics.publish('calibration', 'ok', message, values)
+        return message
 
     def _publish(self, cameras, rectification, stamp_ns=None):
         stamp_ns = self.get_clock().now().nanoseconds if stamp_ns is None else stamp_ns

@@ -89,8 +89,6 @@ def network_refine(
     Returns:
         (refined params (12,), :class:`NetworkInfo`).
     """
-    from scipy.spatial.transform import Rotation
-
     params = np.asarray(params, dtype=float)
     if params.shape != (12,) or params[4] <= 0:
         raise ValueError('params: expected shape (12,) with f > 0')
@@ -99,11 +97,24 @@ def network_refine(
     if accept not in NETWORK_ACCEPT:
         raise ValueError(f'accept: expected one of {NETWORK_ACCEPT}, got {accept!r}')
     points_world, (pixels,) = check_points(points_world, pixels)
-    start = identifiable(params)
     targets = undistort_seed_pixels(params, pixels)
     T3, T2 = hartley_normalise(points_world), hartley_normalise(targets)
     W = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T  # (N, 4)
     d = np.column_stack([targets, np.ones(len(targets))]) @ T2.T  # (N, 3)
+    D, B, masks = _network_start(params, W, T2, T3, weights)
+    D, B, loss = _train_network(W, d, D, B, masks, epochs, (rate_D, rate_B, rate_gamma))
+    refined = _read_out_network(params, D, B, T2, T3, weights)
+    rms = [_seed_rms(p, points_world, pixels) for p in (params, refined)]
+    accepted = accept == 'always' or rms[1] < rms[0]
+    return (refined if accepted else params.copy()), NetworkInfo(rms[0], rms[1], loss, accepted)
+
+
+def _network_start(
+    params: FloatArray, W: FloatArray, T2: FloatArray, T3: FloatArray, weights: str
+) -> tuple[FloatArray, FloatArray, tuple[FloatArray, FloatArray]]:
+    """(D (3, 4), B (4, 4), (mask_D, mask_B)): the start camera's matrices in the
+    normalised units of the inputs W and the targets, and which of their entries train."""
+    start = identifiable(params)
     B = np.eye(4)
     B[:3, :3], B[:3, 3] = start.R, start.T
     D = np.array([[start.fx, 0, start.u0, 0], [0, start.fy, start.v0, 0], [0, 0, 1, 0]])
@@ -123,6 +134,21 @@ def network_refine(
         B[:3] /= depth
         D[:, :3] *= depth
         D /= np.mean((W @ B.T @ D.T)[:, 2])
+    return D, B, (mask_D, mask_B)
+
+
+def _train_network(
+    W: FloatArray,
+    d: FloatArray,
+    D: FloatArray,
+    B: FloatArray,
+    masks: tuple[FloatArray, FloatArray],
+    epochs: int,
+    rates: tuple[float, float, float],
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(D, B, loss per epoch): ``epochs`` of full-batch gradient descent with the
+    thesis's updates, from gamma = 1, the rates scaled by a backtracking factor."""
+    (mask_D, mask_B), (rate_D, rate_B, rate_gamma) = masks, rates
     gamma = np.ones(len(W))
     count = len(W)
     loss = np.empty(epochs)
@@ -152,6 +178,21 @@ def network_refine(
         else:
             rate *= 0.5
         loss[epoch] = current
+    return D, B, loss
+
+
+def _read_out_network(
+    params: FloatArray,
+    D: FloatArray,
+    B: FloatArray,
+    T2: FloatArray,
+    T3: FloatArray,
+    weights: str,
+) -> FloatArray:
+    """The camera (12,) the trained matrices stand for, back in pixel and world units
+    (the normalisations T2, T3 undone); f and k keep the start's values."""
+    from scipy.spatial.transform import Rotation
+
     refined = params.copy()
     if weights == 'structured':
         A = (np.linalg.inv(T2) @ D)[:, :3]
@@ -169,13 +210,10 @@ def network_refine(
         refined[2:4] = K[0, 0] / params[4], K[1, 1] / params[4]
     refined[6:9] = Rotation.from_matrix(R).as_euler('ZYX')  # alpha, beta, gamma
     refined[9:12] = t
-    rms = [
-        float(
-            np.sqrt(
-                np.mean(np.sum((project_seed(p[None], points_world)[0] - pixels) ** 2, axis=1))
-            )
-        )
-        for p in (params, refined)
-    ]
-    accepted = accept == 'always' or rms[1] < rms[0]
-    return (refined if accepted else params.copy()), NetworkInfo(rms[0], rms[1], loss, accepted)
+    return refined
+
+
+def _seed_rms(params: FloatArray, points_world: FloatArray, pixels: FloatArray) -> float:
+    """Reprojection RMS [px] of seed camera ``params`` (12,) on the points."""
+    residuals = project_seed(params[None], points_world)[0] - pixels
+    return float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
