@@ -182,7 +182,61 @@ def reconstruct_capture(
             key='method',
             value=settings.method,
         )
-    views, chain_counts = [], {}
+    views = _curve_views(images, cameras, settings, names, clock)
+    points, info = _intersection(views, settings)
+    clock.lap(settings.method)
+    stats = _intersection_stats(views, info)
+    fraction = len(points) / max(info['n_samples'], 1)
+    # two views: reconstruct where the intersection is unique and report the rest as
+    # ambiguous (stats), so only the three-view case needs most samples to succeed
+    if (len(views) > 2 and fraction < settings.min_fraction) or len(points) < 10:
+        raise NoCurve(
+            f'only {len(points)} of {info["n_samples"]} curve samples were '
+            f'reconstructed ({info["n_rejected_view3"]} rejected by the third '
+            f'view, {info["n_ambiguous"]} ambiguous): the views do not show one '
+            'curve',
+            key='no curve',
+            value=stats,
+        )
+    points, sample_index = _refined_points(
+        points, info['sample_index'], views, settings, clock, stats
+    )
+    n_chain = len(views[0].curve.xy)
+    ordered, closed, parameter = _longest_run(
+        points, sample_index, views[0].curve.closed, n_chain, settings, stats
+    )
+    if len(ordered) < 5:
+        raise NoCurve(
+            f'the longest gap-free piece of the curve has only {len(ordered)} points',
+            key='no curve',
+            value=stats,
+        )
+    waypoints, points = _smoothed_waypoints(ordered, closed, parameter, n_chain, settings, stats)
+    clock.lap('ordering, smoothing, resampling')
+    stats.update(
+        {
+            'points': len(points),
+            'closed': closed,
+            'waypoints': len(waypoints),
+            'length_m': _polyline_length(waypoints, closed),
+            'time_ms': 1e3 * (time.perf_counter() - started),
+            'stage_ms': clock.stage_ms,
+        }
+    )
+    return Reconstruction(waypoints, closed, points, stats)
+
+
+def _curve_views(
+    images: Mapping[str, npt.ArrayLike],
+    cameras: Mapping[str, PinholeCamera],
+    settings: ReconstructionSettings,
+    names: Sequence[str],
+    clock: StageClock,
+) -> list[View]:
+    """The ``View`` of the curve in each named image, in ``names`` order. Raises
+    ``NoCurve`` at the first image without one, naming the views that had one."""
+    views: list[View] = []
+    chain_counts: dict[str, int] = {}
     for name in names:
         view, count = view_curve(images[name], cameras[name], settings, clock)
         chain_counts[name] = count
@@ -194,6 +248,14 @@ def reconstruct_capture(
                 value=name,
             )
         views.append(view)
+    return views
+
+
+def _intersection(
+    views: Sequence[View], settings: ReconstructionSettings
+) -> tuple[FloatArray, CandidateInfo]:
+    """The points (K, 3) where the cones of views 1 and 2 meet, checked by view 3 if
+    there is one, by ``settings.method``, in view-1 order, and their ``CandidateInfo``."""
     view3 = views[2] if len(views) > 2 else None
     tol3 = settings.third_view_tolerance
     if settings.method == 'ray_roots':
@@ -202,20 +264,23 @@ def reconstruct_capture(
         )
         if view3 is not None:
             points, info = _second_pair(views, points, info, tol3, settings)
-    else:
-        # the thesis's "suitable initial roots": log-spaced depths on each view-1 ray
-        seeds = np.geomspace(*settings.depth_range, settings.seeds)
-        points, info = reconstruct_cone_lsq(
-            views[0],
-            views[1],
-            view3,
-            tol3_px=tol3,
-            seed_depths=seeds,
-            max_depth=settings.depth_range[1],
-        )
-    clock.lap(settings.method)
-    fraction = len(points) / max(info['n_samples'], 1)
-    stats: dict[str, Any] = {
+        return points, info
+    # the thesis's "suitable initial roots": log-spaced depths on each view-1 ray
+    seeds = np.geomspace(*settings.depth_range, settings.seeds)
+    return reconstruct_cone_lsq(
+        views[0],
+        views[1],
+        view3,
+        tol3_px=tol3,
+        seed_depths=seeds,
+        max_depth=settings.depth_range[1],
+    )
+
+
+def _intersection_stats(views: Sequence[View], info: CandidateInfo) -> dict[str, Any]:
+    """The first entries of ``Reconstruction.stats``: the views' pieces and fit
+    residuals and the counts of the intersection's samples and candidates."""
+    return {
         'views': len(views),
         'pieces': '/'.join(str(len(v.curve.pieces)) for v in views),
         'samples': info['n_samples'],
@@ -226,18 +291,19 @@ def reconstruct_capture(
         'without_candidates': info['n_without_candidates'],
         'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views),
     }
-    # two views: reconstruct where the intersection is unique and report the rest as
-    # ambiguous (stats), so only the three-view case needs most samples to succeed
-    if (view3 is not None and fraction < settings.min_fraction) or len(points) < 10:
-        raise NoCurve(
-            f'only {len(points)} of {info["n_samples"]} curve samples were '
-            f'reconstructed ({info["n_rejected_view3"]} rejected by the third '
-            f'view, {info["n_ambiguous"]} ambiguous): the views do not show one '
-            'curve',
-            key='no curve',
-            value=stats,
-        )
-    sample_index = info['sample_index']
+
+
+def _refined_points(
+    points: FloatArray,
+    sample_index: np.ndarray,
+    views: Sequence[View],
+    settings: ReconstructionSettings,
+    clock: StageClock,
+    stats: dict[str, Any],
+) -> tuple[FloatArray, np.ndarray]:
+    """(points, sample_index) with the points moved onto every view's curve when
+    ``settings.refine``, less those that stay off it; adds the residuals before and after
+    and the count dropped to ``stats``."""
     if settings.refine:
         closed = views[0].curve.closed
         rough, _ = smooth_along_curve(
@@ -268,8 +334,21 @@ def reconstruct_capture(
     stats['off_curve_after_refinement'] = stats_rejected_refined
     stats['rms_residual_px_before'] = float(np.sqrt(np.mean(before**2)))
     stats['rms_residual_px'] = '/'.join(f'{r:.3f}' for r in np.sqrt(np.mean(residuals**2, axis=0)))
-    closed = views[0].curve.closed
-    n_chain = len(views[0].curve.xy)
+    return points, sample_index
+
+
+def _longest_run(
+    points: FloatArray,
+    sample_index: np.ndarray,
+    closed: bool,
+    n_chain: int,
+    settings: ReconstructionSettings,
+    stats: dict[str, Any],
+) -> tuple[FloatArray, bool, FloatArray]:
+    """(ordered points, closed, their curve parameter) of the longest gap-free run of
+    the points once the outliers are out, the loop opened at its largest gap if that is
+    too wide; adds the outlier and segment counts to ``stats``. ``n_chain`` is the length
+    of view 1's chain, a closed curve's period in ``sample_index``."""
     max_gap = 4 * settings.spacing + settings.smoothing_window  # [m]
     # outliers first (isolated points where three cones happen to meet off the curve):
     # each would otherwise open the loop or split the curve at its two jumps
@@ -287,38 +366,35 @@ def reconstruct_capture(
     longest = max(runs, key=lambda run: arc_length(ordered[run], False)[1])
     stats['segments'] = len(runs)
     stats['points_in_other_segments'] = len(ordered) - len(longest)
-    ordered, parameter = ordered[longest], parameter[longest]
-    if len(ordered) < 5:
-        raise NoCurve(
-            f'the longest gap-free piece of the curve has only {len(ordered)} points',
-            key='no curve',
-            value=stats,
-        )
+    return ordered[longest], closed, parameter[longest]
+
+
+def _smoothed_waypoints(
+    ordered: FloatArray,
+    closed: bool,
+    parameter: FloatArray,
+    n_chain: int,
+    settings: ReconstructionSettings,
+    stats: dict[str, Any],
+) -> tuple[FloatArray, FloatArray]:
+    """(waypoints evenly spaced along the smoothed run, the run's points the smoothing
+    kept); adds the points it dropped to the outliers of ``stats``."""
     smoothed, kept = smooth_along_curve(
         ordered, closed, settings.smoothing_window, parameter, period=n_chain if closed else None
     )
     waypoints = resample(without_reversals(smoothed, closed), closed, settings.spacing)
-    # the published raw points: those that passed the third view and the outlier test
-    points = ordered[kept]
-    clock.lap('ordering, smoothing, resampling')
     stats['outliers'] += int((~kept).sum())
-    stats.update(
-        {
-            'points': len(points),
-            'closed': closed,
-            'waypoints': len(waypoints),
-            'length_m': float(
-                np.sum(
-                    np.linalg.norm(
-                        np.diff(
-                            np.vstack([waypoints, waypoints[:1]]) if closed else waypoints, axis=0
-                        ),
-                        axis=1,
-                    )
-                )
-            ),
-            'time_ms': 1e3 * (time.perf_counter() - started),
-            'stage_ms': clock.stage_ms,
-        }
+    # the published raw points: those that passed the third view and the outlier test
+    return waypoints, ordered[kept]
+
+
+def _polyline_length(waypoints: FloatArray, closed: bool) -> float:
+    """Length [m] of the polyline through ``waypoints``, back to the first if ``closed``."""
+    return float(
+        np.sum(
+            np.linalg.norm(
+                np.diff(np.vstack([waypoints, waypoints[:1]]) if closed else waypoints, axis=0),
+                axis=1,
+            )
+        )
     )
-    return Reconstruction(waypoints, closed, points, stats)

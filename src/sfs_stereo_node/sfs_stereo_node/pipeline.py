@@ -179,6 +179,28 @@ def check_size(width: int, height: int, config: DepthConfig) -> None:
         )
 
 
+class _RawMatches(NamedTuple):
+    """One matcher's disparities in the oriented frame (raw: offset included; NaN = no
+    match), the share of them their neighbours back, how many there were before that
+    test (0 = not counted) and the matcher's entries of ``DepthResult.confidence``."""
+
+    disparity: FloatArray
+    support: float
+    n_found: int
+    confidence: dict[str, float]
+
+
+class _StereoDepth(NamedTuple):
+    """The stereo stage's disparity (offset-corrected, [px]) and depth [m] on the
+    surface, NaN where no confident match, the matches' density over the surface and the
+    match-quality entries of ``DepthResult.confidence`` (density included)."""
+
+    disparity: FloatArray
+    depth: FloatArray
+    density: float
+    confidence: dict[str, float]
+
+
 def process_pair(
     left_raw: npt.ArrayLike,
     right_raw: npt.ArrayLike,
@@ -201,6 +223,70 @@ def process_pair(
     check_size(*raw_size, config)
     factor = int(config.downsample)
     small = scaled_pair(pair, factor)
+    left, right, valid = _rectify_pair(left_raw, right_raw, pair, small, raw_size, factor)
+    surface = _seen_surface(left, valid, config.min_intensity)
+    timings['rectify'] = time.perf_counter() - started
+
+    t = time.perf_counter()
+    stereo = _stereo_depth(left, right, small, surface, config, factor, warnings)
+    matched = np.isfinite(stereo.depth)
+    timings['stereo'] = time.perf_counter() - t
+    result = DepthResult(
+        disparity=stereo.disparity.astype(np.float32),
+        depth_stereo=stereo.depth.astype(np.float32),
+        depth_sfs=None,
+        depth_fused=None,
+        surface=surface,
+        focal_px=small.focal_px,
+        baseline_m=small.baseline_m,
+        P=small.P_left,
+        valid_window=_valid_window(valid),
+        density=stereo.density,
+        timings=timings,
+        confidence=stereo.confidence,
+        left_rect=np.clip(np.rint(left), 0, 255).astype(np.uint8),
+    )
+    if matched.sum() < 8:
+        warnings.append(
+            f'only {int(matched.sum())} confident stereo matches: nothing '
+            'fixes the depth scale, no SFS or fused depth'
+        )
+        timings['total'] = time.perf_counter() - started
+        return result._replace(warnings=tuple(warnings))
+
+    t = time.perf_counter()
+    light = light_in_rectified_frame(config.light_direction, pair.R_left)
+    relief = _sfs_relief(left, surface, light, small.size, config)
+    on = matched & surface
+    depth_sfs = _scaled_to_stereo(relief, stereo.depth, on)
+    timings['sfs'] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    fused, fusion = _fused_depth(
+        left, stereo.depth, on, surface, depth_sfs, small, light, config, rng, warnings
+    )
+    stereo.confidence['fused backed by stereo'] = _backed_by_stereo(on, surface, small.size[0])
+    timings['fusion'] = time.perf_counter() - t
+    timings['total'] = time.perf_counter() - started
+    return result._replace(
+        depth_sfs=depth_sfs.astype(np.float32),
+        depth_fused=fused.astype(np.float32),
+        fusion=fusion,
+        warnings=tuple(warnings),
+    )
+
+
+def _rectify_pair(
+    left_raw: npt.ArrayLike,
+    right_raw: npt.ArrayLike,
+    pair: RectifiedPair,
+    small: RectifiedPair,
+    raw_size: tuple[int, int],
+    factor: int,
+) -> tuple[Float32Array, Float32Array, npt.NDArray[np.bool_]]:
+    """The raw pair rectified by the full-resolution ``pair`` and averaged down to
+    ``small`` (the pair at processing resolution, ``factor`` x coarser): (left, right)
+    float32 grey images and the (h, w) mask of pixels both raw images see."""
     w, h = small.size
     images: list[Float32Array] = []
     for raw, maps in ((left_raw, pair.maps_left), (right_raw, pair.maps_right)):
@@ -216,97 +302,120 @@ def process_pair(
     )
     if small.maps_left is None:
         valid = np.ones((h, w), dtype=bool)
+    return left, right, valid
+
+
+def _seen_surface(
+    left: Float32Array, valid: npt.NDArray[np.bool_], min_intensity: float
+) -> npt.NDArray[np.bool_]:
+    """(h, w) mask of the surface: pixels of the rectified left image brighter than
+    ``min_intensity`` (holes closed), away from the invalid border. Raises InvalidInput
+    when fewer than 16 pixels are left."""
     surface = cv2.morphologyEx(
-        (left > config.min_intensity).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)
+        (left > min_intensity).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8)
     ).astype(bool)
     surface &= cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     if surface.sum() < 16:
         raise InvalidInput(
-            f'no surface seen: fewer than 16 pixels brighter than '
-            f'min_intensity {config.min_intensity:g}',
+            f'no surface seen: fewer than 16 pixels brighter than min_intensity {min_intensity:g}',
             key='image',
         )
-    timings['rectify'] = time.perf_counter() - started
+    return surface
 
-    t = time.perf_counter()
+
+def _stereo_depth(
+    left: Float32Array,
+    right: Float32Array,
+    small: RectifiedPair,
+    surface: npt.NDArray[np.bool_],
+    config: DepthConfig,
+    factor: int,
+    warnings: list[str],
+) -> _StereoDepth:
+    """Disparity and depth of the confident matches on the surface, by ``config.stereo``
+    over the disparity band; adds a warning to ``warnings`` when the matches look like
+    no pair of one scene (too few backed by their neighbours)."""
     d_lo, d_hi = disparity_band(small, config, factor)
-    left_o, right_o = _oriented(left, small), _oriented(right, small)
-    confidence: dict[str, float] = {}
-    if config.stereo == 'sgbm':
-        raw_disparity = sgbm_disparity(
-            left_o, right_o, d_hi, window=max(config.window, 3), min_disparity=d_lo
-        )
-        with np.errstate(invalid='ignore'):
-            raw_disparity[(raw_disparity <= d_lo + 0.5) | (raw_disparity >= d_hi - 0.5)] = np.nan
-        support, raw_count = 1.0, 0
-    else:
-        # The thesis normalises the other image onto the reference's histogram (5.2.2).
-        # Over the seen surface only: the black borders rectification leaves (or a
-        # darker background) would bend the line.
-        seen_left = left_o[left_o > config.min_intensity]
-        seen_right = right_o[right_o > config.min_intensity]
-        alpha, beta = (
-            histogram_line_fit(seen_left[None], seen_right[None])
-            if min(len(seen_left), len(seen_right)) > 16
-            else (1.0, 0.0)
-        )
-        matches, levels = match_pyramid(
-            left_o,
-            alpha * right_o + beta,
-            d_lo,
-            d_hi,
-            config.window,
-            config.match_threshold,
-            config.texture_snr,
-            config.min_texture,
-            config.uniqueness,
-            config.left_right_check,
-            config.full_band_layers,
-        )
-        raw_count = int(np.isfinite(matches.disparity).sum())
-        raw_disparity, support = coherent_matches(matches.disparity)
-        distinct = matches.distinctiveness[np.isfinite(raw_disparity)]
-        confidence['match quality'] = float(np.median(distinct)) if len(distinct) else 0.0
-        confidence['match levels'] = levels
-    confidence['match support'] = support
-    disparity = _unoriented(raw_disparity, small) - small.disparity_offset
+    matcher = _sgbm_matches if config.stereo == 'sgbm' else _ssd_matches
+    raw = matcher(_oriented(left, small), _oriented(right, small), d_lo, d_hi, config)
+    confidence = {**raw.confidence, 'match support': raw.support}
+    disparity = _unoriented(raw.disparity, small) - small.disparity_offset
     disparity = np.where(surface & (disparity > 0), disparity, np.nan)
-    depth_stereo = depth_from_disparity(disparity, small.focal_px, small.baseline_m)
-    matched = np.isfinite(depth_stereo)
-    density = float(matched.sum() / surface.sum())
+    depth = depth_from_disparity(disparity, small.focal_px, small.baseline_m)
+    density = float(np.isfinite(depth).sum() / surface.sum())
     confidence['match density'] = density
-    timings['stereo'] = time.perf_counter() - t
-    if support < config.min_support and raw_count >= 8:
+    if raw.support < config.min_support and raw.n_found >= 8:
         warnings.append(
             f'pair looks unmatched (noise, or not a pair of one scene): only '
-            f'{100 * support:.0f} % of the matches are backed by their '
+            f'{100 * raw.support:.0f} % of the matches are backed by their '
             f'neighbours (min_support {100 * config.min_support:.0f} %)'
         )
-    result = DepthResult(
-        disparity=disparity.astype(np.float32),
-        depth_stereo=depth_stereo.astype(np.float32),
-        depth_sfs=None,
-        depth_fused=None,
-        surface=surface,
-        focal_px=small.focal_px,
-        baseline_m=small.baseline_m,
-        P=small.P_left,
-        valid_window=_valid_window(valid),
-        density=density,
-        timings=timings,
-        confidence=confidence,
-        left_rect=np.clip(np.rint(left), 0, 255).astype(np.uint8),
-    )
-    if matched.sum() < 8:
-        warnings.append(
-            f'only {int(matched.sum())} confident stereo matches: nothing '
-            'fixes the depth scale, no SFS or fused depth'
-        )
-        timings['total'] = time.perf_counter() - started
-        return result._replace(warnings=tuple(warnings))
+    return _StereoDepth(disparity, depth, density, confidence)
 
-    t = time.perf_counter()
-    light = light_in_rectified_frame(config.light_direction, pair.R_left)
+
+def _sgbm_matches(
+    left_o: np.ndarray, right_o: np.ndarray, d_lo: int, d_hi: int, config: DepthConfig
+) -> _RawMatches:
+    """OpenCV's StereoSGBM disparities of the oriented pair, NaN within half a pixel of
+    the band's ends; support 1 and no count (SGBM has no neighbour test)."""
+    raw_disparity = sgbm_disparity(
+        left_o, right_o, d_hi, window=max(config.window, 3), min_disparity=d_lo
+    )
+    with np.errstate(invalid='ignore'):
+        raw_disparity[(raw_disparity <= d_lo + 0.5) | (raw_disparity >= d_hi - 0.5)] = np.nan
+    return _RawMatches(raw_disparity, 1.0, 0, {})
+
+
+def _ssd_matches(
+    left_o: np.ndarray, right_o: np.ndarray, d_lo: int, d_hi: int, config: DepthConfig
+) -> _RawMatches:
+    """The thesis's SSD matches of the oriented pair (coarse-to-fine, right image
+    normalised onto the left's histogram) that their neighbours back, with the median
+    distinctiveness of those and the pyramid's level count as confidence entries."""
+    # The thesis normalises the other image onto the reference's histogram (5.2.2).
+    # Over the seen surface only: the black borders rectification leaves (or a
+    # darker background) would bend the line.
+    seen_left = left_o[left_o > config.min_intensity]
+    seen_right = right_o[right_o > config.min_intensity]
+    alpha, beta = (
+        histogram_line_fit(seen_left[None], seen_right[None])
+        if min(len(seen_left), len(seen_right)) > 16
+        else (1.0, 0.0)
+    )
+    matches, levels = match_pyramid(
+        left_o,
+        alpha * right_o + beta,
+        d_lo,
+        d_hi,
+        config.window,
+        config.match_threshold,
+        config.texture_snr,
+        config.min_texture,
+        config.uniqueness,
+        config.left_right_check,
+        config.full_band_layers,
+    )
+    raw_count = int(np.isfinite(matches.disparity).sum())
+    raw_disparity, support = coherent_matches(matches.disparity)
+    distinct = matches.distinctiveness[np.isfinite(raw_disparity)]
+    confidence: dict[str, float] = {
+        'match quality': float(np.median(distinct)) if len(distinct) else 0.0,
+        'match levels': levels,
+    }
+    return _RawMatches(raw_disparity, support, raw_count, confidence)
+
+
+def _sfs_relief(
+    left: Float32Array,
+    surface: npt.NDArray[np.bool_],
+    light: FloatArray,
+    size: tuple[int, int],
+    config: DepthConfig,
+) -> np.ndarray:
+    """Tsai-Shah SFS relief of the surface at processing resolution ``size`` (w, h): the
+    negated height toward the viewer in pixel units (it grows with depth), NaN off the
+    surface."""
+    w, h = size
     E = np.clip(left / 255.0 - config.albedo * config.ambient, 0.0, None)
     # Tsai-Shah needs ~grid-width iterations to carry the relief across: a grid of at
     # most SFS_MAX_WIDTH px keeps sfs_iterations (and the per-iteration step, in that
@@ -330,13 +439,33 @@ def process_pair(
         else height_grid
     )
     # Height toward the viewer, in pixel units: depth grows as height falls.
-    relief = np.where(surface, -height, np.nan)
-    on = matched & surface
-    a, b = np.polyfit(relief[on], depth_stereo[on], 1)
-    depth_sfs = a * relief + b
-    timings['sfs'] = time.perf_counter() - t
+    return np.where(surface, -height, np.nan)
 
-    t = time.perf_counter()
+
+def _scaled_to_stereo(
+    relief: np.ndarray, depth_stereo: np.ndarray, on: npt.NDArray[np.bool_]
+) -> np.ndarray:
+    """The SFS depth [m]: ``relief`` mapped onto the stereo depths by the least-squares
+    line through the pixels ``on`` (confident matches on the surface)."""
+    a, b = np.polyfit(relief[on], depth_stereo[on], 1)
+    return a * relief + b
+
+
+def _fused_depth(
+    left: Float32Array,
+    depth_stereo: np.ndarray,
+    on: npt.NDArray[np.bool_],
+    surface: npt.NDArray[np.bool_],
+    depth_sfs: np.ndarray,
+    small: RectifiedPair,
+    light: FloatArray,
+    config: DepthConfig,
+    rng: np.random.Generator | None,
+    warnings: list[str],
+) -> tuple[np.ndarray, str]:
+    """(fused depth [m], NaN off the surface; the fusion that made it): by
+    ``config.fusion``, or by local_affine when that cannot run (the reason added to
+    ``warnings``)."""
     stereo_on_surface = np.where(on, depth_stereo, np.nan)
     filled = np.where(surface, depth_sfs, np.nanmean(depth_sfs))
     fusion = config.fusion
@@ -350,20 +479,17 @@ def process_pair(
         )
         fusion = 'local_affine'
         fused = fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface, config.fusion_sigma)
-    fused = np.where(surface, fused, np.nan)
-    # How much of the fused surface stereo backs: pixels within 2 % of the image width
-    # of a confident match.
-    reach = max(2.0, 0.02 * w)
+    return np.where(surface, fused, np.nan), fusion
+
+
+def _backed_by_stereo(
+    on: npt.NDArray[np.bool_], surface: npt.NDArray[np.bool_], width: int
+) -> float:
+    """Share of the surface that stereo backs: pixels within 2 % of the image
+    ``width`` (at least 2 px) of a confident match ``on``."""
+    reach = max(2.0, 0.02 * width)
     distance = cv2.distanceTransform((~on).astype(np.uint8), cv2.DIST_L2, 3)
-    confidence['fused backed by stereo'] = float((distance[surface] <= reach).mean())
-    timings['fusion'] = time.perf_counter() - t
-    timings['total'] = time.perf_counter() - started
-    return result._replace(
-        depth_sfs=depth_sfs.astype(np.float32),
-        depth_fused=fused.astype(np.float32),
-        fusion=fusion,
-        warnings=tuple(warnings),
-    )
+    return float((distance[surface] <= reach).mean())
 
 
 def _fuse(
