@@ -52,7 +52,20 @@ from vgm_common.conversions import image_to_numpy, pose_to_matrix  # noqa: E402
 from vgm_common.launcher import Launch  # noqa: E402
 from vgm_common.node_tools import parse_published_counts, use_fastdds_profile  # noqa: E402
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS  # noqa: E402
-from vgm_common.topics import IMAGE_TOPICS
+from vgm_common.topics import (  # noqa: E402
+    CAMERA_INFO_TOPICS,
+    DEPTH_INFO_TOPIC,
+    DIAGNOSTICS_TOPIC,
+    FUSED_DEPTH_TOPIC,
+    IMAGE_TOPICS,
+    JOINT_STATES_TOPIC,
+    POSE_TOPICS,
+    PRESSURE_TOPIC,
+    SFS_DEPTH_TOPIC,
+    STEREO_DEPTH_TOPIC,
+    TOOL_POSE_TOPIC,
+    WAYPOINTS_TOPIC,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 NODES = [
@@ -66,7 +79,7 @@ NODES = [
 ]
 LIVE_VIEW_PORT = 8765  # live_view's default (foxglove_bridge's), on 127.0.0.1
 # Pipeline outputs the demo's probe watches to know how far the graph has got.
-WATCHED_TOPICS = {'/curve/waypoints': (PathMsg, LATCHED_QOS), '/depth/fused': (Image, DEFAULT_QOS)}
+WATCHED_TOPICS = {WAYPOINTS_TOPIC: (PathMsg, LATCHED_QOS), FUSED_DEPTH_TOPIC: (Image, DEFAULT_QOS)}
 DESIRED_FORCE = 5.0  # [N]
 ON_SURFACE_TOLERANCE = 1e-3  # [m] a curve this close to the surface can be pressed on
 # Image-curve degree for curve_recon_node by the scenario's curve kind; a loop on a curved
@@ -85,6 +98,22 @@ TOLERANCES = {
 LIFT_OFF_TIME = 2.0  # [s] the graph runs on this long once the arm reports done
 DEPTH_GRACE = 30.0  # [s] without tracking: how long to wait for fused depth after the curve
 STAGE_TIMEOUTS = {'calibrated': 120.0, 'reconstructed': 60.0, 'tracking': 300.0}  # [s]
+STAGES = 6  # the numbered stages the demo prints, [n/6]
+# What the evaluation and the report's plots decode from the bag.
+BAG_TOPICS = [
+    *IMAGE_TOPICS.values(),
+    WAYPOINTS_TOPIC,
+    FUSED_DEPTH_TOPIC,
+    SFS_DEPTH_TOPIC,
+    STEREO_DEPTH_TOPIC,
+    DEPTH_INFO_TOPIC,
+    CAMERA_INFO_TOPICS['left'],
+    POSE_TOPICS['left'],
+    DIAGNOSTICS_TOPIC,
+    TOOL_POSE_TOPIC,
+    PRESSURE_TOPIC,
+    JOINT_STATES_TOPIC,
+]
 
 
 def stage(number, total, text):
@@ -114,7 +143,7 @@ class GraphProbe:
 
     def _count(self, topic, msg):
         self.received[topic] += 1
-        if topic == '/curve/waypoints':
+        if topic == WAYPOINTS_TOPIC:
             self.waypoints = msg
 
     def watch_diagnostics(self):
@@ -122,7 +151,7 @@ class GraphProbe:
         diagnostics until a subscriber matched, and that must be the recorder."""
         if self.diagnostics_subscription is None:
             self.diagnostics_subscription = self.node.create_subscription(
-                DiagnosticArray, '/diagnostics', self._on_diagnostics, DEFAULT_QOS
+                DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, DEFAULT_QOS
             )
 
     def _on_diagnostics(self, msg):
@@ -191,7 +220,7 @@ class ClosedLoop:
         """The curve is known: on to tracking once fused depth came; without tracking,
         done then (or after DEPTH_GRACE without depth). True: the run is over."""
         self.curve_at = self.curve_at or now
-        depth_frames = self.probe.received['/depth/fused']
+        depth_frames = self.probe.received[FUSED_DEPTH_TOPIC]
         # Tracking needs the depth (approach directions); the vision stages alone
         # report a missing depth as a failed stage rather than waiting for it forever.
         if depth_frames or (not self.track and now - self.curve_at > DEPTH_GRACE):
@@ -337,22 +366,22 @@ def evaluate(scenario, messages, truth_dir, calibration_dir, track):
 
     calibration = evaluation.calibration_errors(calibration_dir, cameras, depth_true)
     results['calibration'] = calibration
-    waypoints = messages['/curve/waypoints'][-1][1]
+    waypoints = messages[WAYPOINTS_TOPIC][-1][1]
     points = np.array(
         [[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in waypoints.poses]
     )
     results['curve'] = evaluation.curve_errors(points, curve)
     data['waypoints'] = points
 
-    info = messages['/depth/camera_info'][-1][1] if messages.get('/depth/camera_info') else None
-    left_info = messages['/stereo/left/camera_info'][-1][1]
-    left_pose = messages['/stereo/left/pose'][-1][1]
+    info = messages[DEPTH_INFO_TOPIC][-1][1] if messages.get(DEPTH_INFO_TOPIC) else None
+    left_info = messages[CAMERA_INFO_TOPICS['left']][-1][1]
+    left_pose = messages[POSE_TOPICS['left']][-1][1]
     T_base_left = pose_to_matrix(left_pose.pose)
     P_rect = np.array((info or left_info).p).reshape(3, 4)
     R_rect = np.array(left_info.r).reshape(3, 3)
     data['depth'] = {}
     results['depth'] = {}
-    for topic in ('/depth/sfs', '/depth/fused', '/depth/stereo'):
+    for topic in (SFS_DEPTH_TOPIC, FUSED_DEPTH_TOPIC, STEREO_DEPTH_TOPIC):
         if messages.get(topic):
             depth = image_to_numpy(messages[topic][-1][1])
             data['depth'][topic] = depth
@@ -363,9 +392,9 @@ def evaluate(scenario, messages, truth_dir, calibration_dir, track):
     if not track:
         data.update(tool_all=np.empty((0, 3)), tool_tracking=np.empty((0, 3)), windows=[])
         return results, data
-    windows = phase_windows(messages['/diagnostics'], 'tracking')
-    tool = [(t, m) for t, m in messages['/tool_pose'] if inside(t, windows)]
-    force = [(t, m.wrench.force.z) for t, m in messages['/tool/pressure'] if inside(t, windows)]
+    windows = phase_windows(messages[DIAGNOSTICS_TOPIC], 'tracking')
+    tool = [(t, m) for t, m in messages[TOOL_POSE_TOPIC] if inside(t, windows)]
+    force = [(t, m.wrench.force.z) for t, m in messages[PRESSURE_TOPIC] if inside(t, windows)]
     tool_points = np.array(
         [[m.pose.position.x, m.pose.position.y, m.pose.position.z] for _, m in tool]
     ).reshape(-1, 3)
@@ -376,7 +405,7 @@ def evaluate(scenario, messages, truth_dir, calibration_dir, track):
     data['tool_all'] = np.array(
         [
             [m.pose.position.x, m.pose.position.y, m.pose.position.z]
-            for _, m in messages['/tool_pose']
+            for _, m in messages[TOOL_POSE_TOPIC]
         ]
     ).reshape(-1, 3)
     data['tool_tracking'] = tool_points
@@ -401,7 +430,7 @@ def checks(results, track):
     )
     check('curve RMS [mm]', results['curve']['rms_m'] * 1e3)
     check('curve coverage [mm]', results['curve']['coverage_m'] * 1e3)
-    fused = results['depth'].get('/depth/fused')
+    fused = results['depth'].get(FUSED_DEPTH_TOPIC)
     check('fused depth median [mm]', fused['median_abs_m'] * 1e3 if fused else np.inf)
     if not track:
         return rows
@@ -468,8 +497,8 @@ def plot_report(report_dir, messages, data):
         plt.close(fig)
         figures.append(('Depth: SFS, fused, sparse stereo', 'depth.png'))
 
-    joint_states = messages.get('/joint_states', [])
-    pressure = messages.get('/tool/pressure', [])
+    joint_states = messages.get(JOINT_STATES_TOPIC, [])
+    pressure = messages.get(PRESSURE_TOPIC, [])
     if joint_states:
         fig, (ax_q, ax_f) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
         t0 = joint_states[0][0]
@@ -550,7 +579,9 @@ def write_report(report_dir, bag_dir, scenario, results, check_rows, rows, figur
     (report_dir / 'report.md').write_text('\n'.join(lines))
 
 
-def main():
+def parse_args():
+    """The command line: the scenario, where the bags go, the time limit and which nodes
+    run on another host."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--scenario', default='default', help='shipped name or file')
     parser.add_argument('--bags', type=Path, default=REPO_ROOT / 'bags')
@@ -569,10 +600,179 @@ def main():
         help='command before each remote node, e.g. "ip netns exec B" '
         "(the multi-host test's simulated second machine)",
     )
-    args = parser.parse_args()
+    return parser.parse_args()
 
-    scenario_path = resolve_scenario_path(args.scenario).resolve()
-    scenario = load_scenario(scenario_path)
+
+def chart_views(scenario):
+    """How many chart views calibration takes: every chart pose, captured
+    ``captures_per_pose`` times."""
+    return len(scenario.calibration.T_base_chart) * scenario.calibration.captures_per_pose
+
+
+def announce_live_view():
+    """A port for live_view, printed with how to watch the run in Foxglove."""
+    layout = Path(get_package_share_directory('live_view')) / 'layouts' / 'vgm_live_view.json'
+    live_view_port = free_live_view_port()
+    print(
+        f'   watch it live: in Foxglove, Open connection > Foxglove WebSocket > '
+        f'ws://127.0.0.1:{live_view_port} (layout: {layout})',
+        flush=True,
+    )
+    return live_view_port
+
+
+def demo_params(scenario, bags, name, work_dir, live_view_port):
+    """The demo's settings over the graph's params file, {node: {parameter: value}}: the
+    bag ``bags``/``name``, the scenario with its ground truth and calibration written to
+    ``work_dir``, and what the stages must know of the chart, the scene and the arm."""
+    light = light_in_left_optical_frame(scenario)
+    return {
+        'recorder': {'output_dir': str(bags), 'bag_name': name, 'compression': 'zstd'},
+        'live_view': {'port': live_view_port},
+        'sensor_sim': {
+            'scenario': str(scenario.path),
+            'ground_truth_dir': str(work_dir / 'ground_truth'),
+            # no message is lost to discovery: the recorder has matched every
+            # stream, and calib_node and curve_recon_node every camera (a count
+            # alone was met by the pipeline while the recorder was starting)
+            'wait_for_nodes': ['recorder'],
+            'min_subscribers': 3,
+        },
+        'calib_node': {
+            'min_views': chart_views(scenario),
+            'output_dir': str(work_dir / 'calibration'),
+            'chart.rows': scenario.calibration.rows,
+            'chart.cols': scenario.calibration.cols,
+            'chart.spacing': scenario.calibration.spacing,
+        },
+        'curve_recon_node': {'degree': CURVE_DEGREES.get(scenario.curve.kind, 2)},
+        'sfs_stereo_node': {
+            'light_direction': [float(v) for v in light],
+            'albedo': scenario.surface.albedo,
+            'roughness': scenario.surface.roughness,
+        },
+        # the recorder and live_view have matched /tool_pose before the loop starts (a
+        # remote arm's endpoints are discovered later than the simulator's)
+        'pa10_ik_node': {
+            'wait_for_nodes': ['recorder', 'live_view'],
+            'robot': scenario.robot.model,
+            'tool_length': scenario.robot.tool_length,
+            'desired_force': DESIRED_FORCE,
+        },
+    }
+
+
+def run_graph(args, params_file, log_path, nodes, track, views):
+    """Start ``nodes`` as processes (logging to ``log_path``), run the closed loop until it
+    is over, fails or times out, and stop them: (the launcher's exit status, why the loop
+    failed or None, the launcher, when the loop started [monotonic s])."""
+    log_file = open(log_path, 'w')
+    launch = Launch(
+        params_file,
+        nodes=nodes,
+        out=log_file,
+        command_prefixes={node: shlex.split(args.remote_prefix) for node in args.remote_nodes},
+    )
+    probe = GraphProbe()
+    loop = ClosedLoop(launch, probe, STAGES, track)
+    stage(2, STAGES, f'calibrating the rig from {views} chart views')
+    started = time.monotonic()
+    try:
+        status = launch.run(duration=args.timeout, until=loop)
+    finally:
+        probe.close()
+        log_file.close()
+    return status, loop.failure, launch, started
+
+
+def move_into_bag(work_dir, bag_dir):
+    """Move the run's ground truth, calibration, node log and params file from
+    ``work_dir`` into the bag directory, and remove ``work_dir``."""
+    for item in ('ground_truth', 'calibration'):
+        if (work_dir / item).exists():
+            shutil.move(str(work_dir / item), str(bag_dir / item))
+    for item in ('launch.log', 'params.yaml'):
+        shutil.move(str(work_dir / item), str(bag_dir / item))
+    work_dir.rmdir()
+
+
+def print_failure(failure, bag_dir):
+    """Why the run failed, and the last node log lines, on stderr."""
+    print(f'FAILED: {failure or "a node failed"}; last node log lines:', file=sys.stderr)
+    print(''.join((bag_dir / 'launch.log').read_text().splitlines(True)[-40:]), file=sys.stderr)
+
+
+def read_recording(bag_dir):
+    """The bag read with both readers: the decoded BAG_TOPICS {topic: [(log_time, msg)]}
+    and every topic's count by mcap and by rosbags."""
+    messages, counts_mcap = read_bag(bag_dir, BAG_TOPICS)
+    return messages, counts_mcap, count_with_rosbags(bag_dir)
+
+
+def published_counts(launch, nodes, messages):
+    """What every node but the recorder says it published, per topic, and the recorder's
+    own diagnostics in the bag."""
+    published = Counter()
+    for node in nodes[1:]:
+        published.update(parse_published_counts(launch.log_text(node)))
+    # The recorder's own diagnostics: its last ones follow the bag's closing, so those in
+    # the bag are all that can be compared.
+    published[DIAGNOSTICS_TOPIC] += sum(
+        1
+        for _, m in messages[DIAGNOSTICS_TOPIC]
+        if m.status and m.status[0].name.startswith('recorder:')
+    )
+    return published
+
+
+def write_results(report_dir, results, check_rows, rows, timings):
+    """results.json: the measures, the summary's checks, the message counts and the
+    timings."""
+    (report_dir / 'results.json').write_text(
+        json.dumps(
+            {'results': results, 'checks': check_rows, 'messages': rows, 'timings': timings},
+            indent=1,
+        )
+    )
+
+
+def print_summary(check_rows, rows, bag_dir, report_dir, timings):
+    """The summary table, the message counts, and where the bag and the report are."""
+    print(f'\n{"measure":30} {"value":>10} {"tolerance":>10}')
+    for measure, value, tolerance, ok in check_rows:
+        print(f'{measure:30} {value:10.3f} {tolerance:10} {"ok" if ok else "FAILED"}')
+    print(f'\n{"topic":36} {"sent":>7} {"mcap":>7} {"rosbags":>8} {"lost":>5}')
+    for topic, sent, n_mcap, n_rosbags, lost in rows:
+        print(
+            f'{topic:36} {"" if sent is None else sent:>7} {n_mcap:7d} {n_rosbags:8d} '
+            f'{"" if lost is None else lost:>5}'
+        )
+    print(
+        f'\nbag:    {bag_dir}\nreport: {report_dir / "report.md"}\n'
+        f'time:   {timings["total_s"]:.0f} s'
+    )
+
+
+def verdict(check_rows, rows):
+    """The exit status, printed as a verdict: 1 if a stage missed its tolerance, a message
+    was lost or the two readers' counts differ, else 0."""
+    lost = [row[0] for row in rows if row[4] not in (None, 0)]
+    disagree = [row[0] for row in rows if row[2] != row[3]]
+    failed = [row[0] for row in check_rows if not row[3]]
+    if lost or disagree or failed:
+        print(
+            f'FAILED: out of tolerance: {failed}; messages lost: {lost}; reader counts '
+            f'differ: {disagree}',
+            file=sys.stderr,
+        )
+        return 1
+    print('OK: every stage within tolerance, nothing lost, both readers agree')
+    return 0
+
+
+def main():
+    args = parse_args()
+    scenario = load_scenario(resolve_scenario_path(args.scenario).resolve())
     if scenario.calibration is None:
         print(
             f'scenario {scenario.name} has no calibration chart: the demo needs one',
@@ -584,120 +784,29 @@ def main():
     name = f'demo-{datetime.now():%Y%m%d-%H%M%S}'
     bag_dir = args.bags / name
     work_dir = args.bags / f'.{name}-work'  # moved into the bag directory at the end
-    truth_dir, calibration_dir = work_dir / 'ground_truth', work_dir / 'calibration'
     work_dir.mkdir(parents=True)
-    total = 6
-    light = light_in_left_optical_frame(scenario)
-    views = len(scenario.calibration.T_base_chart) * scenario.calibration.captures_per_pose
 
-    stage(1, total, f'starting the graph on scenario {scenario.name}: {", ".join(nodes)}')
+    stage(1, STAGES, f'starting the graph on scenario {scenario.name}: {", ".join(nodes)}')
     print(f'   node logs: {bag_dir}/launch.log; bag: {bag_dir}', flush=True)
-    layout = Path(get_package_share_directory('live_view')) / 'layouts' / 'vgm_live_view.json'
-    live_view_port = free_live_view_port()
-    print(
-        f'   watch it live: in Foxglove, Open connection > Foxglove WebSocket > '
-        f'ws://127.0.0.1:{live_view_port} (layout: {layout})',
-        flush=True,
-    )
+    live_view_port = announce_live_view()
     graph = Path(get_package_share_directory('vgm_common')) / 'params' / 'graph.yaml'
     params_file = work_dir / 'params.yaml'  # kept with the bag: how it was made
-    write_params(
-        graph,
-        params_file,
-        {
-            'recorder': {'output_dir': str(args.bags), 'bag_name': name, 'compression': 'zstd'},
-            'live_view': {'port': live_view_port},
-            'sensor_sim': {
-                'scenario': str(scenario_path),
-                'ground_truth_dir': str(truth_dir),
-                # no message is lost to discovery: the recorder has matched every
-                # stream, and calib_node and curve_recon_node every camera (a count
-                # alone was met by the pipeline while the recorder was starting)
-                'wait_for_nodes': ['recorder'],
-                'min_subscribers': 3,
-            },
-            'calib_node': {
-                'min_views': views,
-                'output_dir': str(calibration_dir),
-                'chart.rows': scenario.calibration.rows,
-                'chart.cols': scenario.calibration.cols,
-                'chart.spacing': scenario.calibration.spacing,
-            },
-            'curve_recon_node': {'degree': CURVE_DEGREES.get(scenario.curve.kind, 2)},
-            'sfs_stereo_node': {
-                'light_direction': [float(v) for v in light],
-                'albedo': scenario.surface.albedo,
-                'roughness': scenario.surface.roughness,
-            },
-            # the recorder and live_view have matched /tool_pose before the loop starts (a
-            # remote arm's endpoints are discovered later than the simulator's)
-            'pa10_ik_node': {
-                'wait_for_nodes': ['recorder', 'live_view'],
-                'robot': scenario.robot.model,
-                'tool_length': scenario.robot.tool_length,
-                'desired_force': DESIRED_FORCE,
-            },
-        },
+    settings = demo_params(scenario, args.bags, name, work_dir, live_view_port)
+    write_params(graph, params_file, settings)
+    status, failure, launch, started = run_graph(
+        args, params_file, work_dir / 'launch.log', nodes, track, chart_views(scenario)
     )
-    log_file = open(work_dir / 'launch.log', 'w')
-    launch = Launch(
-        params_file,
-        nodes=nodes,
-        out=log_file,
-        command_prefixes={node: shlex.split(args.remote_prefix) for node in args.remote_nodes},
-    )
-    probe = GraphProbe()
-    loop = ClosedLoop(launch, probe, total, track)
-    stage(2, total, f'calibrating the rig from {views} chart views')
-    started = time.monotonic()
-    try:
-        status = launch.run(duration=args.timeout, until=loop)
-    finally:
-        probe.close()
-        log_file.close()
     timings = {'graph_s': time.monotonic() - started}
-    for item in ('ground_truth', 'calibration'):
-        if (work_dir / item).exists():
-            shutil.move(str(work_dir / item), str(bag_dir / item))
-    for item in ('launch.log', 'params.yaml'):
-        shutil.move(str(work_dir / item), str(bag_dir / item))
-    work_dir.rmdir()
-    if status != 0 or loop.failure:
-        print(f'FAILED: {loop.failure or "a node failed"}; last node log lines:', file=sys.stderr)
-        print(
-            ''.join((bag_dir / 'launch.log').read_text().splitlines(True)[-40:]), file=sys.stderr
-        )
+    move_into_bag(work_dir, bag_dir)
+    if status != 0 or failure:
+        print_failure(failure, bag_dir)
         return 1
-    published = Counter()  # what every node says it published, per topic
-    for node in nodes[1:]:
-        published.update(parse_published_counts(launch.log_text(node)))
 
-    stage(5, total, 'reading the bag with mcap + mcap_ros2 and with rosbags')
-    topics = [
-        *IMAGE_TOPICS.values(),
-        '/curve/waypoints',
-        '/depth/fused',
-        '/depth/sfs',
-        '/depth/stereo',
-        '/depth/camera_info',
-        '/stereo/left/camera_info',
-        '/stereo/left/pose',
-        '/diagnostics',
-        '/tool_pose',
-        '/tool/pressure',
-        '/joint_states',
-    ]
-    messages, counts_mcap = read_bag(bag_dir, topics)
-    counts_rosbags = count_with_rosbags(bag_dir)
-    # The recorder's own diagnostics: its last ones follow the bag's closing, so those in
-    # the bag are all that can be compared.
-    published['/diagnostics'] += sum(
-        1
-        for _, m in messages['/diagnostics']
-        if m.status and m.status[0].name.startswith('recorder:')
-    )
+    stage(5, STAGES, 'reading the bag with mcap + mcap_ros2 and with rosbags')
+    messages, counts_mcap, counts_rosbags = read_recording(bag_dir)
+    published = published_counts(launch, nodes, messages)
 
-    stage(6, total, 'comparing with the ground truth and writing the report')
+    stage(6, STAGES, 'comparing with the ground truth and writing the report')
     results, data = evaluate(
         scenario, messages, bag_dir / 'ground_truth', bag_dir / 'calibration', track
     )
@@ -708,38 +817,9 @@ def main():
     figures = plot_report(report_dir, messages, data)
     timings['total_s'] = time.monotonic() - started
     write_report(report_dir, bag_dir, scenario, results, check_rows, rows, figures, timings)
-    (report_dir / 'results.json').write_text(
-        json.dumps(
-            {'results': results, 'checks': check_rows, 'messages': rows, 'timings': timings},
-            indent=1,
-        )
-    )
-
-    print(f'\n{"measure":30} {"value":>10} {"tolerance":>10}')
-    for measure, value, tolerance, ok in check_rows:
-        print(f'{measure:30} {value:10.3f} {tolerance:10} {"ok" if ok else "FAILED"}')
-    print(f'\n{"topic":36} {"sent":>7} {"mcap":>7} {"rosbags":>8} {"lost":>5}')
-    for topic, sent, n_mcap, n_rosbags, lost in rows:
-        print(
-            f'{topic:36} {"" if sent is None else sent:>7} {n_mcap:7d} {n_rosbags:8d} '
-            f'{"" if lost is None else lost:>5}'
-        )
-    lost = [row[0] for row in rows if row[4] not in (None, 0)]
-    disagree = [row[0] for row in rows if row[2] != row[3]]
-    failed = [row[0] for row in check_rows if not row[3]]
-    print(
-        f'\nbag:    {bag_dir}\nreport: {report_dir / "report.md"}\n'
-        f'time:   {timings["total_s"]:.0f} s'
-    )
-    if lost or disagree or failed:
-        print(
-            f'FAILED: out of tolerance: {failed}; messages lost: {lost}; reader counts '
-            f'differ: {disagree}',
-            file=sys.stderr,
-        )
-        return 1
-    print('OK: every stage within tolerance, nothing lost, both readers agree')
-    return 0
+    write_results(report_dir, results, check_rows, rows, timings)
+    print_summary(check_rows, rows, bag_dir, report_dir, timings)
+    return verdict(check_rows, rows)
 
 
 if __name__ == '__main__':
