@@ -159,23 +159,11 @@ class SimulatedArm:
                 'times_from_start',
                 times_from_start,
             )
-        positions = _array(positions, 'positions')
-        if positions.shape != (n_points, n):
-            raise InvalidInput(
-                f'positions must have shape ({n_points}, {n}), got {positions.shape}',
-                'positions',
-                positions,
-            )
+        positions = _array(positions, 'positions', (n_points, n))
         if velocities is not None and np.size(velocities) == 0:
             velocities = None
         if velocities is not None:
-            velocities = _array(velocities, 'velocities')
-            if velocities.shape != (n_points, n):
-                raise InvalidInput(
-                    f'velocities must have shape ({n_points}, {n}), got {velocities.shape}',
-                    'velocities',
-                    velocities,
-                )
+            velocities = _array(velocities, 'velocities', (n_points, n))
             velocities = velocities[:, order]
             too_fast = np.abs(velocities) > IMPLAUSIBLE_SPEED * self._qdot_max
             if np.any(too_fast):
@@ -303,22 +291,26 @@ class SimulatedArm:
         return np.array([names.index(name) for name in self.joint_names])
 
 
-def _array(value: npt.ArrayLike, key: str) -> FloatArray:
-    """``value`` as a new finite float array; raises ``InvalidInput`` otherwise."""
+def _array(value: npt.ArrayLike, key: str, shape: tuple[int, ...] | None = None) -> FloatArray:
+    """``value`` as a new finite float array (of ``shape``, if given); raises
+    ``InvalidInput`` otherwise."""
     try:
         array = np.array(value, dtype=float)
     except (TypeError, ValueError) as err:  # ragged lists, strings
         raise InvalidInput(f'{key} must be numbers, got {value!r}', key, value) from err
+    if shape is not None and array.shape != shape:
+        raise InvalidInput(
+            f'{key} must have shape {shape}, got {array.shape}',
+            key,
+            array,
+        )
     if not np.all(np.isfinite(array)):
         raise InvalidInput(f'{key} must be finite, got {array}', key, value)
     return array
 
 
 def _vector(value: npt.ArrayLike, n: int, key: str) -> FloatArray:
-    array = _array(value, key)
-    if array.shape != (n,):
-        raise InvalidInput(f'{key} must have shape ({n},), got {array.shape}', key, value)
-    return array
+    return _array(value, key, (n,))
 
 
 def _read_only(array: FloatArray) -> FloatArray:
