@@ -10,29 +10,23 @@ calibration is published at start instead and no chart is needed.
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from functools import partial
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo
 from std_srvs.srv import Trigger
 
 from calib_node.bundle import bundle_adjust_selected
-from calib_node.calibrate import (
-    LM_STARTS,
-    METHODS,
-    CalibrationError,
-    GAOptions,
-    calibrate_rig,
-)
+from calib_node.calibrate import LM_STARTS, METHODS, CalibrationError, GAOptions, calibrate_rig
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
 from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS
 from calib_node.thesis import NETWORK_ACCEPT, NETWORK_WEIGHTS
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
 from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_topics import subscribe_images
 from vgm_common.conversions import (
     camera_to_camera_info,
     image_to_grey,
@@ -409,14 +403,7 @@ class CalibNode(GraphNode):
             self.names, self._on_capture, queue_size=10, max_wait=p.sync_max_wait
         )
         inputs = MutuallyExclusiveCallbackGroup()  # the sync is not thread-safe
-        for name in self.names:
-            self.create_subscription(
-                Image,
-                IMAGE_TOPICS[name],
-                partial(self._offer, name),
-                DEFAULT_QOS,
-                callback_group=inputs,
-            )
+        subscribe_images(self, self.names, self._offer, inputs)
         # The poses get their own group: in one group with the images, rclpy's executor
         # serves a backlog of images first (subscription order), and under load a
         # set's pose came later than TARGET_WAIT_S. _on_target only takes self.lock.

@@ -15,7 +15,6 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from functools import partial
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -24,12 +23,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from curve_recon_node.pipeline import (
-    METHODS,
-    NoCurve,
-    ReconstructionSettings,
-    reconstruct_capture,
-)
+from curve_recon_node.pipeline import METHODS, NoCurve, ReconstructionSettings, reconstruct_capture
 from curve_recon_node.waypoints import (
     DEPTH_RANGE_M,
     check_depth_intrinsics,
@@ -37,7 +31,7 @@ from curve_recon_node.waypoints import (
     usable_depth,
     waypoint_frames,
 )
-from vgm_common.camera_topics import CalibratedCameras
+from vgm_common.camera_topics import CalibratedCameras, subscribe_images
 from vgm_common.conversions import (
     camera_info_rectification,
     camera_info_to_camera,
@@ -246,14 +240,7 @@ class CurveReconNode(GraphNode):
         """Subscribes to the cameras, chart poses and fused depth; returns their group."""
         sensors = MutuallyExclusiveCallbackGroup()
         # all three cameras, so `views` can change at run time; the sync takes the used ones
-        for name in CAMERA_NAMES:
-            self.create_subscription(
-                Image,
-                IMAGE_TOPICS[name],
-                partial(self._on_image, name),
-                DEFAULT_QOS,
-                callback_group=sensors,
-            )
+        subscribe_images(self, CAMERA_NAMES, self._on_image, sensors)
         # its own group: behind a backlog of images (served first, in subscription
         # order) a chart pose could come later than CHART_POSE_GRACE
         self.create_subscription(

@@ -10,7 +10,6 @@ backlog, whatever the per-frame time.
 
 import threading
 import time
-from functools import partial
 
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image
@@ -18,23 +17,16 @@ from stereo_msgs.msg import DisparityImage
 
 from sfs_stereo_node.pipeline import FUSIONS, STEREOS, DepthConfig, process_pair
 from sfs_stereo_node.rectify import rectification_maps
-from vgm_common.camera_topics import CalibratedCameras
+from vgm_common.camera_topics import CalibratedCameras, subscribe_images
 from vgm_common.conversions import image_to_grey, make_header, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
-from vgm_common.node_tools import (
-    ConfigParams,
-    CountingPublisher,
-    GraphNode,
-    Param,
-    run_node,
-)
+from vgm_common.node_tools import ConfigParams, CountingPublisher, GraphNode, Param, run_node
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
     DEPTH_INFO_TOPIC,
     DISPARITY_TOPIC,
     FUSED_DEPTH_TOPIC,
-    IMAGE_TOPICS,
     LEFT_RECT_TOPIC,
     OPTICAL_FRAMES,
     SFS_DEPTH_TOPIC,
@@ -326,10 +318,7 @@ class SfsStereoNode(GraphNode):
             ('left', 'right'), self._on_pair, queue_size=10, max_wait=self.params.sync_max_wait
         )
         self.sync_lock = threading.Lock()
-        for name in ('left', 'right'):
-            self.create_subscription(
-                Image, IMAGE_TOPICS[name], partial(self._on_image, name), DEFAULT_QOS
-            )
+        subscribe_images(self, ('left', 'right'), self._on_image)
         self.maps = None
         self.maps_key = None
         self.processed = self.failed = self.throttled = 0

@@ -1,6 +1,6 @@
 """``CalibratedCameras``: what a node needs to know of the calibrated rig, assembled
 from the latched CameraInfo and pose topics calib_node publishes (their names and frames
-are in ``vgm_common.topics``)."""
+are in ``vgm_common.topics``); ``subscribe_images``: the cameras' image streams."""
 
 from __future__ import annotations
 
@@ -11,23 +11,45 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from sensor_msgs.msg import CameraInfo
+from sensor_msgs.msg import CameraInfo, Image
 
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.conversions import (
-    camera_info_rectification,
-    camera_info_to_camera,
-    pose_to_matrix,
-)
+from vgm_common.conversions import camera_info_rectification, camera_info_to_camera, pose_to_matrix
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
-from vgm_common.qos import LATCHED_QOS
-from vgm_common.topics import BASE_FRAME, CAMERA_INFO_TOPICS, CAMERA_NAMES, POSE_TOPICS
+from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.topics import (
+    BASE_FRAME,
+    CAMERA_INFO_TOPICS,
+    CAMERA_NAMES,
+    IMAGE_TOPICS,
+    POSE_TOPICS,
+)
 
 if TYPE_CHECKING:
+    from rclpy.callback_groups import CallbackGroup
     from rclpy.node import Node
 
     from vgm_common.node_tools import Diagnostics
+
+
+def subscribe_images(
+    node: Node,
+    names: Iterable[str],
+    on_image: Callable[[str, Image], None],
+    callback_group: CallbackGroup | None = None,
+) -> None:
+    """Subscribes ``node`` to the image topic of each camera in ``names``, calling
+    ``on_image(name, msg)``; one ``callback_group`` for all, so that a node's image sync
+    (not thread-safe) is fed from one thread at a time."""
+    for name in names:
+        node.create_subscription(
+            Image,
+            IMAGE_TOPICS[name],
+            partial(on_image, name),
+            DEFAULT_QOS,
+            callback_group=callback_group,
+        )
 
 
 @dataclass(frozen=True)
