@@ -32,12 +32,7 @@ import numpy as np
 from calib_node.calibrate import calibrate_rig
 from calib_node.chart_detection import chart_points
 from calib_node.lxpm_ga import lxpm_ga, stereo_objective
-from calib_node.seed_calibration import (
-    division_init,
-    dlt_camera,
-    opencv_reference,
-    refine_seed_lm,
-)
+from calib_node.seed_calibration import division_init, dlt_camera, opencv_reference, refine_seed_lm
 from calib_node.seed_camera import (
     LEFT_BOUNDS,
     LEFT_TRUTH,

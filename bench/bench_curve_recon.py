@@ -41,12 +41,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from curve_recon_node.cones import plane_angle_error_deg
-from curve_recon_node.piecewise import (
-    PiecewiseCurve,
-    View,
-    reconstruct_ray_roots,
-    refine_points,
-)
+from curve_recon_node.piecewise import PiecewiseCurve, View, reconstruct_ray_roots, refine_points
 from curve_recon_node.pipeline import ReconstructionSettings, reconstruct_capture, view_curve
 from curve_recon_node.reference import triangulate_chains
 from curve_recon_node.thesis import reconstruct_cone_lsq

@@ -26,14 +26,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from stereo_coding_node.channel import (
-    correlation,
-    extra_attacks,
-    jpeg,
-    psnr,
-    ssim,
-    thesis_attacks,
-)
+from stereo_coding_node.channel import correlation, extra_attacks, jpeg, psnr, ssim, thesis_attacks
 from stereo_coding_node.scenes import generated_scene
 from stereo_coding_node.views import synthesise_right
 

@@ -31,12 +31,7 @@ from harness import executable, publish_rig, small_scenario
 from sensor_sim.render import SceneRenderer, add_noise
 from sensor_sim.scenario import load_scenario
 from vgm_common.calibration_io import write_calibration
-from vgm_common.conversions import (
-    make_header,
-    matrix_to_pose_stamped,
-    numpy_to_image,
-    stamp_to_ns,
-)
+from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import JOINT_NAMES
 from vgm_common.topics import CAMERA_INFO_TOPICS, IMAGE_TOPICS, OPTICAL_FRAMES

@@ -20,11 +20,7 @@ from std_srvs.srv import Trigger
 
 from harness import SCENARIO_DIR, executable, publish_rig, wait_for
 from sensor_sim.scenario import load_scenario
-from vgm_common.calibration_io import (
-    read_calibration,
-    stereo_rectification,
-    write_calibration,
-)
+from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
 from vgm_common.conversions import (
     camera_to_camera_info,
     numpy_to_image,

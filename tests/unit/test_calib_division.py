@@ -12,12 +12,7 @@ from calib_node.seed_calibration import (
     radial_division_init,
     refine_seed_lm,
 )
-from calib_node.seed_camera import (
-    LEFT_TRUTH,
-    RIGHT_TRUTH,
-    identifiable,
-    seed_stereo_observations,
-)
+from calib_node.seed_camera import LEFT_TRUTH, RIGHT_TRUTH, identifiable, seed_stereo_observations
 
 POINTS_WORLD, PIXELS = seed_stereo_observations()  # (512, 3), (2, 512, 2) noise-free
 TRUTH = (LEFT_TRUTH, RIGHT_TRUTH)

@@ -8,13 +8,7 @@ import pytest
 from calib_node.bundle import bundle_adjust
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
-from calib_node.rig_generator import (
-    ChartRenderer,
-    draw_rig,
-    render_rig,
-    score_rig,
-    true_corners,
-)
+from calib_node.rig_generator import ChartRenderer, draw_rig, render_rig, score_rig, true_corners
 from vgm_common.camera_model import PinholeCamera
 
 

@@ -5,12 +5,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from calib_node.lxpm_ga import (
-    laplace_phi,
-    lxpm_ga,
-    power_mutation,
-    stereo_objective,
-)
+from calib_node.lxpm_ga import laplace_phi, lxpm_ga, power_mutation, stereo_objective
 from calib_node.seed_camera import (
     LEFT_BOUNDS,
     LEFT_TRUTH,

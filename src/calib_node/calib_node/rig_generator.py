@@ -17,14 +17,7 @@ import numpy.typing as npt
 
 from calib_node.chart_detection import chart_points
 from vgm_common.camera_model import PinholeCamera, distort_normalized
-from vgm_common.geometry import (
-    FloatArray,
-    look_at_rotation,
-    make_transform,
-    rot_x,
-    rot_y,
-    rot_z,
-)
+from vgm_common.geometry import FloatArray, look_at_rotation, make_transform, rot_x, rot_y, rot_z
 
 BACKGROUND_GREY = 70.0  # a dark wall behind the chart [grey level]
 BLACK_GREY, WHITE_GREY = 15.0, 230.0  # the print under the light [grey level]

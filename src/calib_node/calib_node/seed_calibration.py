@@ -18,12 +18,7 @@ import numpy.typing as npt
 from scipy.linalg import rq
 from scipy.optimize import least_squares
 
-from calib_node.seed_camera import (
-    Identifiable,
-    PopulationCost,
-    identifiable,
-    project_seed,
-)
+from calib_node.seed_camera import Identifiable, PopulationCost, identifiable, project_seed
 from vgm_common.geometry import FloatArray
 
 IDENTIFIABLE_NAMES = ('u0', 'v0', 'fx', 'fy', 'kappa', 'alpha', 'beta', 'gamma', 'Tx', 'Ty', 'Tz')

@@ -20,11 +20,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy.sparse import coo_matrix, csr_matrix
-from scipy.sparse.csgraph import (
-    connected_components,
-    dijkstra,
-    minimum_spanning_tree,
-)
+from scipy.sparse.csgraph import connected_components, dijkstra, minimum_spanning_tree
 from scipy.spatial import cKDTree
 
 from vgm_common.errors import InvalidInput

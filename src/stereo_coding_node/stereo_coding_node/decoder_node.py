@@ -27,12 +27,7 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.errors import VgmError
-from vgm_common.node_tools import (
-    CountingPublisher,
-    GraphNode,
-    Param,
-    run_node,
-)
+from vgm_common.node_tools import CountingPublisher, GraphNode, Param, run_node
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.topics import (
     CODED_COMPRESSED_TOPIC,
