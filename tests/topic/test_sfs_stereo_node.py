@@ -281,6 +281,14 @@ def test_bad_input_is_reported_and_the_node_keeps_serving(spawn, rclpy_node, tmp
     assert node.alive() and 'Traceback' not in node.output()
 
 
+def test_a_parameter_name_from_before_the_grouping_is_a_clear_start_up_error(spawn):
+    node = spawn([executable('sfs_stereo_node'), '--ros-args', '-p', 'texture_snr:=2.0'])
+    wait_for(lambda: not node.alive(), 30, 'the node to exit')
+    assert node.proc.returncode == 2
+    assert "'texture_snr' is now 'ssd.texture_snr'" in node.output()
+    assert 'Traceback' not in node.output()
+
+
 def test_aloe_as_a_rectified_pair_with_a_cx_offset_then_a_textureless_pair(spawn, rclpy_node):
     """Real data (Middlebury Aloe from Debian's opencv-doc): the pair published as an
     already-rectified pair whose right principal point carries a 24 px offset (the right

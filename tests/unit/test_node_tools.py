@@ -128,6 +128,18 @@ def one_weight_per_count(values):
     return None
 
 
+def test_a_value_for_a_name_not_declared_is_never_dropped_silently(make_node, capfd):
+    # A name from before a rename: a start-up error that names the new one.
+    with pytest.raises(ParameterError, match="'speed' is now 'rate'"):
+        NodeParameters(make_node(speed=5.0), probe_params(), renamed={'speed': 'rate'})
+    # Any other: a warning naming it; the node starts with its defaults.
+    params = NodeParameters(make_node(rat=5.0, count=4), probe_params())
+    assert params.rate == 30.0 and params.count == 4
+    assert 'ignored, not parameters of this node: rat' in capfd.readouterr().err
+    with pytest.raises(ValueError, match='undeclared'):
+        NodeParameters(make_node(), probe_params(), renamed={'speed': 'rates'})
+
+
 def test_values_that_must_go_together_are_checked_at_start_up_and_on_change(make_node):
     with pytest.raises(ParameterError, match="parameters: 'weights' needs 3 values"):
         NodeParameters(make_node(), probe_params()).add_check(one_weight_per_count)

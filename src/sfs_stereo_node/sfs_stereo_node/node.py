@@ -298,6 +298,25 @@ class SfsStereoNode(GraphNode):
     depth maps, the rectified left image and /depth/camera_info (rectified left frame)."""
 
     node_name = 'sfs_stereo_node'
+    # Their names before the advanced parameters were grouped by stage (CHANGELOG.md).
+    renamed_parameters = {
+        'texture_snr': 'ssd.texture_snr',
+        'min_texture': 'ssd.min_texture',
+        'uniqueness': 'ssd.uniqueness',
+        'left_right_check': 'ssd.left_right_check',
+        'min_support': 'ssd.min_support',
+        'sfs_iterations': 'sfs.iterations',
+        'sfs_max_step': 'sfs.max_step',
+        'sfs_downsample': 'sfs.downsample',
+        'refine_shading_sigma': 'refine.shading_sigma',
+        'refine_stereo_sigma': 'refine.stereo_sigma',
+        'refine_curvature_sigma': 'refine.curvature_sigma',
+        'refine_finest_steps': 'refine.finest_steps',
+        'mlp_epochs': 'mlp_rows.epochs',
+        'seed': 'mlp_rows.seed',
+        'fusion_sigma': 'local_affine.sigma',
+        'fusion_weight': 'least_squares.weight',
+    }
 
     def __init__(self):
         super().__init__(PARAMETERS)

@@ -152,7 +152,9 @@ class NodeParameters:
     ParameterError naming the parameter) and later changes (refused with a reason, and
     reported as rejected input to ``diagnostics`` if given). Current values are
     attributes: ``self.params.rate``; ``on_change[name]``, if given, is called with a
-    parameter's new value once a change is set. Values that must go together (a minimum
+    parameter's new value once a change is set. A value given for a name the node does
+    not declare is a ParameterError naming the new name if ``renamed`` (old -> new) has
+    it, else a warning. Values that must go together (a minimum
     below its maximum, one weight per joint) are checked by ``add_check``."""
 
     def __init__(
@@ -161,6 +163,7 @@ class NodeParameters:
         params: Sequence[Param],
         diagnostics: Diagnostics | None = None,
         on_change: Mapping[str, Callable[[Any], None]] | None = None,
+        renamed: Mapping[str, str] | None = None,
     ) -> None:
         self._node = node
         self._params = {p.name: p for p in params}
@@ -184,9 +187,27 @@ class NodeParameters:
                 node.set_parameters([Parameter(p.name, Parameter.Type.STRING_ARRAY, [])])
             values[p.name] = _coerce(p, value)
         self._values = values
+        self._check_given_names(renamed or {})
         self._checks: list[Callable[[Mapping[str, Any]], str | None]] = []
         node.add_on_set_parameters_callback(self._on_set)
         node.add_post_set_parameters_callback(self._on_changed)
+
+    def _check_given_names(self, renamed: Mapping[str, str]) -> None:
+        # rclpy drops a value given for an undeclared name without a word: a typo, or a
+        # name from before a rename, would silently leave the default in force. rclpy
+        # has no public accessor for what was given.
+        if not set(renamed.values()) <= set(self._params):  # a programming error
+            raise ValueError(f'renamed to undeclared parameters: {dict(renamed)}')
+        given = getattr(self._node, '_parameter_overrides', {})
+        unknown = sorted(n for n in given if not self._node.has_parameter(n))
+        moved = [old for old in unknown if old in renamed]
+        if moved:
+            renames = '; '.join(f'{old!r} is now {renamed[old]!r}' for old in moved)
+            raise ParameterError(f'renamed parameters (CHANGELOG.md): {renames}', key=moved[0])
+        if unknown:
+            self._node.get_logger().warning(
+                f'ignored, not parameters of this node: {", ".join(unknown)}'
+            )
 
     def __getattr__(self, name: str) -> Any:
         try:
@@ -249,9 +270,10 @@ class GraphNode(Node):
     """What every node of the graph starts with: a Node named by the class's
     ``node_name``, its ``diagnostics`` (on /diagnostics) and its ``params``
     (NodeParameters of ``parameters``, a refused change reported to the diagnostics;
-    ``on_change`` as there)."""
+    ``on_change`` as there, ``renamed_parameters`` its ``renamed``)."""
 
     node_name: ClassVar[str]
+    renamed_parameters: ClassVar[Mapping[str, str]] = {}
 
     def __init__(
         self,
@@ -261,7 +283,9 @@ class GraphNode(Node):
     ) -> None:
         super().__init__(self.node_name, **kwargs)
         self.diagnostics = Diagnostics(self)
-        self.params = NodeParameters(self, parameters, self.diagnostics, on_change)
+        self.params = NodeParameters(
+            self, parameters, self.diagnostics, on_change, self.renamed_parameters
+        )
 
 
 Config = TypeVar('Config')
