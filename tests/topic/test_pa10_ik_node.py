@@ -326,6 +326,34 @@ def test_stale_pressure_stops_the_arm(fake_loop, rclpy_node):
     assert node.alive() and 'Traceback' not in node.output()
 
 
+def test_primal_dual_reports_whether_the_literal_fixed_step_rule_would_converge(spawn, rclpy_node):
+    """mu and eta do not steer the arm (the node integrates the network exactly): with
+    method primal_dual the diagnostics give the spectral radius of the thesis's
+    fixed-step rule at them, > 1 at the thesis's rates (A7.4), < 1 at small ones."""
+    from pa10_ik_node.thesis import fixed_step_matrix
+
+    scenario = load_scenario(SCENARIO)
+    q = scenario.robot.initial_joints
+    J = load_robot('pa10', 0.1).jacobian(q)
+    probe = Probe(rclpy_node)
+    FakeArm(rclpy_node, q)
+
+    def reported():
+        values = probe.tracking[-1][1] if probe.tracking else {}
+        return float(values.get('fixed_step_radius', 'nan'))
+
+    for mu in (0.02, 1e-4):
+        expected = np.max(np.abs(np.linalg.eigvals(fixed_step_matrix(J, np.eye(7), mu=mu))))
+        node = start_node(spawn, '-p', 'method:=primal_dual', '-p', f'mu:={mu}')
+        rclpy_node.spin_until(
+            lambda expected=expected: reported() == pytest.approx(expected, rel=1e-5),
+            30,
+            f'fixed_step_radius {expected:.6g} in the diagnostics (mu {mu})',
+        )
+        assert (expected > 1) == (mu == 0.02)
+        node.stop()
+
+
 def get_parameter(rclpy_node, name, timeout=20):
     """The value message of pa10_ik_node's parameter ``name`` (the node still serves)."""
     client = rclpy_node.create_client(GetParameters, '/pa10_ik_node/get_parameters')

@@ -21,6 +21,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from pa10_ik_node.ik import METHODS, RateSolver
 from pa10_ik_node.path import validate_waypoints
+from pa10_ik_node.thesis import fixed_step_matrix
 from pa10_ik_node.tracking import (
     ACTIVE_PHASES,
     FORCE_LAWS,
@@ -108,14 +109,16 @@ PARAMETERS = [
     Param(
         'mu',
         0.02,
-        "Step size of the thesis's fixed-step rule for qdot (the "
-        'benchmark only: the node integrates the network exactly).',
+        "Step size of the thesis's fixed-step rule for qdot. The node integrates the "
+        'network exactly; with method primal_dual its diagnostics report the spectral '
+        'radius of the fixed-step rule at mu, eta and the current joints '
+        '(fixed_step_radius; > 1: the literal rule would diverge there).',
         range=POSITIVE,
     ),
     Param(
         'eta',
         0.02,
-        "Step size of the thesis's fixed-step rule for lambda (benchmark only).",
+        "Step size of the thesis's fixed-step rule for lambda (see mu).",
         range=POSITIVE,
     ),
     Param(
@@ -634,11 +637,21 @@ class Pa10IkNode(GraphNode):
         if self.params.method == 'primal_dual':
             values['failure_condition'] = self.last_failure_condition or 'none detected'
             values['null_space_failures'] = self.null_space_failures
+            if self.q is not None:
+                values['fixed_step_radius'] = f'{self._fixed_step_radius(self.q):.6g}'
         rms, force_band = controller.stats.summary()
         values.update(rms_position_error_m=f'{rms:.6f}', max_force_error_N=f'{force_band:.4f}')
         level = {'failed': 'error', 'stopped': 'warn'}.get(controller.phase, 'ok')
         message = controller.phase + (f': {controller.reason}' if controller.reason else '')
         self.diagnostics.publish('tracking', level, message, values)
+
+    def _fixed_step_radius(self, q):
+        """Spectral radius of the thesis's literal learning rules (mu, eta) on the full
+        tip Jacobian at the measured joints: below 1 they converge, above they diverge."""
+        p = self.params
+        J = self.robot.jacobian(q)
+        matrix = fixed_step_matrix(J, np.diag(p.weights), p.K, p.mu, p.eta)
+        return float(np.max(np.abs(np.linalg.eigvals(matrix))))
 
 
 def main(args=None):
