@@ -154,8 +154,8 @@ class NodeParameters:
     attributes: ``self.params.rate``; ``on_change[name]``, if given, is called with a
     parameter's new value once a change is set. A value given for a name the node does
     not declare is a ParameterError naming the new name if ``renamed`` (old -> new) has
-    it, else a warning. Values that must go together (a minimum
-    below its maximum, one weight per joint) are checked by ``add_check``."""
+    it, else a warning. Values that must go together (a minimum below its maximum, one
+    weight per joint) are checked by ``add_check``."""
 
     def __init__(
         self,
