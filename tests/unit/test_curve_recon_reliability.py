@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from curve_recon_node.waypoints import (
+    bridge_gaps,
     check_depth_intrinsics,
     normals_from_depth,
     resample,
@@ -155,3 +156,26 @@ def test_a_hairpin_of_the_smoothed_path_is_removed(closed):
     steps = np.diff(kept, axis=0)
     assert np.all(np.sum(steps[1:] * steps[:-1], axis=1) > 0)
     np.testing.assert_array_equal(without_reversals(loop, closed), loop)
+
+
+def test_a_hole_in_the_points_is_bridged_along_the_bend_not_across_it():
+    """A 2 cm hole in a 3 cm circle: the chord would pass 1.65 mm inside it; the Hermite
+    arc stays within 0.15 mm, keeps every given point, and leaves a curve without holes
+    as it is. An open end next to a hole takes the chord's direction, never the other
+    end's."""
+    radius = 0.03
+    angle = np.arange(0, 2 * np.pi, 1e-3 / radius)
+    circle = np.column_stack([radius * np.cos(angle), radius * np.sin(angle), 0 * angle])
+    hole = (angle > 1.0) & (angle < 1.0 + 0.02 / radius)
+    given = circle[~hole]
+    bridged = bridge_gaps(given, True, 0.01)
+    off = np.abs(np.linalg.norm(bridged[:, :2], axis=1) - radius)
+    assert off.max() < 1.5e-4 and len(bridged) > len(given)
+    assert all(np.min(np.linalg.norm(bridged - p, axis=1)) == 0 for p in given)
+    np.testing.assert_array_equal(bridge_gaps(circle, True, 0.01), circle)
+
+    arc = circle[angle < 3.0]
+    open_hole = np.vstack([arc[:1], arc[15:]])  # the first point 15 mm from the rest
+    bridged = bridge_gaps(open_hole, False, 0.01)
+    assert np.linalg.norm(bridged[1:] - bridged[:-1], axis=1).max() < 0.01
+    assert np.all(np.linalg.norm(bridged[:, :2], axis=1) <= radius + 1e-12)

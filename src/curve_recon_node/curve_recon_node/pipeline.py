@@ -24,6 +24,7 @@ from curve_recon_node.piecewise import (
 from curve_recon_node.thesis import reconstruct_cone_lsq
 from curve_recon_node.waypoints import (
     arc_length,
+    bridge_gaps,
     open_at_largest_gap,
     resample,
     smooth_along_curve,
@@ -382,7 +383,9 @@ def _smoothed_waypoints(
     smoothed, kept = smooth_along_curve(
         ordered, closed, settings.smoothing_window, parameter, period=n_chain if closed else None
     )
-    waypoints = resample(without_reversals(smoothed, closed), closed, settings.spacing)
+    # holes the third view or refinement left (shorter than _longest_run's max_gap)
+    polyline = bridge_gaps(without_reversals(smoothed, closed), closed, 2 * settings.spacing)
+    waypoints = resample(polyline, closed, settings.spacing)
     stats['outliers'] += int((~kept).sum())
     # the published raw points: those that passed the third view and the outlier test
     return waypoints, ordered[kept]

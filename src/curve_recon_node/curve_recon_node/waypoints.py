@@ -210,6 +210,54 @@ def _local_quadratic(
     return np.where(enough[:, None], fitted, values)
 
 
+TANGENT_STEPS = 2
+
+
+def bridge_gaps(points: npt.ArrayLike, closed: bool, min_gap_m: float) -> FloatArray:
+    """The polyline with every step longer than ``min_gap_m`` [m] (around the loop too
+    if ``closed``) filled by a cubic Hermite arc: from the point before the hole to the
+    one after, leaving and arriving along the curve's own direction there (one-sided
+    differences over TANGENT_STEPS steps outside the hole; the chord's direction at an
+    open end or next to another hole) with speed the hole's chord. A chord
+    would cut a bend: its error grows with the hole's length squared over the radius,
+    the arc's with the fourth power. Returns (M, 3), the given points among them."""
+    points = _as_points(points)
+    n = len(points)
+    if n < 6:
+        return points
+    steps = np.linalg.norm(np.roll(points, -1, axis=0) - points, axis=1)
+    is_hole = steps > min_gap_m  # the step from point k to k + 1
+    if not closed:
+        is_hole[-1] = False
+    holes = np.nonzero(is_hole)[0]
+    pieces, start = [], 0
+    for i in map(int, holes):
+        a, b = points[i], points[(i + 1) % n]
+        # the directions just outside the hole; the chord's where that stretch is an
+        # open end or crosses another hole (a stray point between two holes)
+        before = np.arange(i - TANGENT_STEPS, i)
+        after = np.arange(i + 1, i + 1 + TANGENT_STEPS)
+        leaving, arriving = b - a, b - a
+        if (closed or before[0] >= 0) and not is_hole[before % n].any():
+            leaving = a - points[before[0] % n]
+        if (closed or after[-1] + 1 < n) and not is_hole[after % n].any():
+            arriving = points[(after[-1] + 1) % n] - b
+        chord = float(np.linalg.norm(b - a))
+        m0 = chord * leaving / max(float(np.linalg.norm(leaving)), 1e-12)
+        m1 = chord * arriving / max(float(np.linalg.norm(arriving)), 1e-12)
+        t = np.linspace(0.0, 1.0, int(np.ceil(4 * chord / min_gap_m)) + 1)[1:-1, None]
+        arc = (
+            (2 * t**3 - 3 * t**2 + 1) * a
+            + (t**3 - 2 * t**2 + t) * m0
+            + (-2 * t**3 + 3 * t**2) * b
+            + (t**3 - t**2) * m1
+        )
+        pieces += [points[start : i + 1], arc]
+        start = i + 1
+    pieces.append(points[start:])
+    return np.vstack(pieces)
+
+
 def resample(points: npt.ArrayLike, closed: bool, spacing_m: float) -> FloatArray:
     """Evenly spaced points along the polyline: L / round(L / spacing) apart [m], so the
     spacing is within half a step's share of ``spacing_m``; a closed curve's first point
