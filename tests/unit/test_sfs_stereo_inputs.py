@@ -154,7 +154,7 @@ def test_unmatched_and_textureless_pairs_are_never_silent():
             'looks unmatched' in w for w in result.warnings
         ), result.warnings
         assert result.confidence['match support'] < 0.3
-    flat = [np.full((120, 160), 128, np.uint8)] * 2
+    flat = [np.full((120, 160), level, np.uint8) for level in (128, 120)]
     result = process_pair(*flat, pair, (160, 120), CONFIG)
     assert result.depth_fused is None and result.depth_sfs is None
     assert np.isnan(result.depth_stereo).all()

@@ -1,6 +1,7 @@
-"""sfs_stereo_node: dense depth of the stereo rig's view by SSD stereo + shape from
-shading, fused (thesis chapter 5). Subscribes the raw left/right images and the latched
-calibration; publishes /stereo/disparity, /depth/stereo, /depth/sfs, /depth/fused and
+"""sfs_stereo_node: dense depth of the stereo rig's view by semi-global stereo (or the
+thesis's SSD) + shape from shading, fused (thesis chapter 5). Subscribes the raw
+left/right images and the latched calibration; publishes /stereo/disparity, /depth/stereo,
+/depth/sfs (while subscribed), /depth/fused, /depth/confidence, /depth/points and
 /depth/camera_info in the rectified left frame (see README.md).
 
 Only the newest synchronized pair is processed, in a worker thread: pairs arriving while
@@ -12,19 +13,29 @@ import threading
 import time
 
 import numpy as np
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from sfs_stereo_node.pipeline import FUSIONS, STEREOS, DepthConfig, process_pair
 from sfs_stereo_node.rectify import rectification_maps
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import CalibratedCameras, subscribe_images
-from vgm_common.conversions import image_to_grey, make_header, numpy_to_image, stamp_to_ns
+from vgm_common.conversions import (
+    camera_to_camera_info,
+    depth_to_pointcloud2,
+    image_to_grey,
+    make_header,
+    numpy_to_image,
+    stamp_to_ns,
+)
 from vgm_common.errors import InvalidInput
 from vgm_common.node_tools import ConfigParams, CountingPublisher, GraphNode, Param, run_node
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
+    DEPTH_CONFIDENCE_TOPIC,
     DEPTH_INFO_TOPIC,
+    DEPTH_POINTS_TOPIC,
     DISPARITY_TOPIC,
     FUSED_DEPTH_TOPIC,
     LEFT_RECT_TOPIC,
@@ -51,6 +62,7 @@ DEPTH = ConfigParams(
         'refine_stereo_sigma': 'refine.stereo_sigma',
         'refine_curvature_sigma': 'refine.curvature_sigma',
         'refine_finest_steps': 'refine.finest_steps',
+        'sgbm_block_size': 'sgbm.block_size',
         'sfs_iterations': 'sfs.iterations',
         'sfs_max_step': 'sfs.max_step',
         'sfs_downsample': 'sfs.downsample',
@@ -72,8 +84,8 @@ def _check_light(value):
 
 def _ordered_ranges(values):
     """A reason if a searched range is empty (every pair would then fail), else None."""
-    if values['min_disparity'] >= values['max_disparity']:
-        return 'min_disparity must be below max_disparity'
+    if values['max_disparity'] and values['min_disparity'] >= values['max_disparity']:
+        return 'min_disparity must be below max_disparity (or max_disparity 0: automatic)'
     if values['max_depth'] and values['min_depth'] >= values['max_depth']:
         return 'min_depth must be below max_depth (or max_depth 0: no limit)'
     return None
@@ -90,8 +102,16 @@ PARAMETERS = [
     Param(
         'max_disparity',
         DEPTH.defaults.max_disparity,
-        'Largest disparity searched [px, full resolution].',
-        range=(1, 1024),
+        'Largest disparity searched [px, full resolution]; 0 = a quarter of the '
+        'image extent along the baseline.',
+        range=(0, 4096),
+    ),
+    Param(
+        'sgbm.block_size',
+        DEPTH.defaults.sgbm_block_size,
+        'stereo sgbm: matched block side [px, full resolution]; odd.',
+        range=(1, 21),
+        check=lambda v: None if v % 2 else 'must be odd',
     ),
     Param(
         'min_disparity',
@@ -209,7 +229,8 @@ PARAMETERS = [
     Param(
         'stereo',
         DEPTH.defaults.stereo,
-        'Matcher: ssd = thesis normalised SSD; sgbm = cv2.StereoSGBM reference.',
+        'Matcher: sgbm = semi-global matching (OpenCV StereoSGBM, left-right '
+        'checked, texture-gated; default); ssd = the thesis normalised SSD.',
         choices=STEREOS,
     ),
     Param(
@@ -293,9 +314,10 @@ PARAMETERS = [
 
 
 class SfsStereoNode(GraphNode):
-    """Rectifies the newest synchronized left/right pair, matches it (SSD stereo), runs
-    shape from shading and fuses the two, in a worker; publishes the disparity, the three
-    depth maps, the rectified left image and /depth/camera_info (rectified left frame)."""
+    """Rectifies the newest synchronized left/right pair, matches it, fuses it with the
+    shading, in a worker; publishes the disparity, the depth maps, their confidence, the
+    point cloud, the rectified left image and /depth/camera_info (rectified left
+    frame)."""
 
     node_name = 'sfs_stereo_node'
     # Their names before the advanced parameters were grouped by stage (CHANGELOG.md).
@@ -330,6 +352,8 @@ class SfsStereoNode(GraphNode):
                 ('sfs', Image, SFS_DEPTH_TOPIC),
                 ('fused', Image, FUSED_DEPTH_TOPIC),
                 ('info', CameraInfo, DEPTH_INFO_TOPIC),
+                ('confidence', Image, DEPTH_CONFIDENCE_TOPIC),
+                ('points', PointCloud2, DEPTH_POINTS_TOPIC),
                 ('left_rect', Image, LEFT_RECT_TOPIC),
             )
         }
@@ -398,7 +422,6 @@ class SfsStereoNode(GraphNode):
             )
         key = (self.cameras.version, left_shape)
         if self.maps_key != key:
-            self.maps = None
             left, right = self.cameras['left'], self.cameras['right']
             for name, calibrated in (('left', left), ('right', right)):
                 size = (calibrated.camera.height, calibrated.camera.width)
@@ -439,8 +462,15 @@ class SfsStereoNode(GraphNode):
                 key='size',
             )
         pair = self._rectified_pair(left.shape[:2])
+        # SFS alone is a by-product the fusion does not need: made while someone listens
+        want_sfs = self.publishers_['sfs'].get_subscription_count() > 0
         result = process_pair(
-            left, right, pair, (left.shape[1], left.shape[0]), DEPTH.build(self.params)
+            left,
+            right,
+            pair,
+            (left.shape[1], left.shape[0]),
+            DEPTH.build(self.params),
+            want_sfs=want_sfs,
         )
         self._publish(stamp_ns, result)
         self.processed += 1
@@ -480,30 +510,27 @@ class SfsStereoNode(GraphNode):
         x, y, ww, hh = result.valid_window
         disparity.valid_window.x_offset, disparity.valid_window.y_offset = x, y
         disparity.valid_window.width, disparity.valid_window.height = ww, hh
-        factor = self.params.downsample
-        disparity.min_disparity = float(self.params.min_disparity / factor)
-        disparity.max_disparity = float(self.params.max_disparity / factor)
-        disparity.delta_d = 0.1  # subpixel parabola refinement, about 0.1 px
-        info = CameraInfo(
-            header=header,
-            height=h,
-            width=w,
-            distortion_model='plumb_bob',
-            d=[0.0] * 5,
-            k=result.P[:3, :3].flatten().tolist(),
-            r=np.eye(3).flatten().tolist(),
-            p=result.P.flatten().tolist(),
-        )
+        disparity.min_disparity, disparity.max_disparity = result.disparity_range
+        disparity.delta_d = result.disparity_step
+        camera = PinholeCamera(w, h, result.P[:3, :3], np.zeros(5), np.eye(4))
+        info = camera_to_camera_info(camera, stamp_ns, DEPTH_FRAME, np.eye(3), result.P)
         self.publishers_['disparity'].publish(disparity)
         for key, depth in (
             ('stereo', result.depth_stereo),
             ('sfs', result.depth_sfs),
             ('fused', result.depth_fused),
+            ('confidence', result.depth_confidence),
         ):
             if depth is None:  # nothing to scale it: the reason is in /diagnostics
                 continue
             self.publishers_[key].publish(numpy_to_image(depth, '32FC1', stamp_ns, DEPTH_FRAME))
         self.publishers_['info'].publish(info)
+        if result.depth_fused is not None:
+            self.publishers_['points'].publish(
+                depth_to_pointcloud2(
+                    result.depth_fused, result.P[:3, :3], result.left_rect, stamp_ns, DEPTH_FRAME
+                )
+            )
         # The host image of the stereo coding nodes: the disparity's grid and stamp.
         self.publishers_['left_rect'].publish(
             numpy_to_image(result.left_rect, 'mono8', stamp_ns, DEPTH_FRAME)

@@ -9,6 +9,7 @@ full-resolution images averaged over ``downsample`` x ``downsample`` blocks.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -31,26 +32,39 @@ from sfs_stereo_node.stereo import (
     coherent_matches,
     depth_from_disparity,
     histogram_line_fit,
+    match_correlation,
     match_pyramid,
+    noise_sigma,
+    reduce_disparity,
     sgbm_disparity,
+    window_std,
 )
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
 FUSIONS = ('shading_refine', 'local_affine', 'least_squares', 'mlp_rows')
-STEREOS = ('ssd', 'sgbm')
+STEREOS = ('sgbm', 'ssd')
 SFS_MAX_WIDTH = 160  # [px] widest grid SFS runs on
+# Least correlation of the windows a semi-global match pairs: unrelated windows reach
+# about 1 / block side (0.2 for 5 px); true matches under noise and gain differences
+# keep above 0.8 where the texture gate lets them through.
+MIN_CORRELATION = 0.5
+# Least share of the textured pixels whose semi-global match passes the checks on a pair
+# of one scene (Aloe 0.71, the default scene 0.24 at 640x480; two noise images 0.002).
+SGBM_MIN_SUPPORT = 0.05
 
 
 @dataclass
 class DepthConfig:
     """Processing settings (the node's parameters; README has the table)."""
 
-    window: int = 3
-    max_disparity: int = 160  # [px at full resolution]
+    window: int = 3  # [px] the SSD window (3 = thesis)
+    sgbm_block_size: int = 5  # [px at full resolution] SGBM's matched block
+    # [px at full resolution]; 0 = a quarter of the image's extent along the baseline
+    max_disparity: int = 0
     min_disparity: int = 0  # [px at full resolution]
-    min_depth: float = 0.35  # [m] nearest surface the rig sees; 0 = no limit
-    max_depth: float = 1.5  # [m] farthest; 0 = no limit
+    min_depth: float = 0.0  # [m] nearest surface the rig sees; 0 = no limit
+    max_depth: float = 0.0  # [m] farthest; 0 = no limit
     match_threshold: float = 0.02
     min_texture: float = 0.0  # [grey levels] window std floor (texture_snr scales)
     uniqueness: float = 0.02
@@ -61,7 +75,7 @@ class DepthConfig:
     ambient: float = 0.08
     roughness: float = 0.3
     fusion: str = 'shading_refine'
-    stereo: str = 'ssd'
+    stereo: str = 'sgbm'
     seed: int = 0
     sfs_iterations: int = 150
     sfs_downsample: int = 2  # SFS grid = processing grid / this (at least; SFS_MAX_WIDTH)
@@ -106,6 +120,14 @@ class DepthResult(NamedTuple):
     warnings: tuple[str, ...] = ()  # why the result is less than asked for (fallbacks, doubts)
     confidence: dict[str, float] = {}  # per-frame match quality (README: diagnostics)
     left_rect: npt.NDArray[np.uint8] | None = None  # (h, w), the rectified left image matched
+    # (h, w) in [0, 1], NaN off the surface: how much of depth_fused stereo measured (1 on
+    # a confident match, falling off with the distance to the nearest one, 1/e at 2 % of
+    # the image width: there shading alone carries the depth); None with depth_fused None
+    depth_confidence: Float32Array | None = None
+    # the offset-corrected disparities searched [px at processing resolution] and the
+    # matcher's disparity step: DisparityImage's min/max_disparity and delta_d
+    disparity_range: tuple[float, float] = (0.0, 0.0)
+    disparity_step: float = 0.0
 
 
 def to_grey(image: npt.ArrayLike) -> Float32Array:
@@ -146,12 +168,24 @@ def _unoriented(image: np.ndarray, pair: RectifiedPair) -> np.ndarray:
     return np.ascontiguousarray(image.T if pair.transpose else image)
 
 
+def max_disparity(pair: RectifiedPair, config: DepthConfig, factor: int) -> float:
+    """The largest offset-corrected disparity searched [px at the resolution ``factor`` x
+    coarser than full]: ``config.max_disparity``, or when 0 a quarter of the image's
+    extent along the baseline (OpenCV's samples search a fixed fraction of the width: no
+    rig's depth band is assumed; a nearer surface needs a larger max_disparity)."""
+    if config.max_disparity > 0:
+        return config.max_disparity / factor
+    along_baseline = pair.size[1] if pair.transpose else pair.size[0]
+    return float(np.ceil(along_baseline / 4))
+
+
 def disparity_band(pair: RectifiedPair, config: DepthConfig, factor: int) -> tuple[int, int]:
-    """Integer raw disparities (lo, hi) to search at processing resolution: the
-    offset-corrected [min_disparity, max_disparity] narrowed to the depth band
-    [min_depth, max_depth] (Z = f b / (d - offset)), one layer of margin each side."""
+    """Integer raw disparities (lo, hi) to search on ``pair`` (``factor`` x coarser than
+    full resolution): the offset-corrected [min_disparity, max_disparity] narrowed to the
+    depth band [min_depth, max_depth] when one is set (Z = f b / (d - offset)), one layer
+    of margin each side."""
     fb = pair.focal_px * pair.baseline_m
-    d_max = config.max_disparity / factor
+    d_max = max_disparity(pair, config, factor)
     d_min = config.min_disparity / factor
     if config.min_depth > 0:
         d_max = min(d_max, fb / config.min_depth)
@@ -181,13 +215,14 @@ def check_size(width: int, height: int, config: DepthConfig) -> None:
 
 class _RawMatches(NamedTuple):
     """One matcher's disparities in the oriented frame (raw: offset included; NaN = no
-    match), the share of them their neighbours back, how many there were before that
-    test (0 = not counted) and the matcher's entries of ``DepthResult.confidence``."""
+    match), its support (the matcher's measure of how much of the pair matched), the
+    matcher's entries of ``DepthResult.confidence`` and, when the support says the
+    images are no pair of one scene, why ('' otherwise)."""
 
     disparity: FloatArray
     support: float
-    n_found: int
     confidence: dict[str, float]
+    unmatched: str
 
 
 class _StereoDepth(NamedTuple):
@@ -199,6 +234,9 @@ class _StereoDepth(NamedTuple):
     depth: FloatArray
     density: float
     confidence: dict[str, float]
+    searched: tuple[float, float]  # offset-corrected disparities [px, processing grid]
+    step: float  # the matcher's disparity resolution [px, processing grid]
+    unmatched: bool  # the matches look like no pair of one scene: no depth scale from them
 
 
 def process_pair(
@@ -208,14 +246,17 @@ def process_pair(
     raw_size: tuple[int, int],
     config: DepthConfig,
     rng: np.random.Generator | None = None,
+    want_sfs: bool = True,
 ) -> DepthResult:
     """Run the pipeline on one raw pair of grey images (2-D arrays, 0..255).
 
     ``pair`` a full-resolution ``RectifiedPair``; ``raw_size`` (width, height) of the raw
-    images. Raises InvalidInput when the pair gives nothing (no surface); otherwise
-    returns what exists: with too few stereo matches depth_sfs and depth_fused are
-    None, and when the chosen fusion cannot start a fallback fills depth_fused; each
-    such case adds its reason to ``warnings``.
+    images. Raises InvalidInput when the pair gives nothing (no surface, or the same
+    image twice); otherwise returns what exists: with too few stereo matches depth_sfs
+    and depth_fused are None, and when the chosen fusion cannot start a fallback fills
+    depth_fused; each such case adds its reason to ``warnings``. ``want_sfs`` False: the
+    Tsai-Shah depth is computed only when the fusion needs it (shading_refine does not;
+    depth_sfs is then None), a third of the time at 320x240.
     """
     timings: dict[str, float] = {}
     warnings: list[str] = []
@@ -223,12 +264,14 @@ def process_pair(
     check_size(*raw_size, config)
     factor = int(config.downsample)
     small = scaled_pair(pair, factor)
-    left, right, valid = _rectify_pair(left_raw, right_raw, pair, small, raw_size, factor)
+    rectified = _rectify_pair(left_raw, right_raw, pair, small, raw_size, factor)
+    left, valid = rectified.left, rectified.valid
     surface = _seen_surface(left, valid, config.min_intensity)
+    _check_distinct(left_raw, right_raw)
     timings['rectify'] = time.perf_counter() - started
 
     t = time.perf_counter()
-    stereo = _stereo_depth(left, right, small, surface, config, factor, warnings)
+    stereo = _stereo_depth(rectified, pair, small, surface, config, factor, warnings)
     matched = np.isfinite(stereo.depth)
     timings['stereo'] = time.perf_counter() - t
     result = DepthResult(
@@ -245,35 +288,63 @@ def process_pair(
         timings=timings,
         confidence=stereo.confidence,
         left_rect=np.clip(np.rint(left), 0, 255).astype(np.uint8),
+        disparity_range=(max(stereo.searched[0], 0.0), stereo.searched[1]),
+        disparity_step=stereo.step,
     )
-    if matched.sum() < 8:
+    if matched.sum() < 8 or stereo.unmatched:
         warnings.append(
             f'only {int(matched.sum())} confident stereo matches: nothing '
             'fixes the depth scale, no SFS or fused depth'
+            if matched.sum() < 8
+            else 'no SFS or fused depth: the stereo matches fix no depth scale'
         )
         timings['total'] = time.perf_counter() - started
         return result._replace(warnings=tuple(warnings))
 
-    t = time.perf_counter()
     light = light_in_rectified_frame(config.light_direction, pair.R_left)
-    relief = _sfs_relief(left, surface, light, small.size, config)
     on = matched & surface
-    depth_sfs = _scaled_to_stereo(relief, stereo.depth, on)
-    timings['sfs'] = time.perf_counter() - t
+    sfs_depth_m: list[np.ndarray] = []
 
+    def depth_sfs() -> np.ndarray:
+        """The Tsai-Shah relief mapped onto the stereo depths, computed once."""
+        if not sfs_depth_m:
+            t = time.perf_counter()
+            relief = _sfs_relief(left, surface, light, small.size, config)
+            sfs_depth_m.append(_scaled_to_stereo(relief, stereo.depth, on))
+            timings['sfs'] = time.perf_counter() - t
+        return sfs_depth_m[0]
+
+    if want_sfs or config.fusion != 'shading_refine':
+        depth_sfs()
+    sfs_in_fusion = not sfs_depth_m  # a fallback fusion may still ask for it
     t = time.perf_counter()
     fused, fusion = _fused_depth(
         left, stereo.depth, on, surface, depth_sfs, small, light, config, rng, warnings
     )
-    stereo.confidence['fused backed by stereo'] = _backed_by_stereo(on, surface, small.size[0])
-    timings['fusion'] = time.perf_counter() - t
+    confidence = stereo_confidence(on, surface)
+    stereo.confidence['fused backed by stereo'] = float(
+        (confidence[surface] >= np.exp(-1.0)).mean()
+    )
+    timings['fusion'] = time.perf_counter() - t - sfs_in_fusion * timings.get('sfs', 0.0)
     timings['total'] = time.perf_counter() - started
     return result._replace(
-        depth_sfs=depth_sfs.astype(np.float32),
+        depth_sfs=sfs_depth_m[0].astype(np.float32) if sfs_depth_m else None,
         depth_fused=fused.astype(np.float32),
+        depth_confidence=confidence,
         fusion=fusion,
         warnings=tuple(warnings),
     )
+
+
+class _Rectified(NamedTuple):
+    """The rectified pair as float32 grey images, at full and at processing resolution,
+    and the (h, w) mask of processing pixels both raw images see."""
+
+    left_full: Float32Array
+    right_full: Float32Array
+    left: Float32Array
+    right: Float32Array
+    valid: npt.NDArray[np.bool_]
 
 
 def _rectify_pair(
@@ -283,26 +354,36 @@ def _rectify_pair(
     small: RectifiedPair,
     raw_size: tuple[int, int],
     factor: int,
-) -> tuple[Float32Array, Float32Array, npt.NDArray[np.bool_]]:
+) -> _Rectified:
     """The raw pair rectified by the full-resolution ``pair`` and averaged down to
-    ``small`` (the pair at processing resolution, ``factor`` x coarser): (left, right)
-    float32 grey images and the (h, w) mask of pixels both raw images see."""
+    ``small`` (the pair at processing resolution, ``factor`` x coarser)."""
     w, h = small.size
-    images: list[Float32Array] = []
-    for raw, maps in ((left_raw, pair.maps_left), (right_raw, pair.maps_right)):
-        rect = rectify(to_grey(raw), maps)
-        if factor > 1:
-            rect = cv2.resize(
-                rect[: h * factor, : w * factor], (w, h), interpolation=cv2.INTER_AREA
-            )
-        images.append(rect.astype(np.float32))
-    left, right = images
+    full = [
+        rectify(to_grey(raw), maps).astype(np.float32)
+        for raw, maps in ((left_raw, pair.maps_left), (right_raw, pair.maps_right))
+    ]
+    left, right = (_coarser(image, factor) for image in full)
     valid = rectified_valid_mask(small.maps_left, raw_size) & rectified_valid_mask(
         small.maps_right, raw_size
     )
     if small.maps_left is None:
         valid = np.ones((h, w), dtype=bool)
-    return left, right, valid
+    return _Rectified(full[0], full[1], left, right, valid)
+
+
+def _check_distinct(left_raw: npt.ArrayLike, right_raw: npt.ArrayLike) -> None:
+    """Refuses a pair whose two images are the same (one camera's image published on
+    both topics, a common wiring mistake): a few spurious matches on it would scale a
+    fused depth that no stereo measured. Two cameras never see the same pixels exactly;
+    the bound, a mean difference of a quarter grey level, lies below any sensor's noise.
+    On the raw images: rectification resamples each by its own camera's maps."""
+    difference = float(np.mean(np.abs(to_grey(left_raw) - to_grey(right_raw))))
+    if difference < 0.25:
+        raise InvalidInput(
+            f'left and right images are the same (mean difference {difference:.2f} grey '
+            'levels): is one camera published on both topics?',
+            key='image',
+        )
 
 
 def _seen_surface(
@@ -324,8 +405,8 @@ def _seen_surface(
 
 
 def _stereo_depth(
-    left: Float32Array,
-    right: Float32Array,
+    rectified: _Rectified,
+    pair: RectifiedPair,
     small: RectifiedPair,
     surface: npt.NDArray[np.bool_],
     config: DepthConfig,
@@ -335,35 +416,78 @@ def _stereo_depth(
     """Disparity and depth of the confident matches on the surface, by ``config.stereo``
     over the disparity band; adds a warning to ``warnings`` when the matches look like
     no pair of one scene (too few backed by their neighbours)."""
-    d_lo, d_hi = disparity_band(small, config, factor)
-    matcher = _sgbm_matches if config.stereo == 'sgbm' else _ssd_matches
-    raw = matcher(_oriented(left, small), _oriented(right, small), d_lo, d_hi, config)
+    if config.stereo == 'sgbm':  # at full resolution, reduced to the processing grid
+        d_lo, d_hi = disparity_band(pair, config, 1)
+        searched = (
+            (d_lo - pair.disparity_offset) / factor,
+            (d_hi - pair.disparity_offset) / factor,
+        )
+        step = 1.0 / 16.0 / factor  # SGBM's sixteenth of a pixel
+        raw = _sgbm_matches(
+            _oriented(rectified.left_full, pair),
+            _oriented(rectified.right_full, pair),
+            d_lo,
+            d_hi,
+            factor,
+            config,
+        )
+    else:
+        d_lo, d_hi = disparity_band(small, config, factor)
+        searched = (d_lo - small.disparity_offset, d_hi - small.disparity_offset)
+        step = 0.1  # the parabola's sub-pixel refinement, about a tenth of a pixel
+        raw = _ssd_matches(
+            _oriented(rectified.left, small), _oriented(rectified.right, small), d_lo, d_hi, config
+        )
     confidence = {**raw.confidence, 'match support': raw.support}
     disparity = _unoriented(raw.disparity, small) - small.disparity_offset
     disparity = np.where(surface & (disparity > 0), disparity, np.nan)
     depth = depth_from_disparity(disparity, small.focal_px, small.baseline_m)
     density = float(np.isfinite(depth).sum() / surface.sum())
     confidence['match density'] = density
-    if raw.support < config.min_support and raw.n_found >= 8:
+    if raw.unmatched:
         warnings.append(
-            f'pair looks unmatched (noise, or not a pair of one scene): only '
-            f'{100 * raw.support:.0f} % of the matches are backed by their '
-            f'neighbours (min_support {100 * config.min_support:.0f} %)'
+            f'pair looks unmatched (noise, or not a pair of one scene): {raw.unmatched}'
         )
-    return _StereoDepth(disparity, depth, density, confidence)
+    return _StereoDepth(disparity, depth, density, confidence, searched, step, bool(raw.unmatched))
 
 
 def _sgbm_matches(
-    left_o: np.ndarray, right_o: np.ndarray, d_lo: int, d_hi: int, config: DepthConfig
+    left_o: np.ndarray,
+    right_o: np.ndarray,
+    d_lo: int,
+    d_hi: int,
+    factor: int,
+    config: DepthConfig,
 ) -> _RawMatches:
-    """OpenCV's StereoSGBM disparities of the oriented pair, NaN within half a pixel of
-    the band's ends; support 1 and no count (SGBM has no neighbour test)."""
-    raw_disparity = sgbm_disparity(
-        left_o, right_o, d_hi, window=max(config.window, 3), min_disparity=d_lo
+    """Semi-global matching (OpenCV's StereoSGBM, 3-way, left-right checked) of the
+    oriented full-resolution pair over the raw band [d_lo, d_hi], kept where the block
+    has texture (``texture_snr`` x the image's noise std: SGBM's smoothness otherwise
+    carries a disparity across a textureless region, dense but biased), reduced to the
+    processing grid (``reduce_disparity``: blocks whose matches agree); NaN within half a
+    pixel of the band's ends. Matches no neighbour backs are counted, not removed (the
+    speckle filter has done that): their share is the pair's ``support``."""
+    block = config.sgbm_block_size
+    disparity = sgbm_disparity(
+        left_o, right_o, d_hi, block, d_lo, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY, pad_left=True
     )
     with np.errstate(invalid='ignore'):
-        raw_disparity[(raw_disparity <= d_lo + 0.5) | (raw_disparity >= d_hi - 0.5)] = np.nan
-    return _RawMatches(raw_disparity, 1.0, 0, {})
+        disparity[(disparity <= d_lo + 0.5) | (disparity >= d_hi - 0.5)] = np.nan
+    texture_floor = max(config.texture_snr * noise_sigma(left_o), config.min_texture)
+    textured = window_std(left_o, block) >= texture_floor
+    disparity[~textured] = np.nan
+    with np.errstate(invalid='ignore'):
+        disparity[match_correlation(left_o, right_o, disparity, block) < MIN_CORRELATION] = np.nan
+    # The pair's support: the share of the textured pixels that found a checked match
+    # (most, on a pair of one scene; a few chance clusters on unrelated images).
+    support = float(np.isfinite(disparity).sum() / max(textured.sum(), 1))
+    raw_disparity = reduce_disparity(disparity, factor)
+    unmatched = ''
+    if support < SGBM_MIN_SUPPORT and np.isfinite(raw_disparity).sum() >= 8:
+        unmatched = (
+            f'only {100 * support:.1f} % of the textured pixels found a match that '
+            f'correlates (a pair of one scene: {100 * SGBM_MIN_SUPPORT:.0f} % or more)'
+        )
+    return _RawMatches(raw_disparity, support, {}, unmatched)
 
 
 def _ssd_matches(
@@ -402,7 +526,13 @@ def _ssd_matches(
         'match quality': float(np.median(distinct)) if len(distinct) else 0.0,
         'match levels': levels,
     }
-    return _RawMatches(raw_disparity, support, raw_count, confidence)
+    unmatched = ''
+    if support < config.min_support and raw_count >= 8:
+        unmatched = (
+            f'only {100 * support:.0f} % of the matches are backed by their '
+            f'neighbours (min_support {100 * config.min_support:.0f} %)'
+        )
+    return _RawMatches(raw_disparity, support, confidence, unmatched)
 
 
 def _sfs_relief(
@@ -456,7 +586,7 @@ def _fused_depth(
     depth_stereo: np.ndarray,
     on: npt.NDArray[np.bool_],
     surface: npt.NDArray[np.bool_],
-    depth_sfs: np.ndarray,
+    depth_sfs: Callable[[], np.ndarray],
     small: RectifiedPair,
     light: FloatArray,
     config: DepthConfig,
@@ -465,31 +595,29 @@ def _fused_depth(
 ) -> tuple[np.ndarray, str]:
     """(fused depth [m], NaN off the surface; the fusion that made it): by
     ``config.fusion``, or by local_affine when that cannot run (the reason added to
-    ``warnings``)."""
+    ``warnings``). ``depth_sfs`` gives the SFS depth when a fusion needs it."""
     stereo_on_surface = np.where(on, depth_stereo, np.nan)
-    filled = np.where(surface, depth_sfs, np.nanmean(depth_sfs))
     fusion = config.fusion
     try:
         fused = _fuse(
-            fusion, left, stereo_on_surface, surface, depth_sfs, filled, small, light, config, rng
+            fusion, left, stereo_on_surface, surface, depth_sfs, small, light, config, rng
         )
     except InvalidInput as error:
         warnings.append(
             f'{fusion} fusion could not run ({error}): fused depth by local_affine instead'
         )
         fusion = 'local_affine'
-        fused = fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface, config.fusion_sigma)
+        fused = fusion_cores.fuse_local_affine(depth_sfs(), stereo_on_surface, config.fusion_sigma)
     return np.where(surface, fused, np.nan), fusion
 
 
-def _backed_by_stereo(
-    on: npt.NDArray[np.bool_], surface: npt.NDArray[np.bool_], width: int
-) -> float:
-    """Share of the surface that stereo backs: pixels within 2 % of the image
-    ``width`` (at least 2 px) of a confident match ``on``."""
-    reach = max(2.0, 0.02 * width)
+def stereo_confidence(on: npt.NDArray[np.bool_], surface: npt.NDArray[np.bool_]) -> Float32Array:
+    """(h, w) how much of the fused depth stereo measured, in [0, 1]: 1 on a confident
+    match ``on``, exp(-distance / reach) beside, reach 2 % of the image width (at least
+    2 px; farther, the shading alone carries the depth), NaN off the ``surface``."""
+    reach = max(2.0, 0.02 * on.shape[1])
     distance = cv2.distanceTransform((~on).astype(np.uint8), cv2.DIST_L2, 3)
-    return float((distance[surface] <= reach).mean())
+    return np.where(surface, np.exp(-distance / reach), np.nan).astype(np.float32)
 
 
 def _fuse(
@@ -497,8 +625,7 @@ def _fuse(
     left: Float32Array,
     stereo_on_surface: FloatArray,
     surface: npt.NDArray[np.bool_],
-    depth_sfs: FloatArray,
-    filled: FloatArray,
+    depth_sfs: Callable[[], FloatArray],
     small: RectifiedPair,
     light: FloatArray,
     config: DepthConfig,
@@ -518,9 +645,10 @@ def _fuse(
             finest_steps=config.refine_finest_steps,
             search_axis=0 if small.transpose else 1,
         ).depth
+    filled = np.where(surface, depth_sfs(), np.nanmean(depth_sfs()))
     if fusion == 'mlp_rows':
         rng = rng if rng is not None else np.random.default_rng(config.seed)
         return thesis.fuse_mlp_rows(filled, stereo_on_surface, rng, epochs=config.mlp_epochs).depth
     if fusion == 'least_squares':
         return fusion_cores.fuse_least_squares(filled, stereo_on_surface, config.fusion_weight)
-    return fusion_cores.fuse_local_affine(depth_sfs, stereo_on_surface, config.fusion_sigma)
+    return fusion_cores.fuse_local_affine(depth_sfs(), stereo_on_surface, config.fusion_sigma)

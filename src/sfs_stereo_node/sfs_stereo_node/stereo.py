@@ -213,10 +213,18 @@ def sgbm_disparity(
     max_disparity: int,
     window: int = 5,
     min_disparity: int = 0,
+    mode: int = cv2.STEREO_SGBM_MODE_SGBM,
+    pad_left: bool = False,
 ) -> FloatArray:
-    """Reference dense matcher: OpenCV's StereoSGBM on the rectified pair (left
-    reference), P1 = 8 w^2, P2 = 32 w^2 as OpenCV's sample suggests. Inputs are grey
-    levels (any range; rescaled to uint8). Returns (H, W) float [px], NaN where invalid."""
+    """Semi-global matching: OpenCV's StereoSGBM on the rectified pair (left reference),
+    P1 = 8 w^2, P2 = 32 w^2 as OpenCV's sample suggests, left-right check within 1 px,
+    uniqueness 10 %, speckles smaller than 1/3000 of the image removed (100 px at
+    640x480: relative, so the filter means the same at any resolution). Inputs are grey
+    levels (any range; stretched to uint8). ``mode``: cv2.STEREO_SGBM_MODE_SGBM (the
+    reference the bench compares with) or _SGBM_3WAY (the node's: the same disparities
+    within 0.1 % bad pixels on Aloe, 2.4x faster). ``pad_left``: match the first
+    min_disparity + band columns too (see below; the node's). Returns (H, W) float [px,
+    1/16 px steps], NaN where invalid."""
     I_left, I_right = _check_image(I_left, 'I_left'), _check_image(I_right, 'I_right')
     lo, hi = min(I_left.min(), I_right.min()), max(I_left.max(), I_right.max())
     scale = 255.0 / max(hi - lo, 1e-12)
@@ -231,14 +239,73 @@ def sgbm_disparity(
         P1=8 * window**2,
         P2=32 * window**2,
         uniquenessRatio=10,
-        speckleWindowSize=50,
+        speckleWindowSize=max(4, I_left.size // 3000),
         speckleRange=2,
         disp12MaxDiff=1,
-        mode=cv2.STEREO_SGBM_MODE_SGBM,
+        mode=mode,
     )
-    disparity = matcher.compute(left8, right8).astype(float) / 16.0
+    # SGBM leaves the first min_disparity + count columns unmatched (their whole band is
+    # not inside the right image); padding both images on the left lets those pixels
+    # match what the right image does see, the left-right check refusing the rest.
+    pad = max(int(min_disparity) + count, 0) if pad_left else 0
+    left8, right8 = (
+        cv2.copyMakeBorder(image, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
+        for image in (left8, right8)
+    )
+    disparity = matcher.compute(left8, right8)[:, pad:].astype(float) / 16.0
     # SGBM marks invalid pixels with min_disparity - 1
     return np.where(disparity > min_disparity - 1, disparity, np.nan)
+
+
+def match_correlation(
+    I_left: npt.ArrayLike, I_right: npt.ArrayLike, disparity: npt.ArrayLike, window: int
+) -> FloatArray:
+    """(H, W) zero-mean normalised cross-correlation of each left window with the right
+    window its raw ``disparity`` [px, NaN = none] points at (right x = left x - d, the
+    right image sampled bilinearly), in [-1, 1]; NaN where no disparity. A semi-global
+    matcher's smoothness can make consistent disparities out of two unrelated images;
+    the windows it pairs then do not correlate (about 1 / window for noise)."""
+    I_left = _check_image(I_left, 'I_left').astype(np.float32)
+    I_right = _check_image(I_right, 'I_right').astype(np.float32)
+    disparity = np.asarray(disparity, dtype=np.float32)
+    H, W = disparity.shape
+    map_x = np.arange(W, dtype=np.float32)[None, :] - np.nan_to_num(disparity)
+    map_y = np.repeat(np.arange(H, dtype=np.float32)[:, None], W, axis=1)
+    warped = cv2.remap(I_right, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    size = (window, window)
+
+    def blur(image: np.ndarray) -> np.ndarray:
+        return cv2.blur(image, size, borderType=cv2.BORDER_REPLICATE)
+
+    mean_l, mean_r = blur(I_left), blur(warped)
+    covariance = blur(I_left * warped) - mean_l * mean_r
+    var_l = np.maximum(blur(I_left * I_left) - mean_l**2, 0.0)
+    var_r = np.maximum(blur(warped * warped) - mean_r**2, 0.0)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        correlation = covariance / np.sqrt(var_l * var_r)
+    return np.where(np.isfinite(disparity), np.nan_to_num(correlation), np.nan)
+
+
+def reduce_disparity(disparity: npt.ArrayLike, factor: int, tolerance: float = 2.0) -> FloatArray:
+    """A disparity map [px] at ``factor`` x coarser resolution, in the coarse grid's
+    pixels: each factor x factor block's mean where at least half of it is matched and its
+    matches agree within ``tolerance`` [px, fine grid], NaN elsewhere (a block across a
+    depth edge mixes two surfaces: no mean of them is true). The rows and columns past
+    the last whole block are dropped, as cv2.resize INTER_AREA does for the images."""
+    disparity = np.asarray(disparity, dtype=float)
+    if factor == 1:
+        return disparity
+    h, w = disparity.shape[0] // factor, disparity.shape[1] // factor
+    blocks = disparity[: h * factor, : w * factor].reshape(h, factor, w, factor)
+    valid = np.isfinite(blocks)
+    count = valid.sum(axis=(1, 3))
+    total = np.where(valid, blocks, 0.0).sum(axis=(1, 3))
+    spread = np.where(valid, blocks, -np.inf).max(axis=(1, 3)) - np.where(
+        valid, blocks, np.inf
+    ).min(axis=(1, 3))
+    agree = (2 * count >= factor * factor) & (spread <= tolerance)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return np.where(agree, total / np.maximum(count, 1) / factor, np.nan)
 
 
 def sparse_disparity(

@@ -332,6 +332,52 @@ def points_to_pointcloud2(points: npt.ArrayLike, stamp_ns: int, frame_id: str) -
     return msg
 
 
+_XYZI_FIELDS = [
+    *_XYZ_FIELDS,
+    PointField(name='intensity', offset=12, datatype=PointField.FLOAT32, count=1),
+]
+
+
+def depth_to_pointcloud2(
+    depth_m: npt.ArrayLike,
+    K: npt.ArrayLike,
+    grey: npt.ArrayLike,
+    stamp_ns: int,
+    frame_id: str,
+) -> PointCloud2:
+    """(H, W) depth [m, Z along the optical axis, NaN unknown] of the pinhole camera
+    ``K`` (3, 3) -> organised PointCloud2 (height H, width W, as depth_image_proc's
+    point_cloud_xyzi makes it): float32 x, y, z [m] in ``frame_id`` and intensity
+    (``grey``, (H, W) grey levels); NaN x, y, z where the depth is unknown, so RViz and
+    Foxglove show the cloud as it is and a pixel's point is at its pixel's index."""
+    depth_m = np.asarray(depth_m, dtype=np.float32)
+    grey = np.asarray(grey, dtype=np.float32)
+    if depth_m.ndim != 2 or grey.shape != depth_m.shape:
+        raise InvalidInput(
+            f'depth {depth_m.shape} and grey {grey.shape} must be the same (H, W)', key='shape'
+        )
+    K = np.asarray(K, dtype=float)
+    H, W = depth_m.shape
+    u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    points = np.empty((H, W, 4), dtype='<f4')
+    points[..., 0] = (u - K[0, 2] - K[0, 1] * (v - K[1, 2]) / K[1, 1]) * depth_m / K[0, 0]
+    points[..., 1] = (v - K[1, 2]) * depth_m / K[1, 1]
+    points[..., 2] = depth_m
+    points[..., 3] = grey
+    msg = PointCloud2(
+        header=make_header(stamp_ns, frame_id),
+        height=H,
+        width=W,
+        fields=list(_XYZI_FIELDS),
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * W,
+        is_dense=bool(np.all(np.isfinite(depth_m))),
+    )
+    msg.data = points.tobytes()
+    return msg
+
+
 def pointcloud2_to_points(msg: PointCloud2) -> npt.NDArray[np.float32]:
     """PointCloud2 with float32 x, y, z fields (any layout) -> (N, 3) float32 array."""
     offsets = {f.name: f for f in msg.fields}

@@ -28,6 +28,8 @@ STEREO_DEPTH_TOPIC = '/depth/stereo'
 SFS_DEPTH_TOPIC = '/depth/sfs'
 FUSED_DEPTH_TOPIC = '/depth/fused'
 DEPTH_INFO_TOPIC = '/depth/camera_info'
+DEPTH_CONFIDENCE_TOPIC = '/depth/confidence'
+DEPTH_POINTS_TOPIC = '/depth/points'
 LEFT_RECT_TOPIC = '/stereo/left/image_rect'
 
 # --- stereo_coding_node, stereo_decoding_node -----------------------------------------
