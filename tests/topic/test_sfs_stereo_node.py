@@ -304,32 +304,6 @@ def test_a_parameter_name_from_before_the_grouping_is_a_clear_start_up_error(spa
     assert 'Traceback' not in node.output()
 
 
-def aloe_640(shift):
-    """Middlebury Aloe (Debian's opencv-doc) as a 640x480-class rectified pair: the middle
-    4:3 rows, scaled to 640 px wide, the right image cropped by ``shift`` columns (a
-    ``shift`` px principal-point offset); (left, right, true disparity [px, 0 unknown])."""
-    import cv2
-
-    from vgm_common.sample_data import opencv_sample_dir
-
-    directory = opencv_sample_dir()  # raises with the reason when it cannot be fetched
-    left, right = (
-        cv2.imread(str(directory / n), cv2.IMREAD_GRAYSCALE) for n in ('aloeL.jpg', 'aloeR.jpg')
-    )
-    truth = cv2.imread(str(directory / 'aloeGT.png'), cv2.IMREAD_GRAYSCALE).astype(np.float32)
-    rows = left.shape[1] * 3 // 4
-    top = (left.shape[0] - rows) // 2
-    scale = 640 / left.shape[1]
-    left, right = (
-        cv2.resize(im[top : top + rows], (640, 480), interpolation=cv2.INTER_AREA)
-        for im in (left, right)
-    )
-    truth = scale * cv2.resize(
-        truth[top : top + rows], (640, 480), interpolation=cv2.INTER_NEAREST
-    )
-    return left[:, :-shift], right[:, shift:], truth[:, :-shift]
-
-
 def test_aloe_as_a_rectified_pair_with_a_cx_offset_then_a_textureless_pair(spawn, rclpy_node):
     """Real data (Middlebury Aloe), 640x480 class, published as an already-rectified pair
     whose right principal point carries a 24 px offset, the rig's focal length and
@@ -346,10 +320,11 @@ def test_aloe_as_a_rectified_pair_with_a_cx_offset_then_a_textureless_pair(spawn
     from sfs_stereo_node.stereo import sgbm_disparity
     from vgm_common.conversions import pointcloud2_to_points
     from vgm_common.qos import LATCHED_QOS
+    from vgm_common.sample_data import aloe_pair_640
     from vgm_common.topics import CAMERA_INFO_TOPICS, POSE_TOPICS
 
     shift = 24
-    left, right, truth = aloe_640(shift)
+    left, right, truth = aloe_pair_640(shift)  # raises with the reason when not fetched
     height, width = left.shape
     f, baseline = 700.0, 0.125  # f b = 87.5 px m: disparities 20-105 px at 4.4-0.8 m
     K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1.0]])

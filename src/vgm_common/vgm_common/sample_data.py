@@ -15,6 +15,9 @@ import subprocess
 import tempfile
 from pathlib import Path
 
+import numpy as np
+import numpy.typing as npt
+
 from vgm_common.errors import VgmError
 
 PACKAGE = 'opencv-doc'
@@ -80,3 +83,30 @@ def _run(argv: list[str], cwd: Path) -> None:
     if result.returncode != 0:
         tail = (result.stderr or result.stdout).strip().splitlines()[-3:]
         raise SampleDataError(f'{" ".join(argv)} exited {result.returncode}: ' + ' | '.join(tail))
+
+
+def aloe_pair_640(
+    shift: int = 24,
+) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8], npt.NDArray[np.float32]]:
+    """Middlebury Aloe as a 640x480-class already-rectified pair: the middle 4:3 rows
+    scaled to 640 px wide, the right image cropped by ``shift`` columns (a ``shift`` px
+    principal-point offset between the two): (left, right) grey uint8 (480, 640 - shift)
+    and the true left disparity [px, offset-corrected; 0 where unknown]."""
+    import cv2
+
+    directory = opencv_sample_dir()
+    left, right = (
+        cv2.imread(str(directory / n), cv2.IMREAD_GRAYSCALE) for n in ('aloeL.jpg', 'aloeR.jpg')
+    )
+    truth = cv2.imread(str(directory / 'aloeGT.png'), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+    rows = left.shape[1] * 3 // 4
+    top = (left.shape[0] - rows) // 2
+    scale = 640 / left.shape[1]
+    left, right = (
+        cv2.resize(image[top : top + rows], (640, 480), interpolation=cv2.INTER_AREA)
+        for image in (left, right)
+    )
+    truth = scale * cv2.resize(
+        truth[top : top + rows], (640, 480), interpolation=cv2.INTER_NEAREST
+    )
+    return left[:, :-shift], right[:, shift:], truth[:, :-shift]
