@@ -364,7 +364,7 @@ class SfsStereoNode(GraphNode):
         subscribe_images(self, ('left', 'right'), self._on_image)
         self.maps = None
         self.maps_key = None
-        self.processed = self.failed = self.throttled = 0
+        self.processed = self.failed = self.throttled = self.before_calibration = 0
         self.last_slot = None  # max_rate: the stamp slot of the last pair taken
         self.sync_dropped_reported = 0
         self.last_timings = {}
@@ -399,6 +399,14 @@ class SfsStereoNode(GraphNode):
                 )
 
     def _on_pair(self, stamp_ns, messages):
+        if not self.cameras.ready:  # expected at start-up: a wait, not bad input
+            if not self.before_calibration:
+                self.get_logger().info(
+                    'image pairs arrive before the calibration: skipped until camera_info '
+                    f'+ pose of {", ".join(self.cameras.missing())} arrive'
+                )
+            self.before_calibration += 1
+            return
         if self.params.max_rate > 0:
             slot = int(stamp_ns * self.params.max_rate) // 1_000_000_000
             if slot == self.last_slot:
@@ -541,6 +549,7 @@ class SfsStereoNode(GraphNode):
             'frames processed': self.processed,
             'frames dropped (busy)': self.worker.dropped,
             'frames skipped (max_rate)': self.throttled,
+            'pairs before calibration': self.before_calibration,
             'pairs failed': self.failed,
             'unpaired images dropped': self.sync.dropped,
             'match density': f'{self.last_density:.4f}',
