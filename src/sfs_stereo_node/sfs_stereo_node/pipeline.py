@@ -36,6 +36,7 @@ from sfs_stereo_node.stereo import (
     match_pyramid,
     noise_sigma,
     reduce_disparity,
+    refine_subpixel,
     sgbm_disparity,
     window_std,
 )
@@ -460,9 +461,10 @@ def _sgbm_matches(
     config: DepthConfig,
 ) -> _RawMatches:
     """Semi-global matching (OpenCV's StereoSGBM, 3-way, left-right checked) of the
-    oriented full-resolution pair over the raw band [d_lo, d_hi], kept where the block
-    has texture (``texture_snr`` x the image's noise std: SGBM's smoothness otherwise
-    carries a disparity across a textureless region, dense but biased), reduced to the
+    oriented full-resolution pair over the raw band [d_lo, d_hi], its sub-pixel step
+    re-estimated by Lucas-Kanade (``refine_subpixel``), kept where the block has
+    texture (``texture_snr`` x the image's noise std: SGBM's smoothness otherwise carries
+    a disparity across a textureless region, dense but biased), reduced to the
     processing grid (``reduce_disparity``: blocks whose matches agree); NaN within half a
     pixel of the band's ends. Matches no neighbour backs are counted, not removed (the
     speckle filter has done that): their share is the pair's ``support``."""
@@ -477,6 +479,7 @@ def _sgbm_matches(
     disparity[~textured] = np.nan
     with np.errstate(invalid='ignore'):
         disparity[match_correlation(left_o, right_o, disparity, block) < MIN_CORRELATION] = np.nan
+    disparity = refine_subpixel(left_o, right_o, disparity, block)
     # The pair's support: the share of the textured pixels that found a checked match
     # (most, on a pair of one scene; a few chance clusters on unrelated images).
     support = float(np.isfinite(disparity).sum() / max(textured.sum(), 1))

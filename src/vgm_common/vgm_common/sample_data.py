@@ -95,10 +95,13 @@ def aloe_pair_640(
     import cv2
 
     directory = opencv_sample_dir()
-    left, right = (
-        cv2.imread(str(directory / n), cv2.IMREAD_GRAYSCALE) for n in ('aloeL.jpg', 'aloeR.jpg')
-    )
-    truth = cv2.imread(str(directory / 'aloeGT.png'), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+    images = []
+    for name in ALOE_FILES:
+        image = cv2.imread(str(directory / name), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise SampleDataError(f'{directory / name} is not a readable image')
+        images.append(image)
+    left, right, truth = images[0], images[1], images[2].astype(np.float32)
     rows = left.shape[1] * 3 // 4
     top = (left.shape[0] - rows) // 2
     scale = 640 / left.shape[1]
@@ -109,4 +112,8 @@ def aloe_pair_640(
     truth = scale * cv2.resize(
         truth[top : top + rows], (640, 480), interpolation=cv2.INTER_NEAREST
     )
-    return left[:, :-shift], right[:, shift:], truth[:, :-shift]
+    return (
+        np.asarray(left[:, :-shift], np.uint8),
+        np.asarray(right[:, shift:], np.uint8),
+        np.asarray(truth[:, :-shift], np.float32),
+    )
