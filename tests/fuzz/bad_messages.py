@@ -212,14 +212,17 @@ def joint_trajectories(names, stamp_ns=0):
         ('duplicate joint names', trajectory(list(names[:-1]) + [names[0]], (0.1, [0] * n, []))),
         ('no joint names', trajectory([], (0.1, [0] * n, []))),
         ('NaN velocity', trajectory(names, (0.1, [0] * n, [NAN] * n))),
+        ('positions of 1e300 (beyond the limits)', trajectory(names, (0.1, [1e300] * n, []))),
+        (
+            'last joint at 7 rad, 2.5 beyond its limit',
+            trajectory(names, (0.1, [0] * (n - 1) + [7], [])),
+        ),
     ]
 
 
 def unusual_joint_trajectories(names):
-    """(label, JointTrajectory) pairs that are odd but not wrong: the arm's limits apply."""
+    """(label, JointTrajectory) pairs that are odd but not wrong."""
     n = len(names)
-    far = joint_trajectories(names)[2][1]
-    far.points[0].positions = [1e300] * n
     future = joint_trajectories(names, stamp_ns=10**18)[2][1]
     future.points[0].positions = [0.0] * n
     many = JointTrajectory(joint_names=list(names))
@@ -228,7 +231,6 @@ def unusual_joint_trajectories(names):
         point.time_from_start.sec, point.time_from_start.nanosec = divmod((i + 1) * 10**6, 10**9)
         many.points.append(point)
     return [
-        ('positions of 1e300 (beyond the limits)', far),
         ('a stamp far in the future', future),
         ('10000 points', many),
     ]
