@@ -78,11 +78,15 @@ SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are ans
 # on the service must not grow the node without bound).
 MAX_WAITING_CALLS = 100
 # The replies to waiting calls come in bursts (a capture or the timeout answers them
-# all), and a burst outruns the callers' side, whose history is the caller's QoS (rclpy's
-# default keep-last 10): twenty replies at once reached 10 to 13 of twenty callers (with
-# clients of depth 100, all twenty). So replies go out paced, a few each REPLY_PERIOD, and
-# the service's own history holds MAX_WAITING_CALLS requests and replies.
-REPLIES_PER_PERIOD = 4
+# all). Every client of a service receives every reply (rmw_fastrtps: each client's
+# reader keeps them and drops those not its own when its caller takes them), in the
+# caller's history (rclpy's default: keep-last 10); twenty replies at once reached 10 to
+# 13 of twenty callers in one process, nothing said. So replies go out paced, one each
+# REPLY_PERIOD (ten take 0.2 s: a caller that spins gets its own), and the service's own
+# history holds MAX_WAITING_CALLS requests and replies. A caller that does not spin
+# while more than its history of other replies goes out can still miss its own; only
+# its QoS can help it (a deeper response history).
+REPLIES_PER_PERIOD = 1
 REPLY_PERIOD = 0.02  # [s]
 RECONSTRUCT_SERVICE_QOS = QoSProfile(
     history=qos_profile_services_default.history,
