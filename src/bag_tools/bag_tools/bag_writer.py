@@ -685,8 +685,9 @@ class BagReader:
     Raises:
         BagReaderError: not a directory, unreadable/invalid metadata, unsupported storage or
             version, or missing data files.
-        BagDamagedError: (while iterating ``messages``) a file with a summary is damaged:
-            bytes overwritten (chunk CRCs are checked) or cut short since it was opened.
+        BagDamagedError: (while iterating ``messages``) a data file is damaged: bytes
+            overwritten (chunk CRCs are checked), or cut short (a file of a bag with
+            metadata has lost its summary, or lost data since it was opened).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -786,10 +787,11 @@ class BagReader:
         return next((t for t in self.topics if t.name == name), None)
 
     def file_messages(
-        self, path: Path, topics: Iterable[str] | None = None
+        self, path: Path, topics: Iterable[str] | None = None, cut_short_ok: bool = False
     ) -> Iterator[BagMessage]:
         """Iterate ``BagMessage`` of one of ``files`` in log-time order (``topics``: names
-        to keep; None = all)."""
+        to keep; None = all). A file without a summary is read up to its last complete
+        chunk if the bag is ``recovered`` or ``cut_short_ok`` (reindex), else refused."""
         if _has_footer(path):
             read = 0
             try:
@@ -806,6 +808,14 @@ class BagReader:
                     read,
                 ) from None
             return
+        if not (self.recovered or cut_short_ok):
+            # metadata.yaml is written once every file is closed (summary and footer):
+            # a file without them was cut short since.
+            raise BagDamagedError(
+                f'{path} is damaged: cut short (no summary; reindex keeps what is left)',
+                path,
+                0,
+            )
         unindexed = _stream_records_tolerant(path, topics)
         yield from (BagMessage.of(*r) for r in sorted(unindexed, key=lambda r: r[2].log_time))
 
