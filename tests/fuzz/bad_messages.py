@@ -3,11 +3,15 @@ corrupted bag sends. Each maker returns fresh messages; ``stamp_ns`` lets a call
 one stamp to the images of one capture."""
 
 import math
+import struct
+import zlib
 
+import cv2
 import numpy as np
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from nav_msgs.msg import Path
-from sensor_msgs.msg import CameraInfo, JointState
+from sensor_msgs.msg import CameraInfo, CompressedImage, JointState
+from stereo_msgs.msg import DisparityImage
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from vgm_common.conversions import make_header, numpy_to_image
@@ -212,14 +216,17 @@ def joint_trajectories(names, stamp_ns=0):
         ('duplicate joint names', trajectory(list(names[:-1]) + [names[0]], (0.1, [0] * n, []))),
         ('no joint names', trajectory([], (0.1, [0] * n, []))),
         ('NaN velocity', trajectory(names, (0.1, [0] * n, [NAN] * n))),
+        ('positions of 1e300 (beyond the limits)', trajectory(names, (0.1, [1e300] * n, []))),
+        (
+            'last joint at 7 rad, 2.5 beyond its limit',
+            trajectory(names, (0.1, [0] * (n - 1) + [7], [])),
+        ),
     ]
 
 
 def unusual_joint_trajectories(names):
-    """(label, JointTrajectory) pairs that are odd but not wrong: the arm's limits apply."""
+    """(label, JointTrajectory) pairs that are odd but not wrong."""
     n = len(names)
-    far = joint_trajectories(names)[2][1]
-    far.points[0].positions = [1e300] * n
     future = joint_trajectories(names, stamp_ns=10**18)[2][1]
     future.points[0].positions = [0.0] * n
     many = JointTrajectory(joint_names=list(names))
@@ -228,7 +235,93 @@ def unusual_joint_trajectories(names):
         point.time_from_start.sec, point.time_from_start.nanosec = divmod((i + 1) * 10**6, 10**9)
         many.points.append(point)
     return [
-        ('positions of 1e300 (beyond the limits)', far),
         ('a stamp far in the future', future),
         ('10000 points', many),
+    ]
+
+
+def disparity_image(values_px, stamp_ns, frame_id, min_disparity=0.0):
+    """A DisparityImage of (H, W) ``values_px`` [px] (values below ``min_disparity``
+    unknown, by the stereo_msgs convention)."""
+    msg = DisparityImage(
+        f=500.0, t=0.1, min_disparity=min_disparity, max_disparity=64.0, delta_d=1 / 16
+    )
+    msg.header = make_header(stamp_ns, frame_id)
+    msg.image = numpy_to_image(np.asarray(values_px, np.float32), '32FC1', stamp_ns, frame_id)
+    return msg
+
+
+def disparities(good_px, stamp_ns, frame_id):
+    """(label, DisparityImage) pairs for the disparity ``good_px`` (H, W) [px]."""
+    infinite = good_px.copy()
+    infinite[40:60, 40:60] = np.inf
+    huge = good_px.copy()
+    huge[100, 100] = 1e9
+    wider = good_px.copy()
+    wider[10, 10] = good_px.shape[1] + 1.0
+    msg_16u = disparity_image(good_px, stamp_ns, frame_id)
+    msg_16u.image = numpy_to_image(good_px.astype(np.uint16), 'mono16', stamp_ns, frame_id)
+    return [
+        ('disparity with +inf', disparity_image(infinite, stamp_ns, frame_id)),
+        ('a disparity of 1e9 px', disparity_image(huge, stamp_ns, frame_id)),
+        ('a disparity wider than the image', disparity_image(wider, stamp_ns, frame_id)),
+        ('min_disparity NaN', disparity_image(good_px, stamp_ns, frame_id, NAN)),
+        ('min_disparity -inf', disparity_image(good_px, stamp_ns, frame_id, -math.inf)),
+        ('disparity image mono16', msg_16u),
+        ('disparity of another size', disparity_image(good_px[:, :200], stamp_ns, frame_id)),
+    ]
+
+
+def png_bomb(width, height):
+    """PNG bytes of a ``width`` x ``height`` all-black grey image: a few hundred kB that
+    decode to width * height bytes (16000x16000: 249 kB, 256 MB)."""
+    compressor = zlib.compressobj(9)
+    row = b'\x00' * (width + 1)  # filter byte + pixels
+    block_rows = 64
+    parts = []
+    for start in range(0, height, block_rows):
+        parts.append(compressor.compress(row * min(block_rows, height - start)))
+    parts.append(compressor.flush())
+
+    def chunk(kind, data):
+        return (
+            struct.pack('>I', len(data))
+            + kind
+            + data
+            + struct.pack('>I', zlib.crc32(kind + data) & 0xFFFFFFFF)
+        )
+
+    header = struct.pack('>IIBBBBB', width, height, 8, 0, 0, 0, 0)
+    return (
+        b'\x89PNG\r\n\x1a\n'
+        + chunk(b'IHDR', header)
+        + chunk(b'IDAT', b''.join(parts))
+        + chunk(b'IEND', b'')
+    )
+
+
+def jpeg_declaring(width, height, quality=90):
+    """A small JPEG whose frame header declares ``width`` x ``height``."""
+    ok, encoded = cv2.imencode(
+        '.jpg', np.zeros((16, 16), np.uint8), [cv2.IMWRITE_JPEG_QUALITY, quality]
+    )
+    data = bytearray(encoded.tobytes())
+    sof = data.index(b'\xff\xc0')  # baseline frame header: length, precision, height, width
+    data[sof + 5 : sof + 9] = struct.pack('>HH', height, width)
+    return bytes(data)
+
+
+def compressed_images(stamp_ns, frame_id):
+    """(label, CompressedImage) pairs a decoder must refuse before decoding, or cannot."""
+
+    def compressed(data, fmt='mono8; jpeg compressed mono8'):
+        return CompressedImage(header=make_header(stamp_ns, frame_id), format=fmt, data=data)
+
+    ok, good = cv2.imencode('.jpg', np.full((240, 320), 128, np.uint8))
+    return [
+        ('PNG of 16000x16000 (249 kB)', compressed(png_bomb(16000, 16000), 'png')),
+        ('JPEG header declaring 20000x20000', compressed(jpeg_declaring(20000, 20000))),
+        ('no data', compressed(b'')),
+        ('not an image', compressed(b'\x00\x01not a jpeg' * 50)),
+        ('JPEG cut to its header', compressed(good.tobytes()[:200])),
     ]

@@ -55,6 +55,7 @@ class Fuzzer:
         self.process = process
         self.node_name = node_name
         self.cases = []
+        self.outcomes = {}  # case -> 'refused' | 'survived' | 'parameter refused'
         self._publishers = {}
         self._clients = {}
         self._rejected = {}  # diagnostic status name -> highest count seen
@@ -182,12 +183,14 @@ class Fuzzer:
                 f'{self.node_name} accepted {case!r} silently (no rejected diagnostic, no warning)'
             ) from None
         self.check_serving(case)
+        self.outcomes[case] = 'refused'
 
     def survive(self, case, send):
         """``send()`` something unusual but not wrong: the node keeps serving."""
         self.cases.append(case)
         send()
         self.check_serving(case)
+        self.outcomes[case] = 'survived'
 
     # -- parameters -----------------------------------------------------------------
 
@@ -251,6 +254,22 @@ class Fuzzer:
         successful, reason = self.set_parameter(name, value)
         assert not successful and reason, f'{self.node_name} accepted {case!r}'
         self.check_serving(case)
+        self.outcomes[case] = 'parameter refused'
+
+    def summary(self):
+        """One line: the kinds tried and how each ended (what the README's table shows)."""
+        kinds = set(self.cases)
+        counts = {
+            outcome: sum(1 for o in self.outcomes.values() if o == outcome)
+            for outcome in ('refused', 'parameter refused', 'survived')
+        }
+        other = len(kinds - set(self.outcomes))
+        return (
+            f'fuzz summary {self.node_name}: {len(kinds)} kinds, '
+            f'{counts["refused"]} refused with a report, '
+            f'{counts["parameter refused"]} parameter changes refused with a reason, '
+            f'{counts["survived"]} survived, {other} served or answered'
+        )
 
     def trigger(self, name, timeout=30.0):
         return self.call(Trigger, f'/{self.node_name}/{name}', Trigger.Request(), timeout)

@@ -9,8 +9,7 @@ get_parameters, input it must refuse is reported (a `rejected` diagnostic or a w
 memory stays bounded, and at the end a good input is still processed. Bad start-up
 arguments end every executable in one error line with a non-zero status."""
 
-import threading
-import time
+import shutil
 
 import bad_messages
 import numpy as np
@@ -19,25 +18,46 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from fuzz_tools import Fuzzer, fuzz_parameters, wait_gone
 from geometry_msgs.msg import PoseStamped, WrenchStamped
+from mcap.reader import SeekingReader
 from nav_msgs.msg import Path
 from rclpy.serialization import serialize_message
-from sensor_msgs.msg import CameraInfo, Image, JointState
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
+from stereo_coding_node.scenes import generated_scene
+from stereo_msgs.msg import DisparityImage
 from trajectory_msgs.msg import JointTrajectory
 
 from bag_tools.bag_writer import BagWriter
 from harness import executable, publish_rig, small_scenario
 from sensor_sim.render import SceneRenderer, add_noise
 from sensor_sim.scenario import load_scenario
+from stereo_coding_node import blind
 from vgm_common.calibration_io import write_calibration
-from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
+from vgm_common.conversions import (
+    grey_to_compressed_jpeg,
+    make_header,
+    matrix_to_pose_stamped,
+    numpy_to_image,
+    stamp_to_ns,
+)
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import JOINT_NAMES
-from vgm_common.topics import CAMERA_INFO_TOPICS, IMAGE_TOPICS, OPTICAL_FRAMES
+from vgm_common.topics import (
+    CAMERA_INFO_TOPICS,
+    CODED_COMPRESSED_TOPIC,
+    CODED_IMAGE_TOPIC,
+    DECODED_DISPARITY_TOPIC,
+    DISPARITY_TOPIC,
+    IMAGE_TOPICS,
+    LEFT_RECT_TOPIC,
+    OPTICAL_FRAMES,
+    POSE_TOPICS,
+)
 
 MIN_CASES = 20  # kinds of bad input per node, at least
 FLOOD_IMAGES = 100
+SIMULTANEOUS_CALLERS = 20  # of a service
 FLOOD_MEMORY_BOUND = 400e6  # [bytes] RSS growth allowed by a flood
 TARGET_POSE_TOPIC = '/calibration/target_pose'
 
@@ -136,6 +156,7 @@ def collect(probe, msg_type, topic, qos=DEFAULT_QOS):
 def finish(fuzzer):
     assert len(set(fuzzer.cases)) >= MIN_CASES, fuzzer.cases
     assert 'Traceback' not in fuzzer.process.output(), fuzzer.process.output()[-3000:]
+    print(fuzzer.summary())  # pytest -s: the README's reliability table
 
 
 def start(spawn, rclpy_node, name, *args, package=None):
@@ -185,19 +206,33 @@ def test_sfs_stereo_node(spawn, rclpy_node, small_scene):
 
 def test_curve_recon_node(spawn, rclpy_node, small_scene):
     scenario, _, calibration, renderer = small_scene
-    fuzzer = start(spawn, rclpy_node, 'curve_recon_node')
+    fuzzer = start(spawn, rclpy_node, 'curve_recon_node', '-p', 'service_timeout:=5.0')
     publishers, _ = publish_rig(rclpy_node, calibration)  # noqa: F841 (kept alive)
     capture = Capture(fuzzer, ('left', 'right', 'aux'))
-    # Out of order and all at once: reconstruct with no capture, four calls waiting while
-    # parameters are read.
-    answers = []
-    callers = [
-        threading.Thread(target=lambda: answers.append(_trigger_in_thread(fuzzer, 'reconstruct')))
-        for _ in range(4)
+    # All at once: twenty reconstruct callers, no capture coming: every one is answered
+    # (no capture within service_timeout) while the probe spins.
+    clients = [
+        rclpy_node.create_client(Trigger, '/curve_recon_node/reconstruct')
+        for _ in range(SIMULTANEOUS_CALLERS)
     ]
+    rclpy_node.spin_until(
+        lambda: all(c.service_is_ready() for c in clients), 30, 'the reconstruct service'
+    )
+    fuzzer.cases.append(f'{SIMULTANEOUS_CALLERS} reconstruct callers, no capture coming')
+    futures = [c.call_async(Trigger.Request()) for c in clients]
+    try:
+        rclpy_node.spin_until(lambda: all(f.done() for f in futures), 60, 'every answer')
+    except TimeoutError:
+        raise AssertionError(
+            f'{sum(f.done() for f in futures)} of {SIMULTANEOUS_CALLERS} simultaneous '
+            'reconstruct callers answered'
+        ) from None
+    assert all('no synchronized capture' in f.result().message for f in futures)
+    fuzzer.check_serving(f'{SIMULTANEOUS_CALLERS} reconstruct callers')
+    # Out of order: four calls waiting while bad input comes and parameters are read
+    # (fewer than a caller's default history of replies: the probe does not always spin).
+    waiting = [c.call_async(Trigger.Request()) for c in clients[:4]]
     fuzzer.cases.append('four reconstruct calls waiting, no capture')
-    for caller in callers:
-        caller.start()
     fuzzer.check_serving('four reconstruct calls waiting')
     fuzz_images(fuzzer, capture)
     fuzz_camera_infos(fuzzer, ('left', 'aux'))
@@ -217,9 +252,9 @@ def test_curve_recon_node(spawn, rclpy_node, small_scene):
     publishers, _ = publish_rig(rclpy_node, calibration)
     fuzz_parameters(fuzzer)
     flood_images(fuzzer, capture)
-    for caller in callers:
-        caller.join(timeout=60)
-    assert len(answers) == 4 and all(a is not None for a in answers), answers
+    rclpy_node.spin_until(
+        lambda: all(f.done() for f in waiting), 60, 'an answer to the four waiting calls'
+    )
     # Good captures, one a second as a camera streams (automatic reconstruction tries at
     # most once a second): waypoints.
     waypoints = collect(rclpy_node, Path, '/curve/waypoints', LATCHED_QOS)
@@ -258,18 +293,6 @@ def _good_depth_info():
         r=[1.0, 0, 0, 0, 1, 0, 0, 0, 1],
         p=K[:3] + [0.0] + K[3:6] + [0.0] + K[6:] + [0.0],
     )
-
-
-def _trigger_in_thread(fuzzer, service):
-    # The probe node is spun by the test thread; a waiting call only polls its future.
-    client = fuzzer.probe.create_client(Trigger, f'/{fuzzer.node_name}/{service}')
-    deadline = time.monotonic() + 60
-    while not client.service_is_ready() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    future = client.call_async(Trigger.Request())
-    while not future.done() and time.monotonic() < deadline:
-        time.sleep(0.05)
-    return future.result() if future.done() else None
 
 
 def test_calib_node(spawn, rclpy_node, small_scene):
@@ -476,6 +499,188 @@ def test_recorder_and_player(spawn, rclpy_node, tmp_path):
     fuzz_parameters(player)
     assert len(set(recorder.cases + player.cases)) >= MIN_CASES
     assert 'Traceback' not in player.process.output()
+    print(recorder.summary())
+    # The recorder's bag, damaged: each copy ends the player in one error line, status 1.
+    for label, damage in _BAG_DAMAGES.items():
+        copy = tmp_path / label.replace(' ', '_')
+        shutil.copytree(tmp_path / 'fuzz', copy)
+        (data_file,) = copy.glob('*.mcap')
+        damage(data_file)
+        player.cases.append(f'damaged bag: {label}')
+        damaged = spawn(
+            [
+                executable('bag_tools', 'player'),
+                '--ros-args',
+                '-p',
+                f'bag:={copy}',
+                '-p',
+                'wait_for_subscribers:=0.0',
+            ],
+            name=f'player-{copy.name}',
+        )
+        assert wait_gone(damaged, 60), f'the player of a bag with {label} did not exit'
+        output = damaged.output()
+        errors = [line for line in output.splitlines() if '[ERROR]' in line]
+        assert damaged.proc.returncode == 1 and 'Traceback' not in output, (label, output)
+        assert len(errors) == 1 and 'is damaged' in errors[0], (label, output)
+        player.outcomes[f'damaged bag: {label}'] = 'refused'
+    print(player.summary())
+
+
+def _middle_chunk(path):
+    with open(path, 'rb') as stream:
+        chunks = SeekingReader(stream).get_summary().chunk_indexes
+    return chunks[len(chunks) // 2]
+
+
+def _overwrite(path, offset, data):
+    with open(path, 'r+b') as stream:
+        stream.seek(offset)
+        stream.write(data)
+
+
+def _cut(path, size):
+    with open(path, 'r+b') as stream:
+        stream.truncate(size)
+
+
+_BAG_DAMAGES = {  # label -> damage(data file)
+    'chunk records overwritten': lambda p: _overwrite(
+        p,
+        _middle_chunk(p).chunk_start_offset + _middle_chunk(p).chunk_length // 2,
+        b'\xff' * 32,
+    ),
+    'chunk header overwritten': lambda p: _overwrite(
+        p, _middle_chunk(p).chunk_start_offset + 1, b'\xff' * 40
+    ),
+    'file cut in a chunk': lambda p: _cut(
+        p, _middle_chunk(p).chunk_start_offset + _middle_chunk(p).chunk_length // 2
+    ),
+    'file cut to its header': lambda p: _cut(p, 8),
+}
+
+
+def test_live_view(spawn, rclpy_node):
+    fuzzer = start(spawn, rclpy_node, 'live_view', '-p', 'port:=0', '-p', 'discovery_period:=0.5')
+    # A served topic that gains a publisher of another type in another process (DDS
+    # refuses two types within one): its channel keeps the first type, and says so.
+    rclpy_node.create_publisher(String, '/fuzz/two_types', DEFAULT_QOS)
+    rclpy_node.spin_until(
+        lambda: 'serving /fuzz/two_types' in fuzzer.process.output(),
+        30,
+        'live_view to serve /fuzz/two_types',
+    )
+    other = rclpy.Context()
+    rclpy.init(context=other)
+    other_node = rclpy.create_node('other_type', context=other)
+    try:
+        fuzzer.reject(
+            'a served topic gains a second type',
+            lambda: other_node.create_publisher(JointState, '/fuzz/two_types', DEFAULT_QOS),
+        )
+    finally:
+        other_node.destroy_node()
+        rclpy.shutdown(context=other)
+    for topic in POSE_TOPICS.values():
+        poses = fuzzer.publisher(topic, PoseStamped, LATCHED_QOS)
+        for label, msg in bad_messages.poses():
+            fuzzer.reject(f'{topic}: {label}', lambda m=msg, p=poses: p.publish(m))
+    fuzz_parameters(fuzzer)
+    # A good camera pose is still turned into a transform.
+    sent = []
+    rclpy_node.create_subscription(
+        DiagnosticArray,
+        '/diagnostics',
+        lambda m: sent.extend(
+            int(v.value)
+            for s in m.status
+            if s.name == 'live_view: server'
+            for v in s.values
+            if v.key == 'transforms sent'
+        ),
+        DEFAULT_QOS,
+    )
+    rclpy_node.spin_until(lambda: sent, 30, 'the server status')
+    before = sent[-1]
+    T = np.eye(4)
+    T[2, 3] = 1.0
+    fuzzer.publisher(POSE_TOPICS['left'], PoseStamped, LATCHED_QOS).publish(
+        matrix_to_pose_stamped(T, 1, 'base_link')
+    )
+    rclpy_node.spin_until(lambda: sent[-1] > before, 30, 'a transform of a good camera pose')
+    finish(fuzzer)
+
+
+def test_stereo_coding_node(spawn, rclpy_node):
+    fuzzer = start(spawn, rclpy_node, 'stereo_coding_node')
+    frame = OPTICAL_FRAMES['left']
+    images = fuzzer.publisher(LEFT_RECT_TOPIC, Image)
+    disparities = fuzzer.publisher(DISPARITY_TOPIC, DisparityImage)
+    coded = collect(rclpy_node, Image, CODED_IMAGE_TOPIC)
+    left, _, truth_px = generated_scene((240, 320), seed=5, max_disparity_px=24)
+    stamp = [1_000_000_000]
+
+    def send(image_msg, disparity_msg):
+        stamp[0] += 1_000_000
+        for msg in (image_msg, disparity_msg, disparity_msg.image):
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp[0], 10**9)
+        images.publish(image_msg)
+        disparities.publish(disparity_msg)
+
+    def good_image():
+        return numpy_to_image(left, 'mono8', 0, frame)
+
+    refused = set()
+    for label, msg in bad_messages.disparities(truth_px, 0, frame):
+        fuzzer.reject(f'{DISPARITY_TOPIC}: {label}', lambda m=msg: send(good_image(), m))
+        refused.add(stamp[0])
+    for label, msg in bad_messages.images(0, frame):
+        good = bad_messages.disparity_image(truth_px, 0, frame)
+        act = fuzzer.survive if label == 'empty frame_id' else fuzzer.reject
+        act(f'{LEFT_RECT_TOPIC}: {label}', lambda m=msg, d=good: send(m, d))
+        if label != 'empty frame_id':
+            refused.add(stamp[0])
+    fuzz_parameters(fuzzer)
+    # A good pair is coded; nothing of a refused one ever was.
+    send(good_image(), bad_messages.disparity_image(truth_px, 0, frame))
+    rclpy_node.spin_until(
+        lambda: any(stamp_to_ns(m.header.stamp) == stamp[0] for m in coded),
+        30,
+        'the coded image of a good pair after the fuzzing',
+    )
+    assert not refused & {stamp_to_ns(m.header.stamp) for m in coded}
+    finish(fuzzer)
+
+
+def test_stereo_decoding_node(spawn, rclpy_node):
+    fuzzer = start(
+        spawn,
+        rclpy_node,
+        'stereo_decoding_node',
+        '-p',
+        'transport:=compressed',
+        package='stereo_coding_node',
+    )
+    frame = OPTICAL_FRAMES['left']
+    coded = fuzzer.publisher(CODED_COMPRESSED_TOPIC, CompressedImage)
+    decoded = collect(rclpy_node, DisparityImage, DECODED_DISPARITY_TOPIC)
+    before = fuzzer.rss_bytes()
+    for label, msg in bad_messages.compressed_images(1, frame):
+        fuzzer.reject(f'{CODED_COMPRESSED_TOPIC}: {label}', lambda m=msg: coded.publish(m))
+    grown = fuzzer.rss_bytes() - before
+    assert grown < FLOOD_MEMORY_BOUND, f'stereo_decoding_node grew by {grown / 1e6:.0f} MB'
+    fuzz_parameters(fuzzer)
+    # A good coded image is decoded.
+    left, _, truth_px = generated_scene((240, 320), seed=5, max_disparity_px=24)
+    marked = blind.encode(left, truth_px, 'vgm-stereo')
+    good = grey_to_compressed_jpeg(marked, 90, 2_000_000_000, frame)
+    coded.publish(good)
+    rclpy_node.spin_until(
+        lambda: any(stamp_to_ns(m.header.stamp) == 2_000_000_000 for m in decoded),
+        30,
+        'the decoded disparity of a good coded image after the fuzzing',
+    )
+    finish(fuzzer)
 
 
 # -- start-up --------------------------------------------------------------------------
@@ -488,6 +693,14 @@ STARTUP_PARAMETER = {
     'sensor_sim': 'rate',
     'recorder': 'flush_period',
     'player': 'rate',
+    'live_view': 'port',
+    'stereo_coding_node': 'jpeg_quality',
+    'stereo_decoding_node': 'max_pixels',
+}
+PACKAGES = {
+    'recorder': 'bag_tools',
+    'player': 'bag_tools',
+    'stereo_decoding_node': 'stereo_coding_node',
 }
 
 
@@ -496,7 +709,7 @@ def test_bad_start_up_is_one_error_line(spawn, tmp_path):
     (tmp_path / 'list.yaml').write_text('- 1\n- 2\n')
     runs = {}
     for name, parameter in STARTUP_PARAMETER.items():
-        package = 'bag_tools' if name in ('recorder', 'player') else name
+        package = PACKAGES.get(name, name)
         binary = executable(package, name)
         for label, args in (
             ('missing params file', ['--params-file', str(tmp_path / 'none.yaml')]),

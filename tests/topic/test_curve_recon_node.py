@@ -705,3 +705,31 @@ def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
     assert rms < 1e-3 and coverage > 0.9
     assert rms <= reference_rms
     assert node.alive() and 'Traceback' not in node.output()
+
+
+SIMULTANEOUS_CALLERS = 20
+
+
+def test_simultaneous_reconstruct_callers_are_all_answered(spawn, rclpy_node):
+    """Twenty callers of ~/reconstruct at once, no capture coming: every one is answered
+    (no capture within service_timeout), none lost in a burst of replies."""
+    node = spawn([executable('curve_recon_node'), '--ros-args', '-p', 'service_timeout:=2.0'])
+    clients = [
+        rclpy_node.create_client(Trigger, '/curve_recon_node/reconstruct')
+        for _ in range(SIMULTANEOUS_CALLERS)
+    ]
+    rclpy_node.spin_until(
+        lambda: all(c.service_is_ready() for c in clients), 30, 'every client to find the service'
+    )
+    futures = [c.call_async(Trigger.Request()) for c in clients]
+    try:
+        rclpy_node.spin_until(lambda: all(f.done() for f in futures), 30, 'every answer')
+    except TimeoutError:
+        answered = sum(f.done() for f in futures)
+        raise AssertionError(
+            f'{answered} of {SIMULTANEOUS_CALLERS} callers answered:\n{node.output()[-2000:]}'
+        ) from None
+    for future in futures:
+        answer = future.result()
+        assert not answer.success and 'no synchronized capture' in answer.message, answer
+    assert node.alive() and 'Traceback' not in node.output()

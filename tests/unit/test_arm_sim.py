@@ -36,13 +36,27 @@ def test_go_there_now_takes_the_slowest_joints_time():
     np.testing.assert_allclose(arm.qdot, 0.0)
 
 
-def test_command_beyond_the_limit_clamps():
+def test_command_just_beyond_the_limit_clamps():
     arm = make_arm()
-    beyond = UPPER + 1.0
+    beyond = UPPER + 0.09  # within LIMIT_SLACK_RAD: a commander's rounding
     arm.set_trajectory(NAMES, [0.0], [beyond])
     _, qs = run(arm, 0.0, 5.0)
     assert np.all(qs <= UPPER) and np.all(qs >= -UPPER)
     np.testing.assert_allclose(arm.q, UPPER)
+
+
+@pytest.mark.parametrize('position', [1e300, -1e300, UPPER[3] + 0.11])
+def test_command_far_beyond_the_limits_is_refused_and_the_arm_stays(position):
+    arm = make_arm()
+    q_start = np.full(7, 0.2)
+    arm.set_trajectory(NAMES, [0.0], [q_start])
+    run(arm, 0.0, 1.0)
+    target = q_start.copy()
+    target[3] = position
+    with pytest.raises(InvalidInput, match='pa10_joint4 at .* beyond its limits'):
+        arm.set_trajectory(NAMES, [0.0, 1.0], [q_start, target])
+    _, qs = run(arm, 1.0, 3.0)
+    np.testing.assert_allclose(qs, np.tile(q_start, (len(qs), 1)))
 
 
 def test_shuffled_joint_names_are_mapped():

@@ -1,6 +1,9 @@
 """Chapter 6 cores: the DFrFT against its definition, the thesis's coding round trip,
 ours under JPEG, and no watermark on unmarked or wrong-key images."""
 
+import struct
+import zlib
+
 import cv2
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ from stereo_coding_node.dfrft import (
     zigzag_restore,
 )
 from stereo_coding_node.errors import CodingError, KeyFileError
+from stereo_coding_node.inputs import compressed_image_size, known_disparity
 from stereo_coding_node.scenes import generated_scene
 from stereo_coding_node.views import synthesise_right
 
@@ -204,3 +208,53 @@ def test_ours_resynchronises_a_rotation_and_finds_nothing_in_a_rotated_unmarked_
     np.testing.assert_array_equal(detection.bits, blind.disparity_code(disparity))
     unmarked, _ = blind.decode_rotated(rotate(left, 7.3), key='k', max_degrees=10.0)
     assert not unmarked.found
+
+
+# --- inputs checked before any work ---------------------------------------------------
+
+
+def _disparity_with(value, at=(100, 100)):
+    disparity = np.full((240, 320), 12.0)
+    disparity[at] = value
+    return disparity
+
+
+def test_known_disparity_marks_values_below_min_disparity_unknown():
+    disparity = _disparity_with(-1.0)
+    disparity[0, 0] = np.nan
+    disparity[0, 1] = -np.inf
+    known = known_disparity(disparity, 0.0)
+    assert np.isnan(known[100, 100]) and np.isnan(known[0, 0]) and np.isnan(known[0, 1])
+    assert np.sum(np.isfinite(known)) == disparity.size - 3
+
+
+@pytest.mark.parametrize('value, reason', [(np.inf, 'inf'), (1e9, '1e\\+09'), (321.0, '321')])
+def test_known_disparity_refuses_infinite_or_wider_than_the_image(value, reason):
+    with pytest.raises(CodingError, match=f'1 disparities .* width 320 px \\(up to {reason}'):
+        known_disparity(_disparity_with(value), 0.0)
+
+
+@pytest.mark.parametrize('min_disparity', [np.nan, np.inf, -np.inf])
+def test_known_disparity_refuses_a_min_disparity_that_is_not_finite(min_disparity):
+    with pytest.raises(CodingError, match='min_disparity'):
+        known_disparity(_disparity_with(12.0), min_disparity)
+
+
+def _png_header_declaring(width, height):
+    def chunk(kind, data):
+        crc = zlib.crc32(kind + data) & 0xFFFFFFFF
+        return struct.pack('>I', len(data)) + kind + data + struct.pack('>I', crc)
+
+    header = struct.pack('>IIBBBBB', width, height, 8, 0, 0, 0, 0)
+    return b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', header) + chunk(b'IDAT', zlib.compress(b'\0'))
+
+
+def test_compressed_image_size_is_read_from_the_header_alone():
+    assert compressed_image_size(_png_header_declaring(16000, 16000)) == (16000, 16000)
+    _, jpeg_bytes = cv2.imencode('.jpg', np.zeros((24, 40), np.uint8))
+    assert compressed_image_size(jpeg_bytes.tobytes()) == (40, 24)
+    _, png_bytes = cv2.imencode('.png', np.zeros((24, 40), np.uint8))
+    assert compressed_image_size(png_bytes.tobytes()) == (40, 24)
+    for data in (b'', b'\x00\x01not a jpeg', jpeg_bytes.tobytes()[:4]):
+        with pytest.raises(CodingError, match='does not decode as JPEG or PNG'):
+            compressed_image_size(data)

@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import Any, Literal, Self
 
 import yaml
+import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
 from mcap.records import Channel, Message, Schema
@@ -121,6 +122,33 @@ class BagWriterError(BagError):
 
 class BagReaderError(BagError):
     """The path is not a readable rosbag2 MCAP bag."""
+
+
+class BagDamagedError(BagReaderError):
+    """A data file of the bag is damaged (overwritten bytes, cut short): reading it failed
+    after ``messages_read`` messages of that file."""
+
+    def __init__(self, message: str, path: Path, messages_read: int) -> None:
+        super().__init__(message, path)
+        self.messages_read = messages_read
+
+
+# What mcap's readers raise on a damaged file: its own errors (EndOfFile, CRC mismatch),
+# a length field read as garbage (OverflowError, MemoryError, struct.error), bytes that
+# decode as nothing (UnicodeDecodeError is a ValueError) and the decompressors' errors
+# (zstandard's ZstdError, lz4's RuntimeError).
+_DAMAGE_ERRORS = (
+    McapError,
+    struct.error,
+    EOFError,
+    ValueError,
+    IndexError,
+    KeyError,
+    OverflowError,
+    MemoryError,
+    RuntimeError,
+    zstandard.ZstdError,
+)
 
 
 def qos_profile(
@@ -657,6 +685,9 @@ class BagReader:
     Raises:
         BagReaderError: not a directory, unreadable/invalid metadata, unsupported storage or
             version, or missing data files.
+        BagDamagedError: (while iterating ``messages``) a data file is damaged: bytes
+            overwritten (chunk CRCs are checked), or cut short (a file of a bag with
+            metadata has lost its summary, or lost data since it was opened).
     """
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
@@ -756,16 +787,35 @@ class BagReader:
         return next((t for t in self.topics if t.name == name), None)
 
     def file_messages(
-        self, path: Path, topics: Iterable[str] | None = None
+        self, path: Path, topics: Iterable[str] | None = None, cut_short_ok: bool = False
     ) -> Iterator[BagMessage]:
         """Iterate ``BagMessage`` of one of ``files`` in log-time order (``topics``: names
-        to keep; None = all)."""
+        to keep; None = all). A file without a summary is read up to its last complete
+        chunk if the bag is ``recovered`` or ``cut_short_ok`` (reindex), else refused."""
         if _has_footer(path):
-            with open(path, 'rb') as stream:
-                reader = SeekingReader(stream)
-                records = reader.iter_messages(topics=topics, log_time_order=True)
-                yield from (BagMessage.of(*record) for record in records)
+            read = 0
+            try:
+                with open(path, 'rb') as stream:
+                    # CRCs checked: overwritten message bytes are otherwise played as valid.
+                    reader = SeekingReader(stream, validate_crcs=True)
+                    for record in reader.iter_messages(topics=topics, log_time_order=True):
+                        yield BagMessage.of(*record)
+                        read += 1
+            except _DAMAGE_ERRORS as error:
+                raise BagDamagedError(
+                    f'{path} is damaged after {read} messages ({type(error).__name__}: {error})',
+                    path,
+                    read,
+                ) from None
             return
+        if not (self.recovered or cut_short_ok):
+            # metadata.yaml is written once every file is closed (summary and footer):
+            # a file without them was cut short since.
+            raise BagDamagedError(
+                f'{path} is damaged: cut short (no summary; reindex keeps what is left)',
+                path,
+                0,
+            )
         unindexed = _stream_records_tolerant(path, topics)
         yield from (BagMessage.of(*r) for r in sorted(unindexed, key=lambda r: r[2].log_time))
 

@@ -22,6 +22,10 @@ inputs of any node, and would reappear on the live graph as if they were happeni
 
 A missing or invalid bag or parameter is reported in one log line and the process exits with
 status 2 (the project's status for unusable start-up input, as ``vgm_common.node_tools``).
+A bag found damaged while playing (chunk bytes overwritten: chunk CRCs are checked; a file
+cut short, before or while it plays) stops playback with one error line naming the file and the
+messages read from it, and the process exits with status 1; nothing of the damaged chunk
+is published.
 
 /diagnostics, every ``DIAGNOSTICS_PERIOD`` and when playback ends: state, messages played /
 messages of the played topics in the bag, bag time; WARN if a requested topic cannot be

@@ -49,7 +49,7 @@ def reindex(bag_path: str | os.PathLike[str]) -> BagReader:
         for index, path in enumerate(source.files):
             if index:
                 writer.split()
-            for message in source.file_messages(path):
+            for message in source.file_messages(path, cut_short_ok=True):
                 writer.write(message.topic, message.data, message.log_time, message.publish_time)
         writer.close()
         # Data files first, metadata.yaml last: until it exists the bag still reads as a

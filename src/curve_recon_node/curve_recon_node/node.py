@@ -20,6 +20,7 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.qos import QoSProfile, qos_profile_services_default
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
@@ -73,6 +74,26 @@ SETTINGS = ConfigParams(ReconstructionSettings)
 
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are answered
+# ~/reconstruct calls waiting at once; more are refused at once (a caller that loops
+# on the service must not grow the node without bound).
+MAX_WAITING_CALLS = 100
+# The replies to waiting calls come in bursts (a capture or the timeout answers them
+# all). Every client of a service receives every reply (rmw_fastrtps: each client's
+# reader keeps them and drops those not its own when its caller takes them), in the
+# caller's history (rclpy's default: keep-last 10); twenty replies at once reached 10 to
+# 13 of twenty callers in one process, nothing said. So replies go out paced, one each
+# REPLY_PERIOD (ten take 0.2 s: a caller that spins gets its own), and the service's own
+# history holds MAX_WAITING_CALLS requests and replies. A caller that does not spin
+# while more than its history of other replies goes out can still miss its own; only
+# its QoS can help it (a deeper response history).
+REPLIES_PER_PERIOD = 1
+REPLY_PERIOD = 0.02  # [s]
+RECONSTRUCT_SERVICE_QOS = QoSProfile(
+    history=qos_profile_services_default.history,
+    depth=MAX_WAITING_CALLS,
+    reliability=qos_profile_services_default.reliability,
+    durability=qos_profile_services_default.durability,
+)
 
 
 @dataclass
@@ -230,6 +251,7 @@ class CurveReconNode(GraphNode):
         # ~/reconstruct calls waiting for the next capture: [(reply(success, message),
         # deadline)] (see _on_reconstruct_request)
         self.service_requests = []
+        self.outgoing_replies: deque[tuple[Trigger.Response, object]] = deque()  # _send_replies
         self.depth = None  # (depth (H, W) with unusable values NaN, K (3, 3), stamp_ns)
         self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
         self.normals_published = False
@@ -270,11 +292,15 @@ class CurveReconNode(GraphNode):
             Trigger,
             '/curve_recon_node/reconstruct',
             DeferredCallback(self._on_reconstruct_request, self._on_reconstruct_blocking),
+            qos_profile=RECONSTRUCT_SERVICE_QOS,
             callback_group=ReentrantCallbackGroup(),
         )
         self.create_timer(1.0, self._publish_status, callback_group=sensors)
         self.create_timer(
             SERVICE_POLL_PERIOD, self._answer_timed_out_requests, callback_group=sensors
+        )
+        self.create_timer(
+            REPLY_PERIOD, self._send_replies, callback_group=MutuallyExclusiveCallbackGroup()
         )
         # The newest capture waits while one is reconstructed; one it replaces hands its
         # service calls on to the next.
@@ -431,18 +457,40 @@ class CurveReconNode(GraphNode):
         ``service_timeout``."""
 
         def reply(success, message):
-            response = Trigger.Response(success=success, message=message)
+            with self.state_lock:
+                self.outgoing_replies.append(
+                    (Trigger.Response(success=success, message=message), header)
+                )
+
+        self._queue_request(reply)
+
+    @guarded('reconstruct reply')
+    def _send_replies(self, limit=REPLIES_PER_PERIOD):
+        """Send up to ``limit`` queued ~/reconstruct replies (None: all)."""
+        with self.state_lock:
+            count = len(self.outgoing_replies) if limit is None else limit
+            batch = [
+                self.outgoing_replies.popleft()
+                for _ in range(min(count, len(self.outgoing_replies)))
+            ]
+        for response, header in batch:
             try:
                 self.reconstruct_service.send_response(response, header)
             except Exception as error:  # noqa: BLE001 - the caller may be gone
                 self.diagnostics.reject('reconstruct reply', error)
 
-        self._queue_request(reply)
-
     def _queue_request(self, reply):
         deadline = time.monotonic() + self.params.service_timeout
         with self.state_lock:
-            self.service_requests.append((reply, deadline))
+            waiting = len(self.service_requests)
+            if waiting < MAX_WAITING_CALLS:
+                self.service_requests.append((reply, deadline))
+                return
+        self.diagnostics.reject(
+            'reconstruct call',
+            f'{waiting} calls are waiting already (at most {MAX_WAITING_CALLS})',
+        )
+        reply(False, f'refused: {waiting} reconstruct calls are waiting already')
 
     def _on_reconstruct_blocking(self, request, response):
         """~/reconstruct under an executor without deferred services: wait here."""
@@ -669,6 +717,7 @@ class CurveReconNode(GraphNode):
             waiting, self.service_requests = self.service_requests, []
         for reply, _ in waiting:
             reply(False, 'curve_recon_node is shutting down')
+        self._send_replies(None)  # guarded: positional only
 
 
 def main(args=None):

@@ -23,7 +23,8 @@ A slow viewer never slows the graph: the subscription callbacks only hand the by
 the server, which queues at most ``message_backlog_size`` messages per client and drops
 the oldest beyond that (inside foxglove-sdk, which does not report how many).
 /diagnostics, every ``DIAGNOSTICS_PERIOD``: the URL, clients, channels, messages
-forwarded per topic, transforms sent and rejected inputs.
+forwarded per topic, transforms sent and rejected inputs (among them a served topic that
+gained a publisher of another type: its channel keeps its first type).
 """
 
 import sys
@@ -86,8 +87,9 @@ class _Forwarded:
     subscribes to it, counts and, if latched, the last message (sent again to a client
     that subscribes while the ROS subscription already exists)."""
 
-    def __init__(self, channel, message_type, qos):
+    def __init__(self, channel, type_name, message_type, qos):
         self.channel = channel
+        self.type_name = type_name  # pkg/msg/Type
         self.message_type = message_type
         self.qos = qos
         self.latched = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -153,6 +155,7 @@ class LiveViewNode(GraphNode):
         self._discovery = TopicDiscovery(self, self.params, 'serving')
         self._lock = threading.Lock()  # the server's threads and the executor's
         self._forwarded = {}  # topic -> _Forwarded
+        self._mixed_types = set()  # served topics that gained a publisher of another type
         self._client_topics = {}  # client id -> set of topics
         self._transforms_sent = 0
         self._camera_transforms = {}  # camera frame -> FrameTransform
@@ -194,8 +197,20 @@ class LiveViewNode(GraphNode):
     # -- topics (executor thread) ------------------------------------------------------
 
     def _discover(self):
-        for topic in self._discovery.poll(self._forwarded):
+        for topic in self._discovery.poll(self._forwarded, self._check_types):
             self._advertise(topic)
+
+    def _check_types(self, name, types):
+        """A served topic that gained a publisher of another type (another process: DDS
+        refuses it within one): its channel keeps its first type, so the other type's
+        messages are not served; said once per topic, as the recorder does."""
+        if len(types) > 1 and name not in self._mixed_types:
+            self._mixed_types.add(name)
+            self.diagnostics.reject(
+                name,
+                f'now published with several types {types}: '
+                f'only {self._forwarded[name].type_name} is served',
+            )
 
     def _advertise(self, topic):
         encoding, text = topic.definition
@@ -205,7 +220,10 @@ class LiveViewNode(GraphNode):
             schema=foxglove.Schema(name=topic.type_name, encoding=encoding, data=text.encode()),
         )
         forwarded = _Forwarded(
-            channel, topic.message_type, subscription_qos(p.qos_profile for p in topic.publishers)
+            channel,
+            topic.type_name,
+            topic.message_type,
+            subscription_qos(p.qos_profile for p in topic.publishers),
         )
         with self._lock:
             self._forwarded[topic.name] = forwarded

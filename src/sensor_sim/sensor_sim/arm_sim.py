@@ -33,6 +33,9 @@ ARM_MODES = ('position', 'velocity')
 # A commanded velocity beyond this multiple of a joint's limit is a broken controller's,
 # refused rather than silently clamped (limits are enforced either way while moving).
 IMPLAUSIBLE_SPEED = 10.0
+# A set point this far beyond a joint's position limit is a broken command (1e300 rad),
+# refused; closer ones (a commander's rounding at a limit) are clamped while moving.
+LIMIT_SLACK_RAD = 0.1
 
 
 class SimulatedArm:
@@ -141,7 +144,8 @@ class SimulatedArm:
 
         Raises:
             InvalidInput: unknown, missing or duplicate joint names, wrong shapes,
-                non-finite values, times not strictly increasing or velocities beyond
+                non-finite values, times not strictly increasing, positions beyond the
+                position limits by more than LIMIT_SLACK_RAD or velocities beyond
                 IMPLAUSIBLE_SPEED times the limits. The previous command stays in force.
         """
         order = self._column_order(joint_names)
@@ -160,6 +164,7 @@ class SimulatedArm:
                 times_from_start,
             )
         positions = _array(positions, 'positions', (n_points, n))
+        self._check_within_limits(positions[:, order])
         if velocities is not None and np.size(velocities) == 0:
             velocities = None
         if velocities is not None:
@@ -275,6 +280,23 @@ class SimulatedArm:
         self._times, self._positions, self._velocities = times, positions, velocities
         self._start_time = float(start_time)
         self._q_at_command = self._q.copy()  # held until start_time
+
+    def _check_within_limits(self, positions: FloatArray) -> None:
+        """Raise InvalidInput naming the first joint of ``positions`` ((N, n), arm order)
+        beyond its limits by more than LIMIT_SLACK_RAD."""
+        beyond = (positions < self._lower - LIMIT_SLACK_RAD) | (
+            positions > self._upper + LIMIT_SLACK_RAD
+        )
+        if not np.any(beyond):
+            return
+        point, joint = (int(i) for i in np.argwhere(beyond)[0])
+        raise InvalidInput(
+            f'point {point}: {self.joint_names[joint]} at {positions[point, joint]:.4g} rad is '
+            f'beyond its limits [{self._lower[joint]:.4g}, {self._upper[joint]:.4g}] by more '
+            f'than {LIMIT_SLACK_RAD:g} rad, not a command to follow',
+            'positions',
+            positions,
+        )
 
     def _column_order(self, joint_names: str | Iterable[str]) -> npt.NDArray[np.intp]:
         """Indices that put columns given in ``joint_names`` order into the arm's order."""

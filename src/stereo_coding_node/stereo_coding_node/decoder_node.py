@@ -18,6 +18,7 @@ from stereo_msgs.msg import DisparityImage
 from stereo_coding_node import blind, thesis
 from stereo_coding_node.encoder_node import GREY_ENCODINGS, common_params, effective_strength
 from stereo_coding_node.errors import CodingError
+from stereo_coding_node.inputs import compressed_image_size
 from stereo_coding_node.views import synthesise_right
 from vgm_common.conversions import (
     compressed_to_grey,
@@ -39,6 +40,10 @@ from vgm_common.topics import (
 from vgm_common.worker import Worker
 
 INVALID_DISPARITY = -1.0  # below min_disparity (0), as stereo_image_proc marks unknown
+# As sfs_stereo_node's max_pixels, which bounds the rectified image that is coded: a
+# 2048x2048 image at most. Decoding takes about 17 bytes a pixel (a 16000x16000 PNG of
+# 249 kB took 4.4 GB), so 70 MB here.
+DEFAULT_MAX_PIXELS = 4_194_304
 
 
 PARAMETERS = common_params() + [
@@ -60,6 +65,13 @@ PARAMETERS = common_params() + [
         0.0,
         'T of the decoded DisparityImage [m] (0 = unknown).',
         range=(0.0, 1e3),
+    ),
+    Param(
+        'max_pixels',
+        DEFAULT_MAX_PIXELS,
+        'Coded images with more pixels are refused before any decoding (memory bound; '
+        'a compressed image by the size in its header).',
+        range=(64, 100_000_000),
     ),
 ]
 
@@ -122,6 +134,16 @@ class StereoDecodingNode(GraphNode):
         return self.key_cache[1]
 
     def _process(self, msg):
+        if isinstance(msg, CompressedImage):
+            width, height = compressed_image_size(bytes(msg.data))
+        else:
+            width, height = msg.width, msg.height
+        if width * height > self.params.max_pixels:  # before any decoding: a memory bound
+            raise CodingError(
+                f'coded image {width}x{height} has more than max_pixels '
+                f'{self.params.max_pixels} pixels',
+                key='size',
+            )
         if isinstance(msg, CompressedImage):
             coded = compressed_to_grey(msg)
         else:

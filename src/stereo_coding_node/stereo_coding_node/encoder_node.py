@@ -15,6 +15,7 @@ from stereo_msgs.msg import DisparityImage
 
 from stereo_coding_node import blind, thesis
 from stereo_coding_node.errors import CodingError
+from stereo_coding_node.inputs import known_disparity
 from vgm_common.conversions import (
     grey_to_compressed_jpeg,
     image_to_numpy,
@@ -35,6 +36,12 @@ from vgm_common.worker import Worker
 
 METHODS = ('ours', 'thesis')
 GREY_ENCODINGS = ('mono8', '8UC1')
+
+
+def _two_finite_angles(angles):
+    if len(angles) != 2:
+        return 'needs two angles'
+    return None if all(np.isfinite(angles)) else 'angles must be finite'
 
 
 def common_params():
@@ -69,7 +76,7 @@ def common_params():
             'frft_angles',
             list(thesis.DEFAULT_ANGLES),
             'method thesis: DFrFT angles (a, b) [rad] (order 2a/pi), not given by the thesis.',
-            check=lambda v: None if len(v) == 2 else 'needs two angles',
+            check=_two_finite_angles,
         ),
         Param(
             'watermark_scale',
@@ -185,8 +192,7 @@ class StereoCodingNode(GraphNode):
                 f'{left.shape[1]}x{left.shape[0]} differ in size',
                 key='size',
             )
-        # stereo_msgs: values below min_disparity mark unknown pixels.
-        disparity[~(disparity >= disparity_msg.min_disparity)] = np.nan
+        disparity = known_disparity(disparity, disparity_msg.min_disparity)
         started = time.perf_counter()
         p = self.params
         if p.method == 'thesis':
