@@ -169,3 +169,28 @@ def fuse_local_affine(
     fade = weight / (weight + 0.05 / (2 * np.pi * residual_sigma**2))
     fused = guide + np.nan_to_num(smooth) * fade
     return np.where(valid_sfs, fused, np.nan)
+
+
+def fill_from_stereo(
+    Z_stereo: npt.ArrayLike, surface: npt.ArrayLike, smooth_sigma: float = 1.0
+) -> FloatArray:
+    """Dense depth from stereo alone, for surfaces the shading model does not explain
+    (texture, varying albedo): the matches denoised by a normalised convolution of
+    ``smooth_sigma`` [px] over the matches only, and each hole filled from the matches
+    around it by normalised convolutions of doubling width (pull-push), the narrowest
+    that reaches it. O(H W log size), no solver. ``Z_stereo`` (H, W) [m], NaN where no
+    match; ``surface`` (H, W) bool. Returns (H, W) [m], NaN off the surface (and
+    everywhere when there is no match)."""
+    Z_stereo = np.asarray(Z_stereo, dtype=np.float32)
+    surface = np.asarray(surface, dtype=bool)
+    known = np.isfinite(Z_stereo) & surface
+    values = np.where(known, Z_stereo, 0.0).astype(np.float32)
+    weights = known.astype(np.float32)
+    smooth, _ = _normalized_blur(values, weights, smooth_sigma)
+    fused = np.where(known, smooth, np.nan)
+    sigma = 2.0 * smooth_sigma
+    while np.isnan(fused[surface]).any() and known.any() and sigma < 2 * max(Z_stereo.shape):
+        estimate, reach = _normalized_blur(values, weights, sigma)
+        fused = np.where(np.isnan(fused) & (reach > 1e-3), estimate, fused)
+        sigma *= 2.0
+    return np.where(surface, fused, np.nan)

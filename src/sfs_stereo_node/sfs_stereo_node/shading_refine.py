@@ -67,6 +67,18 @@ class ShadingModel(NamedTuple):
     intensity: float = 1.0
 
 
+# The coarsest level's shading residual beyond this many sigma_i: the image is not the
+# uniform-albedo shading of a surface under the given light (texture, another light,
+# a non-Lambertian scene), and refining by it would bend the depth. Measured residuals
+# [grey levels] on the coarsest level: Middlebury Aloe 35; the default scene 2.2; the
+# textureless scene families 0.6-16.7 (a 320x240 sphere the highest).
+MAX_MISFIT_SIGMAS = 12.0
+
+
+class ShadingModelMismatch(InvalidInput):
+    """The image is not explained by the shading model (see ``MAX_MISFIT_SIGMAS``)."""
+
+
 class RefineResult(NamedTuple):
     """What :func:`refine_depth` made: the refined depth, the final shading residual and
     what each level of the coarse-to-fine solve did."""
@@ -564,6 +576,19 @@ def refine_depth(
             cauchy,
             max_step,
         )
+        if i == 0 and not rms <= MAX_MISFIT_SIGMAS * sigma_i:  # NaN: no pixel is shading
+            raise ShadingModelMismatch(
+                'the shading model does not explain the image: '
+                + (
+                    f'residual {rms:.1f} grey levels on the coarsest grid (> '
+                    f'{MAX_MISFIT_SIGMAS:g} x {sigma_i:g})'
+                    if np.isfinite(rms)
+                    else 'no pixel of the coarsest grid is left to the shading term'
+                )
+                + ': texture, varying albedo or another light',
+                key='image',
+                value=rms,
+            )
         Z = np.full(level.surface.shape, np.nan)
         Z[level.surface] = z
         report.append((level.surface.shape[1], int(level.surface.sum()), n_steps))
