@@ -181,26 +181,32 @@ def test_sfs_stereo_node(spawn, rclpy_node, small_scene):
     publishers, _ = publish_rig(rclpy_node, calibration)  # the good rig again
     fuzz_parameters(fuzzer)
     flood_images(fuzzer, capture)
-    # A good pair: fused depth of its stamp.
     fused = collect(rclpy_node, Image, '/depth/fused')
-    stamp = capture.next_stamp()
-    capture.publish(
-        {
-            c: numpy_to_image(
-                grey(renderer.scene_image(c), scenario, i).round().clip(0, 255).astype(np.uint8),
-                'mono8',
-                stamp,
-                OPTICAL_FRAMES[c],
-            )
-            for i, c in enumerate(('left', 'right'))
-        },
-        stamp,
-    )
-    rclpy_node.spin_until(
-        lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in fused),
-        120,
-        'fused depth of a good pair after the fuzzing',
-    )
+    good = {
+        c: grey(renderer.scene_image(c), scenario, i).round().clip(0, 255).astype(np.uint8)
+        for i, c in enumerate(('left', 'right'))
+    }
+
+    def good_pair_fused(what):
+        stamp = capture.next_stamp()
+        capture.publish(
+            {c: numpy_to_image(good[c], 'mono8', stamp, OPTICAL_FRAMES[c]) for c in good}, stamp
+        )
+        rclpy_node.spin_until(
+            lambda: any(stamp_to_ns(m.header.stamp) == stamp for m in fused), 120, what
+        )
+
+    good_pair_fused('fused depth of a good pair after the fuzzing')
+    # With the rectification cached: one pair of another size than the calibration's
+    # (it once cleared the cache and ended depth for good), the left image on both topics.
+    for label, pair in (
+        ('a 160x120 pair under a 320x240 calibration', {c: good[c][::2, ::2] for c in good}),
+        ('the left image on both topics', {c: good['left'] for c in good}),
+    ):
+        stamp = capture.next_stamp()
+        msgs = {c: numpy_to_image(pair[c], 'mono8', stamp, OPTICAL_FRAMES[c]) for c in pair}
+        fuzzer.reject(label, lambda m=msgs, s=stamp: capture.publish(m, s))
+    good_pair_fused('fused depth of a good pair after the odd-sized and the doubled pairs')
     finish(fuzzer)
 
 
