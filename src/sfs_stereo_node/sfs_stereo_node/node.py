@@ -522,6 +522,9 @@ class SfsStereoNode(GraphNode):
         disparity.delta_d = result.disparity_step
         camera = PinholeCamera(w, h, result.P[:3, :3], np.zeros(5), np.eye(4))
         info = camera_to_camera_info(camera, stamp_ns, DEPTH_FRAME, np.eye(3), result.P)
+        # The info first: a subscriber pairing depth with its info by stamp then has both
+        # (topics are not ordered across one another by DDS; this is the likely order).
+        self.publishers_['info'].publish(info)
         self.publishers_['disparity'].publish(disparity)
         for key, depth in (
             ('stereo', result.depth_stereo),
@@ -532,7 +535,6 @@ class SfsStereoNode(GraphNode):
             if depth is None:  # nothing to scale it: the reason is in /diagnostics
                 continue
             self.publishers_[key].publish(numpy_to_image(depth, '32FC1', stamp_ns, DEPTH_FRAME))
-        self.publishers_['info'].publish(info)
         if result.depth_fused is not None:
             self.publishers_['points'].publish(
                 depth_to_pointcloud2(
