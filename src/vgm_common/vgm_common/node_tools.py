@@ -386,7 +386,10 @@ def subscriber_gate_params(what: str) -> list[Param]:
             'Also wait until each of these nodes (a name, or '
             '/namespace/name) has a matched subscription on every topic the node '
             'publishes, e.g. [recorder]: a count alone is met by other subscribers '
-            'while the recorder is still starting.',
+            'while the recorder is still starting. Name only nodes that subscribe '
+            'every stream from their start, never one that subscribes on demand '
+            '(live_view, while a viewer watches): without its viewer the wait lasts '
+            'subscriber_timeout.',
             check=_node_names,
             read_only=True,
         ),
