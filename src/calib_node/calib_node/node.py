@@ -376,6 +376,7 @@ class CalibNode(GraphNode):
         self.coverage = Coverage()
         self.targets = {}  # stamp_ns -> PoseStamped, the most recent RECENT_TARGETS
         self.target_seen = False  # auto: a target pose arrived (the stage is in use)
+        self.handheld_said = False  # auto: the switch to handheld views was logged
         self.target_arrived = threading.Condition(self.lock)
         # name -> (width, height), fixed by the first good image
         self.image_sizes: dict[str, tuple[int, int]] = {}
@@ -479,6 +480,14 @@ class CalibNode(GraphNode):
         target = self._target_of(stamp_ns, completed)
         if target is False:
             return
+        if target is None and self.source == 'auto' and not self.handheld_said:
+            self.handheld_said = True  # what auto chose must not be a silent switch
+            topic = self.resolve_topic_name(TARGET_POSE_TOPIC)
+            self.get_logger().info(
+                f'chart.source auto: no target pose on {topic} '
+                f'for this view within {TARGET_WAIT_S} s: views are taken as handheld (chart '
+                'poses estimated) until a target pose arrives'
+            )
         T_base_chart = None if target is None else _target_matrix(target)  # checked
         corners, misses, greys = {}, [], {}
         for name in self.names:
