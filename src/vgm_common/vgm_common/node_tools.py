@@ -6,6 +6,7 @@ from __future__ import annotations
 import array
 import contextlib
 import dataclasses
+import difflib
 import functools
 import math
 import os
@@ -206,7 +207,8 @@ class NodeParameters:
             raise ParameterError(f'renamed parameters (CHANGELOG.md): {renames}', key=moved[0])
         if unknown:
             self._node.get_logger().warning(
-                f'ignored, not parameters of this node: {", ".join(unknown)}'
+                'ignored, not parameters of this node: '
+                + ', '.join(_with_suggestion(name, self._params) for name in unknown)
             )
 
     def __getattr__(self, name: str) -> Any:
@@ -277,6 +279,66 @@ def message_type_name(msg_type: Any) -> str:
 
 
 TYPE_CHECK_PERIOD = 2.0  # [s] how often a node looks for other types on its topics
+
+
+def _with_suggestion(name: str, declared: Iterable[str]) -> str:
+    """``name``, with the nearest declared name if one is near: 'rat (did you mean rate?)'."""
+    near = difflib.get_close_matches(name, list(declared), n=1, cutoff=0.75)
+    return f'{name} (did you mean {near[0]}?)' if near else name
+
+
+def params_file_section_warnings(
+    path: str | Path, node_name: str, declared: Callable[[str], bool]
+) -> list[str]:
+    """What a ``--params-file`` holds for the node of fully qualified name ``node_name``
+    that a user would want to hear about, as warning texts: no section applies to it (rcl
+    then starts it on its defaults without a word), or the sections that apply (its own,
+    ``/**``, ...) hold no name ``declared`` says is its parameter."""
+    content = yaml.safe_load(Path(path).read_text())
+    if not isinstance(content, dict):
+        return []  # check_params_files refused it already
+    sections = [str(key) for key in content]
+    found = ', '.join(sections) or 'none'
+    matching = [key for key in sections if _section_matches(key, node_name)]
+    if not matching:
+        return [
+            f'params file {path} has no section for {node_name} (its sections: {found}): '
+            'none of its values apply to this node'
+        ]
+    names = [
+        name
+        for key in matching
+        for name in _dotted_names((content[key] or {}).get('ros__parameters') or {})
+    ]
+    if names and not any(declared(name) for name in names):
+        return [
+            f'params file {path}: its section {", ".join(matching)} holds no parameter '
+            f'of {node_name} (its sections: {found})'
+        ]
+    return []
+
+
+def _section_matches(section: str, node_name: str) -> bool:
+    """Whether the params file section ``section`` applies to ``node_name`` as rcl reads
+    it: a name without a namespace is in /, ``/**`` any namespaces, ``*`` one token."""
+    key = section if section.startswith('/') else f'/{section}'
+    pattern = re.escape(key).replace(r'/\*\*', '(?:/[^/]+)*').replace(r'\*', '[^/]*')
+    return re.fullmatch(pattern, node_name) is not None
+
+
+def _dotted_names(values: Mapping[str, Any], prefix: str = '') -> list[str]:
+    """Parameter names of a ``ros__parameters`` mapping: nested mappings are dotted."""
+    names = []
+    for key, value in values.items():
+        if isinstance(value, dict):
+            names += _dotted_names(value, f'{prefix}{key}.')
+        else:
+            names.append(f'{prefix}{key}')
+    return names
+
+
+def _params_files(argv: Sequence[str]) -> list[str]:
+    return [path for flag, path in zip(argv, argv[1:]) if flag == '--params-file']
 
 
 class GraphNode(Node):
@@ -824,6 +886,11 @@ def run_node(
     status = 0
     try:
         node = node_class()
+        for path in _params_files(sys.argv[1:] if args is None else args):
+            for warning in params_file_section_warnings(
+                path, node.get_fully_qualified_name(), node.has_parameter
+            ):
+                node.get_logger().warning(warning)
         node.create_timer(NAME_CHECK_PERIOD, _name_clash_check(node))
         executor = executor_class()
         executor.add_node(node)
@@ -867,9 +934,7 @@ def run_node(
 def check_params_files(argv: Sequence[str]) -> None:
     """Raise VgmError naming the file if a ``--params-file`` in ``argv`` is missing or is
     not a YAML mapping (rcl would fail with a traceback-length message)."""
-    for flag, path in zip(argv, argv[1:]):
-        if flag != '--params-file':
-            continue
+    for path in _params_files(argv):
         try:
             content = yaml.safe_load(Path(path).read_text())
         except OSError as error:
