@@ -26,6 +26,7 @@ from collections.abc import (
     MutableMapping,
     Sequence,
 )
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType, MappingProxyType
@@ -916,6 +917,7 @@ def run_node(
     finally:
         _set_stop_signal_handler(signal.SIG_IGN)  # a second Ctrl-C must not cut this short
         if executor is not None:
+            _finish_callbacks(executor)
             executor.shutdown()
         if node is not None:
             close = getattr(node, 'close', None)
@@ -929,6 +931,18 @@ def run_node(
         for signum, handler in previous_handlers.items():
             signal.signal(signum, handler)
     return status
+
+
+def _finish_callbacks(executor: Executor) -> None:
+    """Let the callbacks a MultiThreadedExecutor handed to its threads finish (those not
+    started are cancelled) before ``executor.shutdown()`` destroys its guard condition.
+    rclpy 7.1's shutdown does not wait for them (it tests its shutdown flag after setting
+    it); a callback ending after it triggers the destroyed guard, and its task's
+    InvalidHandle was printed at exit as 'The following exception was never retrieved:
+    cannot use Destroyable because destruction was requested'."""
+    pool = getattr(executor, '_executor', None)
+    if isinstance(pool, ThreadPoolExecutor):
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def check_params_files(argv: Sequence[str]) -> None:
