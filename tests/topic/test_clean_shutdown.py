@@ -10,7 +10,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from harness import executable
 from vgm_common.qos import DEFAULT_QOS
 
-PROBLEM = re.compile(r'\[(WARN|ERROR)\]|never retrieved|Traceback')
+PROBLEM = re.compile(r'\[(WARN|ERROR)\]|never retrieved|never awaited|Traceback')
 
 
 @pytest.mark.parametrize('package', ['sensor_sim', 'calib_node', 'curve_recon_node'])

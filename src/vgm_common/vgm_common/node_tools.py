@@ -934,15 +934,16 @@ def run_node(
 
 
 def _finish_callbacks(executor: Executor) -> None:
-    """Let the callbacks a MultiThreadedExecutor handed to its threads finish (those not
-    started are cancelled) before ``executor.shutdown()`` destroys its guard condition.
-    rclpy 7.1's shutdown does not wait for them (it tests its shutdown flag after setting
-    it); a callback ending after it triggers the destroyed guard, and its task's
-    InvalidHandle was printed at exit as 'The following exception was never retrieved:
-    cannot use Destroyable because destruction was requested'."""
+    """Let the callbacks a MultiThreadedExecutor handed to its threads run to their end
+    before ``executor.shutdown()`` destroys its guard condition. rclpy 7.1's shutdown does
+    not wait for them (it tests its shutdown flag after setting it); a callback ending
+    after it triggers the destroyed guard, and its task's InvalidHandle was printed at
+    exit as 'The following exception was never retrieved: cannot use Destroyable because
+    destruction was requested'. None is cancelled: a cancelled one is a coroutine never
+    awaited, which Python warns about at exit."""
     pool = getattr(executor, '_executor', None)
     if isinstance(pool, ThreadPoolExecutor):
-        pool.shutdown(wait=True, cancel_futures=True)
+        pool.shutdown(wait=True)
 
 
 def check_params_files(argv: Sequence[str]) -> None:
