@@ -197,6 +197,7 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
     assert int(values['views']) == 10 and values['method'] == 'lm'
     assert all(float(values[f'rms_px {n}']) < 0.5 for n in CAMERA_NAMES)
     assert 'calibrated 3 cameras from 10 views' in calib.output()
+    assert f'wrote {out_dir.resolve() / "calibration.yaml"} and left.yaml' in calib.output()
     for name in ('calibration.yaml', 'left.yaml', 'right.yaml', 'aux.yaml'):
         assert (out_dir / name).is_file()
 

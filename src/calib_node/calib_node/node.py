@@ -701,10 +701,19 @@ class CalibNode(GraphNode):
         }
         if p.output_dir:
             try:
-                write_calibration(p.output_dir, cameras, OPTICAL_FRAMES, rectification, quality)
+                written = write_calibration(
+                    p.output_dir, cameras, OPTICAL_FRAMES, rectification, quality
+                )
             except (OSError, VgmError) as error:
+                self.get_logger().error(f'cannot write {p.output_dir}: {error}')
                 self.diagnostics.publish(
                     'calibration', 'error', f'cannot write {p.output_dir}: {error}'
+                )
+            else:  # where the files are is the first thing a user looks for
+                written = written.resolve()
+                self.get_logger().info(
+                    f'wrote {written} and {", ".join(f"{n}.yaml" for n in cameras)} '
+                    f'beside it (calibration_file:={written} publishes it again)'
                 )
         self.calibrations += 1
         rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in fits.items())
