@@ -444,6 +444,7 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
         not answer.success and 'coverage' in answer.message and 'tilt the chart' in answer.message
     ), answer.message
     assert any('skew 0 %' in s.message for s in probe.statuses('views', 'coverage'))
+    assert '(still: ' in calib.output() and 'tilt the chart' in calib.output()  # the log too
     assert call(rclpy_node, '/calib_node/reset').success
     for count, view in enumerate(images, 1):  # one at a time: the image queues hold 10
         publish(view)

@@ -537,10 +537,18 @@ class CalibNode(GraphNode):
             self.views.append((T_base_chart, corners))
             count = len(self.views)
             coverage = self.coverage.summary() if T_base_chart is None else ''
+            # What to move next, in the log too: a user without ros2cli cannot read
+            # /diagnostics.
+            still = (
+                self.coverage.missing(self.params.min_coverage)
+                if T_base_chart is None and not self.calibrations
+                else ''
+            )
         self.get_logger().info(
             f'view {count}: chart found in {", ".join(corners)}'
             + (f' (not in {"; ".join(misses)})' if misses else '')
             + (f'; coverage {coverage}' if coverage else '')
+            + (f' (still: {still})' if still else '')
         )
         if (
             self.params.auto_calibrate
