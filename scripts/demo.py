@@ -261,12 +261,7 @@ class ClosedLoop:
         values = self.probe.values('pa10_ik_node: tracking')
         phase = values.get('phase', '?')
         if chatty:
-            print(
-                f'   ... {phase}: {float(values.get("progress", 0)):.0%} of the curve, '
-                f'force {float(values.get("force_N", "nan")):.2f} N, path error '
-                f'{float(values.get("position_error_m", "nan")) * 1e3:.2f} mm',
-                flush=True,
-            )
+            print(f'   ... {tracking_line(values)}', flush=True)
         if phase == 'done':  # give the arm a moment to lift off the surface
             self.done_at = self.done_at or now
             return now - self.done_at > LIFT_OFF_TIME
@@ -279,6 +274,53 @@ class ClosedLoop:
         print(f'   done in {time.monotonic() - self.step_started:.1f} s', flush=True)
         self.step, self.step_started = step, time.monotonic()
         stage(number, self.total, text)
+
+
+def tracking_line(values):
+    """The arm's progress from pa10_ik_node's tracking status ``values``. Its error is
+    the controller's own (the tip across the approach axis from the reconstructed
+    waypoint path, LIVE_ERROR), not the report's tool path against the true curve;
+    reported only while it has one (tracking)."""
+    if 'phase' not in values:
+        return "waiting for pa10_ik_node's first tracking status"
+    line = (
+        f'{values["phase"]}: {float(values.get("progress", 0)):.0%} of the curve, '
+        f'force {float(values.get("force_N", "nan")):.2f} N'
+    )
+    error_m = float(values.get('position_error_m', 'nan'))
+    if np.isfinite(error_m):
+        line += f', {LIVE_ERROR} {error_m * 1e3:.2f} mm'
+    return line
+
+
+LIVE_ERROR = 'tip to waypoint path'
+# What each summary row and the live line measure (the report's "Measures" section).
+MEASURES = [
+    (
+        'calibration image RMS [px]',
+        'the calibrated and the true camera project the true surface; RMS of the pixel '
+        'distance between the two projections, worst camera',
+    ),
+    ('curve RMS [mm]', 'waypoints to the nearest point of the true curve, RMS'),
+    ('curve coverage [mm]', 'farthest point of the true curve from the waypoints'),
+    (
+        'fused depth median [mm]',
+        'fused depth pixels lifted to 3D (calibrated left pose): median |height above the '
+        'true surface| (depth.png, bottom row)',
+    ),
+    (
+        'tool path RMS [mm]',
+        'while tracking, the tool tip taken back onto the true surface along its normal, '
+        'to the true curve, RMS (curve.png, blue); the pressed tip in 3D sits '
+        'force / stiffness below the surface (curve.png, cyan: path_3d_rms_m)',
+    ),
+    ('force in band [%]', 'pressure samples while tracking within +-10 % of the desired force'),
+    (
+        f'live "{LIVE_ERROR}"',
+        "printed while the demo runs: pa10_ik_node's own error, the tip across the approach "
+        'axis from the reconstructed waypoints (not the true curve; position_error_m)',
+    ),
+]
 
 
 def free_live_view_port():
@@ -379,14 +421,20 @@ def evaluate(scenario, messages, truth_dir, calibration_dir, track):
     T_base_left = pose_to_matrix(left_pose.pose)
     P_rect = np.array((info or left_info).p).reshape(3, 4)
     R_rect = np.array(left_info.r).reshape(3, 3)
-    data['depth'] = {}
+    data['depth'], data['depth_heights'], data['depth_true'] = {}, {}, None
     results['depth'] = {}
     for topic in (SFS_DEPTH_TOPIC, FUSED_DEPTH_TOPIC, STEREO_DEPTH_TOPIC):
         if messages.get(topic):
             depth = image_to_numpy(messages[topic][-1][1])
             data['depth'][topic] = depth
+            data['depth_heights'][topic] = evaluation.depth_heights(
+                depth, P_rect, R_rect, T_base_left, scenario.surface
+            )
             results['depth'][topic] = evaluation.depth_errors(
                 depth, P_rect, R_rect, T_base_left, scenario.surface
+            )
+            data['depth_true'] = evaluation.true_rectified_depth(
+                cameras['left'], depth_true['left'], R_rect, P_rect, depth.shape
             )
 
     if not track:
@@ -409,6 +457,11 @@ def evaluate(scenario, messages, truth_dir, calibration_dir, track):
         ]
     ).reshape(-1, 3)
     data['tool_tracking'] = tool_points
+    data['tool_distances'] = (
+        evaluation.tool_path_distances(tool_points, curve, scenario.surface)
+        if len(tool_points)
+        else (np.empty(0), np.empty(0))
+    )
     data['windows'] = windows
     return results, data
 
@@ -447,8 +500,9 @@ def checks(results, track):
 def plot_report(report_dir, messages, data):
     figures = []
 
-    def save(fig, file, title):
-        fig.tight_layout()
+    def save(fig, file, title, tight=True):
+        if tight:
+            fig.tight_layout()
         fig.savefig(report_dir / file, dpi=80)
         plt.close(fig)
         figures.append((title, file))
@@ -462,40 +516,8 @@ def plot_report(report_dir, messages, data):
             ax.set_title(f'{name}: last capture', fontsize=9)
     save(fig, 'views.png', 'The three views')
 
-    fig = plt.figure(figsize=(11, 5))
-    ax = fig.add_subplot(1, 2, 1, projection='3d')
-    for piece in data['curve']:
-        ax.plot(*piece.T, 'k-', lw=1, label='true curve')
-    ax.plot(*data['waypoints'].T, 'r.', ms=2, label='waypoints')
-    if len(data['tool_tracking']):
-        ax.plot(*data['tool_tracking'].T, 'b-', lw=0.8, label='tool tip (tracking)')
-    ax.set_title('curve, waypoints and tool path [m]', fontsize=9)
-    handles, labels = ax.get_legend_handles_labels()
-    ax.legend(dict(zip(labels, handles)).values(), dict(zip(labels, handles)).keys(), fontsize=7)
-    ax2 = fig.add_subplot(1, 2, 2)
-    d = evaluation.distance_to_polylines(data['waypoints'], data['curve']) * 1e3
-    ax2.plot(d, 'r-', lw=0.8, label='waypoint to true curve')
-    if len(data['tool_tracking']):
-        dt = evaluation.distance_to_polylines(data['tool_tracking'], data['curve']) * 1e3
-        ax2.plot(np.linspace(0, len(d), len(dt)), dt, 'b-', lw=0.8, label='tool tip to curve')
-    ax2.set_ylabel('distance [mm]')
-    ax2.set_xlabel('waypoint index (tool samples stretched over it)')
-    ax2.legend(fontsize=7)
-    save(fig, 'curve.png', 'Reconstructed curve and tool path against the true curve')
-
-    depths = data['depth']
-    if depths:
-        fig, axes = plt.subplots(1, len(depths), figsize=(4.3 * len(depths), 3.6))
-        finite = np.concatenate([d[np.isfinite(d)] for d in depths.values()])
-        low, high = np.percentile(finite, [2, 98]) if finite.size else (0, 1)
-        for ax, (topic, depth) in zip(np.atleast_1d(axes), depths.items()):
-            im = ax.imshow(depth, vmin=low, vmax=high, cmap='viridis')
-            ax.set_title(topic, fontsize=9)
-            ax.axis('off')
-        fig.colorbar(im, ax=axes, shrink=0.8, label='depth [m]')
-        fig.savefig(report_dir / 'depth.png', dpi=80)
-        plt.close(fig)
-        figures.append(('Depth: SFS, fused, sparse stereo', 'depth.png'))
+    plot_curve(data, save)
+    plot_depth(data, save)
 
     joint_states = messages.get(JOINT_STATES_TOPIC, [])
     pressure = messages.get(PRESSURE_TOPIC, [])
@@ -520,6 +542,88 @@ def plot_report(report_dir, messages, data):
         ax_f.legend(fontsize=7)
         save(fig, 'arm.png', 'Joint trajectories and contact force')
     return figures
+
+
+def plot_curve(data, save):
+    """curve.png: the curve, waypoints and tool path in 3D, and their distances to the
+    true curve, each with the definition the summary table uses."""
+    fig = plt.figure(figsize=(11, 5))
+    ax = fig.add_subplot(1, 2, 1, projection='3d')
+    for piece in data['curve']:
+        ax.plot(*piece.T, 'k-', lw=1, label='true curve')
+    ax.plot(*data['waypoints'].T, 'r.', ms=2, label='waypoints')
+    if len(data['tool_tracking']):
+        ax.plot(*data['tool_tracking'].T, 'b-', lw=0.8, label='tool tip (tracking, pressed in)')
+    ax.set_xlabel('x [m]', fontsize=8)
+    ax.set_ylabel('y [m]', fontsize=8)
+    ax.set_zlabel('z [m]', fontsize=8)
+    ax.set_title('curve, waypoints and tool path in base_link', fontsize=9)
+    handles, labels = ax.get_legend_handles_labels()
+    ax.legend(dict(zip(labels, handles)).values(), dict(zip(labels, handles)).keys(), fontsize=7)
+    ax2 = fig.add_subplot(1, 2, 2)
+    d = evaluation.distance_to_polylines(data['waypoints'], data['curve']) * 1e3
+    ax2.plot(d, 'r-', lw=0.8, label=f'waypoint to true curve (RMS {_rms(d):.2f} mm)')
+    if len(data['tool_tracking']):
+        on_surface, in_3d = (x * 1e3 for x in data['tool_distances'])
+        t = np.linspace(0, len(d), len(on_surface))
+        ax2.plot(
+            t,
+            on_surface,
+            'b-',
+            lw=0.8,
+            label=f'tool path: tip on the surface to true curve (RMS {_rms(on_surface):.2f} mm)',
+        )
+        ax2.plot(
+            t,
+            in_3d,
+            'c-',
+            lw=0.6,
+            alpha=0.7,
+            label=f'pressed tip in 3D to true curve, pressing included (RMS {_rms(in_3d):.2f} mm)',
+        )
+    ax2.set_ylabel('distance to the true curve [mm]')
+    ax2.set_xlabel('waypoint index (tool samples stretched over it)')
+    ax2.legend(fontsize=7)
+    save(fig, 'curve.png', 'Reconstructed curve and tool path against the true curve')
+
+
+def _rms(values):
+    return float(np.sqrt(np.mean(np.square(values)))) if len(values) else float('nan')
+
+
+def plot_depth(data, save):
+    """depth.png: the true depth beside each estimate on one colour scale (top row) and
+    each estimate's height above the true surface, the report's depth measure (bottom)."""
+    depths = data['depth']
+    if not depths:
+        return
+    columns = [('true depth', data['depth_true'])] + list(depths.items())
+    fig, axes = plt.subplots(2, len(columns), figsize=(4.0 * len(columns), 6.4), squeeze=False)
+    finite = np.concatenate([d[np.isfinite(d)] for _, d in columns if d is not None])
+    low, high = np.percentile(finite, [2, 98]) if finite.size else (0, 1)
+    limit_mm = 10.0  # the colour scale of the height panels, +- [mm]
+    for column, (name, depth) in enumerate(columns):
+        top, bottom = axes[0, column], axes[1, column]
+        top.axis('off')
+        bottom.axis('off')
+        if depth is None:
+            continue
+        shown = top.imshow(depth, vmin=low, vmax=high, cmap='viridis')
+        top.set_title(f'{name} [m]', fontsize=9)
+        heights = data['depth_heights'].get(name)
+        if heights is None:
+            bottom.set_title('(the truth)', fontsize=8)
+            continue
+        error = bottom.imshow(heights * 1e3, vmin=-limit_mm, vmax=limit_mm, cmap='RdBu_r')
+        median = np.nanmedian(np.abs(heights)) * 1e3 if np.isfinite(heights).any() else np.nan
+        bottom.set_title(
+            f'height above the true surface\n(median |h| {median:.1f} mm)', fontsize=8
+        )
+    fig.colorbar(shown, ax=axes[0, :], shrink=0.8, label='depth [m]')
+    fig.colorbar(error, ax=axes[1, :], shrink=0.8, label='height above true surface [mm]')
+    save(
+        fig, 'depth.png', 'Depth: truth, SFS, fused, sparse stereo, and their errors', tight=False
+    )
 
 
 def message_rows(messages_counts, counts_rosbags, published):
@@ -551,6 +655,8 @@ def write_report(report_dir, bag_dir, scenario, results, check_rows, rows, figur
         f'{"ok" if ok else "**FAILED**"} |'
         for n, v, t, ok in check_rows
     ]
+    lines += ['', '## Measures', '']
+    lines += [f'- **{name}**: {definition}' for name, definition in MEASURES]
     lines += [
         '',
         '## Measurements',
@@ -651,10 +757,14 @@ def demo_params(scenario, bags, name, work_dir, live_view_port):
             'albedo': scenario.surface.albedo,
             'roughness': scenario.surface.roughness,
         },
-        # the recorder and live_view have matched /tool_pose before the loop starts (a
-        # remote arm's endpoints are discovered later than the simulator's)
+        # The recorder has matched every stream and live_view /tool_pose (its /tf)
+        # before the loop starts (a remote arm's endpoints are discovered later than the
+        # simulator's). live_view is not named: it subscribes the joint commands only
+        # while a Foxglove viewer watches them, so without a viewer the gate would hold
+        # the arm for its whole timeout.
         'pa10_ik_node': {
-            'wait_for_nodes': ['recorder', 'live_view'],
+            'wait_for_nodes': ['recorder'],
+            'min_subscribers': 2,
             'robot': scenario.robot.model,
             'tool_length': scenario.robot.tool_length,
             'desired_force': DESIRED_FORCE,

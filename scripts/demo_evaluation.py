@@ -96,17 +96,25 @@ def surface_points_from_depth(camera, depth, step=1):
     return points_camera @ camera.T_base_camera[:3, :3].T + camera.T_base_camera[:3, 3]
 
 
-def depth_errors(depth, P_rect, R_rect, T_base_left, surface):
-    """A depth image in the rectified left frame against the true surface: its pixels are
-    lifted to 3D, taken to base_link through the calibrated left pose and rectification,
-    and their height above/below the true surface is measured [m]."""
+def depth_heights(depth, P_rect, R_rect, T_base_left, surface):
+    """The measure of a depth image in the rectified left frame: each pixel lifted to 3D,
+    taken to base_link through the calibrated left pose and rectification, and its
+    signed height above the true surface [m] (H, W), NaN where the depth has none."""
+    heights = np.full(depth.shape, np.nan)
     v, u = np.nonzero(np.isfinite(depth))
     z = depth[v, u].astype(float)
     fx, fy, cx, cy = P_rect[0, 0], P_rect[1, 1], P_rect[0, 2], P_rect[1, 2]
     points_rect = np.column_stack([(u - cx) / fx * z, (v - cy) / fy * z, z])
     points_left = points_rect @ R_rect  # x_rect = R x_left
     points_base = points_left @ T_base_left[:3, :3].T + T_base_left[:3, 3]
-    error = np.abs(signed_height_base(surface, points_base))
+    heights[v, u] = signed_height_base(surface, points_base)
+    return heights
+
+
+def depth_errors(depth, P_rect, R_rect, T_base_left, surface):
+    """A depth image in the rectified left frame against the true surface: the
+    statistics of |depth_heights| [m] (the report's depth rows)."""
+    error = np.abs(depth_heights(depth, P_rect, R_rect, T_base_left, surface))
     error = error[np.isfinite(error)]
     return {
         'median_abs_m': float(np.median(error)),
@@ -117,6 +125,36 @@ def depth_errors(depth, P_rect, R_rect, T_base_left, surface):
     }
 
 
+def true_rectified_depth(camera, depth_raw, R_rect, P_rect, shape):
+    """The true depth [m] on the grid of a depth image of the rectified left frame
+    (``shape`` (H, W), intrinsics ``P_rect``): the true raw depth of ``camera`` lifted to
+    3D and projected into that grid (nearest pixel; NaN where nothing lands)."""
+    H, W = depth_raw.shape
+    v, u = np.mgrid[0:H, 0:W]
+    xy = camera.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    points_rect = (np.column_stack([xy, np.ones(len(xy))]) * depth_raw.reshape(-1, 1)) @ R_rect.T
+    ok = np.all(np.isfinite(points_rect), axis=1) & (points_rect[:, 2] > 0)
+    points_rect = points_rect[ok]
+    uu = np.round(P_rect[0, 0] * points_rect[:, 0] / points_rect[:, 2] + P_rect[0, 2])
+    vv = np.round(P_rect[1, 1] * points_rect[:, 1] / points_rect[:, 2] + P_rect[1, 2])
+    inside = (uu >= 0) & (uu < shape[1]) & (vv >= 0) & (vv < shape[0])
+    out = np.full(shape, np.nan)
+    out[vv[inside].astype(int), uu[inside].astype(int)] = points_rect[inside, 2]
+    return out
+
+
+def tool_path_distances(tool_positions, polylines, surface):
+    """The two distances of tool tips (N, 3) to the true curve [m]: on the surface (the
+    tip taken back onto it along the normal: the tool path the tolerance is about) and
+    in 3D (the pressed tip, force / stiffness below the surface)."""
+    tool_positions = np.atleast_2d(tool_positions)
+    heights = signed_height_base(surface, tool_positions)
+    on_surface = tool_positions - heights[:, None] * normal_base(surface, tool_positions)
+    return distance_to_polylines(on_surface, polylines), distance_to_polylines(
+        tool_positions, polylines
+    )
+
+
 def tracking_errors(tool_positions, polylines, forces, desired_force, surface, band=0.10):
     """Tool path and contact force while tracking [m, N]. The tool tip presses into the
     compliant surface by force / stiffness (2.5 mm at 5 N and 2000 N/m), so the path error
@@ -124,9 +162,7 @@ def tracking_errors(tool_positions, polylines, forces, desired_force, surface, b
     curve. The 3D distance of the pressed tip and the pressing depth are reported too."""
     tool_positions = np.atleast_2d(tool_positions)
     heights = signed_height_base(surface, tool_positions)
-    on_surface = tool_positions - heights[:, None] * normal_base(surface, tool_positions)
-    d = distance_to_polylines(on_surface, polylines)
-    d_3d = distance_to_polylines(tool_positions, polylines)
+    d, d_3d = tool_path_distances(tool_positions, polylines, surface)
     force_error = np.abs(np.asarray(forces) - desired_force)
     return {
         'path_rms_m': float(np.sqrt(np.mean(d**2))),

@@ -197,6 +197,7 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
     assert int(values['views']) == 10 and values['method'] == 'lm'
     assert all(float(values[f'rms_px {n}']) < 0.5 for n in CAMERA_NAMES)
     assert 'calibrated 3 cameras from 10 views' in calib.output()
+    assert f'wrote {out_dir.resolve() / "calibration.yaml"} and left.yaml' in calib.output()
     for name in ('calibration.yaml', 'left.yaml', 'right.yaml', 'aux.yaml'):
         assert (out_dir / name).is_file()
 
@@ -443,6 +444,7 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
         not answer.success and 'coverage' in answer.message and 'tilt the chart' in answer.message
     ), answer.message
     assert any('skew 0 %' in s.message for s in probe.statuses('views', 'coverage'))
+    assert '(still: ' in calib.output() and 'tilt the chart' in calib.output()  # the log too
     assert call(rclpy_node, '/calib_node/reset').success
     for count, view in enumerate(images, 1):  # one at a time: the image queues hold 10
         publish(view)

@@ -23,6 +23,7 @@ from vgm_common.node_tools import (
     ParameterError,
     SubscriberGate,
     guarded,
+    params_file_section_warnings,
     run_node,
 )
 
@@ -138,6 +139,46 @@ def test_a_value_for_a_name_not_declared_is_never_dropped_silently(make_node, ca
     assert 'ignored, not parameters of this node: rat' in capfd.readouterr().err
     with pytest.raises(ValueError, match='undeclared'):
         NodeParameters(make_node(), probe_params(), renamed={'speed': 'rates'})
+
+
+def test_a_name_near_a_declared_one_is_suggested(make_node, capfd):
+    NodeParameters(make_node(rat=5.0, colour=1), probe_params())
+    assert (
+        'ignored, not parameters of this node: colour, rat (did you mean rate?)'
+        in capfd.readouterr().err
+    )
+
+
+@pytest.mark.parametrize(
+    'content, warning',
+    [
+        # Written for another node: rcl starts this one on its defaults without a word.
+        (
+            'sfs_stereo_node:\n  ros__parameters:\n    window: 7\n',
+            'has no section for /curve_recon_node (its sections: sfs_stereo_node)',
+        ),
+        (
+            '/**:\n  ros__parameters:\n    window: 7\n    albedo: 0.8\n'
+            'sfs_stereo_node:\n  ros__parameters:\n    fusion: x\n',
+            'its section /** holds no parameter of /curve_recon_node '
+            '(its sections: /**, sfs_stereo_node)',
+        ),
+        ('curve_recon_node:\n  ros__parameters:\n    degree: 3\n', None),
+        ('/**:\n  ros__parameters:\n    degree: 3\n    window: 7\n', None),
+        ('/**/curve_recon_node:\n  ros__parameters:\n    method:\n      x: 1\n', None),
+    ],
+)
+def test_a_params_file_with_nothing_for_the_node_is_a_warning_naming_its_sections(
+    tmp_path, content, warning
+):
+    path = tmp_path / 'params.yaml'
+    path.write_text(content)
+    declared = {'degree', 'method.x', 'use_sim_time'}.__contains__
+    warnings = params_file_section_warnings(path, '/curve_recon_node', declared)
+    if warning is None:
+        assert warnings == []
+    else:
+        assert len(warnings) == 1 and warning in warnings[0] and str(path) in warnings[0]
 
 
 def test_values_that_must_go_together_are_checked_at_start_up_and_on_change(make_node):

@@ -8,6 +8,7 @@ the test's private domain, read, closed and destroyed."""
 import importlib
 import math
 import re
+import sys
 from pathlib import Path
 
 import pytest
@@ -220,3 +221,14 @@ def test_parameters_default_to_the_core_settings(class_path, default_context):
         }
         differ = {p: (declared[p], core[p]) for p in core if not same(declared[p], core[p])}
         assert differ == {}, f'{binding_name}: (declared, core default) differ'
+
+
+def test_graph_yaml_has_a_section_for_every_node_the_demo_runs():
+    """`vgm_launch graph.yaml --nodes <node>` works for each of them."""
+    sys.path.insert(0, str(REPO_ROOT / 'scripts'))
+    from demo import NODES as DEMO_NODES
+
+    from vgm_common.launcher import node_names
+
+    graph = REPO_ROOT / 'src' / 'vgm_common' / 'params' / 'graph.yaml'
+    assert sorted(set(DEMO_NODES) - set(node_names(graph))) == []

@@ -632,3 +632,37 @@ def test_unknown_distortion_model_is_refused():
         PinholeCamera(640, 480, np.eye(3), [0.0] * 5, np.eye(4), 'fisheye')
     with pytest.raises(InvalidInput):
         PinholeCamera(640, 480, np.eye(3), [0.0] * 5, np.eye(4), 'division')
+
+
+def test_a_handheld_chart_covers_the_images_as_a_handheld_calibration_asks():
+    """calibration.motion handheld: the hand's poses are seeded, show every corner to
+    every camera, and spread over the left image as calib_node's coverage rule (with its
+    default min_coverage 0.5) requires."""
+    from calib_node.coverage import Coverage, view_parameters
+    from sensor_sim.chart import chart_corners_chart
+    from sensor_sim.scenario import with_chart_motion
+
+    stage = load_scenario(SCENARIO_DIR / 'default.yaml')
+    handheld = with_chart_motion(stage, 'handheld')
+    again = with_chart_motion(stage, 'handheld')
+    calibration = handheld.calibration
+    assert calibration.motion == 'handheld' and len(calibration.T_base_chart) == 24
+    np.testing.assert_array_equal(calibration.T_base_chart, again.calibration.T_base_chart)
+    assert with_chart_motion(handheld, 'stage').calibration.T_base_chart == (
+        stage.calibration.T_base_chart
+    )
+    corners = chart_corners_chart(calibration.rows, calibration.cols, calibration.spacing)
+    coverage = Coverage()
+    for T in calibration.T_base_chart:
+        for name, camera in handheld.cameras.items():
+            pixels, depth = camera.project(corners @ T[:3, :3].T + T[:3, 3])
+            assert np.all(depth > 0) and np.all(pixels >= 0), name
+            assert np.all(pixels < [camera.width, camera.height]), name
+        left = handheld.cameras['left']
+        pixels, _ = left.project(corners @ T[:3, :3].T + T[:3, 3])
+        parameters = view_parameters(
+            pixels, calibration.rows, calibration.cols, (left.width, left.height)
+        )
+        if coverage.is_new(parameters):
+            coverage.add(parameters)
+    assert len(coverage.kept) >= 10 and coverage.missing(0.5) == '', coverage.summary()

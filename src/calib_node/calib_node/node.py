@@ -376,6 +376,7 @@ class CalibNode(GraphNode):
         self.coverage = Coverage()
         self.targets = {}  # stamp_ns -> PoseStamped, the most recent RECENT_TARGETS
         self.target_seen = False  # auto: a target pose arrived (the stage is in use)
+        self.handheld_said = False  # auto: the switch to handheld views was logged
         self.target_arrived = threading.Condition(self.lock)
         # name -> (width, height), fixed by the first good image
         self.image_sizes: dict[str, tuple[int, int]] = {}
@@ -479,6 +480,14 @@ class CalibNode(GraphNode):
         target = self._target_of(stamp_ns, completed)
         if target is False:
             return
+        if target is None and self.source == 'auto' and not self.handheld_said:
+            self.handheld_said = True  # what auto chose must not be a silent switch
+            topic = self.resolve_topic_name(TARGET_POSE_TOPIC)
+            self.get_logger().info(
+                f'chart.source auto: no target pose on {topic} '
+                f'for this view within {TARGET_WAIT_S} s: views are taken as handheld (chart '
+                'poses estimated) until a target pose arrives'
+            )
         T_base_chart = None if target is None else _target_matrix(target)  # checked
         corners, misses, greys = {}, [], {}
         for name in self.names:
@@ -528,10 +537,18 @@ class CalibNode(GraphNode):
             self.views.append((T_base_chart, corners))
             count = len(self.views)
             coverage = self.coverage.summary() if T_base_chart is None else ''
+            # What to move next, in the log too: a user without ros2cli cannot read
+            # /diagnostics.
+            still = (
+                self.coverage.missing(self.params.min_coverage)
+                if T_base_chart is None and not self.calibrations
+                else ''
+            )
         self.get_logger().info(
             f'view {count}: chart found in {", ".join(corners)}'
             + (f' (not in {"; ".join(misses)})' if misses else '')
             + (f'; coverage {coverage}' if coverage else '')
+            + (f' (still: {still})' if still else '')
         )
         if (
             self.params.auto_calibrate
@@ -692,10 +709,19 @@ class CalibNode(GraphNode):
         }
         if p.output_dir:
             try:
-                write_calibration(p.output_dir, cameras, OPTICAL_FRAMES, rectification, quality)
+                written = write_calibration(
+                    p.output_dir, cameras, OPTICAL_FRAMES, rectification, quality
+                )
             except (OSError, VgmError) as error:
+                self.get_logger().error(f'cannot write {p.output_dir}: {error}')
                 self.diagnostics.publish(
                     'calibration', 'error', f'cannot write {p.output_dir}: {error}'
+                )
+            else:  # where the files are is the first thing a user looks for
+                written = written.resolve()
+                self.get_logger().info(
+                    f'wrote {written} and {", ".join(f"{n}.yaml" for n in cameras)} '
+                    f'beside it (calibration_file:={written} publishes it again)'
                 )
         self.calibrations += 1
         rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in fits.items())

@@ -257,6 +257,7 @@ class CurveReconNode(GraphNode):
         self.normals_published = False
         self.stopping = threading.Event()
         self.depth_info = None  # CameraInfo of /depth/fused
+        self.pending_depth = None  # the newest /depth/fused before any valid camera_info
 
     def _subscribe_inputs(self):
         """Subscribes to the cameras, chart poses and fused depth; returns their group."""
@@ -396,6 +397,16 @@ class CurveReconNode(GraphNode):
             self.depth_info = None  # the depth images that go with it are unusable too
             return
         self.depth_info = (K, int(msg.width), int(msg.height))
+        # sfs_stereo_node publishes a frame's depth before its camera_info: the first
+        # depth image waited for this one.
+        pending, self.pending_depth = self.pending_depth, None
+        if pending is not None:
+            if stamp_to_ns(pending.header.stamp) == stamp_to_ns(msg.header.stamp):
+                self._on_depth(pending)
+            else:
+                self.diagnostics.reject(
+                    FUSED_DEPTH_TOPIC, f'no {DEPTH_INFO_TOPIC} of its stamp came: not used'
+                )
 
     @guarded(FUSED_DEPTH_TOPIC)
     def _on_depth(self, msg):
@@ -408,6 +419,11 @@ class CurveReconNode(GraphNode):
                 )
             depth = image_to_numpy(msg).astype(float)
             if self.depth_info is None:
+                # A frame's depth may come before its camera_info: the newest waits for
+                # it; one it supersedes never had one.
+                superseded, self.pending_depth = self.pending_depth, msg
+                if superseded is None:
+                    return
                 raise InvalidInput(
                     f'no valid {DEPTH_INFO_TOPIC} yet: the depth image cannot be used',
                     key='camera_info',

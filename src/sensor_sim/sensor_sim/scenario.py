@@ -9,6 +9,7 @@ otherwise.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ SURFACE_TYPES = ('plane', 'S1', 'S2', 'S3', 'vase', 'sphere', 'heightmap')
 CURVE_TYPES = ('parabola', 'ellipse', 'circle', 'line_pair', 'cubic', 'surface_loop', 'points')
 CAMERA_NAMES = ('left', 'right', 'aux')
 CHART_PATTERNS = ('chessboard',)
+CHART_MOTIONS = ('stage', 'handheld')  # how the chart is shown for calibration
 CurveParameter = FloatArray | float | bool  # a value of Curve.params
 
 
@@ -94,7 +96,10 @@ class Calibration:
     cols: int
     spacing: float  # [m]
     captures_per_pose: int
-    T_base_chart: tuple[FloatArray, ...]  # one 4x4 pose per stage position
+    T_base_chart: tuple[FloatArray, ...]  # one 4x4 pose per view shown
+    motion: str = 'stage'  # 'handheld': T_base_chart are a hand's poses around the stage's
+    handheld_views: int = 24  # how many a hand shows
+    T_base_stage: tuple[FloatArray, ...] = ()  # the stage poses as the file gives them
 
 
 @dataclass(frozen=True)
@@ -304,6 +309,8 @@ def parse_scenario(data: object, path: str | Path = Path('scenario.yaml')) -> Sc
         contact_stiffness=root.section('contact').number('stiffness', positive=True),
     )
     _check_cameras_see_surface(scenario)
+    if scenario.calibration is not None:
+        scenario = with_chart_motion(scenario, scenario.calibration.motion)
     return scenario
 
 
@@ -494,7 +501,36 @@ def _parse_calibration(section: _Section) -> Calibration:
         spacing=section.number('spacing', positive=True),
         captures_per_pose=section.integer('captures_per_pose', default=1, minimum=1),
         T_base_chart=tuple(pose_list.pose(str(i)) for i in range(len(poses))),
+        motion=section.string('motion', default='stage', choices=CHART_MOTIONS),
+        handheld_views=section.integer('handheld_views', default=24, minimum=4),
     )
+
+
+def with_chart_motion(scenario: Scenario, motion: str) -> Scenario:
+    """``scenario`` with its calibration chart shown by ``motion``: 'stage' (at the stage
+    poses) or 'handheld' (``handheld_views`` poses a hand shows around the stage's,
+    spread over the images: sensor_sim.handheld). Raises ScenarioError if the scenario
+    has no calibration section or leaves no room for a hand's poses."""
+    from sensor_sim.chart import chart_corners_chart
+    from sensor_sim.handheld import handheld_chart_poses
+
+    calibration = scenario.calibration
+    if calibration is None:
+        raise ScenarioError('calibration: a chart motion needs a calibration section')
+    if motion not in CHART_MOTIONS:
+        raise ScenarioError(
+            f'calibration.motion: {motion!r} is not one of {", ".join(CHART_MOTIONS)}',
+            key='calibration.motion',
+        )
+    stage = calibration.T_base_stage or calibration.T_base_chart
+    poses = stage
+    if motion == 'handheld':
+        corners = chart_corners_chart(calibration.rows, calibration.cols, calibration.spacing)
+        poses = handheld_chart_poses(
+            stage, corners, scenario.cameras, calibration.handheld_views, scenario.seed
+        )
+    shown = dataclasses.replace(calibration, T_base_chart=poses, motion=motion, T_base_stage=stage)
+    return dataclasses.replace(scenario, calibration=shown)
 
 
 def surface_centre_base(surface: Surface) -> FloatArray:

@@ -23,7 +23,13 @@ from sensor_sim.arm_sim import ARM_MODES, SimulatedArm
 from sensor_sim.contact import contact_force
 from sensor_sim.curves import curve_polylines
 from sensor_sim.render import SceneRenderer, add_noise
-from sensor_sim.scenario import CAMERA_NAMES, load_scenario, resolve_scenario_path
+from sensor_sim.scenario import (
+    CAMERA_NAMES,
+    CHART_MOTIONS,
+    load_scenario,
+    resolve_scenario_path,
+    with_chart_motion,
+)
 from vgm_common.calibration_io import write_calibration
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
@@ -58,6 +64,15 @@ PARAMETERS = [
         'calibration_phase',
         True,
         'Show the chart at every stage pose first.',
+        read_only=True,
+    ),
+    Param(
+        'chart_motion',
+        '',
+        'How the chart is shown in the calibration phase: stage (at the stage poses, '
+        "with /calibration/target_pose) or handheld (a hand's poses around them, spread "
+        "over the images, no target pose); empty takes the scenario's calibration.motion.",
+        choices=('', *CHART_MOTIONS),
         read_only=True,
     ),
     Param(
@@ -116,6 +131,8 @@ class SensorSim(GraphNode):
     def __init__(self):
         super().__init__(PARAMETERS)
         self.scenario = load_scenario(resolve_scenario_path(self.params.scenario))
+        if self.params.chart_motion and self.scenario.calibration is not None:
+            self.scenario = with_chart_motion(self.scenario, self.params.chart_motion)
         self.get_logger().info(f'scenario {self.scenario.name} ({self.scenario.path})')
         # Publishers first: subscribers (a recorder) discover and match them while the
         # scene renders, so not even the first capture is lost.
@@ -242,10 +259,13 @@ class SensorSim(GraphNode):
         calibration = self.scenario.calibration
         if k < self.chart_frames and calibration is not None:  # the calibration phase
             pose_index = k // calibration.captures_per_pose
-            self.target_pose_publisher.publish(
-                matrix_to_pose_stamped(calibration.T_base_chart[pose_index], stamp_ns, BASE_FRAME)
-            )
-            self.published[TARGET_POSE_TOPIC] += 1
+            if calibration.motion == 'stage':  # a hand's poses are not measured
+                self.target_pose_publisher.publish(
+                    matrix_to_pose_stamped(
+                        calibration.T_base_chart[pose_index], stamp_ns, BASE_FRAME
+                    )
+                )
+                self.published[TARGET_POSE_TOPIC] += 1
             if k + 1 == self.chart_frames:
                 self.get_logger().info('calibration phase done: showing the scene')
         for camera_index, name in enumerate(CAMERA_NAMES):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import array
 import contextlib
 import dataclasses
+import difflib
 import functools
 import math
 import os
@@ -25,6 +26,7 @@ from collections.abc import (
     MutableMapping,
     Sequence,
 )
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType, MappingProxyType
@@ -206,7 +208,8 @@ class NodeParameters:
             raise ParameterError(f'renamed parameters (CHANGELOG.md): {renames}', key=moved[0])
         if unknown:
             self._node.get_logger().warning(
-                f'ignored, not parameters of this node: {", ".join(unknown)}'
+                'ignored, not parameters of this node: '
+                + ', '.join(_with_suggestion(name, self._params) for name in unknown)
             )
 
     def __getattr__(self, name: str) -> Any:
@@ -266,11 +269,89 @@ class NodeParameters:
                 self._on_change[spec.name](value)
 
 
+class TopicTypeError(VgmError):
+    """A topic the node would publish or subscribe already carries another type."""
+
+
+def message_type_name(msg_type: Any) -> str:
+    """'sensor_msgs/msg/Image' for the Python class of a ROS message."""
+    package, interface = msg_type.__module__.split('.')[:2]
+    return f'{package}/{interface}/{msg_type.__name__}'
+
+
+TYPE_CHECK_PERIOD = 2.0  # [s] how often a node looks for other types on its topics
+
+
+def _with_suggestion(name: str, declared: Iterable[str]) -> str:
+    """``name``, with the nearest declared name if one is near: 'rat (did you mean rate?)'."""
+    near = difflib.get_close_matches(name, list(declared), n=1, cutoff=0.75)
+    return f'{name} (did you mean {near[0]}?)' if near else name
+
+
+def params_file_section_warnings(
+    path: str | Path, node_name: str, declared: Callable[[str], bool]
+) -> list[str]:
+    """What a ``--params-file`` holds for the node of fully qualified name ``node_name``
+    that a user would want to hear about, as warning texts: no section applies to it (rcl
+    then starts it on its defaults without a word), or the sections that apply (its own,
+    ``/**``, ...) hold no name ``declared`` says is its parameter."""
+    content = yaml.safe_load(Path(path).read_text())
+    if not isinstance(content, dict):
+        return []  # check_params_files refused it already
+    sections = [str(key) for key in content]
+    found = ', '.join(sections) or 'none'
+    matching = [key for key in sections if _section_matches(key, node_name)]
+    if not matching:
+        return [
+            f'params file {path} has no section for {node_name} (its sections: {found}): '
+            'none of its values apply to this node'
+        ]
+    names = [
+        name
+        for key in matching
+        for name in _dotted_names((content[key] or {}).get('ros__parameters') or {})
+    ]
+    if names and not any(declared(name) for name in names):
+        return [
+            f'params file {path}: its section {", ".join(matching)} holds no parameter '
+            f'of {node_name} (its sections: {found})'
+        ]
+    return []
+
+
+def _section_matches(section: str, node_name: str) -> bool:
+    """Whether the params file section ``section`` applies to ``node_name`` as rcl reads
+    it: a name without a namespace is in /, ``/**`` any namespaces, ``*`` one token."""
+    key = section if section.startswith('/') else f'/{section}'
+    pattern = re.escape(key).replace(r'/\*\*', '(?:/[^/]+)*').replace(r'\*', '[^/]*')
+    return re.fullmatch(pattern, node_name) is not None
+
+
+def _dotted_names(values: Mapping[str, Any], prefix: str = '') -> list[str]:
+    """Parameter names of a ``ros__parameters`` mapping: nested mappings are dotted."""
+    names = []
+    for key, value in values.items():
+        if isinstance(value, dict):
+            names += _dotted_names(value, f'{prefix}{key}.')
+        else:
+            names.append(f'{prefix}{key}')
+    return names
+
+
+def _params_files(argv: Sequence[str]) -> list[str]:
+    return [path for flag, path in zip(argv, argv[1:]) if flag == '--params-file']
+
+
 class GraphNode(Node):
     """What every node of the graph starts with: a Node named by the class's
     ``node_name``, its ``diagnostics`` (on /diagnostics) and its ``params``
     (NodeParameters of ``parameters``, a refused change reported to the diagnostics;
-    ``on_change`` as there, ``renamed_parameters`` its ``renamed``)."""
+    ``on_change`` as there, ``renamed_parameters`` its ``renamed``).
+
+    A publisher or subscription on a topic that already carries another type (a remap
+    such as ``-r /tool/pressure:=/joint_states``) is a TopicTypeError naming both types
+    (a start-up error); a typed subscription whose topic gets a publisher of another
+    type later is one error line and diagnostic naming both, every TYPE_CHECK_PERIOD."""
 
     node_name: ClassVar[str]
     renamed_parameters: ClassVar[Mapping[str, str]] = {}
@@ -281,11 +362,78 @@ class GraphNode(Node):
         on_change: Mapping[str, Callable[[Any], None]] | None = None,
         **kwargs: Any,
     ) -> None:
+        # Node.__init__ already creates publishers through create_publisher.
+        self._own_types: dict[str, str] = {}  # resolved topic -> its type in this node
+        self._typed_subscriptions: dict[str, tuple[str, str]] = {}  # -> (type, name given)
+        self._reported_types: set[tuple[str, str]] = set()  # (topic, other type) logged
         super().__init__(self.node_name, **kwargs)
         self.diagnostics = Diagnostics(self)
         self.params = NodeParameters(
             self, parameters, self.diagnostics, on_change, self.renamed_parameters
         )
+        self.create_timer(TYPE_CHECK_PERIOD, self._check_topic_types)
+
+    def create_publisher(self, msg_type: Any, topic: str, *args: Any, **kwargs: Any) -> Any:
+        """Node.create_publisher, refusing a topic that carries another type in this node
+        (rcl would fail with 'invalid allocator')."""
+        self._claim_topic(msg_type, topic, foreign_too=False)
+        return super().create_publisher(msg_type, topic, *args, **kwargs)
+
+    def create_subscription(
+        self,
+        msg_type: Any,
+        topic: str,
+        callback: Callable[[Any], None],  # as rclpy annotates it
+        *args: Any,
+        **kwargs: Any,
+    ) -> Any:
+        """Node.create_subscription, refusing a topic known to carry another type (DDS
+        would deliver nothing, or rcl fail with 'invalid allocator'); a raw subscription
+        (of whatever type a topic has: recorder, live_view) is not checked later."""
+        resolved = self._claim_topic(msg_type, topic, foreign_too=not kwargs.get('raw'))
+        if not kwargs.get('raw'):
+            self._typed_subscriptions[resolved] = (message_type_name(msg_type), topic)
+        return super().create_subscription(msg_type, topic, callback, *args, **kwargs)
+
+    def _claim_topic(self, msg_type: Any, topic: str, foreign_too: bool) -> str:
+        resolved = self.resolve_topic_name(topic)
+        ours = message_type_name(msg_type)
+        others = {self._own_types.get(resolved, ours)} - {ours}
+        if foreign_too:
+            others |= set(dict(self.get_topic_names_and_types()).get(resolved, ())) - {ours}
+        if others:
+            raise TopicTypeError(
+                f'{self._topic_as_given(topic)} carries {", ".join(sorted(others))}; '
+                f'this node needs {ours} there',
+                key=resolved,
+                value=sorted(others),
+            )
+        self._own_types.setdefault(resolved, ours)
+        return resolved
+
+    def _topic_as_given(self, topic: str) -> str:
+        """'/tool/pressure (remapped to /joint_states)', or the topic if not remapped."""
+        expanded = self.resolve_topic_name(topic, only_expand=True)
+        resolved = self.resolve_topic_name(topic)
+        return resolved if expanded == resolved else f'{expanded} (remapped to {resolved})'
+
+    def _check_topic_types(self) -> None:
+        """One error line and diagnostic per other type seen on a typed subscription's
+        topic: its messages never arrive, and without a word the node would just wait."""
+        types = dict(self.get_topic_names_and_types())
+        for resolved, (ours, given) in self._typed_subscriptions.items():
+            for other in sorted(set(types.get(resolved, ())) - {ours}):
+                if (resolved, other) in self._reported_types:
+                    continue
+                self._reported_types.add((resolved, other))
+                message = (
+                    f'{self._topic_as_given(given)} carries {other}; this node '
+                    f'subscribes it as {ours} and receives none of those'
+                )
+                self.get_logger().error(message)
+                self.diagnostics.publish(
+                    'topic type', 'error', message, {'topic': resolved, 'type': other}
+                )
 
 
 Config = TypeVar('Config')
@@ -386,7 +534,10 @@ def subscriber_gate_params(what: str) -> list[Param]:
             'Also wait until each of these nodes (a name, or '
             '/namespace/name) has a matched subscription on every topic the node '
             'publishes, e.g. [recorder]: a count alone is met by other subscribers '
-            'while the recorder is still starting.',
+            'while the recorder is still starting. Name only nodes that subscribe '
+            'every stream from their start, never one that subscribes on demand '
+            '(live_view, while a viewer watches): without its viewer the wait lasts '
+            'subscriber_timeout.',
             check=_node_names,
             read_only=True,
         ),
@@ -736,6 +887,11 @@ def run_node(
     status = 0
     try:
         node = node_class()
+        for path in _params_files(sys.argv[1:] if args is None else args):
+            for warning in params_file_section_warnings(
+                path, node.get_fully_qualified_name(), node.has_parameter
+            ):
+                node.get_logger().warning(warning)
         node.create_timer(NAME_CHECK_PERIOD, _name_clash_check(node))
         executor = executor_class()
         executor.add_node(node)
@@ -761,6 +917,7 @@ def run_node(
     finally:
         _set_stop_signal_handler(signal.SIG_IGN)  # a second Ctrl-C must not cut this short
         if executor is not None:
+            _finish_callbacks(executor)
             executor.shutdown()
         if node is not None:
             close = getattr(node, 'close', None)
@@ -776,12 +933,23 @@ def run_node(
     return status
 
 
+def _finish_callbacks(executor: Executor) -> None:
+    """Let the callbacks a MultiThreadedExecutor handed to its threads run to their end
+    before ``executor.shutdown()`` destroys its guard condition. rclpy 7.1's shutdown does
+    not wait for them (it tests its shutdown flag after setting it); a callback ending
+    after it triggers the destroyed guard, and its task's InvalidHandle was printed at
+    exit as 'The following exception was never retrieved: cannot use Destroyable because
+    destruction was requested'. None is cancelled: a cancelled one is a coroutine never
+    awaited, which Python warns about at exit."""
+    pool = getattr(executor, '_executor', None)
+    if isinstance(pool, ThreadPoolExecutor):
+        pool.shutdown(wait=True)
+
+
 def check_params_files(argv: Sequence[str]) -> None:
     """Raise VgmError naming the file if a ``--params-file`` in ``argv`` is missing or is
     not a YAML mapping (rcl would fail with a traceback-length message)."""
-    for flag, path in zip(argv, argv[1:]):
-        if flag != '--params-file':
-            continue
+    for path in _params_files(argv):
         try:
             content = yaml.safe_load(Path(path).read_text())
         except OSError as error:
