@@ -2,7 +2,6 @@
 
 import importlib.metadata
 from pathlib import Path
-from xml.etree import ElementTree
 
 import numpy as np
 import pinocchio as pin
@@ -16,6 +15,7 @@ from vgm_common.robot_model import (
     PA10_VELOCITY_LIMITS_RAD_S,
     PARAMETER_SETS,
     load_robot,
+    own_tool_length,
     pa10_urdf,
 )
 
@@ -122,6 +122,10 @@ def test_panda_from_example_robot_data_goes_through_same_code_path():
         )
     except importlib.metadata.PackageNotFoundError:
         pytest.skip('example-robot-data is not installed')
+    with pytest.raises(InvalidInput, match='set tip_frame to one of its frames') as info:
+        load_robot(str(urdf))  # the default tool0: the Panda has none
+    assert info.value.key == 'tip_frame' and 'panda_hand_tcp' in str(info.value)
+    assert own_tool_length(str(urdf)) == 0.0 and own_tool_length('pa10') == 0.1
     robot = load_robot(str(urdf), tip_frame='panda_hand_tcp')
     # The two finger joints do not move the tip, so they are locked away.
     assert robot.joint_names == tuple(f'panda_joint{i}' for i in range(1, 8))
@@ -218,7 +222,7 @@ def test_urdf_that_is_no_7_dof_arm_with_tool0_is_refused_clearly(tmp_path, edit,
     assert '\n' not in str(raised.value)  # one line
 
 
-def test_panda_with_a_tool0_added_is_a_7_dof_arm(tmp_path):
+def test_panda_as_it_ships_is_a_7_dof_arm_at_its_tip_frame(tmp_path):
     from sensor_sim.task_generator import panda_arm  # fails (not skips) without the data
 
     arm = panda_arm()
@@ -226,12 +230,10 @@ def test_panda_with_a_tool0_added_is_a_7_dof_arm(tmp_path):
         'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf'
     )
     reference = load_robot(str(full_urdf), tip_frame='panda_hand_tcp')
-    assert ElementTree.fromstring(arm.urdf).find("link[@name='tool0']") is not None
-    model = pin.buildModelFromXML(arm.urdf)
-    assert model.existFrame('tool0')
-    path = tmp_path / 'panda_tool0.urdf'
+    assert arm.urdf == full_urdf.read_text() and arm.tip_frame == 'panda_hand_tcp'
+    path = tmp_path / 'panda.urdf'
     path.write_text(arm.urdf)
-    robot = load_robot(str(path))
+    robot = load_robot(str(path), tip_frame=arm.tip_frame)
     assert robot.n_joints == 7
     q = arm.start_joints
     np.testing.assert_allclose(

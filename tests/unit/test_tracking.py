@@ -368,6 +368,25 @@ def test_an_arm_slower_than_commanded_reaches_contact_on_its_measured_descent(ro
     assert 'contact' in log.phases and 'tracking' in log.phases
 
 
+@pytest.mark.parametrize('deeper_m, doing', [(0.05, 'moving in free space'), (0.02, 'descending')])
+def test_contact_before_the_first_waypoint_fails_naming_the_probable_cause(
+    robot, scenario, deeper_m, doing
+):
+    """Waypoints 5 cm (2 cm) below the surface, as a tool longer than the model's would
+    make them: the tip meets the surface on its way to the pre-contact pose 3 cm above
+    the first waypoint (on the descent), and the failure names tool, tip frame and
+    surface pose; no task runs on."""
+    waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
+    waypoints[:, :3, 3] += deeper_m * waypoints[:, :3, 2]
+    controller, log = simulate(robot, scenario, waypoints, scenario.contact_stiffness)
+    assert controller.phase == 'failed', controller.reason
+    assert 'unexpected contact: ' in controller.reason and doing in controller.reason
+    for cause in ('tool_length', 'tip_frame', 'surface'):
+        assert cause in controller.reason
+    assert not any(phase == 'tracking' for phase, _, _ in log)
+    assert max(force for _, _, force in log) < 3 * DESIRED_FORCE
+
+
 def test_descent_into_nothing_fails_on_the_measured_distance(robot, scenario):
     """Waypoints 5 cm above the surface: the tip goes max_depth past the first waypoint
     (measured) without force, and the failure says so."""
@@ -387,7 +406,7 @@ def test_descent_into_nothing_fails_on_the_measured_distance(robot, scenario):
         controller, robot, arm, scenario.surface, scenario.contact_stiffness
     )
     assert controller.phase == 'failed' and 'no contact' in controller.reason
-    assert 'measured' in controller.reason
+    assert 'measured' in controller.reason and 'probable cause' in controller.reason
     P0, z0 = waypoints[0, :3, 3], waypoints[0, :3, 2]
     depth = np.dot(log.tips[-1] - P0, z0)
     assert 0.01 <= depth < 0.013  # max_depth past it, and no further

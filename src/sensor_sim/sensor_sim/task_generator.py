@@ -5,7 +5,7 @@ orientation). No ROS. Every random choice takes a ``numpy.random.Generator``.
 
 - Arms: PA-10-like URDFs (the PA-10's joint axes, link offsets within +-40 % of the real
   arm's, other joint and velocity limits, a 0.05-0.2 m tool, ``tool0`` at the tip) and the
-  Franka Panda of example-robot-data with a ``tool0`` added at its ``panda_hand_tcp``.
+  Franka Panda of example-robot-data as it ships, its tip frame ``panda_hand_tcp``.
 - Surfaces: planes, paraboloid domes and S1-S3, posed so that the normal under the path's
   centre is tilted 0-45 deg away from the tool's axis at the arm's start pose.
 - Paths: a line, an arc, a self-crossing figure eight, a spiral of two turns and a tight
@@ -39,8 +39,8 @@ from vgm_common.robot_model import (
     RobotModel,
     load_robot,
     pa10_like_urdf,
-    urdf_with_tool0,
 )
+from vgm_common.topics import TOOL_FRAME
 
 if TYPE_CHECKING:  # imported lazily by BuiltCase.simulated_arm
     from sensor_sim.arm_sim import SimulatedArm
@@ -67,6 +67,7 @@ class GeneratedArm:
     description: str
     link_offsets_m: tuple[float, ...] = ()  # PA-10-like arms: (d1, d3, d5, d7)
     tool_length_m: float = float('nan')  # PA-10-like arms
+    tip_frame: str = TOOL_FRAME  # the tool tip (z = approach axis), a frame of ``urdf``
 
 
 def random_pa10_like_arm(rng: np.random.Generator, name: str = 'pa10_random') -> GeneratedArm:
@@ -101,7 +102,7 @@ def random_pa10_like_arm(rng: np.random.Generator, name: str = 'pa10_random') ->
 
 
 def panda_arm() -> GeneratedArm:
-    """The Franka Panda of example-robot-data with ``tool0`` at its ``panda_hand_tcp``.
+    """The Franka Panda of example-robot-data, its URDF unedited, tip ``panda_hand_tcp``.
 
     Raises:
         InvalidInput: example-robot-data is not installed.
@@ -115,9 +116,10 @@ def panda_arm() -> GeneratedArm:
         ) from err
     return GeneratedArm(
         'panda',
-        urdf_with_tool0(text, 'panda_hand_tcp'),
+        text,
         PANDA_START_JOINTS.copy(),
-        'Franka Panda (example-robot-data), tool0 at panda_hand_tcp',
+        'Franka Panda (example-robot-data), tip panda_hand_tcp',
+        tip_frame='panda_hand_tcp',
     )
 
 
@@ -500,7 +502,7 @@ def build_case(spec: CaseSpec, directory: str | os.PathLike[str]) -> BuiltCase:
 
     urdf = Path(directory) / f'{spec.arm.name}.urdf'
     urdf.write_text(spec.arm.urdf)
-    robot = load_robot(str(urdf))
+    robot = load_robot(str(urdf), tip_frame=spec.arm.tip_frame)
     rng = np.random.default_rng(spec.seed)
     placement = spec.arm.start_joints
     if spec.path_shape == 'tight_loop':  # near the reach

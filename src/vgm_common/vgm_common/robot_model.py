@@ -16,6 +16,7 @@ Regenerate the committed URDFs from the repository root with
 
 from __future__ import annotations
 
+import difflib
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -69,6 +70,14 @@ PARAMETER_SETS = {
     'pa10': Pa10Parameters(d1=0.317, d3=0.45, d5=0.48, d7=0.07),  # real PA-10-7C
     'pa10_thesis': Pa10Parameters(d1=0.0, d3=1.8, d5=3.6, d7=0.6),  # thesis; d1 not given
 }
+PA10_TOOL_LENGTH_M = 0.1  # [m] the shipped PA-10's tool, flange to tip
+
+
+def own_tool_length(robot: str | os.PathLike[str]) -> float:
+    """[m] The tool beyond the tip frame that ``robot`` carries when nobody says otherwise:
+    the built-in PA-10 models' ``PA10_TOOL_LENGTH_M``, none for a URDF (its author's tip
+    frame is the tool tip)."""
+    return PA10_TOOL_LENGTH_M if isinstance(robot, str) and robot in PARAMETER_SETS else 0.0
 
 
 def pa10_urdf(name: str, tool_length: float = 0.0) -> str:
@@ -343,7 +352,8 @@ def _reduce_to_tip_chain(
     """``model`` with every joint that does not move ``tip_frame`` locked at neutral."""
     if not model.existFrame(tip_frame):
         raise InvalidInput(
-            f'{robot} has no frame {tip_frame!r} (the tool tip, z = approach axis)',
+            f'{robot} has no frame {tip_frame!r} (the tool tip, z = approach axis): set '
+            f'tip_frame to one of its frames, {_frame_suggestions(model, tip_frame)}',
             'tip_frame',
             tip_frame,
         )
@@ -352,6 +362,19 @@ def _reduce_to_tip_chain(
     if off_chain:
         model = pin.buildReducedModel(model, off_chain, pin.neutral(model))
     return model
+
+
+def _frame_suggestions(model: pin.Model, wanted: str, listed: int = 12) -> str:
+    """The model's link frames as a short list: all of them when few, else the names
+    nearest to ``wanted`` and the chains' end links (where a tool tip usually is)."""
+    links = [f.name for f in model.frames if f.type == pin.FrameType.BODY]
+    if len(links) <= listed:
+        return ', '.join(links)
+    parents = {model.frames[f.parentFrame].name for f in model.frames if f.parentFrame}
+    ends = [name for name in links if name not in parents]
+    nearest = difflib.get_close_matches(wanted, links, n=4, cutoff=0.3)
+    shown = list(dict.fromkeys(nearest + ends))[:listed]
+    return f'e.g. {", ".join(shown)} ({len(links)} in all)'
 
 
 def _joint_names(
