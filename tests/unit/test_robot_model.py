@@ -241,6 +241,48 @@ def test_panda_as_it_ships_is_a_7_dof_arm_at_its_tip_frame(tmp_path):
     )
 
 
+def test_an_arm_from_a_torso_is_its_chain_from_the_base_frame_placed_in_base_link():
+    """TIAGo's arm from torso_lift_link: the lift, wheels (continuous) and head locked,
+    poses relative to the torso frame, moved by base_placement."""
+    from sensor_sim.task_generator import ROBOT_DATA_DIR
+
+    urdf = importlib.metadata.distribution('example-robot-data').locate_file(
+        f'{ROBOT_DATA_DIR}/tiago_description/robots/tiago.urdf'
+    )
+    with pytest.raises(InvalidInput, match='8 joints move'):
+        load_robot(str(urdf), tip_frame='arm_tool_link')  # the lift joint too
+    robot = load_robot(str(urdf), tip_frame='arm_tool_link', base_frame='torso_lift_link')
+    assert robot.joint_names == tuple(f'arm_{i}_joint' for i in range(1, 8))
+    full = pin.buildModelFromUrdf(str(urdf))
+    data = full.createData()
+    q = np.random.default_rng(3).uniform(robot.lower_limits, robot.upper_limits)
+    q_full = pin.neutral(full)
+    for name, value in zip(robot.joint_names, q):
+        q_full[full.idx_qs[full.getJointId(name)]] = value
+    pin.framesForwardKinematics(full, data, q_full)
+    T_torso_tip = data.oMf[full.getFrameId('torso_lift_link')].actInv(
+        data.oMf[full.getFrameId('arm_tool_link')]
+    )
+    np.testing.assert_allclose(robot.forward_kinematics(q), T_torso_tip.homogeneous, atol=1e-12)
+    placement = [0.1, -0.2, 0.3, 0.0, 0.0, np.pi / 2]
+    placed = load_robot(
+        str(urdf),
+        tip_frame='arm_tool_link',
+        base_frame='torso_lift_link',
+        base_placement=placement,
+    )
+    T_link_base = np.eye(4)
+    T_link_base[:3, :3] = pin.rpy.rpyToMatrix(*placement[3:])
+    T_link_base[:3, 3] = placement[:3]
+    np.testing.assert_allclose(
+        placed.forward_kinematics(q), T_link_base @ T_torso_tip.homogeneous, atol=1e-12
+    )
+    J, J_placed = robot.jacobian(q), placed.jacobian(q)
+    np.testing.assert_allclose(J_placed[:3], T_link_base[:3, :3] @ J[:3], atol=1e-12)
+    with pytest.raises(InvalidInput, match='set base_frame to one of its frames'):
+        load_robot(str(urdf), tip_frame='arm_tool_link', base_frame='torso')
+
+
 def test_random_pa10_like_arms_are_7_dof_with_their_tool(tmp_path):
     from sensor_sim.task_generator import random_pa10_like_arm
 

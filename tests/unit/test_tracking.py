@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from pa10_ik_node.ik import RateSolver
+from pa10_ik_node.path import WaypointPath
 from pa10_ik_node.tracking import (
     TrackingConfig,
     TrackingController,
@@ -411,6 +412,51 @@ def test_descent_into_nothing_fails_on_the_measured_distance(robot, scenario):
     depth = np.dot(log.tips[-1] - P0, z0)
     assert 0.01 <= depth < 0.013  # max_depth past it, and no further
     assert log.stop_latency <= 0.01
+
+
+def test_a_path_beyond_the_joint_limits_is_refused_before_moving_naming_the_waypoint(
+    robot, scenario
+):
+    """A line from the start pose's tip towards the base, tool down, 0.2 m up: inside the
+    workspace sphere, but from x = 0.34 m on the elbow (pa10_joint4) would have to bend
+    past its 137 deg. Refused at start naming that waypoint and the shortfall; the
+    controller stays idle."""
+    q0 = scenario.robot.initial_joints
+    waypoints = np.tile(robot.forward_kinematics(q0), (61, 1, 1))
+    waypoints[:, 0, 3] = np.linspace(0.6, 0.0, 61)
+    waypoints[:, 2, 3] = 0.2
+    controller = TrackingController(robot, RateSolver('ours', np.ones(7)))
+    controller.check_reachable(WaypointPath(waypoints))  # the sphere test lets it pass
+    with pytest.raises(Unreachable) as raised:
+        controller.start(waypoints, q0)
+    message = str(raised.value)
+    assert message.startswith('waypoint 26 at [0.34 ') and 'joint limits' in message
+    assert 'pa10_joint4' in message and 'no closer than' in message
+    assert controller.phase == 'idle' and controller.path is None
+    controller.start(waypoints[:20], q0)  # the part before it is fine
+    assert controller.phase == 'approach'
+
+
+@pytest.mark.parametrize('name', sorted(task_generator.ROBOT_DATA_ARMS))
+def test_every_example_robot_data_arm_tracks_an_arc_on_a_30_degree_plane(tmp_path, name):
+    """The 7-DOF arms of example-robot-data as they ship (chain base -> tip frame, the
+    rest locked): the path passes the check from the start joints and the goals hold."""
+    arm = task_generator.robot_data_arm(name)
+    spec = task_generator.CaseSpec(arm, 'plane', np.radians(30.0), 'arc', 'position', 1.0, 7)
+    built = task_generator.build_case(spec, tmp_path)
+    controller = TrackingController(
+        built.robot, RateSolver('ours', np.ones(7)), TrackingConfig(), max_joint_velocity=1.0
+    )
+    controller.start(built.waypoints, arm.start_joints)
+    log = task_generator.run_closed_loop(
+        controller, built.robot, built.simulated_arm(), built.surface, 2000.0
+    )
+    metrics = task_generator.tracking_metrics(
+        log, built.surface, built.path_base, 5.0, built.robot
+    )
+    assert controller.phase == 'done' and controller.stage == 'lifted', controller.reason
+    assert metrics['rms_mm'] < 0.05 and metrics['passed_fraction'] > 0.99
+    assert metrics['force_p95_pct'] < 3.0 and metrics['limit_margin_rad'] > 0
 
 
 GENERATED = task_generator.generate_cases(13)

@@ -99,6 +99,21 @@ PARAMETERS = [
         'must be stamped in it.',
         read_only=True,
     ),
+    Param(
+        'base_frame',
+        '',
+        "Frame of the URDF the arm's chain starts at ('': its root); joints moving it (a "
+        "torso's) are locked.",
+        read_only=True,
+    ),
+    Param(
+        'base_placement',
+        [0.0] * 6,
+        '[m, rad] x, y, z, roll, pitch, yaw of base_frame in base_link (the frame of the '
+        "waypoints and /tool_pose); = the scenario's robot.base_placement.",
+        check=lambda v: None if len(v) == 6 else 'needs 6 numbers',
+        read_only=True,
+    ),
     Param('rate', 100.0, '[Hz] Control rate.', range=(100.0, 1000.0), read_only=True),
     Param(
         'method',
@@ -287,9 +302,16 @@ class Pa10IkNode(GraphNode):
         p = self.params
         self.tool_length_m = own_tool_length(p.robot) if p.tool_length < 0 else p.tool_length
         try:
-            self.robot = load_robot(p.robot, self.tool_length_m, p.tip_frame)
+            self.robot = load_robot(
+                p.robot,
+                self.tool_length_m,
+                p.tip_frame,
+                base_frame=p.base_frame,
+                base_placement=p.base_placement,
+            )
         except InvalidInput as error:
-            key = 'tip_frame' if error.key == 'tip_frame' else 'robot'
+            named = error.key in ('tip_frame', 'base_frame', 'base_placement')
+            key = error.key if named else 'robot'
             raise InvalidInput(f'parameter {key}: {error}', key, error.value) from None
         self.params.add_check(self._one_weight_per_joint)
         self.controller = TrackingController(
@@ -483,7 +505,7 @@ class Pa10IkNode(GraphNode):
         if missing or waypoints is None:  # None: WAYPOINTS_TOPIC is among the missing
             return False, f'cannot start: no recent {", ".join(missing)}'
         try:
-            self.controller.start(waypoints)
+            self.controller.start(waypoints, self.q)
         except Unreachable as error:
             self.controller.fail(f'unreachable waypoints: {error}')
             self._hold()

@@ -23,6 +23,7 @@ import numpy.typing as npt
 
 from pa10_ik_node.ik import RateSolver, pose_error
 from pa10_ik_node.path import WaypointPath
+from pa10_ik_node.reach import first_unreachable, spaced_indices
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 from vgm_common.robot_model import RobotModel, workspace_reach
@@ -138,6 +139,7 @@ FORCE_LAWS = ('integral', 'tilt')
 MIN_RESPONSE = 0.4  # commands are scaled up at most 2.5 times (_compensated)
 RESPONSE_WINDOW = 1.0  # [s] forgetting time of the response estimate
 MAX_INTEGRAL_SPEEDS = 1.0  # see TrackingConfig.pose_integral_gain
+REACH_CHECK_SPACING_M = 0.002  # waypoints walked through before the arm moves
 PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
 ACTIVE_PHASES = ('approach', 'contact', 'tracking')
 
@@ -309,11 +311,46 @@ class TrackingController:
                 points[worst],
             )
 
-    def start(self, waypoints: npt.ArrayLike) -> None:
-        """Begin the task on ``waypoints`` (N, 4, 4). Raises ``InvalidInput`` /
+    def check_joint_reachable(self, path: WaypointPath, q: npt.ArrayLike) -> None:
+        """Raises ``Unreachable`` naming the first target (the pre-contact pose, then the
+        waypoints every ``REACH_CHECK_SPACING_M``, pressed in by the feed-forward depth)
+        that the model, walked from the joints ``q`` (n,) [rad], cannot reach within its
+        joint limits at the task's orientation freedom (``track_spin``), and by how much."""
+        c = self.config
+        T = path.T.copy()
+        T[:, :3, 3] += min(c.desired_force / c.stiffness, c.max_depth) * T[:, :3, 2]
+        pre_contact = path.T[0].copy()
+        pre_contact[:3, 3] -= c.standoff * pre_contact[:3, 2]
+        indices = spaced_indices(T[:, :3, 3], REACH_CHECK_SPACING_M)
+        miss = first_unreachable(
+            self.robot, q, np.concatenate([pre_contact[None], T[indices]]), c.track_spin
+        )
+        if miss is None:
+            return
+        what = (
+            f'the pre-contact pose {c.standoff * 1e3:.0f} mm before waypoint 0'
+            if miss.index == 0
+            else f'waypoint {indices[miss.index - 1]} at '
+            f'{path.T[indices[miss.index - 1], :3, 3].round(3)}'
+        )
+        limits = ', '.join(miss.joints_at_limit) or 'none'
+        axis = 'orientation' if c.track_spin else 'approach axis'
+        raise Unreachable(
+            f'{what} is out of reach within the joint limits: the arm gets no closer than '
+            f'{miss.position_error_m * 1e3:.1f} mm and {np.degrees(miss.angle_error_rad):.1f} '
+            f'deg of its {axis} (joints at a limit: {limits})',
+            'waypoints',
+            miss.index,
+        )
+
+    def start(self, waypoints: npt.ArrayLike, q: npt.ArrayLike | None = None) -> None:
+        """Begin the task on ``waypoints`` (N, 4, 4) from the measured joints ``q`` (n,)
+        [rad] (None: only the workspace sphere is checked). Raises ``InvalidInput`` /
         ``Unreachable`` and stays as it was if they cannot be followed."""
         path = WaypointPath(waypoints, self.config.closed_tolerance)
         self.check_reachable(path)
+        if q is not None:
+            self.check_joint_reachable(path, q)
         self.path = path
         self._reset_state()
         self._enter('approach', 'free')

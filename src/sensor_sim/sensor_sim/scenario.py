@@ -108,6 +108,8 @@ class Robot:
     initial_joints: np.ndarray  # [rad] (7,)
     tool_length: float  # [m]
     tip_frame: str = TOOL_FRAME
+    base_frame: str = ''  # where the arm's chain starts ('': the URDF's root)
+    base_placement: tuple[float, ...] = (0.0,) * 6  # base_frame in base_link: xyz [m], rpy [rad]
 
 
 @dataclass(frozen=True)
@@ -325,10 +327,15 @@ def _parse_robot(section: _Section, base_dir: Path) -> Robot:
     initial_joints = section.vector('initial_joints', 7)
     tool_length = section.number('tool_length', default=own_tool_length(model), minimum=0.0)
     tip_frame = section.string('tip_frame', default=TOOL_FRAME)
+    base_frame = section.string('base_frame', default='')
+    base_placement = tuple(section.vector('base_placement', 6, default=[0.0] * 6).tolist())
     try:
-        robot = load_robot(model, tool_length, tip_frame)
+        robot = load_robot(
+            model, tool_length, tip_frame, base_frame=base_frame, base_placement=base_placement
+        )
     except InvalidInput as error:
-        key = section.path('tip_frame' if error.key == 'tip_frame' else 'model')
+        named = error.key if error.key in ('tip_frame', 'base_frame', 'base_placement') else None
+        key = section.path(named or 'model')
         raise ScenarioError(f'{key}: {error}', key=key) from None
     outside = (initial_joints < robot.lower_limits) | (initial_joints > robot.upper_limits)
     if np.any(outside):
@@ -339,7 +346,7 @@ def _parse_robot(section: _Section, base_dir: Path) -> Robot:
             f'[{robot.lower_limits[i]:.4g}, {robot.upper_limits[i]:.4g}]',
             key=section.path('initial_joints'),
         )
-    return Robot(model, initial_joints, tool_length, tip_frame)
+    return Robot(model, initial_joints, tool_length, tip_frame, base_frame, base_placement)
 
 
 def _parse_surface(section: _Section, base_dir: Path) -> Surface:

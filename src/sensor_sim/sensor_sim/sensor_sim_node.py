@@ -148,7 +148,13 @@ class SensorSim(GraphNode):
 
     def _build_arm(self):
         robot = self.scenario.robot
-        self.robot = load_robot(robot.model, robot.tool_length, robot.tip_frame)
+        self.robot = load_robot(
+            robot.model,
+            robot.tool_length,
+            robot.tip_frame,
+            base_frame=robot.base_frame,
+            base_placement=robot.base_placement,
+        )
         self.arm = SimulatedArm.from_robot_model(
             self.robot, robot.initial_joints, self.params.arm_mode, self.params.arm_speed_scale
         )
