@@ -21,8 +21,14 @@ following positions or velocities, at full or half the commanded speed; ours aga
 the damped-least-squares IK (method dls, same phase machine and force law) and the
 thesis's primal-dual network, on the same inputs, with a stop mid-motion.
 
+Part D (`--robot-data`): every 7-DOF arm of example-robot-data as it ships
+(task_generator.ROBOT_DATA_ARMS: chain base -> tip frame, the rest locked) x path shapes x
+tilted planes, ours beside the damped-least-squares peer (method dls, same phase machine),
+each path first through the joint-limit reachability check from the start joints.
+
 Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_pa10_ik.py
      [--cases-only [--arms N]]   (Part C alone: N random arms and the Panda)
+     [--robot-data [--shapes arc,figure_eight] [--tilts 20,45]]   (Part D alone)
 Writes bench/results/pa10_ik/ (results.md, results.json, PNG plots) and, for Part C,
 bench/results/pa10_ik_cases/ (results.md, results.json).
 """
@@ -462,7 +468,130 @@ def write_case_tables(rows, seed):
     (CASES_OUT / 'results.json').write_text(json.dumps(rows, indent=2))
 
 
+ROBOT_DATA_OUT = REPO / 'bench' / 'results' / 'pa10_ik_robot_data'
+
+
+def _option(name, default):
+    return sys.argv[sys.argv.index(name) + 1] if name in sys.argv else default
+
+
+def main_robot_data(shapes, tilts_deg, seed=7):
+    """Part D: the example-robot-data arms x ``shapes`` x planes tilted by ``tilts_deg``,
+    ours and dls on the same inputs; returns the rows and writes the table."""
+    import tempfile
+
+    ROBOT_DATA_OUT.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as directory:
+        for name in task_generator.ROBOT_DATA_ARMS:
+            arm = task_generator.robot_data_arm(name)
+            for shape in shapes:
+                for tilt in tilts_deg:
+                    spec = task_generator.CaseSpec(
+                        arm, 'plane', np.radians(tilt), shape, 'position', 1.0, seed
+                    )
+                    built = task_generator.build_case(spec, directory)
+                    for method in ('ours', 'dls'):
+                        rows.append(_robot_data_row(built, spec, method))
+                        print(_robot_data_line(rows[-1]), flush=True)
+    text = _robot_data_table(rows, shapes, tilts_deg, seed)
+    (ROBOT_DATA_OUT / 'results.md').write_text(text)
+    (ROBOT_DATA_OUT / 'results.json').write_text(json.dumps(rows, indent=2))
+    print(text)
+    return rows
+
+
+def _robot_data_row(built, spec, method):
+    """One arm x path x plane under ``method``: the reachability check, then the task."""
+    from pa10_ik_node.tracking import Unreachable
+
+    desired, stiffness, dt = 5.0, 2000.0, 0.01
+    solver_method, weights, changes = CASE_METHODS[method]
+    controller = TrackingController(
+        built.robot,
+        RateSolver(solver_method, weights),
+        TrackingConfig(desired_force=desired, stiffness=stiffness, speed=0.015, **changes),
+        max_joint_velocity=1.0,
+    )
+    row = {
+        'arm': spec.arm.name,
+        'shape': spec.path_shape,
+        'tilt_deg': float(np.degrees(spec.tilt_rad)),
+        'method': method,
+    }
+    started = time.perf_counter()
+    try:
+        controller.start(built.waypoints, spec.arm.start_joints)
+    except Unreachable as error:
+        row.update(phase='refused', reason=str(error), missed=[f'refused: {error}'])
+        return row
+    row['check_s'] = time.perf_counter() - started
+    log = task_generator.run_closed_loop(
+        controller, built.robot, built.simulated_arm(), built.surface, stiffness, dt=dt
+    )
+    row.update(
+        task_generator.tracking_metrics(log, built.surface, built.path_base, desired, built.robot)
+    )
+    tracking = [i for i, phase in enumerate(log.phases) if phase == 'tracking']
+    row.update(
+        phase=controller.phase,
+        stage=controller.stage,
+        reason=controller.reason,
+        task_s=len(log.phases) * dt,
+        tracking_s=(tracking[-1] - tracking[0] + 1) * dt if tracking else float('nan'),
+    )
+    row['missed'] = meets_goals(row)
+    return row
+
+
+def _robot_data_line(row):
+    case = f'{row["arm"]} / {row["shape"]} / {row["tilt_deg"]:.0f} deg | {row["method"]}'
+    if row['phase'] == 'refused':
+        return f'{case}: {row["reason"]}'
+    return (
+        f'{case}: {row["phase"]} rms {row["rms_mm"]:.4f} mm, passed {row["passed_fraction"]:.3f}, '
+        f'force p95 {row["force_p95_pct"]:.2f} %, task {row["task_s"]:.1f} s, step '
+        f'{row["step_ms_median"]:.3f} ms {row["missed"]}'
+    )
+
+
+def _robot_data_table(rows, shapes, tilts_deg, seed):
+    command = (
+        'nice -n 10 .venv/bin/python bench/bench_pa10_ik.py --robot-data --shapes '
+        f'{",".join(shapes)} --tilts {",".join(f"{t:g}" for t in tilts_deg)}'
+    )
+    lines = [
+        '| arm | path | tilt [deg] | method | end | RMS [mm] | passed [%] | force p95 [%] | '
+        'margin [rad] | task [s] | tracking [s] | step [ms] | check [s] | goals missed |',
+        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
+    ]
+    for r in rows:
+        if r['phase'] == 'refused':
+            lines.append(
+                f'| {r["arm"]} | {r["shape"]} | {r["tilt_deg"]:.0f} | {r["method"]} | refused | '
+                f'| | | | | | | | {r["reason"]} |'
+            )
+            continue
+        lines.append(
+            f'| {r["arm"]} | {r["shape"]} | {r["tilt_deg"]:.0f} | {r["method"]} | {r["phase"]} | '
+            f'{r["rms_mm"]:.4f} | {r["passed_fraction"] * 100:.1f} | '
+            f'{r["force_p95_pct"]:.2f} | {r["limit_margin_rad"]:.3f} | {r["task_s"]:.1f} | '
+            f'{r["tracking_s"]:.1f} | {r["step_ms_median"]:.3f} | {r["check_s"]:.2f} | '
+            f'{"; ".join(r["missed"]) or "none"} |'
+        )
+    return (
+        f'Command (from the repository root, after `source ros2_ws/install/setup.bash`): '
+        f'`{command}`; seed {seed}; in process (no topics): 5 N, 2000 N/m, 0.015 m/s, '
+        'control 100 Hz, the arm following positions at 200 Hz.\n\n' + '\n'.join(lines) + '\n'
+    )
+
+
 def main():
+    if '--robot-data' in sys.argv:
+        shapes = _option('--shapes', 'arc,figure_eight').split(',')
+        tilts = [float(t) for t in _option('--tilts', '20,45').split(',')]
+        main_robot_data(shapes, tilts)
+        return None
     if '--cases-only' in sys.argv:
         arms = int(sys.argv[sys.argv.index('--arms') + 1]) if '--arms' in sys.argv else 2
         return main_cases(random_arms=arms)

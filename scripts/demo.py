@@ -767,6 +767,7 @@ def demo_params(scenario, bags, name, work_dir, live_view_port):
             'min_subscribers': 2,
             'robot': scenario.robot.model,
             'tool_length': scenario.robot.tool_length,
+            'tip_frame': scenario.robot.tip_frame,
             'desired_force': DESIRED_FORCE,
         },
     }

@@ -535,13 +535,19 @@ def test_an_exception_in_the_control_step_stops_the_arm_and_the_node_serves(ros_
             rclpy.shutdown()
 
 
-def arm_on_a_tilted_plane(tmp_path, arm, tilt_deg, shape, seed):
+def arm_on_a_tilted_plane(tmp_path, arm, tilt_deg, shape, seed, base_placement=(0.0,) * 6):
     """A scenario file (the default one's cameras and light) with ``arm`` (a
-    task_generator.GeneratedArm, its URDF beside the file) and a plane tilted by
-    ``tilt_deg`` in front of its tool; waypoints of ``shape`` on it and the dense path."""
+    task_generator.GeneratedArm, its URDF beside the file, its base frame at
+    ``base_placement``) and a plane tilted by ``tilt_deg`` in front of its tool; waypoints
+    of ``shape`` on it and the dense path."""
     urdf = tmp_path / f'{arm.name}.urdf'
     urdf.write_text(arm.urdf)
-    robot = load_robot(str(urdf))
+    robot = load_robot(
+        str(urdf),
+        tip_frame=arm.tip_frame,
+        base_frame=arm.base_frame,
+        base_placement=list(base_placement),
+    )
     rng = np.random.default_rng(seed)
     surface = task_generator.posed_surface(
         'plane', robot, arm.start_joints, np.radians(tilt_deg), rng
@@ -563,10 +569,13 @@ def arm_on_a_tilted_plane(tmp_path, arm, tilt_deg, shape, seed):
         'albedo': 0.8,
         'roughness': 0.3,
     }
+    # No tool_length: the URDF's tip frame is the tool tip.
     data['robot'] = {
         'model': urdf.name,
         'initial_joints': arm.start_joints.tolist(),
-        'tool_length': 0.0,
+        'tip_frame': arm.tip_frame,
+        'base_frame': arm.base_frame,
+        'base_placement': list(base_placement),
     }
     scenario_path = tmp_path / 'scenario.yaml'
     scenario_path.write_text(yaml.safe_dump(data))
@@ -576,8 +585,9 @@ def arm_on_a_tilted_plane(tmp_path, arm, tilt_deg, shape, seed):
 def track_over_topics(
     spawn, rclpy_node, scenario_path, scenario, waypoints, sim_args=(), node_args=()
 ):
-    """sensor_sim on the scenario and pa10_ik_node on its arm, one run to done; returns
-    (tool tips while tracking (K, 3), forces while tracking (F,), node)."""
+    """sensor_sim on the scenario and pa10_ik_node on its arm (the URDF and tip frame
+    only: no tool parameter), one run to done; returns (tool tips while tracking (K, 3),
+    forces while tracking (F,), node)."""
     sim = spawn(
         [
             executable('sensor_sim'),
@@ -598,7 +608,11 @@ def track_over_topics(
             '-p',
             f'robot:={scenario.robot.model}',
             '-p',
-            'tool_length:=0.0',
+            f'tip_frame:={scenario.robot.tip_frame}',
+            '-p',
+            f"base_frame:='{scenario.robot.base_frame}'",
+            '-p',
+            f'base_placement:={list(scenario.robot.base_placement)}',
             '-p',
             f'desired_force:={DESIRED_FORCE}',
             '-p',
@@ -656,12 +670,20 @@ def check_goals(tips, forces, scenario, path_base, what, rms_max, passed_min, p9
     assert rms < rms_max and passed > passed_min and p95 < p95_max
 
 
-def test_random_pa10_like_arm_tracks_on_a_35_degree_plane(spawn, rclpy_node, tmp_path):
+def test_a_urdf_whose_tip_frame_is_the_tool_tip_tracks_with_no_tool_parameter(
+    spawn, rclpy_node, tmp_path
+):
+    """A PA-10-like arm of other link lengths whose URDF's tool0 is the tip of its
+    tool, on a 35 deg plane: neither the scenario nor the node names a tool length, and
+    the node takes the URDF as it is (a default tool added beyond tool0 once stopped it
+    10 cm short of the surface)."""
     arm = task_generator.random_pa10_like_arm(np.random.default_rng(1))
     scenario_path, scenario, waypoints, path_base = arm_on_a_tilted_plane(
         tmp_path, arm, 35.0, 'arc', seed=5
     )
-    tips, forces, _ = track_over_topics(spawn, rclpy_node, scenario_path, scenario, waypoints)
+    assert scenario.robot.tool_length == 0.0
+    tips, forces, node = track_over_topics(spawn, rclpy_node, scenario_path, scenario, waypoints)
+    assert 'tip tool0 + tool 0 m' in node.output()
     check_goals(
         tips,
         forces,
@@ -675,6 +697,8 @@ def test_random_pa10_like_arm_tracks_on_a_35_degree_plane(spawn, rclpy_node, tmp
 
 
 def test_panda_following_only_velocities_tracks_on_a_30_degree_plane(spawn, rclpy_node, tmp_path):
+    """example-robot-data's panda.urdf as it ships, tip frame panda_hand_tcp in the
+    scenario and the node (the simulator stamps the pressure in it)."""
     arm = task_generator.panda_arm()
     scenario_path, scenario, waypoints, path_base = arm_on_a_tilted_plane(
         tmp_path, arm, 30.0, 'arc', seed=6
@@ -692,6 +716,50 @@ def test_panda_following_only_velocities_tracks_on_a_30_degree_plane(spawn, rclp
         passed_min=0.95,
         p95_max=0.1,
     )
+
+
+def test_tiago_arm_from_its_torso_placed_off_the_origin_tracks_on_a_40_degree_plane(
+    spawn, rclpy_node, tmp_path
+):
+    """example-robot-data's tiago.urdf as it ships: the chain torso_lift_link ->
+    arm_tool_link (lift, wheels, head and fingers locked), the torso placed 0.39 m up and
+    turned 0.3 rad in base_link by base_placement (the plane then lies where the default
+    scenario's cameras look), in the scenario and the node alike."""
+    arm = task_generator.robot_data_arm('tiago')
+    scenario_path, scenario, waypoints, path_base = arm_on_a_tilted_plane(
+        tmp_path, arm, 40.0, 'arc', seed=8, base_placement=(0.15, -0.485, 0.39, 0.0, 0.0, 0.3)
+    )
+    tips, forces, node = track_over_topics(spawn, rclpy_node, scenario_path, scenario, waypoints)
+    check_goals(
+        tips,
+        forces,
+        scenario,
+        path_base,
+        arm.description,
+        rms_max=0.5e-3,
+        passed_min=0.99,
+        p95_max=0.05,
+    )
+
+
+def test_a_path_beyond_the_joint_limits_is_refused_before_any_motion(fake_loop, rclpy_node):
+    """Inside the workspace sphere, but from its 27th waypoint on the PA-10's elbow would
+    bend past its limit: start_tracking fails naming that waypoint, and no command ever
+    moved the arm."""
+    node, probe, arm, scenario = fake_loop
+    robot = load_robot('pa10')
+    waypoints = np.tile(robot.forward_kinematics(scenario.robot.initial_joints), (61, 1, 1))
+    waypoints[:, 0, 3] = np.linspace(0.6, 0.0, 61)
+    waypoints[:, 2, 3] = 0.2
+    probe.path_publisher.publish(path_message(waypoints))
+    rclpy_node.spin_until(lambda: 'waypoints: 61' in node.output(), 20, 'the path taken')
+    response = probe.call('start_tracking')
+    assert not response.success and 'unreachable' in response.message
+    assert 'waypoint 26 at [0.34 ' in response.message and 'pa10_joint4' in response.message
+    assert 'joint limits' in response.message and 'no closer than' in response.message
+    rclpy_node.spin_until(lambda: probe.phase() == 'failed', 20, 'phase failed')
+    assert all(not np.any(c.points[0].velocities) for c in probe.commands)
+    assert node.alive() and 'Traceback' not in node.output()
 
 
 @pytest.mark.parametrize(
@@ -716,3 +784,6 @@ def test_a_urdf_that_is_no_7_dof_arm_with_tool0_is_a_clear_start_up_error(
     log = node.output()
     assert node.proc.returncode == 2
     assert message in log and 'start-up error' in log and 'Traceback' not in log
+    if 'no frame' in message:  # the frames there are, and what to set
+        assert 'parameter tip_frame' in log and 'set tip_frame to one of its frames' in log
+        assert 'pa10_link7' in log

@@ -2,7 +2,6 @@
 
 import importlib.metadata
 from pathlib import Path
-from xml.etree import ElementTree
 
 import numpy as np
 import pinocchio as pin
@@ -16,6 +15,7 @@ from vgm_common.robot_model import (
     PA10_VELOCITY_LIMITS_RAD_S,
     PARAMETER_SETS,
     load_robot,
+    own_tool_length,
     pa10_urdf,
 )
 
@@ -122,6 +122,10 @@ def test_panda_from_example_robot_data_goes_through_same_code_path():
         )
     except importlib.metadata.PackageNotFoundError:
         pytest.skip('example-robot-data is not installed')
+    with pytest.raises(InvalidInput, match='set tip_frame to one of its frames') as info:
+        load_robot(str(urdf))  # the default tool0: the Panda has none
+    assert info.value.key == 'tip_frame' and 'panda_hand_tcp' in str(info.value)
+    assert own_tool_length(str(urdf)) == 0.0 and own_tool_length('pa10') == 0.1
     robot = load_robot(str(urdf), tip_frame='panda_hand_tcp')
     # The two finger joints do not move the tip, so they are locked away.
     assert robot.joint_names == tuple(f'panda_joint{i}' for i in range(1, 8))
@@ -218,7 +222,7 @@ def test_urdf_that_is_no_7_dof_arm_with_tool0_is_refused_clearly(tmp_path, edit,
     assert '\n' not in str(raised.value)  # one line
 
 
-def test_panda_with_a_tool0_added_is_a_7_dof_arm(tmp_path):
+def test_panda_as_it_ships_is_a_7_dof_arm_at_its_tip_frame(tmp_path):
     from sensor_sim.task_generator import panda_arm  # fails (not skips) without the data
 
     arm = panda_arm()
@@ -226,17 +230,57 @@ def test_panda_with_a_tool0_added_is_a_7_dof_arm(tmp_path):
         'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf'
     )
     reference = load_robot(str(full_urdf), tip_frame='panda_hand_tcp')
-    assert ElementTree.fromstring(arm.urdf).find("link[@name='tool0']") is not None
-    model = pin.buildModelFromXML(arm.urdf)
-    assert model.existFrame('tool0')
-    path = tmp_path / 'panda_tool0.urdf'
+    assert arm.urdf == full_urdf.read_text() and arm.tip_frame == 'panda_hand_tcp'
+    path = tmp_path / 'panda.urdf'
     path.write_text(arm.urdf)
-    robot = load_robot(str(path))
+    robot = load_robot(str(path), tip_frame=arm.tip_frame)
     assert robot.n_joints == 7
     q = arm.start_joints
     np.testing.assert_allclose(
         robot.forward_kinematics(q), reference.forward_kinematics(q), atol=1e-12
     )
+
+
+def test_an_arm_from_a_torso_is_its_chain_from_the_base_frame_placed_in_base_link():
+    """TIAGo's arm from torso_lift_link: the lift, wheels (continuous) and head locked,
+    poses relative to the torso frame, moved by base_placement."""
+    from sensor_sim.task_generator import ROBOT_DATA_DIR
+
+    urdf = importlib.metadata.distribution('example-robot-data').locate_file(
+        f'{ROBOT_DATA_DIR}/tiago_description/robots/tiago.urdf'
+    )
+    with pytest.raises(InvalidInput, match='8 joints move'):
+        load_robot(str(urdf), tip_frame='arm_tool_link')  # the lift joint too
+    robot = load_robot(str(urdf), tip_frame='arm_tool_link', base_frame='torso_lift_link')
+    assert robot.joint_names == tuple(f'arm_{i}_joint' for i in range(1, 8))
+    full = pin.buildModelFromUrdf(str(urdf))
+    data = full.createData()
+    q = np.random.default_rng(3).uniform(robot.lower_limits, robot.upper_limits)
+    q_full = pin.neutral(full)
+    for name, value in zip(robot.joint_names, q):
+        q_full[full.idx_qs[full.getJointId(name)]] = value
+    pin.framesForwardKinematics(full, data, q_full)
+    T_torso_tip = data.oMf[full.getFrameId('torso_lift_link')].actInv(
+        data.oMf[full.getFrameId('arm_tool_link')]
+    )
+    np.testing.assert_allclose(robot.forward_kinematics(q), T_torso_tip.homogeneous, atol=1e-12)
+    placement = [0.1, -0.2, 0.3, 0.0, 0.0, np.pi / 2]
+    placed = load_robot(
+        str(urdf),
+        tip_frame='arm_tool_link',
+        base_frame='torso_lift_link',
+        base_placement=placement,
+    )
+    T_link_base = np.eye(4)
+    T_link_base[:3, :3] = pin.rpy.rpyToMatrix(*placement[3:])
+    T_link_base[:3, 3] = placement[:3]
+    np.testing.assert_allclose(
+        placed.forward_kinematics(q), T_link_base @ T_torso_tip.homogeneous, atol=1e-12
+    )
+    J, J_placed = robot.jacobian(q), placed.jacobian(q)
+    np.testing.assert_allclose(J_placed[:3], T_link_base[:3, :3] @ J[:3], atol=1e-12)
+    with pytest.raises(InvalidInput, match='set base_frame to one of its frames'):
+        load_robot(str(urdf), tip_frame='arm_tool_link', base_frame='torso')
 
 
 def test_random_pa10_like_arms_are_7_dof_with_their_tool(tmp_path):

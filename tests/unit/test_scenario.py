@@ -373,6 +373,21 @@ def test_documented_example_loads():
     assert scenario.cameras['right'].distortion_model == 'division'
 
 
+def test_the_tool_is_the_models_own_unless_given(tmp_path):
+    """The PA-10 models carry their 0.1 m tool; a URDF's tip frame is the tool tip as its
+    author wrote it; a tip frame and tool length given are taken as they are."""
+    from vgm_common.robot_model import pa10_urdf
+
+    assert parse_scenario(minimal()).robot.tool_length == 0.1
+    (tmp_path / 'arm.urdf').write_text(pa10_urdf('pa10', 0.1))
+    data = edited(minimal(), 'robot.model', 'arm.urdf')
+    robot = parse_scenario(data, tmp_path / 'scenario.yaml').robot
+    assert (robot.tool_length, robot.tip_frame) == (0.0, 'tool0')
+    data = edited(edited(data, 'robot.tip_frame', 'pa10_link7'), 'robot.tool_length', 0.05)
+    robot = parse_scenario(data, tmp_path / 'scenario.yaml').robot
+    assert (robot.tool_length, robot.tip_frame) == (0.05, 'pa10_link7')
+
+
 def test_minimal_scenario_is_valid():
     scenario = parse_scenario(minimal())
     assert scenario.calibration.rows == 5
@@ -402,6 +417,7 @@ BAD = [
     ('surface.type', 'torus'),
     ('curve.type', 'spiral'),
     ('cameras.left.distortion_model', 'fisheye'),
+    ('robot.tip_frame', 'flange'),  # no such frame in the model
 ]
 
 

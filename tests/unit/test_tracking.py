@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from pa10_ik_node.ik import RateSolver
+from pa10_ik_node.path import WaypointPath
 from pa10_ik_node.tracking import (
     TrackingConfig,
     TrackingController,
@@ -368,6 +369,25 @@ def test_an_arm_slower_than_commanded_reaches_contact_on_its_measured_descent(ro
     assert 'contact' in log.phases and 'tracking' in log.phases
 
 
+@pytest.mark.parametrize('deeper_m, doing', [(0.05, 'moving in free space'), (0.02, 'descending')])
+def test_contact_before_the_first_waypoint_fails_naming_the_probable_cause(
+    robot, scenario, deeper_m, doing
+):
+    """Waypoints 5 cm (2 cm) below the surface, as a tool longer than the model's would
+    make them: the tip meets the surface on its way to the pre-contact pose 3 cm above
+    the first waypoint (on the descent), and the failure names tool, tip frame and
+    surface pose; no task runs on."""
+    waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
+    waypoints[:, :3, 3] += deeper_m * waypoints[:, :3, 2]
+    controller, log = simulate(robot, scenario, waypoints, scenario.contact_stiffness)
+    assert controller.phase == 'failed', controller.reason
+    assert 'unexpected contact: ' in controller.reason and doing in controller.reason
+    for cause in ('tool_length', 'tip_frame', 'surface'):
+        assert cause in controller.reason
+    assert not any(phase == 'tracking' for phase, _, _ in log)
+    assert max(force for _, _, force in log) < 3 * DESIRED_FORCE
+
+
 def test_descent_into_nothing_fails_on_the_measured_distance(robot, scenario):
     """Waypoints 5 cm above the surface: the tip goes max_depth past the first waypoint
     (measured) without force, and the failure says so."""
@@ -387,11 +407,56 @@ def test_descent_into_nothing_fails_on_the_measured_distance(robot, scenario):
         controller, robot, arm, scenario.surface, scenario.contact_stiffness
     )
     assert controller.phase == 'failed' and 'no contact' in controller.reason
-    assert 'measured' in controller.reason
+    assert 'measured' in controller.reason and 'probable cause' in controller.reason
     P0, z0 = waypoints[0, :3, 3], waypoints[0, :3, 2]
     depth = np.dot(log.tips[-1] - P0, z0)
     assert 0.01 <= depth < 0.013  # max_depth past it, and no further
     assert log.stop_latency <= 0.01
+
+
+def test_a_path_beyond_the_joint_limits_is_refused_before_moving_naming_the_waypoint(
+    robot, scenario
+):
+    """A line from the start pose's tip towards the base, tool down, 0.2 m up: inside the
+    workspace sphere, but from x = 0.34 m on the elbow (pa10_joint4) would have to bend
+    past its 137 deg. Refused at start naming that waypoint and the shortfall; the
+    controller stays idle."""
+    q0 = scenario.robot.initial_joints
+    waypoints = np.tile(robot.forward_kinematics(q0), (61, 1, 1))
+    waypoints[:, 0, 3] = np.linspace(0.6, 0.0, 61)
+    waypoints[:, 2, 3] = 0.2
+    controller = TrackingController(robot, RateSolver('ours', np.ones(7)))
+    controller.check_reachable(WaypointPath(waypoints))  # the sphere test lets it pass
+    with pytest.raises(Unreachable) as raised:
+        controller.start(waypoints, q0)
+    message = str(raised.value)
+    assert message.startswith('waypoint 26 at [0.34 ') and 'joint limits' in message
+    assert 'pa10_joint4' in message and 'no closer than' in message
+    assert controller.phase == 'idle' and controller.path is None
+    controller.start(waypoints[:20], q0)  # the part before it is fine
+    assert controller.phase == 'approach'
+
+
+@pytest.mark.parametrize('name', sorted(task_generator.ROBOT_DATA_ARMS))
+def test_every_example_robot_data_arm_tracks_an_arc_on_a_30_degree_plane(tmp_path, name):
+    """The 7-DOF arms of example-robot-data as they ship (chain base -> tip frame, the
+    rest locked): the path passes the check from the start joints and the goals hold."""
+    arm = task_generator.robot_data_arm(name)
+    spec = task_generator.CaseSpec(arm, 'plane', np.radians(30.0), 'arc', 'position', 1.0, 7)
+    built = task_generator.build_case(spec, tmp_path)
+    controller = TrackingController(
+        built.robot, RateSolver('ours', np.ones(7)), TrackingConfig(), max_joint_velocity=1.0
+    )
+    controller.start(built.waypoints, arm.start_joints)
+    log = task_generator.run_closed_loop(
+        controller, built.robot, built.simulated_arm(), built.surface, 2000.0
+    )
+    metrics = task_generator.tracking_metrics(
+        log, built.surface, built.path_base, 5.0, built.robot
+    )
+    assert controller.phase == 'done' and controller.stage == 'lifted', controller.reason
+    assert metrics['rms_mm'] < 0.05 and metrics['passed_fraction'] > 0.99
+    assert metrics['force_p95_pct'] < 3.0 and metrics['limit_margin_rad'] > 0
 
 
 GENERATED = task_generator.generate_cases(13)

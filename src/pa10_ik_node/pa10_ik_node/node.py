@@ -42,7 +42,7 @@ from vgm_common.node_tools import (
     subscriber_gate_params,
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
-from vgm_common.robot_model import load_robot
+from vgm_common.robot_model import load_robot, own_tool_length
 from vgm_common.topics import (
     BASE_FRAME,
     JOINT_STATES_TOPIC,
@@ -57,6 +57,15 @@ JOINT_LIMIT_SLACK_RAD = 0.1  # a measured joint this far outside its limits is n
 THESIS_WEIGHTS = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0]  # §6.6
 # The controller's settings that are parameters (the rest keep TrackingConfig's defaults).
 TRACKING = ConfigParams(TrackingConfig, renamed={'stiffness': 'contact_stiffness'})
+
+
+OWN_TOOL = -1.0  # tool_length: the model's own
+
+
+def _check_tool_length(value):
+    if value < 0 and value != OWN_TOOL:
+        return f"a length >= 0 [m], or {OWN_TOOL:g} for the model's own"
+    return None
 
 
 def _check_weights(values):
@@ -75,15 +84,34 @@ PARAMETERS = [
     ),
     Param(
         'tool_length',
-        0.1,
-        "[m] Flange to tool tip; must match the scenario's robot.tool_length.",
-        range=(0.0, 1.0),
+        OWN_TOOL,
+        "[m] Tool beyond tip_frame along its z axis; -1: the model's own (0.1 m for the "
+        'built-in pa10 models, 0 for a URDF, whose tip frame is the tool tip). Must match '
+        "the scenario's robot.tool_length.",
+        range=(OWN_TOOL, 1.0),
+        check=_check_tool_length,
         read_only=True,
     ),
     Param(
         'tip_frame',
         'tool0',
-        'Tip frame of the URDF (z = approach axis).',
+        'Tip frame of the URDF, any of its frames (z = approach axis); /tool/pressure '
+        'must be stamped in it.',
+        read_only=True,
+    ),
+    Param(
+        'base_frame',
+        '',
+        "Frame of the URDF the arm's chain starts at ('': its root); joints moving it (a "
+        "torso's) are locked.",
+        read_only=True,
+    ),
+    Param(
+        'base_placement',
+        [0.0] * 6,
+        '[m, rad] x, y, z, roll, pitch, yaw of base_frame in base_link (the frame of the '
+        "waypoints and /tool_pose); = the scenario's robot.base_placement.",
+        check=lambda v: None if len(v) == 6 else 'needs 6 numbers',
         read_only=True,
     ),
     Param('rate', 100.0, '[Hz] Control rate.', range=(100.0, 1000.0), read_only=True),
@@ -272,16 +300,26 @@ class Pa10IkNode(GraphNode):
             on_change=solver_hooks | dict.fromkeys(TRACKING_PARAMETERS, self._reconfigure),
         )
         p = self.params
+        self.tool_length_m = own_tool_length(p.robot) if p.tool_length < 0 else p.tool_length
         try:
-            self.robot = load_robot(p.robot, p.tool_length, p.tip_frame)
+            self.robot = load_robot(
+                p.robot,
+                self.tool_length_m,
+                p.tip_frame,
+                base_frame=p.base_frame,
+                base_placement=p.base_placement,
+            )
         except InvalidInput as error:
-            raise InvalidInput(f'parameter robot: {error}', 'robot', p.robot) from None
+            named = error.key in ('tip_frame', 'base_frame', 'base_placement')
+            key = error.key if named else 'robot'
+            raise InvalidInput(f'parameter {key}: {error}', key, error.value) from None
         self.params.add_check(self._one_weight_per_joint)
         self.controller = TrackingController(
             self.robot,
             self._make_solver(),
             TRACKING.build(self.params),
             max_joint_velocity=p.max_joint_velocity,
+            tip_description=f'tip_frame {p.tip_frame!r} + tool_length {self.tool_length_m:g} m',
         )
         self.joint_index = {name: i for i, name in enumerate(self.robot.joint_names)}
         self.q = None  # measured joints, robot order [rad]
@@ -319,7 +357,8 @@ class Pa10IkNode(GraphNode):
         self.create_timer(self.dt, self._control_step)
         self.create_timer(1.0 / p.diagnostics_rate, self._publish_diagnostics)
         self.get_logger().info(
-            f'robot {p.robot} (tool {p.tool_length} m), method {p.method}, {p.rate:g} Hz, '
+            f'robot {p.robot} (tip {p.tip_frame} + tool {self.tool_length_m:g} m), '
+            f'method {p.method}, {p.rate:g} Hz, '
             f'desired force {p.desired_force} N, speed {p.speed} m/s, '
             f'auto_start {p.auto_start}'
         )
@@ -399,7 +438,8 @@ class Pa10IkNode(GraphNode):
         frame = msg.header.frame_id
         if frame != self.params.tip_frame:
             error = InvalidInput(
-                f'frame {frame!r}, expected the tip frame {self.params.tip_frame!r}',
+                f'frame {frame!r}, expected the tip frame {self.params.tip_frame!r} '
+                '(parameter tip_frame)',
                 'frame_id',
                 frame,
             )
@@ -465,7 +505,7 @@ class Pa10IkNode(GraphNode):
         if missing or waypoints is None:  # None: WAYPOINTS_TOPIC is among the missing
             return False, f'cannot start: no recent {", ".join(missing)}'
         try:
-            self.controller.start(waypoints)
+            self.controller.start(waypoints, self.q)
         except Unreachable as error:
             self.controller.fail(f'unreachable waypoints: {error}')
             self._hold()

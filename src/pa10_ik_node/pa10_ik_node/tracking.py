@@ -23,6 +23,7 @@ import numpy.typing as npt
 
 from pa10_ik_node.ik import RateSolver, pose_error
 from pa10_ik_node.path import WaypointPath
+from pa10_ik_node.reach import first_unreachable, spaced_indices
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 from vgm_common.robot_model import RobotModel, workspace_reach
@@ -138,6 +139,7 @@ FORCE_LAWS = ('integral', 'tilt')
 MIN_RESPONSE = 0.4  # commands are scaled up at most 2.5 times (_compensated)
 RESPONSE_WINDOW = 1.0  # [s] forgetting time of the response estimate
 MAX_INTEGRAL_SPEEDS = 1.0  # see TrackingConfig.pose_integral_gain
+REACH_CHECK_SPACING_M = 0.002  # waypoints walked through before the arm moves
 PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
 ACTIVE_PHASES = ('approach', 'contact', 'tracking')
 
@@ -235,6 +237,8 @@ class TrackingController:
         solver: ``RateSolver`` (method, W, limits handling).
         config: ``TrackingConfig``.
         max_joint_velocity: [rad/s] cap on top of the robot's limits (None: none).
+        tip_description: how the model's tip was made (e.g. "tip_frame 'tool0' + tool_length
+            0.1 m"), named when contact comes where the model says it cannot.
 
     Attributes:
         phase: one of ``PHASES``; reason: why the controller stopped or failed ('' else).
@@ -247,8 +251,10 @@ class TrackingController:
         solver: RateSolver,
         config: TrackingConfig | None = None,
         max_joint_velocity: float | None = None,
+        tip_description: str = '',
     ) -> None:
         self.robot, self.solver = robot, solver
+        self.tip_description = tip_description or 'tip_frame and tool_length'
         self.config = TrackingConfig() if config is None else config
         self.configure()  # validates force_law
         limits = np.array(robot.velocity_limits, dtype=float)
@@ -274,6 +280,7 @@ class TrackingController:
         self.lift_reference, self.wait_time, self.end_time = 0.0, 0.0, 0.0
         self.pose_integral = np.zeros(3)  # [m s] see TrackingConfig.pose_integral_gain
         self.reference_moving = False
+        self.force_before_free_move: float | None = None  # [N] at the first approach step
         self.response = 1.0  # fraction of the commanded motion the arm makes (estimated)
         self.response_sums = np.zeros(2)  # [m] (made, commanded), see _update_response
         self.last_tip: FloatArray | None = None
@@ -304,11 +311,46 @@ class TrackingController:
                 points[worst],
             )
 
-    def start(self, waypoints: npt.ArrayLike) -> None:
-        """Begin the task on ``waypoints`` (N, 4, 4). Raises ``InvalidInput`` /
+    def check_joint_reachable(self, path: WaypointPath, q: npt.ArrayLike) -> None:
+        """Raises ``Unreachable`` naming the first target (the pre-contact pose, then the
+        waypoints every ``REACH_CHECK_SPACING_M``, pressed in by the feed-forward depth)
+        that the model, walked from the joints ``q`` (n,) [rad], cannot reach within its
+        joint limits at the task's orientation freedom (``track_spin``), and by how much."""
+        c = self.config
+        T = path.T.copy()
+        T[:, :3, 3] += min(c.desired_force / c.stiffness, c.max_depth) * T[:, :3, 2]
+        pre_contact = path.T[0].copy()
+        pre_contact[:3, 3] -= c.standoff * pre_contact[:3, 2]
+        indices = spaced_indices(T[:, :3, 3], REACH_CHECK_SPACING_M)
+        miss = first_unreachable(
+            self.robot, q, np.concatenate([pre_contact[None], T[indices]]), c.track_spin
+        )
+        if miss is None:
+            return
+        what = (
+            f'the pre-contact pose {c.standoff * 1e3:.0f} mm before waypoint 0'
+            if miss.index == 0
+            else f'waypoint {indices[miss.index - 1]} at '
+            f'{path.T[indices[miss.index - 1], :3, 3].round(3)}'
+        )
+        limits = ', '.join(miss.joints_at_limit) or 'none'
+        axis = 'orientation' if c.track_spin else 'approach axis'
+        raise Unreachable(
+            f'{what} is out of reach within the joint limits: the arm gets no closer than '
+            f'{miss.position_error_m * 1e3:.1f} mm and {np.degrees(miss.angle_error_rad):.1f} '
+            f'deg of its {axis} (joints at a limit: {limits})',
+            'waypoints',
+            miss.index,
+        )
+
+    def start(self, waypoints: npt.ArrayLike, q: npt.ArrayLike | None = None) -> None:
+        """Begin the task on ``waypoints`` (N, 4, 4) from the measured joints ``q`` (n,)
+        [rad] (None: only the workspace sphere is checked). Raises ``InvalidInput`` /
         ``Unreachable`` and stays as it was if they cannot be followed."""
         path = WaypointPath(waypoints, self.config.closed_tolerance)
         self.check_reachable(path)
+        if q is not None:
+            self.check_joint_reachable(path, q)
         self.path = path
         self._reset_state()
         self._enter('approach', 'free')
@@ -464,6 +506,10 @@ class TrackingController:
         tip = T[:3, 3]
         P0, z0, _ = self._sample(0.0)
         if self.stage == 'free':
+            if self.force_before_free_move is None:
+                self.force_before_free_move = force
+            if self._unexpected_contact(tip, P0, z0, force, 'moving in free space'):
+                return None
             T_d = self._frame(0.0, P0 - c.standoff * z0)
             distance = float(np.linalg.norm(T_d[:3, 3] - tip))
             angle = float(np.linalg.norm(tilt_error(T[:3, :3], z0)))
@@ -615,16 +661,21 @@ class TrackingController:
         error_timeouts)."""
         c = self.config
         tip = T[:3, 3]
-        if force >= c.desired_force:
-            self._enter('contact')
-            return self._reference(T, force, 0.0, info)
         depth = float(np.dot(tip - P0, z0))  # [m] measured, > 0 past the first waypoint
         info['measured_depth'] = depth
+        if force >= c.desired_force:
+            if self._unexpected_contact(tip, P0, z0, force, 'descending'):
+                return None
+            self._enter('contact')
+            return self._reference(T, force, 0.0, info)
         if depth > c.max_depth:
             self.fail(
                 f'no contact: the tip is {depth * 1e3:.1f} mm past the first waypoint '
                 f'along its approach axis (measured) with {force:.2f} N of the '
-                f'desired {c.desired_force:g} N'
+                f'desired {c.desired_force:g} N; probable cause: the real tip is shorter '
+                f"than the model's ({self.tip_description}: a URDF whose tip frame is the "
+                'tool tip needs tool_length 0) or the surface lies farther along the '
+                'approach axis than the waypoints (its pose)'
             )
             return None
         if not self._progressing(-depth - max(force, 0.0) / c.stiffness, dt):
@@ -643,6 +694,31 @@ class TrackingController:
         T_d = self._frame(0.0, P0 + self.reference_depth * z0)
         feed_forward = np.concatenate([rate * z0, np.zeros(3)])
         return self._checked(T, T_d, feed_forward, dt)
+
+    def _unexpected_contact(
+        self, tip: FloatArray, P0: FloatArray, z0: FloatArray, force: float, doing: str
+    ) -> bool:
+        """Fail (and True) on a contact the model says cannot be there: a force appearing,
+        or the desired force reached, with the tip more than ``max_depth`` before the
+        first waypoint along its approach axis; the real tip or the surface is then not
+        where the model and the waypoints put them. (A free-space move that brushes a
+        curved surface level with the waypoints goes on, as it always did.)"""
+        c = self.config
+        above = float(np.dot(P0 - tip, z0))  # [m] measured, > 0 before the first waypoint
+        before = self.force_before_free_move or 0.0
+        touching = force >= c.force_tolerance * c.desired_force and not (
+            doing != 'descending' and before >= c.force_tolerance * c.desired_force
+        )
+        if not (touching and above > c.max_depth):
+            return False
+        self.fail(
+            f'unexpected contact: {force:.2f} N while {doing} with the tip {above * 1e3:.1f} '
+            'mm before the first waypoint along its approach axis (measured); probable '
+            f"cause: the real tip reaches farther than the model's ({self.tip_description}: "
+            'too short a tool_length or the wrong tip_frame) or the surface lies nearer '
+            'than the waypoints (its pose)'
+        )
+        return True
 
     def _lift(self, T: FloatArray, dt: float) -> _Reference | None:
         """Lift-off along the last approach axis by ``lift_height``, on the measured tip:

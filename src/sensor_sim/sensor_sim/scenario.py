@@ -28,6 +28,7 @@ from vgm_common.geometry import (
     quaternion_to_matrix,
     rpy_to_matrix,
 )
+from vgm_common.topics import TOOL_FRAME
 
 SURFACE_TYPES = ('plane', 'S1', 'S2', 'S3', 'vase', 'sphere', 'heightmap')
 CURVE_TYPES = ('parabola', 'ellipse', 'circle', 'line_pair', 'cubic', 'surface_loop', 'points')
@@ -104,12 +105,16 @@ class Calibration:
 
 @dataclass(frozen=True)
 class Robot:
-    """The arm: its model (checked to load when the scenario is), start joints and the tool
-    length added after ``tool0``."""
+    """The arm: its model (checked to load when the scenario is), start joints, the tip
+    frame (z = approach axis; the pressure is stamped in it) and the tool length added
+    beyond it."""
 
     model: str  # 'pa10', 'pa10_thesis' or a URDF path
     initial_joints: np.ndarray  # [rad] (7,)
     tool_length: float  # [m]
+    tip_frame: str = TOOL_FRAME
+    base_frame: str = ''  # where the arm's chain starts ('': the URDF's root)
+    base_placement: tuple[float, ...] = (0.0,) * 6  # base_frame in base_link: xyz [m], rpy [rad]
 
 
 @dataclass(frozen=True)
@@ -316,22 +321,29 @@ def parse_scenario(data: object, path: str | Path = Path('scenario.yaml')) -> Sc
 
 def _parse_robot(section: _Section, base_dir: Path) -> Robot:
     """robot: the model ('pa10', 'pa10_thesis' or a URDF path, relative to the scenario
-    file), loaded here so that a URDF that is no 7-DOF arm with ``tool0`` and joint
-    limits, or start joints outside them, is a scenario error naming robot.model."""
+    file), its tip frame and the tool beyond it (default: the model's own, 0.1 m for the
+    PA-10 models, none for a URDF), loaded here so that a URDF that is no 7-DOF arm with
+    that frame and joint limits, or start joints outside them, is a scenario error naming
+    the key."""
     from vgm_common.errors import InvalidInput
-    from vgm_common.robot_model import PARAMETER_SETS, load_robot
+    from vgm_common.robot_model import PARAMETER_SETS, load_robot, own_tool_length
 
     model = section.string('model', default='pa10')
     if model not in PARAMETER_SETS:
         model = str(base_dir / model)
     initial_joints = section.vector('initial_joints', 7)
-    tool_length = section.number('tool_length', default=0.0, minimum=0.0)
+    tool_length = section.number('tool_length', default=own_tool_length(model), minimum=0.0)
+    tip_frame = section.string('tip_frame', default=TOOL_FRAME)
+    base_frame = section.string('base_frame', default='')
+    base_placement = tuple(section.vector('base_placement', 6, default=[0.0] * 6).tolist())
     try:
-        robot = load_robot(model, tool_length)
+        robot = load_robot(
+            model, tool_length, tip_frame, base_frame=base_frame, base_placement=base_placement
+        )
     except InvalidInput as error:
-        raise ScenarioError(
-            f'{section.path("model")}: {error}', key=section.path('model')
-        ) from None
+        named = error.key if error.key in ('tip_frame', 'base_frame', 'base_placement') else None
+        key = section.path(named or 'model')
+        raise ScenarioError(f'{key}: {error}', key=key) from None
     outside = (initial_joints < robot.lower_limits) | (initial_joints > robot.upper_limits)
     if np.any(outside):
         i = int(np.flatnonzero(outside)[0])
@@ -341,7 +353,7 @@ def _parse_robot(section: _Section, base_dir: Path) -> Robot:
             f'[{robot.lower_limits[i]:.4g}, {robot.upper_limits[i]:.4g}]',
             key=section.path('initial_joints'),
         )
-    return Robot(model, initial_joints, tool_length)
+    return Robot(model, initial_joints, tool_length, tip_frame, base_frame, base_placement)
 
 
 def _parse_surface(section: _Section, base_dir: Path) -> Surface:

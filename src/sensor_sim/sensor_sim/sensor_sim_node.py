@@ -50,7 +50,6 @@ from vgm_common.topics import (
     OPTICAL_FRAMES,
     PRESSURE_TOPIC,
     TARGET_POSE_TOPIC,
-    TOOL_FRAME,
 )
 
 PARAMETERS = [
@@ -166,7 +165,13 @@ class SensorSim(GraphNode):
 
     def _build_arm(self):
         robot = self.scenario.robot
-        self.robot = load_robot(robot.model, robot.tool_length)
+        self.robot = load_robot(
+            robot.model,
+            robot.tool_length,
+            robot.tip_frame,
+            base_frame=robot.base_frame,
+            base_placement=robot.base_placement,
+        )
         self.arm = SimulatedArm.from_robot_model(
             self.robot, robot.initial_joints, self.params.arm_mode, self.params.arm_speed_scale
         )
@@ -351,7 +356,7 @@ class SensorSim(GraphNode):
             force = max(
                 0.0, force + self.rng_pressure.normal(0.0, self.scenario.noise.pressure_sigma)
             )
-        wrench = WrenchStamped(header=make_header(stamp_ns, TOOL_FRAME))
+        wrench = WrenchStamped(header=make_header(stamp_ns, self.scenario.robot.tip_frame))
         wrench.wrench.force.z = float(force)
         self.pressure_publisher.publish(wrench)
         self.published[PRESSURE_TOPIC] += 1

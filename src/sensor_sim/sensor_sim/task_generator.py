@@ -5,7 +5,9 @@ orientation). No ROS. Every random choice takes a ``numpy.random.Generator``.
 
 - Arms: PA-10-like URDFs (the PA-10's joint axes, link offsets within +-40 % of the real
   arm's, other joint and velocity limits, a 0.05-0.2 m tool, ``tool0`` at the tip) and the
-  Franka Panda of example-robot-data with a ``tool0`` added at its ``panda_hand_tcp``.
+  7-DOF arms of example-robot-data as they ship (``ROBOT_DATA_ARMS``: the Franka Panda, the
+  xArm 7, TIAGo's and TIAGo Pro's arms from the torso, Talos's left arm from the torso,
+  Baxter's left arm), each its chain from a base frame to a tip frame, other joints locked.
 - Surfaces: planes, paraboloid domes and S1-S3, posed so that the normal under the path's
   centre is tilted 0-45 deg away from the tool's axis at the arm's start pose.
 - Paths: a line, an arc, a self-crossing figure eight, a spiral of two turns and a tight
@@ -39,8 +41,8 @@ from vgm_common.robot_model import (
     RobotModel,
     load_robot,
     pa10_like_urdf,
-    urdf_with_tool0,
 )
+from vgm_common.topics import TOOL_FRAME
 
 if TYPE_CHECKING:  # imported lazily by BuiltCase.simulated_arm
     from sensor_sim.arm_sim import SimulatedArm
@@ -51,7 +53,45 @@ TOOL_RANGE_M = (0.05, 0.2)
 PA10_START_JOINTS = np.array([0.0, 0.388, 0.0, 1.645, 0.0, 1.109, 0.0])  # [rad]
 # The Panda's "ready" pose, hand pointing down.
 PANDA_START_JOINTS = np.array([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.785])  # [rad]
-PANDA_URDF = 'cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf'
+ROBOT_DATA_DIR = 'cmeel.prefix/share/example-robot-data/robots'
+PANDA_URDF = f'{ROBOT_DATA_DIR}/panda_description/urdf/panda.urdf'
+# name: (URDF under ROBOT_DATA_DIR, base frame, tip frame, start joints [rad]). The start
+# joints (the Panda's its "ready" pose) maximise the smallest singular value of the
+# 5-row task Jacobian (spin free) within the middle 70 % of each joint's range (scipy
+# L-BFGS-B from 12 seeded draws; 0.21-0.28 at the optimum).
+ROBOT_DATA_ARMS = {
+    'panda': ('panda_description/urdf/panda.urdf', '', 'panda_hand_tcp', PANDA_START_JOINTS),
+    'xarm7': (
+        'xarm_description/urdf/xarm7.urdf',
+        '',
+        'link_eef',
+        np.array([0.0, 0.018, 0.015, 0.929, 1.393, 0.605, 0.0]),
+    ),
+    'tiago': (
+        'tiago_description/robots/tiago.urdf',
+        'torso_lift_link',
+        'arm_tool_link',
+        np.array([1.38, -0.129, -1.346, 1.939, -0.545, 0.129, -0.768]),
+    ),
+    'tiago_pro_left': (
+        'tiago_pro_description/robots/tiago_pro.urdf',
+        'torso_lift_link',
+        'arm_left_tool_link',
+        np.array([2.094, -0.657, -0.091, -1.907, -1.183, 0.793, 0.0]),
+    ),
+    'talos_left': (
+        'talos_data/robots/talos_reduced.urdf',
+        'torso_2_link',
+        'wrist_left_ft_tool_link',
+        np.array([-0.524, 1.294, 0.096, -1.957, 0.157, 0.905, 0.018]),
+    ),
+    'baxter_left': (
+        'baxter_description/urdf/baxter.urdf',
+        '',
+        'left_gripper',
+        np.array([0.0, -0.13, -1.129, 2.197, 0.782, 1.391, -0.001]),
+    ),
+}
 SURFACE_KINDS = ('plane', 'paraboloid', 'S1', 'S2', 'S3')
 PATH_SHAPES = ('line', 'arc', 'figure_eight', 'spiral', 'tight_loop')
 WAYPOINT_SPACING_M = 0.001
@@ -67,6 +107,8 @@ class GeneratedArm:
     description: str
     link_offsets_m: tuple[float, ...] = ()  # PA-10-like arms: (d1, d3, d5, d7)
     tool_length_m: float = float('nan')  # PA-10-like arms
+    tip_frame: str = TOOL_FRAME  # the tool tip (z = approach axis), a frame of ``urdf``
+    base_frame: str = ''  # where the arm's chain starts ('': the URDF's root)
 
 
 def random_pa10_like_arm(rng: np.random.Generator, name: str = 'pa10_random') -> GeneratedArm:
@@ -100,25 +142,36 @@ def random_pa10_like_arm(rng: np.random.Generator, name: str = 'pa10_random') ->
     )
 
 
-def panda_arm() -> GeneratedArm:
-    """The Franka Panda of example-robot-data with ``tool0`` at its ``panda_hand_tcp``.
+def robot_data_arm(name: str) -> GeneratedArm:
+    """An arm of ``ROBOT_DATA_ARMS``: its example-robot-data URDF unedited, with its base
+    and tip frames and start joints.
 
     Raises:
-        InvalidInput: example-robot-data is not installed.
+        InvalidInput: an unknown name, or example-robot-data is not installed.
     """
+    if name not in ROBOT_DATA_ARMS:
+        raise InvalidInput(f'name must be one of {sorted(ROBOT_DATA_ARMS)}', 'name', name)
+    relative, base, tip, start = ROBOT_DATA_ARMS[name]
     try:
-        path = importlib.metadata.distribution('example-robot-data').locate_file(PANDA_URDF)
-        text = path.read_text()
+        distribution = importlib.metadata.distribution('example-robot-data')
+        text = distribution.locate_file(f'{ROBOT_DATA_DIR}/{relative}').read_text()
     except (importlib.metadata.PackageNotFoundError, OSError) as err:
         raise InvalidInput(
-            f'the Panda URDF of example-robot-data is not available: {err}', 'robot'
+            f'{relative} of example-robot-data is not available: {err}', 'robot'
         ) from err
     return GeneratedArm(
-        'panda',
-        urdf_with_tool0(text, 'panda_hand_tcp'),
-        PANDA_START_JOINTS.copy(),
-        'Franka Panda (example-robot-data), tool0 at panda_hand_tcp',
+        name,
+        text,
+        np.array(start, dtype=float),
+        f'{relative} (example-robot-data), {base or "root"} -> {tip}',
+        tip_frame=tip,
+        base_frame=base,
     )
+
+
+def panda_arm() -> GeneratedArm:
+    """The Franka Panda of example-robot-data, its URDF unedited, tip ``panda_hand_tcp``."""
+    return robot_data_arm('panda')
 
 
 def stretched_joints(
@@ -500,7 +553,7 @@ def build_case(spec: CaseSpec, directory: str | os.PathLike[str]) -> BuiltCase:
 
     urdf = Path(directory) / f'{spec.arm.name}.urdf'
     urdf.write_text(spec.arm.urdf)
-    robot = load_robot(str(urdf))
+    robot = load_robot(str(urdf), tip_frame=spec.arm.tip_frame, base_frame=spec.arm.base_frame)
     rng = np.random.default_rng(spec.seed)
     placement = spec.arm.start_joints
     if spec.path_shape == 'tight_loop':  # near the reach

@@ -16,6 +16,7 @@ Regenerate the committed URDFs from the repository root with
 
 from __future__ import annotations
 
+import difflib
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -69,6 +70,14 @@ PARAMETER_SETS = {
     'pa10': Pa10Parameters(d1=0.317, d3=0.45, d5=0.48, d7=0.07),  # real PA-10-7C
     'pa10_thesis': Pa10Parameters(d1=0.0, d3=1.8, d5=3.6, d7=0.6),  # thesis; d1 not given
 }
+PA10_TOOL_LENGTH_M = 0.1  # [m] the shipped PA-10's tool, flange to tip
+
+
+def own_tool_length(robot: str | os.PathLike[str]) -> float:
+    """[m] The tool beyond the tip frame that ``robot`` carries when nobody says otherwise:
+    the built-in PA-10 models' ``PA10_TOOL_LENGTH_M``, none for a URDF (its author's tip
+    frame is the tool tip)."""
+    return PA10_TOOL_LENGTH_M if isinstance(robot, str) and robot in PARAMETER_SETS else 0.0
 
 
 def pa10_urdf(name: str, tool_length: float = 0.0) -> str:
@@ -276,6 +285,8 @@ def load_robot(
     tool_length: float = 0.0,
     tip_frame: str = TOOL_FRAME,
     n_joints: int | None = N_JOINTS,
+    base_frame: str = '',
+    base_placement: Sequence[float] | None = None,
 ) -> RobotModel:
     """Build the kinematic model of ``robot``.
 
@@ -285,6 +296,10 @@ def load_robot(
         tip_frame: name of the tip frame in a URDF file (the PA-10 models use ``tool0``).
         n_joints: how many joints must move ``tip_frame`` (7: the arms this graph drives;
             None: any number).
+        base_frame: the frame the arm's chain starts at ('': the URDF's root): joints
+            moving it (a humanoid's torso, a mobile base's lift) are locked at neutral.
+        base_placement: (6,) x, y, z [m], roll, pitch, yaw [rad] of ``base_frame`` in
+            ``base_link``, the frame of every pose (None: the same frame).
 
     Returns:
         A ``RobotModel`` of the joints that move ``tip_frame``; any other joints (a
@@ -297,8 +312,17 @@ def load_robot(
             names the joint or frame.
     """
     tool_length = _finite_float(tool_length, 'tool_length')
-    model, tool_length = _build_model(robot, tool_length)
-    model = _reduce_to_tip_chain(model, robot, tip_frame)
+    model, tool_length, continuous = _build_model(robot, tool_length)
+    model = _reduce_to_tip_chain(model, robot, tip_frame, base_frame)
+    _place_base(model, base_frame, base_placement)
+    for name in model.names[1:]:
+        if name in continuous:
+            raise InvalidInput(
+                f'{robot}: joint {name} is continuous; every joint needs '
+                'position limits (make it revolute with a <limit>)',
+                'robot',
+                name,
+            )
     names = _joint_names(model, robot, tip_frame, n_joints)
     _check_joint_limits(model, robot, names)
     tool_frame_id = _extend_tip(model, tip_frame, tool_length)
@@ -313,13 +337,16 @@ def load_robot(
     )
 
 
-def _build_model(robot: str | os.PathLike[str], tool_length: float) -> tuple[pin.Model, float]:
-    """Pinocchio model of a parameter set (its URDF carries the tool) or a URDF file, and
-    the tool length [m] still to add at the tip (0 for a parameter set)."""
+def _build_model(
+    robot: str | os.PathLike[str], tool_length: float
+) -> tuple[pin.Model, float, set[str]]:
+    """Pinocchio model of a parameter set (its URDF carries the tool) or a URDF file, the
+    tool length [m] still to add at the tip (0 for a parameter set) and the names of its
+    continuous joints (refused if they move the tip)."""
     if not isinstance(robot, (str, os.PathLike)):
         raise InvalidInput(f'robot must be a model name or a path, got {robot!r}', 'robot', robot)
     if isinstance(robot, str) and robot in PARAMETER_SETS:
-        return pin.buildModelFromXML(pa10_urdf(robot, tool_length)), 0.0
+        return pin.buildModelFromXML(pa10_urdf(robot, tool_length)), 0.0, set()
     if not Path(robot).is_file():
         raise InvalidInput(
             f'robot must be one of {sorted(PARAMETER_SETS)} or a URDF file, got {robot!r}',
@@ -330,28 +357,85 @@ def _build_model(robot: str | os.PathLike[str], tool_length: float) -> tuple[pin
         text = Path(robot).read_text()
     except (OSError, UnicodeDecodeError) as err:
         raise InvalidInput(f'cannot read URDF {robot}: {err}', 'robot', robot) from err
-    _check_urdf_joints(text, robot)
+    continuous = _check_urdf_joints(text, robot)
     try:
-        return pin.buildModelFromXML(text), tool_length
+        return pin.buildModelFromXML(text), tool_length, continuous
     except (RuntimeError, ValueError) as err:
         raise InvalidInput(f'cannot parse URDF {robot}: {err}', 'robot', robot) from err
 
 
 def _reduce_to_tip_chain(
-    model: pin.Model, robot: str | os.PathLike[str], tip_frame: str
+    model: pin.Model, robot: str | os.PathLike[str], tip_frame: str, base_frame: str = ''
 ) -> pin.Model:
-    """``model`` with every joint that does not move ``tip_frame`` locked at neutral."""
-    if not model.existFrame(tip_frame):
-        raise InvalidInput(
-            f'{robot} has no frame {tip_frame!r} (the tool tip, z = approach axis)',
-            'tip_frame',
-            tip_frame,
-        )
+    """``model`` with every joint that does not move ``tip_frame``, or moves
+    ``base_frame`` too, locked at neutral."""
+    for key, name, what in (
+        ('tip_frame', tip_frame, 'the tool tip, z = approach axis'),
+        ('base_frame', base_frame, "the arm's base"),
+    ):
+        if name and not model.existFrame(name):
+            raise InvalidInput(
+                f'{robot} has no frame {name!r} ({what}): set {key} to one of its '
+                f'frames, {_frame_suggestions(model, name)}',
+                key,
+                name,
+            )
     chain = set(model.supports[model.frames[model.getFrameId(tip_frame)].parentJoint])
+    if base_frame:
+        above = set(model.supports[model.frames[model.getFrameId(base_frame)].parentJoint])
+        if not above <= chain:
+            raise InvalidInput(
+                f'{robot}: base_frame {base_frame!r} is not on the chain to {tip_frame!r}',
+                'base_frame',
+                base_frame,
+            )
+        chain -= above - {0}
     off_chain = [j for j in range(1, model.njoints) if j not in chain]
     if off_chain:
         model = pin.buildReducedModel(model, off_chain, pin.neutral(model))
     return model
+
+
+def _place_base(model: pin.Model, base_frame: str, base_placement: Sequence[float] | None) -> None:
+    """Re-root ``model`` (in place) so that poses are in ``base_link``, where
+    ``base_frame`` (fixed: the joints moving it are locked) sits at ``base_placement``."""
+    if not base_frame and base_placement is None:
+        return
+    placement = np.zeros(6) if base_placement is None else np.asarray(base_placement, float)
+    if placement.shape != (6,) or not np.all(np.isfinite(placement)):
+        raise InvalidInput(
+            f'base_placement must be 6 finite numbers (x, y, z, roll, pitch, yaw), got '
+            f'{base_placement!r}',
+            'base_placement',
+            base_placement,
+        )
+    M_link_base = pin.SE3(pin.rpy.rpyToMatrix(*placement[3:]), placement[:3])
+    M_root_base = pin.SE3.Identity()
+    if base_frame:
+        data = model.createData()
+        pin.framesForwardKinematics(model, data, pin.neutral(model))
+        M_root_base = data.oMf[model.getFrameId(base_frame)].copy()
+    M = M_link_base * M_root_base.inverse()
+    for j in range(1, model.njoints):
+        if model.parents[j] == 0:
+            model.jointPlacements[j] = M * model.jointPlacements[j]
+    for i, frame in enumerate(model.frames):
+        if frame.parentJoint == 0:
+            frame.placement = M * frame.placement
+            model.frames[i] = frame
+
+
+def _frame_suggestions(model: pin.Model, wanted: str, listed: int = 12) -> str:
+    """The model's link frames as a short list: all of them when few, else the names
+    nearest to ``wanted`` and the chains' end links (where a tool tip usually is)."""
+    links = [f.name for f in model.frames if f.type == pin.FrameType.BODY]
+    if len(links) <= listed:
+        return ', '.join(links)
+    parents = {model.frames[f.parentFrame].name for f in model.frames if f.parentFrame}
+    ends = [name for name in links if name not in parents]
+    nearest = difflib.get_close_matches(wanted, links, n=4, cutoff=0.3)
+    shown = list(dict.fromkeys(nearest + ends))[:listed]
+    return f'e.g. {", ".join(shown)} ({len(links)} in all)'
 
 
 def _joint_names(
@@ -409,21 +493,18 @@ def _extend_tip(model: pin.Model, tip_frame: str, tool_length: float) -> int:
     return tool_frame_id
 
 
-def _check_urdf_joints(text: str, robot: str | os.PathLike[str]) -> None:
-    """Name a moving joint without ``<limit>`` (urdfdom only says the XML is invalid)."""
+def _check_urdf_joints(text: str, robot: str | os.PathLike[str]) -> set[str]:
+    """Name a moving joint without ``<limit>`` (urdfdom only says the XML is invalid);
+    returns the names of the continuous joints (a problem only if they move the tip)."""
     try:
         root = ElementTree.fromstring(text)
     except ElementTree.ParseError as err:
         raise InvalidInput(f'cannot parse URDF {robot}: {err}', 'robot', robot) from err
+    continuous = set()
     for joint in root.iter('joint'):
         kind, name = joint.get('type'), joint.get('name')
         if kind == 'continuous':
-            raise InvalidInput(
-                f'{robot}: joint {name} is continuous; every joint needs '
-                'position limits (make it revolute with a <limit>)',
-                'robot',
-                name,
-            )
+            continuous.add(str(name))
         if kind in ('revolute', 'prismatic'):
             limit = joint.find('limit')
             missing = [
@@ -438,6 +519,7 @@ def _check_urdf_joints(text: str, robot: str | os.PathLike[str]) -> None:
                     'robot',
                     name,
                 )
+    return continuous
 
 
 def workspace_reach(robot: RobotModel) -> tuple[FloatArray, float]:
