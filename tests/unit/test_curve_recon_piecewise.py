@@ -15,6 +15,7 @@ from curve_recon_node.piecewise import (
     pinv_solve,
     reconstruct_ray_roots,
     refine_points,
+    select_candidates,
 )
 from curve_recon_node.thesis import reconstruct_cone_lsq
 from curve_recon_node.waypoints import (
@@ -323,3 +324,22 @@ def test_frames_and_normals_from_a_plane_depth():
         -np.sqrt(1 - (frames[:, :3, 0] @ normal_base) ** 2),
         atol=1e-9,
     )
+
+
+def test_third_view_rejects_a_root_on_a_pieces_continuation_off_its_chain():
+    """A view-3 piece's implicit curve runs on beyond the stretch of chain it was fitted
+    to: a spurious root projecting onto that continuation (Sampson distance 0) but far
+    from anything view 3 saw must be rejected, while a root on the chain is kept."""
+    angles = np.linspace(0.0, np.pi / 2, 200)
+    arc_xy = 0.2 * np.column_stack([np.cos(angles), np.sin(angles)])  # [normalised]
+    curve = PiecewiseCurve(arc_xy, False, 2, F_PX, fit_tolerance_px=np.inf)
+    assert len(curve.pieces) == 1
+    view3 = View(curve, np.eye(3), np.zeros(3))
+    on_chain = np.array([0.2 * np.cos(0.7), 0.2 * np.sin(0.7), 1.0])
+    spurious = np.array([-0.2, 0.0, 1.0])  # on the circle, 0.2 * F_PX px from the arc
+    assert view3.distance_px(spurious[None])[0] < 0.05
+    points, info = select_candidates(
+        np.array([0, 1]), np.stack([spurious, on_chain]), 2, np.array([10, 11]), view3, 2.0, 2e-3
+    )
+    np.testing.assert_allclose(points, on_chain[None], atol=1e-12)
+    assert list(info['sample_index']) == [11] and info['n_rejected_view3'] == 1

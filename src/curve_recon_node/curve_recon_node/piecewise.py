@@ -233,6 +233,16 @@ class View:
         distance, _ = self.curve.distance(xy)
         return np.nan_to_num(np.abs(distance) * self.curve.focal_px, nan=np.inf)
 
+    def chain_distance_px(self, points_base: npt.ArrayLike) -> FloatArray:
+        """Distance [px] of the points' projections to the nearest chain point; inf behind."""
+        xy, _ = self.project(points_base)
+        finite = np.all(np.isfinite(xy), axis=1)
+        result = np.full(len(xy), np.inf)
+        if finite.any():
+            _, distance = self.curve.nearest(xy[finite])
+            result[finite] = distance * self.curve.focal_px
+        return result
+
     def in_support(
         self, points_base: npt.ArrayLike, pieces: npt.ArrayLike, support_px: float
     ) -> npt.NDArray[np.bool_]:
@@ -398,7 +408,14 @@ def reconstruct_ray_roots(
     rows, points = rows[plausible], points[plausible]
     keep = view2.in_support(points, piece_index[rows], support_px)
     return select_candidates(
-        ray_index[rows][keep], points[keep], len(samples), samples, view3, tol3_px, distinct_m
+        ray_index[rows][keep],
+        points[keep],
+        len(samples),
+        samples,
+        view3,
+        tol3_px,
+        distinct_m,
+        support_px,
     )
 
 
@@ -410,10 +427,12 @@ def select_candidates(
     view3: View | None,
     tol3_px: float,
     distinct_m: float,
+    support3_px: float = 3.0,
 ) -> tuple[FloatArray, CandidateInfo]:
     """One point per view-1 sample from its candidates.
 
-    With ``view3``: the candidate nearest view 3's curve, if within ``tol3_px``. Without:
+    With ``view3``: the candidate nearest view 3's curve, if within ``tol3_px`` of it and
+    within ``support3_px`` of view 3's chain. Without:
     the candidate if all of the sample's candidates lie within ``distinct_m`` of each
     other (else the sample is ambiguous).
 
@@ -421,7 +440,15 @@ def select_candidates(
     chain indices, ``third_view_px`` (K,), ``n_samples``, ``n_candidates``,
     ``n_without_candidates``, ``n_rejected_view3``, ``n_ambiguous``.
     """
-    distance3 = view3.distance_px(candidates) if view3 is not None else np.zeros(len(candidates))
+    if view3 is not None:
+        # a piece's implicit curve runs on beyond its stretch of the chain: a spurious
+        # root near that continuation is near "the curve" by its Sampson distance while
+        # far from anything view 3 saw, so a candidate must also project near the chain
+        distance3 = view3.distance_px(candidates)
+        off_chain = view3.chain_distance_px(candidates) > support3_px
+        distance3[off_chain] = np.inf
+    else:
+        distance3 = np.zeros(len(candidates))
     # by sample, then (three views) by third-view distance: each sample's best candidate
     # comes first in its group
     order = np.lexsort((distance3, ray_of_candidate) if view3 is not None else (ray_of_candidate,))
