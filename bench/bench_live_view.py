@@ -38,8 +38,8 @@ sys.path.insert(0, str(REPO / 'tests'))
 from foxglove_ws import FoxgloveClient, live_view_url  # noqa: E402
 
 from bag_tools.bag_writer import header_stamp_ns  # noqa: E402
+from vgm_common.diagnostics import parse_published_counts  # noqa: E402
 from vgm_common.launcher import Launch  # noqa: E402
-from vgm_common.node_tools import parse_published_counts  # noqa: E402
 
 RESULTS = REPO / 'bench' / 'results' / 'live_view'
 IMAGE_TOPICS = ['/stereo/left/image_raw', '/stereo/right/image_raw', '/aux/image_raw']

@@ -24,8 +24,8 @@ from ament_index_python.packages import get_package_share_directory
 from mcap.reader import make_reader
 
 from sensor_sim.render import add_noise
+from vgm_common.diagnostics import parse_published_counts
 from vgm_common.launcher import Launch
-from vgm_common.node_tools import parse_published_counts
 
 RESULTS = Path(__file__).resolve().parent / 'results'
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests' / 'multihost'))

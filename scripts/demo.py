@@ -49,8 +49,9 @@ from sensor_sim.scenario import load_scenario, resolve_scenario_path  # noqa: E4
 from sensor_sim.surfaces import signed_height_base  # noqa: E402
 from vgm_common.camera_topics import CalibratedCameras  # noqa: E402
 from vgm_common.conversions import image_to_numpy, pose_to_matrix  # noqa: E402
+from vgm_common.diagnostics import parse_published_counts
 from vgm_common.launcher import Launch  # noqa: E402
-from vgm_common.node_tools import parse_published_counts, use_fastdds_profile  # noqa: E402
+from vgm_common.node_main import use_fastdds_profile
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS  # noqa: E402
 from vgm_common.topics import (  # noqa: E402
     CAMERA_INFO_TOPICS,

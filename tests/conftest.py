@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from harness import NodeProcess, executable, next_ros_env, wait_for  # noqa: F401 (re-exported)
-from vgm_common.node_tools import use_fastdds_profile
+from vgm_common.node_main import use_fastdds_profile
 
 # The test's own publishers use the graph's Fast DDS profile, as the nodes do. With the
 # stock one (a 512 KB shared-memory segment, 3 s heartbeats) a target pose sent between

@@ -169,7 +169,7 @@ def main():
     from std_srvs.srv import Trigger
 
     from vgm_common.conversions import matrices_to_path
-    from vgm_common.node_tools import init_rclpy
+    from vgm_common.node_main import init_rclpy
     from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 
     init_rclpy([])

@@ -18,7 +18,7 @@ from bag_tools.bag_writer import header_stamp_ns
 from harness import SCENARIO_DIR, executable
 from sensor_sim.scenario import load_scenario
 from vgm_common.conversions import stamp_to_ns
-from vgm_common.node_tools import parse_published_counts
+from vgm_common.diagnostics import parse_published_counts
 from vgm_common.qos import DEFAULT_QOS
 
 IMAGE_TOPICS = {

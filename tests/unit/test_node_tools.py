@@ -1,4 +1,5 @@
-"""vgm_common.node_tools with real rclpy nodes in this process: NodeParameters (kinds,
+"""vgm_common's node edges (parameters, graph_node, diagnostics, subscriber_gate,
+node_main) with real rclpy nodes in this process: NodeParameters (kinds,
 ranges, lists, refusals with a reason, the on_change hook) and run_node (exit request,
 drain after a signal, exit status, one-line start-up error)."""
 
@@ -15,17 +16,16 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from vgm_common.node_tools import (
+from vgm_common.diagnostics import Diagnostics, guarded
+from vgm_common.node_main import run_node
+from vgm_common.parameters import (
     ConfigParams,
-    Diagnostics,
     NodeParameters,
     Param,
     ParameterError,
-    SubscriberGate,
-    guarded,
     params_file_section_warnings,
-    run_node,
 )
+from vgm_common.subscriber_gate import SubscriberGate
 
 
 @pytest.fixture

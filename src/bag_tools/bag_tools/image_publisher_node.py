@@ -21,9 +21,13 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from vgm_common.calibration_io import read_calibration, stereo_rectification
 from vgm_common.conversions import camera_to_camera_info, matrix_to_pose_stamped, numpy_to_image
+from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import CountingPublisher, GraphNode, Param, SubscriberGate, run_node
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.subscriber_gate import SubscriberGate
 from vgm_common.topics import (
     BASE_FRAME,
     CAMERA_INFO_TOPICS,

@@ -21,7 +21,7 @@ replayed (parameter ``exclude``): old log lines, parameter changes and health re
 inputs of any node, and would reappear on the live graph as if they were happening now.
 
 A missing or invalid bag or parameter is reported in one log line and the process exits with
-status 2 (the project's status for unusable start-up input, as ``vgm_common.node_tools``).
+status 2 (the project's status for unusable start-up input, as ``vgm_common.node_main``).
 A bag found damaged while playing (chunk bytes overwritten: chunk CRCs are checked; a file
 cut short, before or while it plays) stops playback with one error line naming the file and the
 messages read from it, and the process exits with status 1; nothing of the damaged chunk
@@ -40,7 +40,9 @@ from bag_tools.bag_writer import BagError, BagReader
 from bag_tools.message_definitions import DefinitionNotFoundError, type_hash
 from bag_tools.topic_discovery import import_message_type
 from vgm_common.errors import VgmError
-from vgm_common.node_tools import GraphNode, Param, run_node
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.topics import DIAGNOSTICS_TOPIC
 
@@ -113,7 +115,7 @@ class PlayerNode(GraphNode):
     """Publishes the messages of one bag with the recorded timing.
 
     ``finished`` is set once playback ended (or failed); ``published`` counts per topic.
-    For ``vgm_common.node_tools.run_node``: ``exit_requested`` is set once playback ended if
+    For ``vgm_common.node_main.run_node``: ``exit_requested`` is set once playback ended if
     ``exit_when_done``; ``close()``; ``exit_status`` (1 if reading the bag failed).
 
     Raises:

@@ -43,7 +43,9 @@ import time
 from bag_tools.bag_writer import BagError, BagWriter, header_stamp_ns, qos_profile
 from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
 from vgm_common.errors import VgmError
-from vgm_common.node_tools import GraphNode, Param, run_node
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import Param
 
 # After a stop request, keep taking the messages the middleware already holds until none
 # came for QUIET_PERIOD (a recorder behind the publishers must not lose its backlog), at
@@ -190,7 +192,7 @@ PARAMETERS = [
 class RecorderNode(GraphNode):
     """Discovers topics, subscribes to them raw and writes them to a bag.
 
-    For ``vgm_common.node_tools.run_node``: ``exit_requested`` is set when writing fails,
+    For ``vgm_common.node_main.run_node``: ``exit_requested`` is set when writing fails,
     ``drain()``, ``close()`` and ``exit_status`` (1 once writing failed).
 
     Raises:

@@ -17,7 +17,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 from bag_tools.message_definitions import DefinitionNotFoundError, definition
-from vgm_common.node_tools import NodeParameters, Param
+from vgm_common.parameters import NodeParameters, Param
 
 SUBSCRIPTION_DEPTH = 1000  # keep-last depth of every subscription: 5 s of 200 Hz joint
 # states, so a recorder stalled by a loaded machine catches up without loss

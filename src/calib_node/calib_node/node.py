@@ -34,16 +34,12 @@ from vgm_common.conversions import (
     pose_to_matrix,
     stamp_to_ns,
 )
+from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.geometry import make_transform, quaternion_to_matrix, rpy_to_matrix
-from vgm_common.node_tools import (
-    ConfigParams,
-    CountingPublisher,
-    GraphNode,
-    Param,
-    ParameterError,
-    run_node,
-)
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import ConfigParams, Param, ParameterError
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (

@@ -43,17 +43,11 @@ from vgm_common.conversions import (
     points_to_pointcloud2,
     stamp_to_ns,
 )
+from vgm_common.diagnostics import CountingPublisher, guarded
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import (
-    ConfigParams,
-    CountingPublisher,
-    DeferredCallback,
-    DeferredServiceExecutor,
-    GraphNode,
-    Param,
-    guarded,
-    run_node,
-)
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import DeferredCallback, DeferredServiceExecutor, run_node
+from vgm_common.parameters import ConfigParams, Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (

@@ -42,7 +42,9 @@ from rclpy.qos import DurabilityPolicy
 from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
 from vgm_common.conversions import pose_to_matrix
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import GraphNode, Param, run_node
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.topics import (
     BASE_FRAME,

@@ -30,19 +30,14 @@ from pa10_ik_node.tracking import (
     Unreachable,
 )
 from vgm_common.conversions import matrix_to_pose_stamped, path_to_matrices
+from vgm_common.diagnostics import CountingPublisher, guarded
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import (
-    ConfigParams,
-    CountingPublisher,
-    GraphNode,
-    Param,
-    SubscriberGate,
-    guarded,
-    run_node,
-    subscriber_gate_params,
-)
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import ConfigParams, Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import load_robot, own_tool_length
+from vgm_common.subscriber_gate import SubscriberGate, subscriber_gate_params
 from vgm_common.topics import (
     BASE_FRAME,
     JOINT_STATES_TOPIC,

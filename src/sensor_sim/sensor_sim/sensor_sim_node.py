@@ -33,15 +33,12 @@ from sensor_sim.scenario import (
 from vgm_common.calibration_io import write_calibration
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
 from vgm_common.errors import InvalidInput
-from vgm_common.node_tools import (
-    GraphNode,
-    Param,
-    SubscriberGate,
-    run_node,
-    subscriber_gate_params,
-)
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import Param
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.robot_model import load_robot
+from vgm_common.subscriber_gate import SubscriberGate, subscriber_gate_params
 from vgm_common.topics import (
     BASE_FRAME,
     IMAGE_TOPICS,

@@ -28,8 +28,11 @@ from vgm_common.conversions import (
     numpy_to_image,
     stamp_to_ns,
 )
+from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput
-from vgm_common.node_tools import ConfigParams, CountingPublisher, GraphNode, Param, run_node
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import ConfigParams, Param
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (

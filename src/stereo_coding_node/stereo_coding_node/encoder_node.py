@@ -22,8 +22,11 @@ from vgm_common.conversions import (
     numpy_to_image,
     stamp_to_ns,
 )
+from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.node_tools import CountingPublisher, GraphNode, Param, run_node
+from vgm_common.graph_node import GraphNode
+from vgm_common.node_main import run_node
+from vgm_common.parameters import Param
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from rclpy.callback_groups import CallbackGroup
     from rclpy.node import Node
 
-    from vgm_common.node_tools import Diagnostics
+    from vgm_common.diagnostics import Diagnostics
 
 
 def subscribe_images(
