@@ -46,6 +46,7 @@ from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from bag_tools.message_definitions import definition, type_hash
+from vgm_common.errors import VgmError
 
 METADATA_FILENAME = 'metadata.yaml'
 METADATA_VERSION = 9  # rosbag2_storage::BagMetadata::version in Jazzy
@@ -108,11 +109,11 @@ _QOS_KEYS = (
 )
 
 
-class BagError(Exception):
+class BagError(VgmError):
     """Base of the bag errors; ``path`` is the offending bag or file."""
 
     def __init__(self, message: str, path: str | os.PathLike[str] | None = None) -> None:
-        super().__init__(message)
+        super().__init__(message, key='path', value=path)
         self.path = path
 
 

@@ -28,6 +28,8 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from vgm_common.errors import VgmError
+
 DELIMITER = '=' * 80 + '\n'
 """The line that separates definitions in both encodings."""
 
@@ -57,7 +59,7 @@ _PRIMITIVE_TYPES = frozenset(
 _MAX_RECURSION_DEPTH = 50
 
 
-class DefinitionNotFoundError(LookupError):
+class DefinitionNotFoundError(VgmError, LookupError):
     """No installed definition for ``type_name`` (unknown package, type or file)."""
 
     def __init__(self, type_name: str, detail: str = '') -> None:

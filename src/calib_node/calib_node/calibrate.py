@@ -32,6 +32,7 @@ from calib_node.lxpm_ga import lxpm_ga, rig_objective
 from calib_node.seed_calibration import dlt_camera
 from calib_node.seed_camera import identifiable
 from calib_node.thesis import network_refine
+from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.geometry import FloatArray, make_transform
 
 METHODS = ('lm', 'lxpm_ga', 'opencv')
@@ -43,7 +44,7 @@ Observations = Mapping[str, tuple[FloatArray, FloatArray, tuple[int, int]]]
 CameraStart = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
-class CalibrationError(ValueError):
+class CalibrationError(VgmError, ValueError):
     """The observations cannot give a calibration (too few, degenerate, diverged)."""
 
 
@@ -411,7 +412,7 @@ def calibrate_rig(
         CalibrationError: a camera's points are too few or degenerate, or a fit failed.
     """
     if method not in METHODS:
-        raise ValueError(f'method: expected one of {METHODS}, got {method!r}')
+        raise InvalidInput(f'method: expected one of {METHODS}, got {method!r}', key='method')
     for name, (points, _, _) in observations.items():
         reason = degeneracy(points)
         if reason:

@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from calib_node.seed_camera import PopulationCost
+from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
 LX_VARIANTS = ('printed', 'symmetric')
@@ -48,7 +49,9 @@ def laplace_phi(
     if variant == 'symmetric':
         with np.errstate(divide='ignore'):
             return np.where(low, a + b * np.log(2 * draws), a - b * np.log(2 - 2 * draws))
-    raise ValueError(f'lx_variant: expected one of {LX_VARIANTS}, got {variant!r}')
+    raise InvalidInput(
+        f'lx_variant: expected one of {LX_VARIANTS}, got {variant!r}', key='lx_variant'
+    )
 
 
 def laplace_crossover(
@@ -69,7 +72,7 @@ def laplace_crossover(
     """
     cross = rng.random(int(x1.shape[0])) < probability  # int(): else the stub's float overload
     if draw not in LX_DRAWS:
-        raise ValueError(f'lx_draw: expected one of {LX_DRAWS}, got {draw!r}')
+        raise InvalidInput(f'lx_draw: expected one of {LX_DRAWS}, got {draw!r}', key='lx_draw')
     shape = x1.shape if draw == 'gene' else (x1.shape[0], 1)
     phi = laplace_phi(rng.random(shape), a, b, variant)
     spread = np.where(cross[:, None], phi * np.abs(x1 - x2), 0.0)
@@ -109,7 +112,10 @@ def tournament_select(
 def _evaluate(objective: Objective, population: FloatArray) -> FloatArray:
     cost = np.asarray(objective(population), dtype=float)
     if cost.shape != (population.shape[0],):
-        raise ValueError(f'objective: expected shape ({population.shape[0]},), got {cost.shape}')
+        raise InvalidInput(
+            f'objective: expected shape ({population.shape[0]},), got {cost.shape}',
+            key='objective',
+        )
     return np.where(np.isnan(cost), np.inf, cost)
 
 
@@ -153,14 +159,16 @@ def lxpm_ga(
     lower = np.array(lower, dtype=float)
     upper = np.array(upper, dtype=float)
     if lower.ndim != 1 or lower.shape != upper.shape or np.any(lower > upper):
-        raise ValueError(
+        raise InvalidInput(
             f'lower, upper: expected equal (D,) shapes with lower <= upper, '
             f'got {lower.shape} and {upper.shape}'
         )
     if lx_variant not in LX_VARIANTS:
-        raise ValueError(f'lx_variant: expected one of {LX_VARIANTS}, got {lx_variant!r}')
+        raise InvalidInput(
+            f'lx_variant: expected one of {LX_VARIANTS}, got {lx_variant!r}', key='lx_variant'
+        )
     if population < 2 or not 0 <= elitism < population or tournament < 1:
-        raise ValueError(
+        raise InvalidInput(
             f'need population >= 2, 0 <= elitism < population and '
             f'tournament >= 1, got {population}, {elitism}, {tournament}'
         )
@@ -216,10 +224,12 @@ def stereo_objective(
     points_world = np.array(points_world, dtype=float)
     observed = [np.array(pixels_left, dtype=float), np.array(pixels_right, dtype=float)]
     if points_world.ndim != 2 or points_world.shape[1] != 3:
-        raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')
+        raise InvalidInput(
+            f'points_world: expected shape (N, 3), got {points_world.shape}', key='points_world'
+        )
     for name, pixels in zip(('pixels_left', 'pixels_right'), observed):
         if pixels.shape != (points_world.shape[0], 2):
-            raise ValueError(
+            raise InvalidInput(
                 f'{name}: expected shape ({points_world.shape[0]}, 2), got {pixels.shape}'
             )
 
@@ -228,7 +238,7 @@ def stereo_objective(
     def cost(q: npt.ArrayLike) -> FloatArray:
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != 24:
-            raise ValueError(f'q: expected shape (P, 24), got {q.shape}')
+            raise InvalidInput(f'q: expected shape (P, 24), got {q.shape}', key='q')
         return costs[0](q[:, :12]) + costs[1](q[:, 12:])
 
     return cost
@@ -253,7 +263,7 @@ def rig_objective(
             or points_world.shape[1] != 3
             or pixels.shape != (points_world.shape[0], 2)
         ):
-            raise ValueError(
+            raise InvalidInput(
                 f'observations: expected (N, 3) points and (N, 2) pixels, got '
                 f'{points_world.shape} and {pixels.shape}'
             )
@@ -264,7 +274,9 @@ def rig_objective(
     def cost(q: npt.ArrayLike) -> FloatArray:
         q = np.asarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != 12 * len(cameras):
-            raise ValueError(f'q: expected shape (P, {12 * len(cameras)}), got {q.shape}')
+            raise InvalidInput(
+                f'q: expected shape (P, {12 * len(cameras)}), got {q.shape}', key='q'
+            )
         total = np.zeros(q.shape[0])
         for c, camera_cost in enumerate(costs):
             total += camera_cost(q[:, 12 * c : 12 * c + 12])

@@ -19,6 +19,7 @@ from scipy.linalg import rq
 from scipy.optimize import least_squares
 
 from calib_node.seed_camera import Identifiable, PopulationCost, identifiable, project_seed
+from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
 IDENTIFIABLE_NAMES = ('u0', 'v0', 'fx', 'fy', 'kappa', 'alpha', 'beta', 'gamma', 'Tx', 'Ty', 'Tz')
@@ -77,11 +78,15 @@ def check_points(
     """
     points_world = np.asarray(points_world, dtype=float)
     if points_world.ndim != 2 or points_world.shape[1] != 3:
-        raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')
+        raise InvalidInput(
+            f'points_world: expected shape (N, 3), got {points_world.shape}', key='points_world'
+        )
     out = [np.asarray(p, dtype=float) for p in pixels]
     for p in out:
         if p.shape != (points_world.shape[0], 2):
-            raise ValueError(f'pixels: expected shape ({points_world.shape[0]}, 2), got {p.shape}')
+            raise InvalidInput(
+                f'pixels: expected shape ({points_world.shape[0]}, 2), got {p.shape}', key='pixels'
+            )
     return points_world, out
 
 
@@ -113,9 +118,9 @@ def refine_seed_lm(
     """
     start = [np.asarray(p, dtype=float) for p in (params_left, params_right)]
     if any(p.shape != (12,) for p in start):
-        raise ValueError('params_left, params_right: expected shape (12,)')
+        raise InvalidInput('params_left, params_right: expected shape (12,)')
     if any(p[4] <= 0 or p[5] < 0 for p in start):
-        raise ValueError('params: need f > 0 and k >= 0')
+        raise InvalidInput('params: need f > 0 and k >= 0', key='params')
     points_world, observed = check_points(points_world, pixels_left, pixels_right)
     focal = [p[4] for p in start]
 
@@ -207,7 +212,7 @@ def dlt_camera(
     """
     points_world, (pixels,) = check_points(points_world, pixels)
     if points_world.shape[0] < 6:
-        raise ValueError('dlt_camera: needs at least 6 points')
+        raise InvalidInput('dlt_camera: needs at least 6 points')
     T3, T2 = hartley_normalise(points_world), hartley_normalise(pixels)
     X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T
     x = np.column_stack([pixels, np.ones(len(pixels))]) @ T2.T
@@ -346,7 +351,9 @@ def radial_division_init(points_world: npt.ArrayLike, pixels: npt.ArrayLike) -> 
 
     points_world, (pixels,) = check_points(points_world, pixels)
     if points_world.shape[0] < 12:
-        raise ValueError('radial_division_init: needs at least 12 points')
+        raise InvalidInput(
+            'radial_division_init: needs at least 12 points', key='radial_division_init'
+        )
     T3, T2 = hartley_normalise(points_world), hartley_normalise(pixels)
     X = np.column_stack([points_world, np.ones(len(points_world))]) @ T3.T  # (N, 4)
     m = np.column_stack([pixels, np.ones(len(pixels))]) @ T2.T  # (N, 3)
@@ -494,7 +501,7 @@ def division_init(
             if best is not None:
                 candidates.append((float(error[best]), population[best]))
     if not candidates:
-        raise ValueError('division_init: no candidate centre gave a camera')
+        raise InvalidInput('division_init: no candidate centre gave a camera')
     candidates.sort(key=lambda c: c[0])
     return [params for _, params in candidates[:keep]]
 

@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray, rpy_to_matrix
 
 PARAM_NAMES = ('u0', 'v0', 'Nx', 'Ny', 'f', 'k', 'alpha', 'beta', 'gamma', 'Tx', 'Ty', 'Tz')
@@ -127,13 +128,17 @@ def _check(
     params = np.asarray(params, dtype=float)
     points_world = np.asarray(points_world, dtype=float)
     if params.ndim != 2 or params.shape[1] != 12:
-        raise ValueError(f'params: expected shape (P, 12), got {params.shape}')
+        raise InvalidInput(f'params: expected shape (P, 12), got {params.shape}', key='params')
     if points_world.ndim != 2 or points_world.shape[1] != 3:
-        raise ValueError(f'points_world: expected shape (N, 3), got {points_world.shape}')
+        raise InvalidInput(
+            f'points_world: expected shape (N, 3), got {points_world.shape}', key='points_world'
+        )
     if distortion not in DISTORTIONS:
-        raise ValueError(f'distortion: expected one of {DISTORTIONS}, got {distortion!r}')
+        raise InvalidInput(
+            f'distortion: expected one of {DISTORTIONS}, got {distortion!r}', key='distortion'
+        )
     if np.any(params[:, 5] < 0):
-        raise ValueError('params: the division model needs k >= 0 (column 5)')
+        raise InvalidInput('params: the division model needs k >= 0 (column 5)', key='params')
     return params, points_world
 
 
@@ -181,7 +186,7 @@ def identifiable(params: npt.ArrayLike) -> Identifiable:
     """The combinations the images fix (A4.1) of (12,) or (P, 12) params."""
     params = np.asarray(params, dtype=float)
     if params.shape[-1] != 12:
-        raise ValueError(f'params: expected shape (..., 12), got {params.shape}')
+        raise InvalidInput(f'params: expected shape (..., 12), got {params.shape}', key='params')
     f = params[..., 4]
     return Identifiable(
         fx=f * params[..., 2],
@@ -213,12 +218,14 @@ class PopulationCost:
         self.points_t = np.ascontiguousarray(np.asarray(points_world, dtype=float).T)  # 3 N
         pixels = np.asarray(pixels, dtype=float)
         if self.points_t.shape[0] != 3 or pixels.shape != (self.points_t.shape[1], 2):
-            raise ValueError(
+            raise InvalidInput(
                 f'points_world (N, 3) and pixels (N, 2) expected, got '
                 f'{self.points_t.T.shape} and {pixels.shape}'
             )
         if distortion not in DISTORTIONS:
-            raise ValueError(f'distortion: expected one of {DISTORTIONS}, got {distortion!r}')
+            raise InvalidInput(
+                f'distortion: expected one of {DISTORTIONS}, got {distortion!r}', key='distortion'
+            )
         self.points_world = self.points_t.T
         self.u_obs = np.ascontiguousarray(pixels[:, 0])
         self.v_obs = np.ascontiguousarray(pixels[:, 1])

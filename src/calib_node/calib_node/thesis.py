@@ -12,6 +12,7 @@ import numpy.typing as npt
 
 from calib_node.seed_calibration import check_points, decompose_projection, hartley_normalise
 from calib_node.seed_camera import identifiable, project_seed
+from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
 
@@ -91,11 +92,15 @@ def network_refine(
     """
     params = np.asarray(params, dtype=float)
     if params.shape != (12,) or params[4] <= 0:
-        raise ValueError('params: expected shape (12,) with f > 0')
+        raise InvalidInput('params: expected shape (12,) with f > 0', key='params')
     if weights not in NETWORK_WEIGHTS:
-        raise ValueError(f'weights: expected one of {NETWORK_WEIGHTS}, got {weights!r}')
+        raise InvalidInput(
+            f'weights: expected one of {NETWORK_WEIGHTS}, got {weights!r}', key='weights'
+        )
     if accept not in NETWORK_ACCEPT:
-        raise ValueError(f'accept: expected one of {NETWORK_ACCEPT}, got {accept!r}')
+        raise InvalidInput(
+            f'accept: expected one of {NETWORK_ACCEPT}, got {accept!r}', key='accept'
+        )
     points_world, (pixels,) = check_points(points_world, pixels)
     targets = undistort_seed_pixels(params, pixels)
     T3, T2 = hartley_normalise(points_world), hartley_normalise(targets)

@@ -16,6 +16,7 @@ import numpy.typing as npt
 
 from sensor_sim import surfaces
 from sensor_sim.scenario import Surface
+from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
 if TYPE_CHECKING:  # pinocchio, imported only for the type
@@ -75,7 +76,7 @@ def joint_vector_pressing(
         return contact_force(tip, surface, 1.0).penetration
 
     if depth(0.0) > 0.0 or depth(1.0) < penetration:
-        raise ValueError('the joint-space line does not reach that penetration from above')
+        raise InvalidInput('the joint-space line does not reach that penetration from above')
     low, high = 0.0, 1.0
     for _ in range(iterations):
         middle = (low + high) / 2

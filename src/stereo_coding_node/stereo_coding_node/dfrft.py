@@ -16,6 +16,7 @@ from functools import lru_cache
 import numpy as np
 import numpy.typing as npt
 
+from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
 ComplexArray = npt.NDArray[np.complex128]
@@ -40,7 +41,7 @@ def _hermite_basis(n: int) -> tuple[FloatArray, FloatArray]:
     separately on the even (x[k] = x[-k mod N]) and odd subspaces; even vectors take
     orders 0, 2, 4, ... and odd ones 1, 3, 5, ... by descending eigenvalue."""
     if n < 2:
-        raise ValueError(f'the DFrFT needs N >= 2, got {n}')
+        raise InvalidInput(f'the DFrFT needs N >= 2, got {n}')
     S = commuting_matrix(n)
     half = n // 2
     even_basis = np.zeros((n, half + 1))

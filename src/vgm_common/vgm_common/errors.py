@@ -1,5 +1,11 @@
 """The project's exception hierarchy. Nodes catch ``VgmError``, log it once (throttled),
-publish a diagnostic and keep serving; exceptions carry the data that explains them."""
+publish a diagnostic and keep serving; exceptions carry the data that explains them.
+
+Under ``VgmError``: ``InvalidInput`` (also a ValueError; the cores' refusals, with ``key``
+naming the argument or parameter at fault), ``ScenarioError``, ``ParameterError``,
+``TopicTypeError``, ``LaunchError``, calib_node's ``CalibrationError``, bag_tools'
+``BagError`` family and ``DefinitionNotFoundError``, and each node's start-up error.
+``run_node`` turns any of them at start-up into one line and exit status 2."""
 
 from __future__ import annotations
 

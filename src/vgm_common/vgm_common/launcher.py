@@ -28,15 +28,15 @@ from typing import IO, TextIO
 
 import yaml
 
+from vgm_common.errors import VgmError
+
 # Exit statuses that mean "stopped because we asked it to".
 _CLEAN_STOP = {0, -signal.SIGINT, -signal.SIGTERM, 128 + signal.SIGINT, 128 + signal.SIGTERM}
 
 
-class LaunchError(Exception):
+class LaunchError(VgmError):
     """The launch cannot go on: a bad params file or ``--set``, or a node's executable not
     found; the message says which."""
-
-    pass
 
 
 def find_executable(name: str, prefixes: Iterable[str] | None = None) -> Path:
