@@ -197,7 +197,7 @@ def test_every_params_file_is_checked():
 
 
 CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters fill
-    'calib_node.node:CalibNode': ['GA'],
+    'calib_node.node:CalibNode': ['GA', 'SESSION'],
     'curve_recon_node.node:CurveReconNode': ['SETTINGS'],
     'sfs_stereo_node.node:SfsStereoNode': ['DEPTH'],
     'pa10_ik_node.node:Pa10IkNode': ['TRACKING'],

@@ -1,31 +1,36 @@
 """calib_node: calibrates the stereo pair and the aux camera from the chart on the precision
-stage and publishes latched CameraInfo (plumb_bob, stereo rectification) and camera poses.
+stage (or held by hand) and publishes latched CameraInfo (plumb_bob, stereo rectification)
+and camera poses.
 
 Captures are paired by identical stamp (left, right, aux images and the chart's target
-pose). Chart detection and calibration run in a worker thread, so the executor keeps
-taking images while a view is processed. With ``calibration_file`` set, the saved
-calibration is published at start instead and no chart is needed.
+pose) and handed to a worker thread, where a ``CalibrationSession`` (calib_node.session,
+no ROS) finds the chart, keeps the views and calibrates; the executor keeps taking images
+meanwhile. With ``calibration_file`` set, the saved calibration is published at start
+instead and no chart is needed.
 """
 
-import threading
+import dataclasses
 import time
-from concurrent.futures import ThreadPoolExecutor
 
-import numpy as np
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from sensor_msgs.msg import CameraInfo
 from std_srvs.srv import Trigger
 
-from calib_node.bundle import bundle_adjust_selected
-from calib_node.calibrate import LM_STARTS, METHODS, CalibrationError, GAOptions, calibrate_rig
-from calib_node.chart_detection import chart_points, detect_chessboard
-from calib_node.coverage import Coverage, view_parameters
+from calib_node.calibrate import LM_STARTS, METHODS, CalibrationError, GAOptions
 from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS
+from calib_node.session import (
+    CHART_SOURCES,
+    TARGET_WAIT_S,
+    Calibration,
+    CalibrationSession,
+    NotReady,
+    SessionSettings,
+    rig_pose_check,
+)
 from calib_node.thesis import NETWORK_ACCEPT, NETWORK_WEIGHTS
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
-from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import subscribe_images
 from vgm_common.conversions import (
     camera_to_camera_info,
@@ -36,10 +41,9 @@ from vgm_common.conversions import (
 )
 from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.geometry import make_transform, quaternion_to_matrix, rpy_to_matrix
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
-from vgm_common.parameters import ConfigParams, Param, ParameterError
+from vgm_common.parameters import ConfigParams, Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
@@ -53,10 +57,12 @@ from vgm_common.topics import (
 )
 from vgm_common.worker import Worker
 
-CHART_SOURCES = ('auto', 'stage', 'handheld')
-TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
-RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
 VIEW_BACKLOG = 30  # image sets waiting for chart detection
+# The session's settings are the parameters of the same names (chart.* dotted).
+SESSION = ConfigParams(
+    SessionSettings,
+    renamed={f'chart_{name}': f'chart.{name}' for name in ('rows', 'cols', 'spacing', 'source')},
+)
 # The thesis method's settings: network_* fields are network.* parameters, the rest ga.*.
 GA = ConfigParams(
     GAOptions,
@@ -67,21 +73,6 @@ GA = ConfigParams(
         for name in GAOptions._fields
     },
 )
-
-
-def _rig_pose_check(value):
-    if len(value) not in (6, 7) or not all(np.isfinite(value)):
-        return 'expected 6 (x y z roll pitch yaw) or 7 (x y z qx qy qz qw) finite numbers'
-    if len(value) == 7 and abs(np.linalg.norm(value[3:]) - 1) > 1e-3:
-        return 'the quaternion must have unit norm'
-    return None
-
-
-def rig_pose_matrix(value):
-    """``rig_pose`` (x y z roll pitch yaw [m, rad] or x y z qx qy qz qw) -> T_base_left."""
-    value = [float(v) for v in value]
-    R = rpy_to_matrix(*value[3:]) if len(value) == 6 else quaternion_to_matrix(value[3:])
-    return make_transform(R, value[:3])
 
 
 def _target_matrix(msg):
@@ -97,21 +88,21 @@ def _target_matrix(msg):
 PARAMETERS = [
     Param(
         'chart.rows',
-        6,
+        SESSION.defaults.chart_rows,
         'Inner corners along the chart y axis (rows + cols odd).',
         range=(2, 100),
         read_only=True,
     ),
     Param(
         'chart.cols',
-        9,
+        SESSION.defaults.chart_cols,
         'Inner corners along the chart x axis.',
         range=(2, 100),
         read_only=True,
     ),
     Param(
         'chart.spacing',
-        0.025,
+        SESSION.defaults.chart_spacing,
         'Chessboard square size [m].',
         range=(1e-4, 10.0),
         read_only=True,
@@ -125,7 +116,7 @@ PARAMETERS = [
     ),
     Param(
         'chart.source',
-        'auto',
+        SESSION.defaults.chart_source,
         'stage: views need a /calibration/target_pose '
         'of their stamp; handheld: target poses are ignored, chart poses are '
         'estimated; auto: stage once target poses arrive, handheld before.',
@@ -134,15 +125,15 @@ PARAMETERS = [
     ),
     Param(
         'rig_pose',
-        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        list(SESSION.defaults.rig_pose),
         'The left camera optical '
         'frame in base_link when no view has a target pose: x y z [m] roll pitch '
         'yaw [rad], or x y z qx qy qz qw.',
-        check=_rig_pose_check,
+        check=rig_pose_check,
     ),
     Param(
         'cameras',
-        list(CAMERA_NAMES),
+        list(SESSION.defaults.cameras),
         "The rig's cameras (left and right, aux optional).",
         check=lambda v: None
         if ({'left', 'right'} <= set(v) <= set(CAMERA_NAMES) and len(set(v)) == len(v))
@@ -151,26 +142,26 @@ PARAMETERS = [
     ),
     Param(
         'min_coverage',
-        0.5,
+        SESSION.defaults.min_coverage,
         'Handheld: each of x, y, size and skew must cover '
         "this fraction of camera_calibration's ranges before calibrating.",
         range=(0.0, 1.0),
     ),
     Param(
         'select_views',
-        True,
+        SESSION.defaults.select_views,
         'Handheld: keep a view only if it differs from the '
         "kept ones (camera_calibration's rule); false keeps every view.",
     ),
     Param(
         'min_views',
-        10,
+        SESSION.defaults.min_views,
         'Views (captures with the chart found in at least one camera) needed to calibrate.',
         range=(1, 10000),
     ),
     Param(
         'auto_calibrate',
-        True,
+        SESSION.defaults.auto_calibrate,
         'Calibrate as soon as min_views views are '
         'collected (the calibrate service recalibrates on all views so far).',
     ),
@@ -189,7 +180,7 @@ PARAMETERS = [
     ),
     Param(
         'method',
-        'lm',
+        SESSION.defaults.method,
         'lm: DLT (or GA) start + Levenberg-Marquardt, plumb_bob '
         '(ours); lxpm_ga: the thesis GA + network refinement; opencv: '
         'cv2.calibrateCamera reference.',
@@ -197,11 +188,11 @@ PARAMETERS = [
     ),
     Param(
         'lm_start',
-        'dlt',
+        SESSION.defaults.lm_start,
         'Start of the lm method: closed-form DLT or the GA.',
         choices=LM_STARTS,
     ),
-    Param('seed', 0, 'Random seed of the GA.', range=(0, 2**31 - 1)),
+    Param('seed', SESSION.defaults.seed, 'Random seed of the GA.', range=(0, 2**31 - 1)),
     Param(
         'ga.population',
         GA.defaults.population,
@@ -283,24 +274,24 @@ PARAMETERS = [
         'if its full-model RMS is below the GA camera; always: keep it.',
         choices=NETWORK_ACCEPT,
     ),
-    Param('fit_tangential', True, 'Estimate p1, p2 (else 0).'),
+    Param('fit_tangential', SESSION.defaults.fit_tangential, 'Estimate p1, p2 (else 0).'),
     Param(
         'select_model',
-        True,
+        SESSION.defaults.select_model,
         'lm: keep p1, p2 only where they lower the residual '
         'enough (BIC); they otherwise trade against the principal point.',
     ),
-    Param('fit_k3', False, 'Estimate k3 (else 0).'),
+    Param('fit_k3', SESSION.defaults.fit_k3, 'Estimate k3 (else 0).'),
     Param(
         'max_rms_px',
-        2.0,
+        SESSION.defaults.max_rms_px,
         'A calibration whose reprojection RMS exceeds this in '
         'any camera is refused (not published) [px].',
         range=(0.0, 1e6),
     ),
     Param(
         'max_blur_px',
-        4.0,
+        SESSION.defaults.max_blur_px,
         'Chart views whose edge width exceeds this are rejected as blurred [px].',
         range=(0.5, 100.0),
     ),
@@ -323,11 +314,11 @@ class CalibNode(GraphNode):
 
     def __init__(self):
         super().__init__(PARAMETERS)
-        self.chart = self._chart()
-        self.names = tuple(n for n in CAMERA_NAMES if n in self._param('cameras'))
-        self.source = self._param('chart.source')
-        self._create_publishers()
-        self._init_state()
+        # Raises InvalidInput (a one-line start-up error) for a symmetric chart.
+        self.session = CalibrationSession(self._settings)
+        self.names = self.session.names
+        self.info_publishers = self._latched_publishers(CameraInfo, CAMERA_INFO_TOPICS)
+        self.pose_publishers = self._latched_publishers(PoseStamped, POSE_TOPICS)
         services = MutuallyExclusiveCallbackGroup()
         self.create_service(Trigger, '~/calibrate', self._on_calibrate, callback_group=services)
         self.create_service(Trigger, '~/reset', self._on_reset, callback_group=services)
@@ -337,52 +328,16 @@ class CalibNode(GraphNode):
         else:
             self._start_collecting()
 
-    def _chart(self):
-        """The chart's (N, 3) corner points [m], from chart.rows, cols, spacing."""
-        if (self._param('chart.rows') + self._param('chart.cols')) % 2 == 0:
-            raise ParameterError(
-                'parameters chart.rows + chart.cols must be odd (the '
-                'board must not be symmetric under a half turn)',
-                key='chart.rows',
-            )
-        return chart_points(
-            self._param('chart.rows'), self._param('chart.cols'), self._param('chart.spacing')
-        )
+    def _settings(self):
+        return dataclasses.replace(SESSION.build(self.params), ga=GA.build(self.params))
 
-    def _create_publishers(self):
-        self.info_publishers = {
+    def _latched_publishers(self, message_type, topics):
+        return {
             n: self.create_publisher(
-                CameraInfo, CAMERA_INFO_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher
+                message_type, topics[n], LATCHED_QOS, publisher_class=CountingPublisher
             )
             for n in self.names
         }
-        self.pose_publishers = {
-            n: self.create_publisher(
-                PoseStamped, POSE_TOPICS[n], LATCHED_QOS, publisher_class=CountingPublisher
-            )
-            for n in self.names
-        }
-
-    def _init_state(self):
-        self.lock = threading.Lock()  # views, image sizes, counters, targets
-        self.detection_pool = ThreadPoolExecutor(len(self.names))
-        self.calibration_lock = threading.Lock()  # one calibration at a time
-        # [(T_base_chart (4, 4) or None for a handheld view, {name: pixels (N, 2)})]
-        self.views = []
-        self.coverage = Coverage()
-        self.targets = {}  # stamp_ns -> PoseStamped, the most recent RECENT_TARGETS
-        self.target_seen = False  # auto: a target pose arrived (the stage is in use)
-        self.handheld_said = False  # auto: the switch to handheld views was logged
-        self.target_arrived = threading.Condition(self.lock)
-        # name -> (width, height), fixed by the first good image
-        self.image_sizes: dict[str, tuple[int, int]] = {}
-        self.rejected_views = 0
-        self.similar_views = 0  # handheld views like a kept one (select_views)
-        self.unposed_sets = 0  # stage: image sets without a target pose of their stamp
-        self.calibrations = 0
-        self.last_result = None
-        self.auto_done_at = None  # view count of the last automatic calibration
-        self.stopping = threading.Event()
 
     def _start_collecting(self):
         p = self.params
@@ -403,7 +358,7 @@ class CalibNode(GraphNode):
         subscribe_images(self, self.names, self._offer, inputs)
         # The poses get their own group: in one group with the images, rclpy's executor
         # serves a backlog of images first (subscription order), and under load a
-        # set's pose came later than TARGET_WAIT_S. _on_target only takes self.lock.
+        # set's pose came later than TARGET_WAIT_S. _on_target only takes the session's lock.
         self.create_subscription(
             PoseStamped,
             TARGET_POSE_TOPIC,
@@ -413,13 +368,10 @@ class CalibNode(GraphNode):
         )
         self.create_timer(1.0, self._publish_status)
         self.get_logger().info(
-            f'collecting chart views ({p.method}, {self._param("chart.rows")}x'
-            f'{self._param("chart.cols")} chessboard, chart.source {self.source}, cameras '
+            f'collecting chart views ({p.method}, {self.session.rows}x{self.session.cols} '
+            f'chessboard, chart.source {self.session.source}, cameras '
             f'{", ".join(self.names)}, min_views {p.min_views})'
         )
-
-    def _param(self, name):
-        return getattr(self.params, name)  # dotted names too
 
     # --- inputs -----------------------------------------------------------------------
 
@@ -427,329 +379,110 @@ class CalibNode(GraphNode):
         self.sync.add(key, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
 
     def _on_target(self, msg):
-        if self.source == 'handheld':
+        if self.session.source == 'handheld':
             return
         try:  # checked as it arrives, whether or not images of its stamp follow
-            _target_matrix(msg)
+            T_base_chart = _target_matrix(msg)
         except InvalidInput as error:
             self.diagnostics.reject(TARGET_POSE_TOPIC, error)
             return
-        with self.lock:
-            self.targets[stamp_to_ns(msg.header.stamp)] = msg
-            while len(self.targets) > RECENT_TARGETS:
-                del self.targets[next(iter(self.targets))]
-            self.target_seen = True
-            self.target_arrived.notify_all()
+        self.session.add_target(stamp_to_ns(msg.header.stamp), T_base_chart)
 
     def _on_capture(self, stamp_ns, messages):
         if not self.worker.submit((stamp_ns, messages, time.monotonic())):
-            with self.lock:
-                posed = stamp_ns in self.targets
-                if not posed:  # a handheld stream outruns detection: take what it can
-                    self.similar_views += 1
-            if posed:
+            if self.session.dropped(stamp_ns):
                 self.diagnostics.reject('view', 'the calibration worker is behind: view dropped')
 
     def _on_worker_error(self, error):
         self.diagnostics.reject('view', f'{type(error).__name__}: {error}')
 
-    def _target_of(self, stamp_ns, completed):
-        """The target pose message of ``stamp_ns``, waiting for it as the source asks
-        until TARGET_WAIT_S after the image set was ``completed`` [monotonic s]; None: a
-        handheld view; False: a stage view without a pose (dropped)."""
-        if self.source == 'handheld':
-            return None
-        deadline = completed + TARGET_WAIT_S  # a backlog of sets adds no wait
-        with self.lock:
-            while stamp_ns not in self.targets and not self.stopping.is_set():
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    break
-                self.target_arrived.wait(remaining)
-            target = self.targets.pop(stamp_ns, None)
-            if target is None and (self.source == 'stage' or self.target_seen):
-                self.unposed_sets += 1  # outside the stage's chart phase: not a view
-                return False
-        return target
-
     def _process_view(self, stamp_ns, messages, completed):
-        target = self._target_of(stamp_ns, completed)
-        if target is False:
+        T_base_chart = self.session.chart_pose_of(stamp_ns, completed)
+        if T_base_chart is False:
             return
-        if target is None and self.source == 'auto' and not self.handheld_said:
-            self.handheld_said = True  # what auto chose must not be a silent switch
+        greys, misses = {}, []
+        for name in self.names:
+            msg = messages[name]
+            try:
+                grey = image_to_grey(msg)
+                self.session.check_image_size(name, (msg.width, msg.height))
+            except (InvalidInput, ValueError) as error:
+                self.diagnostics.reject(IMAGE_TOPICS[name], error)
+                misses.append(f'{name}: unusable image')
+                continue
+            greys[name] = grey
+        outcome = self.session.add_view(T_base_chart, greys, misses)
+        if outcome.handheld_started:  # what auto chose must not be a silent switch
             topic = self.resolve_topic_name(TARGET_POSE_TOPIC)
             self.get_logger().info(
                 f'chart.source auto: no target pose on {topic} '
                 f'for this view within {TARGET_WAIT_S} s: views are taken as handheld (chart '
                 'poses estimated) until a target pose arrives'
             )
-        T_base_chart = None if target is None else _target_matrix(target)  # checked
-        corners, misses, greys = {}, [], {}
-        for name in self.names:
-            msg = messages[name]
-            try:
-                greys[name] = image_to_grey(msg)
-                size = (msg.width, msg.height)
-                with self.lock:
-                    expected = self.image_sizes.setdefault(name, size)
-                if size != expected:
-                    raise InvalidInput(
-                        f'image size {size[0]}x{size[1]} differs from this '
-                        f"camera's earlier {expected[0]}x{expected[1]}",
-                        key='size',
-                    )
-            except (InvalidInput, ValueError) as error:
-                self.diagnostics.reject(IMAGE_TOPICS[name], error)
-                misses.append(f'{name}: unusable image')
-                greys.pop(name, None)
-        rows, cols = self._param('chart.rows'), self._param('chart.cols')
-        # OpenCV's detector releases the GIL: the cameras' images are searched in parallel.
-        detections = dict(
-            zip(
-                greys,
-                self.detection_pool.map(
-                    lambda grey: detect_chessboard(grey, rows, cols, self.params.max_blur_px),
-                    greys.values(),
-                ),
-            )
-        )
-        for name, detection in detections.items():
-            if detection.corners is None:
-                misses.append(f'{name}: {detection.reason}')
-                continue
-            corners[name] = detection.corners
-        if not corners:
-            self._reject_view('view', 'chart not found in any camera (' + '; '.join(misses) + ')')
-            return
-        with self.lock:
-            if T_base_chart is None:
-                first = next(n for n in self.names if n in corners)
-                parameters = view_parameters(corners[first], rows, cols, self.image_sizes[first])
-                if self.params.select_views and not self.coverage.is_new(parameters):
-                    self.similar_views += 1
-                    return
-                self.coverage.add(parameters)
-            self.views.append((T_base_chart, corners))
-            count = len(self.views)
-            coverage = self.coverage.summary() if T_base_chart is None else ''
-            # What to move next, in the log too: a user without ros2cli cannot read
-            # /diagnostics.
-            still = (
-                self.coverage.missing(self.params.min_coverage)
-                if T_base_chart is None and not self.calibrations
-                else ''
-            )
-        self.get_logger().info(
-            f'view {count}: chart found in {", ".join(corners)}'
-            + (f' (not in {"; ".join(misses)})' if misses else '')
-            + (f'; coverage {coverage}' if coverage else '')
-            + (f' (still: {still})' if still else '')
-        )
-        if (
-            self.params.auto_calibrate
-            and count >= self.params.min_views
-            and self.auto_done_at is None
-            and not self._coverage_missing(self.views)
-        ):
-            self.auto_done_at = count
+        if outcome.status == 'no_chart':
+            self.diagnostics.reject('view', outcome.message)
+        elif outcome.status == 'kept':
+            self.get_logger().info(outcome.message)
+        if outcome.calibrate_now:
             self._calibrate()
-
-    def _reject_view(self, what, error):
-        with self.lock:
-            self.rejected_views += 1
-        self.diagnostics.reject(what, error)
 
     # --- calibration ------------------------------------------------------------------
 
-    def _coverage_missing(self, views):
-        """What a handheld collection lacks ('' if enough, or if every view is posed)."""
-        if all(T is not None for T, _ in views):
-            return ''
-        with self.lock:
-            return self.coverage.missing(self.params.min_coverage)
-
-    def _observations(self, views):
-        observations, missing = {}, []
-        for name in self.names:
-            pairs = [(T, corners[name]) for T, corners in views if name in corners]
-            if not pairs:
-                missing.append(name)
-                continue
-            observations[name] = (
-                np.concatenate([self.chart @ T[:3, :3].T + T[:3, 3] for T, _ in pairs]),
-                np.concatenate([uv for _, uv in pairs]),
-                self.image_sizes[name],
-            )
-        if missing:
-            raise CalibrationError(f'the chart was never found in {", ".join(missing)}')
-        return observations
-
-    def _calibrate_handheld(self, views):
-        """Bundle adjustment over the views; {name: CameraFit} with poses in base_link."""
-        if self.params.method != 'lm':
-            raise CalibrationError(
-                f'method {self.params.method} needs target poses (the '
-                'stage); handheld views calibrate with lm'
-            )
-        known = [T for T, _ in views]
-        result = bundle_adjust_selected(
-            self.chart,
-            [corners for _, corners in views],
-            {n: self.image_sizes[n] for n in self.names},
-            known,
-            self.names,
-            self.params.fit_tangential,
-            self.params.fit_k3,
-            self.params.select_model,
-        )
-        T_base_ref = (
-            rig_pose_matrix(self._param('rig_pose'))
-            if result.reference != BASE_FRAME
-            else np.eye(4)
-        )
-        return {
-            n: f._replace(T_base_camera=T_base_ref @ f.T_base_camera)
-            for n, f in result.fits.items()
-        }, result.reference
-
     def _calibrate(self):
-        """Calibrate on all views so far; returns (success, message)."""
-        with self.lock:
-            views = list(self.views)
-        refusal = self._not_ready(views)
-        if refusal:
-            return False, refusal
-        with self.calibration_lock:
-            try:
-                fits, reference, seconds = self._fit(views)
-                cameras = {
-                    name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D, fit.T_base_camera)
-                    for name, fit in fits.items()
-                }
-                rectification = stereo_rectification(cameras['left'], cameras['right'])
-            except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError) as error:
-                message = f'calibration failed on {len(views)} views: {error}'
-                self.get_logger().error(message)
+        """Calibrate on all views so far and publish; returns (success, message)."""
+        try:
+            calibration = self.session.calibrate()
+        except NotReady as refusal:
+            if refusal.coverage:
+                _, values = self.session.status({})
                 self.diagnostics.publish(
                     'calibration',
-                    'error',
-                    message,
-                    {'views': len(views), 'method': self.params.method},
+                    'warn',
+                    str(refusal),
+                    {'views': values['views'], 'coverage': values.get('coverage', '')},
                 )
-                return False, message
-            self._publish(cameras, rectification)
-            return True, self._report(views, fits, cameras, rectification, reference, seconds)
-
-    def _not_ready(self, views):
-        """Why ``views`` cannot be calibrated yet (coverage, then min_views), or ''."""
-        p = self.params
-        missing = self._coverage_missing(views) if views else ''
-        if missing:  # say what to do with the chart first: more views alike would not help
-            message = (
-                f'not enough coverage in {len(views)} views ({self.coverage.summary()}'
-                f'; need {100 * p.min_coverage:.0f} % each, and min_views '
-                f'{p.min_views}): {missing}'
-            )
+            return False, str(refusal)
+        except CalibrationError as error:
+            message = str(error)
+            self.get_logger().error(message)
             self.diagnostics.publish(
                 'calibration',
-                'warn',
+                'error',
                 message,
-                {'views': len(views), 'coverage': self.coverage.summary()},
+                {'views': len(self.session.views), 'method': self.params.method},
             )
-            return message
-        if len(views) < p.min_views:
-            return f'{len(views)} views collected, min_views is {p.min_views}'
-        return ''
-
-    def _fit(self, views):
-        """(fits {name: CameraFit}, reference frame, seconds) of the views: handheld or
-        stage; CalibrationError when a camera's RMS exceeds max_rms_px."""
-        p = self.params
-        started = time.perf_counter()
-        if any(T is None for T, _ in views):
-            fits, reference = self._calibrate_handheld(views)
-            seconds = time.perf_counter() - started
-        else:
-            reference = BASE_FRAME
-            result = calibrate_rig(
-                self._observations(views),
-                p.method,
-                p.seed,
-                p.lm_start,
-                GA.build(self.params),
-                p.fit_tangential,
-                p.fit_k3,
-                p.select_model,
-            )
-            fits, seconds = result.fits, result.seconds
-        worst = max(fits, key=lambda n: fits[n].rms_px)
-        if fits[worst].rms_px > p.max_rms_px:
-            raise CalibrationError(
-                f'{worst}: reprojection RMS {fits[worst].rms_px:.3g} px '
-                f'exceeds max_rms_px {p.max_rms_px:g}'
-            )
-        return fits, reference, seconds
-
-    def _report(self, views, fits, cameras, rectification, reference, seconds):
-        """Writes the calibration to output_dir (if set), logs it and publishes its
-        diagnostics; returns the message."""
-        p = self.params
-        quality = {
-            name: {
-                'rms_px': fit.rms_px,
-                'points': fit.points,
-                'views': sum(name in corners for _, corners in views),
-            }
-            for name, fit in fits.items()
-        }
-        if p.output_dir:
-            try:
-                written = write_calibration(
-                    p.output_dir, cameras, OPTICAL_FRAMES, rectification, quality
-                )
-            except (OSError, VgmError) as error:
-                self.get_logger().error(f'cannot write {p.output_dir}: {error}')
-                self.diagnostics.publish(
-                    'calibration', 'error', f'cannot write {p.output_dir}: {error}'
-                )
-            else:  # where the files are is the first thing a user looks for
-                written = written.resolve()
-                self.get_logger().info(
-                    f'wrote {written} and {", ".join(f"{n}.yaml" for n in cameras)} '
-                    f'beside it (calibration_file:={written} publishes it again)'
-                )
-        self.calibrations += 1
-        rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in fits.items())
-        baseline = np.linalg.norm(cameras['left'].centre_base - cameras['right'].centre_base)
-        handheld = any(T is None for T, _ in views)
-        mode = 'handheld' if handheld else 'stage'
-        message = (
-            f'calibrated {len(cameras)} cameras from {len(views)} views: rms '
-            f'{rms} px, baseline {baseline:.4f} m ({p.method}, {mode}, '
-            f'{seconds:.2f} s)'
-        )
+            return False, message
+        self._publish(calibration.cameras, calibration.rectification)
+        if self.params.output_dir:
+            self._write(calibration)
+        message, values = self.session.record(calibration)
         self.get_logger().info(message)
-        values = {
-            'views': len(views),
-            'method': p.method,
-            'chart source': mode,
-            'reference frame': reference,
-            'time_s': f'{seconds:.3f}',
-            'baseline_m': f'{baseline:.6f}',
-        }
-        if handheld:
-            values['coverage'] = self.coverage.summary()
-        for name, fit in fits.items():
-            values[f'rms_px {name}'] = f'{fit.rms_px:.4f}'
-            values[f'points {name}'] = fit.points
-            values[f'views {name}'] = quality[name]['views']
-        self.last_result = values
         self.diagnostics.publish('calibration', 'ok', message, values)
-        return message
+        return True, message
 
-    def _publish(self, cameras, rectification, stamp_ns=None):
-        stamp_ns = self.get_clock().now().nanoseconds if stamp_ns is None else stamp_ns
+    def _write(self, calibration: Calibration):
+        """Write the calibration to output_dir; a failure is logged and reported."""
+        output_dir = self.params.output_dir
+        try:
+            written = write_calibration(
+                output_dir,
+                calibration.cameras,
+                OPTICAL_FRAMES,
+                calibration.rectification,
+                calibration.quality(),
+            )
+        except (OSError, VgmError) as error:
+            self.get_logger().error(f'cannot write {output_dir}: {error}')
+            self.diagnostics.publish('calibration', 'error', f'cannot write {output_dir}: {error}')
+            return
+        written = written.resolve()  # where the files are is the first thing a user looks for
+        self.get_logger().info(
+            f'wrote {written} and {", ".join(f"{n}.yaml" for n in calibration.cameras)} '
+            f'beside it (calibration_file:={written} publishes it again)'
+        )
+
+    def _publish(self, cameras, rectification):
+        stamp_ns = self.get_clock().now().nanoseconds
         for name, camera in cameras.items():
             R, P = rectification.get(name, (None, None))
             self.info_publishers[name].publish(
@@ -789,52 +522,24 @@ class CalibNode(GraphNode):
         return response
 
     def _on_reset(self, request, response):
-        with self.lock:
-            forgotten = len(self.views)
-            self.views.clear()
-            self.coverage.clear()
-            self.image_sizes.clear()
-            self.auto_done_at = None
         response.success = True
-        response.message = f'forgot {forgotten} views'
+        response.message = f'forgot {self.session.reset()} views'
         self.get_logger().info(response.message)
         return response
 
     def _publish_status(self):
-        with self.lock:
-            values: dict[str, object] = {
-                'views': len(self.views),
-                'rejected views': self.rejected_views,
-                'calibrations': self.calibrations,
-                'similar views skipped': self.similar_views,
-                'image sets without a target pose': self.unposed_sets,
+        message, values = self.session.status(
+            {
                 'incomplete capture sets (messages)': self.sync.dropped,
                 'matched capture sets': self.sync.matched,
             }
-            if self.last_result:  # the latest calibration's quality, repeated at 1 Hz
-                values.update(
-                    {k: v for k, v in self.last_result.items() if k.startswith('rms_px')}
-                )
-            handheld = any(T is None for T, _ in self.views)
-            if handheld:
-                values['coverage'] = self.coverage.summary()
-        level = 'ok'
-        message = (
-            f'{values["views"]} views, {self.calibrations} calibrations'
-            if self.calibrations or values['views']
-            else 'waiting for chart views'
         )
-        if handheld:
-            message += f'; coverage {values["coverage"]}'
-            missing = self._coverage_missing(self.views)
-            if missing and not self.calibrations:
-                message += f' (still: {missing})'
-        self.diagnostics.publish('views', level, message, values)
+        self.diagnostics.publish('views', 'ok', message, values)
 
     def close(self):
         """For run_node: stop waiting for target poses and close the worker (views still
         queued are not processed)."""
-        self.stopping.set()
+        self.session.close()
         if not self.file_mode:
             self.worker.close()
 

@@ -1,0 +1,502 @@
+"""A calibration session without ROS: it takes capture sets (grey images by camera and
+the chart's target poses by stamp), keeps the chart views, decides when enough are there,
+calibrates the rig and reports the result. calib_node only converts messages, publishes
+and logs what the session returns; the session is unit-tested on plain arrays.
+
+Stage views carry the chart pose of their stamp (the target pose, which may arrive a
+little before or after the images); handheld views carry none and are kept only when
+they add coverage (camera_calibration's rule). ``chart.source: auto`` takes stage views
+once a target pose has arrived, handheld ones before.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Literal, NamedTuple
+
+import numpy as np
+
+from calib_node.bundle import bundle_adjust_selected
+from calib_node.calibrate import CalibrationError, CameraFit, GAOptions, calibrate_rig
+from calib_node.chart_detection import chart_points, detect_chessboard
+from calib_node.coverage import Coverage, view_parameters
+from vgm_common.calibration_io import stereo_rectification
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.errors import InvalidInput
+from vgm_common.geometry import FloatArray, make_transform, quaternion_to_matrix, rpy_to_matrix
+from vgm_common.topics import BASE_FRAME, CAMERA_NAMES
+
+CHART_SOURCES = ('auto', 'stage', 'handheld')
+TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
+RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """The session's settings: calib_node's parameters of the same names (``chart_rows``
+    is ``chart.rows``), read again at every use, so a changed parameter applies to the
+    next view or calibration. The chart and the cameras are fixed for a session."""
+
+    cameras: tuple[str, ...] = CAMERA_NAMES
+    chart_rows: int = 6  # inner corners along the chart y axis (rows + cols odd)
+    chart_cols: int = 9
+    chart_spacing: float = 0.025  # [m]
+    chart_source: str = 'auto'  # CHART_SOURCES
+    rig_pose: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # see rig_pose_matrix
+    min_coverage: float = 0.5
+    select_views: bool = True
+    min_views: int = 10
+    auto_calibrate: bool = True
+    method: str = 'lm'
+    lm_start: str = 'dlt'
+    seed: int = 0
+    ga: GAOptions = GAOptions()
+    fit_tangential: bool = True
+    select_model: bool = True
+    fit_k3: bool = False
+    max_rms_px: float = 2.0
+    max_blur_px: float = 4.0
+
+
+def rig_pose_check(value: tuple[float, ...] | list[float]) -> str | None:
+    """Why ``rig_pose`` is unusable, or None."""
+    if len(value) not in (6, 7) or not all(np.isfinite(value)):
+        return 'expected 6 (x y z roll pitch yaw) or 7 (x y z qx qy qz qw) finite numbers'
+    if len(value) == 7 and abs(np.linalg.norm(value[3:]) - 1) > 1e-3:
+        return 'the quaternion must have unit norm'
+    return None
+
+
+def rig_pose_matrix(value: tuple[float, ...] | list[float]) -> FloatArray:
+    """``rig_pose`` (x y z roll pitch yaw [m, rad] or x y z qx qy qz qw) -> T_base_left."""
+    value = [float(v) for v in value]
+    R = rpy_to_matrix(*value[3:]) if len(value) == 6 else quaternion_to_matrix(value[3:])
+    return make_transform(R, value[:3])
+
+
+class ViewOutcome(NamedTuple):
+    """What became of a capture set: ``kept`` (a new view; ``message`` is its log line),
+    ``similar`` (handheld, like a kept view) or ``no_chart`` (``message`` says why).
+    ``handheld_started``: the first
+    handheld view of ``chart_source: auto`` (worth a log line); ``calibrate_now``: the
+    view completed what automatic calibration waits for."""
+
+    status: str
+    message: str = ''
+    handheld_started: bool = False
+    calibrate_now: bool = False
+
+
+class NotReady(CalibrationError):
+    """Too few views, or (``coverage`` true) a handheld collection that lacks coverage."""
+
+    def __init__(self, message: str, coverage: bool = False) -> None:
+        super().__init__(message)
+        self.coverage = coverage
+
+
+class Calibration(NamedTuple):
+    """A calibrated rig: cameras in base_link, stereo rectification {name: (R, P)}, the
+    per-camera fits, the frame the poses were solved in and the solver's time."""
+
+    cameras: dict[str, PinholeCamera]
+    rectification: dict[str, tuple[FloatArray, FloatArray]]
+    fits: dict[str, CameraFit]
+    reference: str
+    seconds: float
+    views: int
+    handheld: bool
+    camera_views: dict[str, int]  # views in which each camera saw the chart
+
+    def quality(self) -> dict[str, dict[str, float | int]]:
+        """Per camera: reprojection RMS [px], corner count and views (the file's record)."""
+        return {
+            name: {'rms_px': fit.rms_px, 'points': fit.points, 'views': self.camera_views[name]}
+            for name, fit in self.fits.items()
+        }
+
+
+# A view: the chart pose in base_link (None: handheld) and the corners {camera: (N, 2)}.
+View = tuple[FloatArray | None, dict[str, FloatArray]]
+
+
+class CalibrationSession:
+    """Chart views collected from capture sets, and the rig calibrated from them.
+
+    Thread-safe: capture sets are processed on a worker thread while target poses, the
+    services and the status come from the executor's. ``clock`` is a monotonic clock [s]
+    (injected for tests); ``settings`` returns the current settings."""
+
+    def __init__(
+        self,
+        settings: Callable[[], SessionSettings],
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._settings = settings
+        self._clock = clock
+        first = settings()
+        if (first.chart_rows + first.chart_cols) % 2 == 0:
+            raise InvalidInput(
+                'parameters chart.rows + chart.cols must be odd (the '
+                'board must not be symmetric under a half turn)',
+                key='chart.rows',
+            )
+        self.names = tuple(n for n in CAMERA_NAMES if n in first.cameras)
+        self.source = first.chart_source
+        self.rows, self.cols = first.chart_rows, first.chart_cols
+        self.chart = chart_points(self.rows, self.cols, first.chart_spacing)  # (N, 3) [m]
+        self._lock = threading.Lock()  # views, image sizes, counters, targets
+        self._target_arrived = threading.Condition(self._lock)
+        self._calibration_lock = threading.Lock()  # one calibration at a time
+        self._detection_pool = ThreadPoolExecutor(len(self.names))
+        self.views: list[View] = []
+        self.coverage = Coverage()
+        self._targets: dict[int, FloatArray] = {}  # stamp_ns -> T_base_chart, most recent
+        self._target_seen = False  # auto: a target pose arrived (the stage is in use)
+        self._handheld_said = False
+        # name -> (width, height), fixed by the first good image
+        self.image_sizes: dict[str, tuple[int, int]] = {}
+        self.rejected_views = 0
+        self.similar_views = 0  # handheld views like a kept one (select_views), or dropped
+        self.unposed_sets = 0  # stage: image sets without a target pose of their stamp
+        self.calibrations = 0
+        self.last_result: dict[str, Any] | None = None
+        self._auto_done_at: int | None = None  # view count of the automatic calibration
+        self._stopping = threading.Event()
+
+    # --- inputs -------------------------------------------------------------------------
+
+    def add_target(self, stamp_ns: int, T_base_chart: FloatArray) -> None:
+        """The chart pose of the capture set of ``stamp_ns`` (ignored when handheld)."""
+        if self.source == 'handheld':
+            return
+        with self._lock:
+            self._targets[stamp_ns] = T_base_chart
+            while len(self._targets) > RECENT_TARGETS:
+                del self._targets[next(iter(self._targets))]
+            self._target_seen = True
+            self._target_arrived.notify_all()
+
+    def dropped(self, stamp_ns: int) -> bool:
+        """Account for a capture set dropped before processing (the queue was full);
+        True if it was a stage view (worth reporting), False for a handheld one (a
+        stream outrunning detection loses views like a kept one)."""
+        with self._lock:
+            posed = stamp_ns in self._targets
+            if not posed:
+                self.similar_views += 1
+        return posed
+
+    def check_image_size(self, name: str, size: tuple[int, int]) -> None:
+        """InvalidInput if camera ``name``'s image (width, height) differs from its first."""
+        with self._lock:
+            expected = self.image_sizes.setdefault(name, size)
+        if size != expected:
+            raise InvalidInput(
+                f'image size {size[0]}x{size[1]} differs from this '
+                f"camera's earlier {expected[0]}x{expected[1]}",
+                key='size',
+            )
+
+    def add_view(
+        self,
+        T_base_chart: FloatArray | None,
+        greys: Mapping[str, np.ndarray],
+        misses: list[str],
+    ) -> ViewOutcome:
+        """Find the chart in a capture set and keep the view if it is one: its chart pose
+        (from :meth:`chart_pose_of`; None when handheld), the grey images of the cameras
+        whose image was usable (``misses`` says why the others were not)."""
+        handheld_started = False
+        if T_base_chart is None and self.source == 'auto' and not self._handheld_said:
+            self._handheld_said = handheld_started = True
+        settings = self._settings()
+        # OpenCV's detector releases the GIL: the cameras' images are searched in parallel.
+        detections = dict(
+            zip(
+                greys,
+                self._detection_pool.map(
+                    lambda grey: detect_chessboard(
+                        grey, self.rows, self.cols, settings.max_blur_px
+                    ),
+                    greys.values(),
+                ),
+            )
+        )
+        misses = list(misses)
+        corners = {}
+        for name, detection in detections.items():
+            if detection.corners is None:
+                misses.append(f'{name}: {detection.reason}')
+            else:
+                corners[name] = detection.corners
+        if not corners:
+            with self._lock:
+                self.rejected_views += 1
+            return ViewOutcome(
+                'no_chart',
+                'chart not found in any camera (' + '; '.join(misses) + ')',
+                handheld_started,
+            )
+        with self._lock:
+            if T_base_chart is None:
+                first = next(n for n in self.names if n in corners)
+                parameters = view_parameters(
+                    corners[first], self.rows, self.cols, greys[first].shape[::-1]
+                )
+                if settings.select_views and not self.coverage.is_new(parameters):
+                    self.similar_views += 1
+                    return ViewOutcome('similar', handheld_started=handheld_started)
+                self.coverage.add(parameters)
+            self.views.append((T_base_chart, corners))
+            count = len(self.views)
+            coverage = self.coverage.summary() if T_base_chart is None else ''
+            # What to move next, in the log too: a user without ros2cli cannot read
+            # /diagnostics.
+            still = (
+                self.coverage.missing(settings.min_coverage)
+                if T_base_chart is None and not self.calibrations
+                else ''
+            )
+            calibrate_now = (
+                settings.auto_calibrate
+                and count >= settings.min_views
+                and self._auto_done_at is None
+                and not self._coverage_missing(self.views, settings)
+            )
+            if calibrate_now:
+                self._auto_done_at = count
+        message = (
+            f'view {count}: chart found in {", ".join(corners)}'
+            + (f' (not in {"; ".join(misses)})' if misses else '')
+            + (f'; coverage {coverage}' if coverage else '')
+            + (f' (still: {still})' if still else '')
+        )
+        return ViewOutcome('kept', message, handheld_started, calibrate_now)
+
+    def chart_pose_of(self, stamp_ns: int, completed: float) -> FloatArray | None | Literal[False]:
+        """The chart pose T_base_chart of the capture set of ``stamp_ns``, waiting for it
+        as the source asks until TARGET_WAIT_S after ``completed`` (the monotonic time
+        [s] the set was complete: a backlog adds no wait); None: a handheld view; False:
+        a stage set without a pose (not a view, counted)."""
+        if self.source == 'handheld':
+            return None
+        deadline = completed + TARGET_WAIT_S  # a backlog of sets adds no wait
+        with self._lock:
+            while stamp_ns not in self._targets and not self._stopping.is_set():
+                remaining = deadline - self._clock()
+                if remaining <= 0:
+                    break
+                self._target_arrived.wait(remaining)
+            target = self._targets.pop(stamp_ns, None)
+            if target is None and (self.source == 'stage' or self._target_seen):
+                self.unposed_sets += 1  # outside the stage's chart phase: not a view
+                return False
+        return target
+
+    # --- calibration --------------------------------------------------------------------
+
+    def _coverage_missing(self, views: list[View], settings: SessionSettings) -> str:
+        """What a handheld collection lacks ('' if enough, or if every view is posed)."""
+        if all(T is not None for T, _ in views):
+            return ''
+        return self.coverage.missing(settings.min_coverage)
+
+    def calibrate(self) -> Calibration:
+        """Calibrate on all views so far. NotReady when there are too few views or too
+        little coverage; CalibrationError (its message names the view count) when the
+        views give no calibration or a camera's RMS exceeds ``max_rms_px``."""
+        settings = self._settings()
+        with self._lock:
+            views = list(self.views)
+            missing = self._coverage_missing(views, settings) if views else ''
+            summary = self.coverage.summary()
+        if missing:  # say what to do with the chart first: more views alike would not help
+            raise NotReady(
+                f'not enough coverage in {len(views)} views ({summary}'
+                f'; need {100 * settings.min_coverage:.0f} % each, and min_views '
+                f'{settings.min_views}): {missing}',
+                coverage=True,
+            )
+        if len(views) < settings.min_views:
+            raise NotReady(f'{len(views)} views collected, min_views is {settings.min_views}')
+        with self._calibration_lock:
+            try:
+                fits, reference, seconds = self._fit(views, settings)
+                cameras = {
+                    name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D, fit.T_base_camera)
+                    for name, fit in fits.items()
+                }
+                rectification = stereo_rectification(cameras['left'], cameras['right'])
+            except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError) as error:
+                raise CalibrationError(
+                    f'calibration failed on {len(views)} views: {error}'
+                ) from error
+        handheld = any(T is None for T, _ in views)
+        camera_views = {n: sum(n in corners for _, corners in views) for n in fits}
+        return Calibration(
+            cameras, rectification, fits, reference, seconds, len(views), handheld, camera_views
+        )
+
+    def _observations(
+        self, views: list[View]
+    ) -> dict[str, tuple[FloatArray, FloatArray, tuple[int, int]]]:
+        observations, missing = {}, []
+        for name in self.names:
+            pairs = [  # stage views only: every T is known
+                (T, corners[name]) for T, corners in views if name in corners and T is not None
+            ]
+            if not pairs:
+                missing.append(name)
+                continue
+            observations[name] = (
+                np.concatenate([self.chart @ T[:3, :3].T + T[:3, 3] for T, _ in pairs]),
+                np.concatenate([uv for _, uv in pairs]),
+                self.image_sizes[name],
+            )
+        if missing:
+            raise CalibrationError(f'the chart was never found in {", ".join(missing)}')
+        return observations
+
+    def _calibrate_handheld(
+        self, views: list[View], settings: SessionSettings
+    ) -> tuple[dict[str, CameraFit], str]:
+        """Bundle adjustment over the views; {name: CameraFit} with poses in base_link."""
+        if settings.method != 'lm':
+            raise CalibrationError(
+                f'method {settings.method} needs target poses (the '
+                'stage); handheld views calibrate with lm'
+            )
+        result = bundle_adjust_selected(
+            self.chart,
+            [corners for _, corners in views],
+            {n: self.image_sizes[n] for n in self.names},
+            [T for T, _ in views],
+            self.names,
+            settings.fit_tangential,
+            settings.fit_k3,
+            settings.select_model,
+        )
+        T_base_ref = (
+            rig_pose_matrix(settings.rig_pose) if result.reference != BASE_FRAME else np.eye(4)
+        )
+        return {
+            n: f._replace(T_base_camera=T_base_ref @ f.T_base_camera)
+            for n, f in result.fits.items()
+        }, result.reference
+
+    def _fit(
+        self, views: list[View], settings: SessionSettings
+    ) -> tuple[dict[str, CameraFit], str, float]:
+        """(fits {name: CameraFit}, reference frame, seconds) of the views: handheld or
+        stage; CalibrationError when a camera's RMS exceeds max_rms_px."""
+        started = time.perf_counter()
+        if any(T is None for T, _ in views):
+            fits, reference = self._calibrate_handheld(views, settings)
+            seconds = time.perf_counter() - started
+        else:
+            reference = BASE_FRAME
+            result = calibrate_rig(
+                self._observations(views),
+                settings.method,
+                settings.seed,
+                settings.lm_start,
+                settings.ga,
+                settings.fit_tangential,
+                settings.fit_k3,
+                settings.select_model,
+            )
+            fits, seconds = result.fits, result.seconds
+        worst = max(fits, key=lambda n: fits[n].rms_px)
+        if fits[worst].rms_px > settings.max_rms_px:
+            raise CalibrationError(
+                f'{worst}: reprojection RMS {fits[worst].rms_px:.3g} px '
+                f'exceeds max_rms_px {settings.max_rms_px:g}'
+            )
+        return fits, reference, seconds
+
+    def record(self, calibration: Calibration) -> tuple[str, dict[str, Any]]:
+        """Count ``calibration`` as published; its one-line summary and diagnostic values."""
+        settings = self._settings()
+        fits, cameras = calibration.fits, calibration.cameras
+        rms = ' '.join(f'{n}={f.rms_px:.3f}' for n, f in fits.items())
+        baseline = np.linalg.norm(cameras['left'].centre_base - cameras['right'].centre_base)
+        mode = 'handheld' if calibration.handheld else 'stage'
+        message = (
+            f'calibrated {len(cameras)} cameras from {calibration.views} views: rms '
+            f'{rms} px, baseline {baseline:.4f} m ({settings.method}, {mode}, '
+            f'{calibration.seconds:.2f} s)'
+        )
+        values: dict[str, Any] = {
+            'views': calibration.views,
+            'method': settings.method,
+            'chart source': mode,
+            'reference frame': calibration.reference,
+            'time_s': f'{calibration.seconds:.3f}',
+            'baseline_m': f'{baseline:.6f}',
+        }
+        with self._lock:
+            if calibration.handheld:
+                values['coverage'] = self.coverage.summary()
+            for name, fit in fits.items():
+                values[f'rms_px {name}'] = f'{fit.rms_px:.4f}'
+                values[f'points {name}'] = fit.points
+                values[f'views {name}'] = calibration.camera_views[name]
+            self.calibrations += 1
+            self.last_result = values
+        return message, values
+
+    # --- control and status -------------------------------------------------------------
+
+    def reset(self) -> int:
+        """Forget every view (and the image sizes); returns how many were forgotten."""
+        with self._lock:
+            forgotten = len(self.views)
+            self.views.clear()
+            self.coverage.clear()
+            self.image_sizes.clear()
+            self._auto_done_at = None
+        return forgotten
+
+    def status(self, capture_counts: Mapping[str, int]) -> tuple[str, dict[str, object]]:
+        """The collection's one-line status and its values (``capture_counts``: the
+        pairing's counters, shown beside the session's)."""
+        settings = self._settings()
+        with self._lock:
+            values: dict[str, object] = {
+                'views': len(self.views),
+                'rejected views': self.rejected_views,
+                'calibrations': self.calibrations,
+                'similar views skipped': self.similar_views,
+                'image sets without a target pose': self.unposed_sets,
+                **capture_counts,
+            }
+            if self.last_result:  # the latest calibration's quality, repeated at 1 Hz
+                values.update(
+                    {k: v for k, v in self.last_result.items() if k.startswith('rms_px')}
+                )
+            handheld = any(T is None for T, _ in self.views)
+            if handheld:
+                values['coverage'] = self.coverage.summary()
+            missing = self._coverage_missing(self.views, settings) if handheld else ''
+        message = (
+            f'{values["views"]} views, {self.calibrations} calibrations'
+            if self.calibrations or values['views']
+            else 'waiting for chart views'
+        )
+        if handheld:
+            message += f'; coverage {values["coverage"]}'
+            if missing and not self.calibrations:
+                message += f' (still: {missing})'
+        return message, values
+
+    def close(self) -> None:
+        """Stop waiting for target poses (a capture set waiting for one is dropped)."""
+        self._stopping.set()
+        with self._lock:
+            self._target_arrived.notify_all()
+        self._detection_pool.shutdown(wait=False)

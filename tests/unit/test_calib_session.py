@@ -1,0 +1,147 @@
+"""calib_node's CalibrationSession without ROS: rendered chart images of a drawn rig (unlike
+the shipped scenarios) go in view by view, as the node hands them over; the calibration
+that comes out is checked against the rig's truth, and every refusal names its reason.
+The clock is injected, so waiting for a target pose costs no time."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from calib_node.calibrate import CalibrationError
+from calib_node.rig_generator import draw_rig, render_rig, score_rig
+from calib_node.session import CalibrationSession, NotReady, SessionSettings
+from vgm_common.errors import InvalidInput
+
+CAMERAS = ('left', 'right')
+
+
+class FakeClock:
+    """A monotonic clock that only moves when told: a wait for a target pose that never
+    comes ends at once, since its deadline has already passed."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+@pytest.fixture(scope='module')
+def rig_and_images():
+    rig = draw_rig(5, CAMERAS, views=8)
+    return rig, render_rig(rig, 5)
+
+
+def _settings(rig, **changes):
+    base = SessionSettings(
+        cameras=CAMERAS,
+        chart_rows=rig.rows,
+        chart_cols=rig.cols,
+        chart_spacing=rig.spacing,
+        chart_source='stage',
+        min_views=len(rig.T_base_chart),
+    )
+    return dataclasses.replace(base, **changes)
+
+
+def _session(rig, clock=None, **changes):
+    settings = _settings(rig, **changes)
+    return CalibrationSession(lambda: settings, clock or FakeClock())
+
+
+def _feed(session, rig, images, posed=True):
+    outcomes = []
+    for stamp, (T_base_chart, view) in enumerate(zip(rig.T_base_chart, images)):
+        if posed:
+            session.add_target(stamp, T_base_chart)
+        for name, grey in view.items():
+            session.check_image_size(name, (grey.shape[1], grey.shape[0]))
+        pose = session.chart_pose_of(stamp, completed=0.0)
+        outcomes.append(session.add_view(pose, view, []))
+    return outcomes
+
+
+def test_stage_views_calibrate_to_the_truth(rig_and_images):
+    rig, images = rig_and_images
+    session = _session(rig)
+    outcomes = _feed(session, rig, images)
+    assert [o.status for o in outcomes] == ['kept'] * len(images)
+    # Automatic calibration is asked for once, by the view that reaches min_views.
+    assert [o.calibrate_now for o in outcomes] == [False] * (len(images) - 1) + [True]
+    assert outcomes[0].message.startswith('view 1: chart found in left, right')
+    calibration = session.calibrate()
+    assert calibration.reference == 'base_link' and not calibration.handheld
+    assert calibration.camera_views == {'left': len(images), 'right': len(images)}
+    score = score_rig(rig.cameras, calibration.cameras, absolute=True)
+    # Bounds as the topic tests' (rendered images, 8 views): 0.3 % in focal length and
+    # baseline, 2 mm in position.
+    assert score['fx'] < 3e-3 and score['baseline'] < 3e-3 and score['position'] < 2e-3, score
+    message, values = session.record(calibration)
+    assert message.startswith(f'calibrated 2 cameras from {len(images)} views: rms left=')
+    assert values['chart source'] == 'stage' and session.calibrations == 1
+    status, counts = session.status({'matched capture sets': len(images)})
+    assert status == f'{len(images)} views, 1 calibrations'
+    assert counts['matched capture sets'] == len(images) and 'rms_px left' in counts
+
+
+def test_refusals_name_their_reason(rig_and_images):
+    rig, images = rig_and_images
+    with pytest.raises(InvalidInput, match='chart.rows \\+ chart.cols must be odd'):
+        _session(rig, chart_cols=rig.rows)  # square: rows + cols even
+    session = _session(rig, min_views=len(images) + 1)
+    outcomes = _feed(session, rig, images[:2])
+    with pytest.raises(
+        NotReady, match=f'2 views collected, min_views is {len(images) + 1}'
+    ) as refusal:
+        session.calibrate()
+    assert not refusal.value.coverage and not any(o.calibrate_now for o in outcomes)
+    with pytest.raises(InvalidInput, match="differs from this camera's earlier"):
+        session.check_image_size('left', (1, 1))
+    # A blank image holds no chart: counted as rejected, the reason per camera.
+    blank = {n: np.zeros_like(g) for n, g in images[0].items()}
+    session.add_target(99, rig.T_base_chart[0])
+    outcome = session.add_view(session.chart_pose_of(99, 0.0), blank, [])
+    assert outcome.status == 'no_chart' and outcome.message.startswith(
+        'chart not found in any camera (left: '
+    )
+    assert session.rejected_views == 1
+    assert session.reset() == 2 and session.views == []
+
+
+def test_a_stage_set_without_its_target_pose_is_not_a_view(rig_and_images):
+    rig, images = rig_and_images
+    clock = FakeClock()
+    session = _session(rig, clock)
+    # completed long ago: the wait for the pose is over before it starts.
+    assert session.chart_pose_of(7, completed=clock.now - 5.0) is False
+    assert session.unposed_sets == 1
+    # auto before any target pose: handheld, said once.
+    auto = _session(rig, clock, chart_source='auto', select_views=False, min_coverage=0.0)
+    pose = auto.chart_pose_of(7, completed=clock.now - 5.0)
+    assert pose is None
+    first, second = (auto.add_view(None, view, []) for view in images[:2])
+    assert first.handheld_started and not second.handheld_started
+
+
+def test_handheld_views_need_coverage_and_calibrate_in_the_rig_frame(rig_and_images):
+    rig, images = rig_and_images
+    session = _session(rig, chart_source='handheld', min_coverage=1.0, min_views=4)
+    outcomes = _feed(session, rig, images, posed=False)
+    kept = sum(o.status == 'kept' for o in outcomes)
+    assert kept + session.similar_views == len(images)
+    with pytest.raises(NotReady, match='not enough coverage') as refusal:
+        session.calibrate()
+    assert refusal.value.coverage
+    lenient = _session(
+        rig, chart_source='handheld', min_coverage=0.0, select_views=False, min_views=4
+    )
+    _feed(lenient, rig, images, posed=False)
+    calibration = lenient.calibrate()
+    assert calibration.handheld and calibration.reference == 'left'
+    score = score_rig(rig.cameras, calibration.cameras)  # relative to the left camera
+    assert score['fx'] < 3e-3 and score['baseline'] < 3e-3, score
+    strict = _session(rig, max_rms_px=1e-6)
+    _feed(strict, rig, images)
+    with pytest.raises(CalibrationError, match='exceeds max_rms_px'):
+        strict.calibrate()
