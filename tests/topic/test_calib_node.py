@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
@@ -334,9 +334,15 @@ def test_bad_input_gives_diagnostics_and_no_calibration(spawn, rclpy_node, chart
     answer = call(rclpy_node, '/calib_node/calibrate')
     assert not answer.success and 'min_views' in answer.message
 
-    # Degenerate views: the chart at one pose, so every point lies on one plane.
+    # Degenerate views: the chart at one pose, so every point lies on one plane. Each
+    # capture has its own sensor noise (the very same images again would be one view).
+    rng = np.random.default_rng(4)
     for _ in range(3):
-        capture.publish(images, T_base_chart)
+        noisy = {
+            n: np.clip(image + rng.integers(-1, 2, image.shape), 0, 255).astype(np.uint8)
+            for n, image in images.items()
+        }
+        capture.publish(noisy, T_base_chart)
     probe.wait(
         lambda: probe.statuses('calibration', 'degenerate'), 60, 'the degenerate-views diagnostic'
     )
@@ -391,8 +397,8 @@ def opencv_stereo(views, chart, size):
 
 def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_node):
     """OpenCV's own stereo photographs (9 x 6 inner corners) over the topics, handheld:
-    first three copies of one fronto-parallel view (refused: too little coverage, the
-    diagnostic says what is missing), then all 13 pairs -> beside cv2.stereoCalibrate."""
+    first three copies of one fronto-parallel view (one view; refused: too little coverage,
+    the diagnostic says what is missing), then all 13 pairs -> beside cv2.stereoCalibrate."""
     directory = Path(opencv_sample_dir())  # fetched once; fails with the reason if not
     images = [
         {
@@ -436,9 +442,17 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
         for name, publisher in publishers.items():
             publisher.publish(numpy_to_image(view[name], 'mono8', stamp[0], name))
 
-    for count in (1, 2, 3):
+    for copy in (1, 2, 3):  # one photograph sent three times is one view
         publish(images[0])
-        probe.wait(lambda c=count: probe.statuses('views', f'{c} views'), 60, f'view {count}')
+        probe.wait(
+            lambda c=copy: any(
+                ('repeated images skipped', str(c - 1)) in [(kv.key, kv.value) for kv in s.values]
+                and '1 views' in s.message
+                for s in probe.statuses('views')
+            ),
+            60,
+            f'copy {copy} of view 1',
+        )
     answer = call(rclpy_node, '/calib_node/calibrate')
     assert (
         not answer.success and 'coverage' in answer.message and 'tilt the chart' in answer.message
@@ -653,3 +667,33 @@ def test_generated_rig_stage_and_handheld(spawn, rclpy_node):
             assert score_rig(rig.cameras, cameras, absolute=True)['position'] < 2e-3
     assert stage.alive() and hand.alive()
     assert 'Traceback' not in stage.output() + hand.output()
+
+
+def test_a_camera_that_never_publishes_is_named(spawn, rclpy_node):
+    """Defaults (cameras left, right, aux) on a two-camera rig: no capture set can complete,
+    and within SILENT_CAMERA_S + the status period the log, /diagnostics and the calibrate
+    refusal say that aux sends nothing and how to describe a two-camera rig."""
+    probe = Probe(rclpy_node)
+    publishers = {
+        n: rclpy_node.create_publisher(Image, IMAGE_TOPICS[n], DEFAULT_QOS)
+        for n in ('left', 'right')
+    }
+    calib = spawn([executable('calib_node')])
+    blank = np.zeros((48, 64), np.uint8)
+    stamp = [0]
+
+    def publish_pair():
+        stamp[0] += 100_000_000
+        for name, publisher in publishers.items():
+            publisher.publish(numpy_to_image(blank, 'mono8', stamp[0], name))
+
+    timer = rclpy_node.create_timer(0.5, publish_pair)
+    advice = 'no image from aux in 10 s while left, right send images: a 2-camera rig is '
+    probe.wait(lambda: probe.statuses('views', advice), 40, 'the silent-camera warning')
+    rclpy_node.destroy_timer(timer)
+    warning = probe.statuses('views', advice)[-1]
+    assert warning.level == DiagnosticStatus.WARN
+    assert warning.message.endswith('cameras: [left, right]'), warning.message
+    answer = call(rclpy_node, '/calib_node/calibrate')
+    assert not answer.success and advice in answer.message, answer.message
+    assert advice in calib.output()  # in the log once, for a user without ros2cli

@@ -106,6 +106,11 @@ def test_refusals_name_their_reason(rig_and_images):
         'chart not found in any camera (left: '
     )
     assert session.rejected_views == 1
+    # The same photographs again (a folder republished in a loop): one view, not two.
+    session.add_target(100, rig.T_base_chart[0])
+    again = session.add_view(session.chart_pose_of(100, 0.0), images[0], [])
+    assert again.status == 'repeat' and len(session.views) == 2
+    assert session.status({})[1]['repeated images skipped'] == 1
     assert session.reset() == 2 and session.views == []
 
 

@@ -44,3 +44,18 @@ def test_queue_size_bounds_pending_sets():
     for stamp in range(10):
         sync.add('left', stamp, stamp, now=0.0)
     assert sync.pending == 3 and sync.dropped == 7
+
+
+def test_a_topic_that_never_publishes_is_named():
+    sync, out = make_sync()
+    assert sync.silent(now=100.0, after=10.0) == []  # nothing at all: nothing to blame
+    for k in range(12):  # left and right at 1 Hz, aux never
+        sync.add('left', k, f'l{k}', now=float(k))
+        sync.add('right', k, f'r{k}', now=float(k))
+    assert not out
+    assert sync.silent(now=9.0, after=10.0) == []  # not yet 10 s since the first message
+    assert sync.silent(now=11.0, after=10.0) == ['aux']
+    sync.add('aux', 11, 'a11', now=11.5)
+    assert sync.silent(now=12.0, after=10.0) == [] and len(out) == 1
+    # Every topic quiet (the rig stopped): no one is singled out.
+    assert sync.silent(now=40.0, after=10.0) == []

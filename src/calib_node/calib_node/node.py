@@ -58,6 +58,7 @@ from vgm_common.topics import (
 from vgm_common.worker import Worker
 
 VIEW_BACKLOG = 30  # image sets waiting for chart detection
+SILENT_CAMERA_S = 10.0  # [s] a camera without images while the others send is named
 # The session's settings are the parameters of the same names (chart.* dotted).
 SESSION = ConfigParams(
     SessionSettings,
@@ -366,6 +367,7 @@ class CalibNode(GraphNode):
             DEFAULT_QOS,
             callback_group=MutuallyExclusiveCallbackGroup(),
         )
+        self._silent_said = ''  # the silent-camera warning last logged
         self.create_timer(1.0, self._publish_status)
         self.get_logger().info(
             f'collecting chart views ({p.method}, {self.session.rows}x{self.session.cols} '
@@ -433,6 +435,9 @@ class CalibNode(GraphNode):
         try:
             calibration = self.session.calibrate()
         except NotReady as refusal:
+            silent = self._silent_cameras()
+            if silent:  # why there are no views comes first
+                return False, f'{refusal}; {silent}'
             if refusal.coverage:
                 _, values = self.session.status({})
                 self.diagnostics.publish(
@@ -527,6 +532,24 @@ class CalibNode(GraphNode):
         self.get_logger().info(response.message)
         return response
 
+    def _silent_cameras(self):
+        """'' or what to do about cameras that send no image while the others do (no set
+        of the rig can complete: 0 views however long the chart is shown)."""
+        silent = self.sync.silent(time.monotonic(), SILENT_CAMERA_S)
+        if not silent:
+            return ''
+        sending = [n for n in self.names if n not in silent]
+        advice = (
+            f'a {len(sending)}-camera rig is cameras: [{", ".join(sending)}]'
+            if {'left', 'right'} <= set(sending)
+            else f'check that {", ".join(silent)} publishes on '
+            + ', '.join(self.resolve_topic_name(IMAGE_TOPICS[n]) for n in silent)
+        )
+        return (
+            f'no image from {", ".join(silent)} in {SILENT_CAMERA_S:g} s while '
+            f'{", ".join(sending)} send images: {advice}'
+        )
+
     def _publish_status(self):
         message, values = self.session.status(
             {
@@ -534,7 +557,14 @@ class CalibNode(GraphNode):
                 'matched capture sets': self.sync.matched,
             }
         )
-        self.diagnostics.publish('views', 'ok', message, values)
+        silent = self._silent_cameras()
+        if silent != self._silent_said:  # a user without ros2cli reads the log
+            if silent:
+                self.get_logger().warning(silent)
+            self._silent_said = silent
+        if silent:
+            values['silent cameras'] = silent
+        self.diagnostics.publish('views', 'warn' if silent else 'ok', silent or message, values)
 
     def close(self):
         """For run_node: stop waiting for target poses and close the worker (views still

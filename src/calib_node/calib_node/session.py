@@ -11,6 +11,7 @@ once a target pose has arrived, handheld ones before.
 
 from __future__ import annotations
 
+import hashlib
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -80,7 +81,8 @@ def rig_pose_matrix(value: tuple[float, ...] | list[float]) -> FloatArray:
 
 class ViewOutcome(NamedTuple):
     """What became of a capture set: ``kept`` (a new view; ``message`` is its log line),
-    ``similar`` (handheld, like a kept view) or ``no_chart`` (``message`` says why).
+    ``similar`` (handheld, like a kept view), ``repeat`` (the very images of an earlier
+    view, republished) or ``no_chart`` (``message`` says why).
     ``handheld_started``: the first
     handheld view of ``chart_source: auto`` (worth a log line); ``calibrate_now``: the
     view completed what automatic calibration waits for."""
@@ -163,6 +165,8 @@ class CalibrationSession:
         self.rejected_views = 0
         self.similar_views = 0  # handheld views like a kept one (select_views), or dropped
         self.unposed_sets = 0  # stage: image sets without a target pose of their stamp
+        self.repeated_views = 0  # the same images again (a folder republished in a loop)
+        self._seen_images: set[bytes] = set()  # digests of the images of the views taken
         self.calibrations = 0
         self.last_result: dict[str, Any] | None = None
         self._auto_done_at: int | None = None  # view count of the automatic calibration
@@ -214,6 +218,11 @@ class CalibrationSession:
         handheld_started = False
         if T_base_chart is None and self.source == 'auto' and not self._handheld_said:
             self._handheld_said = handheld_started = True
+        digest = _images_digest(greys)
+        with self._lock:
+            if digest in self._seen_images:  # one photograph is one view, however often sent
+                self.repeated_views += 1
+                return ViewOutcome('repeat', handheld_started=handheld_started)
         settings = self._settings()
         # OpenCV's detector releases the GIL: the cameras' images are searched in parallel.
         detections = dict(
@@ -243,6 +252,7 @@ class CalibrationSession:
                 handheld_started,
             )
         with self._lock:
+            self._seen_images.add(digest)  # a view, kept or like a kept one
             if T_base_chart is None:
                 first = next(n for n in self.names if n in corners)
                 parameters = view_parameters(
@@ -459,6 +469,7 @@ class CalibrationSession:
             self.views.clear()
             self.coverage.clear()
             self.image_sizes.clear()
+            self._seen_images.clear()
             self._auto_done_at = None
         return forgotten
 
@@ -472,6 +483,7 @@ class CalibrationSession:
                 'rejected views': self.rejected_views,
                 'calibrations': self.calibrations,
                 'similar views skipped': self.similar_views,
+                'repeated images skipped': self.repeated_views,
                 'image sets without a target pose': self.unposed_sets,
                 **capture_counts,
             }
@@ -500,3 +512,13 @@ class CalibrationSession:
         with self._lock:
             self._target_arrived.notify_all()
         self._detection_pool.shutdown(wait=False)
+
+
+def _images_digest(greys: Mapping[str, np.ndarray]) -> bytes:
+    """A digest of a capture set's images (names, sizes and pixels)."""
+    digest = hashlib.blake2b(digest_size=16)
+    for name in sorted(greys):
+        grey = np.ascontiguousarray(greys[name])
+        digest.update(f'{name}:{grey.shape}:{grey.dtype}'.encode())
+        digest.update(grey.data)
+    return digest.digest()

@@ -35,12 +35,17 @@ class ExactTimeSync:
         self._pending: OrderedDict[int, tuple[float, dict[str, Any]]] = OrderedDict()
         self.matched = 0
         self.dropped = 0  # messages discarded without a complete set
+        self._first_arrival: float | None = None  # [s] of any key's first message
+        self._last_arrival: dict[str, float] = {}  # key -> [s] of its latest message
 
     def add(self, key: str, stamp_ns: int, msg: Any, now: float) -> None:
         """Offer one message; calls ``callback(stamp_ns, {key: msg})`` when its set
         completes. ``now`` [s] is the caller's monotonic clock."""
         if key not in self.keys:
             raise KeyError(f'unknown sync key {key!r}; expected one of {self.keys}')
+        if self._first_arrival is None:
+            self._first_arrival = now
+        self._last_arrival[key] = now
         arrived, messages = self._pending.setdefault(stamp_ns, (now, {}))
         if key in messages:
             self.dropped += 1  # a duplicate stamp on one topic: keep the newest
@@ -64,6 +69,20 @@ class ExactTimeSync:
                 break
             del self._pending[stamp]
             self.dropped += len(messages)
+
+    def silent(self, now: float, after: float) -> list[str]:
+        """The keys without a message for ``after`` [s] while another key had one within
+        that time: the topic that keeps every set from completing (a camera that does not
+        publish, or publishes under another name). [] while nothing arrives at all."""
+        if self._first_arrival is None or not any(
+            now - t <= after for t in self._last_arrival.values()
+        ):
+            return []
+        return [
+            key
+            for key in self.keys
+            if now - self._last_arrival.get(key, self._first_arrival) > after
+        ]
 
     @property
     def pending(self) -> int:
