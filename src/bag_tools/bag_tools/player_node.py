@@ -38,6 +38,7 @@ import time
 
 from bag_tools.bag_writer import BagError, BagReader
 from bag_tools.message_definitions import DefinitionNotFoundError, type_hash
+from bag_tools.playback import PlaybackClock
 from bag_tools.topic_discovery import import_message_type
 from vgm_common.errors import VgmError
 from vgm_common.graph_node import GraphNode
@@ -126,7 +127,9 @@ class PlayerNode(GraphNode):
     node_name = 'player'
 
     def __init__(self, **kwargs):
-        super().__init__(PARAMETERS, on_change={'rate': self._set_rate}, **kwargs)
+        super().__init__(
+            PARAMETERS, on_change={'rate': lambda rate: self._schedule.set_rate(rate)}, **kwargs
+        )
         self.exit_when_done = self.params.exit_when_done
         self._loop = self.params.loop
         self._wait_for_subscribers = self.params.wait_for_subscribers
@@ -149,11 +152,7 @@ class PlayerNode(GraphNode):
         self.error = None
         self.exit_requested = threading.Event()
         self._stop = threading.Event()
-        # Playback clock: bag time _anchor_bag [ns] is played at monotonic _anchor_wall [s].
-        self._clock_lock = threading.Lock()
-        self._rate = self.params.rate
-        self._anchor_wall = None
-        self._anchor_bag = None
+        self._schedule = PlaybackClock(self.params.rate)
         self.create_timer(DIAGNOSTICS_PERIOD, self._publish_progress)
         self._thread = threading.Thread(target=self._run, name='playback', daemon=True)
         self._thread.start()
@@ -212,23 +211,10 @@ class PlayerNode(GraphNode):
 
     # -- playback (playback thread) --------------------------------------------------------
 
-    def _set_rate(self, rate):
-        with self._clock_lock:
-            if self._anchor_wall is not None and self._anchor_bag is not None:  # set together
-                # Re-anchor at the current bag time so a rate change does not jump.
-                now = time.monotonic()
-                self._anchor_bag += int((now - self._anchor_wall) * self._rate * 1e9)
-                self._anchor_wall = now
-            self._rate = rate
-
-    def _wall_time(self, log_time_ns):
-        with self._clock_lock:
-            return self._anchor_wall + (log_time_ns - self._anchor_bag) / 1e9 / self._rate
-
     def _sleep_until(self, log_time_ns):
         """Sleep until the wall time of ``log_time_ns``; False if stopped meanwhile."""
         while True:
-            remaining = self._wall_time(log_time_ns) - time.monotonic()
+            remaining = self._schedule.due_in(log_time_ns)
             if remaining <= 0:
                 return not self._stop.is_set()
             if self._stop.wait(min(remaining, _MAX_SLEEP)):
@@ -261,9 +247,7 @@ class PlayerNode(GraphNode):
         first = True
         for message in self._reader.messages(self._topic_publishers):
             if first:
-                with self._clock_lock:
-                    self._anchor_wall = time.monotonic()
-                    self._anchor_bag = message.log_time
+                self._schedule.start(message.log_time)
                 if self._bag_start is None:
                     self._bag_start = message.log_time
                 first = False
@@ -303,7 +287,11 @@ class PlayerNode(GraphNode):
 
     def _publish_progress(self):
         played = sum(self.published.values())
-        values = {'messages played': played, 'messages in bag': self._total, 'rate': self._rate}
+        values: dict[str, object] = {
+            'messages played': played,
+            'messages in bag': self._total,
+            'rate': self._schedule.rate,
+        }
         if self._loop:
             values['pass'] = self._passes
         if self._bag_time is not None:

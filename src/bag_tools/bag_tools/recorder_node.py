@@ -34,13 +34,13 @@ recorded, messages written per topic, messages dropped, bytes written; WARN once
 was dropped or a topic could not be recorded, ERROR once writing failed.
 """
 
-import collections
 import os
 import sys
 import threading
 import time
 
 from bag_tools.bag_writer import BagError, BagWriter, header_stamp_ns, qos_profile
+from bag_tools.recording import BagRecording
 from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
 from vgm_common.errors import VgmError
 from vgm_common.graph_node import GraphNode
@@ -96,46 +96,6 @@ def qos_to_dict(qos):
         liveliness_lease_duration=_duration_dict(qos.liveliness_lease_duration),
         avoid_ros_namespace_conventions=qos.avoid_ros_namespace_conventions,
     )
-
-
-class _MessageQueue:
-    """FIFO of (topic, data, log_time_ns, publish_time_ns) bounded in bytes; when full, the
-    oldest messages are dropped and counted per topic. Thread-safe."""
-
-    def __init__(self, max_bytes):
-        self._items: collections.deque[tuple[str, bytes, int, int]] = collections.deque()
-        self._bytes = 0
-        self._max_bytes = max_bytes
-        self._condition = threading.Condition()
-        self._closed = False
-        self.dropped: collections.Counter[str] = collections.Counter()
-
-    def put(self, item):
-        with self._condition:
-            self._items.append(item)
-            self._bytes += len(item[1])
-            while self._max_bytes and self._bytes > self._max_bytes and len(self._items) > 1:
-                old = self._items.popleft()
-                self._bytes -= len(old[1])
-                self.dropped[old[0]] += 1
-            self._condition.notify()
-
-    def take_all(self, timeout):
-        """All queued items (possibly none after ``timeout`` [s]); None once closed and empty."""
-        with self._condition:
-            if not self._items and not self._closed:
-                self._condition.wait(timeout)
-            if not self._items and self._closed:
-                return None
-            items = list(self._items)
-            self._items.clear()
-            self._bytes = 0
-            return items
-
-    def close(self):
-        with self._condition:
-            self._closed = True
-            self._condition.notify_all()
 
 
 PARAMETERS = [
@@ -206,13 +166,12 @@ class RecorderNode(GraphNode):
         super().__init__(PARAMETERS, **kwargs)
         # None can change while recording.
         self._discovery = TopicDiscovery(self, self.params, 'recording')
-        self._flush_period = self.params.flush_period  # [s]
         self._use_sim_time = self.get_parameter('use_sim_time').value
         self.bag_path = os.path.join(
             self.params.output_dir or '.', self.params.bag_name or default_bag_name()
         )
         try:
-            self._bag = BagWriter(
+            bag = BagWriter(
                 self.bag_path,
                 max_file_size=self.params.max_file_size,
                 compression=_COMPRESSION_ALIASES.get(
@@ -221,18 +180,12 @@ class RecorderNode(GraphNode):
             )
         except BagError as error:
             raise RecorderStartupError(str(error)) from None
-        self._bag_lock = threading.Lock()  # BagWriter is used by the executor and writer threads
-        self._queue = _MessageQueue(self.params.max_cache_size)
+        self.exit_requested = threading.Event()
+        self._recording = BagRecording(
+            bag, self.params.max_cache_size, self.params.flush_period, self._on_write_failure
+        )
         self._recorded = {}  # topic -> subscription
         self._mixed_types = set()  # recorded topics that gained a publisher of another type
-        self._bytes_written = 0  # serialized message bytes handed to the bag (writer thread)
-        self.write_error = None
-        self.exit_requested = threading.Event()
-        self._writer_thread = threading.Thread(
-            target=self._write_loop, name='bag_writer', daemon=True
-        )
-        self._writer_thread.start()
-        self._closed = False
         self._last_message_time = time.monotonic()  # [s] for drained()
         self._discovery_timer = self.create_timer(self.params.discovery_period, self._discover)
         self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD, self._publish_status)
@@ -246,12 +199,12 @@ class RecorderNode(GraphNode):
     @property
     def exit_status(self):
         """The process exit status: 1 once writing to the bag failed, else 0."""
-        return 0 if self.write_error is None else 1
+        return 0 if self._recording.write_error is None else 1
 
     # -- discovery (executor thread) -----------------------------------------------------
 
     def _discover(self):
-        if self._closed:
+        if self._recording.closed:
             return
         for topic in self._discovery.poll(self._recorded, self._check_types):
             self._subscribe(topic)
@@ -263,13 +216,12 @@ class RecorderNode(GraphNode):
             self.diagnostics.reject(
                 name,
                 f'now published with several types {types}: '
-                f'only {self._bag.topic_type(name)} is recorded',
+                f'only {self._recording.bag.topic_type(name)} is recorded',
             )
 
     def _subscribe(self, topic):
         offered = [qos_to_dict(p.qos_profile) for p in topic.publishers]
-        with self._bag_lock:
-            self._bag.add_topic(topic.name, topic.type_name, offered)
+        self._recording.add_topic(topic.name, topic.type_name, offered)
         fields = topic.message_type.get_fields_and_field_types()
         has_header = next(iter(fields.values()), None) == HEADER_TYPE
         qos = subscription_qos(p.qos_profile for p in topic.publishers)
@@ -302,54 +254,30 @@ class RecorderNode(GraphNode):
             or info.get('source_timestamp')
             or log_time_ns
         )
-        self._queue.put((topic, data, log_time_ns, publish_time_ns))
+        self._recording.put(topic, data, log_time_ns, publish_time_ns)
 
-    # -- writing (writer thread) ---------------------------------------------------------
-
-    def _write_loop(self):
-        last_flush = time.monotonic()
-        wait = self._flush_period if self._flush_period > 0 else 1.0
-        while True:
-            items = self._queue.take_all(timeout=wait)
-            if items is None:
-                return
-            try:
-                with self._bag_lock:
-                    for topic, data, log_time_ns, publish_time_ns in items:
-                        self._bag.write(topic, data, log_time_ns, publish_time_ns)
-                        self._bytes_written += len(data)
-                    if (
-                        self._flush_period > 0
-                        and time.monotonic() - last_flush >= self._flush_period
-                    ):
-                        self._bag.flush()
-                        last_flush = time.monotonic()
-            except (OSError, BagError) as error:
-                # Disk full or similar: stop recording, keep what is on disk, and exit.
-                self.write_error = error
-                self.get_logger().error(f'writing {self.bag_path} failed: {error}')
-                self._queue.close()
-                self.exit_requested.set()
-                return
+    def _on_write_failure(self, error):  # writer thread; the recording has stopped
+        self.get_logger().error(f'writing {self.bag_path} failed: {error}')
+        self.exit_requested.set()
 
     # -- diagnostics (executor thread, and close) ------------------------------------------
 
     def _publish_status(self):
         # The counts are ints the writer thread updates: read without the bag lock, which
         # it holds while writing a whole batch.
-        topics = self._bag.topics
-        dropped = self._queue.dropped
-        if self.write_error is not None:
-            level, message = 'error', f'writing failed: {self.write_error}'
+        recording = self._recording
+        topics, dropped = recording.topics, recording.dropped
+        if recording.write_error is not None:
+            level, message = 'error', f'writing failed: {recording.write_error}'
         else:
             level = 'warn' if sum(dropped.values()) or self._discovery.skipped else 'ok'
-            message = 'closed' if self._closed else 'recording'
+            message = 'closed' if recording.closed else 'recording'
         values = {
             'bag': self.bag_path,
             'topics recorded': len(topics),
             'messages': sum(t.message_count for t in topics),
             'dropped': sum(dropped.values()),
-            'bytes written': self._bytes_written,
+            'bytes written': recording.bytes_written,
         }
         for topic in topics:
             values[topic.name] = f'{topic.message_count}' + (
@@ -380,33 +308,26 @@ class RecorderNode(GraphNode):
     def close(self):
         """Stop recording, write what is queued, close the bag and log the counts.
         Idempotent; safe after the context was shut down."""
-        if self._closed:
+        if self._recording.closed:
             return
-        self._closed = True
         self.stop_discovery()
         self._diagnostics_timer.cancel()
         for subscription in self._recorded.values():
             self.destroy_subscription(subscription)
-        self._queue.close()
-        self._writer_thread.join()
-        closed = False
-        with self._bag_lock:
-            try:
-                self._bag.close()
-                closed = True
-            except (OSError, BagError) as error:
-                self.write_error = self.write_error or error
-                self.get_logger().error(f'closing {self.bag_path} failed: {error}')
+        error = self._recording.close()
+        if error is not None:
+            self.get_logger().error(f'closing {self.bag_path} failed: {error}')
         if self.context.ok():
             self._publish_status()
-        if not closed:
+        if error is not None:
             return
-        topics = self._bag.topics
+        topics = self._recording.topics
         self.get_logger().info(
-            f'closed {self.bag_path}: {self._bag.message_count} messages on {len(topics)} topics'
+            f'closed {self.bag_path}: {self._recording.bag.message_count} messages on '
+            f'{len(topics)} topics'
         )
         for topic in topics:
-            dropped = self._queue.dropped.get(topic.name, 0)
+            dropped = self._recording.dropped.get(topic.name, 0)
             self.get_logger().info(
                 f'  {topic.name}: {topic.message_count}'
                 + (f' ({dropped} dropped: writer too slow)' if dropped else '')
