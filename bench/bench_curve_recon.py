@@ -15,7 +15,7 @@ node's whole pipeline (extraction, piecewise fit, both methods, refinement, smoo
 resampling) against the ground truth, plus the point reference on the same extracted
 chains, and the time per 640x480 three-view capture.
 
-Part C, generated families: every family of ``sensor_sim.curve_families``
+Part C, generated families: every family of ``vgm_evaluation.curve_families``
 (planar conics and cubics in any orientation, helices, twisted cubics, torus knots, loops
 on spheres and saddles, inflections, near-straight stretches, self-approaching loops,
 loops on S3), ``FAMILY_SEEDS`` draws each with a generated rig (f 400-1400 px, k1 in
@@ -572,8 +572,9 @@ def family_measures(points, truth_dense, closed, planar):
 
 
 def run_generated_families(families=None, seeds=FAMILY_SEEDS, noises=FAMILY_NOISE_GREY):
+    from vgm_evaluation.curve_families import FAMILIES, PLANAR, generate_case
+
     from curve_recon_node.reference import triangulate_views
-    from sensor_sim.curve_families import FAMILIES, PLANAR, generate_case
     from sensor_sim.render import SceneRenderer, add_noise
 
     rows = []

@@ -14,7 +14,7 @@ Part B: TrackingController with sensor_sim's arm and spring contact in-process o
 closed curves of the S1, S2 and default (S3) scenarios: force error and lateral error
 along the whole curve.
 
-Part C (`--cases`): generated cases (sensor_sim.task_generator): PA-10-like
+Part C (`--cases`): generated cases (vgm_evaluation.task_generator): PA-10-like
 random arms and the Franka Panda x planes, paraboloid domes and S1-S3 tilted 0-45 deg x
 lines, arcs, figure eights, spirals and tight loops near the reach, the arm simulated
 following positions or velocities, at full or half the commanded speed; ours against
@@ -52,13 +52,13 @@ from pa10_ik_node.tracking import (  # noqa: E402
     TrackingController,
     next_target_on_tangent_plane,
 )
-from sensor_sim import task_generator  # noqa: E402
 from sensor_sim.arm_sim import SimulatedArm  # noqa: E402
 from sensor_sim.contact import contact_force  # noqa: E402
 from sensor_sim.curves import curve_polylines  # noqa: E402
 from sensor_sim.scenario import load_scenario  # noqa: E402
 from sensor_sim.surfaces import normal_base  # noqa: E402
 from vgm_common.robot_model import load_robot  # noqa: E402
+from vgm_evaluation import task_generator  # noqa: E402
 
 OUT = REPO / 'bench' / 'results' / 'pa10_ik'
 W_THESIS = np.array([1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0])
@@ -405,7 +405,7 @@ def write_case_tables(rows, seed):
         'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
         'bench/bench_pa10_ik.py --cases-only`',
         '',
-        f'Seed {seed}: sensor_sim.task_generator.generate_cases. Every case: 5 N '
+        f'Seed {seed}: vgm_evaluation.task_generator.generate_cases. Every case: 5 N '
         'desired, contact stiffness 2000 N/m (estimate exact), 0.015 m/s, control '
         "100 Hz, the arm simulated at 200 Hz. RMS = distance of the tip's foot point on "
         'the surface to the true path while tracking; passed = fraction of the path '

@@ -312,7 +312,7 @@ def family_draws(seed=0):
     light on or off the image diagonals, noise 0-2 grey levels, textured or not
     (seeded), and one 1280x960 draw."""
     rng = np.random.default_rng(seed)
-    from sensor_sim.scene_families import KINDS
+    from vgm_evaluation.scene_families import KINDS
 
     draws = []
     for kind in KINDS:
@@ -352,7 +352,7 @@ def family_draws(seed=0):
 
 def families():
     """Fused against SFS alone and stereo alone on the scene families, one run."""
-    from sensor_sim.scene_families import draw_scene
+    from vgm_evaluation.scene_families import draw_scene
 
     rows = []
     for draw in family_draws():
@@ -403,7 +403,7 @@ def families():
         rows.append(row)
         print(row, flush=True)
     lines = [
-        '# sfs_stereo_node on the scene families (sensor_sim.scene_families)',
+        '# sfs_stereo_node on the scene families (vgm_evaluation.scene_families)',
         '',
         'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
         'bench/bench_sfs_stereo.py --families`. Node defaults (downsample 1 so the '

@@ -6,11 +6,11 @@ import time
 
 import cv2
 import numpy as np
+from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
 
 from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import calibrate_rig
 from calib_node.chart_detection import chart_points, detect_chessboard
-from calib_node.rig_generator import draw_rig, render_rig, score_rig
 from vgm_common.camera_model import PinholeCamera
 
 FIGURES = ('fx', 'fy', 'cx', 'cy', 'distortion', 'baseline', 'position', 'rotation', 'rect_rows')
@@ -148,7 +148,7 @@ def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exac
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
     names = list(rig.cameras)
     if exact:
-        from calib_node.rig_generator import true_corners
+        from vgm_evaluation.rig_generator import true_corners
 
         ours_views = true_corners(rig)
         own_views = None

@@ -579,7 +579,7 @@ def test_generated_rig_stage_and_handheld(spawn, rclpy_node):
     published once with their target
     poses: a stage-mode calib_node and a handheld one (outputs remapped under /handheld)
     both within the bench's bounds of the truth."""
-    from calib_node.rig_generator import draw_rig, render_rig, score_rig
+    from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
 
     rig = draw_rig(24, views=8)
     images = render_rig(rig, 24)

@@ -633,13 +633,14 @@ def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_se
 def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
     spawn, rclpy_node, tmp_path, family, seed, noise_grey
 ):
-    """A generated curve and rig (sensor_sim.curve_families: f 400-1400 px, k1 down to
+    """A generated curve and rig (vgm_evaluation.curve_families: f 400-1400 px, k1 down to
     -0.4, an oblique third camera) through the node: waypoints within the bench's goals
     (RMS < 1 mm, > 90 % of the true curve within 3 mm) and an RMS at or below the
     triangulation reference's on the same images and calibration."""
+    from vgm_evaluation.curve_families import generate_case
+
     from curve_recon_node.pipeline import ReconstructionSettings, view_curve
     from curve_recon_node.reference import triangulate_views
-    from sensor_sim.curve_families import generate_case
     from sensor_sim.render import SceneRenderer, add_noise
 
     case = generate_case(family, seed, noise_grey=noise_grey)

@@ -18,12 +18,12 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from harness import SCENARIO_DIR, executable, wait_for
-from sensor_sim import task_generator
 from sensor_sim.scenario import load_scenario
 from sensor_sim.surfaces import normal_base, surface_points_base
 from vgm_common.conversions import make_header, matrices_to_path, pose_to_matrix, stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import JOINT_NAMES, load_robot
+from vgm_evaluation import task_generator
 
 SCENARIO = SCENARIO_DIR / 'default.yaml'
 DESIRED_FORCE = 5.0  # [N]

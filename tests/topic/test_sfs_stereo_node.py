@@ -507,11 +507,11 @@ def publish_rectified_rig(rclpy_node, K_left, K_right, size, baseline, publisher
 
 
 def test_generated_scene_at_320_and_640_as_a_rectified_pair(spawn, rclpy_node):
-    """A scene of the families (sensor_sim.scene_families: a saddle with a drawn curve,
+    """A scene of the families (vgm_evaluation.scene_families: a saddle with a drawn curve,
     noise 1 grey level, 8 cm baseline, 0.8 m away, right principal point 5 px off) at
     320x240 and 640x480, one node, the same defaults: fused depth within tolerance of
     the ground truth and well below SFS alone."""
-    from sensor_sim.scene_families import draw_scene
+    from vgm_evaluation.scene_families import draw_scene
 
     light = draw_scene('saddle', seed=1, size=(32, 24)).light  # the light a user would set
     node = spawn(

@@ -4,11 +4,17 @@ bounds of OpenCV's error on the same corners; coverage and a second board."""
 
 import numpy as np
 import pytest
+from vgm_evaluation.rig_generator import (
+    ChartRenderer,
+    draw_rig,
+    render_rig,
+    score_rig,
+    true_corners,
+)
 
 from calib_node.bundle import bundle_adjust
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
-from calib_node.rig_generator import ChartRenderer, draw_rig, render_rig, score_rig, true_corners
 from vgm_common.camera_model import PinholeCamera
 
 
@@ -115,8 +121,9 @@ def test_coverage_says_what_is_missing_and_a_second_board_is_refused():
 def test_p1_p2_are_kept_only_where_the_lens_has_them(tangential):
     """BIC model selection (select_model): true corners + 0.05 px noise of a rig whose
     lenses have p1 = p2 = ``tangential``: p1, p2 are fitted only when non-zero."""
+    from vgm_evaluation.rig_generator import Rig
+
     from calib_node.bundle import bundle_adjust_selected
-    from calib_node.rig_generator import Rig
 
     rig = draw_rig(3, ('left', 'right'))
     cameras = {

@@ -7,9 +7,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
 
 from calib_node.calibrate import CalibrationError
-from calib_node.rig_generator import draw_rig, render_rig, score_rig
 from calib_node.session import CalibrationSession, NotReady, SessionSettings
 from vgm_common.errors import InvalidInput
 

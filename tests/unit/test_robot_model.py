@@ -223,7 +223,7 @@ def test_urdf_that_is_no_7_dof_arm_with_tool0_is_refused_clearly(tmp_path, edit,
 
 
 def test_panda_as_it_ships_is_a_7_dof_arm_at_its_tip_frame(tmp_path):
-    from sensor_sim.task_generator import panda_arm  # fails (not skips) without the data
+    from vgm_evaluation.task_generator import panda_arm  # fails (not skips) without the data
 
     arm = panda_arm()
     full_urdf = importlib.metadata.distribution('example-robot-data').locate_file(
@@ -244,7 +244,7 @@ def test_panda_as_it_ships_is_a_7_dof_arm_at_its_tip_frame(tmp_path):
 def test_an_arm_from_a_torso_is_its_chain_from_the_base_frame_placed_in_base_link():
     """TIAGo's arm from torso_lift_link: the lift, wheels (continuous) and head locked,
     poses relative to the torso frame, moved by base_placement."""
-    from sensor_sim.task_generator import ROBOT_DATA_DIR
+    from vgm_evaluation.task_generator import ROBOT_DATA_DIR
 
     urdf = importlib.metadata.distribution('example-robot-data').locate_file(
         f'{ROBOT_DATA_DIR}/tiago_description/robots/tiago.urdf'
@@ -284,7 +284,7 @@ def test_an_arm_from_a_torso_is_its_chain_from_the_base_frame_placed_in_base_lin
 
 
 def test_random_pa10_like_arms_are_7_dof_with_their_tool(tmp_path):
-    from sensor_sim.task_generator import random_pa10_like_arm
+    from vgm_evaluation.task_generator import random_pa10_like_arm
 
     rng = np.random.default_rng(13)
     for i in range(5):

@@ -206,10 +206,11 @@ def test_noise_estimate_follows_the_noise_not_the_shading():
     ],
 )
 def test_scene_family_draws_fuse_well_below_sfs_and_stereo(kind, seed, light, noise, min_ratio):
-    """Seeded draws of sensor_sim.scene_families at 320x240 as rectified pairs with a cx
+    """Seeded draws of vgm_evaluation.scene_families at 320x240 as rectified pairs with a cx
     offset, node defaults: fused RMS ``min_ratio`` x below SFS alone (published and after
     the thesis's range mapping), below stereo on its own pixels, >= 95 % dense."""
-    from sensor_sim.scene_families import draw_scene
+    from vgm_evaluation.scene_families import draw_scene
+
     from sfs_stereo_node.fusion import depth_error_stats
 
     scene = draw_scene(kind, seed=seed, size=(320, 240), noise=noise, light=light, cx_offset=5.0)

@@ -16,13 +16,13 @@ from pa10_ik_node.tracking import (
     next_target_on_tangent_plane,
     tilted_motion,
 )
-from sensor_sim import task_generator
 from sensor_sim.arm_sim import SimulatedArm
 from sensor_sim.contact import contact_force
 from sensor_sim.scenario import load_scenario
 from sensor_sim.surfaces import normal_base, surface_points_base
 from vgm_common.errors import InvalidInput
 from vgm_common.robot_model import load_robot
+from vgm_evaluation import task_generator
 
 DESIRED_FORCE = 5.0  # [N]
 DT = 0.01  # [s]

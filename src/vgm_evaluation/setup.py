@@ -1,0 +1,4 @@
+# The package is declared in setup.cfg (colcon runs this file).
+from setuptools import setup
+
+setup()
