@@ -389,10 +389,12 @@ def _initial_depth(
     prior_depth, prior_weight = float(np.median(target[has])), 1.0 / 0.1**2
     w = w0
     coefficients = smooth.copy()
+    multigrid = _Multigrid(pattern.mask) if pattern.n > DIRECT_SOLVE_LIMIT else None
+    z = np.full(pattern.n, prior_depth)
     for _ in range(robust_iterations):  # IRLS: wrong matches lose their weight
         coefficients[_CENTRE] = smooth[_CENTRE] + pattern.grid(w + prior_weight)
         A = pattern.matrix(coefficients)
-        z = spsolve(A.tocsc(), w * target + prior_weight * prior_depth)
+        z = z + _solve(A, w * target + prior_weight * prior_depth - A @ z, multigrid)
         r = (z - target)[has]
         scale = _robust_scale(r, 3 * sigma_z)
         w = w0 * np.where(has, 1.0 / (1.0 + ((z - target) / scale) ** 2), 0.0)
@@ -495,6 +497,13 @@ class _Multigrid:
         return x
 
 
+def _solve(A: sp.csr_matrix, b: FloatArray, multigrid: _Multigrid | None) -> FloatArray:
+    """A^-1 b: direct without ``multigrid`` (small grids), else its preconditioned CG."""
+    if multigrid is None:
+        return np.asarray(spsolve(A.tocsc(), b))
+    return multigrid.solve(A, b, CG_ITERATIONS, CG_TOLERANCE)
+
+
 def _gauss_newton(
     level: _Level,
     pattern: _Pattern,
@@ -562,10 +571,7 @@ def _gauss_newton(
         r_grid = np.zeros(mask.shape)
         r_grid[shade_grid] = weight * r
         b = _apply_row_transposed(jacobian, r_grid)[mask] - w_z * (z - target) - smooth_matrix @ z
-        if multigrid is None:
-            dz = spsolve(A.tocsc(), b)
-        else:
-            dz = multigrid.solve(A, b, CG_ITERATIONS, CG_TOLERANCE)
+        dz = _solve(A, b, multigrid)
         if max_step:
             dz = np.clip(dz, -max_step, max_step)
         z = z + dz
