@@ -107,10 +107,13 @@ def predicted_grey(
     (all broadcast arrays); clipped to [0, 255] as the renderer does."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     xn, yn = (u - cx) / fx, (v - cy) / fy
-    normals = np.stack([fx * Zu, fy * Zv, -(Z + (u - cx) * Zu + (v - cy) * Zv)], axis=-1)
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    views = -np.stack([xn, yn, np.ones_like(xn)], axis=-1)
-    views /= np.linalg.norm(views, axis=-1, keepdims=True)
+    # Unit vectors normalised component-wise: norms along a length-3 last axis are slow.
+    nx, ny = fx * Zu, fy * Zv
+    nz = -(Z + (u - cx) * Zu + (v - cy) * Zv)
+    length = np.sqrt(nx * nx + ny * ny + nz * nz)
+    normals = np.stack([nx / length, ny / length, nz / length], axis=-1)
+    length = np.sqrt(xn * xn + yn * yn + 1.0)
+    views = np.stack([-xn / length, -yn / length, -1.0 / length], axis=-1)
     R = oren_nayar(normals, model.light, views, model.roughness)
     return np.clip(255.0 * model.albedo * (model.intensity * R + model.ambient), 0.0, 255.0)
 
@@ -151,14 +154,32 @@ def _apply_row_transposed(row: StencilRow, y: FloatArray) -> FloatArray:
     return sum((_shifted(weight * y, dv, du) for (dv, du), weight in row), np.zeros_like(y))
 
 
+def _add_shifted(target: FloatArray, image: FloatArray, dv: int, du: int) -> None:
+    """``target[v, u] += image[v - dv, u - du]`` where that lies inside."""
+    H, W = image.shape
+    target[max(dv, 0) : H + min(dv, 0), max(du, 0) : W + min(du, 0)] += image[
+        max(-dv, 0) : H + min(-dv, 0), max(-du, 0) : W + min(-du, 0)
+    ]
+
+
 def _add_normal_rows(coefficients: FloatArray, row: StencilRow, weight: FloatArray) -> None:
     """``coefficients`` (13, H, W) += the stencil of row^T diag(weight) row: a row centred
-    at c adds weight[c] w_a[c] w_b[c] at pixel c + o_a, offset o_b - o_a."""
+    at c adds weight[c] w_a[c] w_b[c] at pixel c + o_a, offset o_b - o_a. Only the
+    centre and the offsets after it (raster order): ``_mirrored`` completes the rest."""
     for (dva, dua), wa in row:
         weighted = weight * wa
         for (dvb, dub), wb in row:
-            k = _OFFSET_INDEX[(dvb - dva, dub - dua)]
-            coefficients[k] += _shifted(weighted * wb, dva, dua)
+            offset = (dvb - dva, dub - dua)
+            if offset >= (0, 0):
+                _add_shifted(coefficients[_OFFSET_INDEX[offset]], weighted * wb, dva, dua)
+
+
+def _mirrored(coefficients: FloatArray) -> FloatArray:
+    """``coefficients`` (13, H, W) with the offsets before the centre filled from those
+    after it: the matrix is symmetric, A[p, p + o] = A[p + o, p]."""
+    for k, (dv, du) in enumerate(OFFSETS[:_CENTRE]):
+        coefficients[k] = _shifted(coefficients[_OFFSET_INDEX[(-dv, -du)]], -dv, -du)
+    return coefficients
 
 
 class _Pattern:
@@ -220,7 +241,7 @@ def _thin_plate(mask: BoolArray, curvature_sigma: float) -> FloatArray:
             centres &= _shifted(mask, -dv, -du)
         row: StencilRow = [((dv, du), np.full(mask.shape, w)) for dv, du, w in stencil]
         _add_normal_rows(coefficients, row, centres / curvature_sigma**2)
-    return coefficients
+    return _mirrored(coefficients)
 
 
 def dark_line_mask(
@@ -533,19 +554,22 @@ def _gauss_newton(
         z_grid = pattern.grid(z)
         Zs = z_grid[shade_grid]
         Zu, Zv = _apply_row(du_row, z_grid)[shade_grid], _apply_row(dv_row, z_grid)[shade_grid]
-        pred = predicted_grey(Zs, Zu, Zv, u_s, v_s, K, model)
-        r = observed - pred
-        # Model derivatives w.r.t. Zu, Zv by central differences; the model depends on
-        # (Zu/Z, Zv/Z) only, so dI/dZ = -(Zu dI/dZu + Zv dI/dZv) / Z.
+        # The prediction and the model derivatives w.r.t. Zu, Zv by central differences,
+        # in one evaluation; the model depends on (Zu/Z, Zv/Z) only, so
+        # dI/dZ = -(Zu dI/dZu + Zv dI/dZv) / Z.
         h = 1e-4 * Zs
-        g_u = (
-            predicted_grey(Zs, Zu + h, Zv, u_s, v_s, K, model)
-            - predicted_grey(Zs, Zu - h, Zv, u_s, v_s, K, model)
-        ) / (2 * h)
-        g_v = (
-            predicted_grey(Zs, Zu, Zv + h, u_s, v_s, K, model)
-            - predicted_grey(Zs, Zu, Zv - h, u_s, v_s, K, model)
-        ) / (2 * h)
+        pred, u_plus, u_minus, v_plus, v_minus = predicted_grey(
+            np.tile(Zs, 5),
+            np.concatenate([Zu, Zu + h, Zu - h, Zu, Zu]),
+            np.concatenate([Zv, Zv, Zv, Zv + h, Zv - h]),
+            np.tile(u_s, 5),
+            np.tile(v_s, 5),
+            K,
+            model,
+        ).reshape(5, -1)
+        r = observed - pred
+        g_u = (u_plus - u_minus) / (2 * h)
+        g_v = (v_plus - v_minus) / (2 * h)
         g_z = -(Zu * g_u + Zv * g_v) / Zs
         # Cauchy scale from the residuals themselves while they are large (a poor start
         # is not outvoted by its own misfit), cauchy sigma_i once they are small.
@@ -567,7 +591,7 @@ def _gauss_newton(
         # + a 1 m prior on the update keeps A positive definite where a pixel has lost
         # every term (e.g. an island between cut edges); negligible elsewhere.
         coefficients[_CENTRE] += pattern.grid(w_z + 1.0)
-        A = pattern.matrix(coefficients)
+        A = pattern.matrix(_mirrored(coefficients))
         r_grid = np.zeros(mask.shape)
         r_grid[shade_grid] = weight * r
         b = _apply_row_transposed(jacobian, r_grid)[mask] - w_z * (z - target) - smooth_matrix @ z
