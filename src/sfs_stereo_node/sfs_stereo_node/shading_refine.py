@@ -131,7 +131,7 @@ _CENTRE = _OFFSET_INDEX[(0, 0)]
 
 # A residual row of the normal equations in stencil form: (offset, weight image) terms,
 # the row at pixel p reading sum_k weight_k[p] x[p + offset_k].
-StencilRow = list[tuple[tuple[int, int], FloatArray]]
+StencilRow = list[tuple[tuple[int, int], FloatArray | float]]  # float: the same everywhere
 
 
 def _shifted(image: np.ndarray, dv: int, du: int) -> np.ndarray:
@@ -239,7 +239,7 @@ def _thin_plate(mask: BoolArray, curvature_sigma: float) -> FloatArray:
         centres = mask.copy()
         for dv, du, _ in stencil:
             centres &= _shifted(mask, -dv, -du)
-        row: StencilRow = [((dv, du), np.full(mask.shape, w)) for dv, du, w in stencil]
+        row: StencilRow = [((dv, du), w) for dv, du, w in stencil]
         _add_normal_rows(coefficients, row, centres / curvature_sigma**2)
     return _mirrored(coefficients)
 
@@ -443,20 +443,20 @@ def _prolongation(fine: BoolArray, coarse: BoolArray) -> sp.csr_matrix:
     own_v, own_u = v // 2, u // 2
     next_v = np.clip(np.where(v % 2 == 0, own_v - 1, own_v + 1), 0, h - 1)
     next_u = np.clip(np.where(u % 2 == 0, own_u - 1, own_u + 1), 0, w - 1)
-    rows, cols, vals = [], [], []
-    n = np.arange(len(v))
+    columns, weights = [], []
     for cv, wv in ((own_v, 0.75), (next_v, 0.25)):
         for cu, wu in ((own_u, 0.75), (next_u, 0.25)):
-            col = coarse_index[cv, cu]
-            ok = col >= 0
-            rows.append(n[ok])
-            cols.append(col[ok])
-            vals.append(np.full(int(ok.sum()), wv * wu))
+            columns.append(coarse_index[cv, cu])
+            weights.append(np.where(columns[-1] >= 0, wv * wu, 0.0))
+    column, weight = np.stack(columns, axis=1), np.stack(weights, axis=1)
+    weight /= weight.sum(axis=1, keepdims=True)  # the own block is always an unknown
+    present = column >= 0
+    indptr = np.concatenate([[0], np.cumsum(present.sum(axis=1))])
     P = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-        shape=(len(v), int(coarse.sum())),
+        (weight[present], column[present], indptr), shape=(len(v), int(coarse.sum()))
     )
-    return sp.csr_matrix(sp.diags(1.0 / np.asarray(P.sum(axis=1)).ravel()) @ P)
+    P.sum_duplicates()  # a clipped neighbour on the grid's edge is the own block again
+    return P
 
 
 def _l1_smoother(A: sp.csr_matrix) -> FloatArray:
