@@ -31,6 +31,7 @@ from sfs_stereo_node.stereo import (
     confident_disparity,
     left_reference_volume,
     normalized_ssd_volume,
+    reduce_disparity,
     window_std,
 )
 from sfs_stereo_node.thesis import fuse_mlp_rows
@@ -336,6 +337,25 @@ def test_shading_refine_refuses_an_image_the_shading_does_not_explain():
     with pytest.raises(ShadingModelMismatch, match='does not explain'):
         refine_depth(image * albedo, Z_stereo, surface, K_TEST, MODEL)
     assert refine_depth(image, Z_stereo, surface, K_TEST, MODEL).shading_rms < 3.0
+
+
+def test_reduce_disparity_keeps_blocks_whose_matches_agree():
+    """2 x 2 blocks of a 5 x 7 map: the mean, in the coarse grid's pixels (/2), where at
+    least half the block matched and its matches agree within 2 px; NaN across a depth
+    edge (10 vs 20 px), with one match of four, or none; the last row and column (no
+    whole block) dropped."""
+    nan = np.nan
+    d = np.full((5, 7), nan)
+    d[0:2, 0:2] = [[10, 11], [12, nan]]
+    d[0:2, 2:4] = [[10, 20], [10, 20]]
+    d[2:4, 0:2] = [[10, nan], [nan, nan]]
+    d[2:4, 2:4] = [[30, 30], [nan, nan]]
+    d[2:4, 4:6] = [[7, 9], [8, 9]]
+    d[4, :] = 50.0
+    d[:, 6] = 50.0
+    expected = np.array([[5.5, nan, nan], [nan, 15.0, 4.125]])
+    np.testing.assert_allclose(reduce_disparity(d, 2), expected, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(reduce_disparity(d, 1), d)
 
 
 def _reference_normal_equations(mask, g, weight, curvature_sigma):
