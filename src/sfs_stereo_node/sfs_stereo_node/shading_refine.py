@@ -13,8 +13,10 @@ the camera centre), normals of the perspective depth map
 n ~ (fx Z_u, fy Z_v, -(Z + (u - cx) Z_u + (v - cy) Z_v)), and D2 the second differences
 Z_uu, Z_vv, Z_uv. Gauss-Newton: the residual of a pixel depends on (Z, Z_u, Z_v) there,
 so its Jacobian is diag(a) + diag(b) D_u + diag(c) D_v with (a, b, c) from vectorised
-evaluations of the model; the sparse normal equations are solved by scipy's spsolve on
-small grids and by Jacobi-preconditioned CG on large ones. w_i, v_i are Cauchy (IRLS)
+evaluations of the model; the normal equations (a 13-point stencil, assembled on the
+image grid into a CSR pattern made once per level) are solved by scipy's spsolve on
+small grids and by conjugate gradients with a multigrid V-cycle preconditioner on large
+ones. w_i, v_i are Cauchy (IRLS)
 weights whose scale follows the residuals' median (a poor start is not outvoted by its
 own misfit).
 
@@ -34,26 +36,29 @@ solution (bilinear) and takes a few Gauss-Newton steps.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import splu, spsolve
 
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 from vgm_common.reflectance import oren_nayar
 
 BoolArray = npt.NDArray[np.bool_]
-IndexArray = npt.NDArray[np.int64]  # unknown index of each grid pixel, -1 off the surface
 
-# Levels with more unknowns than this take conjugate-gradient steps instead of a sparse
-# direct solve (SuperLU fill-in grows fast with the grid; the coarser levels have fixed
-# the smooth part of the update already, which is what CG converges slowly on).
-DIRECT_SOLVE_LIMIT = 2000
-CG_ITERATIONS = 300
+# Levels with more unknowns than this solve their Gauss-Newton steps by conjugate
+# gradients preconditioned with a multigrid V-cycle (SuperLU fill-in grows fast with the
+# grid). Jacobi-preconditioned CG needed > 300 iterations for a relative residual of
+# 5e-3 on a 320x240 grid (the thin plate is a fourth-order operator); the V-cycle gets
+# 1e-3 in about 10.
+DIRECT_SOLVE_LIMIT = 1000
+CG_ITERATIONS = 30
+CG_TOLERANCE = 1e-3  # relative residual
+MULTIGRID_COARSEST = 400  # unknowns of the multigrid's coarsest grid (a direct solve)
 STEP_TOLERANCE = 5e-5  # [m] median update of a converged Gauss-Newton level
 
 
@@ -102,85 +107,141 @@ def predicted_grey(
     (all broadcast arrays); clipped to [0, 255] as the renderer does."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     xn, yn = (u - cx) / fx, (v - cy) / fy
-    normals = np.stack([fx * Zu, fy * Zv, -(Z + (u - cx) * Zu + (v - cy) * Zv)], axis=-1)
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    views = -np.stack([xn, yn, np.ones_like(xn)], axis=-1)
-    views /= np.linalg.norm(views, axis=-1, keepdims=True)
+    # Unit vectors normalised component-wise: norms along a length-3 last axis are slow.
+    nx, ny = fx * Zu, fy * Zv
+    nz = -(Z + (u - cx) * Zu + (v - cy) * Zv)
+    length = np.sqrt(nx * nx + ny * ny + nz * nz)
+    normals = np.stack([nx / length, ny / length, nz / length], axis=-1)
+    length = np.sqrt(xn * xn + yn * yn + 1.0)
+    views = np.stack([-xn / length, -yn / length, -1.0 / length], axis=-1)
     R = oren_nayar(normals, model.light, views, model.roughness)
     return np.clip(255.0 * model.albedo * (model.intensity * R + model.ambient), 0.0, 255.0)
 
 
-def _grid_index(mask: BoolArray) -> IndexArray:
-    index = np.full(mask.shape, -1, dtype=np.int64)
-    index[mask] = np.arange(int(mask.sum()))
-    return index
+# Every operator of the normal equations couples a pixel only to the 13 pixels within
+# city-block distance 2 (the thin plate's second differences, and J^T W J of a Jacobian
+# that reads a pixel and its 4 neighbours): the system matrix is assembled in this
+# stencil form on the image grid (numpy slices, no sparse products) and gathered into a
+# CSR pattern built once per level. Ascending (dv, du) = ascending column in a CSR row.
+OFFSETS: tuple[tuple[int, int], ...] = tuple(
+    (dv, du) for dv in range(-2, 3) for du in range(-2, 3) if abs(dv) + abs(du) <= 2
+)
+_OFFSET_INDEX = {offset: k for k, offset in enumerate(OFFSETS)}
+_CENTRE = _OFFSET_INDEX[(0, 0)]
+
+# A residual row of the normal equations in stencil form: (offset, weight image) terms,
+# the row at pixel p reading sum_k weight_k[p] x[p + offset_k].
+StencilRow = list[tuple[tuple[int, int], FloatArray | float]]  # float: the same everywhere
 
 
-def _first_derivative(
-    mask: BoolArray, index: IndexArray, axis: int
-) -> tuple[sp.csr_matrix, BoolArray]:
-    """Sparse derivative along ``axis`` (1 = u, columns; 0 = v, rows) of the unknowns
-    (the ``mask`` pixels): central where both neighbours are unknowns, one-sided where
-    one is; ``has`` marks rows with a derivative."""
-    H, W = mask.shape
-    fwd = np.zeros_like(mask)
-    bwd = np.zeros_like(mask)
-    if axis == 1:
-        fwd[:, :-1] = mask[:, :-1] & mask[:, 1:]
-        bwd[:, 1:] = mask[:, 1:] & mask[:, :-1]
-        step = 1
-    else:
-        fwd[:-1] = mask[:-1] & mask[1:]
-        bwd[1:] = mask[1:] & mask[:-1]
-        step = W
-    flat = np.flatnonzero(mask.ravel())
-    f, b = fwd.ravel()[flat], bwd.ravel()[flat]
-    rows, cols, vals = [], [], []
-    n = np.arange(len(flat))
-    both = f & b
-    only_f, only_b = f & ~b, b & ~f
-    idx = index.ravel()
-    for sel, terms in (
-        (both, ((step, 0.5), (-step, -0.5))),
-        (only_f, ((step, 1.0), (0, -1.0))),
-        (only_b, ((0, 1.0), (-step, -1.0))),
-    ):
-        for offset, value in terms:
-            rows.append(n[sel])
-            cols.append(idx[flat[sel] + offset])
-            vals.append(np.full(int(sel.sum()), value))
-    D = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-        shape=(len(flat), len(flat)),
-    )
-    return D, f | b
+def _shifted(image: np.ndarray, dv: int, du: int) -> np.ndarray:
+    """``out[v, u] = image[v - dv, u - du]``, zero where that falls outside."""
+    H, W = image.shape
+    out = np.zeros_like(image)
+    out[max(dv, 0) : H + min(dv, 0), max(du, 0) : W + min(du, 0)] = image[
+        max(-dv, 0) : H + min(-dv, 0), max(-du, 0) : W + min(-du, 0)
+    ]
+    return out
 
 
-def _second_differences(mask: BoolArray, index: IndexArray) -> sp.csr_matrix:
-    """Sparse Z_uu, Z_vv and Z_uv (forward cross difference) rows wherever all their
-    pixels are unknowns: the thin-plate smoothness operator."""
-    H, W = mask.shape
-    blocks = []
-    idx = index.ravel()
+def _apply_row(row: StencilRow, x: FloatArray) -> FloatArray:
+    """The residual rows ``row`` applied to the grid image ``x``: sum_k w_k[p] x[p + o_k]."""
+    return sum((weight * _shifted(x, -dv, -du) for (dv, du), weight in row), np.zeros_like(x))
+
+
+def _apply_row_transposed(row: StencilRow, y: FloatArray) -> FloatArray:
+    """The transpose of ``row`` applied to the grid image ``y`` (residual space)."""
+    return sum((_shifted(weight * y, dv, du) for (dv, du), weight in row), np.zeros_like(y))
+
+
+def _add_shifted(target: FloatArray, image: FloatArray, dv: int, du: int) -> None:
+    """``target[v, u] += image[v - dv, u - du]`` where that lies inside."""
+    H, W = image.shape
+    target[max(dv, 0) : H + min(dv, 0), max(du, 0) : W + min(du, 0)] += image[
+        max(-dv, 0) : H + min(-dv, 0), max(-du, 0) : W + min(-du, 0)
+    ]
+
+
+def _add_normal_rows(coefficients: FloatArray, row: StencilRow, weight: FloatArray) -> None:
+    """``coefficients`` (13, H, W) += the stencil of row^T diag(weight) row: a row centred
+    at c adds weight[c] w_a[c] w_b[c] at pixel c + o_a, offset o_b - o_a. Only the
+    centre and the offsets after it (raster order): ``_mirrored`` completes the rest."""
+    for (dva, dua), wa in row:
+        weighted = weight * wa
+        for (dvb, dub), wb in row:
+            offset = (dvb - dva, dub - dua)
+            if offset >= (0, 0):
+                _add_shifted(coefficients[_OFFSET_INDEX[offset]], weighted * wb, dva, dua)
+
+
+def _mirrored(coefficients: FloatArray) -> FloatArray:
+    """``coefficients`` (13, H, W) with the offsets before the centre filled from those
+    after it: the matrix is symmetric, A[p, p + o] = A[p + o, p]."""
+    for k, (dv, du) in enumerate(OFFSETS[:_CENTRE]):
+        coefficients[k] = _shifted(coefficients[_OFFSET_INDEX[(-dv, -du)]], -dv, -du)
+    return coefficients
+
+
+class _Pattern:
+    """The CSR pattern of the 13-point stencil on the unknowns ``mask`` of one grid."""
+
+    def __init__(self, mask: BoolArray) -> None:
+        self.mask = mask
+        index = np.full(mask.shape, -1, dtype=np.int64)
+        index[mask] = np.arange(int(mask.sum()))
+        self.n = int(mask.sum())
+        # neighbours[k, i]: unknown at OFFSETS[k] from unknown i, -1 where none.
+        neighbours = np.stack([_shifted(index + 1, -dv, -du)[mask] - 1 for dv, du in OFFSETS])
+        self._present = (neighbours >= 0).T  # (n, 13), row-major = CSR order
+        self._indices = neighbours.T[self._present]
+        self._indptr = np.concatenate([[0], np.cumsum(self._present.sum(axis=1))])
+
+    def matrix(self, coefficients: FloatArray) -> sp.csr_matrix:
+        """The CSR matrix whose row i holds ``coefficients[k]`` at unknown i's pixel for
+        the unknown at ``OFFSETS[k]`` from it."""
+        data = coefficients[:, self.mask].T[self._present]
+        return sp.csr_matrix((data, self._indices, self._indptr), shape=(self.n, self.n))
+
+    def grid(self, x: FloatArray) -> FloatArray:
+        """The unknowns ``x`` (n,) as a grid image, 0 off the mask."""
+        out = np.zeros(self.mask.shape)
+        out[self.mask] = x
+        return out
+
+
+def _first_derivative(mask: BoolArray, axis: int) -> tuple[StencilRow, BoolArray]:
+    """Derivative along ``axis`` (1 = u, columns; 0 = v, rows) of the unknowns (the
+    ``mask`` pixels) as a stencil row: central where both neighbours are unknowns,
+    one-sided where one is; ``has`` marks pixels with a derivative."""
+    step = (0, 1) if axis == 1 else (1, 0)
+    back = (-step[0], -step[1])
+    fwd = mask & _shifted(mask, *back)  # the next pixel along the axis is an unknown
+    bwd = mask & _shifted(mask, *step)
+    both = fwd & bwd
+    row: StencilRow = [
+        (step, np.where(both, 0.5, 0.0) + (fwd & ~bwd)),
+        ((0, 0), -1.0 * (fwd & ~bwd) + (bwd & ~fwd)),
+        (back, np.where(both, -0.5, 0.0) - (bwd & ~fwd)),
+    ]
+    return row, fwd | bwd
+
+
+def _thin_plate(mask: BoolArray, curvature_sigma: float) -> FloatArray:
+    """Stencil coefficients (13, H, W) of D2^T D2 / curvature_sigma^2, D2 the Z_uu, Z_vv
+    and Z_uv (forward cross difference) rows wherever all their pixels are unknowns."""
     stencils = (
         ((0, -1, 1.0), (0, 0, -2.0), (0, 1, 1.0)),
         ((-1, 0, 1.0), (0, 0, -2.0), (1, 0, 1.0)),
         ((0, 0, 1.0), (0, 1, -1.0), (1, 0, -1.0), (1, 1, 1.0)),
     )
+    coefficients = np.zeros((len(OFFSETS), *mask.shape))
     for stencil in stencils:
-        ok = mask.copy()
+        centres = mask.copy()
         for dv, du, _ in stencil:
-            shifted = np.zeros_like(mask)
-            src = mask[max(dv, 0) : H + min(dv, 0), max(du, 0) : W + min(du, 0)]
-            shifted[max(-dv, 0) : H + min(-dv, 0), max(-du, 0) : W + min(-du, 0)] = src
-            ok &= shifted
-        centres = np.flatnonzero(ok.ravel())
-        n = len(centres)
-        rows = np.repeat(np.arange(n), len(stencil))
-        cols = np.stack([idx[centres + dv * W + du] for dv, du, _ in stencil], axis=1).ravel()
-        vals = np.tile([w for _, _, w in stencil], n)
-        blocks.append(sp.csr_matrix((vals, (rows, cols)), shape=(n, int(mask.sum()))))
-    return sp.vstack(blocks).tocsr()
+            centres &= _shifted(mask, -dv, -du)
+        row: StencilRow = [((dv, du), w) for dv, du, w in stencil]
+        _add_normal_rows(coefficients, row, centres / curvature_sigma**2)
+    return _mirrored(coefficients)
 
 
 def dark_line_mask(
@@ -327,10 +388,14 @@ def _levels(
 
 
 def _initial_depth(
-    level: _Level, sigma_z: float, curvature_sigma: float, robust_iterations: int = 6
+    level: _Level,
+    pattern: _Pattern,
+    smooth: FloatArray,
+    sigma_z: float,
+    robust_iterations: int = 6,
 ) -> FloatArray:
-    """Thin-plate interpolation of the stereo depths on the level's surface."""
-    index = _grid_index(level.surface)
+    """Thin-plate interpolation of the stereo depths on the level's surface (``pattern``
+    its unknowns, ``smooth`` the thin plate's stencil coefficients)."""
     has = np.isfinite(level.stereo[level.surface])
     if has.sum() < 3:
         raise InvalidInput(
@@ -338,90 +403,184 @@ def _initial_depth(
             'too few to start the shading refinement',
             key='Z_stereo',
         )
-    D2 = _second_differences(level.surface, index) / curvature_sigma
-    smooth = D2.T @ D2
     w0 = np.where(has, level.stereo_count[level.surface], 0.0) / sigma_z**2
     target = np.nan_to_num(level.stereo[level.surface])
     # A weak pull (0.1 m std) toward the median stereo depth holds surface pieces
     # without any match, which the thin plate alone leaves undetermined.
     prior_depth, prior_weight = float(np.median(target[has])), 1.0 / 0.1**2
     w = w0
+    coefficients = smooth.copy()
+    multigrid = _Multigrid(pattern.mask) if pattern.n > DIRECT_SOLVE_LIMIT else None
+    z = np.full(pattern.n, prior_depth)
     for _ in range(robust_iterations):  # IRLS: wrong matches lose their weight
-        A = sp.diags(w + prior_weight) + smooth
-        z = spsolve(A.tocsc(), w * target + prior_weight * prior_depth)
+        coefficients[_CENTRE] = smooth[_CENTRE] + pattern.grid(w + prior_weight)
+        A = pattern.matrix(coefficients)
+        z = z + _solve(A, w * target + prior_weight * prior_depth - A @ z, multigrid)
         r = (z - target)[has]
         scale = _robust_scale(r, 3 * sigma_z)
         w = w0 * np.where(has, 1.0 / (1.0 + ((z - target) / scale) ** 2), 0.0)
     return z
 
 
-def _jacobi_cg(A: sp.csr_matrix, b: FloatArray, iterations: int, rtol: float = 1e-4) -> FloatArray:
-    """x ~ A^-1 b for a symmetric positive definite sparse ``A`` by Jacobi-preconditioned
-    conjugate gradients from x = 0. Own loop with plain numpy reductions: scipy's cg
-    calls BLAS dot products, whose threads stall on a loaded machine."""
-    inv_diag = 1.0 / A.diagonal()
-    x = np.zeros_like(b)
-    r = b.copy()
-    z = inv_diag * r
-    d = z.copy()
-    rz = float(np.sum(r * z))
-    stop = rtol**2 * float(np.sum(b * b))
-    for _ in range(iterations):
-        Ad = A @ d
-        step = rz / float(np.sum(d * Ad))
-        x += step * d
-        r -= step * Ad
-        if float(np.sum(r * r)) <= stop:
-            break
-        z = inv_diag * r
-        rz, rz_old = float(np.sum(r * z)), rz
-        d = z + (rz / rz_old) * d
-    return x
+def _coarser(mask: BoolArray) -> BoolArray:
+    """The unknowns of the grid of half the resolution: every 2 x 2 block holding one."""
+    H, W = mask.shape
+    padded = np.zeros((H + H % 2, W + W % 2), dtype=bool)
+    padded[:H, :W] = mask
+    blocks = padded.reshape(padded.shape[0] // 2, 2, padded.shape[1] // 2, 2)
+    return np.asarray(blocks.any(axis=(1, 3)), dtype=bool)
+
+
+def _prolongation(fine: BoolArray, coarse: BoolArray) -> sp.csr_matrix:
+    """Bilinear interpolation (fine unknowns, coarse unknowns) from the grid ``coarse``
+    of half the resolution (``_coarser(fine)``), pixel centres as ``cv2.resize`` puts
+    them, weights renormalised over the coarse neighbours that are unknowns."""
+    h, w = coarse.shape
+    coarse_index = np.full(coarse.shape, -1, dtype=np.int64)
+    coarse_index[coarse] = np.arange(int(coarse.sum()))
+    v, u = np.nonzero(fine)
+    # A fine pixel lies 1/4 coarse pixel from its own block's centre, toward a neighbour.
+    own_v, own_u = v // 2, u // 2
+    next_v = np.clip(np.where(v % 2 == 0, own_v - 1, own_v + 1), 0, h - 1)
+    next_u = np.clip(np.where(u % 2 == 0, own_u - 1, own_u + 1), 0, w - 1)
+    columns, weights = [], []
+    for cv, wv in ((own_v, 0.75), (next_v, 0.25)):
+        for cu, wu in ((own_u, 0.75), (next_u, 0.25)):
+            columns.append(coarse_index[cv, cu])
+            weights.append(np.where(columns[-1] >= 0, wv * wu, 0.0))
+    column, weight = np.stack(columns, axis=1), np.stack(weights, axis=1)
+    weight /= weight.sum(axis=1, keepdims=True)  # the own block is always an unknown
+    present = column >= 0
+    indptr = np.concatenate([[0], np.cumsum(present.sum(axis=1))])
+    P = sp.csr_matrix(
+        (weight[present], column[present], indptr), shape=(len(v), int(coarse.sum()))
+    )
+    P.sum_duplicates()  # a clipped neighbour on the grid's edge is the own block again
+    return P
+
+
+def _l1_smoother(A: sp.csr_matrix) -> FloatArray:
+    """1 / sum_j |A_ij|: the l1-Jacobi smoother's weights (convergent for any symmetric
+    positive definite A, unlike plain Jacobi on the thin plate's fourth-order stencil)."""
+    return 1.0 / np.add.reduceat(np.abs(A.data), A.indptr[:-1])
+
+
+class _Multigrid:
+    """Conjugate gradients preconditioned by a geometric multigrid V-cycle on the
+    unknowns ``mask`` of one grid: coarser grids by ``_coarser`` down to
+    ``MULTIGRID_COARSEST`` unknowns, bilinear prolongation P, Galerkin operators
+    P^T A P, one l1-Jacobi sweep before and after the coarse correction (symmetric, and
+    convergent for any symmetric positive definite A, so the V-cycle is a valid CG
+    preconditioner), a direct solve on the coarsest grid. The grids are built once per
+    level; the coarse operators from the first system solved and kept for the next
+    ones (the Gauss-Newton steps of one level differ little; any fixed symmetric
+    positive definite preconditioner keeps CG exact)."""
+
+    def __init__(self, mask: BoolArray) -> None:
+        self._coarse: list[tuple[sp.csr_matrix, FloatArray]] = []  # operator, smoother
+        self._coarsest: Any = None  # SuperLU of the coarsest operator
+        self._prolongations: list[tuple[sp.csr_matrix, sp.csr_matrix]] = []
+        while mask.sum() > MULTIGRID_COARSEST:
+            coarse = _coarser(mask)
+            if coarse.sum() == mask.sum():
+                break
+            P = _prolongation(mask, coarse)
+            self._prolongations.append((P, sp.csr_matrix(P.T)))
+            mask = coarse
+
+    def solve(self, A: sp.csr_matrix, b: FloatArray, iterations: int, rtol: float) -> FloatArray:
+        """x ~ A^-1 b for a symmetric positive definite ``A`` on the mask's unknowns, from
+        x = 0, until the residual is ``rtol`` |b| or after ``iterations``. Own loop with
+        plain numpy reductions: scipy's cg calls BLAS dot products, whose threads stall
+        on a loaded machine."""
+        if self._coarsest is None:
+            coarse = A
+            for P, PT in self._prolongations:
+                coarse = sp.csr_matrix(PT @ coarse @ P)
+                self._coarse.append((coarse, _l1_smoother(coarse)))
+            self._coarsest = splu(coarse.tocsc())
+        operators = [(A, _l1_smoother(A)), *self._coarse]
+
+        def v_cycle(r: FloatArray, level: int = 0) -> FloatArray:
+            if level == len(self._prolongations):
+                return np.asarray(self._coarsest.solve(r))
+            (A_l, smoother), (P, PT) = operators[level], self._prolongations[level]
+            x = smoother * r
+            x += P @ v_cycle(PT @ (r - A_l @ x), level + 1)
+            return x + smoother * (r - A_l @ x)
+
+        x = np.zeros_like(b)
+        r = b.copy()
+        z = v_cycle(r)
+        d = z.copy()
+        rz = float(np.sum(r * z))
+        stop = rtol**2 * float(np.sum(b * b))
+        for _ in range(iterations):
+            Ad = A @ d
+            step = rz / float(np.sum(d * Ad))
+            x += step * d
+            r -= step * Ad
+            if float(np.sum(r * r)) <= stop:
+                break
+            z = v_cycle(r)
+            rz, rz_old = float(np.sum(r * z)), rz
+            d = z + (rz / rz_old) * d
+        return x
+
+
+def _solve(A: sp.csr_matrix, b: FloatArray, multigrid: _Multigrid | None) -> FloatArray:
+    """A^-1 b: direct without ``multigrid`` (small grids), else its preconditioned CG."""
+    if multigrid is None:
+        return np.asarray(spsolve(A.tocsc(), b))
+    return multigrid.solve(A, b, CG_ITERATIONS, CG_TOLERANCE)
 
 
 def _gauss_newton(
     level: _Level,
+    pattern: _Pattern,
+    smooth: FloatArray,
     z: FloatArray,
     model: ShadingModel,
     sigma_i: float,
     sigma_z: float,
-    curvature_sigma: float,
     steps: int,
     cauchy: float,
     max_step: float | None,
 ) -> tuple[FloatArray, float]:
     mask = level.surface
-    index = _grid_index(mask)
-    Du, has_u = _first_derivative(mask, index, axis=1)
-    Dv, has_v = _first_derivative(mask, index, axis=0)
-    D2 = _second_differences(mask, index) / curvature_sigma
-    rows, cols = np.nonzero(mask)
-    u_grid, v_grid = cols.astype(float), rows.astype(float)
-    shade = level.shade[mask] & has_u & has_v
-    observed = level.image[mask][shade]
-    u_s, v_s = u_grid[shade], v_grid[shade]
+    du_row, has_u = _first_derivative(mask, axis=1)
+    dv_row, has_v = _first_derivative(mask, axis=0)
+    smooth_matrix = pattern.matrix(smooth)
+    multigrid = _Multigrid(mask) if pattern.n > DIRECT_SOLVE_LIMIT else None
+    shade_grid = level.shade & mask & has_u & has_v
+    observed = level.image[shade_grid]
+    v_s, u_s = (a.astype(float) for a in np.nonzero(shade_grid))
     has = np.isfinite(level.stereo[mask])
     w_stereo = np.where(has, level.stereo_count[mask], 0.0) / sigma_z**2
     target = np.nan_to_num(level.stereo[mask])
-    S = sp.diags(shade.astype(float), format='csr')[shade]  # selects the shading rows
-    smooth = D2.T @ D2
     K = level.K
     rms = float('nan')
     for _ in range(steps):
-        Zs, Zu, Zv = z[shade], (Du @ z)[shade], (Dv @ z)[shade]
-        pred = predicted_grey(Zs, Zu, Zv, u_s, v_s, K, model)
-        r = observed - pred
-        # Model derivatives w.r.t. Zu, Zv by central differences; the model depends on
-        # (Zu/Z, Zv/Z) only, so dI/dZ = -(Zu dI/dZu + Zv dI/dZv) / Z.
+        z_grid = pattern.grid(z)
+        Zs = z_grid[shade_grid]
+        Zu, Zv = _apply_row(du_row, z_grid)[shade_grid], _apply_row(dv_row, z_grid)[shade_grid]
+        # The prediction and the model derivatives w.r.t. Zu, Zv by forward differences,
+        # in one evaluation (central ones cost two more for the same fused depth within
+        # 0.01 mm); the model depends on (Zu/Z, Zv/Z) only, so
+        # dI/dZ = -(Zu dI/dZu + Zv dI/dZv) / Z.
         h = 1e-4 * Zs
-        g_u = (
-            predicted_grey(Zs, Zu + h, Zv, u_s, v_s, K, model)
-            - predicted_grey(Zs, Zu - h, Zv, u_s, v_s, K, model)
-        ) / (2 * h)
-        g_v = (
-            predicted_grey(Zs, Zu, Zv + h, u_s, v_s, K, model)
-            - predicted_grey(Zs, Zu, Zv - h, u_s, v_s, K, model)
-        ) / (2 * h)
+        pred, u_plus, v_plus = predicted_grey(
+            np.tile(Zs, 3),
+            np.concatenate([Zu, Zu + h, Zu]),
+            np.concatenate([Zv, Zv, Zv + h]),
+            np.tile(u_s, 3),
+            np.tile(v_s, 3),
+            K,
+            model,
+        ).reshape(3, -1)
+        r = observed - pred
+        g_u = (u_plus - pred) / h
+        g_v = (v_plus - pred) / h
         g_z = -(Zu * g_u + Zv * g_v) / Zs
         # Cauchy scale from the residuals themselves while they are large (a poor start
         # is not outvoted by its own misfit), cauchy sigma_i once they are small.
@@ -429,16 +588,25 @@ def _gauss_newton(
         r_z = (z - target)[has]
         scale = _robust_scale(r_z, cauchy * sigma_z)
         w_z = w_stereo * np.where(has, 1.0 / (1.0 + ((z - target) / scale) ** 2), 0.0)
-        J = sp.diags(g_z) @ S + sp.diags(g_u) @ (S @ Du) + sp.diags(g_v) @ (S @ Dv)
-        JW = J.T @ sp.diags(weight)
+        # The Jacobian J = diag(g_z) + diag(g_u) D_u + diag(g_v) D_v on the shading
+        # pixels, in stencil form.
+        g_u_grid, g_v_grid, g_z_grid = (np.zeros(mask.shape) for _ in range(3))
+        g_u_grid[shade_grid], g_v_grid[shade_grid], g_z_grid[shade_grid] = g_u, g_v, g_z
+        jacobian: StencilRow = [((0, 0), g_z_grid)]
+        jacobian += [(offset, g_u_grid * w) for offset, w in du_row]
+        jacobian += [(offset, g_v_grid * w) for offset, w in dv_row]
+        weight_grid = np.zeros(mask.shape)
+        weight_grid[shade_grid] = weight
+        coefficients = smooth.copy()
+        _add_normal_rows(coefficients, jacobian, weight_grid)
         # + a 1 m prior on the update keeps A positive definite where a pixel has lost
         # every term (e.g. an island between cut edges); negligible elsewhere.
-        A = JW @ J + sp.diags(w_z + 1.0) + smooth
-        b = JW @ r - w_z * (z - target) - smooth @ z
-        if len(z) <= DIRECT_SOLVE_LIMIT:
-            dz = spsolve(A.tocsc(), b)
-        else:  # the coarser levels fixed the smooth part: a few Jacobi-CG iterations suffice
-            dz = _jacobi_cg(A.tocsr(), b, CG_ITERATIONS)
+        coefficients[_CENTRE] += pattern.grid(w_z + 1.0)
+        A = pattern.matrix(_mirrored(coefficients))
+        r_grid = np.zeros(mask.shape)
+        r_grid[shade_grid] = weight * r
+        b = _apply_row_transposed(jacobian, r_grid)[mask] - w_z * (z - target) - smooth_matrix @ z
+        dz = _solve(A, b, multigrid)
         if max_step:
             dz = np.clip(dz, -max_step, max_step)
         z = z + dz
@@ -556,7 +724,9 @@ def refine_depth(
     if cuts is not None:  # matches beside an occlusion take the foreground's depth
         Z_stereo = _without_matches_beside_cuts(Z_stereo, cuts)
     levels = _levels(image, Z_stereo, surface, np.asarray(K, dtype=float), lines, min_width, cuts)
-    z = _initial_depth(levels[0], sigma_z, curvature_sigma * levels[0].factor ** 2)
+    pattern = _Pattern(levels[0].surface)
+    smooth = _thin_plate(levels[0].surface, curvature_sigma * levels[0].factor ** 2)
+    z = _initial_depth(levels[0], pattern, smooth, sigma_z)
     Z = np.full(levels[0].surface.shape, np.nan)
     Z[levels[0].surface] = z
     report: list[tuple[int, int, int]] = []
@@ -564,14 +734,17 @@ def refine_depth(
     for i, level in enumerate(levels):
         if i > 0:
             z = _upsampled_start(Z, levels[i - 1], level)
+            pattern = _Pattern(level.surface)
+            smooth = _thin_plate(level.surface, curvature_sigma * level.factor**2)
         n_steps = finest_steps if level.factor == 1 else steps[min(i, len(steps) - 1)]
         z, rms = _gauss_newton(
             level,
+            pattern,
+            smooth,
             z,
             model,
             sigma_i,
             sigma_z,
-            curvature_sigma * level.factor**2,
             n_steps,
             cauchy,
             max_step,

@@ -331,13 +331,21 @@ def reduce_disparity(disparity: npt.ArrayLike, factor: int, tolerance: float = 2
     if factor == 1:
         return disparity
     h, w = disparity.shape[0] // factor, disparity.shape[1] // factor
-    blocks = disparity[: h * factor, : w * factor].reshape(h, factor, w, factor)
-    valid = np.isfinite(blocks)
-    count = valid.sum(axis=(1, 3))
-    total = np.where(valid, blocks, 0.0).sum(axis=(1, 3))
-    spread = np.where(valid, blocks, -np.inf).max(axis=(1, 3)) - np.where(
-        valid, blocks, np.inf
-    ).min(axis=(1, 3))
+    # Element-wise over the factor^2 strided sub-images (one per position in the block):
+    # numpy's reductions over the axes of a (h, factor, w, factor) view are 5x slower.
+    count = np.zeros((h, w))
+    total = np.zeros((h, w))
+    high = np.full((h, w), -np.inf)
+    low = np.full((h, w), np.inf)
+    for i in range(factor):
+        for j in range(factor):
+            sub = disparity[i : h * factor : factor, j : w * factor : factor]
+            valid = np.isfinite(sub)
+            count += valid
+            total += np.where(valid, sub, 0.0)
+            high = np.maximum(high, np.where(valid, sub, -np.inf))
+            low = np.minimum(low, np.where(valid, sub, np.inf))
+    spread = high - low
     agree = (2 * count >= factor * factor) & (spread <= tolerance)
     with np.errstate(invalid='ignore', divide='ignore'):
         return np.where(agree, total / np.maximum(count, 1) / factor, np.nan)
