@@ -12,7 +12,7 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 SCENARIO ?= default
 PYTEST_ARGS ?=
 
-.PHONY: setup build lint test test-unit demo bench clean distclean
+.PHONY: setup build lint params test test-unit demo bench clean distclean
 
 setup: $(VENV_STAMP)
 
@@ -32,13 +32,18 @@ $(BUILD_STAMP): $(VENV_STAMP) $(SOURCES)
 	tail -n 2 ros2_ws/build.log
 	touch $@
 
-# ruff's rules and format (ruff.toml) and mypy (mypy.ini: vgm_common and every core
-# module fully typed); `make test` runs it first. `ruff format src tests bench scripts`
+# ruff's rules and format (ruff.toml), mypy (mypy.ini: vgm_common and every core module
+# fully typed) and the generated parameter lists up to date; `make test` runs it first. `ruff format src tests bench scripts`
 # formats what it reports.
 lint: $(VENV_STAMP)
 	$(VENV)/bin/ruff check --output-format concise src tests bench scripts
 	$(VENV)/bin/ruff format --check src tests bench scripts
 	$(VENV)/bin/mypy
+	$(VENV)/bin/python scripts/generate_params.py --check
+
+# params files and README parameter tables, written from the nodes' declarations
+params: $(VENV_STAMP)
+	$(VENV)/bin/python scripts/generate_params.py
 
 test: lint build
 	source ros2_ws/install/setup.bash && \

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import cv2
@@ -28,12 +29,13 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import OptimizeResult, least_squares
 
-from calib_node.lxpm_ga import lxpm_ga, rig_objective
+from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS, lxpm_ga, rig_objective
 from calib_node.seed_calibration import dlt_camera
 from calib_node.seed_camera import identifiable
-from calib_node.thesis import network_refine
+from calib_node.thesis import NETWORK_ACCEPT, NETWORK_WEIGHTS, network_refine
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.geometry import FloatArray, make_transform
+from vgm_common.settings import setting
 
 METHODS = ('lm', 'lxpm_ga', 'opencv')
 LM_STARTS = ('dlt', 'ga')
@@ -60,23 +62,86 @@ class CameraFit(NamedTuple):
     std: dict[str, float]  # standard errors of fx, fy, cx, cy [px] (LM, OpenCV; empty for the GA)
 
 
-class GAOptions(NamedTuple):
+@dataclass(frozen=True)
+class GAOptions:
     """Settings of the thesis's method (:func:`calibrate_rig_ga`): the LX-PM GA's
-    (:func:`~calib_node.lxpm_ga.lxpm_ga`) and the network refinement's that follows it."""
+    (:func:`~calib_node.lxpm_ga.lxpm_ga`) and the network refinement's that follows it;
+    calib_node's ga.* and network.* parameters."""
 
-    population: int = 240
-    generations: int = 200
-    crossover: float = 0.9
-    mutation: float = 0.005
-    pm_index: float = 0.25
-    lx_variant: str = 'printed'
-    max_distance: float = 3.0  # [m] camera-to-chart-centroid bound of the translation genes
-    network_epochs: int = 3000
-    lx_draw: str = 'gene'  # one Laplace phi per gene (A4.5) or per pair
-    tournament: int = 3  # tournament size [C] (A4.6)
-    elitism: int = 1  # elite individuals kept [C] (A4.6)
-    network_weights: str = 'structured'  # train only the matrices' entries, or 'free'
-    network_accept: str = 'if_better'  # keep the network's camera only if its RMS is lower
+    population: int = setting(
+        240, 'GA population (thesis 240).', range=(4, 100000), name='ga.population'
+    )
+    generations: int = setting(
+        200, 'GA generations (thesis 200).', range=(1, 100000), name='ga.generations'
+    )
+    crossover: float = setting(
+        0.9,
+        'Laplace crossover probability per pair (thesis 0.9).',
+        range=(0.0, 1.0),
+        name='ga.crossover',
+    )
+    mutation: float = setting(
+        0.005,
+        'Power mutation probability per gene (thesis 0.005).',
+        range=(0.0, 1.0),
+        name='ga.mutation',
+    )
+    pm_index: float = setting(
+        0.25,
+        'Power mutation index p, s = s1^(1/p) (not in the thesis; ALGORITHMS.md A4.4) [C].',
+        range=(1e-3, 100.0),
+        name='ga.pm_index',
+    )
+    lx_variant: str = setting(
+        'printed',
+        'Laplace crossover: as printed in the thesis, or the symmetric Laplace quantile (A4.5).',
+        choices=LX_VARIANTS,
+        name='ga.lx_variant',
+    )
+    max_distance: float = setting(
+        3.0,
+        'Bound of the GA translation genes: camera to chart-centroid distance [C].',
+        unit='m',
+        range=(0.01, 1000.0),
+        name='ga.max_distance',
+    )
+    network_epochs: int = setting(
+        3000,
+        'Gradient-descent epochs of the thesis network refinement [C].',
+        range=(0, 1000000),
+        name='network.epochs',
+    )
+    lx_draw: str = setting(
+        'gene',
+        'Laplace spread phi drawn per gene (ALGORITHMS.md A4.5) or per parent pair [C].',
+        choices=LX_DRAWS,
+        name='ga.lx_draw',
+    )
+    tournament: int = setting(
+        3, 'Tournament size of the selection (A4.6) [C].', range=(1, 1000), name='ga.tournament'
+    )
+    elitism: int = setting(
+        1,
+        'Best individuals carried over each generation (A4.6) [C].',
+        range=(0, 1000),
+        name='ga.elitism',
+    )
+    network_weights: str = setting(
+        'structured',
+        'structured: train only the entries of D = [A | 0] and B = [R T; 0 1] that stand '
+        "for parameters, read out as ALGORITHMS.md 3.5 (D's entries, B's 3x3 block "
+        'projected onto SO(3)); free: every weight, read out by RQ of D B (the old '
+        'behaviour; it moves the principal point by 1000s of px) [C].',
+        choices=NETWORK_WEIGHTS,
+        name='network.weights',
+    )
+    network_accept: str = setting(
+        'if_better',
+        "if_better: keep the network's camera only if its full-model reprojection RMS is "
+        "below the GA camera's, else keep the GA camera; always: keep it [C].",
+        choices=NETWORK_ACCEPT,
+        name='network.accept',
+    )
 
 
 def solve_lm(

@@ -18,18 +18,14 @@ from rclpy.executors import MultiThreadedExecutor
 from sensor_msgs.msg import CameraInfo
 from std_srvs.srv import Trigger
 
-from calib_node.calibrate import LM_STARTS, METHODS, CalibrationError, GAOptions
-from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS
+from calib_node.calibrate import CalibrationError, GAOptions
 from calib_node.session import (
-    CHART_SOURCES,
     TARGET_WAIT_S,
     Calibration,
     CalibrationSession,
     NotReady,
     SessionSettings,
-    rig_pose_check,
 )
-from calib_node.thesis import NETWORK_ACCEPT, NETWORK_WEIGHTS
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
 from vgm_common.camera_topics import subscribe_images
 from vgm_common.conversions import (
@@ -49,7 +45,6 @@ from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
     BASE_FRAME,
     CAMERA_INFO_TOPICS,
-    CAMERA_NAMES,
     IMAGE_TOPICS,
     OPTICAL_FRAMES,
     POSE_TOPICS,
@@ -59,21 +54,9 @@ from vgm_common.worker import Worker
 
 VIEW_BACKLOG = 30  # image sets waiting for chart detection
 SILENT_CAMERA_S = 10.0  # [s] a camera without images while the others send is named
-# The session's settings are the parameters of the same names (chart.* dotted).
-SESSION = ConfigParams(
-    SessionSettings,
-    renamed={f'chart_{name}': f'chart.{name}' for name in ('rows', 'cols', 'spacing', 'source')},
-)
-# The thesis method's settings: network_* fields are network.* parameters, the rest ga.*.
-GA = ConfigParams(
-    GAOptions,
-    renamed={
-        name: name.replace('network_', 'network.', 1)
-        if name.startswith('network_')
-        else f'ga.{name}'
-        for name in GAOptions._fields
-    },
-)
+# The session's settings and the thesis method's (ga.*, network.*): their parameters.
+SESSION = ConfigParams(SessionSettings)
+GA = ConfigParams(GAOptions)
 
 
 def _target_matrix(msg):
@@ -87,214 +70,30 @@ def _target_matrix(msg):
 
 
 PARAMETERS = [
-    Param(
-        'chart.rows',
-        SESSION.defaults.chart_rows,
-        'Inner corners along the chart y axis (rows + cols odd).',
-        range=(2, 100),
-        read_only=True,
-    ),
-    Param(
-        'chart.cols',
-        SESSION.defaults.chart_cols,
-        'Inner corners along the chart x axis.',
-        range=(2, 100),
-        read_only=True,
-    ),
-    Param(
-        'chart.spacing',
-        SESSION.defaults.chart_spacing,
-        'Chessboard square size [m].',
-        range=(1e-4, 10.0),
-        read_only=True,
-    ),
+    *SESSION.declarations(),
+    *GA.declarations(),
     Param(
         'chart.pattern',
         'chessboard',
-        'Chart pattern.',
+        'Chart pattern (the only one so far).',
         choices=('chessboard',),
         read_only=True,
     ),
     Param(
-        'chart.source',
-        SESSION.defaults.chart_source,
-        'stage: views need a /calibration/target_pose '
-        'of their stamp; handheld: target poses are ignored, chart poses are '
-        'estimated; auto: stage once target poses arrive, handheld before.',
-        choices=CHART_SOURCES,
-        read_only=True,
-    ),
-    Param(
-        'rig_pose',
-        list(SESSION.defaults.rig_pose),
-        'The left camera optical '
-        'frame in base_link when no view has a target pose: x y z [m] roll pitch '
-        'yaw [rad], or x y z qx qy qz qw.',
-        check=rig_pose_check,
-    ),
-    Param(
-        'cameras',
-        list(SESSION.defaults.cameras),
-        "The rig's cameras (left and right, aux optional).",
-        check=lambda v: None
-        if ({'left', 'right'} <= set(v) <= set(CAMERA_NAMES) and len(set(v)) == len(v))
-        else f'expected left, right and optionally aux, got {v}',
-        read_only=True,
-    ),
-    Param(
-        'min_coverage',
-        SESSION.defaults.min_coverage,
-        'Handheld: each of x, y, size and skew must cover '
-        "this fraction of camera_calibration's ranges before calibrating.",
-        range=(0.0, 1.0),
-    ),
-    Param(
-        'select_views',
-        SESSION.defaults.select_views,
-        'Handheld: keep a view only if it differs from the '
-        "kept ones (camera_calibration's rule); false keeps every view.",
-    ),
-    Param(
-        'min_views',
-        SESSION.defaults.min_views,
-        'Views (captures with the chart found in at least one camera) needed to calibrate.',
-        range=(1, 10000),
-    ),
-    Param(
-        'auto_calibrate',
-        SESSION.defaults.auto_calibrate,
-        'Calibrate as soon as min_views views are '
-        'collected (the calibrate service recalibrates on all views so far).',
-    ),
-    Param(
         'calibration_file',
         '',
-        'A calibration.yaml (or its directory) to publish '
-        'at start instead of calibrating; empty: calibrate from the chart.',
+        'A calibration.yaml (or its directory) to publish at start instead of calibrating; '
+        "the left/right rectification is recomputed from the cameras, aux's R, P are as "
+        'stored; a bad file is a one-line start-up error (exit status 2). Empty: calibrate '
+        'from the chart.',
         read_only=True,
     ),
     Param(
         'output_dir',
         '',
-        'Where calibration.yaml and left/right/aux.yaml '
-        '(camera_calibration_parsers) are written; empty: not written.',
-    ),
-    Param(
-        'method',
-        SESSION.defaults.method,
-        'lm: DLT (or GA) start + Levenberg-Marquardt, plumb_bob '
-        '(ours); lxpm_ga: the thesis GA + network refinement; opencv: '
-        'cv2.calibrateCamera reference.',
-        choices=METHODS,
-    ),
-    Param(
-        'lm_start',
-        SESSION.defaults.lm_start,
-        'Start of the lm method: closed-form DLT or the GA.',
-        choices=LM_STARTS,
-    ),
-    Param('seed', SESSION.defaults.seed, 'Random seed of the GA.', range=(0, 2**31 - 1)),
-    Param(
-        'ga.population',
-        GA.defaults.population,
-        'GA population (thesis 240).',
-        range=(4, 100000),
-    ),
-    Param(
-        'ga.generations',
-        GA.defaults.generations,
-        'GA generations (thesis 200).',
-        range=(1, 100000),
-    ),
-    Param(
-        'ga.crossover',
-        GA.defaults.crossover,
-        'Laplace crossover probability per pair (thesis 0.9).',
-        range=(0.0, 1.0),
-    ),
-    Param(
-        'ga.mutation',
-        GA.defaults.mutation,
-        'Power mutation probability per gene (thesis 0.005).',
-        range=(0.0, 1.0),
-    ),
-    Param(
-        'ga.pm_index',
-        GA.defaults.pm_index,
-        'Power mutation index p, s = s1^(1/p) (not in the thesis; ALGORITHMS.md A4.4).',
-        range=(1e-3, 100.0),
-    ),
-    Param(
-        'ga.lx_variant',
-        GA.defaults.lx_variant,
-        'Laplace crossover: as printed in the thesis, or the symmetric Laplace quantile (A4.5).',
-        choices=LX_VARIANTS,
-    ),
-    Param(
-        'ga.lx_draw',
-        GA.defaults.lx_draw,
-        'Laplace spread phi drawn per gene (A4.5) or per parent pair.',
-        choices=LX_DRAWS,
-    ),
-    Param(
-        'ga.tournament',
-        GA.defaults.tournament,
-        'Tournament size of the selection [C] (A4.6).',
-        range=(1, 1000),
-    ),
-    Param(
-        'ga.elitism',
-        GA.defaults.elitism,
-        'Best individuals carried over each generation [C] (A4.6).',
-        range=(0, 1000),
-    ),
-    Param(
-        'ga.max_distance',
-        GA.defaults.max_distance,
-        'Bound of the GA translation genes: camera to chart-centroid distance [m].',
-        range=(0.01, 1000.0),
-    ),
-    Param(
-        'network.epochs',
-        GA.defaults.network_epochs,
-        'Gradient-descent epochs of the thesis network refinement.',
-        range=(0, 1000000),
-    ),
-    Param(
-        'network.weights',
-        GA.defaults.network_weights,
-        'structured: train only the entries of '
-        'D = [A | 0] and B = [R T; 0 1] that stand for parameters (ALGORITHMS.md '
-        '3.5); free: every weight, read out by RQ of D B.',
-        choices=NETWORK_WEIGHTS,
-    ),
-    Param(
-        'network.accept',
-        GA.defaults.network_accept,
-        'if_better: keep the network camera only '
-        'if its full-model RMS is below the GA camera; always: keep it.',
-        choices=NETWORK_ACCEPT,
-    ),
-    Param('fit_tangential', SESSION.defaults.fit_tangential, 'Estimate p1, p2 (else 0).'),
-    Param(
-        'select_model',
-        SESSION.defaults.select_model,
-        'lm: keep p1, p2 only where they lower the residual '
-        'enough (BIC); they otherwise trade against the principal point.',
-    ),
-    Param('fit_k3', SESSION.defaults.fit_k3, 'Estimate k3 (else 0).'),
-    Param(
-        'max_rms_px',
-        SESSION.defaults.max_rms_px,
-        'A calibration whose reprojection RMS exceeds this in '
-        'any camera is refused (not published) [px].',
-        range=(0.0, 1e6),
-    ),
-    Param(
-        'max_blur_px',
-        SESSION.defaults.max_blur_px,
-        'Chart views whose edge width exceeds this are rejected as blurred [px].',
-        range=(0.5, 100.0),
+        'Where calibration.yaml (the whole rig with poses and quality) and left.yaml, '
+        'right.yaml, aux.yaml (camera_calibration_parsers format) are written; empty: not '
+        'written.',
     ),
     Param(
         'sync_max_wait',

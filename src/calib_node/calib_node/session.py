@@ -22,45 +22,26 @@ from typing import Any, Literal, NamedTuple
 import numpy as np
 
 from calib_node.bundle import bundle_adjust_selected
-from calib_node.calibrate import CalibrationError, CameraFit, GAOptions, calibrate_rig
+from calib_node.calibrate import (
+    LM_STARTS,
+    METHODS,
+    CalibrationError,
+    CameraFit,
+    GAOptions,
+    calibrate_rig,
+)
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
 from vgm_common.calibration_io import stereo_rectification
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray, make_transform, quaternion_to_matrix, rpy_to_matrix
+from vgm_common.settings import setting
 from vgm_common.topics import BASE_FRAME, CAMERA_NAMES
 
 CHART_SOURCES = ('auto', 'stage', 'handheld')
 TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
 RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
-
-
-@dataclass(frozen=True)
-class SessionSettings:
-    """The session's settings: calib_node's parameters of the same names (``chart_rows``
-    is ``chart.rows``), read again at every use, so a changed parameter applies to the
-    next view or calibration. The chart and the cameras are fixed for a session."""
-
-    cameras: tuple[str, ...] = CAMERA_NAMES
-    chart_rows: int = 6  # inner corners along the chart y axis (rows + cols odd)
-    chart_cols: int = 9
-    chart_spacing: float = 0.025  # [m]
-    chart_source: str = 'auto'  # CHART_SOURCES
-    rig_pose: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)  # see rig_pose_matrix
-    min_coverage: float = 0.5
-    select_views: bool = True
-    min_views: int = 10
-    auto_calibrate: bool = True
-    method: str = 'lm'
-    lm_start: str = 'dlt'
-    seed: int = 0
-    ga: GAOptions = GAOptions()
-    fit_tangential: bool = True
-    select_model: bool = True
-    fit_k3: bool = False
-    max_rms_px: float = 2.0
-    max_blur_px: float = 4.0
 
 
 def rig_pose_check(value: tuple[float, ...] | list[float]) -> str | None:
@@ -70,6 +51,122 @@ def rig_pose_check(value: tuple[float, ...] | list[float]) -> str | None:
     if len(value) == 7 and abs(np.linalg.norm(value[3:]) - 1) > 1e-3:
         return 'the quaternion must have unit norm'
     return None
+
+
+def _cameras_check(value: tuple[str, ...] | list[str]) -> str | None:
+    if {'left', 'right'} <= set(value) <= set(CAMERA_NAMES) and len(set(value)) == len(value):
+        return None
+    return f'expected left, right and optionally aux, got {list(value)}'
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """The session's settings, the one source of calib_node's parameters of the same
+    names (``chart_rows`` is ``chart.rows``), read again at every use, so a changed
+    parameter applies to the next view or calibration. The chart and the cameras are
+    fixed for a session."""
+
+    chart_rows: int = setting(
+        6,
+        'Inner corners along the chart y axis; rows + cols must be odd (the board must not '
+        'be symmetric under a half turn).',
+        range=(2, 100),
+        read_only=True,
+        name='chart.rows',
+    )
+    chart_cols: int = setting(
+        9,
+        'Inner corners along the chart x axis.',
+        range=(2, 100),
+        read_only=True,
+        name='chart.cols',
+    )
+    chart_spacing: float = setting(
+        0.025,
+        'Chessboard square size.',
+        unit='m',
+        range=(1e-4, 10.0),
+        read_only=True,
+        name='chart.spacing',
+    )
+    chart_source: str = setting(
+        'auto',
+        'stage: views need a /calibration/target_pose of their stamp; handheld: target '
+        'poses are ignored, chart poses are estimated; auto: stage once target poses '
+        'arrive, handheld before.',
+        choices=CHART_SOURCES,
+        read_only=True,
+        name='chart.source',
+    )
+    rig_pose: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+        'The left camera optical frame in base_link when no view has a target pose: x y z '
+        '[m] roll pitch yaw [rad], or x y z qx qy qz qw.',
+        check=rig_pose_check,
+    )
+    cameras: tuple[str, ...] = setting(
+        CAMERA_NAMES,
+        "The rig's cameras: left and right, aux optional; a two-camera rig is [left, right].",
+        check=_cameras_check,
+        read_only=True,
+    )
+    min_coverage: float = setting(
+        0.5,
+        "Handheld: each of x, y, size and skew must reach this fraction of camera_calibration's "
+        'ranges (0.7, 0.7, 0.4, 0.5) before calibrating.',
+        range=(0.0, 1.0),
+    )
+    select_views: bool = setting(
+        True,
+        'Handheld: keep a view only if its (x, y, size, skew) differ from every kept '
+        "view's by 0.2 (camera_calibration's rule); false keeps every view.",
+    )
+    min_views: int = setting(
+        10,
+        'Views needed to calibrate (a view: a capture in which at least one camera found '
+        'the chart; the very same images again are no new view).',
+        range=(1, 10000),
+    )
+    auto_calibrate: bool = setting(
+        True,
+        'Calibrate as soon as min_views views are collected (the calibrate service '
+        'recalibrates on all views so far).',
+    )
+    method: str = setting(
+        'lm',
+        'lm (ours: DLT or GA start + Levenberg-Marquardt, plumb_bob), lxpm_ga (the thesis: '
+        'GA + network refinement) or opencv (cv2.calibrateCamera, the reference).',
+        choices=METHODS,
+    )
+    lm_start: str = setting(
+        'dlt',
+        'Start of lm: the closed-form DLT, or ga (the thesis GA + network).',
+        choices=LM_STARTS,
+    )
+    seed: int = setting(0, 'Random seed of the GA.', range=(0, 2**31 - 1))
+    ga: GAOptions = GAOptions()  # the ga.* and network.* parameters (GAOptions' own)
+    fit_tangential: bool = setting(True, 'Estimate p1, p2 (else 0).')
+    select_model: bool = setting(
+        True,
+        'lm: with fit_tangential, fit with and without p1, p2 and keep them only where they '
+        'pay by BIC (n ln(RSS0/RSS1) > 2 ln n; per camera in stage mode, over the rig '
+        'handheld); they otherwise trade against the principal point.',
+    )
+    fit_k3: bool = setting(False, 'Estimate k3 (else 0).')
+    max_rms_px: float = setting(
+        2.0,
+        'A calibration whose reprojection RMS exceeds this in any camera is refused (not '
+        'published).',
+        unit='px',
+        range=(0.0, 1e6),
+    )
+    max_blur_px: float = setting(
+        4.0,
+        'Chart detections whose edge width (cv2.estimateChessboardSharpness) exceeds this '
+        'are rejected as blurred.',
+        unit='px',
+        range=(0.5, 100.0),
+    )
 
 
 def rig_pose_matrix(value: tuple[float, ...] | list[float]) -> FloatArray:

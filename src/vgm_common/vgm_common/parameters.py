@@ -35,6 +35,7 @@ from rclpy.parameter import Parameter
 
 from vgm_common.diagnostics import Diagnostics
 from vgm_common.errors import VgmError
+from vgm_common.settings import SettingSpec, settings_specs
 
 if TYPE_CHECKING:
     pass
@@ -340,8 +341,30 @@ class ConfigParams(Generic[Config]):
         ]
         if wrong:
             raise ValueError(f'{self.config_type.__name__}: no such field or parameter: {wrong}')
-        names = {f: self.renamed.get(f, f) for f in fields}
+        named = {  # a setting's own parameter name (vgm_common.settings.setting)
+            f: spec.name
+            for f, _, spec in settings_specs(self.config_type)  # type: ignore[arg-type]
+            if spec.name
+        }
+        names = {f: self.renamed.get(f, named.get(f, f)) for f in fields}
         return {f: p for f, p in names.items() if p in declared}
+
+    def declarations(self) -> list[Param]:
+        """The parameters of the settings' fields made by ``vgm_common.settings.setting``,
+        in the fields' order: the settings dataclass is their one source (name, default,
+        description with its unit, range, choices, read-only)."""
+        return [
+            Param(
+                self.renamed.get(f, spec.name or f),
+                list(default) if isinstance(default, tuple) else default,
+                spec_description(spec),
+                range=spec.range,
+                choices=spec.choices,
+                check=spec.check,
+                read_only=spec.read_only,
+            )
+            for f, default, spec in settings_specs(self.config_type)  # type: ignore[arg-type]
+        ]
 
     def fields(self, params: NodeParameters) -> dict[str, Any]:
         """Field -> the current value of its parameter, for the fields that have one (a
@@ -355,6 +378,15 @@ class ConfigParams(Generic[Config]):
     def build(self, params: NodeParameters) -> Config:
         """The core's settings from the parameters' current values."""
         return self.config_type(**self.fields(params))
+
+
+def spec_description(spec: SettingSpec) -> str:
+    """A setting's description with its unit: 'Square size.' + 'm' -> 'Square size [m].'"""
+    if not spec.unit:
+        return spec.description
+    text = spec.description.rstrip()
+    stop = '.' if text.endswith('.') else ''
+    return f'{text.removesuffix(".")} [{spec.unit}]{stop}'
 
 
 def _coerce(spec: Param, value: Any) -> Any:
