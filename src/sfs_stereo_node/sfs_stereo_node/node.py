@@ -16,7 +16,7 @@ import numpy as np
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
-from sfs_stereo_node.pipeline import FUSIONS, STEREOS, DepthConfig, process_pair
+from sfs_stereo_node.pipeline import DepthConfig, process_pair
 from sfs_stereo_node.rectify import rectification_maps
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import CalibratedCameras, subscribe_images
@@ -51,38 +51,8 @@ from vgm_common.worker import Worker
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
 INVALID_DISPARITY = -1.0  # below min_disparity, as stereo_image_proc marks no match
-# Every DepthConfig field but full_band_layers is a parameter: the everyday ones by the
-# field's name, the advanced ones grouped by the stage they tune.
-DEPTH = ConfigParams(
-    DepthConfig,
-    renamed={
-        'texture_snr': 'ssd.texture_snr',
-        'min_texture': 'ssd.min_texture',
-        'uniqueness': 'ssd.uniqueness',
-        'left_right_check': 'ssd.left_right_check',
-        'min_support': 'ssd.min_support',
-        'refine_shading_sigma': 'refine.shading_sigma',
-        'refine_stereo_sigma': 'refine.stereo_sigma',
-        'refine_curvature_sigma': 'refine.curvature_sigma',
-        'refine_finest_steps': 'refine.finest_steps',
-        'sgbm_block_size': 'sgbm.block_size',
-        'sfs_iterations': 'sfs.iterations',
-        'sfs_max_step': 'sfs.max_step',
-        'sfs_downsample': 'sfs.downsample',
-        'mlp_epochs': 'mlp_rows.epochs',
-        'seed': 'mlp_rows.seed',
-        'fusion_sigma': 'local_affine.sigma',
-        'fusion_weight': 'least_squares.weight',
-    },
-)
-
-
-def _check_light(value):
-    if len(value) != 3 or not np.all(np.isfinite(value)) or np.linalg.norm(value) == 0:
-        return 'expected 3 finite numbers, not all zero'
-    if value[2] >= 0:
-        return 'z must be < 0 (the light must be on the camera side of the surface)'
-    return None
+# Every DepthConfig field but full_band_layers is a parameter (DepthConfig says how).
+DEPTH = ConfigParams(DepthConfig)
 
 
 def _ordered_ranges(values):
@@ -95,202 +65,7 @@ def _ordered_ranges(values):
 
 
 PARAMETERS = [
-    Param(
-        'window',
-        DEPTH.defaults.window,
-        'SSD window side [px] (3 = thesis); odd.',
-        range=(1, 15),
-        check=lambda v: None if v % 2 else 'must be odd',
-    ),
-    Param(
-        'max_disparity',
-        DEPTH.defaults.max_disparity,
-        'Largest disparity searched [px, full resolution]; 0 = a quarter of the '
-        'image extent along the baseline.',
-        range=(0, 4096),
-    ),
-    Param(
-        'sgbm.block_size',
-        DEPTH.defaults.sgbm_block_size,
-        'stereo sgbm: matched block side [px, full resolution]; odd.',
-        range=(1, 21),
-        check=lambda v: None if v % 2 else 'must be odd',
-    ),
-    Param(
-        'min_disparity',
-        DEPTH.defaults.min_disparity,
-        'Smallest disparity searched [px, full resolution].',
-        range=(0, 1023),
-    ),
-    Param(
-        'match_threshold',
-        DEPTH.defaults.match_threshold,
-        'Largest normalised SSD cost of a confident match (sigma_thr).',
-        range=(1e-6, 10.0),
-    ),
-    Param(
-        'ssd.min_texture',
-        DEPTH.defaults.min_texture,
-        'Least grey-level std in the window of a '
-        'confident match [grey levels], a floor under texture_snr; 0 disables.',
-        range=(0.0, 255.0),
-    ),
-    Param(
-        'ssd.texture_snr',
-        DEPTH.defaults.texture_snr,
-        'Least window std of a confident match, in '
-        'units of the image noise std estimated from each image (contrast and '
-        'resolution relative); 0 disables.',
-        range=(0.0, 100.0),
-    ),
-    Param(
-        'ssd.min_support',
-        DEPTH.defaults.min_support,
-        'Fraction of matches backed by their '
-        'neighbours below which the pair looks unmatched (a warning).',
-        range=(0.0, 1.0),
-    ),
-    Param(
-        'max_pixels',
-        DEPTH.defaults.max_pixels,
-        'Images with more pixels are refused before any work (memory bound).',
-        range=(64, 100_000_000),
-    ),
-    Param(
-        'ssd.uniqueness',
-        DEPTH.defaults.uniqueness,
-        'Best cost must be this fraction below the best cost more than 1 px away; 0 disables.',
-        range=(0.0, 0.99),
-    ),
-    Param(
-        'ssd.left_right_check',
-        DEPTH.defaults.left_right_check,
-        'Keep only matches the right image picks back (within 1 px).',
-    ),
-    Param(
-        'light_direction',
-        list(DEPTH.defaults.light_direction),
-        'Unit vector from the '
-        'surface toward the light in the LEFT optical frame (x right, y down, z '
-        'forward).',
-        check=_check_light,
-    ),
-    Param('albedo', DEPTH.defaults.albedo, 'Surface albedo.', range=(0.01, 1.0)),
-    Param(
-        'ambient',
-        DEPTH.defaults.ambient,
-        'Ambient light as a fraction of the source (grey = 255 albedo (R + ambient)).',
-        range=(0.0, 1.0),
-    ),
-    Param('roughness', DEPTH.defaults.roughness, 'Oren-Nayar sigma [rad].', range=(0.0, 1.5)),
-    Param(
-        'fusion',
-        DEPTH.defaults.fusion,
-        'Fusion of SFS and stereo: shading_refine = ours '
-        '(default, variational shading refinement); mlp_rows = thesis per-row '
-        'networks; local_affine; least_squares.',
-        choices=FUSIONS,
-    ),
-    Param(
-        'min_depth',
-        DEPTH.defaults.min_depth,
-        'Nearest surface depth the rig sees [m]: limits the disparity search; 0 = no limit.',
-        range=(0.0, 100.0),
-    ),
-    Param(
-        'max_depth',
-        DEPTH.defaults.max_depth,
-        'Farthest surface depth [m]; 0 = no limit.',
-        range=(0.0, 1000.0),
-    ),
-    Param(
-        'refine.shading_sigma',
-        DEPTH.defaults.refine_shading_sigma,
-        'shading_refine: image noise + model error [grey levels].',
-        range=(0.01, 100.0),
-    ),
-    Param(
-        'refine.stereo_sigma',
-        DEPTH.defaults.refine_stereo_sigma,
-        'shading_refine: stereo depth noise [m].',
-        range=(1e-5, 1.0),
-    ),
-    Param(
-        'refine.curvature_sigma',
-        DEPTH.defaults.refine_curvature_sigma,
-        'shading_refine: '
-        'thin-plate prior, second difference of depth [m/px^2 at the output '
-        'resolution].',
-        range=(1e-7, 1.0),
-    ),
-    Param(
-        'refine.finest_steps',
-        DEPTH.defaults.refine_finest_steps,
-        'shading_refine: Gauss-Newton steps on the full grid (0 = coarser levels only, faster).',
-        range=(0, 20),
-    ),
-    Param(
-        'stereo',
-        DEPTH.defaults.stereo,
-        'Matcher: sgbm = semi-global matching (OpenCV StereoSGBM, left-right '
-        'checked, texture-gated; default); ssd = the thesis normalised SSD.',
-        choices=STEREOS,
-    ),
-    Param(
-        'mlp_rows.seed',
-        DEPTH.defaults.seed,
-        'Seed of the mlp_rows network initialisation.',
-        range=(0, 2**31 - 1),
-    ),
-    Param(
-        'sfs.iterations',
-        DEPTH.defaults.sfs_iterations,
-        'Jacobi-Newton iterations of SFS.',
-        range=(1, 5000),
-    ),
-    Param(
-        'sfs.max_step',
-        DEPTH.defaults.sfs_max_step,
-        'Largest SFS height step per iteration [px units] (damping).',
-        range=(0.01, 100.0),
-    ),
-    Param(
-        'sfs.downsample',
-        DEPTH.defaults.sfs_downsample,
-        'SFS runs on the processing grid reduced by this factor (speed).',
-        range=(1, 8),
-    ),
-    Param(
-        'downsample',
-        DEPTH.defaults.downsample,
-        'Processing (and output) resolution = rectified image / this.',
-        range=(1, 8),
-    ),
-    Param(
-        'min_intensity',
-        DEPTH.defaults.min_intensity,
-        'Darker pixels are not surface '
-        '(background, shadow) [grey levels 0..255]: NaN in the depth images.',
-        range=(0.0, 255.0),
-    ),
-    Param(
-        'mlp_rows.epochs',
-        DEPTH.defaults.mlp_epochs,
-        'Training epochs of mlp_rows.',
-        range=(1, 100000),
-    ),
-    Param(
-        'local_affine.sigma',
-        DEPTH.defaults.fusion_sigma,
-        'local_affine neighbourhood [px].',
-        range=(1.0, 500.0),
-    ),
-    Param(
-        'least_squares.weight',
-        DEPTH.defaults.fusion_weight,
-        'least_squares gradient weight.',
-        range=(1e-6, 1e6),
-    ),
+    *DEPTH.declarations(),
     Param(
         'sync_max_wait',
         1.0,
@@ -301,16 +76,16 @@ PARAMETERS = [
     Param(
         'log_every',
         10.0,
-        'Seconds between INFO lines on processed frames.',
+        'Seconds between INFO lines on processed frames (the first frame is always logged).',
         range=(0.0, 3600.0),
     ),
     Param(
         'max_rate',
         0.0,
-        'Process at most this many pairs per second of image '
-        'time: the first pair of each 1/max_rate slot of stamps [Hz]; 0 = as fast '
-        'as they come. Frees the CPU for other nodes; chosen by stamps, a replayed '
-        'bag gives the same frames.',
+        'Process at most this many pairs per second of image time: the first pair of each '
+        '1/max_rate slot of stamps [Hz]; 0 = as fast as they come. Frees the CPU for other '
+        'nodes (make demo uses 0.25); chosen by stamps, so a replayed bag gives the same '
+        'frames.',
         range=(0.0, 100.0),
     ),
 ]

@@ -42,6 +42,7 @@ from sfs_stereo_node.stereo import (
 )
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
+from vgm_common.settings import setting
 
 FUSIONS = ('shading_refine', 'local_affine', 'least_squares', 'mlp_rows')
 STEREOS = ('sgbm', 'ssd')
@@ -55,45 +56,202 @@ MIN_CORRELATION = 0.5
 SGBM_MIN_SUPPORT = 0.05
 
 
-@dataclass
-class DepthConfig:
-    """Processing settings (the node's parameters; README has the table)."""
+def _odd(value: int) -> str | None:
+    return None if value % 2 else 'must be odd'
 
-    window: int = 3  # [px] the SSD window (3 = thesis)
-    sgbm_block_size: int = 5  # [px at full resolution] SGBM's matched block
-    # [px at full resolution]; 0 = a quarter of the image's extent along the baseline
-    max_disparity: int = 0
-    min_disparity: int = 0  # [px at full resolution]
-    min_depth: float = 0.0  # [m] nearest surface the rig sees; 0 = no limit
-    max_depth: float = 0.0  # [m] farthest; 0 = no limit
-    match_threshold: float = 0.02
-    min_texture: float = 0.0  # [grey levels] window std floor (texture_snr scales)
-    uniqueness: float = 0.02
-    left_right_check: bool = True
-    # left optical frame, surface -> light
-    light_direction: tuple[float, float, float] = (-0.23, -0.70, -0.67)
-    albedo: float = 0.8
-    ambient: float = 0.08
-    roughness: float = 0.3
-    fusion: str = 'shading_refine'
-    stereo: str = 'sgbm'
-    seed: int = 0
-    sfs_iterations: int = 150
-    sfs_downsample: int = 2  # SFS grid = processing grid / this (at least; SFS_MAX_WIDTH)
-    sfs_max_step: float = 0.5
-    downsample: int = 2
-    min_intensity: float = 30.0  # [grey levels] darker = no surface (background, shadow)
-    mlp_epochs: int = 500
-    fusion_sigma: float = 12.0  # [px] local_affine neighbourhood
-    fusion_weight: float = 1.0  # least_squares gradient weight
-    refine_shading_sigma: float = 2.0  # [grey levels] shading_refine image noise
-    refine_stereo_sigma: float = 0.002  # [m] shading_refine stereo depth noise
-    refine_curvature_sigma: float = 1e-4  # [m/px^2] shading_refine thin-plate prior
-    refine_finest_steps: int = 1  # shading_refine Gauss-Newton steps on the full grid
-    texture_snr: float = 2.5  # window std >= this x the image noise std for a match
-    min_support: float = 0.3  # fewer matches backed by neighbours: the pair looks unmatched
+
+def _check_light(value: tuple[float, ...] | list[float]) -> str | None:
+    if len(value) != 3 or not np.all(np.isfinite(value)) or np.linalg.norm(value) == 0:
+        return 'expected 3 finite numbers, not all zero'
+    if value[2] >= 0:
+        return 'z must be < 0 (the light must be on the camera side of the surface)'
+    return None
+
+
+@dataclass(frozen=True)
+class DepthConfig:
+    """Processing settings: the one source of sfs_stereo_node's parameters of these names
+    (the advanced ones grouped by the stage they tune: ``texture_snr`` is
+    ``ssd.texture_snr``). Every threshold is relative to the image, so the defaults hold
+    across resolutions, contrast and noise."""
+
+    # What a user sets for a scene.
+    light_direction: tuple[float, float, float] = setting(
+        (-0.23, -0.70, -0.67),
+        'Unit vector surface -> light in the LEFT optical frame (x right, y down, z '
+        "forward; the default scenario's light); rotated by R_left into the rectified "
+        'frame; z must be < 0.',
+        check=_check_light,
+    )
+    albedo: float = setting(
+        0.8, 'Surface albedo: grey = 255 albedo (R + ambient).', range=(0.01, 1.0)
+    )
+    ambient: float = setting(0.08, 'Ambient light as a fraction of the source.', range=(0.0, 1.0))
+    roughness: float = setting(0.3, 'Oren-Nayar sigma.', unit='rad', range=(0.0, 1.5))
+    min_depth: float = setting(
+        0.0,
+        'Nearest surface depth the rig sees; unbounded by default: a user who knows the '
+        'depth band narrows the search to d = f b / Z (+ offset) inside it (a best match '
+        "on the band's edge is rejected); 0 = no limit.",
+        unit='m',
+        range=(0.0, 100.0),
+    )
+    max_depth: float = setting(
+        0.0, 'Farthest surface depth; 0 = no limit.', unit='m', range=(0.0, 1000.0)
+    )
+    fusion: str = setting(
+        'shading_refine',
+        'Fusion of SFS and stereo: shading_refine (ours, variational shading refinement), '
+        'mlp_rows (the thesis: per-row networks), local_affine, least_squares.',
+        choices=FUSIONS,
+    )
+    stereo: str = setting(
+        'sgbm',
+        'Matcher: sgbm (semi-global matching at full resolution: OpenCV StereoSGBM, '
+        'left-right checked, texture-gated, see Method) or ssd (the thesis normalised '
+        'SSD, our matcher).',
+        choices=STEREOS,
+    )
+    downsample: int = setting(
+        2, 'Processing (and output) resolution = rectified image / this.', range=(1, 8)
+    )
+    min_intensity: float = setting(
+        30.0,
+        'Darker pixels are no surface (background, shadow): NaN in the depth images '
+        '[grey levels 0..255].',
+        range=(0.0, 255.0),
+    )
+    max_pixels: int = setting(
+        4_194_304,
+        'Images with more pixels are refused before any conversion or allocation (memory '
+        'bound; a 4000x3000 pair is refused at once).',
+        range=(64, 100_000_000),
+    )
+    # The matcher's search.
+    window: int = setting(
+        3, 'SSD window side (3 = thesis); odd.', unit='px', range=(1, 15), check=_odd
+    )
+    sgbm_block_size: int = setting(
+        5,
+        "stereo sgbm: the matched block's side, odd.",
+        unit='px at full resolution',
+        range=(1, 21),
+        check=_odd,
+        name='sgbm.block_size',
+    )
+    max_disparity: int = setting(
+        0,
+        'Largest offset-corrected disparity searched; 0 = a quarter of the image extent '
+        'along the baseline (surfaces nearer than 4 f b / width need a larger value).',
+        unit='px at full resolution',
+        range=(0, 4096),
+    )
+    min_disparity: int = setting(
+        0, 'Smallest disparity searched.', unit='px at full resolution', range=(0, 1023)
+    )
+    match_threshold: float = setting(
+        0.02,
+        'Largest normalised SSD cost of a confident match (sigma_thr; the cost is already '
+        'normalised by the window energies).',
+        range=(1e-6, 10.0),
+    )
+    # Advanced, grouped by the stage they tune.
+    texture_snr: float = setting(
+        2.5,
+        "(both matchers) Least window std of a match in units of the image's own noise "
+        "std (estimated per image over its flattest quarter, Immerkaer's mask): contrast- "
+        'and resolution-relative; 0 disables.',
+        range=(0.0, 100.0),
+        name='ssd.texture_snr',
+    )
+    min_texture: float = setting(
+        0.0,
+        'Absolute floor under texture_snr [grey levels]; 0 disables.',
+        range=(0.0, 255.0),
+        name='ssd.min_texture',
+    )
+    uniqueness: float = setting(
+        0.02,
+        'The best cost must be this fraction below the best cost more than 1 px away; 0 disables.',
+        range=(0.0, 0.99),
+        name='ssd.uniqueness',
+    )
+    left_right_check: bool = setting(
+        True,
+        'Keep only matches the right image picks back (within 1 px).',
+        name='ssd.left_right_check',
+    )
+    min_support: float = setting(
+        0.3,
+        'Fraction of matches backed by their neighbours below which the pair looks '
+        'unmatched (a warning).',
+        range=(0.0, 1.0),
+        name='ssd.min_support',
+    )
+    sfs_iterations: int = setting(
+        150, 'Jacobi-Newton iterations of SFS.', range=(1, 5000), name='sfs.iterations'
+    )
+    sfs_max_step: float = setting(
+        0.5,
+        'Largest SFS height step per iteration (damping).',
+        unit='px units',
+        range=(0.01, 100.0),
+        name='sfs.max_step',
+    )
+    sfs_downsample: int = setting(
+        2,
+        'SFS runs on the processing grid reduced by this factor (speed).',
+        range=(1, 8),
+        name='sfs.downsample',
+    )
+    refine_shading_sigma: float = setting(
+        2.0,
+        'shading_refine: image noise + model error.',
+        unit='grey levels',
+        range=(0.01, 100.0),
+        name='refine.shading_sigma',
+    )
+    refine_stereo_sigma: float = setting(
+        0.002,
+        'shading_refine: stereo depth noise.',
+        unit='m',
+        range=(1e-5, 1.0),
+        name='refine.stereo_sigma',
+    )
+    refine_curvature_sigma: float = setting(
+        1e-4,
+        "shading_refine: thin-plate prior, the std of the depth's second differences.",
+        unit='m/px^2 at the output resolution',
+        range=(1e-7, 1.0),
+        name='refine.curvature_sigma',
+    )
+    refine_finest_steps: int = setting(
+        1,
+        'shading_refine: Gauss-Newton steps on the full grid (0 = stop at the '
+        'half-resolution level: faster, ~1 mm worse).',
+        range=(0, 20),
+        name='refine.finest_steps',
+    )
+    mlp_epochs: int = setting(
+        500, 'Training epochs of mlp_rows.', range=(1, 100000), name='mlp_rows.epochs'
+    )
+    seed: int = setting(
+        0,
+        'Seed of the mlp_rows network initialisation.',
+        range=(0, 2**31 - 1),
+        name='mlp_rows.seed',
+    )
+    fusion_sigma: float = setting(
+        12.0,
+        'local_affine: neighbourhood.',
+        unit='px',
+        range=(1.0, 500.0),
+        name='local_affine.sigma',
+    )
+    fusion_weight: float = setting(
+        1.0, 'least_squares: gradient weight.', range=(1e-6, 1e6), name='least_squares.weight'
+    )
     full_band_layers: int = 24  # wider bands are searched on a halved image first
-    max_pixels: int = 4_194_304  # larger images are refused before any work (memory)
 
 
 Float32Array = npt.NDArray[np.float32]
