@@ -13,6 +13,7 @@ from vgm_common.conversions import (
     image_to_numpy,
     matrices_to_path,
     ns_to_stamp,
+    numpy_to_disparity_image,
     numpy_to_image,
     path_to_matrices,
     pointcloud2_to_points,
@@ -186,3 +187,15 @@ def test_image_to_grey_puts_every_encoding_on_one_scale():
         )
     with pytest.raises(InvalidInput, match="encoding '32FC1'"):
         image_to_grey(numpy_to_image(expected, '32FC1', 1, 'f'))
+
+
+def test_disparity_image_as_stereo_image_proc_fills_it():
+    disparity = np.array([[np.nan, 2.5], [7.0, np.nan]], np.float32)
+    msg = numpy_to_disparity_image(disparity, 5, 'cam', 700.0, 0.12, (0.0, 64.0), 0.0625)
+    assert (msg.f, msg.min_disparity, msg.max_disparity, msg.delta_d) == (700.0, 0.0, 64.0, 0.0625)
+    assert msg.t == pytest.approx(0.12)  # the baseline: `T=` would be dropped silently
+    assert (msg.valid_window.width, msg.valid_window.height) == (2, 2)
+    assert image_to_numpy(msg.image).tolist() == [[-1.0, 2.5], [7.0, -1.0]]
+    windowed = numpy_to_disparity_image(disparity, 5, 'cam', 1, 1, (-8.0, 8.0), 1, (1, 0, 1, 2))
+    assert image_to_numpy(windowed.image)[0, 0] == -9.0  # below a negative minimum
+    assert (windowed.valid_window.x_offset, windowed.valid_window.width) == (1, 1)

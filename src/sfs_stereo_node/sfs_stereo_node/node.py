@@ -24,7 +24,7 @@ from vgm_common.conversions import (
     camera_to_camera_info,
     depth_to_pointcloud2,
     image_to_grey,
-    make_header,
+    numpy_to_disparity_image,
     numpy_to_image,
     stamp_to_ns,
 )
@@ -50,7 +50,6 @@ from vgm_common.worker import Worker
 
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
-INVALID_DISPARITY = -1.0  # below min_disparity, as stereo_image_proc marks no match
 # Every DepthConfig field but full_band_layers is a parameter (DepthConfig says how).
 DEPTH = ConfigParams(DepthConfig)
 
@@ -283,21 +282,16 @@ class SfsStereoNode(GraphNode):
 
     def _publish(self, stamp_ns, result):
         h, w = result.depth_stereo.shape
-        header = make_header(stamp_ns, DEPTH_FRAME)
-        disparity = DisparityImage(
-            header=header, f=float(result.focal_px), t=float(result.baseline_m)
-        )
-        disparity.image = numpy_to_image(
-            np.where(np.isfinite(result.disparity), result.disparity, INVALID_DISPARITY),
-            '32FC1',
+        disparity = numpy_to_disparity_image(
+            result.disparity,
             stamp_ns,
             DEPTH_FRAME,
+            result.focal_px,
+            result.baseline_m,
+            result.disparity_range,
+            result.disparity_step,
+            result.valid_window,
         )
-        x, y, ww, hh = result.valid_window
-        disparity.valid_window.x_offset, disparity.valid_window.y_offset = x, y
-        disparity.valid_window.width, disparity.valid_window.height = ww, hh
-        disparity.min_disparity, disparity.max_disparity = result.disparity_range
-        disparity.delta_d = result.disparity_step
         camera = PinholeCamera(w, h, result.P[:3, :3], np.zeros(5), np.eye(4))
         info = camera_to_camera_info(camera, stamp_ns, DEPTH_FRAME, np.eye(3), result.P)
         # The info first: a subscriber pairing depth with its info by stamp then has both

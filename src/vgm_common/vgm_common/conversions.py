@@ -17,6 +17,7 @@ from geometry_msgs.msg import Pose, PoseStamped
 from nav_msgs.msg import Path
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, PointField
 from std_msgs.msg import Header
+from stereo_msgs.msg import DisparityImage
 
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
@@ -157,6 +158,44 @@ def numpy_to_image(array: npt.ArrayLike, encoding: str, stamp_ns: int, frame_id:
         step=array.shape[1] * channels * array.itemsize,
     )
     msg.data = array.tobytes()
+    return msg
+
+
+def numpy_to_disparity_image(
+    disparity: npt.ArrayLike,
+    stamp_ns: int,
+    frame_id: str,
+    focal_px: float,
+    baseline_m: float,
+    disparity_range: tuple[float, float],
+    delta_d: float,
+    valid_window: tuple[int, int, int, int] | None = None,
+) -> DisparityImage:
+    """(H, W) disparity [px], NaN where unknown -> stereo_msgs/DisparityImage as
+    stereo_image_proc fills it: ``f`` [px], ``t`` (the baseline [m]; the ROS 2 field is
+    lower-case, and a ``T=`` keyword is silently ignored), the searched ``disparity_range``
+    (min, max), the matcher's step ``delta_d``, the fully valid window (x, y, w, h; None:
+    the whole image). Unknown pixels are -1 (below any ``min_disparity`` >= 0, which
+    marks them; one below a negative one)."""
+    array = np.asarray(disparity, dtype=np.float32)
+    low, high = disparity_range
+    msg = DisparityImage(
+        header=make_header(stamp_ns, frame_id),
+        f=float(focal_px),
+        t=float(baseline_m),
+        min_disparity=float(low),
+        max_disparity=float(high),
+        delta_d=float(delta_d),
+    )
+    msg.image = numpy_to_image(
+        np.where(np.isfinite(array), array, np.float32(min(-1.0, low - 1.0))),
+        '32FC1',
+        stamp_ns,
+        frame_id,
+    )
+    x, y, width, height = valid_window or (0, 0, array.shape[1], array.shape[0])
+    msg.valid_window.x_offset, msg.valid_window.y_offset = int(x), int(y)
+    msg.valid_window.width, msg.valid_window.height = int(width), int(height)
     return msg
 
 
