@@ -18,6 +18,7 @@ from stereo_msgs.msg import DisparityImage
 
 from sfs_stereo_node.pipeline import DepthConfig, process_pair
 from sfs_stereo_node.rectify import rectification_maps
+from sfs_stereo_node.session import DepthSession
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import CalibratedCameras, subscribe_images
 from vgm_common.conversions import (
@@ -49,7 +50,6 @@ from vgm_common.topics import (
 from vgm_common.worker import Worker
 
 DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from the optical
-WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
 # Every DepthConfig field but full_band_layers is a parameter (DepthConfig says how).
 DEPTH = ConfigParams(DepthConfig)
 
@@ -141,16 +141,8 @@ class SfsStereoNode(GraphNode):
         subscribe_images(self, ('left', 'right'), self._on_image)
         self.maps = None
         self.maps_key = None
-        self.processed = self.failed = self.throttled = self.before_calibration = 0
-        self.last_slot = None  # max_rate: the stamp slot of the last pair taken
+        self.session = DepthSession()
         self.sync_dropped_reported = 0
-        self.last_timings = {}
-        self.last_density = float('nan')
-        self.last_confidence = {}
-        self.last_fusion = ''
-        self.last_warnings: tuple[str, ...] = ()
-        self.last_warned = {}  # kind of warning -> monotonic time of its last log line
-        self.last_log = -float('inf')
         # the newest pair only: pairs arriving while one is processed replace the waiting
         # one (worker.dropped)
         self.worker = Worker(lambda pair: self._process(*pair), self._on_pair_error, 'depth')
@@ -177,23 +169,17 @@ class SfsStereoNode(GraphNode):
 
     def _on_pair(self, stamp_ns, messages):
         if not self.cameras.ready:  # expected at start-up: a wait, not bad input
-            if not self.before_calibration:
+            if self.session.waiting_for_calibration():
                 self.get_logger().info(
                     'image pairs arrive before the calibration: skipped until camera_info '
                     f'+ pose of {", ".join(self.cameras.missing())} arrive'
                 )
-            self.before_calibration += 1
             return
-        if self.params.max_rate > 0:
-            slot = int(stamp_ns * self.params.max_rate) // 1_000_000_000
-            if slot == self.last_slot:
-                self.throttled += 1
-                return
-            self.last_slot = slot
-        self.worker.submit((stamp_ns, messages))
+        if self.session.take(stamp_ns, self.params.max_rate):
+            self.worker.submit((stamp_ns, messages))
 
     def _on_pair_error(self, error):
-        self.failed += 1
+        self.session.failed += 1
         self.diagnostics.reject(
             'stereo pair',
             error if isinstance(error, InvalidInput) else f'{type(error).__name__}: {error}',
@@ -258,25 +244,15 @@ class SfsStereoNode(GraphNode):
             want_sfs=want_sfs,
         )
         self._publish(stamp_ns, result)
-        self.processed += 1
-        self.last_timings = result.timings
-        self.last_density = result.density
-        self.last_confidence = result.confidence
-        self.last_fusion = result.fusion or 'none'
-        self.last_warnings = result.warnings
-        for warning in result.warnings:  # one line per kind of warning, throttled
-            kind = warning.split(':')[0]
-            now = time.monotonic()
-            if now - self.last_warned.get(kind, -float('inf')) >= WARN_EVERY_S:
-                self.last_warned[kind] = now
-                self.get_logger().warning(f'frame {self.processed}: {warning}')
-        now = time.monotonic()
-        if self.processed == 1 or now - self.last_log >= self.params.log_every:
-            self.last_log = now
+        warnings, info_due = self.session.record(result, self.params.log_every)
+        frame = self.session.processed
+        for warning in warnings:
+            self.get_logger().warning(f'frame {frame}: {warning}')
+        if info_due:
             self.get_logger().info(
-                f'frame {self.processed}: {result.depth_stereo.shape[1]}x'
+                f'frame {frame}: {result.depth_stereo.shape[1]}x'
                 f'{result.depth_stereo.shape[0]}, match density {result.density:.3f}, '
-                f'fused by {self.last_fusion}, '
+                f'fused by {self.session.last_fusion}, '
                 f'{result.timings["total"] * 1000:.0f} ms, {self.worker.dropped} dropped'
             )
 
@@ -319,31 +295,14 @@ class SfsStereoNode(GraphNode):
         )
 
     def _publish_diagnostics(self):
-        values = {
-            'frames processed': self.processed,
-            'frames dropped (busy)': self.worker.dropped,
-            'frames skipped (max_rate)': self.throttled,
-            'pairs before calibration': self.before_calibration,
-            'pairs failed': self.failed,
-            'unpaired images dropped': self.sync.dropped,
-            'match density': f'{self.last_density:.4f}',
-            'fused by': self.last_fusion,
-            **{
-                k: f'{v:.4f}' if isinstance(v, float) else v
-                for k, v in self.last_confidence.items()
+        level, message, values = self.session.status(
+            [] if self.cameras.ready else self.cameras.missing(),
+            {
+                'dropped': self.worker.dropped,
+                'unpaired': self.sync.dropped,
+                **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()},
             },
-            'warnings': ' | '.join(self.last_warnings),
-            **{f'time {k} [ms]': f'{v * 1000:.1f}' for k, v in self.last_timings.items()},
-            **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()},
-        }
-        if not self.cameras.ready:
-            level, message = 'warn', f'no calibration for {", ".join(self.cameras.missing())}'
-        elif not self.processed:
-            level, message = 'warn', 'no pair processed yet'
-        elif self.last_warnings:
-            level, message = 'warn', self.last_warnings[0]
-        else:
-            level, message = 'ok', f'{self.processed} pairs processed'
+        )
         self.diagnostics.publish('depth', level, message, values)
 
     def close(self):
@@ -351,9 +310,8 @@ class SfsStereoNode(GraphNode):
         pairs processed, dropped and failed."""
         self.worker.close()
         self.get_logger().info(
-            f'processed {self.processed} pairs, dropped '
-            f'{self.worker.dropped}, '
-            f'failed {self.failed}'
+            f'processed {self.session.processed} pairs, dropped {self.worker.dropped}, '
+            f'failed {self.session.failed}'
         )
 
 
