@@ -27,6 +27,7 @@ from curve_recon_node.waypoints import (
     bridge_gaps,
     open_at_largest_gap,
     resample,
+    robust_arc_parameter,
     smooth_along_curve,
     split_at_gaps,
     stranded_runs,
@@ -39,6 +40,7 @@ from vgm_common.geometry import FloatArray
 
 METHODS = ('ray_roots', 'cone_lsq')
 REFINED_RESIDUAL_PX = 1.0  # [px] a refined point must come this near every view's curve
+STRANDED_FRACTION = 0.02  # a run between two gaps with fewer of the points is dropped
 
 
 class NoCurve(InvalidInput):
@@ -159,6 +161,7 @@ def _second_pair(
             order
         ],
         'n_candidates': info['n_candidates'] + more_info['n_candidates'],
+        'n_out_of_order': info['n_out_of_order'] + more_info['n_out_of_order'],
         'n_second_pair': len(more),
     }
     return np.vstack([points, more])[order], merged
@@ -287,6 +290,7 @@ def _intersection_stats(views: Sequence[View], info: CandidateInfo) -> dict[str,
         'samples': info['n_samples'],
         'candidates': info['n_candidates'],
         'rejected_by_third_view': info['n_rejected_view3'],
+        'out_of_order': info['n_out_of_order'],
         'ambiguous': info['n_ambiguous'],
         'from_views_1_3': info.get('n_second_pair', 0),
         'without_candidates': info['n_without_candidates'],
@@ -352,12 +356,19 @@ def _longest_run(
     of view 1's chain, a closed curve's period in ``sample_index``."""
     max_gap = 4 * settings.spacing + settings.smoothing_window  # [m]
     # outliers first (isolated points where three cones happen to meet off the curve):
-    # each would otherwise open the loop or split the curve at its two jumps
+    # each would otherwise open the loop or split the curve at its two jumps. Along the
+    # curve's length, not view 1's chain index: where view 1 sees the curve end-on one
+    # chain step covers millimetres, no quadratic in the index follows, and good points
+    # there were dropped as outliers (inflection seed 3: 17 points, a 26 mm hole)
+    parameter, period = robust_arc_parameter(points, closed)
     _, inlier = smooth_along_curve(
-        points, closed, settings.smoothing_window, sample_index, period=n_chain if closed else None
+        points, closed, settings.smoothing_window, parameter, period=period if closed else None
     )
     points, sample_index = points[inlier], sample_index[inlier]
-    alone = stranded_runs(points, closed, max_gap)
+    # a cluster of wrong roots (on a self-approaching loop, a dozen samples whose true
+    # stretch view 3 does not show, matched to the other strand 90 mm away) is no
+    # smooth-curve outlier along the arc length, but it is a short run between jumps
+    alone = stranded_runs(points, closed, max_gap, max(5, int(STRANDED_FRACTION * len(points))))
     stats['outliers'] = int((~inlier).sum() + alone.sum())
     points, sample_index = points[~alone], sample_index[~alone]
     ordered, closed, parameter = open_at_largest_gap(points, closed, max_gap, sample_index)
@@ -380,8 +391,9 @@ def _smoothed_waypoints(
 ) -> tuple[FloatArray, FloatArray]:
     """(waypoints evenly spaced along the smoothed run, the run's points the smoothing
     kept); adds the points it dropped to the outliers of ``stats``."""
+    parameter, period = robust_arc_parameter(ordered, closed)  # see _longest_run
     smoothed, kept = smooth_along_curve(
-        ordered, closed, settings.smoothing_window, parameter, period=n_chain if closed else None
+        ordered, closed, settings.smoothing_window, parameter, period=period if closed else None
     )
     # holes the third view or refinement left (shorter than _longest_run's max_gap)
     polyline = bridge_gaps(without_reversals(smoothed, closed), closed, 2 * settings.spacing)

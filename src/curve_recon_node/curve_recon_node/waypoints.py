@@ -37,6 +37,55 @@ def arc_length(points: npt.ArrayLike, closed: bool) -> tuple[FloatArray, float]:
     return s, total
 
 
+def robust_arc_parameter(
+    points: npt.ArrayLike, closed: bool, median_steps: int = 9
+) -> tuple[FloatArray, float]:
+    """Arc length (N,) [m] along ordered points that a lone outlier does not stretch, and
+    the period [m] (the length around the loop if ``closed``, else the total).
+
+    Each step from point i to i + 1 counts as the shortest of |p(i+1) - p(i)|,
+    |p(i+1) - p(i-1)| and |p(i+2) - p(i)|: a lone point off the curve makes both its
+    steps long but the chord over it short, while a true jump along the curve (a stretch
+    that view 1 sees end-on, so that one chain step covers millimetres) stays long in all
+    three. The steps then count at the running median over ``median_steps`` of them
+    (the points' scatter across the curve would make the parameter jitter and bias the
+    smoothing), except where one is over three times that median: a true jump, kept.
+    Steps are at least 1 % of the median step, so the parameter increases."""
+    points = _as_points(points)
+    n = len(points)
+    if n < 3:
+        t, total = arc_length(points, closed)
+        return t, max(total, 1e-12)
+    index = np.arange(n)
+    if closed:
+        nxt, after, before = (index + 1) % n, (index + 2) % n, (index - 1) % n
+        count = n
+    else:
+        nxt, after, before = (
+            index[1:],
+            np.minimum(index[1:] + 1, n - 1),
+            np.maximum(index[:-1] - 1, 0),
+        )
+        count = n - 1
+    start = index[:count]
+    step = np.minimum.reduce(
+        [
+            np.linalg.norm(points[nxt[:count]] - points[start], axis=1),
+            np.linalg.norm(points[nxt[:count]] - points[before[:count]], axis=1),
+            np.linalg.norm(points[after[:count]] - points[start], axis=1),
+        ]
+    )
+    half = min(median_steps // 2, (count - 1) // 2)
+    window = np.arange(-half, half + 1)
+    around = start[:, None] + window[None, :]
+    around = around % count if closed else np.clip(around, 0, count - 1)
+    local = np.median(step[around], axis=1)
+    step = np.where(step > 3.0 * local, step, local)
+    step = np.maximum(step, 0.01 * max(float(np.median(step)), 1e-12))
+    t = np.concatenate([[0.0], np.cumsum(step[: n - 1])])
+    return t, float(np.sum(step))
+
+
 def open_at_largest_gap(
     points: npt.ArrayLike, closed: bool, max_gap_m: float, parameter: npt.ArrayLike | None = None
 ) -> tuple[FloatArray, bool, FloatArray]:
