@@ -40,6 +40,8 @@ from vgm_common.geometry import FloatArray
 
 METHODS = ('ray_roots', 'cone_lsq')
 REFINED_RESIDUAL_PX = 1.0  # [px] a refined point must come this near every view's curve
+END_ON_GAP_SPACINGS = 2.0  # a step of more waypoint spacings between samples' points is a hole
+END_ON_ARC_CHORD = 2.0  # a hole's stretch of view 2's chain is at most this x its chord
 STRANDED_FRACTION = 0.02  # a run between two gaps with fewer of the points is dropped
 
 
@@ -167,6 +169,81 @@ def _second_pair(
     return np.vstack([points, more])[order], merged
 
 
+def _fill_end_on_stretches(
+    views: Sequence[View],
+    points: FloatArray,
+    info: CandidateInfo,
+    tol3_px: float,
+    settings: ReconstructionSettings,
+) -> tuple[FloatArray, CandidateInfo]:
+    """Where view 1 sees a stretch of the curve end-on, one step along its chain covers
+    millimetres of curve (a helix: 40 mm in 4 samples), and the hole between the two
+    samples' points was bridged or cut. Views 2 and 3 see that stretch: the view-2 chain
+    points between the projections of the hole's two ends are intersected with view 3's
+    cone, checked by view 1, and the points inserted between the ends in view-2 chain
+    order. ``sample_index`` becomes fractional there (between the ends' indices);
+    ``n_end_on`` counts the points added."""
+    index = info['sample_index'].astype(float)
+    closed = views[0].curve.closed
+    ends = np.vstack([points, points[:1]]) if closed else points
+    steps = np.linalg.norm(np.diff(ends, axis=0), axis=1)
+    holes = np.nonzero(steps > END_ON_GAP_SPACINGS * settings.spacing)[0]
+    if not len(holes):
+        return points, info
+    curve2 = views[1].curve
+    n2 = len(curve2.xy)
+    chain2 = views[1].chain_index(ends)
+    samples2: list[np.ndarray] = []
+    positions: list[np.ndarray] = []
+    for hole in holes:
+        first, last = chain2[hole], chain2[hole + 1]
+        if first < 0 or last < 0:
+            continue
+        step = last - first
+        if curve2.closed and abs(step) > n2 / 2:
+            step -= int(np.sign(step)) * n2
+        # chain points are about a pixel apart: a stretch much longer along view 2's
+        # chain than straight across is no hole in one curve but a jump between two
+        # stretches (an end is a wrong root): left to the outlier tests
+        chord_px = curve2.focal_px * np.linalg.norm(curve2.xy[last] - curve2.xy[first])
+        if abs(step) > END_ON_ARC_CHORD * chord_px + END_ON_ARC_CHORD:
+            continue
+        between = first + np.sign(step) * np.arange(1, abs(step))
+        if not len(between):
+            continue
+        samples2.append(between % n2 if curve2.closed else between)
+        start = index[hole]
+        stop = index[hole + 1] if hole + 1 < len(index) else index[0] + len(views[0].curve.xy)
+        positions.append(start + (stop - start) * np.arange(1, abs(step)) / abs(step))
+    if not samples2:
+        return points, info
+    order2 = np.concatenate(samples2)
+    more, more_info = reconstruct_ray_roots(
+        views[1],
+        views[2],
+        views[0],
+        samples=order2,
+        tol3_px=tol3_px,
+        max_depth=settings.depth_range[1],
+    )
+    if not len(more):
+        return points, info
+    position_of = dict(zip(order2.tolist(), np.concatenate(positions).tolist()))
+    added = np.array([position_of[int(i)] for i in more_info['sample_index']])
+    merged_index = np.concatenate([index, added % len(views[0].curve.xy)])
+    order = np.argsort(merged_index, kind='stable')
+    merged: CandidateInfo = {
+        **info,
+        'sample_index': merged_index[order],
+        'third_view_px': np.concatenate([info['third_view_px'], more_info['third_view_px']])[
+            order
+        ],
+        'n_out_of_order': info['n_out_of_order'] + more_info['n_out_of_order'],
+        'n_end_on': len(more),
+    }
+    return np.vstack([points, more])[order], merged
+
+
 def reconstruct_capture(
     images: Mapping[str, npt.ArrayLike],
     cameras: Mapping[str, PinholeCamera],
@@ -205,17 +282,14 @@ def reconstruct_capture(
     points, sample_index = _refined_points(
         points, info['sample_index'], views, settings, clock, stats
     )
-    n_chain = len(views[0].curve.xy)
-    ordered, closed, parameter = _longest_run(
-        points, sample_index, views[0].curve.closed, n_chain, settings, stats
-    )
+    ordered, closed = _longest_run(points, sample_index, views[0].curve.closed, settings, stats)
     if len(ordered) < 5:
         raise NoCurve(
             f'the longest gap-free piece of the curve has only {len(ordered)} points',
             key='no curve',
             value=stats,
         )
-    waypoints, points = _smoothed_waypoints(ordered, closed, parameter, n_chain, settings, stats)
+    waypoints, points = _smoothed_waypoints(ordered, closed, settings, stats)
     clock.lap('ordering, smoothing, resampling')
     stats.update(
         {
@@ -268,6 +342,7 @@ def _intersection(
         )
         if view3 is not None:
             points, info = _second_pair(views, points, info, tol3, settings)
+            points, info = _fill_end_on_stretches(views, points, info, tol3, settings)
         return points, info
     # the thesis's "suitable initial roots": log-spaced depths on each view-1 ray
     seeds = np.geomspace(*settings.depth_range, settings.seeds)
@@ -293,6 +368,7 @@ def _intersection_stats(views: Sequence[View], info: CandidateInfo) -> dict[str,
         'out_of_order': info['n_out_of_order'],
         'ambiguous': info['n_ambiguous'],
         'from_views_1_3': info.get('n_second_pair', 0),
+        'from_views_2_3': info.get('n_end_on', 0),
         'without_candidates': info['n_without_candidates'],
         'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views),
     }
@@ -346,14 +422,12 @@ def _longest_run(
     points: FloatArray,
     sample_index: np.ndarray,
     closed: bool,
-    n_chain: int,
     settings: ReconstructionSettings,
     stats: dict[str, Any],
-) -> tuple[FloatArray, bool, FloatArray]:
-    """(ordered points, closed, their curve parameter) of the longest gap-free run of
-    the points once the outliers are out, the loop opened at its largest gap if that is
-    too wide; adds the outlier and segment counts to ``stats``. ``n_chain`` is the length
-    of view 1's chain, a closed curve's period in ``sample_index``."""
+) -> tuple[FloatArray, bool]:
+    """(ordered points, closed) of the longest gap-free run of the points (in the order
+    of ``sample_index``) once the outliers are out, the loop opened at its largest gap if
+    that is too wide; adds the outlier and segment counts to ``stats``."""
     max_gap = 4 * settings.spacing + settings.smoothing_window  # [m]
     # outliers first (isolated points where three cones happen to meet off the curve):
     # each would otherwise open the loop or split the curve at its two jumps. Along the
@@ -371,21 +445,19 @@ def _longest_run(
     alone = stranded_runs(points, closed, max_gap, max(5, int(STRANDED_FRACTION * len(points))))
     stats['outliers'] = int((~inlier).sum() + alone.sum())
     points, sample_index = points[~alone], sample_index[~alone]
-    ordered, closed, parameter = open_at_largest_gap(points, closed, max_gap, sample_index)
+    ordered, closed, _ = open_at_largest_gap(points, closed, max_gap, sample_index)
     # never bridge a gap with a straight line: keep the longest gap-free run (two views
     # leave gaps where the intersection is ambiguous)
     runs = split_at_gaps(ordered, max_gap) if not closed else [np.arange(len(ordered))]
     longest = max(runs, key=lambda run: arc_length(ordered[run], False)[1])
     stats['segments'] = len(runs)
     stats['points_in_other_segments'] = len(ordered) - len(longest)
-    return ordered[longest], closed, parameter[longest]
+    return ordered[longest], closed
 
 
 def _smoothed_waypoints(
     ordered: FloatArray,
     closed: bool,
-    parameter: FloatArray,
-    n_chain: int,
     settings: ReconstructionSettings,
     stats: dict[str, Any],
 ) -> tuple[FloatArray, FloatArray]:
