@@ -28,7 +28,6 @@ of the two-view intersection where the curve runs along the epipolar lines.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NotRequired, TypedDict
@@ -40,7 +39,7 @@ from scipy.spatial import cKDTree
 from curve_recon_node.algebraic_curves import (
     FITS,
     IntArray,
-    fit_implicit_curve,
+    fit_implicit_curves,
     monomial_exponents,
     powers,
 )
@@ -143,8 +142,7 @@ class PiecewiseCurve:
         residual over ``BIAS_WINDOW`` consecutive chain points, the fit's systematic
         error, which the chain's noise averages out of."""
         best: tuple[FloatArray, float, FloatArray] | None = None
-        for fit in FITS:
-            a = fit_implicit_curve(self.xy[indices], self.degree, fit)
+        for a in fit_implicit_curves(self.xy[indices], self.degree, FITS):
             # signed Sampson distances g / ||grad g|| of the piece's chain points
             with np.errstate(divide='ignore', invalid='ignore'):
                 residual = (self._monomials[indices] @ a) / np.hypot(
@@ -589,11 +587,23 @@ def _in_chain_order(
         if view.curve.closed:
             offset = (offset + 0.5 * n) % n - 0.5 * n
         offset[~has | (picked_index[which] < 0) | (index[:, None] < 0)] = np.nan
-        with np.errstate(all='ignore'), warnings.catch_warnings():
-            warnings.simplefilter('ignore', RuntimeWarning)  # all-NaN rows: not enough
-            low, middle, high = np.nanpercentile(offset, [10, 50, 90], axis=1)
+        low, middle, high = _row_quantiles(offset, (0.1, 0.5, 0.9))
         in_order &= ~enough | ~(np.abs(middle) > ORDER_MARGIN + (high - low))
     return in_order
+
+
+def _row_quantiles(values: FloatArray, quantiles: Sequence[float]) -> list[FloatArray]:
+    """Quantiles (nearest rank) of each row of (R, K) ``values`` over its non-NaN
+    entries, one (R,) array per quantile (NaN for an all-NaN row): sorted once, where
+    ``np.nanpercentile`` loops over rows in Python (50 ms on a capture's candidates)."""
+    ordered = np.sort(values, axis=1)  # NaN last
+    count = np.sum(np.isfinite(values), axis=1)
+    rows = np.arange(len(values))
+    result = []
+    for q in quantiles:
+        rank = np.round(q * np.maximum(count - 1, 0)).astype(int)
+        result.append(np.where(count > 0, ordered[rows, rank], np.nan))
+    return result
 
 
 def refine_points(
