@@ -187,7 +187,15 @@ def _fill_end_on_stretches(
     closed = views[0].curve.closed
     ends = np.vstack([points, points[:1]]) if closed else points
     steps = np.linalg.norm(np.diff(ends, axis=0), axis=1)
-    holes = np.nonzero(steps > END_ON_GAP_SPACINGS * settings.spacing)[0]
+    long_step = steps > END_ON_GAP_SPACINGS * settings.spacing
+    # two long steps in a row are the way to and back from a lone wrong root, no hole
+    beside = np.zeros_like(long_step)
+    beside[1:] |= long_step[:-1]
+    beside[:-1] |= long_step[1:]
+    if closed:
+        beside[0] |= long_step[-1]
+        beside[-1] |= long_step[0]
+    holes = np.nonzero(long_step & ~beside)[0]
     if not len(holes):
         return points, info
     curve2 = views[1].curve

@@ -37,6 +37,9 @@ def arc_length(points: npt.ArrayLike, closed: bool) -> tuple[FloatArray, float]:
     return s, total
 
 
+JUMP_FACTOR = 3.0  # a step this many times its neighbours' median is a jump along the curve
+
+
 def robust_arc_parameter(
     points: npt.ArrayLike, closed: bool, median_steps: int = 9
 ) -> tuple[FloatArray, float]:
@@ -49,7 +52,8 @@ def robust_arc_parameter(
     that view 1 sees end-on, so that one chain step covers millimetres) stays long in all
     three. The steps then count at the running median over ``median_steps`` of them
     (the points' scatter across the curve would make the parameter jitter and bias the
-    smoothing), except where one is over three times that median: a true jump, kept.
+    smoothing), except where one is over ``JUMP_FACTOR`` times that median: a true jump, kept
+    (not at an open curve's ends, where nothing beyond confirms it).
     Steps are at least 1 % of the median step, so the parameter increases."""
     points = _as_points(points)
     n = len(points)
@@ -80,7 +84,10 @@ def robust_arc_parameter(
     around = start[:, None] + window[None, :]
     around = around % count if closed else np.clip(around, 0, count - 1)
     local = np.median(step[around], axis=1)
-    step = np.where(step > 3.0 * local, step, local)
+    jump = step > JUMP_FACTOR * local
+    if not closed:  # a jump to an end point has no point beyond to confirm it
+        jump[[0, -1]] = False
+    step = np.where(jump, step, local)
     step = np.maximum(step, 0.01 * max(float(np.median(step)), 1e-12))
     t = np.concatenate([[0.0], np.cumsum(step[: n - 1])])
     return t, float(np.sum(step))
