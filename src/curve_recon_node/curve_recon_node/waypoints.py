@@ -232,8 +232,15 @@ def _local_quadratic(
     |dt| < ``half``; ``period`` for a periodic parameter (else None). Points are sorted by
     t, so each window is a band of neighbours: all fits at once from weighted moments."""
     n = len(t)
-    spacing = np.min(np.diff(t)) if n > 1 else 1.0
-    k = int(min(n // 2, np.ceil(half / max(spacing, 1e-12))))
+    # the band: the most neighbours any point has within half on either side (half over
+    # the smallest step overshoots it many times where the steps vary, as arc lengths do)
+    extended = np.concatenate([t - period, t, t + period]) if period is not None else t
+    position = (n if period is not None else 0) + np.arange(n)
+    reach = np.maximum(
+        np.searchsorted(extended, t + half, side='right') - 1 - position,
+        position - np.searchsorted(extended, t - half, side='left'),
+    )
+    k = int(min(n // 2, max(int(reach.max()), 1)))
     offsets = np.arange(-k, k + 1)
     index = np.arange(n)[:, None] + offsets[None, :]
     if period is not None:
