@@ -77,6 +77,10 @@ def errors_and_coverage(result, truth):
         # 2 and 3 as if they were end-on holes, they put 132 true points out of order
         # and split the curve (coverage 0.67); two long steps in a row are no hole
         ('inflection', 0, 4.0, 0.3, 0.1),
+        # the last point of the open curve 1.7 mm off, its own local fit following it
+        # (no points beyond): 0.18 / 1.61 mm, now judged by its neighbours' fit, 0.04 /
+        # 0.14 mm
+        ('parabola', 2, 4.0, 0.3, 0.1),
     ],
 )
 def test_traced_draws_within_a_millimetre(family, seed, noise_grey, max_mm, rms_mm):

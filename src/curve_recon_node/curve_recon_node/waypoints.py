@@ -37,6 +37,7 @@ def arc_length(points: npt.ArrayLike, closed: bool) -> tuple[FloatArray, float]:
     return s, total
 
 
+END_POINTS_LEFT_OUT = 3  # at each open end, judged by the fit without them
 JUMP_FACTOR = 3.0  # a step this many times its neighbours' median is a jump along the curve
 
 
@@ -215,6 +216,13 @@ def smooth_along_curve(
         smoothed = fitted
         if p == passes - 1:
             break
+        if not closed:
+            # an open curve's end points are judged by their neighbours' fit without
+            # them: with no points beyond, their own fit follows them (a last point 1.7
+            # mm off kept a 0.29 mm residual)
+            ends = np.zeros(len(current), dtype=bool)
+            ends[:END_POINTS_LEFT_OUT] = ends[-END_POINTS_LEFT_OUT:] = True
+            fitted = _local_quadratic(current, t, half, None, leave_out=ends)
         residual = np.linalg.norm(current - fitted, axis=1)
         mad = 1.4826 * np.median(residual)
         outlier = residual > max(reject_sigma * mad, 5e-4)
@@ -226,11 +234,16 @@ def smooth_along_curve(
 
 
 def _local_quadratic(
-    values: FloatArray, t: FloatArray, half: float, period: float | None
+    values: FloatArray,
+    t: FloatArray,
+    half: float,
+    period: float | None,
+    leave_out: npt.NDArray[np.bool_] | None = None,
 ) -> FloatArray:
     """Value at each t of the tricube-weighted quadratic fit of ``values`` (N, C) over
-    |dt| < ``half``; ``period`` for a periodic parameter (else None). Points are sorted by
-    t, so each window is a band of neighbours: all fits at once from weighted moments."""
+    |dt| < ``half``; ``period`` for a periodic parameter (else None); where ``leave_out``
+    (N,) is set, the fit without the point itself. Points are sorted by t, so each window
+    is a band of neighbours: all fits at once from weighted moments."""
     n = len(t)
     # the band: the most neighbours any point has within half on either side (half over
     # the smallest step overshoots it many times where the steps vary, as arc lengths do)
@@ -254,6 +267,8 @@ def _local_quadratic(
         index = np.clip(index, 0, n - 1)
         dt = t[index] - t[:, None]
     w = np.where(valid, np.clip(1 - (np.abs(dt) / half) ** 3, 0.0, None) ** 3, 0.0)
+    if leave_out is not None:
+        w[leave_out, k] = 0.0
     weighted_powers = [w]  # w dt^p, p = 0..4, by repeated products
     for _ in range(4):
         weighted_powers.append(weighted_powers[-1] * dt)
