@@ -208,13 +208,17 @@ def test_piecewise_fit_splits_a_loop_no_conic_fits():
         assert np.all(curve.member.any(axis=0)) and curve.member.sum() > len(curve.xy)
         # distances: 0 on the chain, about the offset off it (first order)
         # (over every chain point: the short unsplittable pieces of the aux view's sharp
-        # turns reach 0.13 px with either fit, Taubin's or the algebraic one)
+        # turns reach 0.13 px with either fit, Taubin's or the algebraic one; 0.165 px
+        # since pieces with a steady bias are split too, which leaves shorter ones there)
         on_chain = np.abs(curve.distance(curve.xy)[0]) * F_PX
-        assert np.sqrt(np.mean(on_chain**2)) < 0.05 and on_chain.max() < 0.15
+        assert np.sqrt(np.mean(on_chain**2)) < 0.05 and on_chain.max() < 0.18
         distance, direction = curve.distance(curve.xy[::40])
         moved = curve.xy[::40] + 0.5 / F_PX * direction
         np.testing.assert_allclose(np.median(curve.distance(moved)[0] * F_PX), 0.5, atol=0.02)
-        assert np.percentile(np.abs(curve.distance(moved)[0] * F_PX - 0.5), 90) < 0.15
+        # (90th percentile 0.12 px before pieces with a steady bias were split too, 0.17
+        # after: two samples at the aux view's sharp turns, whose shorter pieces' curves
+        # bend away off the chain; views 1 and 2: 0.04 -> 0.01 px)
+        assert np.percentile(np.abs(curve.distance(moved)[0] * F_PX - 0.5), 90) < 0.2
 
 
 @pytest.mark.parametrize('method', ['ray_roots', 'cone_lsq'])

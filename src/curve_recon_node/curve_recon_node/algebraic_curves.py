@@ -12,6 +12,7 @@ a = (F, D, E, A, C, B) in this order.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from functools import lru_cache
 from math import comb
 
@@ -120,6 +121,14 @@ def fit_implicit_curve(xy: npt.ArrayLike, degree: int, fit: str = 'taubin') -> F
     back to the original coordinates. Returns the (M,) unit-norm coefficients. Raises
     ``InvalidInput`` with fewer than M - 1 points (the curve is then not determined).
     """
+    return fit_implicit_curves(xy, degree, (fit,))[0]
+
+
+def fit_implicit_curves(
+    xy: npt.ArrayLike, degree: int, fits: Sequence[str] = FITS
+) -> list[FloatArray]:
+    """``fit_implicit_curve`` by each of ``fits`` on the same points, sharing their
+    normalisation and monomials (a piece's fit tries both)."""
     xy = _as_xy(xy)
     size = len(monomial_exponents(degree))
     if len(xy) < size - 1:
@@ -128,19 +137,24 @@ def fit_implicit_curve(xy: npt.ArrayLike, degree: int, fit: str = 'taubin') -> F
             key='xy',
             value=len(xy),
         )
-    if fit not in FITS:
-        raise InvalidInput(f'fit: expected one of {FITS}, got {fit!r}', key='fit', value=fit)
+    for fit in fits:
+        if fit not in FITS:
+            raise InvalidInput(f'fit: expected one of {FITS}, got {fit!r}', key='fit', value=fit)
     mean = xy.mean(axis=0)
     centred = xy - mean
     scale = np.sqrt(2.0) / np.mean(np.linalg.norm(centred, axis=1))
     normalised = scale * centred
     M = monomials(normalised, degree)
-    if fit == 'algebraic':
-        solution = np.linalg.svd(M, full_matrices=False)[2][-1]
-    else:
-        solution = _taubin(M, normalised, degree)
-    a = _shift_scale_matrix(mean, scale, degree).T @ solution
-    return a / np.linalg.norm(a)
+    back = _shift_scale_matrix(mean, scale, degree).T
+    result = []
+    for fit in fits:
+        if fit == 'algebraic':
+            solution = np.linalg.svd(M, full_matrices=False)[2][-1]
+        else:
+            solution = _taubin(M, normalised, degree)
+        a = back @ solution
+        result.append(a / np.linalg.norm(a))
+    return result
 
 
 def _taubin(M: FloatArray, xy: FloatArray, degree: int) -> FloatArray:

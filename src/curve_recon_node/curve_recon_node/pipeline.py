@@ -27,6 +27,7 @@ from curve_recon_node.waypoints import (
     bridge_gaps,
     open_at_largest_gap,
     resample,
+    robust_arc_parameter,
     smooth_along_curve,
     split_at_gaps,
     stranded_runs,
@@ -39,6 +40,9 @@ from vgm_common.geometry import FloatArray
 
 METHODS = ('ray_roots', 'cone_lsq')
 REFINED_RESIDUAL_PX = 1.0  # [px] a refined point must come this near every view's curve
+END_ON_GAP_SPACINGS = 2.0  # a step of more waypoint spacings between samples' points is a hole
+END_ON_ARC_CHORD = 2.0  # a hole's stretch of view 2's chain is at most this x its chord
+STRANDED_FRACTION = 0.02  # a run between two gaps with fewer of the points is dropped
 
 
 class NoCurve(InvalidInput):
@@ -159,7 +163,91 @@ def _second_pair(
             order
         ],
         'n_candidates': info['n_candidates'] + more_info['n_candidates'],
+        'n_out_of_order': info['n_out_of_order'] + more_info['n_out_of_order'],
         'n_second_pair': len(more),
+    }
+    return np.vstack([points, more])[order], merged
+
+
+def _fill_end_on_stretches(
+    views: Sequence[View],
+    points: FloatArray,
+    info: CandidateInfo,
+    tol3_px: float,
+    settings: ReconstructionSettings,
+) -> tuple[FloatArray, CandidateInfo]:
+    """Where view 1 sees a stretch of the curve end-on, one step along its chain covers
+    millimetres of curve (a helix: 40 mm in 4 samples), and the hole between the two
+    samples' points was bridged or cut. Views 2 and 3 see that stretch: the view-2 chain
+    points between the projections of the hole's two ends are intersected with view 3's
+    cone, checked by view 1, and the points inserted between the ends in view-2 chain
+    order. ``sample_index`` becomes fractional there (between the ends' indices);
+    ``n_end_on`` counts the points added."""
+    index = info['sample_index'].astype(float)
+    closed = views[0].curve.closed
+    ends = np.vstack([points, points[:1]]) if closed else points
+    steps = np.linalg.norm(np.diff(ends, axis=0), axis=1)
+    long_step = steps > END_ON_GAP_SPACINGS * settings.spacing
+    # two long steps in a row are the way to and back from a lone wrong root, no hole
+    beside = np.zeros_like(long_step)
+    beside[1:] |= long_step[:-1]
+    beside[:-1] |= long_step[1:]
+    if closed:
+        beside[0] |= long_step[-1]
+        beside[-1] |= long_step[0]
+    holes = np.nonzero(long_step & ~beside)[0]
+    if not len(holes):
+        return points, info
+    curve2 = views[1].curve
+    n2 = len(curve2.xy)
+    chain2 = views[1].chain_index(ends)
+    samples2: list[np.ndarray] = []
+    positions: list[np.ndarray] = []
+    for hole in holes:
+        first, last = chain2[hole], chain2[hole + 1]
+        if first < 0 or last < 0:
+            continue
+        step = last - first
+        if curve2.closed and abs(step) > n2 / 2:
+            step -= int(np.sign(step)) * n2
+        # chain points are about a pixel apart: a stretch much longer along view 2's
+        # chain than straight across is no hole in one curve but a jump between two
+        # stretches (an end is a wrong root): left to the outlier tests
+        chord_px = curve2.focal_px * np.linalg.norm(curve2.xy[last] - curve2.xy[first])
+        if abs(step) > END_ON_ARC_CHORD * chord_px + END_ON_ARC_CHORD:
+            continue
+        between = first + np.sign(step) * np.arange(1, abs(step))
+        if not len(between):
+            continue
+        samples2.append(between % n2 if curve2.closed else between)
+        start = index[hole]
+        stop = index[hole + 1] if hole + 1 < len(index) else index[0] + len(views[0].curve.xy)
+        positions.append(start + (stop - start) * np.arange(1, abs(step)) / abs(step))
+    if not samples2:
+        return points, info
+    order2 = np.concatenate(samples2)
+    more, more_info = reconstruct_ray_roots(
+        views[1],
+        views[2],
+        views[0],
+        samples=order2,
+        tol3_px=tol3_px,
+        max_depth=settings.depth_range[1],
+    )
+    if not len(more):
+        return points, info
+    position_of = dict(zip(order2.tolist(), np.concatenate(positions).tolist()))
+    added = np.array([position_of[int(i)] for i in more_info['sample_index']])
+    merged_index = np.concatenate([index, added % len(views[0].curve.xy)])
+    order = np.argsort(merged_index, kind='stable')
+    merged: CandidateInfo = {
+        **info,
+        'sample_index': merged_index[order],
+        'third_view_px': np.concatenate([info['third_view_px'], more_info['third_view_px']])[
+            order
+        ],
+        'n_out_of_order': info['n_out_of_order'] + more_info['n_out_of_order'],
+        'n_end_on': len(more),
     }
     return np.vstack([points, more])[order], merged
 
@@ -202,17 +290,14 @@ def reconstruct_capture(
     points, sample_index = _refined_points(
         points, info['sample_index'], views, settings, clock, stats
     )
-    n_chain = len(views[0].curve.xy)
-    ordered, closed, parameter = _longest_run(
-        points, sample_index, views[0].curve.closed, n_chain, settings, stats
-    )
+    ordered, closed = _longest_run(points, sample_index, views[0].curve.closed, settings, stats)
     if len(ordered) < 5:
         raise NoCurve(
             f'the longest gap-free piece of the curve has only {len(ordered)} points',
             key='no curve',
             value=stats,
         )
-    waypoints, points = _smoothed_waypoints(ordered, closed, parameter, n_chain, settings, stats)
+    waypoints, points = _smoothed_waypoints(ordered, closed, settings, stats)
     clock.lap('ordering, smoothing, resampling')
     stats.update(
         {
@@ -265,6 +350,7 @@ def _intersection(
         )
         if view3 is not None:
             points, info = _second_pair(views, points, info, tol3, settings)
+            points, info = _fill_end_on_stretches(views, points, info, tol3, settings)
         return points, info
     # the thesis's "suitable initial roots": log-spaced depths on each view-1 ray
     seeds = np.geomspace(*settings.depth_range, settings.seeds)
@@ -287,8 +373,10 @@ def _intersection_stats(views: Sequence[View], info: CandidateInfo) -> dict[str,
         'samples': info['n_samples'],
         'candidates': info['n_candidates'],
         'rejected_by_third_view': info['n_rejected_view3'],
+        'out_of_order': info['n_out_of_order'],
         'ambiguous': info['n_ambiguous'],
         'from_views_1_3': info.get('n_second_pair', 0),
+        'from_views_2_3': info.get('n_end_on', 0),
         'without_candidates': info['n_without_candidates'],
         'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views),
     }
@@ -342,46 +430,50 @@ def _longest_run(
     points: FloatArray,
     sample_index: np.ndarray,
     closed: bool,
-    n_chain: int,
     settings: ReconstructionSettings,
     stats: dict[str, Any],
-) -> tuple[FloatArray, bool, FloatArray]:
-    """(ordered points, closed, their curve parameter) of the longest gap-free run of
-    the points once the outliers are out, the loop opened at its largest gap if that is
-    too wide; adds the outlier and segment counts to ``stats``. ``n_chain`` is the length
-    of view 1's chain, a closed curve's period in ``sample_index``."""
+) -> tuple[FloatArray, bool]:
+    """(ordered points, closed) of the longest gap-free run of the points (in the order
+    of ``sample_index``) once the outliers are out, the loop opened at its largest gap if
+    that is too wide; adds the outlier and segment counts to ``stats``."""
     max_gap = 4 * settings.spacing + settings.smoothing_window  # [m]
     # outliers first (isolated points where three cones happen to meet off the curve):
-    # each would otherwise open the loop or split the curve at its two jumps
+    # each would otherwise open the loop or split the curve at its two jumps. Along the
+    # curve's length, not view 1's chain index: where view 1 sees the curve end-on one
+    # chain step covers millimetres, no quadratic in the index follows, and good points
+    # there were dropped as outliers (inflection seed 3: 17 points, a 26 mm hole)
+    parameter, period = robust_arc_parameter(points, closed)
     _, inlier = smooth_along_curve(
-        points, closed, settings.smoothing_window, sample_index, period=n_chain if closed else None
+        points, closed, settings.smoothing_window, parameter, period=period if closed else None
     )
     points, sample_index = points[inlier], sample_index[inlier]
-    alone = stranded_runs(points, closed, max_gap)
+    # a cluster of wrong roots (on a self-approaching loop, a dozen samples whose true
+    # stretch view 3 does not show, matched to the other strand 90 mm away) is no
+    # smooth-curve outlier along the arc length, but it is a short run between jumps
+    alone = stranded_runs(points, closed, max_gap, max(5, int(STRANDED_FRACTION * len(points))))
     stats['outliers'] = int((~inlier).sum() + alone.sum())
     points, sample_index = points[~alone], sample_index[~alone]
-    ordered, closed, parameter = open_at_largest_gap(points, closed, max_gap, sample_index)
+    ordered, closed, _ = open_at_largest_gap(points, closed, max_gap, sample_index)
     # never bridge a gap with a straight line: keep the longest gap-free run (two views
     # leave gaps where the intersection is ambiguous)
     runs = split_at_gaps(ordered, max_gap) if not closed else [np.arange(len(ordered))]
     longest = max(runs, key=lambda run: arc_length(ordered[run], False)[1])
     stats['segments'] = len(runs)
     stats['points_in_other_segments'] = len(ordered) - len(longest)
-    return ordered[longest], closed, parameter[longest]
+    return ordered[longest], closed
 
 
 def _smoothed_waypoints(
     ordered: FloatArray,
     closed: bool,
-    parameter: FloatArray,
-    n_chain: int,
     settings: ReconstructionSettings,
     stats: dict[str, Any],
 ) -> tuple[FloatArray, FloatArray]:
     """(waypoints evenly spaced along the smoothed run, the run's points the smoothing
     kept); adds the points it dropped to the outliers of ``stats``."""
+    parameter, period = robust_arc_parameter(ordered, closed)  # see _longest_run
     smoothed, kept = smooth_along_curve(
-        ordered, closed, settings.smoothing_window, parameter, period=n_chain if closed else None
+        ordered, closed, settings.smoothing_window, parameter, period=period if closed else None
     )
     # holes the third view or refinement left (shorter than _longest_run's max_gap)
     polyline = bridge_gaps(without_reversals(smoothed, closed), closed, 2 * settings.spacing)

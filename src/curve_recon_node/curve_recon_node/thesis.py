@@ -97,7 +97,14 @@ def reconstruct_cone_lsq(
     sample_of = position[chain_index]
     inside = sample_of >= 0
     return select_candidates(
-        sample_of[inside], x[keep][inside], len(samples), samples, view3, tol3_px, distinct_m
+        sample_of[inside],
+        x[keep][inside],
+        len(samples),
+        samples,
+        view3,
+        tol3_px,
+        distinct_m,
+        order_views=(view1, view2),
     )
 
 
