@@ -7,6 +7,7 @@ import pytest
 
 from pa10_ik_node.ik import RateSolver
 from pa10_ik_node.path import WaypointPath
+from pa10_ik_node.reach import joints_at
 from pa10_ik_node.tracking import (
     TrackingConfig,
     TrackingController,
@@ -75,11 +76,13 @@ def simulate(
     max_time=60.0,
     new_waypoints_at=None,
     new_waypoints=None,
+    q0=None,
     **config,
 ):
     """The controller against sensor_sim's arm and spring contact, 100 Hz control, the arm
-    at 200 Hz following one-point trajectories as in the node. Returns the controller
-    and the log of (phase, T_base_tool, force) per control step."""
+    at 200 Hz following one-point trajectories as in the node, from the joints ``q0``
+    (None: the scenario's) with the force measured there. Returns the controller and the
+    log of (phase, T_base_tool, force) per control step."""
     k = scenario.contact_stiffness
     controller = TrackingController(
         robot,
@@ -88,8 +91,9 @@ def simulate(
         max_joint_velocity=1.0,
     )
     controller.start(waypoints)
-    arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints)
-    log, force, t = [], 0.0, 0.0
+    arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints if q0 is None else q0)
+    force = contact_force(robot.forward_kinematics(arm.q)[:3, 3], scenario.surface, k).force
+    log, t = [], 0.0
     while t < max_time and not (controller.phase == 'done' and controller.time_in_phase > 3.5):
         if new_waypoints_at is not None and controller.progress >= new_waypoints_at:
             controller.update_path(new_waypoints, robot.forward_kinematics(arm.q)[:3, 3])
@@ -161,6 +165,30 @@ def test_tracks_path_with_force(robot, scenario, method, track_spin, stiffness_r
     assert np.linalg.norm(end - waypoints[-1, :3, 3]) == pytest.approx(0.0275, abs=1.5e-3)
     rms_stat, force_band = controller.stats.summary()
     assert rms_stat < 0.3e-3 and force_band < 0.1 * DESIRED_FORCE
+
+
+def test_a_start_already_in_contact_presses_on_without_lifting_off(robot, scenario):
+    """Started with the tip pressing at the first waypoint (the joints where a
+    first run settled its contact), the task goes on from there: the force never drops
+    below half the desired one before tracking, the tip never rises more than 0.5 mm, and
+    tracking starts within 1 s (a lift-off to the standoff and back takes > 3 s)."""
+    waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
+    pressing = waypoints[0].copy()
+    pressing[:3, 3] += DESIRED_FORCE / scenario.contact_stiffness * pressing[:3, 2]
+    q_contact = joints_at(robot, scenario.robot.initial_joints, pressing)
+    assert q_contact is not None
+    controller, log = simulate(
+        robot, scenario, waypoints, scenario.contact_stiffness, q0=q_contact
+    )
+    assert controller.phase == 'done', controller.reason
+    assert log[0][2] > 0.9 * DESIRED_FORCE  # the start really presses
+    tracking_at = next(i for i, (phase, _, _) in enumerate(log) if phase == 'tracking')
+    assert tracking_at * DT < 1.0
+    before = log[:tracking_at]
+    assert min(force for _, _, force in before) > 0.5 * DESIRED_FORCE
+    z0 = waypoints[0][:3, 2]
+    rise = max(float(np.dot(pressing[:3, 3] - T[:3, 3], z0)) for _, T, _ in before)
+    assert rise < 0.0005
 
 
 def test_closed_loop_is_followed_once_around_and_a_new_path_taken_over(robot, scenario):

@@ -140,6 +140,15 @@ MIN_RESPONSE = 0.4  # commands are scaled up at most 2.5 times (_compensated)
 RESPONSE_WINDOW = 1.0  # [s] forgetting time of the response estimate
 MAX_INTEGRAL_SPEEDS = 1.0  # see TrackingConfig.pose_integral_gain
 REACH_CHECK_SPACING_M = 0.002  # waypoints walked through before the arm moves
+# [m] the descent reference runs at max_tip_speed until it is this far short of the first
+# waypoint (judged on the reference, which the governor keeps at most governor_distance
+# ahead of the measured tip), then at descent_speed: the contact is met slowly wherever the
+# surface really is within the waypoints' depth error.
+DESCENT_SLOW_DISTANCE_M = 0.005
+# A start touching the surface within governor_distance of the first waypoint across its
+# approach axis and this close to its orientation presses on from there (no lift-off).
+IN_CONTACT_MAX_TILT_RAD = np.radians(5.0)
+CURVATURE_LOOKAHEAD_M = 0.01  # [m] see TrackingConfig.max_lateral_acceleration
 PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
 ACTIVE_PHASES = ('approach', 'contact', 'tracking')
 
@@ -157,7 +166,16 @@ class TrackingConfig:
 
     desired_force: float = 5.0  # [N]
     stiffness: float = 2000.0  # [N/m] contact stiffness estimate (feed-forward depth)
-    speed: float = 0.015  # [m/s] along the path
+    # [m/s] the tip's top speed: along the path, in the free-space move, in the descent
+    # until the reference is DESCENT_SLOW_DISTANCE_M short of the first waypoint, and in
+    # the lift-off. 0.03 m/s keeps the in-process and topic goals (README, Measured).
+    max_tip_speed: float = 0.03
+    speed: float = 0.0  # [m/s] along the path, at most max_tip_speed; 0: max_tip_speed
+    # [m/s^2] the path speed is also held to sqrt(this / curvature) over the next
+    # CURVATURE_LOOKAHEAD_M: the tip's lateral error on a bend grows with v^2 x curvature
+    # (a 145 mm figure eight bending down to 6 mm radius, in process: RMS 0.099 mm at a
+    # constant 0.03 m/s, 0.012 mm with this limit); a gentle path runs at max_tip_speed.
+    max_lateral_acceleration: float = 0.03
     pose_gain: float = 10.0  # [1/s] pose feedback
     # [1/s^2] integral of the tip's error across the approach axis while tracking: an arm
     # slower than commanded (a lag, a velocity scale) would otherwise trail the reference
@@ -171,9 +189,8 @@ class TrackingConfig:
     force_law: str = 'integral'  # 'integral' (ours) or 'tilt' (thesis 7.3.15, tilted_motion)
     track_spin: bool = False  # track the spin about the approach axis too (6 constraints)
     standoff: float = 0.03  # [m] pre-contact pose above the first waypoint
-    descent_speed: float = 0.01  # [m/s] along the approach axis before contact
+    descent_speed: float = 0.01  # [m/s] the last DESCENT_SLOW_DISTANCE_M before contact
     lift_height: float = 0.03  # [m] lift-off when done
-    max_linear_speed: float = 0.05  # [m/s] free-space moves
     max_angular_speed: float = 0.5  # [rad/s] free-space moves
     max_depth: float = 0.01  # [m] deepest commanded indentation; descent beyond: failure
     force_tolerance: float = 0.05  # relative band in which the contact counts as settled
@@ -292,7 +309,17 @@ class TrackingController:
         law = changes.get('force_law', self.config.force_law)
         if law not in FORCE_LAWS:
             raise InvalidInput(f'force_law must be one of {FORCE_LAWS}', 'force_law', law)
-        self.config = replace(self.config, **changes)
+        config = replace(self.config, **changes)
+        if not config.max_tip_speed > 0:
+            raise InvalidInput('max_tip_speed must be > 0', 'max_tip_speed', config.max_tip_speed)
+        self.config = config
+
+    @property
+    def path_speed(self) -> float:
+        """[m/s] The reference's speed along the path: ``speed``, or ``max_tip_speed``
+        when ``speed`` is 0 or faster."""
+        c = self.config
+        return c.max_tip_speed if c.speed <= 0 else min(c.speed, c.max_tip_speed)
 
     # --- commands --------------------------------------------------------------------
 
@@ -470,10 +497,10 @@ class TrackingController:
         speed = float(np.linalg.norm(v))
         forget = np.exp(-dt / RESPONSE_WINDOW)
         self.response_sums *= forget
-        if speed >= 0.3 * c.speed:
+        if speed >= 0.3 * self.path_speed:
             self.response_sums += (float(np.dot(tip - self.last_tip, v)) / speed, speed * dt)
         made, commanded = self.response_sums
-        if commanded > 0.3 * c.speed * RESPONSE_WINDOW / 2:  # enough motion to judge
+        if commanded > 0.3 * self.path_speed * RESPONSE_WINDOW / 2:  # enough motion to judge
             self.response = float(np.clip(made / commanded, MIN_RESPONSE, 1.0))
 
     def _compensated(self, qdot: FloatArray) -> FloatArray:
@@ -510,6 +537,11 @@ class TrackingController:
                 self.force_before_free_move = force
             if self._unexpected_contact(tip, P0, z0, force, 'moving in free space'):
                 return None
+            if self._touching_first_waypoint(T, P0, z0, force):
+                self.stage = 'descend'  # press on from here: no lift-off and re-approach
+                self.reference_depth = float(np.dot(tip - P0, z0))
+                self.best_distance, self.stall_time = np.inf, 0.0
+                return self._descend(T, P0, z0, force, dt, info)
             T_d = self._frame(0.0, P0 - c.standoff * z0)
             distance = float(np.linalg.norm(T_d[:3, 3] - tip))
             angle = float(np.linalg.norm(tilt_error(T[:3, :3], z0)))
@@ -526,6 +558,23 @@ class TrackingController:
             else:
                 return T_d, np.zeros(6), True
         return self._descend(T, P0, z0, force, dt, info)
+
+    def _touching_first_waypoint(
+        self, T: FloatArray, P0: FloatArray, z0: FloatArray, force: float
+    ) -> bool:
+        """Whether the measured tip (pose ``T``) already touches the surface at the first
+        waypoint ``P0`` (approach axis ``z0``): some force, within governor_distance of it
+        across the axis and max_depth along it, tilted less than IN_CONTACT_MAX_TILT_RAD."""
+        c = self.config
+        offset = T[:3, 3] - P0
+        along = float(np.dot(offset, z0))
+        across = float(np.linalg.norm(offset - along * z0))
+        return (
+            force >= c.force_tolerance * c.desired_force
+            and across < c.governor_distance
+            and abs(along) <= c.max_depth
+            and float(np.linalg.norm(tilt_error(T[:3, :3], z0))) < IN_CONTACT_MAX_TILT_RAD
+        )
 
     def _contact_reference(self, T: FloatArray, force: float, dt: float) -> _Reference | None:
         """Contact: hold the first waypoint at the force law's depth until the force has
@@ -558,7 +607,9 @@ class TrackingController:
                 self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain, c.max_depth
             )
         remaining = path.length - self.travelled
-        speed = c.speed * min(1.0, max(self.time_in_phase / c.ramp_time, 0.05))
+        speed = min(self.path_speed, self._bend_speed()) * min(
+            1.0, max(self.time_in_phase / c.ramp_time, 0.05)
+        )
         motion = self._advance_reference(tip, force, speed, remaining, dt)
         if motion is None:
             return None
@@ -578,6 +629,20 @@ class TrackingController:
         self._record_tracking_errors(tip, force, info)
         self._finish_when_travelled(T_d, tip, dt)
         return self._checked(T, T_d, feed_forward, dt)
+
+    def nominal_tracking_time(self) -> float:
+        """[s] How long the started path takes at the path speed, slowed on its bends
+        (no speed ramp, no waiting for a lagging arm)."""
+        assert self.path is not None  # set by start()
+        return self.path.nominal_duration(self.path_speed, self.config.max_lateral_acceleration)
+
+    def _bend_speed(self) -> float:
+        """[m/s] The fastest speed along the path that keeps the lateral acceleration
+        within max_lateral_acceleration over the next CURVATURE_LOOKAHEAD_M."""
+        assert self.path is not None  # tracking runs on the started path
+        curvature = self.path.largest_curvature(self.s_ref, self.s_ref + CURVATURE_LOOKAHEAD_M)
+        a = self.config.max_lateral_acceleration
+        return float(np.sqrt(a / curvature)) if curvature > 0 and a > 0 else np.inf
 
     def _advance_reference(
         self, tip: FloatArray, force: float, speed: float, remaining: float, dt: float
@@ -685,11 +750,13 @@ class TrackingController:
                 f'first waypoint, {force:.2f} N)'
             )
             return None
-        slow = np.clip(1.0 - force / c.desired_force, 0.2, 1.0)
         previous = self.reference_depth
-        self.reference_depth = max(
-            previous, min(previous + c.descent_speed * slow * dt, depth + c.governor_distance)
-        )
+        if previous < -DESCENT_SLOW_DISTANCE_M and force < c.force_tolerance * c.desired_force:
+            rate = max(c.max_tip_speed, c.descent_speed)  # in free space, far from contact
+            step = min(rate * dt, -DESCENT_SLOW_DISTANCE_M - previous)
+        else:
+            step = c.descent_speed * np.clip(1.0 - force / c.desired_force, 0.2, 1.0) * dt
+        self.reference_depth = max(previous, min(previous + step, depth + c.governor_distance))
         rate = (self.reference_depth - previous) / dt if dt > 0 else 0.0
         T_d = self._frame(0.0, P0 + self.reference_depth * z0)
         feed_forward = np.concatenate([rate * z0, np.zeros(3)])
@@ -742,7 +809,11 @@ class TrackingController:
                 return None
             self.lift_reference = max(
                 previous,
-                min(previous + c.descent_speed * dt, lifted + c.governor_distance, c.lift_height),
+                min(
+                    previous + max(c.max_tip_speed, c.descent_speed) * dt,
+                    lifted + c.governor_distance,
+                    c.lift_height,
+                ),
             )
         T_d[:3, 3] -= self.lift_reference * z
         feed_forward = np.zeros(6)
@@ -795,15 +866,15 @@ class TrackingController:
             z = T_d[:3, 2]
             lateral = error[:3] - z * np.dot(z, error[:3])  # depth: the force law's
             self.pose_integral = self.pose_integral + lateral * self.last_dt
-            bound = MAX_INTEGRAL_SPEEDS * c.speed / c.pose_integral_gain
+            bound = MAX_INTEGRAL_SPEEDS * self.path_speed / c.pose_integral_gain
             norm = np.linalg.norm(self.pose_integral)
             if norm > bound:
                 self.pose_integral *= bound / norm
             twist[:3] += c.pose_integral_gain * self.pose_integral
         if free_move:
             linear, angular = np.linalg.norm(twist[:3]), np.linalg.norm(twist[3:])
-            if linear > c.max_linear_speed:
-                twist[:3] *= c.max_linear_speed / linear
+            if linear > c.max_tip_speed:
+                twist[:3] *= c.max_tip_speed / linear
             if angular > c.max_angular_speed:
                 twist[3:] *= c.max_angular_speed / angular
         J = self.robot.jacobian(q)
