@@ -313,9 +313,9 @@ CASES_OUT = REPO / 'bench' / 'results' / 'pa10_ik_cases'
 # peer, DLS IK with the plain pose feedback (no integral across the approach axis, no
 # compensation of a slow arm's measured response).
 CASE_METHODS = {
-    'ours': ('ours', np.ones(7), {}),
+    'ours': ('ours', np.ones(7), {'adapt_response': False}),
     'ours_adaptive': ('ours', np.ones(7), {'adapt_response': True}),
-    'dls': ('dls', np.ones(7), {}),
+    'dls': ('dls', np.ones(7), {'adapt_response': False}),
     'dls_plain': ('dls', np.ones(7), {'pose_integral_gain': 0.0, 'adapt_response': False}),
     'primal_dual': ('primal_dual', W_THESIS, {}),
 }
@@ -698,9 +698,39 @@ def pace_case(tilt_deg=20.0, seed=25):
     return robot, q0, surface, waypoints, np.vstack([path_base, path_base[:1]])
 
 
-def pace_row(controller_name, start, speed_scale, desired=5.0, stiffness=2000.0, dt=0.01):
-    """One pace run: ``controller_name`` 'ours' (node defaults) or 'peer', ``start``
-    'free' (the start pose) or 'contact' (at the first waypoint with the desired force)."""
+class DelayedCommands:
+    """A controller whose commands reach the arm ``delay_steps`` control periods late (a
+    controller or network with that much command latency): ``step`` returns the command
+    computed that many steps before (zero at first)."""
+
+    def __init__(self, controller, delay_steps):
+        self.controller, self.queue = controller, []
+        self.delay_steps = delay_steps
+
+    def __getattr__(self, name):  # phase, stage, progress, reason, stop
+        return getattr(self.controller, name)
+
+    def step(self, q, force, dt):
+        qdot, info = self.controller.step(q, force, dt)
+        self.queue.append(qdot)
+        if len(self.queue) <= self.delay_steps:
+            return np.zeros_like(qdot), info
+        return self.queue.pop(0), info
+
+
+def pace_row(
+    controller_name,
+    start,
+    speed_scale,
+    delay_s=0.0,
+    desired=5.0,
+    stiffness=2000.0,
+    dt=0.01,
+):
+    """One pace run: ``controller_name`` 'ours' (node defaults), 'ours_latency' (with
+    command_latency = ``delay_s``) or 'peer', ``start`` 'free' (the start pose) or
+    'contact' (at the first waypoint with the desired force), the arm at ``speed_scale``
+    with its commands ``delay_s`` [s] late."""
     from sensor_sim.arm_sim import SimulatedArm
 
     robot, q0, surface, waypoints, path_base = pace_case()
@@ -710,16 +740,20 @@ def pace_row(controller_name, start, speed_scale, desired=5.0, stiffness=2000.0,
         pressing = waypoints[0].copy()
         pressing[:3, 3] += desired / stiffness * pressing[:3, 2]
         q0 = joints_at(robot, q0, pressing)
-    if controller_name == 'ours':
+    if controller_name.startswith('ours'):
+        latency = delay_s if controller_name == 'ours_latency' else 0.0
         controller = TrackingController(
             robot,
             RateSolver('ours', np.ones(7)),
-            TrackingConfig(desired_force=desired, stiffness=stiffness),
+            TrackingConfig(desired_force=desired, stiffness=stiffness, command_latency=latency),
             max_joint_velocity=1.0,
         )
         controller.start(waypoints, q0)
     else:
         controller = DlsPeer(robot, waypoints, desired, stiffness)
+    delay_steps = int(round(delay_s / dt))
+    if delay_steps:
+        controller = DelayedCommands(controller, delay_steps)
     arm = SimulatedArm.from_robot_model(robot, q0, 'position', speed_scale)
     hold = 0.5
     log = task_generator.run_closed_loop(
@@ -735,6 +769,7 @@ def pace_row(controller_name, start, speed_scale, desired=5.0, stiffness=2000.0,
         controller=controller_name,
         start=start,
         speed_scale=speed_scale,
+        delay_ms=delay_s * 1e3,
         phase=controller.phase,
         stage=controller.stage,
         reason=controller.reason,
@@ -753,15 +788,18 @@ def main_pace():
     """Part E: ours beside the DLS peer on the 0.8 m lemniscate; writes the table."""
     PACE_OUT.mkdir(parents=True, exist_ok=True)
     rows = []
-    for start, scale in (('free', 1.0), ('contact', 1.0), ('free', 0.5)):
-        pair = {}
-        for name in ('peer', 'ours'):
-            pair[name] = pace_row(name, start, scale)
+    runs = [('free', 1.0, 0.0), ('contact', 1.0, 0.0), ('free', 0.5, 0.0)]
+    runs += [('free', scale, delay) for scale in (1.0, 0.5) for delay in (0.02, 0.05)]
+    for start, scale, delay in runs:
+        names = ('peer', 'ours', 'ours_latency') if delay else ('peer', 'ours')
+        pair = {name: pace_row(name, start, scale, delay) for name in names}
+        for name in names:
             rows.append(pair[name])
-        pair['ours']['pace_ratio'] = pair['ours']['task_s'] / pair['peer']['task_s']
-        for r in (pair['peer'], pair['ours']):
+            pair[name]['pace_ratio'] = pair[name]['task_s'] / pair['peer']['task_s']
+        for r in pair.values():
             print(
-                f'{r["controller"]} start {start} x{scale:g}: {r["phase"]}/{r["stage"]} task '
+                f'{r["controller"]} start {start} x{scale:g} delay {delay * 1e3:g} ms: '
+                f'{r["phase"]}/{r["stage"]} task '
                 f'{r["task_s"]:.1f} s tracking {r["tracking_s"]:.1f} s rms {r["rms_mm"]:.4f} '
                 f'mm passed {r["passed_fraction"]:.3f} force p95 {r["force_p95_pct"]:.2f} % '
                 f'lost contact {r["lost_contact"]} ratio {r.get("pace_ratio", 1.0):.2f} '
@@ -773,17 +811,18 @@ def main_pace():
         '`nice -n 10 .venv/bin/python bench/bench_pa10_ik.py --pace`; in process: the '
         f'PA-10 (0.1 m tool), a {PACE_PATH_LENGTH} m lemniscate on a plane tilted 20 deg, '
         '5 N, 2000 N/m, control 100 Hz, the arm following positions at 200 Hz (x0.5: '
-        f'half speed); peer = DlsPeer at {PEER_SPEED} m/s.',
+        f'half speed), its commands delay [ms] late; peer = DlsPeer at {PEER_SPEED} m/s; '
+        'ours = node defaults, ours_latency = + command_latency = the delay.',
         '',
-        '| start | arm | controller | end | task [s] | ours / peer | tracking [s] | '
+        '| start | arm | delay [ms] | controller | end | task [s] | / peer | tracking [s] | '
         'RMS [mm] | max [mm] | passed [%] | force p95 [%] | lost contact | step [ms] | '
         'goals missed |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
+        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
     ]
     for r in rows:
         lines.append(
-            f'| {r["start"]} | x{r["speed_scale"]:g} | {r["controller"]} | {r["phase"]} | '
-            f'{r["task_s"]:.1f} | {r.get("pace_ratio", float("nan")):.2f} | '
+            f'| {r["start"]} | x{r["speed_scale"]:g} | {r["delay_ms"]:g} | {r["controller"]} | '
+            f'{r["phase"]} | {r["task_s"]:.1f} | {r["pace_ratio"]:.2f} | '
             f'{r["tracking_s"]:.1f} | {r["rms_mm"]:.4f} | {r["max_mm"]:.3f} | '
             f'{r["passed_fraction"] * 100:.1f} | {r["force_p95_pct"]:.2f} | '
             f'{"yes" if r["lost_contact"] else "no"} | {r["step_ms_median"]:.3f} | '

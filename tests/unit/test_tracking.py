@@ -77,12 +77,14 @@ def simulate(
     new_waypoints_at=None,
     new_waypoints=None,
     q0=None,
+    delay_steps=0,
     **config,
 ):
     """The controller against sensor_sim's arm and spring contact, 100 Hz control, the arm
     at 200 Hz following one-point trajectories as in the node, from the joints ``q0``
-    (None: the scenario's) with the force measured there. Returns the controller and the
-    log of (phase, T_base_tool, force) per control step."""
+    (None: the scenario's) with the force measured there, each command reaching the arm
+    ``delay_steps`` control periods late. Returns the controller and the log of (phase,
+    T_base_tool, force) per control step."""
     k = scenario.contact_stiffness
     controller = TrackingController(
         robot,
@@ -93,7 +95,7 @@ def simulate(
     controller.start(waypoints)
     arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints if q0 is None else q0)
     force = contact_force(robot.forward_kinematics(arm.q)[:3, 3], scenario.surface, k).force
-    log, t = [], 0.0
+    log, t, on_the_way = [], 0.0, [np.zeros(robot.n_joints)] * delay_steps
     while t < max_time and not (controller.phase == 'done' and controller.time_in_phase > 3.5):
         if new_waypoints_at is not None and controller.progress >= new_waypoints_at:
             controller.update_path(new_waypoints, robot.forward_kinematics(arm.q)[:3, 3])
@@ -102,7 +104,8 @@ def simulate(
         assert np.all(np.abs(qdot) <= controller.velocity_limits * (1 + 1e-9))
         if controller.phase in ('stopped', 'failed'):
             break
-        t = arm.follow_velocity(robot.joint_names, qdot, t, DT)
+        on_the_way.append(qdot)
+        t = arm.follow_velocity(robot.joint_names, on_the_way.pop(0), t, DT)
         T = robot.forward_kinematics(arm.q)
         force = contact_force(T[:3, 3], scenario.surface, k).force
         log.append((info['phase'], T, force))
@@ -189,6 +192,31 @@ def test_a_start_already_in_contact_presses_on_without_lifting_off(robot, scenar
     z0 = waypoints[0][:3, 2]
     rise = max(float(np.dot(pressing[:3, 3] - T[:3, 3], z0)) for _, T, _ in before)
     assert rise < 0.0005
+
+
+def test_command_latency_predicts_the_arm_past_its_delayed_commands(robot, scenario):
+    """Commands reaching the arm 50 ms late (a slow controller or network): with
+    command_latency 0.05 s the control acts on the joints the commands on their way will
+    give, and the tip keeps closer to the path than without (measured: RMS lateral
+    0.0128 -> 0.0058 mm), with the force within 5 % while tracking."""
+    waypoints = surface_path(scenario.surface, [0.0, -0.06], [0.1, 0.04])
+    points = np.array([T[:3, 3] for T in waypoints])
+    rms = {}
+    for latency in (0.0, 0.05):
+        controller, log = simulate(
+            robot,
+            scenario,
+            waypoints,
+            scenario.contact_stiffness,
+            delay_steps=5,
+            adapt_response=False,
+            command_latency=latency,
+        )
+        assert controller.phase == 'done', controller.reason
+        rms[latency] = float(np.sqrt(np.mean(lateral_errors(log, points, scenario.surface) ** 2)))
+        forces = np.array([f for phase, _, f in log if phase == 'tracking'])
+        assert np.all(np.abs(forces - DESIRED_FORCE) < 0.05 * DESIRED_FORCE)
+    assert rms[0.05] < 0.6 * rms[0.0]
 
 
 def test_closed_loop_is_followed_once_around_and_a_new_path_taken_over(robot, scenario):

@@ -200,8 +200,16 @@ PARAMETERS = [
         TRACKING.defaults.adapt_response,
         'Measure how much of the commanded motion the '
         'arm makes and scale commands up for an arm slower than commanded (at most '
-        '2.5 times, within the joint speed limits). Off by default: on a loaded '
-        'machine late commands make any arm look slow.',
+        '2.5 times, within the joint speed limits); the motion measured is compared with '
+        'the command sent command_latency before.',
+    ),
+    Param(
+        'command_latency',
+        TRACKING.defaults.command_latency,
+        "[s] The arm's delay from a command to its measured effect: the control law acts on "
+        'the measured joints advanced by the commands of that time (a Smith predictor); '
+        '0: none assumed.',
+        range=(0.0, 0.5),
     ),
     Param(
         'pose_integral_gain',

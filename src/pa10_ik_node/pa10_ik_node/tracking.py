@@ -182,9 +182,18 @@ class TrackingConfig:
     # by speed / pose_gain and cut the path's curves. Bounded to add at most
     # MAX_INTEGRAL_SPEEDS x ``speed``.
     pose_integral_gain: float = 20.0
-    # Scale commands by the arm's measured response (opt-in: over topics on a loaded
-    # machine late commands make any arm look slow, and scaling up then overshoots).
-    adapt_response: bool = False
+    # Scale commands by the arm's measured response (at most 1 / MIN_RESPONSE). On by
+    # default since max_tip_speed: over topics (tests/topic/test_pa10_ik_node.py, three
+    # runs of the file, one under load) every arm's RMS fell 3-10x with it (the
+    # default-speed arc 0.42-0.74 -> 0.04-0.13 mm, the Panda 0.25-0.4 -> 0.02-0.13 mm), in
+    # process it meets the half-speed arms; an earlier version once overshot a Panda run
+    # by 21 mm.
+    adapt_response: bool = True
+    # [s] the arm's delay from a command to its measured effect (0: none assumed). The
+    # control law then acts on the measured joints advanced by the joint velocities
+    # commanded within that time (a Smith predictor: a delayed arm otherwise trails or
+    # overshoots its reference); every phase decision stays on the measured state.
+    command_latency: float = 0.0
     force_gain: float = 5.0  # [1/s] integral force law (approach_correction)
     force_law: str = 'integral'  # 'integral' (ours) or 'tilt' (thesis 7.3.15, tilted_motion)
     track_spin: bool = False  # track the spin about the approach axis too (6 constraints)
@@ -302,6 +311,8 @@ class TrackingController:
         self.response_sums = np.zeros(2)  # [m] (made, commanded), see _update_response
         self.last_tip: FloatArray | None = None
         self.last_tip_velocity: FloatArray | None = None
+        # (dt [s], qdot (n,), tip velocity (3,)) of the commands within command_latency
+        self.pending: list[tuple[float, FloatArray, FloatArray]] = []
         self.solver.reset()
 
     def configure(self, **changes: Any) -> None:
@@ -473,15 +484,43 @@ class TrackingController:
         T_d, feed_forward, free_move = target
         info.update(phase=self.phase, T_desired=T_d)
         self._update_response(T[:3, 3], dt)
-        qdot, solve_info = self._solve(q, T, T_d, feed_forward, free_move)
+        q_ahead = self._predicted(q)
+        T_ahead = T if q_ahead is q else self.robot.forward_kinematics(q_ahead)
+        qdot, solve_info = self._solve(q_ahead, T_ahead, T_d, feed_forward, free_move)
         info.update(solve_info)
         qdot = self._compensated(qdot)
         self.last_tip, self.last_tip_velocity = (
             T[:3, 3].copy(),
             (self.robot.jacobian(q) @ qdot)[:3],
         )
+        self._remember_command(qdot, self.last_tip_velocity, dt)
         info['response'] = self.response
         return qdot, info
+
+    def _governor_distance(self) -> float:
+        """[m] How far the measured tip may trail its reference before the reference
+        waits: ``governor_distance`` plus what the tip moves at max_tip_speed within the
+        ``command_latency`` (the commands on their way)."""
+        c = self.config
+        return c.governor_distance + c.max_tip_speed * max(c.command_latency, 0.0)
+
+    def _predicted(self, q: FloatArray) -> FloatArray:
+        """The measured joints ``q`` advanced by the commands still on their way (those of
+        the last ``command_latency``); ``q`` itself when no latency is assumed."""
+        if self.config.command_latency <= 0 or not self.pending:
+            return q
+        ahead = q + sum(step * qdot for step, qdot, _ in self.pending)
+        return np.clip(ahead, self.robot.lower_limits, self.robot.upper_limits)
+
+    def _remember_command(self, qdot: FloatArray, tip_velocity: FloatArray, dt: float) -> None:
+        """Keep the commands of the last ``command_latency`` for ``_predicted``."""
+        latency = self.config.command_latency
+        if latency <= 0 or dt <= 0:
+            self.pending = []
+            return
+        self.pending.append((dt, qdot.copy(), tip_velocity))
+        while sum(step for step, _, _ in self.pending) > latency + 1e-9:
+            self.pending.pop(0)
 
     def _update_response(self, tip: FloatArray, dt: float) -> None:
         """Estimate how much of the commanded tip motion the arm makes (1: all of it; an
@@ -491,7 +530,8 @@ class TrackingController:
         averages out), counted only while the command moves the tip fast enough to
         measure."""
         c = self.config
-        v = self.last_tip_velocity
+        # The motion measured now answers the command sent command_latency ago.
+        v = self.pending[0][2] if self.pending else self.last_tip_velocity
         if self.last_tip is None or v is None or dt <= 0 or not c.adapt_response:
             return
         speed = float(np.linalg.norm(v))
@@ -657,7 +697,7 @@ class TrackingController:
         lag = float(np.linalg.norm(P + self.depth * z - tip))
         # Direction of motion in E: (along x_E, along z_E) per unit path step.
         direction = (1.0, 0.0)
-        advanced = lag < c.governor_distance
+        advanced = lag < self._governor_distance()
         self.wait_time = 0.0 if advanced else self.wait_time + dt
         if self.wait_time > 2 * c.error_timeout:
             self.fail(
@@ -756,7 +796,9 @@ class TrackingController:
             step = min(rate * dt, -DESCENT_SLOW_DISTANCE_M - previous)
         else:
             step = c.descent_speed * np.clip(1.0 - force / c.desired_force, 0.2, 1.0) * dt
-        self.reference_depth = max(previous, min(previous + step, depth + c.governor_distance))
+        self.reference_depth = max(
+            previous, min(previous + step, depth + self._governor_distance())
+        )
         rate = (self.reference_depth - previous) / dt if dt > 0 else 0.0
         T_d = self._frame(0.0, P0 + self.reference_depth * z0)
         feed_forward = np.concatenate([rate * z0, np.zeros(3)])
@@ -811,7 +853,7 @@ class TrackingController:
                 previous,
                 min(
                     previous + max(c.max_tip_speed, c.descent_speed) * dt,
-                    lifted + c.governor_distance,
+                    lifted + self._governor_distance(),
                     c.lift_height,
                 ),
             )
