@@ -792,10 +792,11 @@ class TrackingController:
             return None
         previous = self.reference_depth
         if previous < -DESCENT_SLOW_DISTANCE_M and force < c.force_tolerance * c.desired_force:
-            rate = max(c.max_tip_speed, c.descent_speed)  # in free space, far from contact
-            step = min(rate * dt, -DESCENT_SLOW_DISTANCE_M - previous)
+            # In free space, far from contact: at the top speed.
+            step = min(c.max_tip_speed * dt, -DESCENT_SLOW_DISTANCE_M - previous)
         else:
-            step = c.descent_speed * np.clip(1.0 - force / c.desired_force, 0.2, 1.0) * dt
+            slow = min(c.descent_speed, c.max_tip_speed)
+            step = slow * np.clip(1.0 - force / c.desired_force, 0.2, 1.0) * dt
         self.reference_depth = max(
             previous, min(previous + step, depth + self._governor_distance())
         )
@@ -852,7 +853,7 @@ class TrackingController:
             self.lift_reference = max(
                 previous,
                 min(
-                    previous + max(c.max_tip_speed, c.descent_speed) * dt,
+                    previous + c.max_tip_speed * dt,
                     lifted + self._governor_distance(),
                     c.lift_height,
                 ),
