@@ -26,6 +26,9 @@ sys.path[:0] = [str(p) for p in sorted((REPO / 'src').iterdir()) if (p / 'packag
 
 PARAMS_FILES = {  # file -> {node name: module declaring its PARAMETERS}
     'src/calib_node/params/calib_node.yaml': {'calib_node': 'calib_node.node'},
+    'src/curve_recon_node/params/curve_recon_node.yaml': {
+        'curve_recon_node': 'curve_recon_node.node'
+    },
     'src/sfs_stereo_node/params/sfs_stereo_node.yaml': {'sfs_stereo_node': 'sfs_stereo_node.node'},
 }
 README_BEGIN = re.compile(

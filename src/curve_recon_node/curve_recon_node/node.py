@@ -24,7 +24,7 @@ from rclpy.qos import QoSProfile, qos_profile_services_default
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from curve_recon_node.pipeline import METHODS, NoCurve, ReconstructionSettings, reconstruct_capture
+from curve_recon_node.pipeline import NoCurve, ReconstructionSettings, reconstruct_capture
 from curve_recon_node.waypoints import (
     DEPTH_RANGE_M,
     check_depth_intrinsics,
@@ -62,8 +62,7 @@ from vgm_common.topics import (
 )
 from vgm_common.worker import Worker
 
-# The parameters that shape a reconstruction (min_fraction, depth_range, seeds keep the
-# core's defaults).
+# The parameters that shape a reconstruction (ReconstructionSettings says how).
 SETTINGS = ConfigParams(ReconstructionSettings)
 
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
@@ -105,100 +104,36 @@ _REPUBLISH_WITH_NORMALS = object()
 
 
 PARAMETERS = [
-    Param(
-        'degree',
-        SETTINGS.defaults.degree,
-        'Degree n of the implicit image curves (2 conics, 3 cubics).',
-        range=(1, 6),
-    ),
-    Param(
-        'method',
-        SETTINGS.defaults.method,
-        'Cone intersection: ray_roots (roots of the view-2 '
-        'cone along view-1 rays, ours) or cone_lsq (minimise S1^2 + S2^2, thesis).',
-        choices=METHODS,
-    ),
-    Param(
-        'third_view_tolerance',
-        SETTINGS.defaults.third_view_tolerance,
-        "[px] Largest distance of a point's projection to the third view's curve.",
-        range=(1e-3, 100.0),
-    ),
-    Param(
-        'spacing',
-        SETTINGS.defaults.spacing,
-        '[m] Waypoint spacing along the curve.',
-        range=(1e-4, 1.0),
-    ),
+    *SETTINGS.declarations(),
     Param(
         'views',
         3,
-        'Views to use: 3 (left, right, aux) or 2 (left, right).',
+        'Views to use: 3 (left, right, aux) or 2 (left, right). With 3 but no aux '
+        'calibration after aux_wait, two views are used.',
         range=(2, 3),
-    ),
-    Param(
-        'line_width_px',
-        SETTINGS.defaults.line_width_px,
-        '[px] Width of the drawn curve in the images.',
-        range=(1.0, 30.0),
-    ),
-    Param(
-        'min_contrast',
-        SETTINGS.defaults.min_contrast,
-        '[grey levels] Faintest line taken as the curve.',
-        range=(0.5, 255.0),
-    ),
-    Param(
-        'min_curve_pixels',
-        SETTINGS.defaults.min_curve_pixels,
-        '[px] Shortest image chain taken as the curve.',
-        range=(5.0, 1e5),
-    ),
-    Param(
-        'fit_tolerance_px',
-        SETTINGS.defaults.fit_tolerance_px,
-        '[px] RMS residual above which a chain is split into pieces (piecewise fit).',
-        range=(1e-3, 100.0),
-    ),
-    Param(
-        'min_piece_points',
-        SETTINGS.defaults.min_piece_points,
-        'Chain points below which a piece is not split.',
-        range=(8, 100000),
-    ),
-    Param(
-        'refine',
-        SETTINGS.defaults.refine,
-        'Refine points by minimising their pixel distances to the curves of all views.',
-    ),
-    Param(
-        'smoothing_window',
-        SETTINGS.defaults.smoothing_window,
-        '[m] Window of the smoothing along the curve before resampling.',
-        range=(0.0, 1.0),
     ),
     Param(
         'use_depth_normals',
         True,
-        'Approach direction from /depth/fused surface normals when available (else base -z).',
+        'Approach axis from /depth/fused surface normals when available (else base -z).',
     ),
     Param(
         'normal_window_px',
         15,
-        "[px] Depth window for a normal's plane fit.",
+        "Depth window for each normal's plane fit [px of the depth image].",
         range=(3, 101),
     ),
     Param(
         'sync_max_wait',
         1.0,
-        '[s] How long an incomplete capture waits for its other images.',
+        '[s] An incomplete capture is dropped after this.',
         range=(0.01, 60.0),
     ),
     Param(
         'aux_wait',
         2.0,
-        "[s] With views 3, how long to wait for the aux camera's "
-        'calibration before reconstructing from two views.',
+        "[s] With views 3, how long to wait for the aux camera's calibration before "
+        'reconstructing from two views.',
         range=(0.0, 600.0),
     ),
     Param(

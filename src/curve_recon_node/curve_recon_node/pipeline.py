@@ -37,6 +37,7 @@ from curve_recon_node.waypoints import (
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
+from vgm_common.settings import setting
 
 METHODS = ('ray_roots', 'cone_lsq')
 REFINED_RESIDUAL_PX = 1.0  # [px] a refined point must come this near every view's curve
@@ -50,21 +51,67 @@ class NoCurve(InvalidInput):
     do not agree)."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class ReconstructionSettings:
-    """The node's parameters that shape a reconstruction (see the README's table)."""
+    """What shapes a reconstruction: the one source of curve_recon_node's parameters of
+    these names (min_fraction, depth_range and seeds are constants, no parameters)."""
 
-    degree: int = 2
-    method: str = 'ray_roots'
-    third_view_tolerance: float = 2.0  # [px] in the third view
-    spacing: float = 0.005  # [m]
-    line_width_px: float = 3.0
-    min_contrast: float = 8.0  # [grey levels]
-    min_curve_pixels: float = 60.0  # [px] shortest chain accepted as the curve
-    fit_tolerance_px: float = 0.1  # [px] RMS residual of a piece's fit
-    min_piece_points: int = 30
-    refine: bool = True
-    smoothing_window: float = 0.02  # [m]
+    degree: int = setting(
+        2,
+        'Degree n of the implicit image curves (2 conics incl. ellipses, parabolas, line '
+        'pairs; 3 cubics; any n >= 1).',
+        range=(1, 6),
+    )
+    method: str = setting(
+        'ray_roots',
+        'Cone intersection: ray_roots (ours: exact real roots of the view-2 cone along each '
+        'view-1 ray) or cone_lsq (the thesis: minimise S1^2 + S2^2 from seeds).',
+        choices=METHODS,
+    )
+    third_view_tolerance: float = setting(
+        2.0,
+        "Largest Sampson distance of a candidate's projection to the third view's fitted "
+        'curve, in pixels of the third view.',
+        unit='px',
+        range=(1e-3, 100.0),
+    )
+    spacing: float = setting(
+        0.005, 'Waypoint spacing along the curve.', unit='m', range=(1e-4, 1.0)
+    )
+    line_width_px: float = setting(
+        3.0,
+        "Width of the drawn line (sets the ridge detector's scale and the end trim).",
+        unit='px',
+        range=(1.0, 30.0),
+    )
+    min_contrast: float = setting(
+        8.0,
+        'Faintest line taken as the curve (darker than its surroundings by this).',
+        unit='grey levels',
+        range=(0.5, 255.0),
+    )
+    min_curve_pixels: float = setting(
+        60.0, 'Shortest image chain taken as the curve.', unit='px', range=(5.0, 1e5)
+    )
+    fit_tolerance_px: float = setting(
+        0.1,
+        'A chain whose degree-n fit has a larger RMS Sampson residual is split into '
+        'overlapping pieces.',
+        unit='px',
+        range=(1e-3, 100.0),
+    )
+    min_piece_points: int = setting(
+        30, 'Pieces are not split below 2x this many chain points.', range=(8, 100000)
+    )
+    refine: bool = setting(
+        True, "Move each point to minimise its pixel distances to all views' curves."
+    )
+    smoothing_window: float = setting(
+        0.02,
+        'Local-quadratic smoothing window along the curve before resampling.',
+        unit='m',
+        range=(0.0, 1.0),
+    )
     min_fraction: float = 0.5  # of view-1 samples that must be reconstructed
     depth_range: tuple[float, float] = (0.005, 5.0)  # [m] where the curve may be (view-1 depth)
     seeds: int = 12  # cone_lsq seeds per view-1 ray, log-spaced over depth_range
