@@ -17,10 +17,19 @@ is reported as such. invisible-watermark's package imports torch at import time,
 
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_stereo_coding.py
 writes bench/results/stereo_coding/ (results.md, results.json, PNGs).
+    ... bench/bench_stereo_coding.py --fit-study
+prints what the fine layer's node fit could reach per node spacing, and the coarse
+cells under a guided filter (seconds).
 """
 
-import importlib.util
+import os
+
+# One BLAS thread, as vgm_launch gives every node: on this machine's 2 shared cores
+# OpenBLAS's threads made ours' 640x480 encode take 49-102 ms instead of 12 (min of 10).
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+import importlib.util  # noqa: E402
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -362,7 +371,51 @@ def plot(name, left, coded, disparity, decoded, path):
     plt.close(fig)
 
 
+def guided_filter(guide, source, radius, eps):
+    """He et al.'s guided filter of ``source`` by the grey ``guide`` (box windows)."""
+    guide = guide.astype(np.float32) / 255.0
+    source = source.astype(np.float32)
+    box = lambda x: cv2.boxFilter(x, -1, (2 * radius + 1, 2 * radius + 1))  # noqa: E731
+    mean_g, mean_s = box(guide), box(source)
+    a = (box(guide * source) - mean_g * mean_s) / (box(guide * guide) - mean_g**2 + eps)
+    b = mean_s - a * mean_g
+    return (box(a) * guide + box(b)).astype(float)
+
+
+def fit_study():
+    """What the payload could carry at best: the least-squares bilinear node fit of the
+    undistorted disparity (no quantisation, no channel) per node spacing, and the coarse
+    cells guided by the left image's edges (guided filter). Pearson correlation / RMS."""
+    scenes = {'Aloe (640x555)': aloe(640), 'generated seed 1': generated_scene((480, 640), 1)}
+    for scene, (left, _, disparity) in scenes.items():
+        known = np.isfinite(disparity)
+        filled = blind._filled(disparity, known)
+        for cell in (48, 32, 24, 16, 12):
+            rows, cols = (blind._hat_basis(n, cell) for n in disparity.shape)
+            nodes = np.linalg.pinv(rows) @ filled @ np.linalg.pinv(cols).T
+            fit = rows @ nodes @ cols.T
+            rms = disparity_error(fit, disparity)[0]
+            print(
+                f'{scene}: {cell}-px nodes ({nodes.size}) least squares: correlation '
+                f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px'
+            )
+        cells = blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
+        print(f'{scene}: 48-px cells, bilinear: {pixel_correlation(cells, disparity):.3f}')
+        for radius in (24, 48):
+            for eps in (1e-3, 1e-2):
+                guided = guided_filter(
+                    left, np.nan_to_num(cells, nan=np.nanmean(cells)), radius, eps
+                )
+                print(
+                    f'{scene}: 48-px cells, guided filter r {radius} eps {eps}: '
+                    f'{pixel_correlation(guided, disparity):.3f}'
+                )
+
+
 def main():
+    if '--fit-study' in sys.argv:
+        fit_study()
+        return
     OUT.mkdir(parents=True, exist_ok=True)
     libraries, missing = load_libraries()
     scenes = {'Aloe (640x555)': aloe(640)}

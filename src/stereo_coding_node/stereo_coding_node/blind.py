@@ -472,11 +472,11 @@ def _seal(body: Bits) -> Bits:
     return np.unpackbits(np.frombuffer(bytes(_RS.encode(message)), np.uint8))
 
 
-def _hat_basis(n: int) -> FloatArray:
+def _hat_basis(n: int, cell_px: int = FINE_CELL_PX) -> FloatArray:
     """(n, nodes) 1-D bilinear interpolation weights of ``n`` pixels on nodes every
-    ``FINE_CELL_PX`` px (node j at pixel coordinate j * FINE_CELL_PX - 0.5)."""
-    nodes = int(np.ceil(n / FINE_CELL_PX)) + 1
-    position = (np.arange(n) + 0.5) / FINE_CELL_PX
+    ``cell_px`` px (node j at pixel coordinate j * cell_px - 0.5)."""
+    nodes = int(np.ceil(n / cell_px)) + 1
+    position = (np.arange(n) + 0.5) / cell_px
     return np.maximum(0.0, 1.0 - np.abs(position[:, None] - np.arange(nodes)[None, :]))
 
 
