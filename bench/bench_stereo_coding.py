@@ -18,8 +18,8 @@ is reported as such. invisible-watermark's package imports torch at import time,
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_stereo_coding.py
 writes bench/results/stereo_coding/ (results.md, results.json, PNGs).
     ... bench/bench_stereo_coding.py --fit-study
-prints what the fine layer's node fit could reach per node spacing, and the coarse
-cells under a guided filter (seconds).
+prints what the node fit could reach per node spacing, and the coarse code under a
+guided filter (seconds).
 """
 
 import os
@@ -308,7 +308,7 @@ def timings(shape, libraries, repeats=3):
     bits = blind.disparity_code(disparity)
     methods = {
         'ours': (lambda: blind.encode(left, disparity, KEY), lambda c: blind.decode(c, KEY)),
-        'ours coarse only': (
+        'ours, coarse layer only': (
             lambda: blind.encode(left, disparity, KEY, fine=False),
             lambda c: blind.decode(c, KEY),
         ),
@@ -385,12 +385,12 @@ def guided_filter(guide, source, radius, eps):
 def fit_study():
     """What the payload could carry at best: the least-squares bilinear node fit of the
     undistorted disparity (no quantisation, no channel) per node spacing, and the coarse
-    cells guided by the left image's edges (guided filter). Pearson correlation / RMS."""
+    code guided by the left image's edges (guided filter). Pearson correlation / RMS."""
     scenes = {'Aloe (640x555)': aloe(640), 'generated seed 1': generated_scene((480, 640), 1)}
     for scene, (left, _, disparity) in scenes.items():
         known = np.isfinite(disparity)
         filled = blind._filled(disparity, known)
-        for cell in (48, 32, 24, 16, 12):
+        for cell in (52, 48, 32, 24, 16, 12):
             rows, cols = (blind._hat_basis(n, cell) for n in disparity.shape)
             nodes = np.linalg.pinv(rows) @ filled @ np.linalg.pinv(cols).T
             fit = rows @ nodes @ cols.T
@@ -400,14 +400,14 @@ def fit_study():
                 f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px'
             )
         cells = blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
-        print(f'{scene}: 48-px cells, bilinear: {pixel_correlation(cells, disparity):.3f}')
+        print(f'{scene}: coarse code (52-px nodes): {pixel_correlation(cells, disparity):.3f}')
         for radius in (24, 48):
             for eps in (1e-3, 1e-2):
                 guided = guided_filter(
                     left, np.nan_to_num(cells, nan=np.nanmean(cells)), radius, eps
                 )
                 print(
-                    f'{scene}: 48-px cells, guided filter r {radius} eps {eps}: '
+                    f'{scene}: coarse code, guided filter r {radius} eps {eps}: '
                     f'{pixel_correlation(guided, disparity):.3f}'
                 )
 
@@ -433,7 +433,7 @@ def main():
             blind.payload_bits(left.shape) + blind.fine_payload_bits(left.shape),
         )
         entry['ours'] = ours
-        entry['ours coarse only (before issue 29)'] = run_bits(
+        entry['ours, coarse layer only'] = run_bits(
             left,
             disparity,
             lambda g, b, d=disparity: blind.encode(g, d, KEY, fine=False),

@@ -120,7 +120,7 @@ def test_thesis_key_file_errors_name_the_file(tmp_path):
 
 
 def cell_truth(disparity):
-    """The embedded disparity as the code represents it (cell medians, 6 bits)."""
+    """The embedded disparity as the coarse code represents it (52-px nodes, 6 bits)."""
     return blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
 
 
@@ -150,8 +150,8 @@ def pixel_correlation_and_rms(decoded, embedded):
     return float(np.corrcoef(a, b)[0, 1]), float(np.sqrt(np.mean((a - b) ** 2)))
 
 
-# Measured (2026-12-04): after JPEG 50, Aloe 640x555 coarse only 0.738 / 9.52 px, with the
-# fine layer 0.925 / 5.31 px; generated seed 1 0.907 / 5.06 px -> 0.970 / 2.92 px.
+# Measured (2026-12-04): after JPEG 50, Aloe 640x555 coarse layer only 0.849 / 7.35 px, with
+# the fine layer 0.925 / 5.30 px; generated seed 1 0.931 / 4.39 px -> 0.970 / 2.92 px.
 @pytest.mark.parametrize(
     'source, min_correlation, max_rms_px', [('aloe', 0.92, 5.6), ('generated', 0.965, 3.1)]
 )
@@ -172,7 +172,7 @@ def test_ours_fine_layer_carries_the_disparity_through_jpeg_50(
     before = blind.decode(jpeg(blind.encode(left, disparity, 'k29', fine=False), 50)[0], 'k29')
     assert before.found and not before.fine
     correlation_coarse, rms_coarse = pixel_correlation_and_rms(before.disparity_px, disparity)
-    assert correlation_fine > correlation_coarse + 0.05 and rms_fine < 0.75 * rms_coarse
+    assert correlation_fine > correlation_coarse + 0.03 and rms_fine < 0.8 * rms_coarse
 
 
 def test_ours_falls_back_to_the_coarse_layer_when_the_fine_one_is_lost():

@@ -31,7 +31,7 @@ from vgm_common.geometry import FloatArray
 
 Bits = npt.NDArray[np.uint8]  # (n,) bits, 0 or 1
 
-CELL_PX = 48  # grid cell of the disparity code [px]: the code grows with the image
+CELL_PX = 52  # coarse node spacing [px]: as many nodes as 48-px cells had on 640x555
 LEVEL_BITS = 6  # per cell; level 0 marks an unknown cell
 RANGE_UNIT_PX = 1.0 / 8.0  # header resolution of the disparity range [px]
 HEADER_BITS = 32  # minimum and maximum disparity, 16 bits each in RANGE_UNIT_PX
@@ -73,8 +73,8 @@ class Detection:
 
 
 def code_grid(shape: tuple[int, ...]) -> tuple[int, int]:
-    """(rows, cols) of the disparity code for an image of ``shape`` (H, W)."""
-    return max(1, int(np.ceil(shape[0] / CELL_PX))), max(1, int(np.ceil(shape[1] / CELL_PX)))
+    """(rows, cols) of the coarse layer's nodes for an image of ``shape`` (H, W)."""
+    return _node_grid(shape, CELL_PX)
 
 
 def payload_bits(shape: tuple[int, ...]) -> int:
@@ -103,43 +103,28 @@ def _message_bytes_of(body_bits: int) -> int:
 
 def disparity_code(disparity_px: npt.ArrayLike) -> Bits:
     """(H, W) disparity [px] (NaN or < 0 unknown) -> the coarse layer's code word (uint8
-    0/1): cell medians, CRC and Reed-Solomon parity included."""
-    d = _known_or_nan(disparity_px)
-    rows, cols = code_grid(d.shape)
-    padded = np.full((rows * CELL_PX, cols * CELL_PX), np.nan)
-    padded[: d.shape[0], : d.shape[1]] = d
-    windows = (
-        padded.reshape(rows, CELL_PX, cols, CELL_PX).transpose(0, 2, 1, 3).reshape(rows, cols, -1)
-    )
-    inside = np.zeros_like(padded, dtype=bool)
-    inside[: d.shape[0], : d.shape[1]] = True
-    area = inside.reshape(rows, CELL_PX, cols, CELL_PX).sum(axis=(1, 3))
-    count = np.isfinite(windows).sum(axis=2)
-    # Unknown pixels sort last: the median of the known ones is at (count - 1) / 2.
-    ordered = np.sort(windows, axis=2)
-    low_i = np.clip((count - 1) // 2, 0, None)
-    high_i = np.clip(count // 2, 0, None)
-    median = 0.5 * (
-        np.take_along_axis(ordered, low_i[..., None], 2)[..., 0]
-        + np.take_along_axis(ordered, high_i[..., None], 2)[..., 0]
-    )
-    cells = np.where((count > 0) & (count >= MIN_VALID_FRACTION * area), median, np.nan)
-    return _seal(_quantised_body(cells))
+    0/1): least-squares bilinear nodes every ``CELL_PX`` px (see ``fine_code``), CRC
+    and Reed-Solomon parity included."""
+    return _seal(_quantised_body(_node_fit(_known_or_nan(disparity_px), CELL_PX)))
 
 
 def disparity_from_code(bits: npt.ArrayLike, shape: tuple[int, ...]) -> FloatArray | None:
-    """Inverse of ``disparity_code``: (H, W) float64 disparity [px], NaN where unknown;
-    None if the CRC fails or the header is inconsistent. The cells are interpolated
-    bilinearly (weighting cells by the decoded image's grey levels, a joint bilateral
-    upsampling, was tried: on textured scenes it doubled the > 2 px errors)."""
+    """Inverse of ``disparity_code``: (H, W) float64 disparity [px], NaN where the
+    nearest node is unknown; None if the CRC fails or the header is inconsistent.
+    (Weighting by the decoded image's grey levels, a joint bilateral upsampling or a
+    guided filter, was tried: on textured scenes it lowered the correlation.)"""
     body = _checked_body(bits, payload_bits(shape), _body_bits(shape))
-    cells = None if body is None else _dequantised(body, code_grid(shape))
-    return None if cells is None else _upsample_cells(cells, shape)
+    nodes = None if body is None else _dequantised(body, code_grid(shape))
+    return None if nodes is None else _node_surface(nodes, shape, CELL_PX)
 
 
 def fine_grid(shape: tuple[int, ...]) -> tuple[int, int]:
     """(rows, cols) of the fine layer's nodes for an image of ``shape`` (H, W)."""
-    return int(np.ceil(shape[0] / FINE_CELL_PX)) + 1, int(np.ceil(shape[1] / FINE_CELL_PX)) + 1
+    return _node_grid(shape, FINE_CELL_PX)
+
+
+def _node_grid(shape: tuple[int, ...], cell_px: int) -> tuple[int, int]:
+    return int(np.ceil(shape[0] / cell_px)) + 1, int(np.ceil(shape[1] / cell_px)) + 1
 
 
 def fine_payload_bits(shape: tuple[int, ...]) -> int:
@@ -156,15 +141,7 @@ def fine_code(disparity_px: npt.ArrayLike) -> Bits:
     surface nearest the disparity in least squares (unknown pixels filled from their
     known neighbours first, so the fit is separable: two small matrix products), 6 bits
     each; a node with less than ``MIN_VALID_FRACTION`` known support is unknown."""
-    d = _known_or_nan(disparity_px)
-    known = np.isfinite(d)
-    basis_rows, basis_cols = (_hat_basis(n) for n in d.shape)
-    weights = basis_rows.T @ known.astype(float) @ basis_cols  # known support of each node
-    support = basis_rows.sum(axis=0)[:, None] * basis_cols.sum(axis=0)[None, :]
-    filled = _filled(d, known)
-    nodes = np.linalg.pinv(basis_rows) @ filled @ np.linalg.pinv(basis_cols).T
-    nodes = np.where(weights >= MIN_VALID_FRACTION * support, np.maximum(nodes, 0.0), np.nan)
-    return _seal(_quantised_body(nodes))
+    return _seal(_quantised_body(_node_fit(_known_or_nan(disparity_px), FINE_CELL_PX)))
 
 
 def fine_disparity_from_code(bits: npt.ArrayLike, shape: tuple[int, ...]) -> FloatArray | None:
@@ -173,9 +150,25 @@ def fine_disparity_from_code(bits: npt.ArrayLike, shape: tuple[int, ...]) -> Flo
     n_bits = fine_payload_bits(shape)
     body = _checked_body(bits, n_bits, _fine_body_bits(shape)) if n_bits else None
     nodes = None if body is None else _dequantised(body, fine_grid(shape))
-    if nodes is None:
-        return None
-    basis_rows, basis_cols = (_hat_basis(n) for n in shape)
+    return None if nodes is None else _node_surface(nodes, shape, FINE_CELL_PX)
+
+
+def _node_fit(d: FloatArray, cell_px: int) -> FloatArray:
+    """Least-squares bilinear nodes every ``cell_px`` of ``d`` (NaN unknown); NaN for a
+    node with less than ``MIN_VALID_FRACTION`` known support."""
+    known = np.isfinite(d)
+    basis_rows, basis_cols = (_hat_basis(n, cell_px) for n in d.shape)
+    weights = basis_rows.T @ known.astype(float) @ basis_cols  # known support of each node
+    support = basis_rows.sum(axis=0)[:, None] * basis_cols.sum(axis=0)[None, :]
+    filled = _filled(d, known, cell_px)
+    nodes = np.linalg.pinv(basis_rows) @ filled @ np.linalg.pinv(basis_cols).T
+    return np.where(weights >= MIN_VALID_FRACTION * support, np.maximum(nodes, 0.0), np.nan)
+
+
+def _node_surface(nodes: FloatArray, shape: tuple[int, ...], cell_px: int) -> FloatArray:
+    """The bilinear surface of ``nodes`` (NaN unknown) on (H, W) pixels; NaN where the
+    nearest node is unknown."""
+    basis_rows, basis_cols = (_hat_basis(n, cell_px) for n in shape)
     known = np.isfinite(nodes)
     # Unknown nodes take no part: the known ones' weights are renormalised.
     weight = basis_rows @ known.astype(float) @ basis_cols.T
@@ -480,14 +473,14 @@ def _hat_basis(n: int, cell_px: int = FINE_CELL_PX) -> FloatArray:
     return np.maximum(0.0, 1.0 - np.abs(position[:, None] - np.arange(nodes)[None, :]))
 
 
-def _filled(d: FloatArray, known: np.ndarray) -> FloatArray:
+def _filled(d: FloatArray, known: np.ndarray, cell_px: int = FINE_CELL_PX) -> FloatArray:
     """``d`` with unknown pixels replaced by the mean of the known ones around them
     (normalised box filters of growing size), or by the overall mean where none is."""
     out = np.where(known, d, 0.0).astype(np.float32)
     weight = known.astype(np.float32)
     filled = out.copy()
     missing = ~known
-    size = FINE_CELL_PX
+    size = cell_px
     while missing.any() and size <= 4 * max(d.shape):
         sums = cv2.boxFilter(out, -1, (size, size), normalize=False)
         counts = cv2.boxFilter(weight, -1, (size, size), normalize=False)
@@ -513,20 +506,6 @@ def _checked_body(bits: npt.ArrayLike, n_bits: int, body_bits: int) -> Bits | No
     if zlib.crc32(body).to_bytes(4, 'big') != crc:
         return None
     return np.unpackbits(np.frombuffer(body, np.uint8))[:body_bits]
-
-
-def _upsample_cells(cells: FloatArray, shape: tuple[int, ...]) -> FloatArray:
-    """Cell values (rows, cols) -> (H, W), NaN where the nearest cell is unknown."""
-    H, W = shape
-    y = (np.arange(H) + 0.5) / CELL_PX - 0.5
-    x = (np.arange(W) + 0.5) / CELL_PX - 0.5
-    known = np.isfinite(cells)
-    nearest_known = known[np.clip(np.rint(y).astype(int), 0, cells.shape[0] - 1)][
-        :, np.clip(np.rint(x).astype(int), 0, cells.shape[1] - 1)
-    ]
-    filled = np.where(known, cells, np.nanmean(cells) if known.any() else 0.0)
-    dense = cv2.resize(filled.astype(np.float32), (W, H), interpolation=cv2.INTER_LINEAR)
-    return np.where(nearest_known, dense.astype(float), np.nan)
 
 
 def _check_grey(image: npt.ArrayLike) -> npt.NDArray[np.uint8]:
