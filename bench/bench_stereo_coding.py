@@ -17,10 +17,19 @@ is reported as such. invisible-watermark's package imports torch at import time,
 
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_stereo_coding.py
 writes bench/results/stereo_coding/ (results.md, results.json, PNGs).
+    ... bench/bench_stereo_coding.py --fit-study
+prints what the node fit could reach per node spacing, and the coarse code under a
+guided filter (seconds).
 """
 
-import importlib.util
+import os
+
+# One BLAS thread, as vgm_launch gives every node: on this machine's 2 shared cores
+# OpenBLAS's threads made ours' 640x480 encode take 49-102 ms instead of 12 (min of 10).
+os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+import importlib.util  # noqa: E402
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -137,6 +146,17 @@ def disparity_error(decoded, embedded):
     return float(np.sqrt(np.mean(e**2))), float(np.mean(np.abs(e) > 2.0))
 
 
+def pixel_correlation(decoded, embedded):
+    """Pearson correlation of the decoded and the embedded disparity over pixels known
+    in both (issue 29's measure); 0 if nothing was decoded."""
+    if decoded is None:
+        return 0.0
+    both = np.isfinite(decoded) & np.isfinite(embedded)
+    if both.sum() < 2:
+        return 0.0
+    return float(np.corrcoef(decoded[both], embedded[both])[0, 1])
+
+
 def rho_of(disparity, decoded):
     """(6.6.1) between the singular values of the embedded and the decoded disparity
     (unknown -> 0; nothing decoded -> 0)."""
@@ -160,6 +180,7 @@ def run_thesis(left, disparity, scale):
         rms, beyond = disparity_error(decoded, np.nan_to_num(disparity))
         rows[name] = {
             'rho': correlation(w, extracted),
+            'corr': pixel_correlation(decoded, disparity),
             'ber': None,
             'found': True,
             'rms_px': rms,
@@ -175,18 +196,36 @@ def run_thesis(left, disparity, scale):
     }
 
 
-def run_bits(left, disparity, embed, extract):
-    """A method that carries our payload bits: ours, or a library."""
+def library_decoder(extract):
+    """A library's extract(grey, n_bits) -> bits as a decoder (grey, n_bits) ->
+    (bits, disparity or None, fine layer used)."""
+
+    def decode(grey, n_bits):
+        received = extract(grey, n_bits)
+        return received, blind.disparity_from_code(received, grey.shape), False
+
+    return decode
+
+
+def ours_decoder(grey, n_bits):
+    detection = blind.decode(grey, KEY)
+    return detection.bits, detection.disparity_px, detection.fine
+
+
+def run_bits(left, disparity, embed, decode, payload_bits=None):
+    """A method that carries our coarse payload bits: ours, or a library. ``decode``:
+    (grey, n_bits) -> (received coarse bits, decoded disparity or None, fine used)."""
     bits = blind.disparity_code(disparity)
     coded = embed(left, bits)
     rows = {}
     for name, attacked in all_attacks(coded, 0).items():
-        received = extract(attacked, bits.size)
-        decoded = blind.disparity_from_code(received, left.shape)
+        received, decoded, fine = decode(attacked, bits.size)
         rms, beyond = disparity_error(decoded, disparity)
         rows[name] = {
             'rho': rho_of(disparity, decoded),
+            'corr': pixel_correlation(decoded, disparity),
             'found': decoded is not None,
+            'fine': bool(fine),
             'ber': float(np.mean(received != bits)),
             'rms_px': rms,
             'beyond_2px': beyond,
@@ -196,7 +235,7 @@ def run_bits(left, disparity, embed, extract):
         'ssim': ssim(left, coded),
         'attacks': rows,
         'coded': coded,
-        'bits': int(bits.size),
+        'bits': int(payload_bits or bits.size),
     }
 
 
@@ -269,6 +308,10 @@ def timings(shape, libraries, repeats=3):
     bits = blind.disparity_code(disparity)
     methods = {
         'ours': (lambda: blind.encode(left, disparity, KEY), lambda c: blind.decode(c, KEY)),
+        'ours, coarse layer only': (
+            lambda: blind.encode(left, disparity, KEY, fine=False),
+            lambda c: blind.decode(c, KEY),
+        ),
         'thesis': (lambda: thesis.encode(left, disparity), lambda c: thesis.decode(c[0], c[1])),
         **{
             name: (lambda e=e: e(left, bits), lambda c, x=x: x(c, bits.size))
@@ -328,7 +371,51 @@ def plot(name, left, coded, disparity, decoded, path):
     plt.close(fig)
 
 
+def guided_filter(guide, source, radius, eps):
+    """He et al.'s guided filter of ``source`` by the grey ``guide`` (box windows)."""
+    guide = guide.astype(np.float32) / 255.0
+    source = source.astype(np.float32)
+    box = lambda x: cv2.boxFilter(x, -1, (2 * radius + 1, 2 * radius + 1))  # noqa: E731
+    mean_g, mean_s = box(guide), box(source)
+    a = (box(guide * source) - mean_g * mean_s) / (box(guide * guide) - mean_g**2 + eps)
+    b = mean_s - a * mean_g
+    return (box(a) * guide + box(b)).astype(float)
+
+
+def fit_study():
+    """What the payload could carry at best: the least-squares bilinear node fit of the
+    undistorted disparity (no quantisation, no channel) per node spacing, and the coarse
+    code guided by the left image's edges (guided filter). Pearson correlation / RMS."""
+    scenes = {'Aloe (640x555)': aloe(640), 'generated seed 1': generated_scene((480, 640), 1)}
+    for scene, (left, _, disparity) in scenes.items():
+        known = np.isfinite(disparity)
+        filled = blind._filled(disparity, known)
+        for cell in (52, 48, 32, 24, 16, 12):
+            rows, cols = (blind._hat_basis(n, cell) for n in disparity.shape)
+            nodes = np.linalg.pinv(rows) @ filled @ np.linalg.pinv(cols).T
+            fit = rows @ nodes @ cols.T
+            rms = disparity_error(fit, disparity)[0]
+            print(
+                f'{scene}: {cell}-px nodes ({nodes.size}) least squares: correlation '
+                f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px'
+            )
+        cells = blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
+        print(f'{scene}: coarse code (52-px nodes): {pixel_correlation(cells, disparity):.3f}')
+        for radius in (24, 48):
+            for eps in (1e-3, 1e-2):
+                guided = guided_filter(
+                    left, np.nan_to_num(cells, nan=np.nanmean(cells)), radius, eps
+                )
+                print(
+                    f'{scene}: coarse code, guided filter r {radius} eps {eps}: '
+                    f'{pixel_correlation(guided, disparity):.3f}'
+                )
+
+
 def main():
+    if '--fit-study' in sys.argv:
+        fit_study()
+        return
     OUT.mkdir(parents=True, exist_ok=True)
     libraries, missing = load_libraries()
     scenes = {'Aloe (640x555)': aloe(640)}
@@ -342,9 +429,16 @@ def main():
             left,
             disparity,
             lambda g, b, d=disparity: blind.encode(g, d, KEY),
-            lambda g, n: blind.decode(g, KEY).bits,
+            ours_decoder,
+            blind.payload_bits(left.shape) + blind.fine_payload_bits(left.shape),
         )
         entry['ours'] = ours
+        entry['ours, coarse layer only'] = run_bits(
+            left,
+            disparity,
+            lambda g, b, d=disparity: blind.encode(g, d, KEY, fine=False),
+            ours_decoder,
+        )
         entry['ours_rotation_resync'] = ours_rotation_resynchronised(
             left, disparity, ours['coded']
         )
@@ -355,10 +449,10 @@ def main():
                 left,
                 disparity,
                 lambda g, b, e=embed, s=strength: e(g, b, s),
-                lambda g, n, x=extract, s=strength: x(g, n, s),
+                library_decoder(lambda g, n, x=extract, s=strength: x(g, n, s)),
             )
             entry[f'{name} (PSNR-matched)']['strength'] = strength
-            entry[f'{name} (default)'] = run_bits(left, disparity, embed, extract)
+            entry[f'{name} (default)'] = run_bits(left, disparity, embed, library_decoder(extract))
         entry['thesis (pixels)'] = run_thesis(left, disparity, 'pixels')
         coded, key = thesis.encode(left, disparity, scale='full_range')
         entry['thesis_full_range_psnr'] = psnr(left, thesis.decode(coded, key)[0])
@@ -390,7 +484,8 @@ def main():
     print('== Table 6.2 setting', flush=True)
     results['table_6_2_setting'] = table_6_2_setting()
     print('== false positives', flush=True)
-    results['false_positives'] = false_positives(1000, (240, 320))
+    # 640x480: both layers are looked for (320x240 is too small for the fine layer).
+    results['false_positives'] = false_positives(1000, (480, 640))
     print('== timings', flush=True)
     results['timings_640x480'] = timings((480, 640), libraries)
     (OUT / 'results.json').write_text(json.dumps(results, indent=1, default=float))
@@ -434,7 +529,9 @@ def markdown(results):
             )
         attacks = list(entry['ours']['attacks'])
         for measure, title in (
-            ('rho', 'correlation (6.6.1)'),
+            ('corr', 'decoded vs embedded disparity: Pearson correlation (0: not found)'),
+            ('fine', 'ours: fine layer decoded'),
+            ('rho', 'correlation (6.6.1) of singular values'),
             ('ber', 'payload BER'),
             ('rms_px', 'decoded disparity RMS [px] (n/a: not found)'),
             ('beyond_2px', 'decoded disparity > 2 px rate'),
@@ -450,8 +547,10 @@ def markdown(results):
                 lines.append(
                     f'| {a} | '
                     + ' | '.join(
-                        fmt(entry[m]['attacks'][a][measure])
-                        if entry[m]['attacks'][a]['found'] or measure in ('rho', 'ber')
+                        ('yes' if entry[m]['attacks'][a].get('fine') else 'no')
+                        if measure == 'fine'
+                        else fmt(entry[m]['attacks'][a][measure])
+                        if entry[m]['attacks'][a]['found'] or measure in ('rho', 'ber', 'corr')
                         else 'not found'
                         for m in methods
                     )
@@ -511,7 +610,7 @@ def markdown(results):
     fp = results['false_positives']
     lines += [
         '',
-        f'## False positives (ours)\n\n{fp["trials"]} trials at 320x240: '
+        f'## False positives (ours, both layers)\n\n{fp["trials"]} trials at 640x480: '
         f'{fp["unmarked_detected"]} detections on unmarked images, '
         f'{fp["wrong_key_detected"]} with a wrong key.',
         '',

@@ -120,7 +120,7 @@ def test_thesis_key_file_errors_name_the_file(tmp_path):
 
 
 def cell_truth(disparity):
-    """The embedded disparity as the code represents it (cell medians, 6 bits)."""
+    """The embedded disparity as the coarse code represents it (52-px nodes, 6 bits)."""
     return blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
 
 
@@ -132,17 +132,74 @@ def test_ours_survives_jpeg_50_with_its_payload_exact(source):
         left, _, disparity = generated_scene((480, 640), seed=11)
     coded = blind.encode(left, disparity, key='k1')
     assert psnr(left, coded) > 42.0
-    assert ssim(left, coded) > 0.97
+    assert ssim(left, coded) > 0.96  # 0.967 on the generated scene with the fine layer
     received, _ = jpeg(coded, 50)
     detection = blind.decode(received, key='k1')
     assert detection.found and detection.confidence > 0.5
     assert np.array_equal(detection.bits, blind.disparity_code(disparity))
-    # The decoded map is the code's cells, upsampled along image edges.
-    error = detection.disparity_px - cell_truth(disparity)
-    known = np.isfinite(error)
-    assert known.mean() > 0.95
-    span = np.nanmax(disparity) - np.nanmin(disparity)
-    assert np.sqrt(np.mean(error[known] ** 2)) < 0.1 * span
+    # Both layers arrive bit-exact: the decoded map is the fine layer's surface.
+    assert detection.fine
+    fine_truth = blind.fine_disparity_from_code(blind.fine_code(disparity), disparity.shape)
+    np.testing.assert_array_equal(detection.disparity_px, fine_truth)
+    assert np.isfinite(fine_truth).mean() > 0.95
+
+
+def pixel_correlation_and_rms(decoded, embedded):
+    both = np.isfinite(decoded) & np.isfinite(embedded)
+    a, b = decoded[both], embedded[both]
+    return float(np.corrcoef(a, b)[0, 1]), float(np.sqrt(np.mean((a - b) ** 2)))
+
+
+# Measured (2026-12-04): after JPEG 50, Aloe 640x555 coarse layer only 0.849 / 7.35 px, with
+# the fine layer 0.925 / 5.30 px; generated seed 1 0.931 / 4.39 px -> 0.970 / 2.92 px.
+@pytest.mark.parametrize(
+    'source, min_correlation, max_rms_px', [('aloe', 0.92, 5.6), ('generated', 0.965, 3.1)]
+)
+def test_ours_fine_layer_carries_the_disparity_through_jpeg_50(
+    source, min_correlation, max_rms_px
+):
+    if source == 'aloe':
+        left, _, disparity = aloe(640)
+    else:
+        left, _, disparity = generated_scene((480, 640), seed=1)
+    coded = blind.encode(left, disparity, key='k29')
+    assert psnr(left, coded) > 42.0
+    received, _ = jpeg(coded, 50)
+    detection = blind.decode(received, key='k29')
+    assert detection.found and detection.fine
+    correlation_fine, rms_fine = pixel_correlation_and_rms(detection.disparity_px, disparity)
+    assert correlation_fine >= min_correlation and rms_fine <= max_rms_px
+    before = blind.decode(jpeg(blind.encode(left, disparity, 'k29', fine=False), 50)[0], 'k29')
+    assert before.found and not before.fine
+    correlation_coarse, rms_coarse = pixel_correlation_and_rms(before.disparity_px, disparity)
+    assert correlation_fine > correlation_coarse + 0.03 and rms_fine < 0.8 * rms_coarse
+
+
+def test_ours_falls_back_to_the_coarse_layer_when_the_fine_one_is_lost():
+    left, _, disparity = generated_scene((480, 640), seed=1)
+    coded = blind.encode(left, disparity, key='k29')
+    detection = blind.decode(jpeg(coded, 30)[0], key='k29')  # the fine step does not survive
+    assert detection.found and not detection.fine
+    np.testing.assert_array_equal(detection.disparity_px, cell_truth(disparity))
+
+
+def test_ours_fine_code_reproduces_a_slanted_plane_to_its_quantisation():
+    assert blind.fine_payload_bits((240, 320)) == 0  # too small: the coarse layer only
+    rows, cols = np.indices((480, 640))
+    plane = 20.0 + 0.05 * cols - 0.03 * rows  # 5.6 to 52 px
+    plane[:40, :60] = np.nan  # unknown corner: unknown nodes, NaN pixels
+    decoded = blind.fine_disparity_from_code(blind.fine_code(plane), plane.shape)
+    known = np.isfinite(decoded) & np.isfinite(plane)
+    assert known.sum() > 0.85 * plane.size and np.isnan(decoded[:20, :30]).all()
+    level = (np.nanmax(plane) - np.nanmin(plane)) / (2**blind.LEVEL_BITS - 2)
+    error = np.abs(decoded - plane)
+    # Away from the unknown corner the plane is exact up to the 6-bit levels; within two
+    # cells of it the fit saw filled-in values (local means) and the known nodes' weights
+    # are renormalised (at most a cell's slope off).
+    margin = 2 * blind.FINE_CELL_PX
+    away = known & ((rows >= 40 + margin) | (cols >= 60 + margin))
+    assert np.max(error[away]) < 0.5 * level + 0.15
+    assert np.max(error[known]) < 0.05 * blind.FINE_CELL_PX + level
 
 
 def test_ours_says_no_watermark_on_unmarked_and_wrong_key_images():
@@ -157,6 +214,18 @@ def test_ours_says_no_watermark_on_unmarked_and_wrong_key_images():
     assert false_positives == 0
     miss = blind.decode(coded, key='wrong key')
     assert miss.disparity_px is None and miss.confidence < 0.5
+
+
+def test_ours_fine_layer_says_no_watermark_on_unmarked_and_wrong_key_images():
+    left, _, disparity = generated_scene((480, 640), seed=5)
+    coded = blind.encode(left, disparity, key='right key')
+    assert blind.decode(coded, key='right key').fine
+    detections = 0
+    for trial in range(15):  # the bench runs 1000 (README)
+        unmarked, _, _ = generated_scene((480, 640), seed=2000 + trial)
+        detections += blind.decode(unmarked, key='right key').found
+        detections += blind.decode(coded, key=f'wrong key {trial}').found
+    assert detections == 0
 
 
 def test_ours_rejects_bad_input():

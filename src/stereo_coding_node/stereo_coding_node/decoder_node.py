@@ -166,7 +166,10 @@ class StereoDecodingNode(GraphNode):
             detection = blind.decode(coded, p.key, effective_strength(p))
             left, disparity = coded, detection.disparity_px
             found, confidence = detection.found, detection.confidence
-            values = {'raw bit error rate': f'{detection.raw_ber:.4f}'}
+            values = {
+                'raw bit error rate': f'{detection.raw_ber:.4f}',
+                'layer': 'fine' if detection.fine else 'coarse',
+            }
         elapsed = time.perf_counter() - started
         self.last = {
             'watermark': 'found' if found else 'none',

@@ -226,6 +226,7 @@ class StereoCodingNode(GraphNode):
         }
         if p.method == 'ours':
             self.last['payload bits'] = blind.payload_bits(left.shape)
+            self.last['fine payload bits'] = blind.fine_payload_bits(left.shape)  # 0: too small
 
     def _write_key(self, key, path):
         # Written whole, then renamed: a decoder never reads half a key.
