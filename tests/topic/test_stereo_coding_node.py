@@ -157,12 +157,17 @@ def test_ours_through_jpeg_50_then_bad_input(spawn, rclpy_node):
             'transport:=compressed',
             '-p',
             'key:=topic-test',
+            '-p',
+            'focal_px:=400.0',
+            '-p',
+            'baseline_m:=0.12',
         ]
     )
     probe.wait_matched(probe.image, probe.disparity, probe.coded_jpeg, listen=DECODED)
     left, right, _ = generated_scene((240, 320), seed=21, max_disparity_px=24)
     sent = sgbm_disparity(left, right, 24)
     stamp, (disparity, restored, synthetic) = probe.send_until_decoded(left, sent, 1_000_000_000)
+    assert (disparity.f, round(disparity.t, 6)) == (400.0, 0.12)  # the user's f and baseline
     decoded = image_to_numpy(disparity.image).astype(float)
     decoded[decoded < disparity.min_disparity] = np.nan
     # Bit for bit what ours decodes from the JPEG that went over the topic.

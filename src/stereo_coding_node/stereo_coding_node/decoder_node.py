@@ -23,7 +23,7 @@ from stereo_coding_node.views import synthesise_right
 from vgm_common.conversions import (
     compressed_to_grey,
     image_to_numpy,
-    make_header,
+    numpy_to_disparity_image,
     numpy_to_image,
     stamp_to_ns,
 )
@@ -42,7 +42,6 @@ from vgm_common.topics import (
 )
 from vgm_common.worker import Worker
 
-INVALID_DISPARITY = -1.0  # below min_disparity (0), as stereo_image_proc marks unknown
 # As sfs_stereo_node's max_pixels, which bounds the rectified image that is coded: a
 # 2048x2048 image at most. Decoding takes about 17 bytes a pixel (a 16000x16000 PNG of
 # 249 kB took 4.4 GB), so 70 MB here.
@@ -66,7 +65,7 @@ PARAMETERS = common_params() + [
     Param(
         'baseline_m',
         0.0,
-        'T of the decoded DisparityImage [m] (0 = unknown).',
+        't (the baseline) of the decoded DisparityImage [m] (0 = unknown).',
         range=(0.0, 1e3),
     ),
     Param(
@@ -186,21 +185,15 @@ class StereoDecodingNode(GraphNode):
         self.diagnostics.publish('watermark', 'ok', 'watermark found', self.last)
         right = synthesise_right(left, disparity)
         known = np.isfinite(disparity)
-        out = DisparityImage(
-            header=make_header(stamp_ns, frame),
-            f=float(p.focal_px),
-            T=float(p.baseline_m),
-            min_disparity=0.0,
-            max_disparity=float(np.max(disparity[known])) if known.any() else 0.0,
-            delta_d=1.0,
-        )
-        out.image = numpy_to_image(
-            np.where(known, disparity, INVALID_DISPARITY).astype(np.float32),
-            '32FC1',
+        out = numpy_to_disparity_image(  # f and t (the baseline) as the user gave them
+            disparity,
             stamp_ns,
             frame,
+            p.focal_px,
+            p.baseline_m,
+            (0.0, float(np.max(disparity[known])) if known.any() else 0.0),
+            1.0,
         )
-        out.valid_window.width, out.valid_window.height = coded.shape[1], coded.shape[0]
         self.publishers_['disparity'].publish(out)
         self.publishers_['left'].publish(numpy_to_image(left, 'mono8', stamp_ns, frame))
         self.publishers_['right'].publish(numpy_to_image(right, 'mono8', stamp_ns, frame))
