@@ -645,7 +645,7 @@ def run_generated_families(families=None, seeds=FAMILY_SEEDS, noises=FAMILY_NOIS
 
 
 def family_goal_misses(row):
-    """The goals (issue 27) a row misses, as short reasons: RMS < 1 mm and <= the
+    """The goals a row misses, as short reasons: RMS < 1 mm and <= the
     reference's, max error < 1 mm, coverage > 95 %."""
     ours, ref = row['ours'], row['reference']
     misses = []

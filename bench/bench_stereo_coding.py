@@ -148,7 +148,7 @@ def disparity_error(decoded, embedded):
 
 def pixel_correlation(decoded, embedded):
     """Pearson correlation of the decoded and the embedded disparity over pixels known
-    in both (issue 29's measure); 0 if nothing was decoded."""
+    in both (the goals' measure); 0 if nothing was decoded."""
     if decoded is None:
         return 0.0
     both = np.isfinite(decoded) & np.isfinite(embedded)

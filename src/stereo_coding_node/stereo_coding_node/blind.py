@@ -186,7 +186,7 @@ def encode(
 ) -> npt.NDArray[np.uint8]:
     """Embed the disparity code of ``disparity_px`` (H, W) [px] in ``image`` (H, W)
     uint8: the coarse layer, and the fine layer unless ``fine`` is False (the code
-    before issue 29, kept for comparison) or the image is too small for it. Returns the
+    before the fine layer, kept for comparison) or the image is too small for it. Returns the
     coded (H, W) uint8 image."""
     image = _check_grey(image)
     disparity_px = np.asarray(disparity_px, dtype=float)
