@@ -201,7 +201,22 @@ def _second_pair(
     )
     if not len(more):
         return points, info
-    index = np.concatenate([info['sample_index'], more_info['sample_index']])
+    points, merged = _merge(points, info, more, more_info, more_info['sample_index'])
+    merged['n_candidates'] = info['n_candidates'] + more_info['n_candidates']
+    merged['n_second_pair'] = len(more)
+    return points, merged
+
+
+def _merge(
+    points: FloatArray,
+    info: CandidateInfo,
+    more: FloatArray,
+    more_info: CandidateInfo,
+    more_index: np.ndarray,
+) -> tuple[FloatArray, CandidateInfo]:
+    """``points`` and ``more`` (at view-1 sample positions ``more_index``) in view-1 order,
+    with their third-view distances and out-of-order counts."""
+    index = np.concatenate([info['sample_index'], more_index])
     order = np.argsort(index, kind='stable')
     merged: CandidateInfo = {
         **info,
@@ -209,9 +224,7 @@ def _second_pair(
         'third_view_px': np.concatenate([info['third_view_px'], more_info['third_view_px']])[
             order
         ],
-        'n_candidates': info['n_candidates'] + more_info['n_candidates'],
         'n_out_of_order': info['n_out_of_order'] + more_info['n_out_of_order'],
-        'n_second_pair': len(more),
     }
     return np.vstack([points, more])[order], merged
 
@@ -285,18 +298,9 @@ def _fill_end_on_stretches(
         return points, info
     position_of = dict(zip(order2.tolist(), np.concatenate(positions).tolist()))
     added = np.array([position_of[int(i)] for i in more_info['sample_index']])
-    merged_index = np.concatenate([index, added % len(views[0].curve.xy)])
-    order = np.argsort(merged_index, kind='stable')
-    merged: CandidateInfo = {
-        **info,
-        'sample_index': merged_index[order],
-        'third_view_px': np.concatenate([info['third_view_px'], more_info['third_view_px']])[
-            order
-        ],
-        'n_out_of_order': info['n_out_of_order'] + more_info['n_out_of_order'],
-        'n_end_on': len(more),
-    }
-    return np.vstack([points, more])[order], merged
+    points, merged = _merge(points, info, more, more_info, added % len(views[0].curve.xy))
+    merged['n_end_on'] = len(more)
+    return points, merged
 
 
 def reconstruct_capture(
