@@ -26,9 +26,17 @@ Part D (`--robot-data`): every 7-DOF arm of example-robot-data as it ships
 tilted planes, ours beside the damped-least-squares peer (method dls, same phase machine),
 each path first through the joint-limit reachability check from the start joints.
 
+Part E (`--pace`): the pace beside a conventional peer: the PA-10 (its 0.1 m tool) on a
+plane tilted by 20 deg, a 0.8 m lemniscate, the arm following positions at full speed or
+half speed; ours (node defaults) beside ``DlsPeer``, a conventional damped-least-squares controller
+with its own phase logic and force loop (no governor: its reference runs on the clock at
+``PEER_SPEED``); task time, pace ratio ours / peer and the goal figures, from a start in
+free space and from a start already in contact at the first waypoint.
+
 Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_pa10_ik.py
      [--cases-only [--arms N]]   (Part C alone: N random arms and the Panda)
      [--robot-data [--shapes arc,figure_eight] [--tilts 20,45]]   (Part D alone)
+     [--pace]   (Part E alone)
 Writes bench/results/pa10_ik/ (results.md, results.json, PNG plots) and, for Part C,
 bench/results/pa10_ik_cases/ (results.md, results.json).
 """
@@ -56,7 +64,7 @@ from sensor_sim.arm_sim import SimulatedArm  # noqa: E402
 from sensor_sim.contact import contact_force  # noqa: E402
 from sensor_sim.curves import curve_polylines  # noqa: E402
 from sensor_sim.scenario import load_scenario  # noqa: E402
-from sensor_sim.surfaces import normal_base  # noqa: E402
+from sensor_sim.surfaces import normal_base, surface_points_base  # noqa: E402
 from vgm_common.robot_model import load_robot  # noqa: E402
 from vgm_evaluation import task_generator  # noqa: E402
 
@@ -305,9 +313,9 @@ CASES_OUT = REPO / 'bench' / 'results' / 'pa10_ik_cases'
 # peer, DLS IK with the plain pose feedback (no integral across the approach axis, no
 # compensation of a slow arm's measured response).
 CASE_METHODS = {
-    'ours': ('ours', np.ones(7), {}),
+    'ours': ('ours', np.ones(7), {'adapt_response': False}),
     'ours_adaptive': ('ours', np.ones(7), {'adapt_response': True}),
-    'dls': ('dls', np.ones(7), {}),
+    'dls': ('dls', np.ones(7), {'adapt_response': False}),
     'dls_plain': ('dls', np.ones(7), {'pose_integral_gain': 0.0, 'adapt_response': False}),
     'primal_dual': ('primal_dual', W_THESIS, {}),
 }
@@ -586,7 +594,251 @@ def _robot_data_table(rows, shapes, tilts_deg, seed):
     )
 
 
+PACE_OUT = REPO / 'bench' / 'results' / 'pa10_ik_pace'
+PEER_SPEED = 0.03  # [m/s] the issue's peer: a 0.8 m lemniscate in 27.6 s
+PACE_PATH_LENGTH = 0.8  # [m]
+
+
+class DlsPeer:
+    """A conventional damped-least-squares contact-tracking controller (the issue's
+    peer), with its own phases and no governor: free move (pose feedback, 0.05 m/s) to
+    ``standoff`` above the first waypoint, descent at ``descent_speed`` until the force
+    reaches the desired one (from a start already touching: straight to the descent),
+    the reference on the clock at ``speed`` along the path at the depth
+    desired / stiffness + an integral of the force error, lift-off. Same spin-free task,
+    joint-limit clamping and velocity limits as ours (``RateSolver('dls')``)."""
+
+    def __init__(self, robot, waypoints, desired, stiffness, speed=PEER_SPEED):
+        from pa10_ik_node.path import WaypointPath
+
+        self.robot, self.path = robot, WaypointPath(waypoints)
+        self.desired, self.stiffness, self.speed = desired, stiffness, speed
+        self.solver = RateSolver('dls', np.ones(robot.n_joints))
+        self.velocity_limits = np.minimum(robot.velocity_limits, 1.0)
+        self.phase, self.stage, self.progress, self.reason = 'approach', 'free', 0.0, ''
+        self.s = self.reference_depth = self.integral = self.lifted = 0.0
+
+    def stop(self, reason='stop requested'):
+        self.phase, self.reason = 'stopped', reason
+
+    def _target(self, s, depth):
+        P, z, tangent = self.path.sample(s % self.path.length if self.path.closed else s)
+        x = tangent - z * np.dot(z, tangent)
+        x /= np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+        T[:3, 3] = P + depth * z
+        return T, z, x
+
+    def step(self, q, force, dt):
+        from pa10_ik_node.tracking import spin_free_task, tilt_error
+
+        T = self.robot.forward_kinematics(q)
+        standoff, descent_speed, lift_height = 0.03, 0.01, 0.03
+        feed_forward, free = np.zeros(6), False
+        P0, z0, _ = self.path.sample(0.0)
+        if self.stage == 'free' and force >= 0.05 * self.desired:
+            offset = T[:3, 3] - P0
+            if np.linalg.norm(offset - z0 * np.dot(offset, z0)) < 0.002:  # touching at P0
+                self.stage, self.reference_depth = 'descend', float(np.dot(offset, z0))
+        if self.phase == 'approach' and self.stage == 'free':
+            T_d, _, _ = self._target(0.0, -standoff)
+            free = True
+            if np.linalg.norm(T_d[:3, 3] - T[:3, 3]) < 0.001:
+                self.stage, self.reference_depth = 'descend', -standoff
+        elif self.phase == 'approach':
+            if force >= self.desired:
+                self.phase, self.s = 'tracking', 0.0
+                self.integral = self.reference_depth - self.desired / self.stiffness
+            else:
+                self.reference_depth += descent_speed * dt
+                feed_forward[:3] = descent_speed * self.path.sample(0.0)[1]
+            T_d, _, _ = self._target(0.0, self.reference_depth)
+        if self.phase == 'tracking':
+            self.integral += 5.0 * (self.desired - force) / self.stiffness * dt
+            self.s = min(self.s + self.speed * dt, self.path.length)
+            self.progress = self.s / self.path.length
+            T_d, _, x = self._target(self.s, self.desired / self.stiffness + self.integral)
+            feed_forward[:3] = self.speed * x if self.s < self.path.length else 0.0
+            if self.s >= self.path.length:
+                self.phase, self.stage, self.T_end = 'done', 'lifting', T_d
+        if self.phase == 'done':
+            self.lifted = min(self.lifted + descent_speed * dt, lift_height)
+            T_d = self.T_end.copy()
+            T_d[:3, 3] -= self.lifted * T_d[:3, 2]
+            lifted = float(np.dot(self.T_end[:3, 3] - T[:3, 3], T_d[:3, 2]))
+            if lifted >= lift_height - 0.0005:
+                self.stage = 'lifted'
+        error = pose_error(T, T_d)
+        error[3:] = tilt_error(T[:3, :3], T_d[:3, 2])
+        twist = feed_forward + 10.0 * error
+        if free and np.linalg.norm(twist[:3]) > 0.05:
+            twist[:3] *= 0.05 / np.linalg.norm(twist[:3])
+        J, task = spin_free_task(self.robot.jacobian(q), twist, T_d)
+        qdot, _ = self.solver.solve_limited(
+            J, task, q, self.robot.lower_limits, self.robot.upper_limits, self.velocity_limits
+        )
+        return qdot, {'phase': self.phase}
+
+
+def pace_case(tilt_deg=20.0, seed=25):
+    """The PA-10 on a plane tilted by ``tilt_deg`` 0.1 m ahead of its tool, a lemniscate
+    of Gerono PACE_PATH_LENGTH long: (robot, start joints, surface, waypoints, dense
+    path)."""
+    robot = load_robot('pa10', 0.1)
+    q0 = task_generator.PA10_START_JOINTS.copy()
+    rng = np.random.default_rng(seed)
+    surface = task_generator.posed_surface('plane', robot, q0, np.radians(tilt_deg), rng)
+    a = 2 * np.pi * np.linspace(0.0, 1.0, 4001)[:-1]
+    unit = np.column_stack([np.sin(a), np.sin(a) * np.cos(a)])
+    unit_length = np.sum(np.linalg.norm(np.diff(np.vstack([unit, unit[:1]]), axis=0), axis=1))
+    xy = unit * PACE_PATH_LENGTH / unit_length
+    waypoints = task_generator.surface_waypoints(surface, xy, True)
+    path_base = surface_points_base(surface, xy / surface.scale)
+    return robot, q0, surface, waypoints, np.vstack([path_base, path_base[:1]])
+
+
+class DelayedCommands:
+    """A controller whose commands reach the arm ``delay_steps`` control periods late (a
+    controller or network with that much command latency): ``step`` returns the command
+    computed that many steps before (zero at first)."""
+
+    def __init__(self, controller, delay_steps):
+        self.controller, self.queue = controller, []
+        self.delay_steps = delay_steps
+
+    def __getattr__(self, name):  # phase, stage, progress, reason, stop
+        return getattr(self.controller, name)
+
+    def step(self, q, force, dt):
+        qdot, info = self.controller.step(q, force, dt)
+        self.queue.append(qdot)
+        if len(self.queue) <= self.delay_steps:
+            return np.zeros_like(qdot), info
+        return self.queue.pop(0), info
+
+
+def pace_row(
+    controller_name,
+    start,
+    speed_scale,
+    delay_s=0.0,
+    desired=5.0,
+    stiffness=2000.0,
+    dt=0.01,
+):
+    """One pace run: ``controller_name`` 'ours' (node defaults), 'ours_latency' (with
+    command_latency = ``delay_s``) or 'peer', ``start`` 'free' (the start pose) or
+    'contact' (at the first waypoint with the desired force), the arm at ``speed_scale``
+    with its commands ``delay_s`` [s] late."""
+    from sensor_sim.arm_sim import SimulatedArm
+
+    robot, q0, surface, waypoints, path_base = pace_case()
+    if start == 'contact':
+        from pa10_ik_node.reach import joints_at
+
+        pressing = waypoints[0].copy()
+        pressing[:3, 3] += desired / stiffness * pressing[:3, 2]
+        q0 = joints_at(robot, q0, pressing)
+    if controller_name.startswith('ours'):
+        latency = delay_s if controller_name == 'ours_latency' else 0.0
+        controller = TrackingController(
+            robot,
+            RateSolver('ours', np.ones(7)),
+            TrackingConfig(desired_force=desired, stiffness=stiffness, command_latency=latency),
+            max_joint_velocity=1.0,
+        )
+        controller.start(waypoints, q0)
+    else:
+        controller = DlsPeer(robot, waypoints, desired, stiffness)
+    delay_steps = int(round(delay_s / dt))
+    if delay_steps:
+        controller = DelayedCommands(controller, delay_steps)
+    arm = SimulatedArm.from_robot_model(robot, q0, 'position', speed_scale)
+    hold = 0.5
+    log = task_generator.run_closed_loop(
+        controller, robot, arm, surface, stiffness, dt=dt, max_time=200.0, hold_time=hold
+    )
+    row = task_generator.tracking_metrics(log, surface, path_base, desired, robot)
+    phases = np.array(log.phases)
+    first_done = np.flatnonzero(phases == 'done')
+    # Whether the tip left the surface between the start and tracking (a lift-off).
+    before_tracking = np.flatnonzero(phases == 'tracking')
+    early = np.array(log.forces)[: before_tracking[0] if len(before_tracking) else 0]
+    row.update(
+        controller=controller_name,
+        start=start,
+        speed_scale=speed_scale,
+        delay_ms=delay_s * 1e3,
+        phase=controller.phase,
+        stage=controller.stage,
+        reason=controller.reason,
+        task_s=len(phases) * dt - hold,
+        tracking_s=float((first_done[0] if len(first_done) else len(phases)) - before_tracking[0])
+        * dt
+        if len(before_tracking)
+        else float('nan'),
+        lost_contact=bool(start == 'contact' and len(early) and np.min(early) <= 0.0),
+    )
+    row['missed'] = meets_goals(row)
+    return row
+
+
+def main_pace():
+    """Part E: ours beside the DLS peer on the 0.8 m lemniscate; writes the table."""
+    PACE_OUT.mkdir(parents=True, exist_ok=True)
+    rows = []
+    runs = [('free', 1.0, 0.0), ('contact', 1.0, 0.0), ('free', 0.5, 0.0)]
+    runs += [('free', scale, delay) for scale in (1.0, 0.5) for delay in (0.02, 0.05)]
+    for start, scale, delay in runs:
+        names = ('peer', 'ours', 'ours_latency') if delay else ('peer', 'ours')
+        pair = {name: pace_row(name, start, scale, delay) for name in names}
+        for name in names:
+            rows.append(pair[name])
+            pair[name]['pace_ratio'] = pair[name]['task_s'] / pair['peer']['task_s']
+        for r in pair.values():
+            print(
+                f'{r["controller"]} start {start} x{scale:g} delay {delay * 1e3:g} ms: '
+                f'{r["phase"]}/{r["stage"]} task '
+                f'{r["task_s"]:.1f} s tracking {r["tracking_s"]:.1f} s rms {r["rms_mm"]:.4f} '
+                f'mm passed {r["passed_fraction"]:.3f} force p95 {r["force_p95_pct"]:.2f} % '
+                f'lost contact {r["lost_contact"]} ratio {r.get("pace_ratio", 1.0):.2f} '
+                f'{r["missed"]}',
+                flush=True,
+            )
+    lines = [
+        'Command (from the repository root, after `source ros2_ws/install/setup.bash`): '
+        '`nice -n 10 .venv/bin/python bench/bench_pa10_ik.py --pace`; in process: the '
+        f'PA-10 (0.1 m tool), a {PACE_PATH_LENGTH} m lemniscate on a plane tilted 20 deg, '
+        '5 N, 2000 N/m, control 100 Hz, the arm following positions at 200 Hz (x0.5: '
+        f'half speed), its commands delay [ms] late; peer = DlsPeer at {PEER_SPEED} m/s; '
+        'ours = node defaults, ours_latency = + command_latency = the delay.',
+        '',
+        '| start | arm | delay [ms] | controller | end | task [s] | / peer | tracking [s] | '
+        'RMS [mm] | max [mm] | passed [%] | force p95 [%] | lost contact | step [ms] | '
+        'goals missed |',
+        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
+    ]
+    for r in rows:
+        lines.append(
+            f'| {r["start"]} | x{r["speed_scale"]:g} | {r["delay_ms"]:g} | {r["controller"]} | '
+            f'{r["phase"]} | {r["task_s"]:.1f} | {r["pace_ratio"]:.2f} | '
+            f'{r["tracking_s"]:.1f} | {r["rms_mm"]:.4f} | {r["max_mm"]:.3f} | '
+            f'{r["passed_fraction"] * 100:.1f} | {r["force_p95_pct"]:.2f} | '
+            f'{"yes" if r["lost_contact"] else "no"} | {r["step_ms_median"]:.3f} | '
+            f'{"; ".join(r["missed"]) or "none"} |'
+        )
+    text = '\n'.join(lines) + '\n'
+    (PACE_OUT / 'results.md').write_text(text)
+    (PACE_OUT / 'results.json').write_text(json.dumps(rows, indent=2))
+    print(text)
+    return rows
+
+
 def main():
+    if '--pace' in sys.argv:
+        main_pace()
+        return None
     if '--robot-data' in sys.argv:
         shapes = _option('--shapes', 'arc,figure_eight').split(',')
         tilts = [float(t) for t in _option('--tilts', '20,45').split(',')]

@@ -178,18 +178,33 @@ PARAMETERS = [
         choices=FORCE_LAWS,
     ),
     Param(
+        'max_tip_speed',
+        TRACKING.defaults.max_tip_speed,
+        "[m/s] The tip's top speed: along the path, in the free-space move, in the "
+        'descent until 5 mm short of the first waypoint, in the lift-off.',
+        range=(1e-3, 0.2),
+    ),
+    Param(
         'speed',
         TRACKING.defaults.speed,
-        '[m/s] Speed along the path.',
-        range=(1e-4, 0.2),
+        '[m/s] Speed along the path, at most max_tip_speed; 0: max_tip_speed.',
+        range=(0.0, 0.2),
     ),
     Param(
         'adapt_response',
         TRACKING.defaults.adapt_response,
         'Measure how much of the commanded motion the '
         'arm makes and scale commands up for an arm slower than commanded (at most '
-        '2.5 times, within the joint speed limits). Off by default: on a loaded '
-        'machine late commands make any arm look slow.',
+        '2.5 times, within the joint speed limits); the motion measured is compared with '
+        'the command sent command_latency before.',
+    ),
+    Param(
+        'command_latency',
+        TRACKING.defaults.command_latency,
+        "[s] The arm's delay from a command to its measured effect: the control law acts on "
+        'the measured joints advanced by the commands of that time (a Smith predictor); '
+        '0: none assumed.',
+        range=(0.0, 0.5),
     ),
     Param(
         'pose_integral_gain',
@@ -227,7 +242,7 @@ PARAMETERS = [
     Param(
         'descent_speed',
         TRACKING.defaults.descent_speed,
-        '[m/s] Descent to contact and lift-off speed.',
+        '[m/s] The last 5 mm of the descent to contact (slowing as the force builds).',
         range=(1e-4, 0.1),
     ),
     Param(
@@ -354,7 +369,8 @@ class Pa10IkNode(GraphNode):
         self.get_logger().info(
             f'robot {p.robot} (tip {p.tip_frame} + tool {self.tool_length_m:g} m), '
             f'method {p.method}, {p.rate:g} Hz, '
-            f'desired force {p.desired_force} N, speed {p.speed} m/s, '
+            f'desired force {p.desired_force} N, speed along the path '
+            f'{self.controller.path_speed:g} m/s (max_tip_speed {p.max_tip_speed:g}), '
             f'auto_start {p.auto_start}'
         )
 
@@ -507,7 +523,12 @@ class Pa10IkNode(GraphNode):
             return False, self.controller.reason
         except VgmError as error:
             return False, f'cannot start: {error}'
-        return True, f'started on {len(waypoints)} waypoints'
+        path = self.controller.path
+        assert path is not None  # set by start()
+        return True, (
+            f'started on {len(waypoints)} waypoints: a {path.length * 1e3:.0f} mm path, about '
+            f'{self.controller.nominal_tracking_time():.1f} s along it'
+        )
 
     @guarded('start_tracking')
     def _on_start(self, request, response):

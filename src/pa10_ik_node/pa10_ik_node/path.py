@@ -16,6 +16,7 @@ from vgm_common.geometry import FloatArray
 
 # A step between waypoints closer than ~18 deg to their approach axis does not lie on a
 # surface (INTERFACES.md: x along the tangent, z into the surface): no tool frame.
+CURVATURE_WINDOW_M = 0.005  # [m] chords over which WaypointPath.curvature is measured
 MAX_APPROACH_COSINE = 0.95
 
 
@@ -71,7 +72,8 @@ class WaypointPath:
 
     Attributes:
         points (M, 3) [m], approach (M, 3) unit z axes, arc (M,) cumulative length [m],
-        length [m], closed (bool).
+        length [m], closed (bool), curvature (M,) [1/m] across the approach axis (see
+        ``lateral_curvature``).
     """
 
     def __init__(self, waypoints: npt.ArrayLike, closed_tolerance: float = 0.01) -> None:
@@ -89,6 +91,62 @@ class WaypointPath:
         self.arc = np.concatenate([[0.0], np.cumsum(steps)])
         self.length = float(self.arc[-1])
         self.T = T
+        self.curvature = self.lateral_curvature()
+
+    def _points_at(self, s: FloatArray) -> FloatArray:
+        """(K, 3) points [m] at arc lengths ``s`` (K,) [m] (wrapped on a loop, clamped
+        else)."""
+        s = np.mod(s, self.length) if self.closed else np.clip(s, 0.0, self.length)
+        return np.column_stack([np.interp(s, self.arc, self.points[:, k]) for k in range(3)])
+
+    def lateral_curvature(self, window: float = CURVATURE_WINDOW_M) -> FloatArray:
+        """(M,) curvature [1/m] of the path at each point across its approach axis: the
+        turn between the chords ``window`` [m] behind and ahead over ``window`` (a mean
+        over 2 ``window``, so 1 mm waypoint noise does not read as a sharp bend)."""
+        if self.length <= 0:
+            return np.zeros(len(self.arc))
+        here = self.points
+        behind = here - self._points_at(self.arc - window)
+        ahead = self._points_at(self.arc + window) - here
+        z = self.approach
+        behind -= z * np.einsum('ij,ij->i', behind, z)[:, None]
+        ahead -= z * np.einsum('ij,ij->i', ahead, z)[:, None]
+        norms = np.linalg.norm(behind, axis=1) * np.linalg.norm(ahead, axis=1)
+        cos = np.einsum('ij,ij->i', behind, ahead) / np.maximum(norms, 1e-18)
+        turn = np.where(norms > 1e-18, np.arccos(np.clip(cos, -1.0, 1.0)), 0.0)
+        return turn / window
+
+    def nominal_duration(self, max_speed: float, max_lateral_acceleration: float) -> float:
+        """[s] The time to travel the path at ``max_speed`` [m/s], slowed to
+        sqrt(``max_lateral_acceleration`` [m/s^2] / curvature) where it bends."""
+        speeds = np.full(len(self.arc), float(max_speed))
+        bent = self.curvature > 0
+        speeds[bent] = np.minimum(
+            speeds[bent], np.sqrt(max_lateral_acceleration / self.curvature[bent])
+        )
+        steps = np.diff(self.arc)
+        return float(np.sum(steps / np.minimum(speeds[:-1], speeds[1:])))
+
+    def largest_curvature(self, start: float, end: float) -> float:
+        """Largest ``curvature`` [1/m] of the points with arc length in [start, end] [m]
+        (wrapped on a loop), or at the point nearest ``start``."""
+        if self.closed and end - start >= self.length:
+            return float(np.max(self.curvature))
+        a, b = (
+            (np.mod(start, self.length), np.mod(end, self.length))
+            if self.closed
+            else (
+                start,
+                end,
+            )
+        )
+        if a <= b:
+            inside = (self.arc >= a) & (self.arc <= b)
+        else:  # the window passes the loop's start
+            inside = (self.arc >= a) | (self.arc <= b)
+        if not inside.any():
+            return float(self.curvature[int(np.argmin(np.abs(self.arc - a)))])
+        return float(np.max(self.curvature[inside]))
 
     def sample(self, s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(point (3,), approach (3,) unit, tangent (3,) unit) at arc length ``s`` [m]

@@ -97,3 +97,37 @@ def spaced_indices(points: npt.ArrayLike, spacing_m: float) -> list[int]:
             keep.append(i)
             last = points[i]
     return keep
+
+
+def joints_at(
+    robot: RobotModel,
+    q_start: npt.ArrayLike,
+    T_desired: npt.ArrayLike,
+    tolerance_m: float = 1e-6,
+    iterations: int = 400,
+) -> FloatArray | None:
+    """Joints (n,) [rad] putting the tip at ``T_desired`` (4, 4) (its position and approach
+    axis; the spin free), walked from ``q_start`` (n,) [rad] within the joint limits as
+    ``first_unreachable`` walks; None if not within ``tolerance_m`` [m] and 1e-6 rad in
+    ``iterations``. (Where a run left the arm, e.g. pressing at a path's first waypoint.)"""
+    from pa10_ik_node.tracking import spin_free_task, tilt_error
+
+    solver = RateSolver('ours', np.ones(robot.n_joints))
+    steps = np.full(robot.n_joints, MAX_JOINT_STEP_RAD)
+    T_d = np.asarray(T_desired, dtype=float)
+    q = robot.check_q(q_start)
+    for _ in range(iterations):
+        T = robot.forward_kinematics(q)
+        error = pose_error(T, T_d)
+        error[3:] = tilt_error(T[:3, :3], T_d[:3, 2])
+        distance, angle = float(np.linalg.norm(error[:3])), float(np.linalg.norm(error[3:]))
+        if distance < tolerance_m and angle < 1e-6:
+            return q
+        error[:3] *= min(1.0, LINEAR_STEP_M / max(distance, 1e-12))
+        error[3:] *= min(1.0, ANGULAR_STEP_RAD / max(angle, 1e-12))
+        J_task, task = spin_free_task(robot.jacobian(q), error, T_d)
+        qdot, _ = solver.solve_limited(
+            J_task, task, q, robot.lower_limits, robot.upper_limits, steps, limit_horizon=1.0
+        )
+        q = q + qdot
+    return None

@@ -140,6 +140,15 @@ MIN_RESPONSE = 0.4  # commands are scaled up at most 2.5 times (_compensated)
 RESPONSE_WINDOW = 1.0  # [s] forgetting time of the response estimate
 MAX_INTEGRAL_SPEEDS = 1.0  # see TrackingConfig.pose_integral_gain
 REACH_CHECK_SPACING_M = 0.002  # waypoints walked through before the arm moves
+# [m] the descent reference runs at max_tip_speed until it is this far short of the first
+# waypoint (judged on the reference, which the governor keeps at most governor_distance
+# ahead of the measured tip), then at descent_speed: the contact is met slowly wherever the
+# surface really is within the waypoints' depth error.
+DESCENT_SLOW_DISTANCE_M = 0.005
+# A start touching the surface within governor_distance of the first waypoint across its
+# approach axis and this close to its orientation presses on from there (no lift-off).
+IN_CONTACT_MAX_TILT_RAD = np.radians(5.0)
+CURVATURE_LOOKAHEAD_M = 0.01  # [m] see TrackingConfig.max_lateral_acceleration
 PHASES = ('idle', 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed')
 ACTIVE_PHASES = ('approach', 'contact', 'tracking')
 
@@ -157,23 +166,40 @@ class TrackingConfig:
 
     desired_force: float = 5.0  # [N]
     stiffness: float = 2000.0  # [N/m] contact stiffness estimate (feed-forward depth)
-    speed: float = 0.015  # [m/s] along the path
+    # [m/s] the tip's top speed: along the path, in the free-space move, in the descent
+    # until the reference is DESCENT_SLOW_DISTANCE_M short of the first waypoint, and in
+    # the lift-off. 0.03 m/s keeps the in-process and topic goals (README, Measured).
+    max_tip_speed: float = 0.03
+    speed: float = 0.0  # [m/s] along the path, at most max_tip_speed; 0: max_tip_speed
+    # [m/s^2] the path speed is also held to sqrt(this / curvature) over the next
+    # CURVATURE_LOOKAHEAD_M: the tip's lateral error on a bend grows with v^2 x curvature
+    # (a 145 mm figure eight bending down to 6 mm radius, in process: RMS 0.099 mm at a
+    # constant 0.03 m/s, 0.012 mm with this limit); a gentle path runs at max_tip_speed.
+    max_lateral_acceleration: float = 0.03
     pose_gain: float = 10.0  # [1/s] pose feedback
     # [1/s^2] integral of the tip's error across the approach axis while tracking: an arm
     # slower than commanded (a lag, a velocity scale) would otherwise trail the reference
     # by speed / pose_gain and cut the path's curves. Bounded to add at most
     # MAX_INTEGRAL_SPEEDS x ``speed``.
     pose_integral_gain: float = 20.0
-    # Scale commands by the arm's measured response (opt-in: over topics on a loaded
-    # machine late commands make any arm look slow, and scaling up then overshoots).
-    adapt_response: bool = False
+    # Scale commands by the arm's measured response (at most 1 / MIN_RESPONSE). On by
+    # default since max_tip_speed: over topics (tests/topic/test_pa10_ik_node.py, three
+    # runs of the file, one under load) every arm's RMS fell 3-10x with it (the
+    # default-speed arc 0.42-0.74 -> 0.04-0.13 mm, the Panda 0.25-0.4 -> 0.02-0.13 mm), in
+    # process it meets the half-speed arms; an earlier version once overshot a Panda run
+    # by 21 mm.
+    adapt_response: bool = True
+    # [s] the arm's delay from a command to its measured effect (0: none assumed). The
+    # control law then acts on the measured joints advanced by the joint velocities
+    # commanded within that time (a Smith predictor: a delayed arm otherwise trails or
+    # overshoots its reference); every phase decision stays on the measured state.
+    command_latency: float = 0.0
     force_gain: float = 5.0  # [1/s] integral force law (approach_correction)
     force_law: str = 'integral'  # 'integral' (ours) or 'tilt' (thesis 7.3.15, tilted_motion)
     track_spin: bool = False  # track the spin about the approach axis too (6 constraints)
     standoff: float = 0.03  # [m] pre-contact pose above the first waypoint
-    descent_speed: float = 0.01  # [m/s] along the approach axis before contact
+    descent_speed: float = 0.01  # [m/s] the last DESCENT_SLOW_DISTANCE_M before contact
     lift_height: float = 0.03  # [m] lift-off when done
-    max_linear_speed: float = 0.05  # [m/s] free-space moves
     max_angular_speed: float = 0.5  # [rad/s] free-space moves
     max_depth: float = 0.01  # [m] deepest commanded indentation; descent beyond: failure
     force_tolerance: float = 0.05  # relative band in which the contact counts as settled
@@ -285,6 +311,8 @@ class TrackingController:
         self.response_sums = np.zeros(2)  # [m] (made, commanded), see _update_response
         self.last_tip: FloatArray | None = None
         self.last_tip_velocity: FloatArray | None = None
+        # (dt [s], qdot (n,), tip velocity (3,)) of the commands within command_latency
+        self.pending: list[tuple[float, FloatArray, FloatArray]] = []
         self.solver.reset()
 
     def configure(self, **changes: Any) -> None:
@@ -292,7 +320,17 @@ class TrackingController:
         law = changes.get('force_law', self.config.force_law)
         if law not in FORCE_LAWS:
             raise InvalidInput(f'force_law must be one of {FORCE_LAWS}', 'force_law', law)
-        self.config = replace(self.config, **changes)
+        config = replace(self.config, **changes)
+        if not config.max_tip_speed > 0:
+            raise InvalidInput('max_tip_speed must be > 0', 'max_tip_speed', config.max_tip_speed)
+        self.config = config
+
+    @property
+    def path_speed(self) -> float:
+        """[m/s] The reference's speed along the path: ``speed``, or ``max_tip_speed``
+        when ``speed`` is 0 or faster."""
+        c = self.config
+        return c.max_tip_speed if c.speed <= 0 else min(c.speed, c.max_tip_speed)
 
     # --- commands --------------------------------------------------------------------
 
@@ -446,15 +484,43 @@ class TrackingController:
         T_d, feed_forward, free_move = target
         info.update(phase=self.phase, T_desired=T_d)
         self._update_response(T[:3, 3], dt)
-        qdot, solve_info = self._solve(q, T, T_d, feed_forward, free_move)
+        q_ahead = self._predicted(q)
+        T_ahead = T if q_ahead is q else self.robot.forward_kinematics(q_ahead)
+        qdot, solve_info = self._solve(q_ahead, T_ahead, T_d, feed_forward, free_move)
         info.update(solve_info)
         qdot = self._compensated(qdot)
         self.last_tip, self.last_tip_velocity = (
             T[:3, 3].copy(),
             (self.robot.jacobian(q) @ qdot)[:3],
         )
+        self._remember_command(qdot, self.last_tip_velocity, dt)
         info['response'] = self.response
         return qdot, info
+
+    def _governor_distance(self) -> float:
+        """[m] How far the measured tip may trail its reference before the reference
+        waits: ``governor_distance`` plus what the tip moves at max_tip_speed within the
+        ``command_latency`` (the commands on their way)."""
+        c = self.config
+        return c.governor_distance + c.max_tip_speed * max(c.command_latency, 0.0)
+
+    def _predicted(self, q: FloatArray) -> FloatArray:
+        """The measured joints ``q`` advanced by the commands still on their way (those of
+        the last ``command_latency``); ``q`` itself when no latency is assumed."""
+        if self.config.command_latency <= 0 or not self.pending:
+            return q
+        ahead = q + sum(step * qdot for step, qdot, _ in self.pending)
+        return np.clip(ahead, self.robot.lower_limits, self.robot.upper_limits)
+
+    def _remember_command(self, qdot: FloatArray, tip_velocity: FloatArray, dt: float) -> None:
+        """Keep the commands of the last ``command_latency`` for ``_predicted``."""
+        latency = self.config.command_latency
+        if latency <= 0 or dt <= 0:
+            self.pending = []
+            return
+        self.pending.append((dt, qdot.copy(), tip_velocity))
+        while sum(step for step, _, _ in self.pending) > latency + 1e-9:
+            self.pending.pop(0)
 
     def _update_response(self, tip: FloatArray, dt: float) -> None:
         """Estimate how much of the commanded tip motion the arm makes (1: all of it; an
@@ -464,16 +530,17 @@ class TrackingController:
         averages out), counted only while the command moves the tip fast enough to
         measure."""
         c = self.config
-        v = self.last_tip_velocity
+        # The motion measured now answers the command sent command_latency ago.
+        v = self.pending[0][2] if self.pending else self.last_tip_velocity
         if self.last_tip is None or v is None or dt <= 0 or not c.adapt_response:
             return
         speed = float(np.linalg.norm(v))
         forget = np.exp(-dt / RESPONSE_WINDOW)
         self.response_sums *= forget
-        if speed >= 0.3 * c.speed:
+        if speed >= 0.3 * self.path_speed:
             self.response_sums += (float(np.dot(tip - self.last_tip, v)) / speed, speed * dt)
         made, commanded = self.response_sums
-        if commanded > 0.3 * c.speed * RESPONSE_WINDOW / 2:  # enough motion to judge
+        if commanded > 0.3 * self.path_speed * RESPONSE_WINDOW / 2:  # enough motion to judge
             self.response = float(np.clip(made / commanded, MIN_RESPONSE, 1.0))
 
     def _compensated(self, qdot: FloatArray) -> FloatArray:
@@ -510,6 +577,11 @@ class TrackingController:
                 self.force_before_free_move = force
             if self._unexpected_contact(tip, P0, z0, force, 'moving in free space'):
                 return None
+            if self._touching_first_waypoint(T, P0, z0, force):
+                self.stage = 'descend'  # press on from here: no lift-off and re-approach
+                self.reference_depth = float(np.dot(tip - P0, z0))
+                self.best_distance, self.stall_time = np.inf, 0.0
+                return self._descend(T, P0, z0, force, dt, info)
             T_d = self._frame(0.0, P0 - c.standoff * z0)
             distance = float(np.linalg.norm(T_d[:3, 3] - tip))
             angle = float(np.linalg.norm(tilt_error(T[:3, :3], z0)))
@@ -526,6 +598,23 @@ class TrackingController:
             else:
                 return T_d, np.zeros(6), True
         return self._descend(T, P0, z0, force, dt, info)
+
+    def _touching_first_waypoint(
+        self, T: FloatArray, P0: FloatArray, z0: FloatArray, force: float
+    ) -> bool:
+        """Whether the measured tip (pose ``T``) already touches the surface at the first
+        waypoint ``P0`` (approach axis ``z0``): some force, within governor_distance of it
+        across the axis and max_depth along it, tilted less than IN_CONTACT_MAX_TILT_RAD."""
+        c = self.config
+        offset = T[:3, 3] - P0
+        along = float(np.dot(offset, z0))
+        across = float(np.linalg.norm(offset - along * z0))
+        return (
+            force >= c.force_tolerance * c.desired_force
+            and across < c.governor_distance
+            and abs(along) <= c.max_depth
+            and float(np.linalg.norm(tilt_error(T[:3, :3], z0))) < IN_CONTACT_MAX_TILT_RAD
+        )
 
     def _contact_reference(self, T: FloatArray, force: float, dt: float) -> _Reference | None:
         """Contact: hold the first waypoint at the force law's depth until the force has
@@ -558,7 +647,9 @@ class TrackingController:
                 self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain, c.max_depth
             )
         remaining = path.length - self.travelled
-        speed = c.speed * min(1.0, max(self.time_in_phase / c.ramp_time, 0.05))
+        speed = min(self.path_speed, self._bend_speed()) * min(
+            1.0, max(self.time_in_phase / c.ramp_time, 0.05)
+        )
         motion = self._advance_reference(tip, force, speed, remaining, dt)
         if motion is None:
             return None
@@ -579,6 +670,20 @@ class TrackingController:
         self._finish_when_travelled(T_d, tip, dt)
         return self._checked(T, T_d, feed_forward, dt)
 
+    def nominal_tracking_time(self) -> float:
+        """[s] How long the started path takes at the path speed, slowed on its bends
+        (no speed ramp, no waiting for a lagging arm)."""
+        assert self.path is not None  # set by start()
+        return self.path.nominal_duration(self.path_speed, self.config.max_lateral_acceleration)
+
+    def _bend_speed(self) -> float:
+        """[m/s] The fastest speed along the path that keeps the lateral acceleration
+        within max_lateral_acceleration over the next CURVATURE_LOOKAHEAD_M."""
+        assert self.path is not None  # tracking runs on the started path
+        curvature = self.path.largest_curvature(self.s_ref, self.s_ref + CURVATURE_LOOKAHEAD_M)
+        a = self.config.max_lateral_acceleration
+        return float(np.sqrt(a / curvature)) if curvature > 0 and a > 0 else np.inf
+
     def _advance_reference(
         self, tip: FloatArray, force: float, speed: float, remaining: float, dt: float
     ) -> tuple[tuple[float, float], bool] | None:
@@ -592,7 +697,7 @@ class TrackingController:
         lag = float(np.linalg.norm(P + self.depth * z - tip))
         # Direction of motion in E: (along x_E, along z_E) per unit path step.
         direction = (1.0, 0.0)
-        advanced = lag < c.governor_distance
+        advanced = lag < self._governor_distance()
         self.wait_time = 0.0 if advanced else self.wait_time + dt
         if self.wait_time > 2 * c.error_timeout:
             self.fail(
@@ -685,10 +790,15 @@ class TrackingController:
                 f'first waypoint, {force:.2f} N)'
             )
             return None
-        slow = np.clip(1.0 - force / c.desired_force, 0.2, 1.0)
         previous = self.reference_depth
+        if previous < -DESCENT_SLOW_DISTANCE_M and force < c.force_tolerance * c.desired_force:
+            # In free space, far from contact: at the top speed.
+            step = min(c.max_tip_speed * dt, -DESCENT_SLOW_DISTANCE_M - previous)
+        else:
+            slow = min(c.descent_speed, c.max_tip_speed)
+            step = slow * np.clip(1.0 - force / c.desired_force, 0.2, 1.0) * dt
         self.reference_depth = max(
-            previous, min(previous + c.descent_speed * slow * dt, depth + c.governor_distance)
+            previous, min(previous + step, depth + self._governor_distance())
         )
         rate = (self.reference_depth - previous) / dt if dt > 0 else 0.0
         T_d = self._frame(0.0, P0 + self.reference_depth * z0)
@@ -742,7 +852,11 @@ class TrackingController:
                 return None
             self.lift_reference = max(
                 previous,
-                min(previous + c.descent_speed * dt, lifted + c.governor_distance, c.lift_height),
+                min(
+                    previous + c.max_tip_speed * dt,
+                    lifted + self._governor_distance(),
+                    c.lift_height,
+                ),
             )
         T_d[:3, 3] -= self.lift_reference * z
         feed_forward = np.zeros(6)
@@ -795,15 +909,15 @@ class TrackingController:
             z = T_d[:3, 2]
             lateral = error[:3] - z * np.dot(z, error[:3])  # depth: the force law's
             self.pose_integral = self.pose_integral + lateral * self.last_dt
-            bound = MAX_INTEGRAL_SPEEDS * c.speed / c.pose_integral_gain
+            bound = MAX_INTEGRAL_SPEEDS * self.path_speed / c.pose_integral_gain
             norm = np.linalg.norm(self.pose_integral)
             if norm > bound:
                 self.pose_integral *= bound / norm
             twist[:3] += c.pose_integral_gain * self.pose_integral
         if free_move:
             linear, angular = np.linalg.norm(twist[:3]), np.linalg.norm(twist[3:])
-            if linear > c.max_linear_speed:
-                twist[:3] *= c.max_linear_speed / linear
+            if linear > c.max_tip_speed:
+                twist[:3] *= c.max_tip_speed / linear
             if angular > c.max_angular_speed:
                 twist[3:] *= c.max_angular_speed / angular
         J = self.robot.jacobian(q)
