@@ -304,7 +304,7 @@ class TrackingController:
         self.T_end: FloatArray | None = None
         self.reference_depth = 0.0  # [m] descent reference along the approach axis
         self.lift_reference, self.wait_time, self.end_time = 0.0, 0.0, 0.0
-        self.pose_integral = np.zeros(3)  # [m s] see TrackingConfig.pose_integral_gain
+        self.pose_integral = np.zeros(3)  # [m s] in T_desired's axes: see pose_integral_gain
         self.reference_moving = False
         self.force_before_free_move: float | None = None  # [N] at the first approach step
         self.response = 1.0  # fraction of the commanded motion the arm makes (estimated)
@@ -906,14 +906,17 @@ class TrackingController:
             # tip, a held integral would push the tip on past its reference.
             self.pose_integral = np.zeros(3)
         elif c.pose_integral_gain > 0:
-            z = T_d[:3, 2]
-            lateral = error[:3] - z * np.dot(z, error[:3])  # depth: the force law's
-            self.pose_integral = self.pose_integral + lateral * self.last_dt
+            # Kept in the reference frame's x, y (along the path, across it), so it turns
+            # with the path: a base-frame sum of the trailing error, held while the path
+            # bends, pushed the tip outwards (over topics, a 5 cm bend at 15 mm/s: 0.1 mm).
+            R_d = T_d[:3, :3]
+            error_E = R_d.T @ error[:3]
+            self.pose_integral[:2] += error_E[:2] * self.last_dt  # z: the force law's
             bound = MAX_INTEGRAL_SPEEDS * self.path_speed / c.pose_integral_gain
             norm = np.linalg.norm(self.pose_integral)
             if norm > bound:
                 self.pose_integral *= bound / norm
-            twist[:3] += c.pose_integral_gain * self.pose_integral
+            twist[:3] += c.pose_integral_gain * (R_d @ self.pose_integral)
         if free_move:
             linear, angular = np.linalg.norm(twist[:3]), np.linalg.norm(twist[3:])
             if linear > c.max_tip_speed:
