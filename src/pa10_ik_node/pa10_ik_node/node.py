@@ -8,9 +8,6 @@ time_from_start: the joint_trajectory_controller convention), the measured tool 
 declares parameters, converts messages and calls them.
 """
 
-import time
-from collections import deque
-
 import numpy as np
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseStamped, WrenchStamped
@@ -20,18 +17,12 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from pa10_ik_node.ik import METHODS, RateSolver
-from pa10_ik_node.path import validate_waypoints
+from pa10_ik_node.session import JointCommand, TrackingSession
 from pa10_ik_node.thesis import fixed_step_matrix
-from pa10_ik_node.tracking import (
-    ACTIVE_PHASES,
-    FORCE_LAWS,
-    TrackingConfig,
-    TrackingController,
-    Unreachable,
-)
+from pa10_ik_node.tracking import FORCE_LAWS, TrackingConfig, TrackingController
 from vgm_common.conversions import matrix_to_pose_stamped, path_to_matrices
 from vgm_common.diagnostics import CountingPublisher, guarded
-from vgm_common.errors import InvalidInput, VgmError
+from vgm_common.errors import InvalidInput
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
 from vgm_common.parameters import ConfigParams, Param
@@ -47,8 +38,6 @@ from vgm_common.topics import (
     WAYPOINTS_TOPIC,
 )
 
-MAX_FORCE_N = 1e4  # a pressure reading beyond this is a broken sensor, not a contact
-JOINT_LIMIT_SLACK_RAD = 0.1  # a measured joint this far outside its limits is no reading
 THESIS_WEIGHTS = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0]  # §6.6
 # The controller's settings that are parameters (the rest keep TrackingConfig's defaults).
 TRACKING = ConfigParams(TrackingConfig, renamed={'stiffness': 'contact_stiffness'})
@@ -324,24 +313,23 @@ class Pa10IkNode(GraphNode):
             key = error.key if named else 'robot'
             raise InvalidInput(f'parameter {key}: {error}', key, error.value) from None
         self.params.add_check(self._one_weight_per_joint)
-        self.controller = TrackingController(
-            self.robot,
-            self._make_solver(),
-            TRACKING.build(self.params),
-            max_joint_velocity=p.max_joint_velocity,
-            tip_description=f'tip_frame {p.tip_frame!r} + tool_length {self.tool_length_m:g} m',
+        tip = f'tip_frame {p.tip_frame!r} + tool_length {self.tool_length_m:g} m'
+        self.session = TrackingSession(
+            TrackingController(
+                self.robot,
+                self._make_solver(),
+                TRACKING.build(self.params),
+                max_joint_velocity=p.max_joint_velocity,
+                tip_description=tip,
+            ),
+            p.tip_frame,
+            p.pressure_timeout,
+            p.command_horizon,
+            1.0 / p.rate,
         )
-        self.joint_index = {name: i for i, name in enumerate(self.robot.joint_names)}
-        self.q = None  # measured joints, robot order [rad]
-        self.force = 0.0  # [N]
-        self.joint_state_time = self.pressure_time = None  # monotonic receive times [s]
-        self.waypoints = None  # (N, 4, 4) base_link
-        self.step_times: deque[float] = deque(maxlen=500)  # [s]
+        self.controller = self.session.controller
         self.last_phase = self.controller.phase
-        self.last_info = {}
-        self.null_space_failures = 0
         self.internal_errors = 0
-        self.last_failure_condition = ''
 
         self.command_publisher = self.create_publisher(
             JointTrajectory, JOINT_TRAJECTORY_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
@@ -362,9 +350,7 @@ class Pa10IkNode(GraphNode):
         self.create_subscription(Path, WAYPOINTS_TOPIC, self._on_waypoints, LATCHED_QOS)
         self.create_service(Trigger, '~/start_tracking', self._on_start)
         self.create_service(Trigger, '~/stop', self._on_stop)
-        self.dt = 1.0 / p.rate
-        self.last_step = None  # time.monotonic() of the previous control step
-        self.create_timer(self.dt, self._control_step)
+        self.create_timer(1.0 / p.rate, self._control_step)
         self.create_timer(1.0 / p.diagnostics_rate, self._publish_diagnostics)
         self.get_logger().info(
             f'robot {p.robot} (tip {p.tip_frame} + tool {self.tool_length_m:g} m), '
@@ -399,147 +385,41 @@ class Pa10IkNode(GraphNode):
     @guarded(JOINT_STATES_TOPIC)
     def _on_joint_state(self, msg):
         try:
-            q = self._joint_vector(msg)
+            self.session.take_joint_state(msg.name, msg.position)
         except InvalidInput as error:
             self.diagnostics.reject(JOINT_STATES_TOPIC, error)
-            return
-        self.q = q
-        self.joint_state_time = time.monotonic()
-
-    def _joint_vector(self, msg):
-        """The measured joints (n,) in robot order; ``InvalidInput`` for a reading that
-        cannot be the arm's (unknown, duplicate or missing names, non-finite or far
-        outside the joint limits)."""
-        names = list(msg.name)
-        duplicates = sorted({name for name in names if names.count(name) > 1})
-        if duplicates:
-            raise InvalidInput(f'duplicate joint names {duplicates}', 'name', duplicates)
-        unknown = sorted(set(names) - set(self.joint_index))
-        if unknown:
-            raise InvalidInput(f'unknown joint names {unknown}', 'name', unknown)
-        missing = sorted(set(self.joint_index) - set(names))
-        if missing or len(names) != len(msg.position):
-            raise InvalidInput(
-                f'need one position for each of {self.robot.n_joints} '
-                f'joints (missing {missing}, {len(msg.position)} '
-                f'positions for {len(names)} names)',
-                'position',
-            )
-        q = np.empty(self.robot.n_joints)
-        for name, value in zip(names, msg.position):
-            q[self.joint_index[name]] = value
-        q = self.robot.check_q(q)
-        lower = self.robot.lower_limits - JOINT_LIMIT_SLACK_RAD
-        upper = self.robot.upper_limits + JOINT_LIMIT_SLACK_RAD
-        outside = np.flatnonzero((q < lower) | (q > upper))
-        if outside.size:
-            i = int(outside[0])
-            raise InvalidInput(
-                f'{self.robot.joint_names[i]} at {q[i]:.6g} rad is more than '
-                f'{JOINT_LIMIT_SLACK_RAD} rad outside its limits '
-                f'[{self.robot.lower_limits[i]:.4g}, {self.robot.upper_limits[i]:.4g}]',
-                'position',
-                q[i],
-            )
-        return q
 
     @guarded(PRESSURE_TOPIC)
     def _on_pressure(self, msg):
-        force = msg.wrench.force.z
-        frame = msg.header.frame_id
-        if frame != self.params.tip_frame:
-            error = InvalidInput(
-                f'frame {frame!r}, expected the tip frame {self.params.tip_frame!r} '
-                '(parameter tip_frame)',
-                'frame_id',
-                frame,
-            )
-        elif not (np.isfinite(force) and abs(force) <= MAX_FORCE_N):
-            error = InvalidInput(
-                f'force.z is {force} N, beyond the sanity bound '
-                f'+-{MAX_FORCE_N:g} N (a broken sensor)',
-                'force.z',
-                force,
-            )
-        else:
-            self.force = float(force)
-            self.pressure_time = time.monotonic()
-            return
-        self.diagnostics.reject(PRESSURE_TOPIC, error)
+        try:
+            self.session.take_pressure(msg.header.frame_id, msg.wrench.force.z)
+        except InvalidInput as error:
+            self.diagnostics.reject(PRESSURE_TOPIC, error)
 
     @guarded(WAYPOINTS_TOPIC)
     def _on_waypoints(self, msg):
         try:
-            if msg.header.frame_id != BASE_FRAME:
-                raise InvalidInput(
-                    f'frame {msg.header.frame_id!r}, expected {BASE_FRAME!r}',
-                    'frame_id',
-                    msg.header.frame_id,
-                )
-            waypoints = validate_waypoints(path_to_matrices(msg))
+            waypoints = path_to_matrices(msg)
+            takeover = self.session.take_waypoints(msg.header.frame_id, waypoints)
         except InvalidInput as error:
             self.diagnostics.reject(WAYPOINTS_TOPIC, error)
             return
-        if self.controller.phase in ACTIVE_PHASES and self.q is not None:
-            tip = self.robot.forward_kinematics(self.q)[:3, 3]
-            try:
-                self.controller.update_path(waypoints, tip)
-            except InvalidInput as error:
-                self.diagnostics.reject(WAYPOINTS_TOPIC, error)
-                return
-            self.get_logger().info(
-                f'took over a new path of {len(waypoints)} waypoints at '
-                f'progress {self.controller.progress:.3f}'
-            )
-        self.waypoints = waypoints
+        if takeover:
+            self.get_logger().info(takeover)
         self.get_logger().info(f'waypoints: {len(waypoints)} poses')
 
     # --- services --------------------------------------------------------------------
 
-    def _missing_inputs(self):
-        missing = []
-        if self.waypoints is None:
-            missing.append(WAYPOINTS_TOPIC)
-        if not self._fresh(self.joint_state_time):
-            missing.append(JOINT_STATES_TOPIC)
-        if not self._fresh(self.pressure_time):
-            missing.append(PRESSURE_TOPIC)
-        return missing
-
-    def _fresh(self, stamp):
-        return stamp is not None and time.monotonic() - stamp <= self.params.pressure_timeout
-
-    def _start(self):
-        """(success, message)."""
-        missing = self._missing_inputs()
-        waypoints = self.waypoints
-        if missing or waypoints is None:  # None: WAYPOINTS_TOPIC is among the missing
-            return False, f'cannot start: no recent {", ".join(missing)}'
-        try:
-            self.controller.start(waypoints, self.q)
-        except Unreachable as error:
-            self.controller.fail(f'unreachable waypoints: {error}')
-            self._hold()
-            return False, self.controller.reason
-        except VgmError as error:
-            return False, f'cannot start: {error}'
-        path = self.controller.path
-        assert path is not None  # set by start()
-        return True, (
-            f'started on {len(waypoints)} waypoints: a {path.length * 1e3:.0f} mm path, about '
-            f'{self.controller.nominal_tracking_time():.1f} s along it'
-        )
-
     @guarded('start_tracking')
     def _on_start(self, request, response):
-        response.success, response.message = self._start()
+        response.success, response.message, hold = self.session.start()
+        self._send(hold)
         self._log_phase_change()
         return response
 
     @guarded('stop')
     def _on_stop(self, request, response):
-        self.controller.stop('stop requested')
-        self._hold()
+        self._send(self.session.stop('stop requested'))
         self._log_phase_change()
         response.success, response.message = True, 'stopped'
         return response
@@ -548,82 +428,32 @@ class Pa10IkNode(GraphNode):
 
     @guarded('control step')
     def _control_step(self):
-        if self.q is None or not self.pose_gate.is_open():
+        if not self.pose_gate.is_open():
             return
-        controller = self.controller
-        if self.params.auto_start and controller.phase == 'idle' and not self._missing_inputs():
-            self._start()
-        # The step the timer really took (a loaded machine runs it late), bounded so one
-        # long stall does not become a jump: the reference then moves at the set speed.
-        now = time.monotonic()
-        stalled = (
-            self.last_step is not None and now - self.last_step > self.params.pressure_timeout / 2
-        )
-        dt = self.dt if self.last_step is None else min(now - self.last_step, 3 * self.dt)
-        self.last_step = now
-        # After a stall of this node's own executor the sensors' newest messages are still
-        # queued behind this timer: judge their freshness on the next step.
-        if controller.phase in ACTIVE_PHASES and not stalled:
-            if not self._fresh(self.pressure_time):
-                controller.stop(
-                    f'stale pressure: no /tool/pressure for more than '
-                    f'{self.params.pressure_timeout} s'
-                )
-            elif not self._fresh(self.joint_state_time):
-                controller.stop(
-                    f'stale joint states: no /joint_states for more than '
-                    f'{self.params.pressure_timeout} s'
-                )
-            if controller.phase == 'stopped':
-                self._hold()
-        q = self.q
-        if controller.phase in (*ACTIVE_PHASES, 'done'):
-            started = time.perf_counter()
-            qdot, info = controller.step(q, self.force, dt)
-            self.step_times.append(time.perf_counter() - started)
-            self.last_info = info
-            if info.get('diverged'):
-                self.null_space_failures += 1
-                self.last_failure_condition = (
-                    'W + K J^T J not positive definite at any K (near a singularity): the '
-                    'network diverges; used the KKT solution'
-                )
-            elif info.get('null_space_positive') is False:
-                self.null_space_failures += 1
-                self.last_failure_condition = (
-                    f'W not positive on null(J) (min eigenvalue '
-                    f'{info.get("min_null_eigenvalue", float("nan")):.3g}); fell back to |W|'
-                )
-            if controller.phase in ('stopped', 'failed'):
-                self._hold()
-            else:
-                self._command(q, qdot)
-            T = info['T']
-        else:
-            T = self.robot.forward_kinematics(q)
+        output = self.session.control_step(self.params.auto_start)
+        if output is None:  # no joint state yet
+            return
+        self._send(output.command)
         self.pose_publisher.publish(
-            matrix_to_pose_stamped(T, self.get_clock().now().nanoseconds, BASE_FRAME)
+            matrix_to_pose_stamped(
+                output.T_base_tool, self.get_clock().now().nanoseconds, BASE_FRAME
+            )
         )
         self._log_phase_change()
 
-    def _command(self, q, qdot, horizon=None):
-        horizon = self.params.command_horizon if horizon is None else horizon
-        seconds = int(horizon)
+    def _send(self, command: JointCommand | None):
+        if command is None:
+            return
+        seconds = int(command.horizon)
         point = JointTrajectoryPoint(
-            positions=(q + qdot * horizon).tolist(),
-            velocities=qdot.tolist(),
-            time_from_start=Duration(sec=seconds, nanosec=int((horizon - seconds) * 1e9)),
+            positions=command.positions.tolist(),
+            velocities=command.velocities.tolist(),
+            time_from_start=Duration(sec=seconds, nanosec=int((command.horizon - seconds) * 1e9)),
         )
         # A zero stamp: start now (joint_trajectory_controller convention).
         self.command_publisher.publish(
             JointTrajectory(joint_names=list(self.robot.joint_names), points=[point])
         )
-
-    def _hold(self):
-        """Zero velocity at the measured position, now (time_from_start 0: a position
-        arm does not coast on to a point ahead, a velocity arm gets zero at once)."""
-        if self.q is not None:
-            self._command(self.q, np.zeros(self.robot.n_joints), horizon=0.0)
 
     def on_internal_error(self, what, error):
         """An exception in a callback (a solver, a singular configuration, a bug): stop
@@ -635,9 +465,7 @@ class Pa10IkNode(GraphNode):
             throttle_duration_sec=2.0,
         )
         try:
-            if self.controller.phase in (*ACTIVE_PHASES, 'done'):
-                self.controller.fail(reason)
-            self._hold()
+            self._send(self.session.fail(reason))
             self.diagnostics.publish(
                 'internal error', 'error', reason, {'count': self.internal_errors}
             )
@@ -670,31 +498,32 @@ class Pa10IkNode(GraphNode):
 
     @guarded('diagnostics')
     def _publish_diagnostics(self):
-        controller, info = self.controller, self.last_info
+        session = self.session
+        controller, info, force = self.controller, session.last_info, session.force
         phase = controller.phase
-        if phase == 'approach' and controller.stage == 'descend' and self.force > 0:
+        if phase == 'approach' and controller.stage == 'descend' and force > 0:
             phase = 'contact'  # touching, force building up
         values = {
             'phase': phase,
             'stage': controller.stage,
             'progress': f'{controller.progress:.4f}',
             'position_error_m': f'{info.get("position_error", float("nan")):.6f}',
-            'force_N': f'{self.force:.4f}',
-            'force_error_N': f'{self.force - self.params.desired_force:.4f}',
+            'force_N': f'{force:.4f}',
+            'force_error_N': f'{force - self.params.desired_force:.4f}',
             'arm_response': f'{controller.response:.3f}',
             'phi_rad': f'{info.get("phi", float("nan")):.5f}',
-            'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}'
-            if self.step_times
+            'step_time_ms': f'{np.median(session.step_times) * 1e3:.4f}'
+            if session.step_times
             else 'nan',
             'method': self.params.method,
             'force_law': self.params.force_law,
             'reason': controller.reason,
         }
         if self.params.method == 'primal_dual':
-            values['failure_condition'] = self.last_failure_condition or 'none detected'
-            values['null_space_failures'] = self.null_space_failures
-            if self.q is not None:
-                values['fixed_step_radius'] = f'{self._fixed_step_radius(self.q):.6g}'
+            values['failure_condition'] = session.last_failure_condition or 'none detected'
+            values['null_space_failures'] = session.null_space_failures
+            if session.q is not None:
+                values['fixed_step_radius'] = f'{self._fixed_step_radius(session.q):.6g}'
         rms, force_band = controller.stats.summary()
         values.update(rms_position_error_m=f'{rms:.6f}', max_force_error_N=f'{force_band:.4f}')
         level = {'failed': 'error', 'stopped': 'warn'}.get(controller.phase, 'ok')

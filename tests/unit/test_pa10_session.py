@@ -1,0 +1,156 @@
+"""pa10_ik_node's TrackingSession without ROS: the checks on its inputs, the watchdog on
+stale pressure and joint states, and the commands it returns, on a clock the test turns."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pa10_ik_node.ik import RateSolver
+from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, TrackingSession
+from pa10_ik_node.tracking import TrackingConfig, TrackingController
+from sensor_sim.scenario import load_scenario
+from sensor_sim.surfaces import normal_base, surface_points_base
+from vgm_common.errors import InvalidInput
+from vgm_common.robot_model import load_robot
+from vgm_common.topics import JOINT_STATES_TOPIC, PRESSURE_TOPIC, WAYPOINTS_TOPIC
+
+SCENARIOS = Path(__file__).resolve().parents[2] / 'src' / 'sensor_sim' / 'scenarios'
+PERIOD = 0.01  # [s]
+TIMEOUT = 1.0  # [s] pressure_timeout
+HORIZON = 0.05  # [s]
+
+
+class Clock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+@pytest.fixture(scope='module')
+def scenario():
+    return load_scenario(SCENARIOS / 'default.yaml')
+
+
+@pytest.fixture()
+def session(scenario):
+    robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
+    controller = TrackingController(robot, RateSolver('ours', [1.0] * 7), TrackingConfig())
+    return TrackingSession(controller, 'tool0', TIMEOUT, HORIZON, PERIOD, clock=Clock())
+
+
+def waypoints_on(surface, count=12):
+    """A short line of waypoints on the surface, z along the inward normal."""
+    points = surface_points_base(surface, np.linspace([-0.05, 0.0], [0.05, 0.0], count))
+    z = -normal_base(surface, points)
+    poses = np.tile(np.eye(4), (count, 1, 1))
+    for pose, point, axis in zip(poses, points, z):
+        x = np.cross([0.0, 1.0, 0.0], axis)
+        x /= np.linalg.norm(x)
+        pose[:3, :3] = np.column_stack([x, np.cross(axis, x), axis])
+        pose[:3, 3] = point
+    return poses
+
+
+def feed(session, scenario, force=0.0):
+    """Joint states at the scenario's start and a pressure reading, now."""
+    session.take_joint_state(session.robot.joint_names, scenario.robot.initial_joints)
+    session.take_pressure('tool0', force)
+
+
+def test_inputs_that_cannot_be_the_arms_are_refused_and_nothing_is_kept(session, scenario):
+    names = list(session.robot.joint_names)
+    q0 = np.asarray(scenario.robot.initial_joints, dtype=float)
+    bad = {
+        'duplicate': (names[:-1] + names[:1], q0),
+        'unknown': (names[:-1] + ['elbow'], q0),
+        'missing': (names[:-1], q0[:-1]),
+        'outside its limits': (
+            names,
+            np.where(
+                np.arange(7) == 2, session.robot.upper_limits + 2 * JOINT_LIMIT_SLACK_RAD, q0
+            ),
+        ),
+    }
+    for what, (joint_names, positions) in bad.items():
+        with pytest.raises(InvalidInput, match=what):
+            session.take_joint_state(joint_names, positions)
+    assert session.q is None
+    with pytest.raises(InvalidInput, match="expected the tip frame 'tool0'"):
+        session.take_pressure('panda_hand_tcp', 5.0)
+    with pytest.raises(InvalidInput, match='sanity bound'):
+        session.take_pressure('tool0', float('nan'))
+    assert session.pressure_time is None
+    with pytest.raises(InvalidInput, match="expected 'base_link'"):
+        session.take_waypoints('map', waypoints_on(scenario.surface))
+    assert session.waypoints is None
+    # In the robot's own order or any other: the same joints.
+    session.take_joint_state(names[::-1], q0[::-1])
+    np.testing.assert_array_equal(session.q, q0)
+
+
+def test_start_names_what_is_missing_and_nothing_moves_before_joint_states(session, scenario):
+    assert session.control_step() is None  # no joint state yet
+    ok, message, hold = session.start()
+    assert not ok and hold is None
+    for topic in (WAYPOINTS_TOPIC, JOINT_STATES_TOPIC, PRESSURE_TOPIC):
+        assert topic in message
+    feed(session, scenario)
+    output = session.control_step()
+    assert output.command is None  # idle: the pose only
+    np.testing.assert_allclose(
+        output.T_base_tool, session.robot.forward_kinematics(session.q), atol=1e-12
+    )
+
+
+def test_stale_pressure_stops_the_arm_with_a_hold_at_the_measured_joints(session, scenario):
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    ok, message, _ = session.start()
+    assert ok, message
+    output = session.control_step()
+    assert output.command.horizon == HORIZON and np.any(output.command.velocities != 0)
+    # Joint states keep coming, the pressure does not: stopped once it is older than
+    # pressure_timeout, at a step that follows a regular one (not after a stall).
+    clock = session.clock
+    for _ in range(int(TIMEOUT / PERIOD) + 5):
+        clock.now += PERIOD
+        session.take_joint_state(session.robot.joint_names, session.q)
+        output = session.control_step()
+        if session.controller.phase == 'stopped':
+            break
+    assert session.controller.phase == 'stopped'
+    assert 'stale pressure: no /tool/pressure for more than 1.0 s' in session.controller.reason
+    assert clock.now - session.pressure_time == pytest.approx(TIMEOUT + PERIOD, abs=PERIOD)
+    np.testing.assert_array_equal(output.command.positions, session.q)
+    assert output.command.horizon == 0.0 and not np.any(output.command.velocities)
+
+
+def test_a_stall_of_the_loop_itself_is_not_taken_for_stale_inputs(session, scenario):
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    session.control_step()
+    # The loop was not run for 2 s (its executor starved); the newest messages are still
+    # queued behind it: this step must not stop the task on their age.
+    session.clock.now += 2.0
+    session.control_step()
+    assert session.controller.phase == 'approach'
+    # The next step, without new messages, does.
+    session.clock.now += PERIOD
+    session.control_step()
+    assert session.controller.phase == 'stopped'
+    assert 'stale pressure' in session.controller.reason
+
+
+def test_stop_and_an_internal_error_return_a_hold(session, scenario):
+    assert session.stop('stop requested') is None  # no joints yet: nothing to hold
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    hold = session.fail('control step: RuntimeError: boom')
+    assert session.controller.phase == 'failed'
+    np.testing.assert_array_equal(hold.positions, session.q)
+    assert hold.horizon == 0.0
