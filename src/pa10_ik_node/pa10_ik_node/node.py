@@ -19,7 +19,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from pa10_ik_node.ik import METHODS, RateSolver
 from pa10_ik_node.session import JointCommand, TrackingSession
 from pa10_ik_node.thesis import fixed_step_matrix
-from pa10_ik_node.tracking import FORCE_LAWS, TrackingConfig, TrackingController
+from pa10_ik_node.tracking import TrackingConfig, TrackingController
 from vgm_common.conversions import matrix_to_pose_stamped, path_to_matrices
 from vgm_common.diagnostics import CountingPublisher, guarded
 from vgm_common.errors import InvalidInput
@@ -39,8 +39,8 @@ from vgm_common.topics import (
 )
 
 THESIS_WEIGHTS = [1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0]  # §6.6
-# The controller's settings that are parameters (the rest keep TrackingConfig's defaults).
-TRACKING = ConfigParams(TrackingConfig, renamed={'stiffness': 'contact_stiffness'})
+# The controller's settings that are parameters (TrackingConfig says which and how).
+TRACKING = ConfigParams(TrackingConfig)
 
 
 OWN_TOOL = -1.0  # tool_length: the model's own
@@ -69,7 +69,7 @@ PARAMETERS = [
     Param(
         'tool_length',
         OWN_TOOL,
-        "[m] Tool beyond tip_frame along its z axis; -1: the model's own (0.1 m for the "
+        "Tool beyond tip_frame along its z axis [m]; -1: the model's own (0.1 m for the "
         'built-in pa10 models, 0 for a URDF, whose tip frame is the tool tip). Must match '
         "the scenario's robot.tool_length.",
         range=(OWN_TOOL, 1.0),
@@ -80,25 +80,25 @@ PARAMETERS = [
         'tip_frame',
         'tool0',
         'Tip frame of the URDF, any of its frames (z = approach axis); /tool/pressure '
-        'must be stamped in it.',
+        "must be stamped in it (the scenario's robot.tip_frame).",
         read_only=True,
     ),
     Param(
         'base_frame',
         '',
         "Frame of the URDF the arm's chain starts at ('': its root); joints moving it (a "
-        "torso's) are locked.",
+        "torso's, a lift's) are locked at neutral.",
         read_only=True,
     ),
     Param(
         'base_placement',
         [0.0] * 6,
-        '[m, rad] x, y, z, roll, pitch, yaw of base_frame in base_link (the frame of the '
+        'x, y, z [m], roll, pitch, yaw [rad] of base_frame in base_link (the frame of the '
         "waypoints and /tool_pose); = the scenario's robot.base_placement.",
         check=lambda v: None if len(v) == 6 else 'needs 6 numbers',
         read_only=True,
     ),
-    Param('rate', 100.0, '[Hz] Control rate.', range=(100.0, 1000.0), read_only=True),
+    Param('rate', 100.0, 'Control rate [Hz].', range=(100.0, 1000.0), read_only=True),
     Param(
         'method',
         'ours',
@@ -109,7 +109,7 @@ PARAMETERS = [
     Param(
         'weights',
         [1.0] * 7,
-        f'Diagonal of W (may be indefinite, e.g. the thesis {THESIS_WEIGHTS}).',
+        f'Diagonal of W, non-zero (may be indefinite, e.g. the thesis {THESIS_WEIGHTS}).',
         check=_check_weights,
     ),
     Param(
@@ -139,129 +139,24 @@ PARAMETERS = [
         'DLS damping; largest adaptive damping of ours.',
         range=(0.0, 10.0),
     ),
-    Param(
-        'desired_force',
-        TRACKING.defaults.desired_force,
-        '[N] Contact force to hold.',
-        range=(0.01, 200.0),
-    ),
-    Param(
-        'contact_stiffness',
-        TRACKING.defaults.stiffness,
-        '[N/m] Stiffness estimate (feed-forward depth; the integral law corrects its error).',
-        range=(1.0, 1e7),
-    ),
-    Param(
-        'force_gain',
-        TRACKING.defaults.force_gain,
-        '[1/s] Integral gain of the force law.',
-        range=(0.0, 100.0),
-    ),
-    Param(
-        'force_law',
-        TRACKING.defaults.force_law,
-        "Force law: 'integral' (ours: depth = "
-        "desired_force / contact_stiffness + integral of the force error) or 'tilt' "
-        "(the thesis's 7.3.15: the motion PQ' tilted by phi into / out of the "
-        'surface; acts only while moving along the path).',
-        choices=FORCE_LAWS,
-    ),
-    Param(
-        'max_tip_speed',
-        TRACKING.defaults.max_tip_speed,
-        "[m/s] The tip's top speed: along the path, in the free-space move, in the "
-        'descent until 5 mm short of the first waypoint, in the lift-off.',
-        range=(1e-3, 0.2),
-    ),
-    Param(
-        'speed',
-        TRACKING.defaults.speed,
-        '[m/s] Speed along the path, at most max_tip_speed; 0: max_tip_speed.',
-        range=(0.0, 0.2),
-    ),
-    Param(
-        'adapt_response',
-        TRACKING.defaults.adapt_response,
-        'Measure how much of the commanded motion the '
-        'arm makes and scale commands up for an arm slower than commanded (at most '
-        '2.5 times, within the joint speed limits); the motion measured is compared with '
-        'the command sent command_latency before.',
-    ),
-    Param(
-        'command_latency',
-        TRACKING.defaults.command_latency,
-        "[s] The arm's delay from a command to its measured effect: the control law acts on "
-        'the measured joints advanced by the commands of that time (a Smith predictor); '
-        '0: none assumed.',
-        range=(0.0, 0.5),
-    ),
-    Param(
-        'pose_integral_gain',
-        TRACKING.defaults.pose_integral_gain,
-        "[1/s^2] Integral of the tip's error across "
-        'the approach axis while tracking (a slow arm trails its reference '
-        'otherwise); 0 turns it off.',
-        range=(0.0, 200.0),
-    ),
-    Param(
-        'pose_gain',
-        TRACKING.defaults.pose_gain,
-        '[1/s] Pose feedback gain.',
-        range=(0.1, 50.0),
-    ),
+    *TRACKING.declarations(),
     Param(
         'max_joint_velocity',
         1.0,
-        "[rad/s] Cap on every joint speed (on top of the model's limits).",
+        "Cap on every joint speed [rad/s] (on top of the model's limits).",
         range=(0.01, 10.0),
         read_only=True,
     ),
     Param(
-        'track_spin',
-        TRACKING.defaults.track_spin,
-        'Also track the spin about the approach axis '
-        '(6 constraints, as the seed); false leaves it free.',
-    ),
-    Param(
-        'standoff',
-        TRACKING.defaults.standoff,
-        '[m] Pre-contact pose above the first waypoint.',
-        range=(0.005, 0.2),
-    ),
-    Param(
-        'descent_speed',
-        TRACKING.defaults.descent_speed,
-        '[m/s] The last 5 mm of the descent to contact (slowing as the force builds).',
-        range=(1e-4, 0.1),
-    ),
-    Param(
-        'lift_height',
-        TRACKING.defaults.lift_height,
-        '[m] Lift-off along the approach axis when done.',
-        range=(0.0, 0.2),
-    ),
-    Param(
-        'max_position_error',
-        TRACKING.defaults.max_position_error,
-        '[m] Tip farther than this from its reference for error_timeout: failure.',
-        range=(1e-4, 1.0),
-    ),
-    Param(
-        'error_timeout',
-        TRACKING.defaults.error_timeout,
-        '[s] See max_position_error.',
-        range=(0.01, 60.0),
-    ),
-    Param(
         'pressure_timeout',
         1.0,
-        '[s] Pressure (or joint state) older than this while active: stop.',
+        'Pressure (or joint state) older than this [s] while active: stop.',
         range=(0.01, 60.0),
     ),
     Param(
         'command_horizon',
         0.05,
-        '[s] time_from_start of the commanded point.',
+        'time_from_start of the commanded point [s].',
         range=(0.001, 1.0),
     ),
     Param(
@@ -272,7 +167,7 @@ PARAMETERS = [
     Param(
         'diagnostics_rate',
         2.0,
-        '[Hz] Rate of the tracking diagnostics.',
+        'Rate of the tracking diagnostics [Hz].',
         range=(0.1, 50.0),
         read_only=True,
     ),

@@ -27,6 +27,7 @@ from pa10_ik_node.reach import first_unreachable, spaced_indices
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 from vgm_common.robot_model import RobotModel, workspace_reach
+from vgm_common.settings import setting
 
 
 def _unit(v: npt.ArrayLike, key: str) -> FloatArray:
@@ -162,44 +163,100 @@ class Unreachable(InvalidInput):
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    """Settings of ``TrackingController`` (units in brackets)."""
+    """Settings of ``TrackingController``; the fields made by ``setting`` are
+    pa10_ik_node's parameters of those names (``stiffness``: ``contact_stiffness``)."""
 
-    desired_force: float = 5.0  # [N]
-    stiffness: float = 2000.0  # [N/m] contact stiffness estimate (feed-forward depth)
-    # [m/s] the tip's top speed: along the path, in the free-space move, in the descent
-    # until the reference is DESCENT_SLOW_DISTANCE_M short of the first waypoint, and in
-    # the lift-off. 0.03 m/s keeps the in-process and topic goals (README, Measured).
-    max_tip_speed: float = 0.03
-    speed: float = 0.0  # [m/s] along the path, at most max_tip_speed; 0: max_tip_speed
+    desired_force: float = setting(5.0, 'Contact force to hold.', unit='N', range=(0.01, 200.0))
+    stiffness: float = setting(
+        2000.0,
+        'Stiffness estimate (feed-forward depth; the integral law corrects its error).',
+        unit='N/m',
+        range=(1.0, 1e7),
+        name='contact_stiffness',
+    )
+    force_gain: float = setting(
+        5.0, 'Integral gain of the force law.', unit='1/s', range=(0.0, 100.0)
+    )
+    force_law: str = setting(
+        'integral',
+        "Force law: 'integral' (ours: depth = desired_force / contact_stiffness + integral "
+        "of the force error) or 'tilt' (the thesis's 7.3.15: the motion PQ' tilted by phi "
+        'into / out of the surface; acts only while moving along the path).',
+        choices=FORCE_LAWS,
+    )
+    # 0.03 m/s keeps the in-process and topic goals (README, Measured).
+    max_tip_speed: float = setting(
+        0.03,
+        "The tip's top speed: along the path, in the free-space move, in the descent until "
+        '5 mm short of the first waypoint, in the lift-off.',
+        unit='m/s',
+        range=(1e-3, 0.2),
+    )
+    speed: float = setting(
+        0.0,
+        'Speed along the path, at most max_tip_speed; 0: max_tip_speed.',
+        unit='m/s',
+        range=(0.0, 0.2),
+    )
     # [m/s^2] the path speed is also held to sqrt(this / curvature) over the next
     # CURVATURE_LOOKAHEAD_M: the tip's lateral error on a bend grows with v^2 x curvature
     # (a 145 mm figure eight bending down to 6 mm radius, in process: RMS 0.099 mm at a
     # constant 0.03 m/s, 0.012 mm with this limit); a gentle path runs at max_tip_speed.
     max_lateral_acceleration: float = 0.03
-    pose_gain: float = 10.0  # [1/s] pose feedback
-    # [1/s^2] integral of the tip's error across the approach axis while tracking: an arm
-    # slower than commanded (a lag, a velocity scale) would otherwise trail the reference
-    # by speed / pose_gain and cut the path's curves. Bounded to add at most
-    # MAX_INTEGRAL_SPEEDS x ``speed``.
-    pose_integral_gain: float = 20.0
-    # Scale commands by the arm's measured response (at most 1 / MIN_RESPONSE). On by
-    # default since max_tip_speed: over topics (tests/topic/test_pa10_ik_node.py, three
-    # runs of the file, one under load) every arm's RMS fell 3-10x with it (the
-    # default-speed arc 0.42-0.74 -> 0.04-0.13 mm, the Panda 0.25-0.4 -> 0.02-0.13 mm), in
+    # Scale commands by the arm's measured response (at most 1 / MIN_RESPONSE): in
     # process it meets the half-speed arms; an earlier version once overshot a Panda run
-    # by 21 mm.
-    adapt_response: bool = True
-    # [s] the arm's delay from a command to its measured effect (0: none assumed). The
-    # control law then acts on the measured joints advanced by the joint velocities
-    # commanded within that time (a Smith predictor: a delayed arm otherwise trails or
-    # overshoots its reference); every phase decision stays on the measured state.
-    command_latency: float = 0.0
-    force_gain: float = 5.0  # [1/s] integral force law (approach_correction)
-    force_law: str = 'integral'  # 'integral' (ours) or 'tilt' (thesis 7.3.15, tilted_motion)
-    track_spin: bool = False  # track the spin about the approach axis too (6 constraints)
-    standoff: float = 0.03  # [m] pre-contact pose above the first waypoint
-    descent_speed: float = 0.01  # [m/s] the last DESCENT_SLOW_DISTANCE_M before contact
-    lift_height: float = 0.03  # [m] lift-off when done
+    # by 21 mm over topics.
+    adapt_response: bool = setting(
+        True,
+        'Measure how much of the commanded motion the arm makes and scale commands up for '
+        'an arm slower than commanded (at most 2.5 times, within the joint speed limits); '
+        'the motion measured is compared with the command sent command_latency before.',
+    )
+    # A Smith predictor: a delayed arm otherwise trails or overshoots its reference; every
+    # phase decision stays on the measured state.
+    command_latency: float = setting(
+        0.0,
+        "The arm's delay from a command to its measured effect: the control law acts on the "
+        'measured joints advanced by the commands of that time (a Smith predictor); 0: '
+        'none assumed.',
+        unit='s',
+        range=(0.0, 0.5),
+    )
+    # An arm slower than commanded (a lag, a velocity scale) would otherwise trail the
+    # reference by speed / pose_gain and cut the path's curves. Bounded to add at most
+    # MAX_INTEGRAL_SPEEDS x ``speed``.
+    pose_integral_gain: float = setting(
+        20.0,
+        "Integral of the tip's error across the approach axis while tracking (a slow arm "
+        'trails its reference otherwise); 0 turns it off.',
+        unit='1/s^2',
+        range=(0.0, 200.0),
+    )
+    pose_gain: float = setting(10.0, 'Pose feedback gain.', unit='1/s', range=(0.1, 50.0))
+    track_spin: bool = setting(
+        False,
+        'Also track the spin about the approach axis (6 constraints, as the seed); false '
+        'leaves it free.',
+    )
+    standoff: float = setting(
+        0.03, 'Pre-contact pose above the first waypoint.', unit='m', range=(0.005, 0.2)
+    )
+    descent_speed: float = setting(
+        0.01,
+        'The last 5 mm of the descent to contact (slowing as the force builds).',
+        unit='m/s',
+        range=(1e-4, 0.1),
+    )
+    lift_height: float = setting(
+        0.03, 'Lift-off along the approach axis when done.', unit='m', range=(0.0, 0.2)
+    )
+    max_position_error: float = setting(
+        0.01,
+        'Tip farther than this from its reference for error_timeout: failure.',
+        unit='m',
+        range=(1e-4, 1.0),
+    )
+    error_timeout: float = setting(1.0, 'See max_position_error.', unit='s', range=(0.01, 60.0))
     max_angular_speed: float = 0.5  # [rad/s] free-space moves
     max_depth: float = 0.01  # [m] deepest commanded indentation; descent beyond: failure
     force_tolerance: float = 0.05  # relative band in which the contact counts as settled
@@ -208,8 +265,6 @@ class TrackingConfig:
     ramp_time: float = 0.5  # [s] speed ramp at the start of tracking
     lookahead: float = 0.005  # [m] next marker Q ahead of the contact point P (§6.4)
     governor_distance: float = 0.002  # [m] the reference waits while the tip lags more
-    max_position_error: float = 0.01  # [m] beyond this for error_timeout: failure
-    error_timeout: float = 1.0  # [s]
     reach_margin: float = 0.02  # [m] waypoints must lie this far inside the reach
     closed_tolerance: float = 0.01  # [m] path ends closer than this: a loop
 
