@@ -72,6 +72,9 @@ class PiecewiseCurve:
         fit_tolerance_px: largest RMS Sampson residual of a piece [px]; inf: one piece.
         min_piece_points: pieces are not split below this many points.
         overlap: fraction of a piece's length shared with each neighbour.
+        measured: (N,) bool, the chain points seen in the image (default all); the
+            others (bridged across a crossing's gap) count for a piece's support and
+            the chain's order but not for its fit, nor as view-1 samples.
     """
 
     def __init__(
@@ -83,6 +86,7 @@ class PiecewiseCurve:
         fit_tolerance_px: float = 0.1,
         min_piece_points: int = 30,
         overlap: float = 0.25,
+        measured: npt.ArrayLike | None = None,
     ) -> None:
         xy = np.asarray(xy, dtype=float)
         size = len(monomial_exponents(degree))
@@ -99,6 +103,9 @@ class PiecewiseCurve:
         self.fit_tolerance_px = float(fit_tolerance_px)
         self.min_piece_points = max(int(min_piece_points), size + 2)
         self.overlap = float(overlap)
+        self.measured = (
+            np.ones(len(xy), dtype=bool) if measured is None else np.asarray(measured, dtype=bool)
+        )
         self.pieces: list[CurvePiece] = []
         n = len(xy)
         # each piece's residual is measured on these (a chain point is in several fits):
@@ -141,6 +148,9 @@ class PiecewiseCurve:
         Returns (coefficients, RMS residual [px], bias [px]): the largest mean signed
         residual over ``BIAS_WINDOW`` consecutive chain points, the fit's systematic
         error, which the chain's noise averages out of."""
+        measured = indices[self.measured[indices]]
+        if len(measured) >= len(self._monomials[0]) + 2:
+            indices = measured
         best: tuple[FloatArray, float, FloatArray] | None = None
         for a in fit_implicit_curves(self.xy[indices], self.degree, FITS):
             # signed Sampson distances g / ||grad g|| of the piece's chain points
@@ -397,7 +407,7 @@ def reconstruct_ray_roots(
 
     Args:
         view1, view2, view3: ``View``; view3 optional.
-        samples: indices of view-1 chain points to reconstruct (default all).
+        samples: indices of view-1 chain points to reconstruct (default all measured).
         tol3_px: third-view threshold on the distance to view 3's curve [px].
         support_px: a candidate must project within this of view 2's chain [px].
         distinct_m: two-view case: candidates farther apart than this are distinct [m].
@@ -408,7 +418,7 @@ def reconstruct_ray_roots(
     Returns:
         (points_base (K, 3), info) as ``select_candidates``.
     """
-    samples = np.arange(len(view1.curve.xy)) if samples is None else np.asarray(samples)
+    samples = np.nonzero(view1.curve.measured)[0] if samples is None else np.asarray(samples)
     rays = view1_rays(view1, samples)
     curve2 = view2.curve
     degree = curve2.degree
