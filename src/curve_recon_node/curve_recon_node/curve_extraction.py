@@ -27,6 +27,8 @@ from scipy.spatial import cKDTree
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
+LINK_RADIUS_PX = 2.0  # [px] ridge points this near are neighbours on a chain (the default)
+
 
 @dataclass(frozen=True)
 class Chain:
@@ -234,7 +236,7 @@ def extract_chains(
     line_width_px: float = 3.0,
     min_contrast_grey: float = 8.0,
     min_chain_px: float = 40.0,
-    link_radius_px: float = 2.0,
+    link_radius_px: float = LINK_RADIUS_PX,
 ) -> list[Chain]:
     """The dark curve chains of one image: ridge points linked into chains at least
     ``min_chain_px`` long [px], longest first.
