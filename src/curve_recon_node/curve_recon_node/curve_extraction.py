@@ -272,6 +272,7 @@ STRAND_ANGLE_DEG = 35.0  # a link, and the two points' tangents, within this of 
 END_DIRECTION_PX = 6.0  # [px] an end's outward direction: from this far back along the chain
 JOIN_ANGLE_DEG = 35.0  # a crossing's two ends continue each other within this
 JOIN_GAP_WIDTHS = 10.0  # [line widths] longest gap bridged at a crossing
+CROSSING_MIN_POINTS = 3  # a point is at a crossing with this many differently turned near it
 STRAND_MIN_WIDTHS = 3.0  # [line widths] shortest strand between two crossings kept
 TRACED_GAIN = 1.05  # the traced curve replaces the longest chain if this much longer
 CUSP_GAP_RADII = 3.0  # [crossing radii] ends this near are joined at any angle
@@ -303,7 +304,8 @@ def strand_chains(
     ``link_radius_px`` whose tangent differs by more than ``STRAND_ANGLE_DEG`` (the other
     strand). Linked through a crossing's centre, whose points turn gradually from one
     strand's direction to the other's, a strand's longest path turned onto the other
-    strand and the crossing's remaining arms were dropped as spurs."""
+    strand and the crossing's remaining arms were dropped as spurs. (At least
+    ``CROSSING_MIN_POINTS`` such points: one may be noise.)"""
     points = np.asarray(points, dtype=float).reshape(-1, 2)
     if len(points) < max(min_points, 2):
         return []
@@ -312,8 +314,9 @@ def strand_chains(
     tree = cKDTree(points)
     near = tree.query_pairs(line_width_px + link_radius_px, output_type='ndarray')
     across = near[np.abs(np.sum(tangent[near[:, 0]] * tangent[near[:, 1]], axis=1)) < along]
-    at_crossing = np.zeros(len(points), dtype=bool)
-    at_crossing[across.ravel()] = True
+    # several such points, not one: a lone noise response beside a line (4 px off,
+    # turned 90 deg) cut a figure-eight's strand where it came near
+    at_crossing = np.bincount(across.ravel(), minlength=len(points)) >= CROSSING_MIN_POINTS
     pairs = tree.query_pairs(link_radius_px, output_type='ndarray')
     pairs = pairs[~at_crossing[pairs[:, 0]] & ~at_crossing[pairs[:, 1]]]
     if len(pairs) == 0:
