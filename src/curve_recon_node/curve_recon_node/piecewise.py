@@ -384,7 +384,6 @@ class CandidateInfo(TypedDict):
     n_out_of_order: int
     n_second_pair: NotRequired[int]
     n_end_on: NotRequired[int]
-    n_unseen_by_view_3: NotRequired[int]
 
 
 def view1_rays(view1: View, samples: IntArray) -> FloatArray:

@@ -13,15 +13,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from curve_recon_node.curve_extraction import CUSP_GAP_RADII, LINK_RADIUS_PX, extract_chains
+from curve_recon_node.curve_extraction import extract_chains
 from curve_recon_node.piecewise import (
     CandidateInfo,
     PiecewiseCurve,
     View,
-    ray_root_candidates,
     reconstruct_ray_roots,
     refine_points,
-    select_candidates,
 )
 from curve_recon_node.thesis import reconstruct_cone_lsq
 from curve_recon_node.waypoints import (
@@ -207,50 +205,6 @@ def _second_pair(
     points, merged = _merge(points, info, more, more_info, more_info['sample_index'])
     merged['n_candidates'] = info['n_candidates'] + more_info['n_candidates']
     merged['n_second_pair'] = len(more)
-    return points, merged
-
-
-def _unseen_by_view_3(
-    views: Sequence[View],
-    points: FloatArray,
-    info: CandidateInfo,
-    settings: ReconstructionSettings,
-) -> tuple[FloatArray, CandidateInfo]:
-    """Samples still missing whose candidates from views 1 and 2 that view 3 does not
-    show agree (none more than 2 mm apart): their projections land on a stretch of view
-    3's chain bridged across a gap (a cusp or a tight loop of that
-    image curve, seen along its tangent, has no traceable ridge), within the reach of
-    such a gap. View 3 cannot judge them, and a knot lost a 33 mm stretch there
-    (torus_knot seed 3: its aux chain 6 px off the truth across a loop). A projection
-    beside view 3's measured chain, or far from any, still refuses the point.
-    ``n_unseen_by_view_3`` counts the points added."""
-    curve3 = views[2].curve
-    if curve3.measured.all():
-        return points, info
-    missing = np.setdiff1d(np.nonzero(views[0].curve.measured)[0], info['sample_index'])
-    if not len(missing):
-        return points, info
-    ray_of_candidate, candidates = ray_root_candidates(
-        views[0], views[1], missing, max_depth=settings.depth_range[1]
-    )
-    index3 = views[2].chain_index(candidates)
-    reach_px = CUSP_GAP_RADII * (settings.line_width_px + LINK_RADIUS_PX)
-    unseen = (
-        (index3 >= 0)
-        & ~curve3.measured[np.maximum(index3, 0)]
-        & (views[2].chain_distance_px(candidates) <= reach_px)
-    )
-    if not unseen.any():
-        return points, info
-    # of each sample's candidates, those in such a gap of view 3 must agree (two views)
-    more, more_info = select_candidates(
-        ray_of_candidate[unseen], candidates[unseen], len(missing), missing, None, 0.0, 2e-3
-    )
-    if not len(more):
-        return points, info
-    kept: CandidateInfo = {**more_info, 'third_view_px': np.full(len(more), np.nan)}
-    points, merged = _merge(points, info, more, kept, kept['sample_index'])
-    merged['n_unseen_by_view_3'] = len(more)
     return points, merged
 
 
@@ -450,7 +404,6 @@ def _intersection(
         )
         if view3 is not None:
             points, info = _second_pair(views, points, info, tol3, settings)
-            points, info = _unseen_by_view_3(views, points, info, settings)
             points, info = _fill_end_on_stretches(views, points, info, tol3, settings)
         return points, info
     # the thesis's "suitable initial roots": log-spaced depths on each view-1 ray
@@ -478,7 +431,6 @@ def _intersection_stats(views: Sequence[View], info: CandidateInfo) -> dict[str,
         'ambiguous': info['n_ambiguous'],
         'from_views_1_3': info.get('n_second_pair', 0),
         'from_views_2_3': info.get('n_end_on', 0),
-        'unseen_by_view_3': info.get('n_unseen_by_view_3', 0),
         'without_candidates': info['n_without_candidates'],
         'fit_rms_px': '/'.join(f'{v.curve.rms_px:.3f}' for v in views),
     }
