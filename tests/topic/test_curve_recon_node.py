@@ -624,18 +624,24 @@ def test_bad_depth_runtime_parameters_and_waiting_calls_never_wedge(bad_input_se
 
 
 @pytest.mark.parametrize(
-    'family, seed, noise_grey',
+    'family, seed, noise_grey, max_m',
     [
-        ('self_approaching', 1, 2.0),  # a closed space curve passing near itself
-        ('planar_cubic', 2, 2.0),  # a tilted planar cubic with an inflection
+        ('self_approaching', 1, 2.0, None),  # a closed space curve passing near itself
+        ('planar_cubic', 2, 2.0, None),  # a tilted planar cubic with an inflection
+        # a (2, 3) torus knot: its image crosses itself 3-6 times in every view, one
+        # closed curve only if extraction follows the strands through the crossings
+        # (before, the longest chain between crossings: in the bench, this draw
+        # noise-free gave 7.3 mm RMS and 0.7 % of the knot)
+        ('torus_knot', 1, 2.0, 1e-3),
     ],
 )
 def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
-    spawn, rclpy_node, tmp_path, family, seed, noise_grey
+    spawn, rclpy_node, tmp_path, family, seed, noise_grey, max_m
 ):
     """A generated curve and rig (vgm_evaluation.curve_families: f 400-1400 px, k1 down to
     -0.4, an oblique third camera) through the node: waypoints within the bench's goals
-    (RMS < 1 mm, > 90 % of the true curve within 3 mm) and an RMS at or below the
+    (RMS < 1 mm, > 90 % of the true curve within 3 mm, and where given every waypoint
+    within ``max_m`` of it), a closed curve published closed, and an RMS at or below the
     triangulation reference's on the same images and calibration."""
     from vgm_evaluation.curve_families import generate_case
 
@@ -689,8 +695,14 @@ def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
     truth = densify(
         np.vstack([case.truth_base, case.truth_base[:1]]) if case.closed else case.truth_base
     )
-    rms = np.sqrt(np.mean(cKDTree(truth).query(points)[0] ** 2))
-    coverage = np.mean(cKDTree(densify(points)).query(truth)[0] <= 3e-3)
+    distance = cKDTree(truth).query(points)[0]
+    rms, worst = np.sqrt(np.mean(distance**2)), distance.max()
+    coverage = np.mean(
+        cKDTree(densify(np.vstack([points, points[:1]]) if case.closed else points)).query(truth)[
+            0
+        ]
+        <= 3e-3
+    )
     # the reference on the same images, chains and calibration
     settings = ReconstructionSettings(degree=case.degree, line_width_px=case.line_width_px)
     views = [
@@ -699,11 +711,16 @@ def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
     ]
     reference, _ = triangulate_views(views)
     reference_rms = np.sqrt(np.mean(cKDTree(truth).query(reference)[0] ** 2))
+    rclpy_node.spin_until(lambda: probe.diagnostic('reconstruction'), 10, 'the diagnostic')
+    status = values(probe.diagnostic('reconstruction'))
     print(
-        f'{family} seed {seed}: ours RMS {rms * 1e3:.3f} mm, coverage {coverage:.3f}; '
-        f'triangulation RMS {reference_rms * 1e3:.3f} mm'
+        f'{family} seed {seed}: ours RMS {rms * 1e3:.3f} mm, max {worst * 1e3:.3f} mm, '
+        f'coverage {coverage:.3f}, closed {status["closed"]}; triangulation RMS '
+        f'{reference_rms * 1e3:.3f} mm'
     )
     assert rms < 1e-3 and coverage > 0.9
+    assert max_m is None or worst < max_m
+    assert status['closed'] == str(case.closed)
     assert rms <= reference_rms
     assert node.alive() and 'Traceback' not in node.output()
 

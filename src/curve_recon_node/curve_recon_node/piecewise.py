@@ -72,6 +72,9 @@ class PiecewiseCurve:
         fit_tolerance_px: largest RMS Sampson residual of a piece [px]; inf: one piece.
         min_piece_points: pieces are not split below this many points.
         overlap: fraction of a piece's length shared with each neighbour.
+        measured: (N,) bool, the chain points seen in the image (default all); the
+            others (bridged across a crossing's gap) count for a piece's support and
+            the chain's order but not for its fit, nor as view-1 samples.
     """
 
     def __init__(
@@ -83,6 +86,7 @@ class PiecewiseCurve:
         fit_tolerance_px: float = 0.1,
         min_piece_points: int = 30,
         overlap: float = 0.25,
+        measured: npt.ArrayLike | None = None,
     ) -> None:
         xy = np.asarray(xy, dtype=float)
         size = len(monomial_exponents(degree))
@@ -99,6 +103,9 @@ class PiecewiseCurve:
         self.fit_tolerance_px = float(fit_tolerance_px)
         self.min_piece_points = max(int(min_piece_points), size + 2)
         self.overlap = float(overlap)
+        self.measured = (
+            np.ones(len(xy), dtype=bool) if measured is None else np.asarray(measured, dtype=bool)
+        )
         self.pieces: list[CurvePiece] = []
         n = len(xy)
         # each piece's residual is measured on these (a chain point is in several fits):
@@ -141,6 +148,9 @@ class PiecewiseCurve:
         Returns (coefficients, RMS residual [px], bias [px]): the largest mean signed
         residual over ``BIAS_WINDOW`` consecutive chain points, the fit's systematic
         error, which the chain's noise averages out of."""
+        measured = indices[self.measured[indices]]
+        if len(measured) >= len(self._monomials[0]) + 2:
+            indices = measured
         best: tuple[FloatArray, float, FloatArray] | None = None
         for a in fit_implicit_curves(self.xy[indices], self.degree, FITS):
             # signed Sampson distances g / ||grad g|| of the piece's chain points
@@ -397,7 +407,7 @@ def reconstruct_ray_roots(
 
     Args:
         view1, view2, view3: ``View``; view3 optional.
-        samples: indices of view-1 chain points to reconstruct (default all).
+        samples: indices of view-1 chain points to reconstruct (default all measured).
         tol3_px: third-view threshold on the distance to view 3's curve [px].
         support_px: a candidate must project within this of view 2's chain [px].
         distinct_m: two-view case: candidates farther apart than this are distinct [m].
@@ -408,33 +418,13 @@ def reconstruct_ray_roots(
     Returns:
         (points_base (K, 3), info) as ``select_candidates``.
     """
-    samples = np.arange(len(view1.curve.xy)) if samples is None else np.asarray(samples)
-    rays = view1_rays(view1, samples)
-    curve2 = view2.curve
-    degree = curve2.degree
-    n_pieces = len(curve2.pieces)
-    nodes = np.arange(degree + 1.0)
-    # every (ray, piece) pair: evaluate the cone at n + 1 depths and solve exactly; the
-    # camera-2 points of a ray do not depend on the piece, so their monomials are shared
-    x_cam = (
-        view1.centre_base + nodes[:, None, None] * rays[None] - view2.centre_base
-    ) @ view2.R_camera_base.T  # (n + 1, R, 3)
-    values = (_cone_monomials(x_cam.reshape(-1, 3), degree) @ curve2.coefficient_matrix.T).reshape(
-        len(nodes), -1
-    )  # (n + 1, R P)
-    poly = np.linalg.solve(np.vander(nodes, increasing=True), values).T
-    ray_index = np.repeat(np.arange(len(samples)), n_pieces)
-    piece_index = np.tile(np.arange(n_pieces), len(samples))
-    rows, depth = _real_positive_roots(poly)
-    points = view1.centre_base + depth[:, None] * rays[ray_index[rows]]
-    _, depth2 = view2.project(points)
-    # the cheap tests first: the support test's nearest-neighbour query is the costly one
-    plausible = (depth2 > 0) & (depth < max_depth)
-    rows, points = rows[plausible], points[plausible]
-    keep = view2.in_support(points, piece_index[rows], support_px)
+    samples = np.nonzero(view1.curve.measured)[0] if samples is None else np.asarray(samples)
+    ray_of_candidate, candidates = ray_root_candidates(
+        view1, view2, samples, support_px=support_px, max_depth=max_depth
+    )
     return select_candidates(
-        ray_index[rows][keep],
-        points[keep],
+        ray_of_candidate,
+        candidates,
         len(samples),
         samples,
         view3,
@@ -443,6 +433,60 @@ def reconstruct_ray_roots(
         support_px,
         order_views=(view1, view2),
     )
+
+
+def ray_root_candidates(
+    view1: View,
+    view2: View,
+    samples: IntArray,
+    *,
+    support_px: float = 3.0,
+    max_depth: float = np.inf,
+) -> tuple[IntArray, FloatArray]:
+    """All candidates of ``reconstruct_ray_roots`` before selection: (position in
+    ``samples`` of each candidate's ray (C,), points_base (C, 3)), the real positive
+    roots of each view-2 piece's cone along the view-1 rays of chain points ``samples``
+    that project within ``support_px`` of that piece's chain points, shallower than
+    ``max_depth`` in view 1."""
+    rays = view1_rays(view1, samples)
+    curve2 = view2.curve
+    degree = curve2.degree
+    nodes = np.arange(degree + 1.0)
+    # only (ray, piece) pairs whose epipolar line in view 2 crosses the piece's box grown
+    # by support_px: no root of the others can pass the support test (a knot's image:
+    # 170 pieces per view, most rays meet a few of them)
+    line = np.cross(
+        (view1.centre_base - view2.centre_base) @ view2.R_camera_base.T,
+        rays @ view2.R_camera_base.T,
+    )  # (R, 3): a X + b Y + c = 0 in view 2's normalised coordinates
+    reach = support_px / curve2.focal_px * (1 + 1e-9)
+    low, high = curve2.piece_boxes[:, 0] - reach, curve2.piece_boxes[:, 1] + reach  # (P, 2)
+    corner_x = np.stack([low[:, 0], high[:, 0], low[:, 0], high[:, 0]], axis=1)  # (P, 4)
+    corner_y = np.stack([low[:, 1], low[:, 1], high[:, 1], high[:, 1]], axis=1)
+    side = (
+        line[:, 0, None, None] * corner_x[None]
+        + line[:, 1, None, None] * corner_y[None]
+        + line[:, 2, None, None]
+    )  # (R, P, 4)
+    ray_index, piece_index = np.nonzero((side.min(axis=2) <= 0) & (side.max(axis=2) >= 0))
+    # evaluate each pair's cone at n + 1 depths and solve exactly; the camera-2 points of
+    # a ray do not depend on the piece, so their monomials are shared
+    x_cam = (
+        view1.centre_base + nodes[:, None, None] * rays[None] - view2.centre_base
+    ) @ view2.R_camera_base.T  # (n + 1, R, 3)
+    monomials = _cone_monomials(x_cam.reshape(-1, 3), degree).reshape(len(nodes), len(rays), -1)
+    values = np.einsum(
+        'kqm,qm->kq', monomials[:, ray_index], curve2.coefficient_matrix[piece_index]
+    )  # (n + 1, pairs)
+    poly = np.linalg.solve(np.vander(nodes, increasing=True), values).T
+    rows, depth = _real_positive_roots(poly)
+    points = view1.centre_base + depth[:, None] * rays[ray_index[rows]]
+    _, depth2 = view2.project(points)
+    # the cheap tests first: the support test's nearest-neighbour query is the costly one
+    plausible = (depth2 > 0) & (depth < max_depth)
+    rows, points = rows[plausible], points[plausible]
+    keep = view2.in_support(points, piece_index[rows], support_px)
+    return ray_index[rows][keep], points[keep]
 
 
 ORDER_WINDOW = 5  # view-1 samples on each side whose picks a candidate's order is checked against

@@ -169,6 +169,7 @@ def view_curve(
         focal,
         settings.fit_tolerance_px,
         settings.min_piece_points,
+        measured=chain.measured,
     )
     clock.lap('piecewise fits')
     T_camera_base = camera.T_camera_base
@@ -188,7 +189,7 @@ def _second_pair(
     the oblique third camera that pair is well conditioned there. Returns the merged
     (points, info), in view-1 order; the counts of the first pass stay as they were
     and ``n_second_pair`` counts the samples recovered."""
-    missing = np.setdiff1d(np.arange(info['n_samples']), info['sample_index'])
+    missing = np.setdiff1d(np.nonzero(views[0].curve.measured)[0], info['sample_index'])
     if len(missing) < 3:
         return points, info
     more, more_info = reconstruct_ray_roots(
@@ -277,12 +278,14 @@ def _fill_end_on_stretches(
         if abs(step) > END_ON_ARC_CHORD * chord_px + END_ON_ARC_CHORD:
             continue
         between = first + np.sign(step) * np.arange(1, abs(step))
-        if not len(between):
+        between = between % n2 if curve2.closed else between
+        measured = curve2.measured[between]
+        if not measured.any():
             continue
-        samples2.append(between % n2 if curve2.closed else between)
+        samples2.append(between[measured])
         start = index[hole]
         stop = index[hole + 1] if hole + 1 < len(index) else index[0] + len(views[0].curve.xy)
-        positions.append(start + (stop - start) * np.arange(1, abs(step)) / abs(step))
+        positions.append(start + (stop - start) * (np.arange(1, abs(step)) / abs(step))[measured])
     if not samples2:
         return points, info
     order2 = np.concatenate(samples2)
