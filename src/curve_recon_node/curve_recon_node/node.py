@@ -25,6 +25,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from curve_recon_node.pipeline import NoCurve, ReconstructionSettings, reconstruct_capture
+from curve_recon_node.scheduler import MAX_WAITING_CALLS, CaptureJob, CaptureScheduler
 from curve_recon_node.waypoints import (
     DEPTH_RANGE_M,
     check_depth_intrinsics,
@@ -67,9 +68,6 @@ SETTINGS = ConfigParams(ReconstructionSettings)
 
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are answered
-# ~/reconstruct calls waiting at once; more are refused at once (a caller that loops
-# on the service must not grow the node without bound).
-MAX_WAITING_CALLS = 100
 # The replies to waiting calls come in bursts (a capture or the timeout answers them
 # all). Every client of a service receives every reply (rmw_fastrtps: each client's
 # reader keeps them and drops those not its own when its caller takes them), in the
@@ -93,10 +91,9 @@ RECONSTRUCT_SERVICE_QOS = QoSProfile(
 class _Capture:
     """A synchronized capture for the worker, with the ~/reconstruct calls it answers."""
 
-    stamp_ns: int
+    job: CaptureJob
     messages: dict  # camera name -> Image
     names: tuple  # the cameras to use
-    requests: list  # [(reply(success, message), deadline)]
 
 
 # The worker's other job: publish the last waypoints again, now with depth normals.
@@ -171,15 +168,9 @@ class CurveReconNode(GraphNode):
         self.sync_lock = threading.Lock()
         self.sync = self._new_sync(self.params.views)
         self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
-        self.chart_stamps: deque[int] = deque(maxlen=200)  # [ns] stamps of chart poses
-        self.skipped_chart = 0
-        self.state_lock = threading.Lock()
-        self.auto_pending = False  # set when the calibration becomes ready or changes
-        self.last_auto_attempt = -np.inf
+        self.scheduler = CaptureScheduler()
+        self.replies_lock = threading.Lock()
         self.left_right_ready_since = None
-        # ~/reconstruct calls waiting for the next capture: [(reply(success, message),
-        # deadline)] (see _on_reconstruct_request)
-        self.service_requests = []
         self.outgoing_replies: deque[tuple[Trigger.Response, object]] = deque()  # _send_replies
         self.depth = None  # (depth (H, W) with unusable values NaN, K (3, 3), stamp_ns)
         self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
@@ -259,14 +250,11 @@ class CurveReconNode(GraphNode):
 
     @guarded('calibration change')
     def _on_calibration_change(self, name):
-        with self.state_lock:
-            self.auto_pending = True
-            self.last_auto_attempt = -np.inf
+        self.scheduler.calibration_changed()
 
     @guarded(TARGET_POSE_TOPIC)
     def _on_target_pose(self, msg):
-        with self.state_lock:
-            self.chart_stamps.append(stamp_to_ns(msg.header.stamp))
+        self.scheduler.chart_shown(stamp_to_ns(msg.header.stamp))
 
     @guarded('image')
     def _on_image(self, name, msg):
@@ -298,21 +286,11 @@ class CurveReconNode(GraphNode):
         reconstruction is wanted."""
         self.last_match = (time.monotonic(), self.sync.dropped)
         names = self._views_available()
-        if names is not None and not set(names) <= set(messages):
-            return  # `views` changed while this capture was completed
-        with self.state_lock:
-            wanted_by_service = bool(self.service_requests)
-            now = time.monotonic()
-            wanted_auto = self.auto_pending and now - self.last_auto_attempt >= 1.0
-            if names is None or not (wanted_auto or wanted_by_service):
-                return
-            if stamp_ns in self.chart_stamps:
-                self.skipped_chart += 1
-                return  # the calibration chart is on show: no curve in these images
-            if wanted_auto:
-                self.last_auto_attempt = now
-            requests, self.service_requests = self.service_requests, []
-        self.worker.submit(_Capture(stamp_ns, messages, names, requests))
+        if names is None or not set(names) <= set(messages):
+            return  # not calibrated, or `views` changed while this capture was completed
+        job = self.scheduler.take(stamp_ns)
+        if job is not None:
+            self.worker.submit(_Capture(job, messages, names))
 
     @guarded(DEPTH_INFO_TOPIC)
     def _on_depth_info(self, msg):
@@ -402,7 +380,7 @@ class CurveReconNode(GraphNode):
         ``service_timeout``."""
 
         def reply(success, message):
-            with self.state_lock:
+            with self.replies_lock:
                 self.outgoing_replies.append(
                     (Trigger.Response(success=success, message=message), header)
                 )
@@ -412,7 +390,7 @@ class CurveReconNode(GraphNode):
     @guarded('reconstruct reply')
     def _send_replies(self, limit=REPLIES_PER_PERIOD):
         """Send up to ``limit`` queued ~/reconstruct replies (None: all)."""
-        with self.state_lock:
+        with self.replies_lock:
             count = len(self.outgoing_replies) if limit is None else limit
             batch = [
                 self.outgoing_replies.popleft()
@@ -425,17 +403,10 @@ class CurveReconNode(GraphNode):
                 self.diagnostics.reject('reconstruct reply', error)
 
     def _queue_request(self, reply):
-        deadline = time.monotonic() + self.params.service_timeout
-        with self.state_lock:
-            waiting = len(self.service_requests)
-            if waiting < MAX_WAITING_CALLS:
-                self.service_requests.append((reply, deadline))
-                return
-        self.diagnostics.reject(
-            'reconstruct call',
-            f'{waiting} calls are waiting already (at most {MAX_WAITING_CALLS})',
-        )
-        reply(False, f'refused: {waiting} reconstruct calls are waiting already')
+        refusal = self.scheduler.add_call(reply, self.params.service_timeout)
+        if refusal:
+            self.diagnostics.reject('reconstruct call', f'{refusal} (at most {MAX_WAITING_CALLS})')
+            reply(False, f'refused: {refusal}')
 
     def _on_reconstruct_blocking(self, request, response):
         """~/reconstruct under an executor without deferred services: wait here."""
@@ -454,18 +425,15 @@ class CurveReconNode(GraphNode):
 
     @guarded('reconstruct timeout')
     def _answer_timed_out_requests(self):
-        now = time.monotonic()
-        with self.state_lock:
-            expired = [r for r in self.service_requests if r[1] <= now]
-            self.service_requests = [r for r in self.service_requests if r[1] > now]
+        expired = self.scheduler.expired()
         if not expired:
             return
         missing = self.cameras.missing()
         message = f'no synchronized capture within {self.params.service_timeout:g} s' + (
             f' (not calibrated: {", ".join(missing)})' if missing else ''
         )
-        for reply, _ in expired:
-            reply(False, message)
+        for call in expired:
+            call.reply(False, message)
 
     # --- work ------------------------------------------------------------------------
 
@@ -480,16 +448,15 @@ class CurveReconNode(GraphNode):
         except Exception as error:  # noqa: BLE001 - the calls must get an answer
             self._on_worker_error(error)
             success, message = False, f'reconstruction failed: {error}'
-        for reply, _ in job.requests:
-            reply(success, message)
+        for call in job.job.calls:
+            call.reply(success, message)
 
     def _on_worker_error(self, error):
         self.diagnostics.reject('reconstruction', f'{type(error).__name__}: {error}')
 
     def _requests_wait_for_the_next(self, job):
         if job is not _REPUBLISH_WITH_NORMALS:
-            with self.state_lock:
-                self.service_requests = job.requests + self.service_requests
+            self.scheduler.put_back(job.job)
 
     def _run_capture(self, job):
         """Reconstruct one capture; returns (success, message) for the requests it serves
@@ -497,16 +464,11 @@ class CurveReconNode(GraphNode):
         # The chart's pose, stamped like its images, may arrive after them: give it
         # CHART_POSE_GRACE before taking a capture for one of the scene.
         self.stopping.wait(CHART_POSE_GRACE)
-        with self.state_lock:
-            if job.stamp_ns in self.chart_stamps:
-                self.skipped_chart += 1
-                self.service_requests = job.requests + self.service_requests
-                job.requests = []  # they wait for the next capture
-                return False, 'chart capture'
-        success, message = self._reconstruct(job.stamp_ns, job.messages, job.names)
-        with self.state_lock:
-            if success:
-                self.auto_pending = False
+        if self.scheduler.is_chart(job.job):  # its calls wait for the next capture
+            return False, 'chart capture'
+        success, message = self._reconstruct(job.job.stamp_ns, job.messages, job.names)
+        if success:
+            self.scheduler.succeeded()
         return success, message
 
     def _reconstruct(self, stamp_ns, messages, names):
@@ -618,9 +580,9 @@ class CurveReconNode(GraphNode):
             'matched': self.sync.matched,
             'dropped': self.sync.dropped,
             'pending': self.sync.pending,
-            'skipped_chart_captures': self.skipped_chart,
+            'skipped_chart_captures': self.scheduler.skipped_chart,
             'dropped_work': self.worker.dropped,
-            'waiting_requests': len(self.service_requests),
+            'waiting_requests': self.scheduler.waiting,
             'depth': 'yes' if self.depth is not None else 'no',
         }
         needed = [
@@ -658,10 +620,8 @@ class CurveReconNode(GraphNode):
         a failure."""
         self.stopping.set()
         self.worker.close()
-        with self.state_lock:
-            waiting, self.service_requests = self.service_requests, []
-        for reply, _ in waiting:
-            reply(False, 'curve_recon_node is shutting down')
+        for call in self.scheduler.close():
+            call.reply(False, 'curve_recon_node is shutting down')
         self._send_replies(None)  # guarded: positional only
 
 
