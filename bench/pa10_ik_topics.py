@@ -102,9 +102,18 @@ class TopicProbe:
                     (_seconds(msg.header.stamp), {kv.key: kv.value for kv in status.values})
                 )
 
-    def spin_until(self, condition, timeout, what):
+    def spin_until(self, condition, timeout, what, processes=()):
+        """Spin until ``condition()``; TimeoutError after ``timeout`` [s] or as soon as
+        one of ``processes`` (NodeProcess) has exited, naming its last output line."""
         deadline = time.monotonic() + timeout
         while not condition():
+            for process in processes:
+                if not process.alive():
+                    lines = process.output().strip().splitlines() or ['no output']
+                    raise TimeoutError(
+                        f'{Path(process.argv[1 if "python" in process.argv[0] else 0]).name} '
+                        f'exited waiting for {what}: {lines[-1][-300:]}'
+                    )
             if time.monotonic() > deadline:
                 raise TimeoutError(f'timed out after {timeout:.0f} s waiting for {what}')
             self.executor.spin_once(timeout_sec=0.05)
@@ -203,6 +212,7 @@ def run_one(built, controller, condition, directory):
             and 'waypoints:' in node.output(),
             120,
             'tool poses, pressure, the path taken',
+            processes,
         )
         service = (
             '/pa10_ik_node/start_tracking' if controller == 'ours' else '/dls_peer/start_tracking'
@@ -216,6 +226,7 @@ def run_one(built, controller, condition, directory):
             or (probe.last('phase') == 'done' and probe.last('stage') == 'lifted'),
             TASK_TIMEOUT,
             f'{controller} done and lifted',
+            processes,
         )
         row.update(_figures(probe, built, started))
         row.update(phase=probe.last('phase'), stage=probe.last('stage'))
@@ -270,17 +281,21 @@ def grid(arms):
     ]
 
 
-def sample(cases, count, seed):
-    """``count`` cases of the grid drawn with ``seed``, every condition and arm in turn
-    (condition i mod 3, arm i mod the arms), shape and tilt drawn."""
+def sample(arms, count, seed):
+    """``count`` cases of the grid, drawn with ``seed``: arm i mod the arms and condition
+    i mod 3 (4 arms x 3 conditions: every pair in 12 cases), the path shapes in a drawn
+    order, one after the other, each with a drawn tilt."""
     rng = np.random.default_rng(seed)
-    arms = sorted({c[0] for c in cases}, key=[c[0] for c in cases].index)
-    chosen = []
-    for i in range(count):
-        arm, condition = arms[i % len(arms)], list(CONDITIONS)[i % len(CONDITIONS)]
-        pool = [c for c in cases if c[0] == arm and c[3] == condition and c not in chosen]
-        chosen.append(pool[int(rng.integers(len(pool)))])
-    return chosen
+    shapes = rng.permutation(task_generator.PATH_SHAPES)
+    return [
+        (
+            arms[i % len(arms)],
+            str(shapes[i % len(shapes)]),
+            float(rng.choice(TILTS_DEG)),
+            list(CONDITIONS)[i % len(CONDITIONS)],
+        )
+        for i in range(count)
+    ]
 
 
 def main_over_topics(argv):
@@ -288,9 +303,10 @@ def main_over_topics(argv):
 
     seed = int(_option(argv, '--seed', '11'))
     arms = tuple(task_generator.ROBOT_DATA_ARMS) if '--all-arms' in argv else ARMS
-    cases = grid(arms)
-    if '--whole-grid' not in argv:
-        cases = sample(cases, int(_option(argv, '--cases', '12')), seed)
+    if '--whole-grid' in argv:
+        cases = grid(arms)
+    else:
+        cases = sample(arms, int(_option(argv, '--cases', '12')), seed)
     OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     began = time.monotonic()

@@ -18,6 +18,7 @@ orientation). No ROS. Every random choice takes a ``numpy.random.Generator``.
 
 from __future__ import annotations
 
+import copy
 import importlib.metadata
 import os
 from collections.abc import Mapping
@@ -590,8 +591,9 @@ def plane_scenario(
     built: BuiltCase, template: Mapping[str, Any], urdf_path: str | os.PathLike[str]
 ) -> dict[str, Any]:
     """A scenario (the dict of a sensor_sim scenario file) for running ``built`` over
-    topics: ``template``'s cameras, light, noise and contact (a scenario file's dict, e.g.
-    the default one's) with the case's posed plane (+-0.5 m of it: the template's curve is
+    topics: ``template``'s cameras (posed by position and look_at; moved along with the
+    scene), light, noise and contact (a scenario file's dict, e.g. the default one's)
+    with the case's posed plane (+-0.5 m of it: the template's curve is
     drawn on it, not tracked) and its arm (the URDF at ``urdf_path``, its tip frame the
     tool tip: no tool length, the start joints).
 
@@ -605,7 +607,14 @@ def plane_scenario(
             built.surface.kind,
         )
     T = built.surface.T_base_surface
-    data = dict(template)
+    data = copy.deepcopy(dict(template))
+    # The cameras moved with the scene (sensor_sim refuses a camera that does not see
+    # the surface's centre): every position and aim shifted by the same vector.
+    aims = [camera['pose']['look_at'] for camera in data['cameras'].values()]
+    shift = T[:3, 3] - np.mean(np.array(aims, dtype=float), axis=0)
+    for camera in data['cameras'].values():
+        for key in ('position', 'look_at'):
+            camera['pose'][key] = (np.array(camera['pose'][key], dtype=float) + shift).tolist()
     data['surface'] = {
         'type': 'plane',
         'scale': 1.0,
