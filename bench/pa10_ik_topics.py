@@ -180,6 +180,10 @@ def controller_argv(controller, built, scenario):
     return [sys.executable, PEER_NODE, '--ros-args', *common]
 
 
+class Refused(Exception):
+    """The controller's start service refused the task (its message)."""
+
+
 def run_one(built, controller, condition, directory):
     """One run of ``controller`` on the built case under the arm ``condition``; the row."""
     from bench_pa10_ik import meets_goals
@@ -220,7 +224,7 @@ def run_one(built, controller, condition, directory):
         response = probe.call(service)
         started = time.time()
         if not response.success:
-            return {**row, 'phase': 'refused', 'reason': response.message}
+            raise Refused(response.message)
         probe.spin_until(
             lambda: probe.last('phase') in ('failed', 'stopped')
             or (probe.last('phase') == 'done' and probe.last('stage') == 'lifted'),
@@ -234,6 +238,8 @@ def run_one(built, controller, condition, directory):
         crashed = [p.argv[0] for p in processes if 'Traceback' in p.output()]
         if crashed:
             row.update(phase='crashed', reason=f'a traceback in {crashed}')
+    except Refused as error:
+        row.update(phase='refused', reason=str(error))
     except TimeoutError as error:
         row.update(phase='timeout', reason=str(error), stage=probe.last('stage'))
     finally:
@@ -354,10 +360,11 @@ def _brief(r):
 
 def _cells(r):
     if 'rms_mm' not in r:
-        return f'{r["phase"]} | | | | | | {r.get("reason", "")}'
+        return f'{r["phase"]} | | | | | | | | {r.get("reason", "")}'
     return (
         f'{r["phase"]} | {r["rms_mm"]:.4f} | {r["max_mm"]:.3f} | '
-        f'{r["passed_fraction"] * 100:.1f} | {r["force_p95_pct"]:.2f} | {r["task_s"]:.1f} | '
+        f'{r["passed_fraction"] * 100:.1f} | {r["force_p95_pct"]:.2f} | '
+        f'{r["limit_margin_rad"]:.3f} | {r["velocity_ratio"]:.2f} | {r["task_s"]:.1f} | '
         f'{"; ".join(r["missed"]) or "none"}'
     )
 
@@ -374,13 +381,17 @@ def write_results(rows, argv, seed):
         '',
         f'Command (from the repository root, after `source ros2_ws/install/setup.bash`): '
         f'`{command.strip()}`; seed {seed}. Each case: sensor_sim (320x240 cameras, '
-        'rate 1) with the arm and a plane, pa10_ik_node at its defaults (ours) or '
+        'rate 1) with the arm and a plane, pa10_ik_node at its defaults (pressure_timeout '
+        '3 s, as in the topic tests: ours) or '
         f'bench/pa10_dls_peer_node.py (peer: DlsPeer, {PEER_SPEED} m/s), one after the '
         f'other, each run its own domain; {DESIRED_FORCE:g} N, the scenario contact '
         'stiffness (2000 N/m), control 100 Hz, the arm at 200 Hz following positions; '
         'conditions: ideal, delay 20 ms (sensor_sim arm_command_delay 0.02), half speed '
-        '(arm_speed_scale 0.5). Figures from touchdown (first tracking status) to the '
-        "path's end (first done status); task = start call to the path's end.",
+        '(arm_speed_scale 0.5). Force from the simulated sensor (noise sigma 0.05 N: its '
+        'p95 alone is 2 %). Figures from touchdown (first tracking status) to the '
+        "path's end (first done status); task = start call to the path's end; limit "
+        'margin = closest approach of a joint state to a position limit, qdot / limit = '
+        'largest commanded joint speed over its limit (from the start call on).',
         '',
         f'Goals: RMS < {GOALS["rms_mm"]} mm, passed > {GOALS["passed_fraction"] * 100:g} %, '
         f'force p95 < {GOALS["force_p95_pct"]:g} %, no joint limit exceeded, task time '
@@ -393,8 +404,9 @@ def write_results(rows, argv, seed):
         f'including the time in {all_met}.',
         '',
         '| arm | shape | tilt [deg] | condition | controller | end | RMS [mm] | max [mm] | '
-        'passed [%] | force p95 [%] | task [s] | goals missed | time ours / peer |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|---|',
+        'passed [%] | force p95 [%] | limit margin [rad] | qdot / limit | task [s] | '
+        'goals missed | time ours / peer |',
+        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
     ]
     for r in rows:
         case = f'| {r["arm"]} | {r["shape"]} | {r["tilt_deg"]:g} | {r["condition"]}'
