@@ -150,3 +150,34 @@ def test_handheld_views_need_coverage_and_calibrate_in_the_rig_frame(rig_and_ima
     _feed(strict, rig, images)
     with pytest.raises(CalibrationError, match='exceeds max_rms_px'):
         strict.calibrate()
+
+
+def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images):
+    """max_projection_std_px decides, not a view count: automatic calibration is asked for
+    by every view from min_views on; select_views' set-aside views are used when the kept
+    ones fall short (measured on this rig: 6 kept views 0.446 px worst, all 8 0.413 px)."""
+    rig, images = rig_and_images
+    handheld = {'chart_source': 'handheld', 'min_coverage': 0.0, 'min_views': 3}
+    session = _session(rig, max_projection_std_px=0.43, **handheld)
+    outcomes = _feed(session, rig, images, posed=False)
+    assert [o.status for o in outcomes].count('similar') == 2
+    assert [o.calibrate_now for o in outcomes] == [
+        o.status == 'kept' and i >= 2 for i, o in enumerate(outcomes)
+    ]
+    calibration = session.calibrate()
+    assert calibration.views == len(images)  # the 6 kept ones and the 2 set aside
+    uncertainty = calibration.uncertainty
+    assert uncertainty is not None and uncertainty.worst()[1] <= 0.43
+    quality = calibration.quality()
+    assert quality['right']['projection_std_worst_px'] == uncertainty.worst_px['right']
+    assert quality['right']['baseline_std_m'] == uncertainty.baseline_std_m > 0
+    _, values = session.record(calibration)
+    assert float(values['projection_std_worst_px right']) == pytest.approx(
+        uncertainty.worst_px['right'], abs=1e-3
+    )
+    strict = _session(rig, max_projection_std_px=0.4, **handheld)
+    _feed(strict, rig, images, posed=False)
+    with pytest.raises(NotReady, match='8 views do not determine the cameras yet') as refusal:
+        strict.calibrate()
+    assert refusal.value.uncertain and 'max_projection_std_px 0.4' in str(refusal.value)
+    assert 'latest projection_std_worst_px' in strict.status({})[1]

@@ -237,6 +237,8 @@ class CalibNode(GraphNode):
             silent = self._silent_cameras()
             if silent:  # why there are no views comes first
                 return False, f'{refusal}; {silent}'
+            if refusal.uncertain:  # what to do next, in the log (no ros2cli needed)
+                self.get_logger().info(str(refusal))
             if refusal.coverage:
                 _, values = self.session.status({})
                 self.diagnostics.publish(
@@ -256,10 +258,11 @@ class CalibNode(GraphNode):
                 {'views': len(self.session.views), 'method': self.params.method},
             )
             return False, message
-        self._publish(calibration.cameras, calibration.rectification)
+        stamp_ns = self._publish(calibration.cameras, calibration.rectification)
         if self.params.output_dir:
             self._write(calibration)
         message, values = self.session.record(calibration)
+        values['stamp'] = f'{stamp_ns // 10**9}.{stamp_ns % 10**9:09d}'  # of the CameraInfo
         self.get_logger().info(message)
         self.diagnostics.publish('calibration', 'ok', message, values)
         return True, message
@@ -295,6 +298,7 @@ class CalibNode(GraphNode):
             self.pose_publishers[name].publish(
                 matrix_to_pose_stamped(camera.T_base_camera, stamp_ns, BASE_FRAME)
             )
+        return stamp_ns
 
     def _publish_file(self, path):
         rig = read_calibration(path)  # InvalidInput -> one-line start-up error
