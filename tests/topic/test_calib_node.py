@@ -232,6 +232,10 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
     assert f'wrote {out_dir.resolve() / "calibration.yaml"} and left.yaml' in calib.output()
     for name in ('calibration.yaml', 'left.yaml', 'right.yaml', 'aux.yaml'):
         assert (out_dir / name).is_file()
+    for name in CAMERA_NAMES:  # the pictures beside it
+        for kind in ('residuals', 'coverage', 'uncertainty'):
+            image = cv2.imread(str(out_dir / f'{name}_{kind}.png'))
+            assert image is not None and image.shape == (480, 640, 3), (name, kind)
     saved = yaml.safe_load((out_dir / 'calibration.yaml').read_text())['cameras']
     for name in CAMERA_NAMES:
         quality = saved[name]['quality']

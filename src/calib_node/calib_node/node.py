@@ -19,6 +19,7 @@ from sensor_msgs.msg import CameraInfo
 from std_srvs.srv import Trigger
 
 from calib_node.calibrate import CalibrationError, GAOptions
+from calib_node.plots import write_plots
 from calib_node.session import (
     TARGET_WAIT_S,
     Calibration,
@@ -283,9 +284,20 @@ class CalibNode(GraphNode):
             self.diagnostics.publish('calibration', 'error', f'cannot write {output_dir}: {error}')
             return
         written = written.resolve()  # where the files are is the first thing a user looks for
+        try:
+            plots = write_plots(
+                output_dir,
+                {n: (c.width, c.height) for n, c in calibration.cameras.items()},
+                calibration.residuals,
+                calibration.uncertainty,
+            )
+            pictures = f' and {len(plots)} PNGs (residuals, coverage, uncertainty)'
+        except (OSError, ImportError, ValueError) as error:  # the YAML is what matters
+            self.get_logger().warning(f'no plots in {output_dir}: {error}')
+            pictures = ''
         self.get_logger().info(
-            f'wrote {written} and {", ".join(f"{n}.yaml" for n in calibration.cameras)} '
-            f'beside it (calibration_file:={written} publishes it again)'
+            f'wrote {written} and {", ".join(f"{n}.yaml" for n in calibration.cameras)}'
+            f'{pictures} beside it (calibration_file:={written} publishes it again)'
         )
 
     def _publish(self, cameras, rectification):

@@ -232,6 +232,8 @@ class Calibration(NamedTuple):
     handheld: bool
     camera_views: dict[str, int]  # views in which each camera saw the chart
     uncertainty: Uncertainty | None  # None: the method gives no covariance (lxpm_ga, opencv)
+    # {name: [(observed corners (N, 2), observed - projected (N, 2)) per view it saw]} [px]
+    residuals: dict[str, list[tuple[FloatArray, FloatArray]]]
 
     def quality(self) -> dict[str, dict[str, float | int]]:
         """Per camera: reprojection RMS [px], corner count, views and the predicted
@@ -249,6 +251,18 @@ class Calibration(NamedTuple):
                 entry['working_range_m'] = u.range_m[name]
             quality['right']['baseline_std_m'] = u.baseline_std_m
         return quality
+
+
+class _Fit(NamedTuple):
+    """A calibration of some views before it is judged: the fits, the frame they were
+    solved in, the solver's time, the uncertainty (None: no covariance) and every view's
+    chart pose in base_link (given or estimated)."""
+
+    fits: dict[str, CameraFit]
+    reference: str
+    seconds: float
+    uncertainty: Uncertainty | None
+    T_base_chart: list[FloatArray]
 
 
 # A view: the chart pose in base_link (None: handheld) and the corners {camera: (N, 2)}.
@@ -471,11 +485,12 @@ class CalibrationSession:
             reserve = list(self.reserve)
         with self._calibration_lock:
             try:
-                fits, reference, seconds, uncertainty = self._fit(views, settings)
-                if reserve and _too_uncertain(uncertainty, settings):
+                fit = self._fit(views, settings)
+                if reserve and _too_uncertain(fit.uncertainty, settings):
                     # The kept views fall short: the ones select_views set aside may not.
                     views = views + reserve
-                    fits, reference, seconds, uncertainty = self._fit(views, settings)
+                    fit = self._fit(views, settings)
+                fits, uncertainty = fit.fits, fit.uncertainty
                 cameras = {
                     name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D, fit.T_base_camera)
                     for name, fit in fits.items()
@@ -500,16 +515,22 @@ class CalibrationSession:
             )
         handheld = any(T is None for T, _ in views)
         camera_views = {n: sum(n in corners for _, corners in views) for n in fits}
+        residuals: dict[str, list[tuple[FloatArray, FloatArray]]] = {n: [] for n in fits}
+        for T, (_, corners) in zip(fit.T_base_chart, views):
+            points = self.chart @ T[:3, :3].T + T[:3, 3]
+            for name, observed in corners.items():
+                residuals[name].append((observed, observed - cameras[name].project(points)[0]))
         return Calibration(
             cameras,
             rectification,
             fits,
-            reference,
-            seconds,
+            fit.reference,
+            fit.seconds,
             len(views),
             handheld,
             camera_views,
             uncertainty,
+            residuals,
         )
 
     def _observations(
@@ -534,8 +555,9 @@ class CalibrationSession:
 
     def _calibrate_handheld(
         self, views: list[View], settings: SessionSettings
-    ) -> tuple[dict[str, CameraFit], str, Uncertainty]:
-        """Bundle adjustment over the views; {name: CameraFit} with poses in base_link."""
+    ) -> tuple[dict[str, CameraFit], str, Uncertainty, list[FloatArray]]:
+        """Bundle adjustment over the views: {name: CameraFit} with poses in base_link,
+        the reference frame, the uncertainty and every view's chart pose in base_link."""
         if settings.method != 'lm':
             raise CalibrationError(
                 f'method {settings.method} needs target poses (the '
@@ -558,20 +580,20 @@ class CalibrationSession:
             n: f._replace(T_base_camera=T_base_ref @ f.T_base_camera)
             for n, f in result.fits.items()
         }
-        return fits, result.reference, result.uncertainty
+        T_base_chart = [T_base_ref @ T for T in result.T_ref_chart]
+        return fits, result.reference, result.uncertainty, T_base_chart
 
-    def _fit(
-        self, views: list[View], settings: SessionSettings
-    ) -> tuple[dict[str, CameraFit], str, float, Uncertainty | None]:
-        """(fits {name: CameraFit}, reference frame, seconds, uncertainty) of the views:
-        handheld or stage; CalibrationError when a camera's RMS exceeds max_rms_px."""
+    def _fit(self, views: list[View], settings: SessionSettings) -> _Fit:
+        """The views' calibration, handheld or stage; CalibrationError when a camera's
+        RMS exceeds max_rms_px."""
         started = time.perf_counter()
         uncertainty: Uncertainty | None
         if any(T is None for T, _ in views):
-            fits, reference, uncertainty = self._calibrate_handheld(views, settings)
+            fits, reference, uncertainty, T_base_chart = self._calibrate_handheld(views, settings)
             seconds = time.perf_counter() - started
         else:
             reference = BASE_FRAME
+            T_base_chart = [T for T, _ in views if T is not None]
             observations = self._observations(views)
             result = calibrate_rig(
                 observations,
@@ -591,7 +613,7 @@ class CalibrationSession:
                 f'{worst}: reprojection RMS {fits[worst].rms_px:.3g} px '
                 f'exceeds max_rms_px {settings.max_rms_px:g}'
             )
-        return fits, reference, seconds, uncertainty
+        return _Fit(fits, reference, seconds, uncertainty, T_base_chart)
 
     def record(self, calibration: Calibration) -> tuple[str, dict[str, Any]]:
         """Count ``calibration`` as published; its one-line summary and diagnostic values."""
