@@ -27,6 +27,7 @@ from calib_node.calibrate import CalibrationError, CameraFit, solve_lm, tangenti
 from calib_node.uncertainty import (
     CameraModel,
     Uncertainty,
+    canonical_rotations,
     parameter_covariance,
     rig_uncertainty,
     working_range,
@@ -198,8 +199,11 @@ def bundle_adjust(
     fits = _camera_fits(x, names, pairs, residual_pairs, layout)
     charts = [_T(x[layout.chart(i)][:3], x[layout.chart(i)][3:]) for i in range(layout.views)]
     rms = float(np.sqrt(np.mean(np.sum(residual_pairs**2, axis=2))))
+    rotations = [layout.camera(c).start for c in range(len(names))]
+    rotations += [layout.chart(i).start for i in range(layout.views)]
+    x = canonical_rotations(x, rotations)
     uncertainty = _uncertainty(
-        chart, x, free, evaluate(result.x), names, image_sizes, pairs, charts, layout
+        chart, x, free, evaluate(x[free]), names, image_sizes, pairs, charts, layout
     )
     return BundleResult(fits, charts, reference, rms, int(result.nfev), uncertainty)
 
@@ -439,7 +443,10 @@ def _uncertainty(
 ) -> Uncertainty:
     """The adjusted rig's :class:`Uncertainty` from the final residuals and Jacobian (the
     chart poses' uncertainty is part of the covariance the cameras' block is taken from)."""
-    covariance = parameter_covariance(final[1], final[0])
+    # Each camera's view its own noise level (residuals are in pair order, 2N each).
+    covariance = parameter_covariance(
+        final[1], final[0], np.repeat(np.arange(len(pairs)), 2 * len(chart))
+    )
     row = np.full(len(x), -1)
     row[free] = np.arange(int(free.sum()))
     models = {}

@@ -37,6 +37,7 @@ from calib_node.thesis import NETWORK_ACCEPT, NETWORK_WEIGHTS, network_refine
 from calib_node.uncertainty import (
     CameraModel,
     Uncertainty,
+    canonical_rotations,
     parameter_covariance,
     rig_uncertainty,
     working_range,
@@ -223,6 +224,7 @@ def calibrate_camera_lm(
     start: CameraStart | None = None,
     fit_tangential: bool = True,
     fit_k3: bool = False,
+    view_size: int | None = None,
 ) -> CameraFit:
     """LM calibration of one camera from (N, 3) base_link points and (N, 2) pixels.
 
@@ -230,6 +232,8 @@ def calibrate_camera_lm(
         image_size: (width, height) [px].
         start: (K, D, R, t) world->camera start; None: the DLT.
         fit_tangential: estimate p1, p2 (else 0); fit_k3: estimate k3 (else 0).
+        view_size: the points come in views of this many (each its own noise level in the
+            covariance); None: one noise level.
 
     Returns:
         :class:`CameraFit`.
@@ -272,9 +276,10 @@ def calibrate_camera_lm(
         raise CalibrationError('LM diverged')
     K = np.array([[x[6], 0, x[8]], [0, x[7], x[9]], [0, 0, 1.0]])
     R = cv2.Rodrigues(x[0:3])[0]
-    residuals, jacobian = evaluate(result.x)
+    residuals, jacobian = evaluate(canonical_rotations(x, [0])[free])
     covariance = np.zeros((15, 15))
-    covariance[np.ix_(free, free)] = parameter_covariance(jacobian, residuals)
+    groups = None if view_size is None else np.arange(len(residuals)) // (2 * view_size)
+    covariance[np.ix_(free, free)] = parameter_covariance(jacobian, residuals, groups)
     std = dict(zip(('fx', 'fy', 'cx', 'cy'), np.sqrt(np.diag(covariance)[6:10]).tolist()))
     return CameraFit(
         K, x[10:15].copy(), _pose(R, x[3:6]), _rms(result.fun), len(pixels), std, covariance
@@ -502,10 +507,12 @@ def calibrate_rig(
     fit_tangential: bool = True,
     fit_k3: bool = False,
     select_model: bool = True,
+    view_size: int | None = None,
 ) -> RigResult:
     """Calibrate every camera of ``observations`` = {name: (points_base (N, 3),
     pixels (N, 2), (width, height))} with ``method`` (``METHODS``). ``select_model``
     (``lm``): p1, p2 are kept per camera only where they pay (:func:`tangential_pays`).
+    ``view_size``: points per view (views of one chart; see :func:`calibrate_camera_lm`).
 
     Raises:
         CalibrationError: a camera's points are too few or degenerate, or a fit failed.
@@ -533,9 +540,11 @@ def calibrate_rig(
                 starts[name] = (fit.K, fit.D, T_camera_base[:3, :3], T_camera_base[:3, 3])
         fits = {}
         for name, (p, uv, size) in observations.items():
-            fits[name] = calibrate_camera_lm(p, uv, size, starts[name], fit_tangential, fit_k3)
+            fits[name] = calibrate_camera_lm(
+                p, uv, size, starts[name], fit_tangential, fit_k3, view_size
+            )
             if fit_tangential and select_model:  # p1, p2 only where they pay (BIC)
-                plain = calibrate_camera_lm(p, uv, size, starts[name], False, fit_k3)
+                plain = calibrate_camera_lm(p, uv, size, starts[name], False, fit_k3, view_size)
                 if not tangential_pays(
                     fits[name].rms_px ** 2 * len(uv), plain.rms_px**2 * len(uv), 2 * len(uv)
                 ):

@@ -604,6 +604,7 @@ class CalibrationSession:
                 settings.fit_tangential,
                 settings.fit_k3,
                 settings.select_model,
+                len(self.chart),
             )
             fits, seconds = result.fits, result.seconds
             uncertainty = stage_uncertainty(fits, observations)

@@ -17,7 +17,7 @@ T_camera_ref, fx, fy, cx, cy, k1, k2, p1, p2, k3 (``PROJECTION_ORDER``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
 import cv2
@@ -62,19 +62,46 @@ class Uncertainty(NamedTuple):
         return name, self.worst_px[name]
 
 
-def parameter_covariance(jacobian: npt.ArrayLike, residuals: npt.ArrayLike) -> FloatArray:
-    """(p, p) covariance of a least-squares solution: s^2 (J^T J)^+ with
-    s^2 = RSS / (n - p) (pseudo-inverse: a direction the data do not fix gets no finite
-    variance claimed from a rounding-level pivot; such rigs are refused upstream)."""
+def parameter_covariance(
+    jacobian: npt.ArrayLike, residuals: npt.ArrayLike, groups: npt.ArrayLike | None = None
+) -> FloatArray:
+    """(p, p) covariance of the (unweighted) least-squares solution.
+
+    One noise level (``groups`` None): s^2 (J^T J)^+ with s^2 = RSS / (n - p). With
+    ``groups`` (a label per residual, e.g. its camera and view) each group's noise is its
+    own, s_g^2 = RSS_g / (n_g (n - p) / n), and the covariance the sandwich
+    (J^T J)^+ J^T S J (J^T J)^+ with S = diag(s_g^2): corners of a far or steep view are
+    noisier than a near frontal one's, and one pooled s^2 would lend the informative views
+    the noise of the others. Pseudo-inverse: a direction the data do not fix gets no
+    finite variance claimed from a rounding-level pivot.
+    """
     J = np.asarray(jacobian, dtype=float)
     r = np.asarray(residuals, dtype=float)
-    dof = max(r.size - J.shape[1], 1)
+    share = max(r.size - J.shape[1], 1) / r.size  # degrees of freedom per residual
     # Columns scaled to unit norm first: fx (1000s of px) and k3 share one J^T J.
     scale = np.linalg.norm(J, axis=0)
     scale[scale == 0] = 1.0
     Js = J / scale
     inverse = np.linalg.pinv(Js.T @ Js, rcond=1e-13, hermitian=True)
-    return float(r @ r) / dof * inverse / np.outer(scale, scale)
+    if groups is None:
+        return float(r @ r) / (share * r.size) * inverse / np.outer(scale, scale)
+    labels, group = np.unique(np.asarray(groups), return_inverse=True)
+    variance = np.bincount(group, weights=r**2) / (share * np.bincount(group))
+    weighted = Js * np.sqrt(variance[group])[:, None]
+    return inverse @ (weighted.T @ weighted) @ inverse / np.outer(scale, scale)
+
+
+def canonical_rotations(x: FloatArray, starts: Sequence[int]) -> FloatArray:
+    """``x`` with the Rodrigues vectors at ``starts`` as cv2.Rodrigues gives them for their
+    rotation (angle at most pi). LM may step past pi to the equivalent vector on the
+    other side; a covariance taken there is in other coordinates than the pose the
+    propagation reads back from the rotation matrix (measured: a camera turned 174 deg
+    had its projection uncertainty overstated 17x)."""
+    x = np.array(x, dtype=float)
+    for start in starts:
+        R = cv2.Rodrigues(x[start : start + 3])[0]
+        x[start : start + 3] = cv2.Rodrigues(R)[0].ravel()
+    return x
 
 
 def image_grid(size: tuple[int, int], grid: tuple[int, int] = GRID) -> FloatArray:
