@@ -13,6 +13,8 @@
    errors of fx, fy, baseline; time.
 4. Generated rigs (``calib_rigs.py``): rendered charts through random rigs,
    stage and handheld calibration against OpenCV on the same images (``--rigs N``).
+5. ``--uncertainty N [--draws D]`` (alone): the predicted projection uncertainty against
+   the true projection error on N generated rigs, each rendered D times.
 
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_calib.py
     (options: --trials 20 --ga-trials 3 --sigmas 0 0.5 1 1.5 2 2.5 3 --rigs 10)
@@ -511,6 +513,30 @@ def scenario_table(trials):
     return lines, rows
 
 
+def uncertainty_check(rigs, draws):
+    """Predicted projection uncertainty vs the true projection error on generated rigs:
+    uncertainty.md and uncertainty.json."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from calib_rigs import uncertainty_table
+
+    started = time.perf_counter()
+    lines, rows = uncertainty_table(rigs, draws)
+    lines = [
+        '# calib_node: predicted uncertainty against the truth',
+        '',
+        f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        f'bench/bench_calib.py --uncertainty {rigs} --draws {draws}` '
+        f'({time.perf_counter() - started:.0f} s).',
+        '',
+        *lines,
+    ]
+    (RESULTS / 'uncertainty.md').write_text('\n'.join(lines) + '\n')
+    (RESULTS / 'uncertainty.json').write_text(json.dumps(rows, indent=1))
+    print('\n'.join(lines))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--trials', type=int, default=20, help='trials per sigma (LM, OpenCV)')
@@ -524,8 +550,18 @@ def main():
     parser.add_argument(
         '--plot-only', action='store_true', help='redraw the plots from the last calib.json'
     )
+    parser.add_argument(
+        '--uncertainty',
+        type=int,
+        default=0,
+        help='only the uncertainty check on this many generated rigs (uncertainty.md)',
+    )
+    parser.add_argument('--draws', type=int, default=6, help='renderings per rig (--uncertainty)')
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if args.uncertainty:
+        uncertainty_check(args.uncertainty, args.draws)
+        return
     if args.plot_only:
         sweep_results = json.loads((RESULTS / 'calib.json').read_text())['sweep']
         print(plot_sweep({float(k): v for k, v in sweep_results.items()}, RESULTS))

@@ -96,6 +96,35 @@ class Probe:
     def statuses(self, name_part, message_part=''):
         return [s for s in self.diagnostics if name_part in s.name and message_part in s.message]
 
+    def calibration_of(self, views, names, timeout):
+        """The values of the calibration diagnostic of ``views`` views once the CameraInfo
+        and poses it published (its ``stamp``) are the latest here: auto_calibrate
+        recalibrates with every later view, so an earlier one may come first."""
+        self.wait(
+            lambda: self.statuses('calibration', f'from {views} views'),
+            timeout,
+            f'the calibration from {views} views',
+        )
+        values = {
+            kv.key: kv.value
+            for kv in self.statuses('calibration', f'from {views} views')[-1].values
+        }
+
+        def stamp(msg):
+            return f'{msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d}'
+
+        self.wait(
+            lambda: all(
+                n in self.infos
+                and n in self.poses
+                and stamp(self.infos[n]) == values['stamp'] == stamp(self.poses[n])
+                for n in names
+            ),
+            30,
+            f'the camera_info of the calibration from {views} views',
+        )
+        return values
+
 
 def call(node, name, timeout=30.0):
     client = node.create_client(Trigger, name)
@@ -151,7 +180,9 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
             f'ground_truth_dir:={truth_dir}',
         ]
     )
-    rclpy_node.spin_until(probe.calibrated, 150, 'the calibration')
+    # The stage's 10 poses: auto_calibrate publishes from the first views that determine
+    # the cameras on and recalibrates with each later one; the figures are the last one's.
+    values = probe.calibration_of(10, CAMERA_NAMES, 150)
     truth = true_cameras(truth_dir)
     corners = chart_corners_base(truth_dir)
     estimated = {}
@@ -188,18 +219,33 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
     assert baseline == pytest.approx(true_baseline, rel=BASELINE_RTOL)
     P_right = np.reshape(probe.infos['right'].p, (3, 4))
     assert -P_right[0, 3] / P_right[0, 0] == pytest.approx(baseline, rel=1e-6)
-    rclpy_node.spin_until(
-        lambda: probe.statuses('calibration', 'calibrated 3 cameras'),
-        10,
-        'the calibration diagnostic',
-    )
-    values = {kv.key: kv.value for kv in probe.statuses('calibration', 'calibrated')[-1].values}
     assert int(values['views']) == 10 and values['method'] == 'lm'
     assert all(float(values[f'rms_px {n}']) < 0.5 for n in CAMERA_NAMES)
+    # The predicted uncertainty: in the diagnostic and the file, within the acceptance
+    # bound, and the projections it speaks of (chart corners, within the 1 px above).
+    for name in CAMERA_NAMES:
+        worst = float(values[f'projection_std_worst_px {name}'])
+        assert 0 < float(values[f'projection_std_median_px {name}']) <= worst <= 3.0, values
+        assert 0.2 < float(values[f'working_range_m {name}']) < 5.0, values
+    assert 0 < float(values['baseline_std_m']) < 1e-3, values
     assert 'calibrated 3 cameras from 10 views' in calib.output()
     assert f'wrote {out_dir.resolve() / "calibration.yaml"} and left.yaml' in calib.output()
     for name in ('calibration.yaml', 'left.yaml', 'right.yaml', 'aux.yaml'):
         assert (out_dir / name).is_file()
+    for name in CAMERA_NAMES:  # the pictures beside it
+        for kind in ('residuals', 'coverage', 'uncertainty'):
+            image = cv2.imread(str(out_dir / f'{name}_{kind}.png'))
+            assert image is not None and image.shape == (480, 640, 3), (name, kind)
+    saved = yaml.safe_load((out_dir / 'calibration.yaml').read_text())['cameras']
+    for name in CAMERA_NAMES:
+        quality = saved[name]['quality']
+        assert quality['projection_std_worst_px'] == pytest.approx(
+            float(values[f'projection_std_worst_px {name}']), abs=1e-3
+        )
+        assert quality['working_range_m'] > 0 and quality['projection_std_median_px'] > 0
+    assert saved['right']['quality']['baseline_std_m'] == pytest.approx(
+        float(values['baseline_std_m']), rel=1e-2
+    )
 
     # The saved calibration, republished by a second calib_node, is identical.
     first = dict(probe.infos), dict(probe.poses)
@@ -395,10 +441,20 @@ def opencv_stereo(views, chart, size):
     return rms, K1, D1, K2, D2, R, T
 
 
+def opencv_tutorial_corners(image):
+    """OpenCV's own detection, as its tutorial: findChessboardCorners + cornerSubPix 11 x 11."""
+    found, corners = cv2.findChessboardCorners(image, (9, 6))
+    assert found
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-3)
+    return cv2.cornerSubPix(image, corners, (11, 11), (-1, -1), criteria).reshape(-1, 2)
+
+
 def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_node):
-    """OpenCV's own stereo photographs (9 x 6 inner corners) over the topics, handheld:
-    first three copies of one fronto-parallel view (one view; refused: too little coverage,
-    the diagnostic says what is missing), then all 13 pairs -> beside cv2.stereoCalibrate."""
+    """OpenCV's own stereo photographs (9 x 6 inner corners) over the topics, with the
+    defaults but ``cameras: [left, right]`` (no target pose: handheld): first three copies
+    of one fronto-parallel view (one view; refused: too little coverage, the diagnostic
+    says what is missing), then all 13 pairs -> within 0.3 % of cv2.stereoCalibrate on
+    the corners of all 13."""
     directory = Path(opencv_sample_dir())  # fetched once; fails with the reason if not
     images = [
         {
@@ -408,7 +464,6 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
         for i in OPENCV_VIEWS
     ]
     size = images[0]['left'].shape[::-1]
-    rig_pose = [0.1, -0.2, 0.9, 0.3, -0.1, 1.2]
     probe = Probe(rclpy_node)
     publishers = {
         n: rclpy_node.create_publisher(Image, IMAGE_TOPICS[n], DEFAULT_QOS)
@@ -420,16 +475,6 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
             '--ros-args',
             '-p',
             'cameras:=[left, right]',
-            '-p',
-            'chart.source:=handheld',
-            '-p',
-            'select_views:=false',
-            '-p',
-            'min_coverage:=0.3',
-            '-p',
-            f'min_views:={len(OPENCV_VIEWS)}',
-            '-p',
-            f'rig_pose:={rig_pose}',
         ]
     )
     rclpy_node.spin_until(
@@ -460,13 +505,23 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
     assert any('skew 0 %' in s.message for s in probe.statuses('views', 'coverage'))
     assert '(still: ' in calib.output() and 'tilt the chart' in calib.output()  # the log too
     assert call(rclpy_node, '/calib_node/reset').success
+
+    def taken():  # views kept and views like a kept one (select_views), latest status
+        values = {kv.key: kv.value for kv in probe.statuses('views')[-1].values}
+        return int(values['views']), int(values['similar views skipped'])
+
     for count, view in enumerate(images, 1):  # one at a time: the image queues hold 10
         publish(view)
-        probe.wait(lambda c=count: probe.statuses('views', f'{c} views'), 60, f'view {count}')
-    probe.wait(
-        lambda: len(probe.infos) == 2 and len(probe.poses) == 2, 120, 'the handheld calibration'
-    )
+        probe.wait(lambda c=count: sum(taken()) == c, 60, f'view {count}')
+    kept = taken()[0]
+    # Accepted once the views determined the cameras to max_projection_std_px (measured:
+    # at 6 of the 8 kept views, 2.41 px), recalibrated with every kept view after.
+    values = probe.calibration_of(kept, ('left', 'right'), 120)
     assert 'aux' not in probe.infos
+    for name in ('left', 'right'):
+        assert float(values[f'projection_std_worst_px {name}']) <= 3.0, values
+    calibrations = probe.statuses('calibration', 'calibrated 2 cameras')
+    assert 'from 6 views' in calibrations[0].message, calibrations[0].message
 
     # OpenCV on the same corners (calib_node's detector, as the node found them).
     from calib_node.chart_detection import chart_points, detect_chessboard
@@ -479,40 +534,24 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
         n: camera_info_to_camera(probe.infos[n], pose_to_matrix(probe.poses[n].pose))
         for n in ('left', 'right')
     }
+    # The 8 views select_views kept against OpenCV on all 13 (measured: fx 0.13 / 0.18 %,
+    # fy 0.15 / 0.03 %, baseline 0.25 %).
     for name, K_cv in (('left', K1), ('right', K2)):
         K = cameras[name].K
-        assert abs(K[0, 0] / K_cv[0, 0] - 1) < 0.01 and abs(K[1, 1] / K_cv[1, 1] - 1) < 0.01
+        assert abs(K[0, 0] / K_cv[0, 0] - 1) < 3e-3 and abs(K[1, 1] / K_cv[1, 1] - 1) < 3e-3
     baseline = np.linalg.norm(cameras['left'].centre_base - cameras['right'].centre_base)
-    assert abs(baseline / baseline_cv - 1) < 0.01, (baseline, baseline_cv)
+    assert abs(baseline / baseline_cv - 1) < 3e-3, (baseline, baseline_cv)
     # OpenCV's own pipeline on the same photographs (findChessboardCorners + cornerSubPix
     # 11 x 11, as its tutorial): calib_node's corners fit better (measured RMS 0.36 vs
     # 0.44 px), focal lengths and baseline agree within 1 %.
-    own = []
-    for view in images:
-        corners = {}
-        for name, image in view.items():
-            found, c = cv2.findChessboardCorners(image, (9, 6))
-            assert found
-            corners[name] = cv2.cornerSubPix(
-                image,
-                c,
-                (11, 11),
-                (-1, -1),
-                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 1e-3),
-            ).reshape(-1, 2)
-        own.append(corners)
+    own = [{n: opencv_tutorial_corners(image) for n, image in v.items()} for v in images]
     rms_own, K1_own, _, K2_own, _, _, T_own = opencv_stereo(own, chart, size)
     for name, K_cv in (('left', K1_own), ('right', K2_own)):
         K = cameras[name].K
         assert abs(K[0, 0] / K_cv[0, 0] - 1) < 0.01 and abs(K[1, 1] / K_cv[1, 1] - 1) < 0.01
     assert abs(baseline / np.linalg.norm(T_own) - 1) < 0.01
-    # The left camera sits at rig_pose.
-    from vgm_common.geometry import rpy_to_matrix
-
-    np.testing.assert_allclose(cameras['left'].T_base_camera[:3, 3], rig_pose[:3], atol=1e-9)
-    np.testing.assert_allclose(
-        cameras['left'].T_base_camera[:3, :3], rpy_to_matrix(*rig_pose[3:]), atol=1e-9
-    )
+    # The left camera sits at rig_pose (default: base_link).
+    np.testing.assert_allclose(cameras['left'].T_base_camera, np.eye(4), atol=1e-9)
     # The views status repeats the latest calibration's RMS at 1 Hz (a lost message of
     # the one-off calibration diagnostic on a loaded machine does not matter).
     probe.wait(
@@ -525,7 +564,9 @@ def test_handheld_opencv_sample_images_agree_with_stereo_calibrate(spawn, rclpy_
     ][-1]
     values = {kv.key: kv.value for kv in status.values}
     rms = np.sqrt((float(values['rms_px left']) ** 2 + float(values['rms_px right']) ** 2) / 2)
-    assert rms <= rms_cv * (1 + 1e-4), (rms, rms_cv)  # the same optimum, 4-digit diagnostics
+    # The kept views fit better than all 13 (measured 0.196 vs 0.362 px): select_views
+    # set aside, among others, the photographs whose corners fit worst.
+    assert rms <= rms_cv, (rms, rms_cv)
     assert rms < rms_own, (rms, rms_own)
     # Rectified rows: the corners of every view, rectified with the published R, P.
     rows = []

@@ -24,6 +24,14 @@ import numpy as np
 import numpy.typing as npt
 
 from calib_node.calibrate import CalibrationError, CameraFit, solve_lm, tangential_pays
+from calib_node.uncertainty import (
+    CameraModel,
+    Uncertainty,
+    canonical_rotations,
+    parameter_covariance,
+    rig_uncertainty,
+    working_range,
+)
 from vgm_common.geometry import FloatArray, invert_transform, make_transform
 
 INTRINSICS = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
@@ -66,6 +74,7 @@ class BundleResult(NamedTuple):
     reference: str  # 'base_link' or the name of the reference camera
     rms_px: float  # over every corner of every camera
     iterations: int
+    uncertainty: Uncertainty  # of the projections at the working range and the baseline
 
 
 def _rt(T: FloatArray) -> tuple[np.ndarray, FloatArray]:
@@ -190,7 +199,13 @@ def bundle_adjust(
     fits = _camera_fits(x, names, pairs, residual_pairs, layout)
     charts = [_T(x[layout.chart(i)][:3], x[layout.chart(i)][3:]) for i in range(layout.views)]
     rms = float(np.sqrt(np.mean(np.sum(residual_pairs**2, axis=2))))
-    return BundleResult(fits, charts, reference, rms, int(result.nfev))
+    rotations = [layout.camera(c).start for c in range(len(names))]
+    rotations += [layout.chart(i).start for i in range(layout.views)]
+    x = canonical_rotations(x, rotations)
+    uncertainty = _uncertainty(
+        chart, x, free, evaluate(x[free]), names, image_sizes, pairs, charts, layout
+    )
+    return BundleResult(fits, charts, reference, rms, int(result.nfev), uncertainty)
 
 
 # --- stages of bundle_adjust ---------------------------------------------------------
@@ -413,3 +428,51 @@ def _camera_fits(
             {},
         )
     return fits
+
+
+def _uncertainty(
+    chart: FloatArray,
+    x: FloatArray,
+    free: BoolArray,
+    final: tuple[FloatArray, FloatArray],
+    names: Sequence[str],
+    image_sizes: Mapping[str, tuple[int, int]],
+    pairs: Sequence[tuple[int, int]],
+    T_ref_chart: Sequence[FloatArray],
+    layout: _Layout,
+) -> Uncertainty:
+    """The adjusted rig's :class:`Uncertainty` from the final residuals and Jacobian (the
+    chart poses' uncertainty is part of the covariance the cameras' block is taken from)."""
+    # Each camera's view its own noise level (residuals are in pair order, 2N each).
+    covariance = parameter_covariance(
+        final[1], final[0], np.repeat(np.arange(len(pairs)), 2 * len(chart))
+    )
+    row = np.full(len(x), -1)
+    row[free] = np.arange(int(free.sum()))
+    models = {}
+    for c, name in enumerate(names):
+        a = layout.intrinsics(c)
+        pose = x[layout.camera(c)]
+        T_camera_ref = _T(pose[:3], pose[3:])
+        K = np.array([[x[a], 0, x[a + 2]], [0, x[a + 1], x[a + 3]], [0, 0, 1.0]])
+        seen = np.concatenate(
+            [
+                chart @ T[:3, :3].T + T[:3, 3]
+                for T in (T_camera_ref @ T_ref_chart[i] for cc, i in pairs if cc == c)
+            ]
+        )
+        index = np.concatenate(
+            [
+                np.arange(layout.camera(c).start, layout.camera(c).stop),
+                np.arange(a, a + INTRINSICS),
+            ]
+        )
+        models[name] = CameraModel(
+            K,
+            x[a + 4 : a + 9].copy(),
+            T_camera_ref,
+            image_sizes[name],
+            working_range(seen),
+            row[index],
+        )
+    return rig_uncertainty(models, covariance)

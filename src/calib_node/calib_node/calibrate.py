@@ -27,14 +27,23 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import numpy.typing as npt
+import scipy.linalg
 from scipy.optimize import OptimizeResult, least_squares
 
 from calib_node.lxpm_ga import LX_DRAWS, LX_VARIANTS, lxpm_ga, rig_objective
 from calib_node.seed_calibration import dlt_camera
 from calib_node.seed_camera import identifiable
 from calib_node.thesis import NETWORK_ACCEPT, NETWORK_WEIGHTS, network_refine
+from calib_node.uncertainty import (
+    CameraModel,
+    Uncertainty,
+    canonical_rotations,
+    parameter_covariance,
+    rig_uncertainty,
+    working_range,
+)
 from vgm_common.errors import InvalidInput, VgmError
-from vgm_common.geometry import FloatArray, make_transform
+from vgm_common.geometry import FloatArray, invert_transform, make_transform
 from vgm_common.settings import setting
 
 METHODS = ('lm', 'lxpm_ga', 'opencv')
@@ -60,6 +69,9 @@ class CameraFit(NamedTuple):
     rms_px: float  # reprojection RMS per point (sqrt of the mean squared distance) [px]
     points: int
     std: dict[str, float]  # standard errors of fx, fy, cx, cy [px] (LM, OpenCV; empty for the GA)
+    # lm: (15, 15) covariance of rvec, tvec (world->camera), fx, fy, cx, cy, k1, k2, p1,
+    # p2, k3 (cv2.projectPoints' order; zero rows for parameters held), else None
+    covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -212,6 +224,7 @@ def calibrate_camera_lm(
     start: CameraStart | None = None,
     fit_tangential: bool = True,
     fit_k3: bool = False,
+    view_size: int | None = None,
 ) -> CameraFit:
     """LM calibration of one camera from (N, 3) base_link points and (N, 2) pixels.
 
@@ -219,6 +232,8 @@ def calibrate_camera_lm(
         image_size: (width, height) [px].
         start: (K, D, R, t) world->camera start; None: the DLT.
         fit_tangential: estimate p1, p2 (else 0); fit_k3: estimate k3 (else 0).
+        view_size: the points come in views of this many (each its own noise level in the
+            covariance); None: one noise level.
 
     Returns:
         :class:`CameraFit`.
@@ -261,15 +276,39 @@ def calibrate_camera_lm(
         raise CalibrationError('LM diverged')
     K = np.array([[x[6], 0, x[8]], [0, x[7], x[9]], [0, 0, 1.0]])
     R = cv2.Rodrigues(x[0:3])[0]
-    dof = max(result.fun.size - result.x.size, 1)
-    try:
-        covariance = np.sum(result.fun**2) / dof * np.linalg.inv(result.jac.T @ result.jac)
-        std_all = np.full(15, np.nan)
-        std_all[free] = np.sqrt(np.abs(np.diag(covariance)))
-    except np.linalg.LinAlgError:
-        std_all = np.full(15, np.inf)
-    std = dict(zip(('fx', 'fy', 'cx', 'cy'), std_all[6:10].tolist()))
-    return CameraFit(K, x[10:15].copy(), _pose(R, x[3:6]), _rms(result.fun), len(pixels), std)
+    residuals, jacobian = evaluate(canonical_rotations(x, [0])[free])
+    covariance = np.zeros((15, 15))
+    groups = None if view_size is None else np.arange(len(residuals)) // (2 * view_size)
+    covariance[np.ix_(free, free)] = parameter_covariance(jacobian, residuals, groups)
+    std = dict(zip(('fx', 'fy', 'cx', 'cy'), np.sqrt(np.diag(covariance)[6:10]).tolist()))
+    return CameraFit(
+        K, x[10:15].copy(), _pose(R, x[3:6]), _rms(result.fun), len(pixels), std, covariance
+    )
+
+
+def stage_uncertainty(
+    fits: Mapping[str, CameraFit], observations: Observations
+) -> Uncertainty | None:
+    """The :class:`~calib_node.uncertainty.Uncertainty` of cameras calibrated one by one
+    on base_link points (independent fits: a block-diagonal covariance); None when a fit
+    has no covariance (lxpm_ga, opencv)."""
+    if any(fit.covariance is None for fit in fits.values()):
+        return None
+    models = {}
+    blocks = []
+    for c, (name, fit) in enumerate(fits.items()):
+        T_camera_base = invert_transform(fit.T_base_camera)
+        points = observations[name][0] @ T_camera_base[:3, :3].T + T_camera_base[:3, 3]
+        models[name] = CameraModel(
+            fit.K,
+            fit.D,
+            T_camera_base,
+            observations[name][2],
+            working_range(points),
+            np.arange(15 * c, 15 * c + 15),
+        )
+        blocks.append(fit.covariance)
+    return rig_uncertainty(models, scipy.linalg.block_diag(*blocks))
 
 
 def calibrate_camera_opencv(
@@ -468,10 +507,12 @@ def calibrate_rig(
     fit_tangential: bool = True,
     fit_k3: bool = False,
     select_model: bool = True,
+    view_size: int | None = None,
 ) -> RigResult:
     """Calibrate every camera of ``observations`` = {name: (points_base (N, 3),
     pixels (N, 2), (width, height))} with ``method`` (``METHODS``). ``select_model``
     (``lm``): p1, p2 are kept per camera only where they pay (:func:`tangential_pays`).
+    ``view_size``: points per view (views of one chart; see :func:`calibrate_camera_lm`).
 
     Raises:
         CalibrationError: a camera's points are too few or degenerate, or a fit failed.
@@ -499,9 +540,11 @@ def calibrate_rig(
                 starts[name] = (fit.K, fit.D, T_camera_base[:3, :3], T_camera_base[:3, 3])
         fits = {}
         for name, (p, uv, size) in observations.items():
-            fits[name] = calibrate_camera_lm(p, uv, size, starts[name], fit_tangential, fit_k3)
+            fits[name] = calibrate_camera_lm(
+                p, uv, size, starts[name], fit_tangential, fit_k3, view_size
+            )
             if fit_tangential and select_model:  # p1, p2 only where they pay (BIC)
-                plain = calibrate_camera_lm(p, uv, size, starts[name], False, fit_k3)
+                plain = calibrate_camera_lm(p, uv, size, starts[name], False, fit_k3, view_size)
                 if not tangential_pays(
                     fits[name].rms_px ** 2 * len(uv), plain.rms_px**2 * len(uv), 2 * len(uv)
                 ):

@@ -19,6 +19,7 @@ from sensor_msgs.msg import CameraInfo
 from std_srvs.srv import Trigger
 
 from calib_node.calibrate import CalibrationError, GAOptions
+from calib_node.plots import write_plots
 from calib_node.session import (
     TARGET_WAIT_S,
     Calibration,
@@ -237,6 +238,8 @@ class CalibNode(GraphNode):
             silent = self._silent_cameras()
             if silent:  # why there are no views comes first
                 return False, f'{refusal}; {silent}'
+            if refusal.uncertain:  # what to do next, in the log (no ros2cli needed)
+                self.get_logger().info(str(refusal))
             if refusal.coverage:
                 _, values = self.session.status({})
                 self.diagnostics.publish(
@@ -256,10 +259,11 @@ class CalibNode(GraphNode):
                 {'views': len(self.session.views), 'method': self.params.method},
             )
             return False, message
-        self._publish(calibration.cameras, calibration.rectification)
+        stamp_ns = self._publish(calibration.cameras, calibration.rectification)
         if self.params.output_dir:
             self._write(calibration)
         message, values = self.session.record(calibration)
+        values['stamp'] = f'{stamp_ns // 10**9}.{stamp_ns % 10**9:09d}'  # of the CameraInfo
         self.get_logger().info(message)
         self.diagnostics.publish('calibration', 'ok', message, values)
         return True, message
@@ -280,9 +284,20 @@ class CalibNode(GraphNode):
             self.diagnostics.publish('calibration', 'error', f'cannot write {output_dir}: {error}')
             return
         written = written.resolve()  # where the files are is the first thing a user looks for
+        try:
+            plots = write_plots(
+                output_dir,
+                {n: (c.width, c.height) for n, c in calibration.cameras.items()},
+                calibration.residuals,
+                calibration.uncertainty,
+            )
+            pictures = f' and {len(plots)} PNGs (residuals, coverage, uncertainty)'
+        except (OSError, ImportError, ValueError) as error:  # the YAML is what matters
+            self.get_logger().warning(f'no plots in {output_dir}: {error}')
+            pictures = ''
         self.get_logger().info(
-            f'wrote {written} and {", ".join(f"{n}.yaml" for n in calibration.cameras)} '
-            f'beside it (calibration_file:={written} publishes it again)'
+            f'wrote {written} and {", ".join(f"{n}.yaml" for n in calibration.cameras)}'
+            f'{pictures} beside it (calibration_file:={written} publishes it again)'
         )
 
     def _publish(self, cameras, rectification):
@@ -295,6 +310,7 @@ class CalibNode(GraphNode):
             self.pose_publishers[name].publish(
                 matrix_to_pose_stamped(camera.T_base_camera, stamp_ns, BASE_FRAME)
             )
+        return stamp_ns
 
     def _publish_file(self, path):
         rig = read_calibration(path)  # InvalidInput -> one-line start-up error

@@ -29,9 +29,11 @@ from calib_node.calibrate import (
     CameraFit,
     GAOptions,
     calibrate_rig,
+    stage_uncertainty,
 )
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
+from calib_node.uncertainty import Uncertainty
 from vgm_common.calibration_io import stereo_rectification
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
@@ -42,6 +44,7 @@ from vgm_common.topics import BASE_FRAME, CAMERA_NAMES
 CHART_SOURCES = ('auto', 'stage', 'handheld')
 TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
 RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
+RESERVE_VIEWS = 100  # handheld views like a kept one, held for when the kept ones fall short
 
 
 def rig_pose_check(value: tuple[float, ...] | list[float]) -> str | None:
@@ -122,15 +125,31 @@ class SessionSettings:
         "view's by 0.2 (camera_calibration's rule); false keeps every view.",
     )
     min_views: int = setting(
-        10,
-        'Views needed to calibrate (a view: a capture in which at least one camera found '
-        'the chart; the very same images again are no new view).',
+        3,
+        'Fewest views a calibration is tried on (a view: a capture in which at least one '
+        'camera found the chart; the very same images again are no new view); 3 is '
+        "Zhang's minimum per camera. Whether the views suffice is max_projection_std_px's "
+        'call.',
         range=(1, 10000),
+    )
+    max_projection_std_px: float = setting(
+        3.0,
+        'A calibration is accepted only when its predicted projection uncertainty (standard '
+        'deviation, from the adjustment covariance, of where a point at the working range '
+        'lands) is at most this over the whole image in every camera; lm only (the other '
+        'methods give no covariance). 3 px: a figure in pixels means the same on any rig, '
+        "and a collection spread over camera_calibration's ranges reaches it even with the "
+        "corner noise of real photographs (OpenCV's 13 pairs at 0.36 px RMS: 2.5 px), while "
+        'one that leaves the image corners to extrapolation (their first 3-5 views) does '
+        'not.',
+        unit='px',
+        range=(0.0, 1e6),
     )
     auto_calibrate: bool = setting(
         True,
-        'Calibrate as soon as min_views views are collected (the calibrate service '
-        'recalibrates on all views so far).',
+        'Calibrate as soon as min_views views are collected and max_projection_std_px is '
+        'met, and again with every later view (the calibrate service recalibrates on all '
+        'views so far).',
     )
     method: str = setting(
         'lm',
@@ -191,11 +210,13 @@ class ViewOutcome(NamedTuple):
 
 
 class NotReady(CalibrationError):
-    """Too few views, or (``coverage`` true) a handheld collection that lacks coverage."""
+    """Too few views, (``coverage`` true) a handheld collection that lacks coverage, or
+    (``uncertain`` true) views that do not determine the cameras to max_projection_std_px."""
 
-    def __init__(self, message: str, coverage: bool = False) -> None:
+    def __init__(self, message: str, coverage: bool = False, uncertain: bool = False) -> None:
         super().__init__(message)
         self.coverage = coverage
+        self.uncertain = uncertain
 
 
 class Calibration(NamedTuple):
@@ -210,13 +231,38 @@ class Calibration(NamedTuple):
     views: int
     handheld: bool
     camera_views: dict[str, int]  # views in which each camera saw the chart
+    uncertainty: Uncertainty | None  # None: the method gives no covariance (lxpm_ga, opencv)
+    # {name: [(observed corners (N, 2), observed - projected (N, 2)) per view it saw]} [px]
+    residuals: dict[str, list[tuple[FloatArray, FloatArray]]]
 
     def quality(self) -> dict[str, dict[str, float | int]]:
-        """Per camera: reprojection RMS [px], corner count and views (the file's record)."""
-        return {
+        """Per camera: reprojection RMS [px], corner count, views and the predicted
+        projection uncertainty at the working range (the file's record); the baseline's
+        standard deviation with the right camera."""
+        quality: dict[str, dict[str, float | int]] = {
             name: {'rms_px': fit.rms_px, 'points': fit.points, 'views': self.camera_views[name]}
             for name, fit in self.fits.items()
         }
+        if self.uncertainty is not None:
+            u = self.uncertainty
+            for name, entry in quality.items():
+                entry['projection_std_worst_px'] = u.worst_px[name]
+                entry['projection_std_median_px'] = u.median_px[name]
+                entry['working_range_m'] = u.range_m[name]
+            quality['right']['baseline_std_m'] = u.baseline_std_m
+        return quality
+
+
+class _Fit(NamedTuple):
+    """A calibration of some views before it is judged: the fits, the frame they were
+    solved in, the solver's time, the uncertainty (None: no covariance) and every view's
+    chart pose in base_link (given or estimated)."""
+
+    fits: dict[str, CameraFit]
+    reference: str
+    seconds: float
+    uncertainty: Uncertainty | None
+    T_base_chart: list[FloatArray]
 
 
 # A view: the chart pose in base_link (None: handheld) and the corners {camera: (N, 2)}.
@@ -253,6 +299,10 @@ class CalibrationSession:
         self._calibration_lock = threading.Lock()  # one calibration at a time
         self._detection_pool = ThreadPoolExecutor(len(self.names))
         self.views: list[View] = []
+        # select_views: views like a kept one, used when the kept ones miss
+        # max_projection_std_px (the newest RESERVE_VIEWS)
+        self.reserve: list[View] = []
+        self.last_projection_std: tuple[str, float] | None = None  # the latest attempt's worst
         self.coverage = Coverage()
         self._targets: dict[int, FloatArray] = {}  # stamp_ns -> T_base_chart, most recent
         self._target_seen = False  # auto: a target pose arrived (the stage is in use)
@@ -266,7 +316,6 @@ class CalibrationSession:
         self._seen_images: set[bytes] = set()  # digests of the images of the views taken
         self.calibrations = 0
         self.last_result: dict[str, Any] | None = None
-        self._auto_done_at: int | None = None  # view count of the automatic calibration
         self._stopping = threading.Event()
 
     # --- inputs -------------------------------------------------------------------------
@@ -357,6 +406,8 @@ class CalibrationSession:
                 )
                 if settings.select_views and not self.coverage.is_new(parameters):
                     self.similar_views += 1
+                    self.reserve.append((T_base_chart, corners))
+                    del self.reserve[:-RESERVE_VIEWS]
                     return ViewOutcome('similar', handheld_started=handheld_started)
                 self.coverage.add(parameters)
             self.views.append((T_base_chart, corners))
@@ -369,14 +420,13 @@ class CalibrationSession:
                 if T_base_chart is None and not self.calibrations
                 else ''
             )
+            # Every new view from min_views on: until max_projection_std_px is met, then
+            # to refine what was published.
             calibrate_now = (
                 settings.auto_calibrate
                 and count >= settings.min_views
-                and self._auto_done_at is None
                 and not self._coverage_missing(self.views, settings)
             )
-            if calibrate_now:
-                self._auto_done_at = count
         message = (
             f'view {count}: chart found in {", ".join(corners)}'
             + (f' (not in {"; ".join(misses)})' if misses else '')
@@ -431,9 +481,16 @@ class CalibrationSession:
             )
         if len(views) < settings.min_views:
             raise NotReady(f'{len(views)} views collected, min_views is {settings.min_views}')
+        with self._lock:
+            reserve = list(self.reserve)
         with self._calibration_lock:
             try:
-                fits, reference, seconds = self._fit(views, settings)
+                fit = self._fit(views, settings)
+                if reserve and _too_uncertain(fit.uncertainty, settings):
+                    # The kept views fall short: the ones select_views set aside may not.
+                    views = views + reserve
+                    fit = self._fit(views, settings)
+                fits, uncertainty = fit.fits, fit.uncertainty
                 cameras = {
                     name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D, fit.T_base_camera)
                     for name, fit in fits.items()
@@ -443,10 +500,37 @@ class CalibrationSession:
                 raise CalibrationError(
                     f'calibration failed on {len(views)} views: {error}'
                 ) from error
+        if uncertainty is not None:
+            with self._lock:
+                self.last_projection_std = uncertainty.worst()
+        if _too_uncertain(uncertainty, settings):
+            assert uncertainty is not None
+            name, worst = uncertainty.worst()
+            raise NotReady(
+                f'{len(views)} views do not determine the cameras yet: predicted projection '
+                f'uncertainty {worst:.2f} px in {name} at {uncertainty.range_m[name]:.2f} m '
+                f'(max_projection_std_px {settings.max_projection_std_px:g}): show the chart '
+                'in more places, nearer the image corners and tilted',
+                uncertain=True,
+            )
         handheld = any(T is None for T, _ in views)
         camera_views = {n: sum(n in corners for _, corners in views) for n in fits}
+        residuals: dict[str, list[tuple[FloatArray, FloatArray]]] = {n: [] for n in fits}
+        for T, (_, corners) in zip(fit.T_base_chart, views):
+            points = self.chart @ T[:3, :3].T + T[:3, 3]
+            for name, observed in corners.items():
+                residuals[name].append((observed, observed - cameras[name].project(points)[0]))
         return Calibration(
-            cameras, rectification, fits, reference, seconds, len(views), handheld, camera_views
+            cameras,
+            rectification,
+            fits,
+            fit.reference,
+            fit.seconds,
+            len(views),
+            handheld,
+            camera_views,
+            uncertainty,
+            residuals,
         )
 
     def _observations(
@@ -471,8 +555,9 @@ class CalibrationSession:
 
     def _calibrate_handheld(
         self, views: list[View], settings: SessionSettings
-    ) -> tuple[dict[str, CameraFit], str]:
-        """Bundle adjustment over the views; {name: CameraFit} with poses in base_link."""
+    ) -> tuple[dict[str, CameraFit], str, Uncertainty, list[FloatArray]]:
+        """Bundle adjustment over the views: {name: CameraFit} with poses in base_link,
+        the reference frame, the uncertainty and every view's chart pose in base_link."""
         if settings.method != 'lm':
             raise CalibrationError(
                 f'method {settings.method} needs target poses (the '
@@ -491,24 +576,27 @@ class CalibrationSession:
         T_base_ref = (
             rig_pose_matrix(settings.rig_pose) if result.reference != BASE_FRAME else np.eye(4)
         )
-        return {
+        fits = {
             n: f._replace(T_base_camera=T_base_ref @ f.T_base_camera)
             for n, f in result.fits.items()
-        }, result.reference
+        }
+        T_base_chart = [T_base_ref @ T for T in result.T_ref_chart]
+        return fits, result.reference, result.uncertainty, T_base_chart
 
-    def _fit(
-        self, views: list[View], settings: SessionSettings
-    ) -> tuple[dict[str, CameraFit], str, float]:
-        """(fits {name: CameraFit}, reference frame, seconds) of the views: handheld or
-        stage; CalibrationError when a camera's RMS exceeds max_rms_px."""
+    def _fit(self, views: list[View], settings: SessionSettings) -> _Fit:
+        """The views' calibration, handheld or stage; CalibrationError when a camera's
+        RMS exceeds max_rms_px."""
         started = time.perf_counter()
+        uncertainty: Uncertainty | None
         if any(T is None for T, _ in views):
-            fits, reference = self._calibrate_handheld(views, settings)
+            fits, reference, uncertainty, T_base_chart = self._calibrate_handheld(views, settings)
             seconds = time.perf_counter() - started
         else:
             reference = BASE_FRAME
+            T_base_chart = [T for T, _ in views if T is not None]
+            observations = self._observations(views)
             result = calibrate_rig(
-                self._observations(views),
+                observations,
                 settings.method,
                 settings.seed,
                 settings.lm_start,
@@ -516,15 +604,17 @@ class CalibrationSession:
                 settings.fit_tangential,
                 settings.fit_k3,
                 settings.select_model,
+                len(self.chart),
             )
             fits, seconds = result.fits, result.seconds
+            uncertainty = stage_uncertainty(fits, observations)
         worst = max(fits, key=lambda n: fits[n].rms_px)
         if fits[worst].rms_px > settings.max_rms_px:
             raise CalibrationError(
                 f'{worst}: reprojection RMS {fits[worst].rms_px:.3g} px '
                 f'exceeds max_rms_px {settings.max_rms_px:g}'
             )
-        return fits, reference, seconds
+        return _Fit(fits, reference, seconds, uncertainty, T_base_chart)
 
     def record(self, calibration: Calibration) -> tuple[str, dict[str, Any]]:
         """Count ``calibration`` as published; its one-line summary and diagnostic values."""
@@ -553,6 +643,7 @@ class CalibrationSession:
                 values[f'rms_px {name}'] = f'{fit.rms_px:.4f}'
                 values[f'points {name}'] = fit.points
                 values[f'views {name}'] = calibration.camera_views[name]
+            values.update(_uncertainty_values(calibration.uncertainty))
             self.calibrations += 1
             self.last_result = values
         return message, values
@@ -564,10 +655,11 @@ class CalibrationSession:
         with self._lock:
             forgotten = len(self.views)
             self.views.clear()
+            self.reserve.clear()
+            self.last_projection_std = None
             self.coverage.clear()
             self.image_sizes.clear()
             self._seen_images.clear()
-            self._auto_done_at = None
         return forgotten
 
     def status(self, capture_counts: Mapping[str, int]) -> tuple[str, dict[str, object]]:
@@ -586,8 +678,15 @@ class CalibrationSession:
             }
             if self.last_result:  # the latest calibration's quality, repeated at 1 Hz
                 values.update(
-                    {k: v for k, v in self.last_result.items() if k.startswith('rms_px')}
+                    {
+                        k: v
+                        for k, v in self.last_result.items()
+                        if k.startswith(('rms_px', 'projection_std', 'baseline_std'))
+                    }
                 )
+            if self.last_projection_std:  # the latest attempt's, accepted or not
+                name, worst = self.last_projection_std
+                values['latest projection_std_worst_px'] = f'{worst:.3f} ({name})'
             handheld = any(T is None for T, _ in self.views)
             if handheld:
                 values['coverage'] = self.coverage.summary()
@@ -609,6 +708,22 @@ class CalibrationSession:
         with self._lock:
             self._target_arrived.notify_all()
         self._detection_pool.shutdown(wait=False)
+
+
+def _too_uncertain(uncertainty: Uncertainty | None, settings: SessionSettings) -> bool:
+    return uncertainty is not None and uncertainty.worst()[1] > settings.max_projection_std_px
+
+
+def _uncertainty_values(uncertainty: Uncertainty | None) -> dict[str, str]:
+    """The diagnostic values of an :class:`Uncertainty` ({} for None)."""
+    if uncertainty is None:
+        return {}
+    values = {'baseline_std_m': f'{uncertainty.baseline_std_m:.3g}'}
+    for name in uncertainty.worst_px:
+        values[f'projection_std_worst_px {name}'] = f'{uncertainty.worst_px[name]:.3f}'
+        values[f'projection_std_median_px {name}'] = f'{uncertainty.median_px[name]:.3f}'
+        values[f'working_range_m {name}'] = f'{uncertainty.range_m[name]:.3f}'
+    return values
 
 
 def _images_digest(greys: Mapping[str, np.ndarray]) -> bytes:

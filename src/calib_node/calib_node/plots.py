@@ -1,0 +1,108 @@
+"""Pictures of a calibration for a user to judge at a glance, written beside
+calibration.yaml: per camera the residual vectors over the image, the coverage of the views
+and the predicted projection uncertainty. matplotlib's object API (no pyplot: the worker
+thread draws them, and pyplot's global state is not thread-safe). No rclpy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from calib_node.uncertainty import Uncertainty
+from vgm_common.geometry import FloatArray
+
+FIGURE_SIZE_IN = (6.4, 4.8)
+DPI = 100  # 640 x 480 px
+PLOT_SIZE_PX = (int(FIGURE_SIZE_IN[0] * DPI), int(FIGURE_SIZE_IN[1] * DPI))
+ARROW_FRACTION = 0.04  # the RMS residual drawn as this fraction of the image width
+
+# {name: [(N, 2) observed corners, (N, 2) residuals (observed - projected)] per view}
+Residuals = Mapping[str, list[tuple[FloatArray, FloatArray]]]
+
+
+def _figure(size: tuple[int, int], title: str):  # type: ignore[no-untyped-def]
+    """A Figure with one axes over the image (origin top left), and its canvas."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=FIGURE_SIZE_IN, dpi=DPI)
+    canvas = FigureCanvasAgg(figure)
+    axes = figure.add_subplot()
+    axes.set_xlim(0, size[0])
+    axes.set_ylim(size[1], 0)
+    axes.set_aspect('equal')
+    axes.set_xlabel('u [px]')
+    axes.set_ylabel('v [px]')
+    axes.set_title(title, fontsize=9)
+    return figure, canvas, axes
+
+
+def write_plots(
+    directory: str | Path,
+    image_sizes: Mapping[str, tuple[int, int]],
+    residuals: Residuals,
+    uncertainty: Uncertainty | None,
+) -> list[Path]:
+    """Write ``<camera>_residuals.png``, ``<camera>_coverage.png`` and (with an
+    uncertainty) ``<camera>_uncertainty.png`` (PLOT_SIZE_PX each) into ``directory``;
+    returns their paths."""
+    from matplotlib import colormaps
+
+    directory = Path(directory)
+    written = []
+    for name, views in residuals.items():
+        size = image_sizes[name]
+        corners = np.concatenate([c for c, _ in views])
+        errors = np.concatenate([r for _, r in views])
+        rms = float(np.sqrt(np.mean(np.sum(errors**2, axis=1))))
+        figure, canvas, axes = _figure(
+            size,
+            f'{name}: reprojection residuals, RMS {rms:.3f} px '
+            f'(arrows x{ARROW_FRACTION * size[0] / max(rms, 1e-12):.0f})',
+        )
+        scale = ARROW_FRACTION * size[0] / max(rms, 1e-12)
+        axes.quiver(
+            corners[:, 0],
+            corners[:, 1],
+            scale * errors[:, 0],
+            scale * errors[:, 1],
+            angles='xy',
+            scale_units='xy',
+            scale=1.0,
+            width=0.002,
+            color='tab:red',
+        )
+        written.append(_save(figure, canvas, directory / f'{name}_residuals.png'))
+
+        figure, canvas, axes = _figure(size, f'{name}: chart corners of {len(views)} views')
+        for k, (view_corners, _) in enumerate(views):
+            colour = colormaps['viridis'](k / max(len(views) - 1, 1))  # one colour per view
+            axes.plot(view_corners[:, 0], view_corners[:, 1], '.', markersize=2, color=colour)
+        written.append(_save(figure, canvas, directory / f'{name}_coverage.png'))
+
+        if uncertainty is not None and name in uncertainty.grid_px:
+            grid = uncertainty.grid_px[name]
+            figure, canvas, axes = _figure(
+                size,
+                f'{name}: predicted projection std at {uncertainty.range_m[name]:.2f} m, worst '
+                f'{uncertainty.worst_px[name]:.2f} px, median {uncertainty.median_px[name]:.2f}',
+            )
+            image = axes.imshow(
+                grid,
+                extent=(0, size[0], size[1], 0),
+                interpolation='bilinear',
+                cmap='magma',
+                vmin=0.0,
+            )
+            figure.colorbar(image, ax=axes, label='px', shrink=0.8)
+            axes.plot(corners[:, 0], corners[:, 1], ',', color='white', alpha=0.5)
+            written.append(_save(figure, canvas, directory / f'{name}_uncertainty.png'))
+    return written
+
+
+def _save(figure, canvas, path: Path) -> Path:  # type: ignore[no-untyped-def]
+    canvas.print_png(str(path))
+    return path

@@ -1,0 +1,226 @@
+"""How well a calibration determines its cameras: the covariance of the solution
+propagated to the projection of points at the working range, and to the baseline. No
+rclpy.
+
+As mrcal does it: the parameters' covariance is (J^T J)^-1 scaled by the residual variance
+s^2 = RSS / (n - p) of the final adjustment (the corners' noise as the fit itself
+measures it). A point is fixed in the reference frame (base_link on the stage, the left
+camera handheld) at the working range (the median depth of the chart corners the camera
+saw) on the ray of each pixel of a grid over the whole image; its projection moves with
+the camera's intrinsics and pose by J_q, so its covariance is J_q C J_q^T. The figure per
+pixel is sqrt(trace) of that 2 x 2 covariance: the expected length of the projection
+error [px] (the RMS over many calibrations of the same rig).
+
+Parameters are addressed in ``cv2.projectPoints``' Jacobian order: rvec (3), tvec (3) of
+T_camera_ref, fx, fy, cx, cy, k1, k2, p1, p2, k3 (``PROJECTION_ORDER``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.geometry import FloatArray, invert_transform
+
+GRID = (16, 12)  # grid pixels across and down the image
+PROJECTION_ORDER = 15  # rvec, tvec, fx, fy, cx, cy, k1, k2, p1, p2, k3
+IndexArray = npt.NDArray[np.int_]
+
+
+class CameraModel(NamedTuple):
+    """A calibrated camera in the reference frame, for the propagation: K (3, 3), D (5,),
+    T_camera_ref (4, 4), (width, height) [px], working range [m] and the rows of its 15
+    parameters (``PROJECTION_ORDER``) in the rig's covariance (-1: held fixed): ``rows``."""
+
+    K: FloatArray
+    D: FloatArray
+    T_camera_ref: FloatArray
+    size: tuple[int, int]
+    range_m: float
+    rows: IndexArray
+
+
+class Uncertainty(NamedTuple):
+    """Per camera the worst and median projection standard deviation over the image grid
+    [px], the working range it is taken at [m] and the grid itself ((rows, cols) [px]);
+    the baseline's standard deviation [m] (nan without left and right)."""
+
+    worst_px: dict[str, float]
+    median_px: dict[str, float]
+    range_m: dict[str, float]
+    grid_px: dict[str, FloatArray]
+    baseline_std_m: float
+
+    def worst(self) -> tuple[str, float]:
+        """(camera, px) of the largest projection standard deviation of the rig."""
+        name = max(self.worst_px, key=lambda n: self.worst_px[n])
+        return name, self.worst_px[name]
+
+
+def parameter_covariance(
+    jacobian: npt.ArrayLike, residuals: npt.ArrayLike, groups: npt.ArrayLike | None = None
+) -> FloatArray:
+    """(p, p) covariance of the (unweighted) least-squares solution.
+
+    One noise level (``groups`` None): s^2 (J^T J)^+ with s^2 = RSS / (n - p). With
+    ``groups`` (a label per residual, e.g. its camera and view) each group's noise is its
+    own, s_g^2 = RSS_g / (n_g (n - p) / n), and the covariance the sandwich
+    (J^T J)^+ J^T S J (J^T J)^+ with S = diag(s_g^2): corners of a far or steep view are
+    noisier than a near frontal one's, and one pooled s^2 would lend the informative views
+    the noise of the others. Pseudo-inverse: a direction the data do not fix gets no
+    finite variance claimed from a rounding-level pivot.
+    """
+    J = np.asarray(jacobian, dtype=float)
+    r = np.asarray(residuals, dtype=float)
+    share = max(r.size - J.shape[1], 1) / r.size  # degrees of freedom per residual
+    # Columns scaled to unit norm first: fx (1000s of px) and k3 share one J^T J.
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1.0
+    Js = J / scale
+    inverse = np.linalg.pinv(Js.T @ Js, rcond=1e-13, hermitian=True)
+    if groups is None:
+        return float(r @ r) / (share * r.size) * inverse / np.outer(scale, scale)
+    labels, group = np.unique(np.asarray(groups), return_inverse=True)
+    variance = np.bincount(group, weights=r**2) / (share * np.bincount(group))
+    weighted = Js * np.sqrt(variance[group])[:, None]
+    return inverse @ (weighted.T @ weighted) @ inverse / np.outer(scale, scale)
+
+
+def canonical_rotations(x: FloatArray, starts: Sequence[int]) -> FloatArray:
+    """``x`` with the Rodrigues vectors at ``starts`` as cv2.Rodrigues gives them for their
+    rotation (angle at most pi). LM may step past pi to the equivalent vector on the
+    other side; a covariance taken there is in other coordinates than the pose the
+    propagation reads back from the rotation matrix (measured: a camera turned 174 deg
+    had its projection uncertainty overstated 17x)."""
+    x = np.array(x, dtype=float)
+    for start in starts:
+        R = cv2.Rodrigues(x[start : start + 3])[0]
+        x[start : start + 3] = cv2.Rodrigues(R)[0].ravel()
+    return x
+
+
+def image_grid(size: tuple[int, int], grid: tuple[int, int] = GRID) -> FloatArray:
+    """(rows * cols, 2) pixels of a grid spanning the whole image, row by row."""
+    width, height = size
+    u, v = np.meshgrid(np.linspace(0, width - 1, grid[0]), np.linspace(0, height - 1, grid[1]))
+    return np.column_stack([u.ravel(), v.ravel()])
+
+
+def points_at_range(
+    K: FloatArray, D: FloatArray, T_camera_ref: FloatArray, pixels: FloatArray, depth: float
+) -> FloatArray:
+    """(M, 3) reference-frame points at ``depth`` [m] along the camera's rays of ``pixels``."""
+    xy = PinholeCamera(1, 1, K, D, np.eye(4)).undistort_pixels(pixels)
+    camera = np.column_stack([xy * depth, np.full(len(xy), depth)])
+    T_ref_camera = invert_transform(T_camera_ref)
+    return camera @ T_ref_camera[:3, :3].T + T_ref_camera[:3, 3]
+
+
+def _rt(T: FloatArray) -> tuple[FloatArray, FloatArray]:
+    rvec = np.asarray(cv2.Rodrigues(np.ascontiguousarray(T[:3, :3]))[0], dtype=float)
+    return rvec.ravel(), T[:3, 3].copy()
+
+
+def _block(covariance: FloatArray, index: IndexArray) -> FloatArray:
+    """The covariance of the parameters ``index`` (-1: fixed, zero rows)."""
+    out = np.zeros((len(index), len(index)))
+    held = index >= 0
+    out[np.ix_(held, held)] = covariance[np.ix_(index[held], index[held])]
+    return out
+
+
+def projection_std(camera: CameraModel, covariance: FloatArray, pixels: FloatArray) -> FloatArray:
+    """(M,) sqrt(trace) of the projection covariance [px] of the points at the working
+    range on the rays of ``pixels``."""
+    points = points_at_range(camera.K, camera.D, camera.T_camera_ref, pixels, camera.range_m)
+    rvec, tvec = _rt(camera.T_camera_ref)
+    _, J = cv2.projectPoints(points, rvec, tvec, camera.K, camera.D)
+    C = _block(covariance, camera.rows)
+    J = J[:, :PROJECTION_ORDER]
+    per_row = np.einsum('ij,jk,ik->i', J, C, J)  # diagonal of J C J^T
+    return np.sqrt(np.maximum(per_row.reshape(-1, 2).sum(axis=1), 0.0))
+
+
+def _centre_jacobian(T_camera_ref: FloatArray, step: float = 1e-7) -> FloatArray:
+    """(3, 6) derivative of the camera centre -R^T t in the reference frame by its
+    (rvec, tvec) (central differences)."""
+    x = np.concatenate(_rt(T_camera_ref))
+
+    def centre(p: FloatArray) -> FloatArray:
+        R = cv2.Rodrigues(p[:3])[0]
+        return np.asarray(-R.T @ p[3:], dtype=float)
+
+    J = np.empty((3, 6))
+    for k in range(6):
+        dx = np.zeros(6)
+        dx[k] = step
+        J[:, k] = (centre(x + dx) - centre(x - dx)) / (2 * step)
+    return J
+
+
+def baseline_std(left: CameraModel, right: CameraModel, covariance: FloatArray) -> float:
+    """Standard deviation [m] of |centre_left - centre_right| (the poses' joint covariance)."""
+    index = np.concatenate([left.rows[:6], right.rows[:6]])
+    C = _block(covariance, index)
+    c_left = invert_transform(left.T_camera_ref)[:3, 3]
+    c_right = invert_transform(right.T_camera_ref)[:3, 3]
+    direction = (c_right - c_left) / np.linalg.norm(c_right - c_left)
+    g = np.concatenate(
+        [
+            -direction @ _centre_jacobian(left.T_camera_ref),
+            direction @ _centre_jacobian(right.T_camera_ref),
+        ]
+    )
+    return float(np.sqrt(max(g @ C @ g, 0.0)))
+
+
+def rig_uncertainty(
+    cameras: Mapping[str, CameraModel],
+    covariance: FloatArray,
+    grid: tuple[int, int] = GRID,
+) -> Uncertainty:
+    """:class:`Uncertainty` of a rig from its parameters' ``covariance``."""
+    worst, median, ranges, grids = {}, {}, {}, {}
+    for name, camera in cameras.items():
+        std = projection_std(camera, covariance, image_grid(camera.size, grid))
+        worst[name] = float(std.max())
+        median[name] = float(np.median(std))
+        ranges[name] = camera.range_m
+        grids[name] = std.reshape(grid[1], grid[0])
+    baseline = (
+        baseline_std(cameras['left'], cameras['right'], covariance)
+        if 'left' in cameras and 'right' in cameras
+        else float('nan')
+    )
+    return Uncertainty(worst, median, ranges, grids, baseline)
+
+
+def working_range(points_camera: FloatArray) -> float:
+    """The median depth [m] of chart corners (M, 3) in a camera's frame."""
+    return float(np.median(np.asarray(points_camera)[:, 2]))
+
+
+def true_projection_error(
+    K_true: FloatArray,
+    D_true: FloatArray,
+    T_camera_ref_true: FloatArray,
+    K: FloatArray,
+    D: FloatArray,
+    T_camera_ref: FloatArray,
+    size: tuple[int, int],
+    depth: float,
+    grid: tuple[int, int] = GRID,
+) -> FloatArray:
+    """(rows, cols) [px]: where the calibrated camera projects the points the true camera
+    sees on the grid pixels at ``depth``, both in their own reference frames (the
+    calibration's gauge), minus those pixels: the error the uncertainty predicts."""
+    pixels = image_grid(size, grid)
+    points = points_at_range(K_true, D_true, T_camera_ref_true, pixels, depth)
+    rvec, tvec = _rt(T_camera_ref)
+    projected = cv2.projectPoints(points, rvec, tvec, K, D)[0].reshape(-1, 2)
+    return np.linalg.norm(projected - pixels, axis=1).reshape(grid[1], grid[0])
