@@ -17,7 +17,12 @@ def test_a_params_file_for_another_node_is_a_warning_naming_its_sections(spawn):
             'spacng:=0.01',
         ]
     )
-    wait_for(lambda: 'ready:' in node.output(), 60.0, 'curve_recon_node to start')
+    # The file's warnings are logged once the node is constructed, i.e. after its 'ready:'.
+    wait_for(
+        lambda: 'ready:' in node.output() and 'has no section' in node.output(),
+        60.0,
+        'curve_recon_node to start and warn about the params file',
+    )
     output = node.output()
     warnings = [line for line in output.splitlines() if '[WARN]' in line]
     assert any(
