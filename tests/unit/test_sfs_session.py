@@ -2,9 +2,13 @@
 warnings and INFO lines on a clock the test moves, and the status's level and message."""
 
 import numpy as np
+import pytest
 
 from sfs_stereo_node.pipeline import DepthResult
 from sfs_stereo_node.session import WARN_EVERY_S, DepthSession
+from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_topics import CalibratedCamera
+from vgm_common.errors import InvalidInput
 
 
 class FakeClock:
@@ -65,3 +69,20 @@ def test_warnings_and_info_lines_are_throttled():
     assert session.status(['right'], {})[:2] == ('warn', 'no calibration for right')
     assert DepthSession().status([], {})[:2] == ('warn', 'no pair processed yet')
     assert session.waiting_for_calibration() and not session.waiting_for_calibration()
+
+
+def test_the_rectification_is_made_once_per_calibration_and_image_size():
+    K = np.array([[500.0, 0, 160], [0, 500, 120], [0, 0, 1]])
+    P_left, P_right = np.hstack([K, np.zeros((3, 1))]), np.hstack([K, [[-50.0], [0], [0]]])
+    T = np.eye(4)
+    left = CalibratedCamera(PinholeCamera(320, 240, K, np.zeros(5), T), np.eye(3), P_left)
+    right = CalibratedCamera(PinholeCamera(320, 240, K, np.zeros(5), T), np.eye(3), P_right)
+    session = DepthSession()
+    tables = session.rectification(1, left, right, (240, 320))
+    assert tables.baseline_m == pytest.approx(0.1)  # P_right[0, 3] = -f * baseline
+    assert session.rectification(1, left, right, (240, 320)) is tables
+    assert session.rectification(2, left, right, (240, 320)) is not tables  # recalibrated
+    with pytest.raises(
+        InvalidInput, match='left camera_info is 320x240 but the images are 640x480'
+    ):
+        session.rectification(2, left, right, (480, 640))

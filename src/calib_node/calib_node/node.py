@@ -28,7 +28,7 @@ from calib_node.session import (
     SessionSettings,
 )
 from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
-from vgm_common.camera_topics import subscribe_images
+from vgm_common.camera_topics import ImageCaptures
 from vgm_common.conversions import (
     camera_to_camera_info,
     image_to_grey,
@@ -42,7 +42,6 @@ from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
 from vgm_common.parameters import ConfigParams, Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
-from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
     BASE_FRAME,
     CAMERA_INFO_TOPICS,
@@ -152,11 +151,13 @@ class CalibNode(GraphNode):
         )
         # Images are paired by stamp; the target pose of a set is looked up by its stamp
         # (it may come a little before or after the images, or never: handheld).
-        self.sync = ExactTimeSync(
-            self.names, self._on_capture, queue_size=10, max_wait=p.sync_max_wait
+        self.captures = ImageCaptures(
+            self,
+            self.names,
+            self._on_capture,
+            p.sync_max_wait,
+            callback_group=MutuallyExclusiveCallbackGroup(),
         )
-        inputs = MutuallyExclusiveCallbackGroup()  # the sync is not thread-safe
-        subscribe_images(self, self.names, self._offer, inputs)
         # The poses get their own group: in one group with the images, rclpy's executor
         # serves a backlog of images first (subscription order), and under load a
         # set's pose came later than TARGET_WAIT_S. _on_target only takes the session's lock.
@@ -176,9 +177,6 @@ class CalibNode(GraphNode):
         )
 
     # --- inputs -----------------------------------------------------------------------
-
-    def _offer(self, key, msg):
-        self.sync.add(key, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
 
     def _on_target(self, msg):
         if self.session.source == 'handheld':
@@ -350,7 +348,7 @@ class CalibNode(GraphNode):
     def _silent_cameras(self):
         """'' or what to do about cameras that send no image while the others do (no set
         of the rig can complete: 0 views however long the chart is shown)."""
-        silent = self.sync.silent(time.monotonic(), SILENT_CAMERA_S)
+        silent = self.captures.silent(SILENT_CAMERA_S)
         if not silent:
             return ''
         sending = [n for n in self.names if n not in silent]
@@ -368,8 +366,8 @@ class CalibNode(GraphNode):
     def _publish_status(self):
         message, values = self.session.status(
             {
-                'incomplete capture sets (messages)': self.sync.dropped,
-                'matched capture sets': self.sync.matched,
+                'incomplete capture sets (messages)': self.captures.counts()['dropped'],
+                'matched capture sets': self.captures.counts()['matched'],
             }
         )
         silent = self._silent_cameras()

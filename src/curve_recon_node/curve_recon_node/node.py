@@ -33,7 +33,7 @@ from curve_recon_node.waypoints import (
     usable_depth,
     waypoint_frames,
 )
-from vgm_common.camera_topics import CalibratedCameras, subscribe_images
+from vgm_common.camera_topics import CalibratedCameras, ImageCaptures
 from vgm_common.conversions import (
     camera_info_rectification,
     camera_info_to_camera,
@@ -50,7 +50,6 @@ from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import DeferredCallback, DeferredServiceExecutor, run_node
 from vgm_common.parameters import ConfigParams, Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
-from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
     BASE_FRAME,
     CAMERA_NAMES,
@@ -165,9 +164,6 @@ class CurveReconNode(GraphNode):
         )
 
     def _init_state(self):
-        self.sync_lock = threading.Lock()
-        self.sync = self._new_sync(self.params.views)
-        self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
         self.scheduler = CaptureScheduler()
         self.replies_lock = threading.Lock()
         self.left_right_ready_since = None
@@ -183,7 +179,15 @@ class CurveReconNode(GraphNode):
         """Subscribes to the cameras, chart poses and fused depth; returns their group."""
         sensors = MutuallyExclusiveCallbackGroup()
         # all three cameras, so `views` can change at run time; the sync takes the used ones
-        subscribe_images(self, CAMERA_NAMES, self._on_image, sensors)
+        self.captures = ImageCaptures(
+            self,
+            _paired_cameras(self.params.views),
+            self._on_capture,
+            self.params.sync_max_wait,
+            subscribed=CAMERA_NAMES,
+            callback_group=sensors,
+            accept=self._accept_image,
+        )
         # its own group: behind a backlog of images (served first, in subscription
         # order) a chart pose could come later than CHART_POSE_GRACE
         self.create_subscription(
@@ -234,19 +238,11 @@ class CurveReconNode(GraphNode):
 
     # --- inputs ----------------------------------------------------------------------
 
-    def _new_sync(self, views):
-        keys = CAMERA_NAMES if views == 3 else CAMERA_NAMES[:2]
-        self.last_match = (time.monotonic(), 0)  # (time, sync.dropped) at the last match
-        return ExactTimeSync(
-            keys, self._on_capture, queue_size=10, max_wait=self.params.sync_max_wait
-        )
-
     def _on_views_change(self, views):
-        # a new sync for the new set of cameras: captures pending in the old one lack a
-        # view (or have one too many) and are dropped with it
-        with self.sync_lock:
-            self.sync = self._new_sync(views)
-        self.get_logger().info(f'views set to {views}: synchronizing {", ".join(self.sync.keys)}')
+        self.captures.use(_paired_cameras(views))
+        self.get_logger().info(
+            f'views set to {views}: synchronizing {", ".join(self.captures.names)}'
+        )
 
     @guarded('calibration change')
     def _on_calibration_change(self, name):
@@ -257,15 +253,13 @@ class CurveReconNode(GraphNode):
         self.scheduler.chart_shown(stamp_to_ns(msg.header.stamp))
 
     @guarded('image')
-    def _on_image(self, name, msg):
+    def _accept_image(self, name, msg):
         try:
             check_grey_image(msg)  # every image, also those of captures not reconstructed
         except InvalidInput as error:
             self.diagnostics.reject(IMAGE_TOPICS[name], error)
-            return
-        with self.sync_lock:
-            if name in self.sync.keys:
-                self.sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
+            return False
+        return True
 
     def _views_available(self):
         """Camera names to use now, or None while the calibration is not ready."""
@@ -281,10 +275,9 @@ class CurveReconNode(GraphNode):
                 return None
         return ('left', 'right')
 
+    @guarded('image')
     def _on_capture(self, stamp_ns, messages):
-        """A synchronized capture (called under sync_lock): hand it to the worker if a
-        reconstruction is wanted."""
-        self.last_match = (time.monotonic(), self.sync.dropped)
+        """A synchronized capture: hand it to the worker if a reconstruction is wanted."""
         names = self._views_available()
         if names is None or not set(names) <= set(messages):
             return  # not calibrated, or `views` changed while this capture was completed
@@ -577,9 +570,7 @@ class CurveReconNode(GraphNode):
     def _publish_status(self):
         missing = self.cameras.missing()
         values = {
-            'matched': self.sync.matched,
-            'dropped': self.sync.dropped,
-            'pending': self.sync.pending,
+            **self.captures.counts(),
             'skipped_chart_captures': self.scheduler.skipped_chart,
             'dropped_work': self.worker.dropped,
             'waiting_requests': self.scheduler.waiting,
@@ -595,15 +586,11 @@ class CurveReconNode(GraphNode):
                 f'no camera info yet: waiting for the calibration of {", ".join(needed)}',
                 values,
             )
-        elif (
-            self.sync.dropped > self.last_match[1]
-            and time.monotonic() - self.last_match[0] > 2 * self.params.sync_max_wait
-        ):
+        elif unsynchronized := self.captures.unsynchronized():
             self.diagnostics.publish(
                 'status',
                 'warn',
-                'images not synchronized: '
-                f'{self.sync.dropped - self.last_match[1]} dropped since the last complete '
+                f'images not synchronized: {unsynchronized} dropped since the last complete '
                 'capture (stamps must be identical)',
                 values,
             )
@@ -623,6 +610,10 @@ class CurveReconNode(GraphNode):
         for call in self.scheduler.close():
             call.reply(False, 'curve_recon_node is shutting down')
         self._send_replies(None)  # guarded: positional only
+
+
+def _paired_cameras(views):
+    return CAMERA_NAMES if views == 3 else CAMERA_NAMES[:2]
 
 
 def main(args=None):

@@ -9,25 +9,20 @@ one is processed replace the waiting one and are counted as dropped, so there is
 backlog, whatever the per-frame time.
 """
 
-import threading
-import time
-
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from sfs_stereo_node.pipeline import DepthConfig, process_pair
-from sfs_stereo_node.rectify import rectification_maps
 from sfs_stereo_node.session import DepthSession
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.camera_topics import CalibratedCameras, subscribe_images
+from vgm_common.camera_topics import CalibratedCameras, ImageCaptures
 from vgm_common.conversions import (
     camera_to_camera_info,
     depth_to_pointcloud2,
     image_to_grey,
     numpy_to_disparity_image,
     numpy_to_image,
-    stamp_to_ns,
 )
 from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput
@@ -35,7 +30,6 @@ from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
 from vgm_common.parameters import ConfigParams, Param
 from vgm_common.qos import DEFAULT_QOS
-from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
     DEPTH_CONFIDENCE_TOPIC,
     DEPTH_INFO_TOPIC,
@@ -134,15 +128,14 @@ class SfsStereoNode(GraphNode):
                 ('left_rect', Image, LEFT_RECT_TOPIC),
             )
         }
-        self.sync = ExactTimeSync(
-            ('left', 'right'), self._on_pair, queue_size=10, max_wait=self.params.sync_max_wait
+        self.captures = ImageCaptures(
+            self,
+            ('left', 'right'),
+            self._on_pair,
+            self.params.sync_max_wait,
+            on_unpaired=self._on_unpaired,
         )
-        self.sync_lock = threading.Lock()
-        subscribe_images(self, ('left', 'right'), self._on_image)
-        self.maps = None
-        self.maps_key = None
         self.session = DepthSession()
-        self.sync_dropped_reported = 0
         # the newest pair only: pairs arriving while one is processed replace the waiting
         # one (worker.dropped)
         self.worker = Worker(lambda pair: self._process(*pair), self._on_pair_error, 'depth')
@@ -153,19 +146,14 @@ class SfsStereoNode(GraphNode):
 
     # --- input ------------------------------------------------------------------------
 
-    def _on_image(self, name, msg):
-        with self.sync_lock:
-            self.sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
-            if self.sync.dropped > self.sync_dropped_reported:
-                self.sync_dropped_reported = self.sync.dropped
-                self.diagnostics.reject(
-                    'stereo pair',
-                    InvalidInput(
-                        'image without a partner of identical stamp dropped '
-                        f'({self.sync.dropped} so far)',
-                        key='stamp',
-                    ),
-                )
+    def _on_unpaired(self, dropped):
+        self.diagnostics.reject(
+            'stereo pair',
+            InvalidInput(
+                f'image without a partner of identical stamp dropped ({dropped} so far)',
+                key='stamp',
+            ),
+        )
 
     def _on_pair(self, stamp_ns, messages):
         if not self.cameras.ready:  # expected at start-up: a wait, not bad input
@@ -185,37 +173,6 @@ class SfsStereoNode(GraphNode):
             error if isinstance(error, InvalidInput) else f'{type(error).__name__}: {error}',
         )
 
-    def _rectified_pair(self, left_shape):
-        if not self.cameras.ready:
-            raise InvalidInput(
-                f'no calibration yet for {", ".join(self.cameras.missing())} (camera_info + pose)',
-                key='camera_info',
-            )
-        key = (self.cameras.version, left_shape)
-        if self.maps_key != key:
-            left, right = self.cameras['left'], self.cameras['right']
-            for name, calibrated in (('left', left), ('right', right)):
-                size = (calibrated.camera.height, calibrated.camera.width)
-                if size != left_shape:
-                    raise InvalidInput(
-                        f'{name} camera_info is {size[1]}x{size[0]} but the '
-                        f'images are {left_shape[1]}x{left_shape[0]}',
-                        key='size',
-                    )
-            self.maps = rectification_maps(
-                left.camera.K,
-                left.camera.D,
-                left.R,
-                left.P,
-                right.camera.K,
-                right.camera.D,
-                right.R,
-                right.P,
-                (left_shape[1], left_shape[0]),
-            )
-            self.maps_key = key
-        return self.maps
-
     def _process(self, stamp_ns, messages):
         for name in ('left', 'right'):  # before any conversion: a bound on memory
             msg = messages[name]
@@ -232,7 +189,14 @@ class SfsStereoNode(GraphNode):
                 f'{right.shape[1]}x{right.shape[0]} images differ in size',
                 key='size',
             )
-        pair = self._rectified_pair(left.shape[:2])
+        if not self.cameras.ready:
+            raise InvalidInput(
+                f'no calibration yet for {", ".join(self.cameras.missing())} (camera_info + pose)',
+                key='camera_info',
+            )
+        pair = self.session.rectification(
+            self.cameras.version, self.cameras['left'], self.cameras['right'], left.shape[:2]
+        )
         # SFS alone is a by-product the fusion does not need: made while someone listens
         want_sfs = self.publishers_['sfs'].get_subscription_count() > 0
         result = process_pair(
@@ -299,7 +263,7 @@ class SfsStereoNode(GraphNode):
             [] if self.cameras.ready else self.cameras.missing(),
             {
                 'dropped': self.worker.dropped,
-                'unpaired': self.sync.dropped,
+                'unpaired': self.captures.counts()['dropped'],
                 **{f'rejected {k}': v for k, v in self.diagnostics.rejected.items()},
             },
         )

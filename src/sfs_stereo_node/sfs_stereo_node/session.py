@@ -1,14 +1,21 @@
 """What sfs_stereo_node keeps between pairs, without ROS: which pairs to take (``max_rate``
 chooses by stamps, so a replayed bag gives the same frames), the counts, the last
 result's figures for /diagnostics, and when to log (one line per kind of warning at most
-every WARN_EVERY_S, an INFO line every ``log_every``). The clock is injected."""
+every WARN_EVERY_S, an INFO line every ``log_every``), and the rectification tables of
+the current calibration. The clock is injected."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
 
 from sfs_stereo_node.pipeline import DepthResult
+from sfs_stereo_node.rectify import RectifiedPair, rectification_maps
+from vgm_common.errors import InvalidInput
+
+if TYPE_CHECKING:
+    from vgm_common.camera_topics import CalibratedCamera
 
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
 
@@ -27,6 +34,7 @@ class DepthSession:
         self.last_warnings: tuple[str, ...] = ()
         self._last_warned: dict[str, float] = {}  # kind of warning -> its last log line
         self._last_log = -float('inf')
+        self._rectification: tuple[object, RectifiedPair] | None = None  # (key, tables)
 
     def waiting_for_calibration(self) -> bool:
         """Count a pair that came before the calibration; True for the first (worth a
@@ -44,6 +52,41 @@ class DepthSession:
                 return False
             self._last_slot = slot
         return True
+
+    def rectification(
+        self,
+        calibration_version: int,
+        left: CalibratedCamera,
+        right: CalibratedCamera,
+        image_shape: tuple[int, int],
+    ) -> RectifiedPair:
+        """The remap tables of the calibrated pair for images of ``image_shape`` (rows,
+        cols), made again only when the calibration or the image size changes. Raises
+        InvalidInput when a camera_info's size is not the images'."""
+        key = (calibration_version, image_shape)
+        if self._rectification is not None and self._rectification[0] == key:
+            return self._rectification[1]
+        for name, calibrated in (('left', left), ('right', right)):
+            size = (calibrated.camera.height, calibrated.camera.width)
+            if size != image_shape:
+                raise InvalidInput(
+                    f'{name} camera_info is {size[1]}x{size[0]} but the '
+                    f'images are {image_shape[1]}x{image_shape[0]}',
+                    key='size',
+                )
+        tables = rectification_maps(
+            left.camera.K,
+            left.camera.D,
+            left.R,
+            left.P,
+            right.camera.K,
+            right.camera.D,
+            right.R,
+            right.P,
+            (image_shape[1], image_shape[0]),
+        )
+        self._rectification = (key, tables)
+        return tables
 
     def record(self, result: DepthResult, log_every: float) -> tuple[list[str], bool]:
         """Keep ``result``'s figures; the warnings to log now (one per kind per

@@ -1,9 +1,12 @@
 """``CalibratedCameras``: what a node needs to know of the calibrated rig, assembled
 from the latched CameraInfo and pose topics calib_node publishes (their names and frames
-are in ``vgm_common.topics``); ``subscribe_images``: the cameras' image streams."""
+are in ``vgm_common.topics``); ``ImageCaptures``: the cameras' image streams paired by
+stamp."""
 
 from __future__ import annotations
 
+import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import partial
@@ -14,10 +17,16 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.conversions import camera_info_rectification, camera_info_to_camera, pose_to_matrix
+from vgm_common.conversions import (
+    camera_info_rectification,
+    camera_info_to_camera,
+    pose_to_matrix,
+    stamp_to_ns,
+)
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.sync import ExactTimeSync
 from vgm_common.topics import (
     BASE_FRAME,
     CAMERA_INFO_TOPICS,
@@ -33,23 +42,99 @@ if TYPE_CHECKING:
     from vgm_common.diagnostics import Diagnostics
 
 
-def subscribe_images(
-    node: Node,
-    names: Iterable[str],
-    on_image: Callable[[str, Image], None],
-    callback_group: CallbackGroup | None = None,
-) -> None:
-    """Subscribes ``node`` to the image topic of each camera in ``names``, calling
-    ``on_image(name, msg)``; one ``callback_group`` for all, so that a node's image sync
-    (not thread-safe) is fed from one thread at a time."""
-    for name in names:
-        node.create_subscription(
-            Image,
-            IMAGE_TOPICS[name],
-            partial(on_image, name),
-            DEFAULT_QOS,
-            callback_group=callback_group,
-        )
+class ImageCaptures:
+    """The image topics of the cameras ``names`` paired by identical stamp (what
+    message_filters' TimeSynchronizer does on them); each complete capture goes to
+    ``on_capture(stamp_ns, {name: Image})``, on the thread of its last image.
+
+    - ``subscribed``: the cameras subscribed to (default ``names``), so that ``use`` can
+      change the paired ones at run time without new subscriptions.
+    - ``accept(name, msg)``: checks every image before it is paired (falsy: not paired).
+    - ``on_unpaired(total)``: called when images were dropped without their partners.
+    - The sync is behind a lock: images of several callback groups and ``use`` from a
+      parameter callback may come on several executor threads.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        names: Iterable[str],
+        on_capture: Callable[[int, dict[str, Image]], None],
+        max_wait: float,
+        *,
+        subscribed: Iterable[str] | None = None,
+        callback_group: CallbackGroup | None = None,
+        accept: Callable[[str, Image], bool | None] | None = None,
+        on_unpaired: Callable[[int], None] | None = None,
+    ) -> None:
+        self._on_capture = on_capture
+        self._max_wait = max_wait
+        self._accept = accept
+        self._on_unpaired = on_unpaired
+        self._lock = threading.Lock()
+        self._sync = self._new_sync(names)
+        for name in names if subscribed is None else subscribed:
+            node.create_subscription(
+                Image,
+                IMAGE_TOPICS[name],
+                partial(self._on_image, name),
+                DEFAULT_QOS,
+                callback_group=callback_group,
+            )
+
+    def _new_sync(self, names: Iterable[str]) -> ExactTimeSync:
+        self._unpaired_said = 0
+        self._last_match = (time.monotonic(), 0)  # (time [s], dropped) at the last capture
+        return ExactTimeSync(names, self._matched, queue_size=10, max_wait=self._max_wait)
+
+    def use(self, names: Iterable[str]) -> None:
+        """Pair ``names`` from now on; captures pending for the old set are dropped (they
+        lack a view, or have one too many)."""
+        with self._lock:
+            self._sync = self._new_sync(names)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The cameras paired now."""
+        return self._sync.keys
+
+    def _on_image(self, name: str, msg: Image) -> None:
+        if self._accept is not None and not self._accept(name, msg):
+            return
+        with self._lock:
+            if name not in self._sync.keys:
+                return
+            self._sync.add(name, stamp_to_ns(msg.header.stamp), msg, time.monotonic())
+            dropped = self._sync.dropped
+            newly_unpaired = dropped > self._unpaired_said
+            self._unpaired_said = dropped
+        if newly_unpaired and self._on_unpaired is not None:
+            self._on_unpaired(dropped)
+
+    def _matched(self, stamp_ns: int, messages: dict[str, Image]) -> None:
+        self._last_match = (time.monotonic(), self._sync.dropped)
+        self._on_capture(stamp_ns, messages)
+
+    def counts(self) -> dict[str, int]:
+        """Captures completed, images dropped without their partners, stamps pending."""
+        return {
+            'matched': self._sync.matched,
+            'dropped': self._sync.dropped,
+            'pending': self._sync.pending,
+        }
+
+    def unsynchronized(self) -> int:
+        """Images dropped since the last complete capture, if that was longer than twice
+        ``max_wait`` ago (the cameras' stamps do not agree), else 0."""
+        since, dropped_then = self._last_match
+        dropped = self._sync.dropped - dropped_then
+        return dropped if time.monotonic() - since > 2 * self._max_wait else 0
+
+    def silent(self, after: float) -> list[str]:
+        """The cameras without an image for ``after`` [s] while another sent one (see
+        ``ExactTimeSync.silent``)."""
+        with self._lock:
+            return self._sync.silent(time.monotonic(), after)
 
 
 @dataclass(frozen=True)
