@@ -24,13 +24,11 @@ from rclpy.qos import QoSProfile, qos_profile_services_default
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
+from curve_recon_node.fused_depth import FusedDepth
 from curve_recon_node.pipeline import NoCurve, ReconstructionSettings, reconstruct_capture
 from curve_recon_node.scheduler import MAX_WAITING_CALLS, CaptureJob, CaptureScheduler
 from curve_recon_node.waypoints import (
     DEPTH_RANGE_M,
-    check_depth_intrinsics,
-    normals_from_depth,
-    usable_depth,
     waypoint_frames,
 )
 from vgm_common.camera_topics import CalibratedCameras, ImageCaptures
@@ -168,12 +166,10 @@ class CurveReconNode(GraphNode):
         self.replies_lock = threading.Lock()
         self.left_right_ready_since = None
         self.outgoing_replies: deque[tuple[Trigger.Response, object]] = deque()  # _send_replies
-        self.depth = None  # (depth (H, W) with unusable values NaN, K (3, 3), stamp_ns)
+        self.fused_depth = FusedDepth()
         self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
         self.normals_published = False
         self.stopping = threading.Event()
-        self.depth_info = None  # CameraInfo of /depth/fused
-        self.pending_depth = None  # the newest /depth/fused before any valid camera_info
 
     def _subscribe_inputs(self):
         """Subscribes to the cameras, chart poses and fused depth; returns their group."""
@@ -290,73 +286,51 @@ class CurveReconNode(GraphNode):
         try:
             camera_info_to_camera(msg)  # the whole message must be a valid CameraInfo
             _, P = camera_info_rectification(msg)
-            K = P[:3, :3]
-            check_depth_intrinsics(K, int(msg.width), int(msg.height))
+            waiting = self.fused_depth.set_intrinsics(P[:3, :3], int(msg.width), int(msg.height))
         except (InvalidInput, ValueError) as error:
             self.diagnostics.reject(DEPTH_INFO_TOPIC, f'P: {error}')
-            self.depth_info = None  # the depth images that go with it are unusable too
             return
-        self.depth_info = (K, int(msg.width), int(msg.height))
-        # sfs_stereo_node publishes a frame's depth before its camera_info: the first
-        # depth image waited for this one.
-        pending, self.pending_depth = self.pending_depth, None
-        if pending is not None:
-            if stamp_to_ns(pending.header.stamp) == stamp_to_ns(msg.header.stamp):
-                self._on_depth(pending)
-            else:
-                self.diagnostics.reject(
-                    FUSED_DEPTH_TOPIC, f'no {DEPTH_INFO_TOPIC} of its stamp came: not used'
-                )
+        if waiting is None:
+            return
+        if waiting.stamp_ns == stamp_to_ns(msg.header.stamp):
+            self._add_depth(waiting.depth_m, waiting.stamp_ns)
+        else:
+            self.diagnostics.reject(
+                FUSED_DEPTH_TOPIC, f'no {DEPTH_INFO_TOPIC} of its stamp came: not used'
+            )
 
     @guarded(FUSED_DEPTH_TOPIC)
     def _on_depth(self, msg):
-        try:
-            if msg.encoding != '32FC1':
-                raise InvalidInput(
+        if msg.encoding != '32FC1':
+            self.diagnostics.reject(
+                FUSED_DEPTH_TOPIC,
+                InvalidInput(
                     f'expected 32FC1 depth, got {msg.encoding!r}',
                     key='encoding',
                     value=msg.encoding,
-                )
-            depth = image_to_numpy(msg).astype(float)
-            if self.depth_info is None:
-                # A frame's depth may come before its camera_info: the newest waits for
-                # it; one it supersedes never had one.
-                superseded, self.pending_depth = self.pending_depth, msg
-                if superseded is None:
-                    return
-                raise InvalidInput(
-                    f'no valid {DEPTH_INFO_TOPIC} yet: the depth image cannot be used',
-                    key='camera_info',
-                )
-            K, width, height = self.depth_info
-            if depth.shape != (height, width):
-                raise InvalidInput(
-                    f'depth is {depth.shape[1]}x{depth.shape[0]} but its '
-                    f'camera_info says {width}x{height}',
-                    key='size',
-                )
-            depth, removed = usable_depth(depth)
-            if not np.isfinite(depth).any():
-                raise InvalidInput(
-                    'no usable depth: every value is NaN, not positive or outside '
-                    f'[{DEPTH_RANGE_M[0]:g}, {DEPTH_RANGE_M[1]:g}] m ({removed})',
-                    key='depth',
-                    value=removed,
-                )
-            if any(removed.values()):
-                # the rest of the image still serves; these pixels never give a normal
-                self.diagnostics.reject(
-                    'depth values',
-                    f'{FUSED_DEPTH_TOPIC}: ignored for approach axes: '
-                    f'{removed["not_positive"]} zero or negative, {removed["too_far"]} '
-                    f'beyond {DEPTH_RANGE_M[1]:g} m, {removed["too_near"]} nearer than '
-                    f'{DEPTH_RANGE_M[0]:g} m',
-                )
+                ),
+            )
+            return
+        self._add_depth(image_to_numpy(msg), stamp_to_ns(msg.header.stamp))
+
+    def _add_depth(self, depth, stamp_ns):
+        first = self.fused_depth.latest is None
+        try:
+            removed = self.fused_depth.add(depth, stamp_ns)
         except InvalidInput as error:
             self.diagnostics.reject(FUSED_DEPTH_TOPIC, error)
             return
-        first = self.depth is None
-        self.depth = (depth, K, stamp_to_ns(msg.header.stamp))
+        if removed is None:
+            return  # waits for its camera_info
+        if any(removed.values()):
+            # the rest of the image still serves; these pixels never give a normal
+            self.diagnostics.reject(
+                'depth values',
+                f'{FUSED_DEPTH_TOPIC}: ignored for approach axes: '
+                f'{removed["not_positive"]} zero or negative, {removed["too_far"]} '
+                f'beyond {DEPTH_RANGE_M[1]:g} m, {removed["too_near"]} nearer than '
+                f'{DEPTH_RANGE_M[0]:g} m',
+            )
         if (
             first
             and self.last_result is not None
@@ -521,26 +495,16 @@ class CurveReconNode(GraphNode):
     def _approach_directions(self, waypoints):
         """Approach directions (N, 3) into the surface from the fused depth, or None (no
         depth, or none usable at the waypoints: see normals_from_depth)."""
-        if not self.params.use_depth_normals or self.depth is None:
-            return None
         left = self.cameras.get('left')
-        if left is None:
+        if not self.params.use_depth_normals or left is None:
             return None
-        depth, K, _ = self.depth
-        T_base_left = left.camera.T_base_camera
-        T_base_rect = np.eye(4)
-        T_base_rect[:3, :3] = T_base_left[:3, :3] @ left.R.T  # x_rect = R_left x_left
-        T_base_rect[:3, 3] = T_base_left[:3, 3]
         try:
-            normals = normals_from_depth(
-                waypoints, depth, K, T_base_rect, self.params.normal_window_px
+            return self.fused_depth.approach_directions(
+                waypoints, left.camera.T_base_camera, left.R, self.params.normal_window_px
             )
         except InvalidInput as error:  # checked on arrival: only a changed rig gets here
             self.diagnostics.reject(FUSED_DEPTH_TOPIC, error)
             return None
-        if not np.any(np.all(np.isfinite(normals), axis=1)):
-            return None
-        return -normals  # into the surface
 
     def _publish(self, stamp_ns, result):
         approach = self._approach_directions(result.waypoints_base)
@@ -574,7 +538,7 @@ class CurveReconNode(GraphNode):
             'skipped_chart_captures': self.scheduler.skipped_chart,
             'dropped_work': self.worker.dropped,
             'waiting_requests': self.scheduler.waiting,
-            'depth': 'yes' if self.depth is not None else 'no',
+            'depth': 'yes' if self.fused_depth.latest is not None else 'no',
         }
         needed = [
             n for n in missing if n in ('left', 'right') or (n == 'aux' and self.params.views == 3)
