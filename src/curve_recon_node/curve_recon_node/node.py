@@ -8,21 +8,18 @@ The work runs on a worker thread (``vgm_common.worker.Worker``); callbacks only 
 hand over. No exception escapes a callback or the worker (each is reported once,
 throttled, with a diagnostic, and the node keeps serving).
 ~/reconstruct never blocks an executor thread: its requests are answered later, from the
-worker or the timeout timer (``DeferredServiceExecutor``).
+worker or the timeout timer (``DeferredTriggerService``).
 """
 
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.qos import QoSProfile, qos_profile_services_default
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
-from std_srvs.srv import Trigger
 
 from curve_recon_node.fused_depth import FusedDepth
 from curve_recon_node.pipeline import NoCurve, ReconstructionSettings, reconstruct_capture
@@ -42,10 +39,11 @@ from vgm_common.conversions import (
     points_to_pointcloud2,
     stamp_to_ns,
 )
+from vgm_common.deferred_service import DeferredTriggerService
 from vgm_common.diagnostics import CountingPublisher, guarded
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.graph_node import GraphNode
-from vgm_common.node_main import DeferredCallback, DeferredServiceExecutor, run_node
+from vgm_common.node_main import DeferredServiceExecutor, run_node
 from vgm_common.parameters import ConfigParams, Param
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.topics import (
@@ -65,23 +63,6 @@ SETTINGS = ConfigParams(ReconstructionSettings)
 
 CHART_POSE_GRACE = 0.5  # [s] a capture waits this long for a target pose of its stamp
 SERVICE_POLL_PERIOD = 0.1  # [s] how often timed-out ~/reconstruct calls are answered
-# The replies to waiting calls come in bursts (a capture or the timeout answers them
-# all). Every client of a service receives every reply (rmw_fastrtps: each client's
-# reader keeps them and drops those not its own when its caller takes them), in the
-# caller's history (rclpy's default: keep-last 10); twenty replies at once reached 10 to
-# 13 of twenty callers in one process, nothing said. So replies go out paced, one each
-# REPLY_PERIOD (ten take 0.2 s: a caller that spins gets its own), and the service's own
-# history holds MAX_WAITING_CALLS requests and replies. A caller that does not spin
-# while more than its history of other replies goes out can still miss its own; only
-# its QoS can help it (a deeper response history).
-REPLIES_PER_PERIOD = 1
-REPLY_PERIOD = 0.02  # [s]
-RECONSTRUCT_SERVICE_QOS = QoSProfile(
-    history=qos_profile_services_default.history,
-    depth=MAX_WAITING_CALLS,
-    reliability=qos_profile_services_default.reliability,
-    durability=qos_profile_services_default.durability,
-)
 
 
 @dataclass
@@ -163,9 +144,7 @@ class CurveReconNode(GraphNode):
 
     def _init_state(self):
         self.scheduler = CaptureScheduler()
-        self.replies_lock = threading.Lock()
         self.left_right_ready_since = None
-        self.outgoing_replies: deque[tuple[Trigger.Response, object]] = deque()  # _send_replies
         self.fused_depth = FusedDepth()
         self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
         self.normals_published = False
@@ -209,19 +188,17 @@ class CurveReconNode(GraphNode):
         self.points_publisher = self.create_publisher(
             PointCloud2, CURVE_POINTS_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
         )
-        self.reconstruct_service = self.create_service(
-            Trigger,
+        self.reconstruct_service = DeferredTriggerService(
+            self,
             '/curve_recon_node/reconstruct',
-            DeferredCallback(self._on_reconstruct_request, self._on_reconstruct_blocking),
-            qos_profile=RECONSTRUCT_SERVICE_QOS,
-            callback_group=ReentrantCallbackGroup(),
+            self._on_reconstruct_call,
+            lambda: self.params.service_timeout + 2 * SERVICE_POLL_PERIOD + 1.0,
+            MAX_WAITING_CALLS,
+            self.diagnostics,
         )
         self.create_timer(1.0, self._publish_status, callback_group=sensors)
         self.create_timer(
             SERVICE_POLL_PERIOD, self._answer_timed_out_requests, callback_group=sensors
-        )
-        self.create_timer(
-            REPLY_PERIOD, self._send_replies, callback_group=MutuallyExclusiveCallbackGroup()
         )
         # The newest capture waits while one is reconstructed; one it replaces hands its
         # service calls on to the next.
@@ -340,55 +317,14 @@ class CurveReconNode(GraphNode):
             # (a capture that is waiting will use the depth anyway)
             self.worker.submit_if_idle(_REPUBLISH_WITH_NORMALS)
 
-    @guarded('reconstruct request')
-    def _on_reconstruct_request(self, request, header):
-        """A ~/reconstruct call (DeferredServiceExecutor): queue its reply for the next
-        capture; the worker answers it, or _answer_timed_out_requests after
-        ``service_timeout``."""
-
-        def reply(success, message):
-            with self.replies_lock:
-                self.outgoing_replies.append(
-                    (Trigger.Response(success=success, message=message), header)
-                )
-
-        self._queue_request(reply)
-
-    @guarded('reconstruct reply')
-    def _send_replies(self, limit=REPLIES_PER_PERIOD):
-        """Send up to ``limit`` queued ~/reconstruct replies (None: all)."""
-        with self.replies_lock:
-            count = len(self.outgoing_replies) if limit is None else limit
-            batch = [
-                self.outgoing_replies.popleft()
-                for _ in range(min(count, len(self.outgoing_replies)))
-            ]
-        for response, header in batch:
-            try:
-                self.reconstruct_service.send_response(response, header)
-            except Exception as error:  # noqa: BLE001 - the caller may be gone
-                self.diagnostics.reject('reconstruct reply', error)
-
-    def _queue_request(self, reply):
+    @guarded('reconstruct call')
+    def _on_reconstruct_call(self, reply):
+        """A ~/reconstruct call: it waits for the next capture; the worker answers it, or
+        _answer_timed_out_requests after ``service_timeout``."""
         refusal = self.scheduler.add_call(reply, self.params.service_timeout)
         if refusal:
             self.diagnostics.reject('reconstruct call', f'{refusal} (at most {MAX_WAITING_CALLS})')
             reply(False, f'refused: {refusal}')
-
-    def _on_reconstruct_blocking(self, request, response):
-        """~/reconstruct under an executor without deferred services: wait here."""
-        done = threading.Event()
-        result: dict[str, bool | str] = {}
-
-        def reply(success, message):
-            result.update(success=success, message=message)
-            done.set()
-
-        self._queue_request(reply)
-        done.wait(self.params.service_timeout + 2 * SERVICE_POLL_PERIOD + 1.0)
-        response.success = result.get('success', False)
-        response.message = result.get('message', 'no answer')
-        return response
 
     @guarded('reconstruct timeout')
     def _answer_timed_out_requests(self):
@@ -573,7 +509,7 @@ class CurveReconNode(GraphNode):
         self.worker.close()
         for call in self.scheduler.close():
             call.reply(False, 'curve_recon_node is shutting down')
-        self._send_replies(None)  # guarded: positional only
+        self.reconstruct_service.flush()
 
 
 def _paired_cameras(views):
