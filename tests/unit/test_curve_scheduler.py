@@ -81,3 +81,19 @@ def test_calls_time_out_refuse_beyond_the_limit_and_are_all_answered_on_close():
     calls = scheduler.close()
     assert [call.reply for call in calls] == [late] and scheduler.waiting == 0
     assert got == [] and late_got == []  # the node answers what it is handed
+
+
+def test_the_cameras_wait_for_aux_until_aux_wait_then_two_views_serve():
+    clock = Clock()
+    scheduler = CaptureScheduler(clock)
+    assert scheduler.cameras_to_use(['left', 'aux'], 3, 2.0) is None  # right missing
+    assert scheduler.cameras_to_use(['left', 'right'], 3, 2.0) is None  # aux may come
+    clock.now += 1.9
+    assert scheduler.cameras_to_use(['left', 'right'], 3, 2.0) is None
+    clock.now += 0.2
+    assert scheduler.cameras_to_use(['left', 'right'], 3, 2.0) == ('left', 'right')
+    assert scheduler.cameras_to_use(['left', 'right', 'aux'], 3, 2.0) == ('left', 'right', 'aux')
+    assert scheduler.cameras_to_use(['left', 'right', 'aux'], 2, 2.0) == ('left', 'right')
+    # a recalibration of right restarts aux's grace
+    assert scheduler.cameras_to_use(['left'], 3, 2.0) is None
+    assert scheduler.cameras_to_use(['left', 'right'], 3, 2.0) is None

@@ -12,7 +12,6 @@ worker or the timeout timer (``DeferredTriggerService``).
 """
 
 import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +22,12 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from curve_recon_node.fused_depth import FusedDepth
 from curve_recon_node.pipeline import NoCurve, ReconstructionSettings, reconstruct_capture
-from curve_recon_node.scheduler import MAX_WAITING_CALLS, CaptureJob, CaptureScheduler
+from curve_recon_node.scheduler import (
+    MAX_WAITING_CALLS,
+    CaptureJob,
+    CaptureScheduler,
+    CaptureSettings,
+)
 from curve_recon_node.waypoints import (
     DEPTH_RANGE_M,
     waypoint_frames,
@@ -44,7 +48,7 @@ from vgm_common.diagnostics import CountingPublisher, guarded
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import DeferredServiceExecutor, run_node
-from vgm_common.parameters import ConfigParams, Param
+from vgm_common.parameters import ConfigParams
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.topics import (
     BASE_FRAME,
@@ -78,46 +82,7 @@ class _Capture:
 _REPUBLISH_WITH_NORMALS = object()
 
 
-PARAMETERS = [
-    *SETTINGS.declarations(),
-    Param(
-        'views',
-        3,
-        'Views to use: 3 (left, right, aux) or 2 (left, right). With 3 but no aux '
-        'calibration after aux_wait, two views are used.',
-        range=(2, 3),
-    ),
-    Param(
-        'use_depth_normals',
-        True,
-        'Approach axis from /depth/fused surface normals when available (else base -z).',
-    ),
-    Param(
-        'normal_window_px',
-        15,
-        "Depth window for each normal's plane fit [px of the depth image].",
-        range=(3, 101),
-    ),
-    Param(
-        'sync_max_wait',
-        1.0,
-        '[s] An incomplete capture is dropped after this.',
-        range=(0.01, 60.0),
-    ),
-    Param(
-        'aux_wait',
-        2.0,
-        "[s] With views 3, how long to wait for the aux camera's calibration before "
-        'reconstructing from two views.',
-        range=(0.0, 600.0),
-    ),
-    Param(
-        'service_timeout',
-        20.0,
-        '[s] Longest a reconstruct call waits for its capture and result.',
-        range=(0.1, 600.0),
-    ),
-]
+PARAMETERS = [*SETTINGS.declarations(), *ConfigParams(CaptureSettings).declarations()]
 
 
 class CurveReconNode(GraphNode):
@@ -144,7 +109,6 @@ class CurveReconNode(GraphNode):
 
     def _init_state(self):
         self.scheduler = CaptureScheduler()
-        self.left_right_ready_since = None
         self.fused_depth = FusedDepth()
         self.last_result = None  # (stamp_ns, reconstruction) for republishing with normals
         self.normals_published = False
@@ -234,24 +198,11 @@ class CurveReconNode(GraphNode):
             return False
         return True
 
-    def _views_available(self):
-        """Camera names to use now, or None while the calibration is not ready."""
-        if not all(self.cameras.get(n) for n in ('left', 'right')):
-            self.left_right_ready_since = None
-            return None
-        if self.left_right_ready_since is None:
-            self.left_right_ready_since = time.monotonic()
-        if self.params.views == 3:
-            if self.cameras.get('aux') is not None:
-                return ('left', 'right', 'aux')
-            if time.monotonic() - self.left_right_ready_since < self.params.aux_wait:
-                return None
-        return ('left', 'right')
-
     @guarded('image')
     def _on_capture(self, stamp_ns, messages):
         """A synchronized capture: hand it to the worker if a reconstruction is wanted."""
-        names = self._views_available()
+        calibrated = [n for n in CAMERA_NAMES if self.cameras.get(n) is not None]
+        names = self.scheduler.cameras_to_use(calibrated, self.params.views, self.params.aux_wait)
         if names is None or not set(names) <= set(messages):
             return  # not calibrated, or `views` changed while this capture was completed
         job = self.scheduler.take(stamp_ns)

@@ -11,8 +11,10 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
+
+from vgm_common.settings import setting
 
 # ~/reconstruct calls waiting at once; more are refused at once (a caller that loops on
 # the service must not grow the node without bound).
@@ -21,6 +23,41 @@ AUTO_RETRY_S = 1.0  # [s] between automatic attempts until one succeeds
 CHART_STAMPS_KEPT = 200  # stamps of chart poses remembered
 
 Reply = Callable[[bool, str], None]  # answers one ~/reconstruct call: (success, message)
+
+
+@dataclass(frozen=True)
+class CaptureSettings:
+    """When and from which views curve_recon_node reconstructs: the one source of its
+    parameters of these names."""
+
+    views: int = setting(
+        3,
+        'Views to use: 3 (left, right, aux) or 2 (left, right). With 3 but no aux '
+        'calibration after aux_wait, two views are used.',
+        range=(2, 3),
+    )
+    use_depth_normals: bool = setting(
+        True, 'Approach axis from /depth/fused surface normals when available (else base -z).'
+    )
+    normal_window_px: int = setting(
+        15, "Depth window for each normal's plane fit.", unit='px', range=(3, 101)
+    )
+    sync_max_wait: float = setting(
+        1.0, 'An incomplete capture is dropped after this.', unit='s', range=(0.01, 60.0)
+    )
+    aux_wait: float = setting(
+        2.0,
+        "With views 3, how long to wait for the aux camera's calibration before "
+        'reconstructing from two views.',
+        unit='s',
+        range=(0.0, 600.0),
+    )
+    service_timeout: float = setting(
+        20.0,
+        'Longest a reconstruct call waits for its capture and result.',
+        unit='s',
+        range=(0.1, 600.0),
+    )
 
 
 @dataclass
@@ -52,6 +89,25 @@ class CaptureScheduler:
         self._chart_stamps: deque[int] = deque(maxlen=CHART_STAMPS_KEPT)  # [ns]
         self._calls: list[WaitingCall] = []
         self.skipped_chart = 0  # captures not reconstructed: the chart was on show
+        self._left_right_since: float | None = None  # clock() when both became calibrated
+
+    def cameras_to_use(
+        self, calibrated: Collection[str], views: int, aux_wait: float
+    ) -> tuple[str, ...] | None:
+        """The cameras to reconstruct from now, given those ``calibrated``, or None while
+        there are too few: left and right, and aux with ``views`` 3 (two views once aux
+        has not come ``aux_wait`` [s] after the other two)."""
+        if not {'left', 'right'} <= set(calibrated):
+            self._left_right_since = None
+            return None
+        if self._left_right_since is None:
+            self._left_right_since = self.clock()
+        if views == 3:
+            if 'aux' in calibrated:
+                return ('left', 'right', 'aux')
+            if self.clock() - self._left_right_since < aux_wait:
+                return None
+        return ('left', 'right')
 
     @property
     def waiting(self) -> int:
