@@ -1,6 +1,7 @@
 """curve_recon_node's CaptureScheduler without ROS: which captures are reconstructed and
 what happens to the ~/reconstruct calls waiting for one, on a clock the test turns."""
 
+from curve_recon_node.report import capture_status
 from curve_recon_node.scheduler import AUTO_RETRY_S, MAX_WAITING_CALLS, CaptureScheduler
 
 
@@ -97,3 +98,14 @@ def test_the_cameras_wait_for_aux_until_aux_wait_then_two_views_serve():
     # a recalibration of right restarts aux's grace
     assert scheduler.cameras_to_use(['left'], 3, 2.0) is None
     assert scheduler.cameras_to_use(['left', 'right'], 3, 2.0) is None
+
+
+def test_the_status_names_what_is_missing_then_what_is_wrong():
+    assert capture_status(['aux'], 2, 0, False) == ('ok', 'waiting for a capture')
+    assert capture_status(['aux'], 3, 5, True) == (
+        'warn',
+        'no camera info yet: waiting for the calibration of aux',
+    )
+    level, message = capture_status([], 3, 5, True)
+    assert level == 'warn' and message.startswith('images not synchronized: 5 dropped')
+    assert capture_status([], 3, 0, True) == ('ok', 'waypoints published')

@@ -22,6 +22,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from curve_recon_node.fused_depth import FusedDepth
 from curve_recon_node.pipeline import NoCurve, ReconstructionSettings, reconstruct_capture
+from curve_recon_node.report import capture_status, reconstruction_report
 from curve_recon_node.scheduler import (
     MAX_WAITING_CALLS,
     CaptureJob,
@@ -355,27 +356,14 @@ class CurveReconNode(GraphNode):
             self.diagnostics.reject('reconstruction', error)
             return False, f'reconstruction failed: {error}'
         self.last_result = (stamp_ns, result, names)
-        stats = result.stats
-        shape = 'closed loop' if result.closed else 'open curve'
-        message = (
-            f'published {len(result.waypoints_base)} waypoints ({shape}, '
-            f'{stats["length_m"]:.2f} m) from {len(names)} views in '
-            f'{stats["time_ms"]:.0f} ms'
+        level, message, values = reconstruction_report(
+            result,
+            names,
+            stamp_ns,
+            normals_source,
+            {'method': self.params.method, 'degree': self.params.degree},
         )
-        self.get_logger().info(message + f'; approach from {normals_source}')
-        values = dict(
-            stats,
-            normals=normals_source,
-            stamp_ns=stamp_ns,
-            method=self.params.method,
-            degree=self.params.degree,
-            stage_ms=', '.join(f'{stage} {ms:.1f}' for stage, ms in stats['stage_ms'].items()),
-        )
-        level = 'warn' if len(names) == 2 and stats.get('ambiguous') else 'ok'
-        if len(names) == 2:
-            message += (
-                f'; two views only: {stats.get("ambiguous", 0)} samples ambiguous and dropped'
-            )
+        self.get_logger().info(f'{message}; approach from {normals_source}')
         self.diagnostics.publish('reconstruction', level, message, values)
         return True, message
 
@@ -427,31 +415,10 @@ class CurveReconNode(GraphNode):
             'waiting_requests': self.scheduler.waiting,
             'depth': 'yes' if self.fused_depth.latest is not None else 'no',
         }
-        needed = [
-            n for n in missing if n in ('left', 'right') or (n == 'aux' and self.params.views == 3)
-        ]
-        if needed:
-            self.diagnostics.publish(
-                'status',
-                'warn',
-                f'no camera info yet: waiting for the calibration of {", ".join(needed)}',
-                values,
-            )
-        elif unsynchronized := self.captures.unsynchronized():
-            self.diagnostics.publish(
-                'status',
-                'warn',
-                f'images not synchronized: {unsynchronized} dropped since the last complete '
-                'capture (stamps must be identical)',
-                values,
-            )
-        else:
-            self.diagnostics.publish(
-                'status',
-                'ok',
-                'waypoints published' if self.last_result else 'waiting for a capture',
-                values,
-            )
+        level, message = capture_status(
+            missing, self.params.views, self.captures.unsynchronized(), bool(self.last_result)
+        )
+        self.diagnostics.publish('status', level, message, values)
 
     def close(self):
         """For run_node: stop the worker and answer every waiting ~/reconstruct call with
