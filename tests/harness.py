@@ -18,6 +18,17 @@ SCENARIO_DIR = REPO_ROOT / 'src' / 'sensor_sim' / 'scenarios'
 _domain_ids = itertools.count(10 + (os.getpid() % 40) * 5)
 
 
+class ManualClock:
+    """The monotonic clock [s] injected into a node's ROS-free object by a unit test: it
+    moves only when the test sets ``now``, so a timeout is a step of the test, not a wait."""
+
+    def __init__(self, now=0.0):
+        self.now = now
+
+    def __call__(self):
+        return self.now
+
+
 def next_ros_env():
     """Environment for node processes: a private domain, localhost-only discovery."""
     env = dict(os.environ)

@@ -6,18 +6,11 @@ import pytest
 from bag_tools.bag_writer import BagReader, BagWriter, BagWriterError
 from bag_tools.playback import PlaybackClock
 from bag_tools.recording import BagRecording, MessageQueue
-
-
-class FakeClock:
-    def __init__(self):
-        self.now = 50.0
-
-    def __call__(self):
-        return self.now
+from harness import ManualClock
 
 
 def test_the_schedule_follows_the_bag_at_its_rate_and_a_rate_change_does_not_jump():
-    clock = FakeClock()
+    clock = ManualClock(50.0)
     schedule = PlaybackClock(2.0, clock)
     with pytest.raises(RuntimeError):
         schedule.due_in(0)

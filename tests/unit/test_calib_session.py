@@ -13,20 +13,10 @@ from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
 from calib_node.calibrate import CalibrationError
 from calib_node.plots import PLOT_SIZE_PX, write_plots
 from calib_node.session import CalibrationSession, NotReady, SessionSettings
+from harness import ManualClock
 from vgm_common.errors import InvalidInput
 
 CAMERAS = ('left', 'right')
-
-
-class FakeClock:
-    """A monotonic clock that only moves when told: a wait for a target pose that never
-    comes ends at once, since its deadline has already passed."""
-
-    def __init__(self):
-        self.now = 100.0
-
-    def __call__(self):
-        return self.now
 
 
 @pytest.fixture(scope='module')
@@ -49,7 +39,7 @@ def _settings(rig, **changes):
 
 def _session(rig, clock=None, **changes):
     settings = _settings(rig, **changes)
-    return CalibrationSession(lambda: settings, clock or FakeClock())
+    return CalibrationSession(lambda: settings, clock or ManualClock(100.0))
 
 
 def _feed(session, rig, images, posed=True):
@@ -118,7 +108,7 @@ def test_refusals_name_their_reason(rig_and_images):
 
 def test_a_stage_set_without_its_target_pose_is_not_a_view(rig_and_images):
     rig, images = rig_and_images
-    clock = FakeClock()
+    clock = ManualClock(100.0)
     session = _session(rig, clock)
     # completed long ago: the wait for the pose is over before it starts.
     assert session.chart_pose_of(7, completed=clock.now - 5.0) is False

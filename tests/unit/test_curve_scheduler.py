@@ -3,14 +3,7 @@ what happens to the ~/reconstruct calls waiting for one, on a clock the test tur
 
 from curve_recon_node.report import capture_status
 from curve_recon_node.scheduler import AUTO_RETRY_S, MAX_WAITING_CALLS, CaptureScheduler
-
-
-class Clock:
-    def __init__(self):
-        self.now = 50.0
-
-    def __call__(self):
-        return self.now
+from harness import ManualClock
 
 
 def answers():
@@ -20,7 +13,7 @@ def answers():
 
 
 def test_nothing_is_reconstructed_until_the_calibration_or_a_call_asks():
-    scheduler = CaptureScheduler(Clock())
+    scheduler = CaptureScheduler(ManualClock(50.0))
     assert scheduler.take(1) is None
     scheduler.calibration_changed()
     job = scheduler.take(2)
@@ -28,7 +21,7 @@ def test_nothing_is_reconstructed_until_the_calibration_or_a_call_asks():
 
 
 def test_automatic_attempts_are_retried_once_a_second_until_one_succeeds():
-    clock = Clock()
+    clock = ManualClock(50.0)
     scheduler = CaptureScheduler(clock)
     scheduler.calibration_changed()
     assert scheduler.take(1) is not None
@@ -44,7 +37,7 @@ def test_automatic_attempts_are_retried_once_a_second_until_one_succeeds():
 
 
 def test_a_capture_of_the_chart_is_skipped_and_its_calls_wait_for_the_next():
-    clock = Clock()
+    clock = ManualClock(50.0)
     scheduler = CaptureScheduler(clock)
     got, reply = answers()
     assert scheduler.add_call(reply, timeout=5.0) is None
@@ -63,7 +56,7 @@ def test_a_capture_of_the_chart_is_skipped_and_its_calls_wait_for_the_next():
 
 
 def test_calls_time_out_refuse_beyond_the_limit_and_are_all_answered_on_close():
-    clock = Clock()
+    clock = ManualClock(50.0)
     scheduler = CaptureScheduler(clock)
     got, reply = answers()
     for _ in range(MAX_WAITING_CALLS):
@@ -85,7 +78,7 @@ def test_calls_time_out_refuse_beyond_the_limit_and_are_all_answered_on_close():
 
 
 def test_the_cameras_wait_for_aux_until_aux_wait_then_two_views_serve():
-    clock = Clock()
+    clock = ManualClock(50.0)
     scheduler = CaptureScheduler(clock)
     assert scheduler.cameras_to_use(['left', 'aux'], 3, 2.0) is None  # right missing
     assert scheduler.cameras_to_use(['left', 'right'], 3, 2.0) is None  # aux may come

@@ -4,19 +4,12 @@ warnings and INFO lines on a clock the test moves, and the status's level and me
 import numpy as np
 import pytest
 
+from harness import ManualClock
 from sfs_stereo_node.pipeline import DepthResult
 from sfs_stereo_node.session import WARN_EVERY_S, DepthSession
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import CalibratedCamera
 from vgm_common.errors import InvalidInput
-
-
-class FakeClock:
-    def __init__(self):
-        self.now = 0.0
-
-    def __call__(self):
-        return self.now
 
 
 def result(warnings=()):
@@ -39,7 +32,7 @@ def result(warnings=()):
 
 
 def test_max_rate_takes_the_first_pair_of_each_slot_of_stamps():
-    session = DepthSession(FakeClock())
+    session = DepthSession(ManualClock())
     stamps = [0, 100_000_000, 600_000_000, 1_000_000_000, 1_900_000_000, 2_100_000_000]
     taken = [s for s in stamps if session.take(s, max_rate=1.0)]  # one per second of stamps
     assert taken == [0, 1_000_000_000, 2_100_000_000] and session.throttled == 3
@@ -47,7 +40,7 @@ def test_max_rate_takes_the_first_pair_of_each_slot_of_stamps():
 
 
 def test_warnings_and_info_lines_are_throttled():
-    clock = FakeClock()
+    clock = ManualClock()
     session = DepthSession(clock)
     assert session.record(result(['no match: texture-less']), log_every=5.0) == (
         ['no match: texture-less'],
