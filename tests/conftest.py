@@ -2,7 +2,6 @@
 rclpy node in the test process on the same domain."""
 
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -58,34 +57,26 @@ def spawn(ros_env, tmp_path):
 
 
 @pytest.fixture
-def rclpy_node(ros_env, monkeypatch):
-    """An rclpy node in this test process, on the same private domain as ``spawn``."""
+def graph_probe(ros_env, monkeypatch):
+    """A GraphProbe in this test process, on the same private domain as ``spawn``. It does
+    not subscribe /diagnostics until ``watch_diagnostics()``: the nodes hold their first
+    statuses until a subscriber matched, and some tests check that."""
     for key in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE'):
         monkeypatch.setenv(key, ros_env[key])
-    import rclpy
+    from vgm_evaluation.graph_probe import GraphProbe
 
-    context = rclpy.Context()
-    rclpy.init(context=context)
-    node = rclpy.create_node('test_probe', context=context)
-    from rclpy.executors import SingleThreadedExecutor
-
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
-    node.spin_until = lambda cond, timeout, what='condition': _spin_until(
-        executor, cond, timeout, what
-    )
+    probe = GraphProbe('test_probe', watch_diagnostics=False)
     try:
-        yield node
+        yield probe
     finally:
-        executor.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=context)
+        probe.close()
 
 
-def _spin_until(executor, condition, timeout, what):
-    deadline = time.monotonic() + timeout
-    while not condition():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f'timed out after {timeout:.0f} s waiting for {what}')
-        executor.spin_once(timeout_sec=0.05)
-    return True
+@pytest.fixture
+def rclpy_node(graph_probe):
+    """The graph probe's rclpy node, with ``spin_until(condition, timeout, what)`` and the
+    probe itself as ``graph``."""
+    node = graph_probe.node
+    node.spin_until = graph_probe.wait
+    node.graph = graph_probe
+    return node

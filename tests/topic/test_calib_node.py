@@ -10,10 +10,9 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
-from std_srvs.srv import Trigger
 
 from harness import executable
 from vgm_common.camera_model import PinholeCamera
@@ -43,20 +42,15 @@ class Probe:
 
     def __init__(self, node):
         self.node = node
-        self.infos, self.poses, self.diagnostics = {}, {}, []
+        self.graph = node.graph
+        self.graph.watch_diagnostics()
+        self.diagnostics = self.graph.statuses
+        self.infos, self.poses = {}, {}
         self.subscriptions = []
         self.subscribe_calibration()
-        self.subscriptions.append(
-            node.create_subscription(
-                DiagnosticArray,
-                '/diagnostics',
-                lambda m: self.diagnostics.extend(m.status),
-                DEFAULT_QOS,
-            )
-        )
 
     def subscribe_calibration(self):
-        for subscription in self.subscriptions[:6]:
+        for subscription in self.subscriptions:
             self.node.destroy_subscription(subscription)
         self.infos, self.poses = {}, {}
         subscriptions = []
@@ -77,21 +71,14 @@ class Probe:
                     LATCHED_QOS,
                 )
             )
-        self.subscriptions[:6] = subscriptions
+        self.subscriptions = subscriptions
 
     def calibrated(self):
         return len(self.infos) == 3 and len(self.poses) == 3
 
     def wait(self, condition, timeout, what):
-        """spin_until, and on timeout say what calib_node's status reported last."""
-        try:
-            self.node.spin_until(condition, timeout, what)
-        except TimeoutError as error:
-            last = [
-                f'{s.name}: {s.message} {[(kv.key, kv.value) for kv in s.values]}'
-                for s in self.diagnostics[-5:]
-            ]
-            raise AssertionError(f'{error}; last diagnostics: {last}') from None
+        """spin_until; a timeout says what the nodes' statuses reported last."""
+        self.graph.wait(condition, timeout, what)
 
     def statuses(self, name_part, message_part=''):
         return [s for s in self.diagnostics if name_part in s.name and message_part in s.message]
@@ -127,11 +114,7 @@ class Probe:
 
 
 def call(node, name, timeout=30.0):
-    client = node.create_client(Trigger, name)
-    node.spin_until(lambda: client.service_is_ready(), timeout, f'service {name}')
-    future = client.call_async(Trigger.Request())
-    node.spin_until(future.done, timeout, f'answer of {name}')
-    return future.result()
+    return node.graph.call(name, timeout)
 
 
 def true_cameras(ground_truth_dir):

@@ -8,7 +8,6 @@ import time
 import cv2
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.msg import Parameter as ParameterMsg
@@ -17,6 +16,7 @@ from rcl_interfaces.srv import GetParameters, SetParameters
 from scipy.spatial import cKDTree
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
+from vgm_evaluation.graph_probe import status_values
 
 from harness import SCENARIO_DIR, executable, publish_rig, wait_for
 from sensor_sim.scenario import load_scenario
@@ -29,7 +29,7 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
-from vgm_common.topics import IMAGE_TOPICS, OPTICAL_FRAMES
+from vgm_common.topics import CURVE_POINTS_TOPIC, IMAGE_TOPICS, OPTICAL_FRAMES, WAYPOINTS_TOPIC
 
 SPACING = 0.005  # [m] the default
 
@@ -48,27 +48,14 @@ class Probe:
     """What the test node receives from curve_recon_node."""
 
     def __init__(self, node):
-        self.paths, self.clouds, self.statuses = [], [], []
-        node.create_subscription(Path, '/curve/waypoints', self.paths.append, LATCHED_QOS)
-        node.create_subscription(PointCloud2, '/curve/points', self.clouds.append, DEFAULT_QOS)
-        node.create_subscription(
-            DiagnosticArray,
-            '/diagnostics',
-            lambda m: self.statuses.extend(
-                s for s in m.status if s.name.startswith('curve_recon_node')
-            ),
-            DEFAULT_QOS,
-        )
+        self.graph = node.graph
+        self.graph.watch_diagnostics()
+        self.statuses = self.graph.statuses
+        self.paths = self.graph.record(WAYPOINTS_TOPIC, Path, LATCHED_QOS)
+        self.clouds = self.graph.record(CURVE_POINTS_TOPIC, PointCloud2)
 
     def diagnostic(self, name, containing=''):
-        for status in reversed(self.statuses):
-            if status.name == f'curve_recon_node: {name}' and containing in status.message:
-                return status
-        return None
-
-
-def values(status):
-    return {kv.key: kv.value for kv in status.values}
+        return self.graph.status(f'curve_recon_node: {name}', containing)
 
 
 def run_scenario(
@@ -174,7 +161,7 @@ def test_reconstructs_the_scenario_curve(
         10,
         'the reconstruction diagnostic and the points',
     )
-    status = values(probe.diagnostic('reconstruction'))
+    status = status_values(probe.diagnostic('reconstruction'))
     assert status['method'] == method and status['views'] == str(views)
     if views == 2:
         assert int(status['ambiguous']) > 0
@@ -355,7 +342,7 @@ def test_bad_input_gives_diagnostics_and_no_waypoints(bad_input_setup, rclpy_nod
     # waypoints either.
     def uncalibrated_capture_seen():
         status = probe.diagnostic('status', 'no camera info yet')
-        return status is not None and int(values(status)['matched']) >= 2
+        return status is not None and int(status_values(status)['matched']) >= 2
 
     spin_publishing(one_view, uncalibrated_capture_seen, 20, "'no camera info yet'")
     assert not probe.paths
@@ -368,7 +355,7 @@ def test_bad_input_gives_diagnostics_and_no_waypoints(bad_input_setup, rclpy_nod
         "'not synchronized'",
         stamps=[0, 1000, 2000],
     )
-    assert int(values(probe.diagnostic('status', 'not synchronized'))['dropped']) > 0
+    assert int(status_values(probe.diagnostic('status', 'not synchronized'))['dropped']) > 0
     assert not probe.paths
     # 3. the curve in one view only: 'no curve', also as the service's answer
     spin_publishing(
@@ -487,7 +474,7 @@ def check_waiting_calls_leave_the_executor_free(session):
     waiting = [session.client.call_async(Trigger.Request()) for _ in range(4)]
     session.rclpy_node.spin_until(
         lambda: (s := probe.diagnostic('status')) is not None
-        and values(s).get('waiting_requests') == '4',
+        and status_values(s).get('waiting_requests') == '4',
         20,
         'the four calls waiting',
     )
@@ -529,7 +516,7 @@ def check_huge_depth_projection_is_rejected(session, left, info_pub, depth_pub):
         depth_pub.publish(numpy_to_image(plane, '32FC1', 1, OPTICAL_FRAMES['left']))
         session.pause(0.3)
     session.reconstruct('after the huge P')
-    assert values(probe.diagnostic('reconstruction'))['normals'].startswith('base -z')
+    assert status_values(probe.diagnostic('reconstruction'))['normals'].startswith('base -z')
 
 
 def check_bad_fused_depth_is_rejected(session, left, info_pub, depth_pub):
@@ -551,7 +538,7 @@ def check_bad_fused_depth_is_rejected(session, left, info_pub, depth_pub):
             depth_pub.publish(numpy_to_image(bad, '32FC1', 1, OPTICAL_FRAMES['left']))
             session.pause(0.3)
         session.reconstruct(f'after depth {bad_value}')
-        assert values(probe.diagnostic('reconstruction'))['normals'].startswith('base -z')
+        assert status_values(probe.diagnostic('reconstruction'))['normals'].startswith('base -z')
 
 
 def check_spacing_longer_than_the_loop(session):
@@ -583,10 +570,10 @@ def check_views_changed_at_run_time(session, ellipse):
     answer = session.reconstruct('views 2', must_succeed=False)
     assert answer.success or 'ambiguous' in answer.message, answer.message
     if answer.success:
-        assert values(probe.diagnostic('reconstruction'))['views'] == '2'
+        assert status_values(probe.diagnostic('reconstruction'))['views'] == '2'
     session.set_parameter('views', 3, ParameterType.PARAMETER_INTEGER)
     session.reconstruct('views 3 again')
-    assert values(probe.diagnostic('reconstruction'))['views'] == '3'
+    assert status_values(probe.diagnostic('reconstruction'))['views'] == '3'
     points = path_to_matrices(probe.paths[-1])[:, :3, 3]
     assert np.sqrt(np.mean(cKDTree(ellipse).query(points)[0] ** 2)) < 1e-3
 
@@ -712,7 +699,7 @@ def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
     reference, _ = triangulate_views(views)
     reference_rms = np.sqrt(np.mean(cKDTree(truth).query(reference)[0] ** 2))
     rclpy_node.spin_until(lambda: probe.diagnostic('reconstruction'), 10, 'the diagnostic')
-    status = values(probe.diagnostic('reconstruction'))
+    status = status_values(probe.diagnostic('reconstruction'))
     print(
         f'{family} seed {seed}: ours RMS {rms * 1e3:.3f} mm, max {worst * 1e3:.3f} mm, '
         f'coverage {coverage:.3f}, closed {status["closed"]}; triangulation RMS '

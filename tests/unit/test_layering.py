@@ -21,6 +21,7 @@ ROS_EDGES = {
     'qos.py',
     'topic_discovery.py',
     'camera_topics.py',
+    'graph_probe.py',
     'deferred_service.py',
 }
 
