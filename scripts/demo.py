@@ -30,19 +30,17 @@ import yaml
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
-import rclpy  # noqa: E402
 from ament_index_python.packages import get_package_share_directory  # noqa: E402
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap_ros2.decoder import DecoderFactory  # noqa: E402
 from nav_msgs.msg import Path as PathMsg  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from sensor_msgs.msg import Image  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import demo_evaluation as evaluation  # noqa: E402
+from vgm_evaluation.graph_probe import GraphProbe, status_values  # noqa: E402
 
 from sensor_sim.curves import curve_points_base  # noqa: E402
 from sensor_sim.scenario import load_scenario, resolve_scenario_path  # noqa: E402
@@ -51,7 +49,6 @@ from vgm_common.camera_topics import CalibratedCameras  # noqa: E402
 from vgm_common.conversions import image_to_numpy, pose_to_matrix  # noqa: E402
 from vgm_common.diagnostics import parse_published_counts
 from vgm_common.launcher import Launch  # noqa: E402
-from vgm_common.node_main import use_fastdds_profile
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS  # noqa: E402
 from vgm_common.topics import (  # noqa: E402
     CAMERA_INFO_TOPICS,
@@ -121,59 +118,43 @@ def stage(number, total, text):
     print(f'\n== [{number}/{total}] {text}', flush=True)
 
 
-class GraphProbe:
+class DemoProbe:
     """The demo's view of the running graph: calibration, waypoints, depth and the
     arm's progress (from /diagnostics); starts tracking once the curve is known."""
 
     def __init__(self):
-        self.context = rclpy.Context()
-        use_fastdds_profile()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node('demo_probe', context=self.context)
+        # /diagnostics not from the start: nodes hold their first diagnostics until a
+        # subscriber matched, and that must be the recorder (watch_diagnostics, later).
+        self.graph = GraphProbe('demo_probe', watch_diagnostics=False)
+        self.node = self.graph.node
         self.cameras = CalibratedCameras(self.node)
         self.received = Counter()
         self.waypoints = None
-        self.status = {}  # diagnostic name -> (message, {key: value})
         for topic, (kind, qos) in WATCHED_TOPICS.items():
             self.node.create_subscription(kind, topic, lambda m, t=topic: self._count(t, m), qos)
-        self.diagnostics_subscription = None
+        self.watch_diagnostics = self.graph.watch_diagnostics
+        self.spin = self.graph.spin_once
+        self.close = self.graph.close
         self.start_client = self.node.create_client(Trigger, '/pa10_ik_node/start_tracking')
         self.start_future = None
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
 
     def _count(self, topic, msg):
         self.received[topic] += 1
         if topic == WAYPOINTS_TOPIC:
             self.waypoints = msg
 
-    def watch_diagnostics(self):
-        """Subscribe /diagnostics, from now on. Not from the start: nodes hold their first
-        diagnostics until a subscriber matched, and that must be the recorder."""
-        if self.diagnostics_subscription is None:
-            self.diagnostics_subscription = self.node.create_subscription(
-                DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, DEFAULT_QOS
-            )
-
-    def _on_diagnostics(self, msg):
-        for status in msg.status:
-            self.status[status.name] = (status.message, {kv.key: kv.value for kv in status.values})
+    def message(self, name, default=''):
+        status = self.graph.status(name)
+        return default if status is None else status.message
 
     def values(self, name):
-        return self.status.get(name, ('', {}))[1]
-
-    def spin(self):
-        self.executor.spin_once(timeout_sec=0.05)
+        status = self.graph.status(name)
+        return {} if status is None else status_values(status)
 
     def start_tracking(self):
         if self.start_future is None and self.start_client.service_is_ready():
             self.start_future = self.start_client.call_async(Trigger.Request())
         return self.start_future is not None and self.start_future.done()
-
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
 
 
 class ClosedLoop:
@@ -229,9 +210,7 @@ class ClosedLoop:
                 ''
                 if depth_frames
                 else ' ({})'.format(
-                    self.probe.status.get(
-                        'sfs_stereo_node: rejected stereo pair', ('no reason given',)
-                    )[0]
+                    self.probe.message('sfs_stereo_node: rejected stereo pair', 'no reason given')
                 )
             )
             print(
@@ -267,7 +246,7 @@ class ClosedLoop:
             self.done_at = self.done_at or now
             return now - self.done_at > LIFT_OFF_TIME
         if phase in ('stopped', 'failed'):
-            self.failure = f'the arm {phase}: {self.probe.status["pa10_ik_node: tracking"][0]}'
+            self.failure = f'the arm {phase}: {self.probe.message("pa10_ik_node: tracking")}'
             return True
         return None
 
@@ -785,7 +764,7 @@ def run_graph(args, params_file, log_path, nodes, track, views):
         out=log_file,
         command_prefixes={node: shlex.split(args.remote_prefix) for node in args.remote_nodes},
     )
-    probe = GraphProbe()
+    probe = DemoProbe()
     loop = ClosedLoop(launch, probe, STAGES, track)
     stage(2, STAGES, f'calibrating the rig from {views} chart views')
     started = time.monotonic()

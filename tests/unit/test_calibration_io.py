@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import yaml
 
+from calib_node.rig_files import read_rig
 from vgm_common.calibration_io import (
     read_calibration,
     read_camera_yaml,
@@ -106,3 +107,18 @@ def test_stereo_rectification_puts_the_baseline_in_the_right_projection():
         x = Rr @ camera.to_camera(point[None])[0]
         rows.append((P @ np.append(x, 1.0))[1] / x[2])
     assert rows[0] == pytest.approx(rows[1], abs=1e-9)
+
+
+def test_calib_node_reads_a_saved_rig_with_left_right_rectified_again(tmp_path):
+    rig = _rig()
+    stored = {'aux': (np.eye(3), np.hstack([rig['aux'].K, np.zeros((3, 1))]))}
+    path = write_calibration(tmp_path, rig, OPTICAL_FRAMES, stored)
+    cameras, rectification = read_rig(path, ('left', 'right', 'aux'))
+    assert np.allclose(cameras['right'].T_base_camera, rig['right'].T_base_camera)
+    expected = stereo_rectification(rig['left'], rig['right'])
+    for name in ('left', 'right'):
+        assert np.allclose(rectification[name][1], expected[name][1])
+    assert np.allclose(rectification['aux'][1], stored['aux'][1])
+    write_calibration(tmp_path / 'two', {n: rig[n] for n in ('left', 'right')}, OPTICAL_FRAMES)
+    with pytest.raises(InvalidInput, match='lacks aux'):
+        read_rig(tmp_path / 'two', ('left', 'right', 'aux'))

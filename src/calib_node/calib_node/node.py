@@ -19,7 +19,7 @@ from sensor_msgs.msg import CameraInfo
 from std_srvs.srv import Trigger
 
 from calib_node.calibrate import CalibrationError, GAOptions
-from calib_node.plots import write_plots
+from calib_node.rig_files import FileSettings, read_rig, write_rig
 from calib_node.session import (
     TARGET_WAIT_S,
     Calibration,
@@ -27,7 +27,6 @@ from calib_node.session import (
     NotReady,
     SessionSettings,
 )
-from vgm_common.calibration_io import read_calibration, stereo_rectification, write_calibration
 from vgm_common.camera_topics import ImageCaptures
 from vgm_common.conversions import (
     camera_to_camera_info,
@@ -40,7 +39,7 @@ from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
-from vgm_common.parameters import ConfigParams, Param
+from vgm_common.parameters import ConfigParams
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.topics import (
     BASE_FRAME,
@@ -72,36 +71,7 @@ def _target_matrix(msg):
 PARAMETERS = [
     *SESSION.declarations(),
     *GA.declarations(),
-    Param(
-        'chart.pattern',
-        'chessboard',
-        'Chart pattern (the only one so far).',
-        choices=('chessboard',),
-        read_only=True,
-    ),
-    Param(
-        'calibration_file',
-        '',
-        'A calibration.yaml (or its directory) to publish at start instead of calibrating; '
-        "the left/right rectification is recomputed from the cameras, aux's R, P are as "
-        'stored; a bad file is a one-line start-up error (exit status 2). Empty: calibrate '
-        'from the chart.',
-        read_only=True,
-    ),
-    Param(
-        'output_dir',
-        '',
-        'Where calibration.yaml (the whole rig with poses and quality) and left.yaml, '
-        'right.yaml, aux.yaml (camera_calibration_parsers format) are written; empty: not '
-        'written.',
-    ),
-    Param(
-        'sync_max_wait',
-        5.0,
-        'Incomplete capture sets are dropped after this [s].',
-        range=(0.01, 60.0),
-        read_only=True,
-    ),
+    *ConfigParams(FileSettings).declarations(),
 ]
 
 
@@ -270,32 +240,22 @@ class CalibNode(GraphNode):
         """Write the calibration to output_dir; a failure is logged and reported."""
         output_dir = self.params.output_dir
         try:
-            written = write_calibration(
-                output_dir,
-                calibration.cameras,
-                OPTICAL_FRAMES,
-                calibration.rectification,
-                calibration.quality(),
-            )
+            written = write_rig(output_dir, calibration)
         except (OSError, VgmError) as error:
             self.get_logger().error(f'cannot write {output_dir}: {error}')
             self.diagnostics.publish('calibration', 'error', f'cannot write {output_dir}: {error}')
             return
-        written = written.resolve()  # where the files are is the first thing a user looks for
-        try:
-            plots = write_plots(
-                output_dir,
-                {n: (c.width, c.height) for n, c in calibration.cameras.items()},
-                calibration.residuals,
-                calibration.uncertainty,
-            )
-            pictures = f' and {len(plots)} PNGs (residuals, coverage, uncertainty)'
-        except (OSError, ImportError, ValueError) as error:  # the YAML is what matters
-            self.get_logger().warning(f'no plots in {output_dir}: {error}')
-            pictures = ''
+        if written.plots_missing:
+            self.get_logger().warning(f'no plots in {output_dir}: {written.plots_missing}')
+        pictures = (
+            f' and {len(written.plots)} PNGs (residuals, coverage, uncertainty)'
+            if written.plots
+            else ''
+        )
+        yaml_path = written.calibration_yaml
         self.get_logger().info(
-            f'wrote {written} and {", ".join(f"{n}.yaml" for n in calibration.cameras)}'
-            f'{pictures} beside it (calibration_file:={written} publishes it again)'
+            f'wrote {yaml_path} and {", ".join(f"{n}.yaml" for n in calibration.cameras)}'
+            f'{pictures} beside it (calibration_file:={yaml_path} publishes it again)'
         )
 
     def _publish(self, cameras, rectification):
@@ -311,19 +271,7 @@ class CalibNode(GraphNode):
         return stamp_ns
 
     def _publish_file(self, path):
-        rig = read_calibration(path)  # InvalidInput -> one-line start-up error
-        missing = [name for name in self.names if name not in rig]
-        if missing:
-            raise InvalidInput(
-                f'calibration_file {path} lacks {", ".join(missing)}', key='calibration_file'
-            )
-        cameras = {name: rig[name][0] for name in self.names}
-        # As the harness and every consumer expect: left/right re-rectified from the
-        # cameras, aux as stored.
-        rectification = {
-            **{n: rig[n][1:] for n in self.names if n not in ('left', 'right')},
-            **stereo_rectification(cameras['left'], cameras['right']),
-        }
+        cameras, rectification = read_rig(path, self.names)  # InvalidInput: start-up error
         self._publish(cameras, rectification)
         message = f'published the calibration of {path}'
         self.get_logger().info(message)
