@@ -384,20 +384,33 @@ def guided_filter(guide, source, radius, eps):
 
 def fit_study():
     """What the payload could carry at best: the least-squares bilinear node fit of the
-    undistorted disparity (no quantisation, no channel) per node spacing, and the coarse
-    code guided by the left image's edges (guided filter). Pearson correlation / RMS."""
+    undistorted disparity (no quantisation, no channel) per node spacing, the size of its
+    compact code (the step ``blind`` would take) against the room of the two words, and
+    the coarse code guided by the left image's edges (guided filter). Pearson
+    correlation / RMS."""
     scenes = {'Aloe (640x555)': aloe(640), 'generated seed 1': generated_scene((480, 640), 1)}
     for scene, (left, _, disparity) in scenes.items():
-        known = np.isfinite(disparity)
-        filled = blind._filled(disparity, known)
-        for cell in (52, 48, 32, 24, 16, 12):
+        filled = blind._filled(disparity)
+        room = [
+            blind._body_bits_of(n)
+            for n in (
+                blind.payload_bits(disparity.shape),
+                blind.fine_payload_bits(disparity.shape),
+            )
+        ]
+        print(f'{scene}: room for the body: coarse {room[0]} bits, fine {room[1]} bits')
+        for cell in (48, 32, 24, 20, 16, 14, 12, 10):
             rows, cols = (blind._hat_basis(n, cell) for n in disparity.shape)
             nodes = np.linalg.pinv(rows) @ filled @ np.linalg.pinv(cols).T
             fit = rows @ nodes @ cols.T
             rms = disparity_error(fit, disparity)[0]
+            values, known, fit_rms = blind._node_fit(disparity, filled, cell)
+            step = max(blind.QUANTISATION_PER_FIT_RMS * fit_rms, blind.RANGE_UNIT_PX)
+            code = blind._node_code(blind.NODE_SPACINGS_PX.index(cell), values, known, step)
             print(
                 f'{scene}: {cell}-px nodes ({nodes.size}) least squares: correlation '
-                f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px'
+                f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px; compact code '
+                f'{code.size} bits ({code.size / nodes.size:.2f} a node, step {step:.2f} px)'
             )
         cells = blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
         print(f'{scene}: coarse code (52-px nodes): {pixel_correlation(cells, disparity):.3f}')
