@@ -386,8 +386,8 @@ def fit_study():
     """What the payload could carry at best: the least-squares bilinear node fit of the
     undistorted disparity (no quantisation, no channel) per node spacing, the size of its
     compact code (the step ``blind`` would take) against the room of the two words, and
-    the coarse code guided by the left image's edges (guided filter). Pearson
-    correlation / RMS."""
+    the decoded coarse and fine surfaces guided by the received (JPEG 50) image's edges
+    (guided filter). Pearson correlation / RMS."""
     scenes = {'Aloe (640x555)': aloe(640), 'generated seed 1': generated_scene((480, 640), 1)}
     for scene, (left, _, disparity) in scenes.items():
         filled = blind._filled(disparity)
@@ -412,17 +412,27 @@ def fit_study():
                 f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px; compact code '
                 f'{code.size} bits ({code.size / nodes.size:.2f} a node, step {step:.2f} px)'
             )
-        cells = blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
-        print(f'{scene}: coarse code (52-px nodes): {pixel_correlation(cells, disparity):.3f}')
-        for radius in (24, 48):
-            for eps in (1e-3, 1e-2):
-                guided = guided_filter(
-                    left, np.nan_to_num(cells, nan=np.nanmean(cells)), radius, eps
-                )
-                print(
-                    f'{scene}: coarse code, guided filter r {radius} eps {eps}: '
-                    f'{pixel_correlation(guided, disparity):.3f}'
-                )
+        received = jpeg(blind.encode(left, disparity, KEY), 50)[0]
+        surfaces = {
+            'coarse code': blind.disparity_from_code(
+                blind.disparity_code(disparity), disparity.shape
+            ),
+            'fine code after JPEG 50': blind.decode(received, KEY).disparity_px,
+        }
+        for name, surface in surfaces.items():
+            rms = disparity_error(surface, disparity)[0]
+            print(f'{scene}: {name}: {pixel_correlation(surface, disparity):.3f}, {rms:.2f} px')
+            for radius in (2, 4, 8, 24):
+                for eps in (1e-3, 1e-2):
+                    guided = guided_filter(
+                        received, np.nan_to_num(surface, nan=np.nanmean(surface)), radius, eps
+                    )
+                    guided[np.isnan(surface)] = np.nan
+                    rms = disparity_error(guided, disparity)[0]
+                    print(
+                        f'{scene}: {name}, guided by the received image, radius {radius} '
+                        f'eps {eps}: {pixel_correlation(guided, disparity):.3f}, {rms:.2f} px'
+                    )
 
 
 def main():
