@@ -226,6 +226,9 @@ def test_exp_golomb_stream_round_trips_and_refuses_a_truncated_one():
     assert runs.tolist() == [3, 5] and decoded.tolist() == numbers.tolist()
     assert blind._exp_golomb_decoded(stream[:-1], 8) is None
     assert blind._exp_golomb_decoded(blind._exp_golomb([9]), 8) is None  # runs overshoot
+    # One run of 1 node, then a level of 71 bits (beyond int64): refused, no overflow.
+    huge = np.concatenate([blind._exp_golomb([1]), np.zeros(70, np.uint8), np.ones(71, np.uint8)])
+    assert blind._exp_golomb_decoded(huge, 1) is None
 
 
 def test_med_prediction_residuals_reconstruct_the_levels():

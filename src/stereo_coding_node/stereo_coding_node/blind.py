@@ -609,11 +609,15 @@ def _exp_golomb(numbers: npt.ArrayLike) -> Bits:
     return out
 
 
+MAX_EXP_GOLOMB_ZEROS = 40  # levels and runs are far below 2^40
+
+
 def _exp_golomb_decoded(
     bits: Bits, n_nodes: int
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None:
     """Read the run lengths of an ``n_nodes`` mask, then ``n_nodes`` numbers, from an
-    Exp-Golomb stream; None if the stream ends early or the runs overshoot."""
+    Exp-Golomb stream; None if the stream ends early, holds a number of more than
+    ``MAX_EXP_GOLOMB_ZEROS`` + 1 bits, or the runs overshoot."""
     text = (np.asarray(bits, np.uint8) + ord('0')).tobytes().decode()
     position = 0
 
@@ -621,8 +625,8 @@ def _exp_golomb_decoded(
         nonlocal position
         one = text.find('1', position)
         end = 2 * one - position + 1
-        if one < 0 or end > len(text):
-            return None
+        if one < 0 or end > len(text) or one - position > MAX_EXP_GOLOMB_ZEROS:
+            return None  # a number beyond int64 cannot come from _exp_golomb
         value = int(text[one:end], 2) - 1
         position = end
         return value
