@@ -677,8 +677,10 @@ def _hat_pseudo_inverse(n: int, cell_px: int) -> tuple[np.ndarray, np.ndarray]:
 def _filled(d: FloatArray, cell_px: int = FILL_WINDOW_PX) -> FloatArray:
     """``d`` (NaN unknown) with unknown pixels replaced by the mean of the known ones
     around them (normalised box filters of growing size from ``cell_px``), or by the
-    overall mean where none is."""
+    overall mean where none is; 0 everywhere if no pixel is known."""
     known = np.isfinite(d)
+    if not known.any():  # nothing to spread (the box filters would take ~0.3 s at 1080p)
+        return np.zeros(d.shape)
     out = np.where(known, d, 0.0).astype(np.float32)
     weight = known.astype(np.float32)
     filled = out.copy()
@@ -691,7 +693,7 @@ def _filled(d: FloatArray, cell_px: int = FILL_WINDOW_PX) -> FloatArray:
         filled[reach] = sums[reach] / counts[reach]
         missing &= ~reach
         size *= 2
-    filled[missing] = float(np.mean(d[known])) if known.any() else 0.0
+    filled[missing] = float(np.mean(d[known]))
     return filled.astype(float)
 
 
