@@ -384,32 +384,55 @@ def guided_filter(guide, source, radius, eps):
 
 def fit_study():
     """What the payload could carry at best: the least-squares bilinear node fit of the
-    undistorted disparity (no quantisation, no channel) per node spacing, and the coarse
-    code guided by the left image's edges (guided filter). Pearson correlation / RMS."""
+    undistorted disparity (no quantisation, no channel) per node spacing, the size of its
+    compact code (the step ``blind`` would take) against the room of the two words, and
+    the decoded coarse and fine surfaces guided by the received (JPEG 50) image's edges
+    (guided filter). Pearson correlation / RMS."""
     scenes = {'Aloe (640x555)': aloe(640), 'generated seed 1': generated_scene((480, 640), 1)}
     for scene, (left, _, disparity) in scenes.items():
-        known = np.isfinite(disparity)
-        filled = blind._filled(disparity, known)
-        for cell in (52, 48, 32, 24, 16, 12):
+        filled = blind._filled(disparity)
+        room = [
+            blind._body_bits_of(n)
+            for n in (
+                blind.payload_bits(disparity.shape),
+                blind.fine_payload_bits(disparity.shape),
+            )
+        ]
+        print(f'{scene}: room for the body: coarse {room[0]} bits, fine {room[1]} bits')
+        for cell in (48, 32, 24, 20, 16, 14, 12, 10):
             rows, cols = (blind._hat_basis(n, cell) for n in disparity.shape)
             nodes = np.linalg.pinv(rows) @ filled @ np.linalg.pinv(cols).T
             fit = rows @ nodes @ cols.T
             rms = disparity_error(fit, disparity)[0]
+            values, known, fit_rms = blind._node_fit(disparity, filled, cell)
+            step = max(blind.QUANTISATION_PER_FIT_RMS * fit_rms, blind.RANGE_UNIT_PX)
+            code = blind._node_code(blind.NODE_SPACINGS_PX.index(cell), values, known, step)
             print(
                 f'{scene}: {cell}-px nodes ({nodes.size}) least squares: correlation '
-                f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px'
+                f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px; compact code '
+                f'{code.size} bits ({code.size / nodes.size:.2f} a node, step {step:.2f} px)'
             )
-        cells = blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
-        print(f'{scene}: coarse code (52-px nodes): {pixel_correlation(cells, disparity):.3f}')
-        for radius in (24, 48):
-            for eps in (1e-3, 1e-2):
-                guided = guided_filter(
-                    left, np.nan_to_num(cells, nan=np.nanmean(cells)), radius, eps
-                )
-                print(
-                    f'{scene}: coarse code, guided filter r {radius} eps {eps}: '
-                    f'{pixel_correlation(guided, disparity):.3f}'
-                )
+        received = jpeg(blind.encode(left, disparity, KEY), 50)[0]
+        surfaces = {
+            'coarse code': blind.disparity_from_code(
+                blind.disparity_code(disparity), disparity.shape
+            ),
+            'fine code after JPEG 50': blind.decode(received, KEY).disparity_px,
+        }
+        for name, surface in surfaces.items():
+            rms = disparity_error(surface, disparity)[0]
+            print(f'{scene}: {name}: {pixel_correlation(surface, disparity):.3f}, {rms:.2f} px')
+            for radius in (2, 4, 8, 24):
+                for eps in (1e-3, 1e-2):
+                    guided = guided_filter(
+                        received, np.nan_to_num(surface, nan=np.nanmean(surface)), radius, eps
+                    )
+                    guided[np.isnan(surface)] = np.nan
+                    rms = disparity_error(guided, disparity)[0]
+                    print(
+                        f'{scene}: {name}, guided by the received image, radius {radius} '
+                        f'eps {eps}: {pixel_correlation(guided, disparity):.3f}, {rms:.2f} px'
+                    )
 
 
 def main():

@@ -1,9 +1,11 @@
 """Ours: a blind, keyed stereo image coding that survives JPEG and filtering.
 
-The disparity is coded compactly (``disparity_code``): its median on a grid of
-``CELL_PX`` cells, 6 bits each (0 = unknown), between a 1/8-px minimum and maximum, then
-a CRC-32, then Reed-Solomon parity (``RS_PARITY_BYTES`` per 255-byte block, correcting
-half as many byte errors). The bits are repeated over every 8x8 block's low-mid DCT coefficients
+The disparity is coded compactly (``disparity_code``): the least-squares nodes of a
+bilinear surface at the finest spacing whose code fits the word, quantised with a step
+near the fit's error, as Exp-Golomb residuals of LOCO-I's median edge prediction (the
+known-node mask as run lengths), then a CRC-32, then Reed-Solomon parity
+(``RS_PARITY_BYTES`` per 255-byte block, correcting half as many byte errors). The bits
+are repeated over every 8x8 block's low-mid DCT coefficients
 (``BANDS``, the ones JPEG quantises least), each coefficient carrying one copy by dithered
 quantisation index modulation (QIM, Chen and Wornell 2001) with step ``step`` [grey
 levels]. The key seeds both the slot-to-bit permutation and the dither, so only the key
@@ -16,9 +18,9 @@ image nor the disparity (blind).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import zlib
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -31,10 +33,25 @@ from vgm_common.geometry import FloatArray
 
 Bits = npt.NDArray[np.uint8]  # (n,) bits, 0 or 1
 
-CELL_PX = 52  # coarse node spacing [px]: as many nodes as 48-px cells had on 640x555
-LEVEL_BITS = 6  # per cell; level 0 marks an unknown cell
-RANGE_UNIT_PX = 1.0 / 8.0  # header resolution of the disparity range [px]
-HEADER_BITS = 32  # minimum and maximum disparity, 16 bits each in RANGE_UNIT_PX
+# Both layers carry the disparity as the least-squares nodes of a bilinear surface, at
+# the finest of NODE_SPACINGS_PX whose compact code (Exp-Golomb residuals of a median
+# edge prediction, ``_node_code``) fits the layer's word; the header says which.
+NODE_SPACINGS_PX = (8, 10, 12, 14, 16, 18, 20, 24, 28, 32, 40, 48, 64, 96, 160, 4096)
+SPACING_BITS = 4  # index into NODE_SPACINGS_PX
+RANGE_UNIT_PX = 1.0 / 8.0  # resolution of the lowest node value and of the step [px]
+LOW_BITS = 16  # lowest node value, in RANGE_UNIT_PX
+STEP_BITS = 12  # quantisation step of the node values, in RANGE_UNIT_PX
+MAX_STEP_PX = (2**STEP_BITS - 1) * RANGE_UNIT_PX
+HEADER_BITS = SPACING_BITS + LOW_BITS + STEP_BITS
+# Quantisation step / RMS error of the node fit: adds ~3 % to the fit's RMS error
+# (step^2 / 12 = 0.06 fit^2) and saves ~1 bit a node against a step of 1/4 of it.
+QUANTISATION_PER_FIT_RMS = 0.85
+# Coarser steps tried on the next finer spacing (see ``_compact_body``).
+FINER_STEP_FACTORS = tuple(2.0 ** (k / 4) for k in range(1, 9))
+# The coarse word keeps the size of the 6-bit levels of CELL_PX nodes it had before the
+# compact code (so each bit keeps its ~12 copies); it now holds finer nodes.
+CELL_PX = 52
+LEVEL_BITS = 6
 CRC_BITS = 32
 RS_PARITY_BYTES = 20  # corrects 10 byte errors per block: channel BER up to about 1 %
 BLOCK = 8
@@ -45,12 +62,12 @@ DEFAULT_STEP = 28.0  # QIM step [grey levels]: MSE 3 * step^2 / 12 / 64, about 4
 BLUR_SIGMAS_PX = (0.0, 0.5, 0.7, 0.9, 1.1, 1.3)
 MIN_VALID_FRACTION = 0.25  # a cell with fewer known pixels is coded as unknown
 # The fine layer: a second, independent code word (own CRC-32 and Reed-Solomon parity)
-# carrying the disparity as the least-squares nodes of a bilinear surface on a
-# FINE_CELL_PX grid. It rides on a coefficient the coarse layer leaves alone, (0, 2),
-# whose JPEG quality-50 step (10) is the finest of the 8x8 table, with a smaller QIM step
-# (PSNR cost about 0.9 dB): it survives the channels that leave single copies intact
-# (JPEG 50 and better); where it does not decode, the coarse layer's cells are used.
-FINE_CELL_PX = 24
+# as large as one copy per block allows, with the same compact node code. It rides on a
+# coefficient the coarse layer leaves alone, (0, 2), whose JPEG quality-50 step (10) is
+# the finest of the 8x8 table, with a smaller QIM step (PSNR cost about 0.9 dB): it
+# survives the channels that leave single copies intact (JPEG 50 and better); where it
+# does not decode, the coarse layer's word is used.
+FILL_WINDOW_PX = 24  # first window [px] of the fill of unknown pixels before the fit
 FINE_BANDS = ((0, 2),)
 FINE_STEP_RATIO = 24.0 / 28.0  # fine QIM step / coarse QIM step
 
@@ -72,29 +89,36 @@ class Detection:
     fine: bool = False
 
 
-def code_grid(shape: tuple[int, ...]) -> tuple[int, int]:
-    """(rows, cols) of the coarse layer's nodes for an image of ``shape`` (H, W)."""
-    return _node_grid(shape, CELL_PX)
-
-
 def payload_bits(shape: tuple[int, ...]) -> int:
-    """Number of bits carried in an image of ``shape``, CRC included."""
-    return 8 * len(_RS.encode(bytes(_message_bytes(shape))))
+    """Number of bits of the coarse layer's word in an image of ``shape``, CRC and
+    parity included (the size of the 6-bit-per-node code of ``CELL_PX`` nodes it
+    replaced, so each bit keeps its ~12 copies)."""
+    rows, cols = _node_grid(shape, CELL_PX)
+    return _sealed_bits(_message_bytes_of(HEADER_BITS + rows * cols * LEVEL_BITS))
 
 
-def _body_bits(shape: tuple[int, ...]) -> int:
-    rows, cols = code_grid(shape)
-    return HEADER_BITS + rows * cols * LEVEL_BITS
+def fine_payload_bits(shape: tuple[int, ...]) -> int:
+    """Bits of the fine layer's code word for an image of ``shape``, CRC and parity
+    included: as many as its (0, 2) coefficients hold, one copy each; 0 when that is
+    no more than the coarse word (the image is too small for a second word to add)."""
+    n_slots = (shape[0] // BLOCK) * (shape[1] // BLOCK) * len(FINE_BANDS)
+    message_bytes = n_slots // 8
+    while message_bytes > 0 and _sealed_bits(message_bytes) > n_slots:
+        message_bytes -= 1
+    n_bits = _sealed_bits(message_bytes) if message_bytes > CRC_BITS // 8 else 0
+    return n_bits if n_bits > payload_bits(shape) else 0
 
 
-def _fine_body_bits(shape: tuple[int, ...]) -> int:
-    rows, cols = fine_grid(shape)
-    return HEADER_BITS + rows * cols * LEVEL_BITS
+def _sealed_bits(message_bytes: int) -> int:
+    """Bits of the Reed-Solomon code word of a ``message_bytes`` message."""
+    blocks = -(-message_bytes // (255 - RS_PARITY_BYTES))
+    return 8 * (message_bytes + RS_PARITY_BYTES * blocks)
 
 
-def _message_bytes(shape: tuple[int, ...]) -> int:
-    """Bytes of the coarse body (padded to whole bytes) and its CRC-32."""
-    return _message_bytes_of(_body_bits(shape))
+def _body_bits_of(n_bits: int) -> int:
+    """Body bits of a sealed word of ``n_bits``: without parity and CRC."""
+    blocks = -(-n_bits // (8 * 255))
+    return n_bits - 8 * RS_PARITY_BYTES * blocks - CRC_BITS
 
 
 def _message_bytes_of(body_bits: int) -> int:
@@ -103,66 +127,158 @@ def _message_bytes_of(body_bits: int) -> int:
 
 def disparity_code(disparity_px: npt.ArrayLike) -> Bits:
     """(H, W) disparity [px] (NaN or < 0 unknown) -> the coarse layer's code word (uint8
-    0/1): least-squares bilinear nodes every ``CELL_PX`` px (see ``fine_code``), CRC
-    and Reed-Solomon parity included."""
-    return _seal(_quantised_body(_node_fit(_known_or_nan(disparity_px), CELL_PX)))
+    0/1) of ``payload_bits``: the compact node code (``_compact_body``) of the finest
+    node spacing that fits, CRC and Reed-Solomon parity included."""
+    d = _known_or_nan(disparity_px)
+    return _seal(_compact_body(d, _filled(d), _body_bits_of(payload_bits(d.shape))))
 
 
 def disparity_from_code(bits: npt.ArrayLike, shape: tuple[int, ...]) -> FloatArray | None:
     """Inverse of ``disparity_code``: (H, W) float64 disparity [px], NaN where the
-    nearest node is unknown; None if the CRC fails or the header is inconsistent.
+    nearest node is unknown; None if the CRC fails or the code is inconsistent.
     (Weighting by the decoded image's grey levels, a joint bilateral upsampling or a
     guided filter, was tried: on textured scenes it lowered the correlation.)"""
-    body = _checked_body(bits, payload_bits(shape), _body_bits(shape))
-    nodes = None if body is None else _dequantised(body, code_grid(shape))
-    return None if nodes is None else _node_surface(nodes, shape, CELL_PX)
+    body = _checked_body(bits, payload_bits(shape))
+    return None if body is None else _compact_surface(body, shape)
 
 
-def fine_grid(shape: tuple[int, ...]) -> tuple[int, int]:
-    """(rows, cols) of the fine layer's nodes for an image of ``shape`` (H, W)."""
-    return _node_grid(shape, FINE_CELL_PX)
+def fine_code(disparity_px: npt.ArrayLike) -> Bits:
+    """(H, W) disparity [px] -> the fine layer's code word of ``fine_payload_bits``
+    (which must not be 0): the same compact node code, with the room of the fine
+    layer's word."""
+    d = _known_or_nan(disparity_px)
+    n_bits = fine_payload_bits(d.shape)
+    if not n_bits:
+        raise CodingError(f'an image of {d.shape} is too small for the fine layer')
+    return _seal(_compact_body(d, _filled(d), _body_bits_of(n_bits)))
+
+
+def fine_disparity_from_code(bits: npt.ArrayLike, shape: tuple[int, ...]) -> FloatArray | None:
+    """Inverse of ``fine_code``: (H, W) float64 disparity [px], NaN where the nearest
+    node is unknown; None if the CRC fails or the code is inconsistent."""
+    n_bits = fine_payload_bits(shape)
+    body = _checked_body(bits, n_bits) if n_bits else None
+    return None if body is None else _compact_surface(body, shape)
 
 
 def _node_grid(shape: tuple[int, ...], cell_px: int) -> tuple[int, int]:
     return int(np.ceil(shape[0] / cell_px)) + 1, int(np.ceil(shape[1] / cell_px)) + 1
 
 
-def fine_payload_bits(shape: tuple[int, ...]) -> int:
-    """Bits of the fine layer's code word for an image of ``shape``, CRC and parity
-    included; 0 when it does not fit in the image's fine coefficients (small images)."""
-    rows, cols = fine_grid(shape)
-    n_bits = 8 * len(_RS.encode(bytes(_message_bytes_of(_fine_body_bits(shape)))))
-    n_slots = (shape[0] // BLOCK) * (shape[1] // BLOCK) * len(FINE_BANDS)
-    return n_bits if n_slots >= n_bits else 0
+def _compact_body(d: FloatArray, filled: FloatArray, body_bits: int) -> Bits:
+    """``d`` (NaN unknown; ``filled``: with its unknown pixels filled in) ->
+    ``body_bits`` bits: the least-squares bilinear nodes (``_node_fit``) at a spacing of
+    ``NODE_SPACINGS_PX``, quantised, coded by ``_node_code``; zero-padded. The spacing
+    is the finest whose code fits with a step matched to its fit's error
+    (``QUANTISATION_PER_FIT_RMS``; found by bisection: finer spacings take more bits),
+    or the next finer one with a coarser step (up to ``FINER_STEP_FACTORS``) if that
+    fits and predicts less error (fit and quantisation: hypot(fit, step / sqrt(12))).
+    If even the widest spacing does not fit, its step doubles until it does."""
+    fits: dict[int, tuple[FloatArray, np.ndarray, float]] = {}
+
+    def code(index: int, step_factor: float = 1.0) -> tuple[Bits, float]:
+        if index not in fits:
+            fits[index] = _node_fit(d, filled, NODE_SPACINGS_PX[index])
+        values, known, fit_rms = fits[index]
+        step = step_factor * max(QUANTISATION_PER_FIT_RMS * fit_rms, RANGE_UNIT_PX)
+        step = min(step, MAX_STEP_PX)
+        return _node_code(index, values, known, step), float(np.hypot(fit_rms, step / 12**0.5))
+
+    # Every node takes at least one bit: the bisection starts where that holds.
+    fitting = [int(np.prod(_node_grid(d.shape, c))) <= body_bits for c in NODE_SPACINGS_PX]
+    first = fitting.index(True) if any(fitting) else len(NODE_SPACINGS_PX) - 1
+    low, high = first, len(NODE_SPACINGS_PX) - 1  # the answer is in [low, high]
+    codes: dict[int, tuple[Bits, float]] = {}
+    while low < high:
+        middle = (low + high) // 2
+        codes[middle] = code(middle)
+        if codes[middle][0].size <= body_bits:
+            high = middle
+        else:
+            low = middle + 1
+    bits, error = codes[low] if low in codes else code(low)
+    step_factor = 1.0
+    while bits.size > body_bits and step_factor * RANGE_UNIT_PX < MAX_STEP_PX:
+        step_factor *= 2.0
+        bits, error = code(low, step_factor)
+    if bits.size > body_bits:
+        raise CodingError(f'no disparity code fits in {body_bits} bits')
+    if low > first:
+        for step_factor in FINER_STEP_FACTORS:
+            finer_bits, finer_error = code(low - 1, step_factor)
+            if finer_bits.size <= body_bits:
+                if finer_error < error:
+                    bits = finer_bits
+                break
+    return np.concatenate([bits, np.zeros(body_bits - bits.size, np.uint8)])
 
 
-def fine_code(disparity_px: npt.ArrayLike) -> Bits:
-    """(H, W) disparity [px] -> the fine layer's code word: the nodes of the bilinear
-    surface nearest the disparity in least squares (unknown pixels filled from their
-    known neighbours first, so the fit is separable: two small matrix products), 6 bits
-    each; a node with less than ``MIN_VALID_FRACTION`` known support is unknown."""
-    return _seal(_quantised_body(_node_fit(_known_or_nan(disparity_px), FINE_CELL_PX)))
+def _node_code(spacing_index: int, values: FloatArray, known: np.ndarray, step_px: float) -> Bits:
+    """The compact code of node ``values`` (rows, cols) [px] and their ``known`` mask,
+    quantised with ``step_px``: header (spacing index, lowest value, step), the known-node mask as
+    run lengths, then every node's level (unknown ones too: they hold the fit of the
+    filled-in disparity, so the prediction stays smooth) as the residual from the
+    LOCO-I median edge detector's prediction; all numbers Exp-Golomb (order 0)."""
+    low = int(np.clip(np.floor(values.min() / RANGE_UNIT_PX), 0, 2**LOW_BITS - 1))
+    step_units = int(np.clip(np.rint(step_px / RANGE_UNIT_PX), 1, 2**STEP_BITS - 1))
+    levels = np.rint((values - low * RANGE_UNIT_PX) / (step_units * RANGE_UNIT_PX))
+    levels = levels.astype(np.int64)
+    residuals = (levels - _med_prediction(levels)).ravel()
+    zigzag = np.where(residuals >= 0, 2 * residuals, -2 * residuals - 1)
+    return np.concatenate(
+        [
+            _to_bits(np.array([spacing_index]), SPACING_BITS),
+            _to_bits(np.array([low]), LOW_BITS),
+            _to_bits(np.array([step_units]), STEP_BITS),
+            _exp_golomb(_run_lengths(known.ravel())),
+            _exp_golomb(zigzag),
+        ]
+    )
 
 
-def fine_disparity_from_code(bits: npt.ArrayLike, shape: tuple[int, ...]) -> FloatArray | None:
-    """Inverse of ``fine_code``: (H, W) float64 disparity [px], NaN where the nearest
-    node is unknown; None if the CRC fails or the header is inconsistent."""
-    n_bits = fine_payload_bits(shape)
-    body = _checked_body(bits, n_bits, _fine_body_bits(shape)) if n_bits else None
-    nodes = None if body is None else _dequantised(body, fine_grid(shape))
-    return None if nodes is None else _node_surface(nodes, shape, FINE_CELL_PX)
+def _compact_surface(body: Bits, shape: tuple[int, ...]) -> FloatArray | None:
+    """Inverse of ``_compact_body``: the (H, W) surface [px], NaN where the nearest node
+    is unknown; None if the body is inconsistent (possible only past the CRC's 2^-32)."""
+    spacing_index = int(_from_bits(body[:SPACING_BITS], SPACING_BITS)[0])
+    low = int(_from_bits(body[SPACING_BITS : SPACING_BITS + LOW_BITS], LOW_BITS)[0])
+    step_units = int(_from_bits(body[SPACING_BITS + LOW_BITS : HEADER_BITS], STEP_BITS)[0])
+    if spacing_index >= len(NODE_SPACINGS_PX) or step_units == 0:
+        return None
+    cell_px = NODE_SPACINGS_PX[spacing_index]
+    rows, cols = _node_grid(shape, cell_px)
+    numbers = _exp_golomb_decoded(body[HEADER_BITS:], rows * cols)
+    if numbers is None:
+        return None
+    runs, zigzag = numbers
+    residuals = np.where(zigzag % 2 == 0, zigzag // 2, -(zigzag + 1) // 2).reshape(rows, cols)
+    levels = _med_reconstruction(residuals)
+    values = np.maximum(0.0, (low + step_units * levels) * RANGE_UNIT_PX)
+    known = np.repeat(np.arange(len(runs)) % 2 == 0, runs).reshape(rows, cols)
+    return _node_surface(np.where(known, values, np.nan), shape, cell_px)
 
 
-def _node_fit(d: FloatArray, cell_px: int) -> FloatArray:
-    """Least-squares bilinear nodes every ``cell_px`` of ``d`` (NaN unknown); NaN for a
-    node with less than ``MIN_VALID_FRACTION`` known support."""
+def _node_fit(
+    d: FloatArray, filled: FloatArray, cell_px: int
+) -> tuple[FloatArray, np.ndarray, float]:
+    """Least-squares bilinear nodes every ``cell_px`` of ``filled`` (``d`` with its
+    unknown pixels filled in, so the fit is two small matrix products): (node values
+    (rows, cols) [px] >= 0, known (rows, cols): at least ``MIN_VALID_FRACTION`` known
+    support, the fit's RMS error [px] over ``d``'s known pixels (every 4th row and
+    column: it only sets the quantisation step))."""
     known = np.isfinite(d)
     basis_rows, basis_cols = (_hat_basis(n, cell_px) for n in d.shape)
-    weights = basis_rows.T @ known.astype(float) @ basis_cols  # known support of each node
+    # The two image-sized products in single precision (half the time; the node values
+    # need far less than its 1e-7).
+    weights = _hat_pseudo_inverse(d.shape[0], cell_px)[1] @ known.astype(np.float32) @ basis_cols
     support = basis_rows.sum(axis=0)[:, None] * basis_cols.sum(axis=0)[None, :]
-    filled = _filled(d, known, cell_px)
-    nodes = np.linalg.pinv(basis_rows) @ filled @ np.linalg.pinv(basis_cols).T
-    return np.where(weights >= MIN_VALID_FRACTION * support, np.maximum(nodes, 0.0), np.nan)
+    inverse_rows, inverse_cols = (_hat_pseudo_inverse(n, cell_px)[0] for n in d.shape)
+    nodes = inverse_rows @ filled.astype(np.float32) @ inverse_cols.T
+    nodes = np.maximum(nodes.astype(float), 0.0)
+    sample = (slice(None, None, 4), slice(None, None, 4))
+    fit = basis_rows[sample[0]] @ nodes @ basis_cols[sample[1]].T
+    error = (fit - d[sample])[known[sample]]
+    fit_rms = float(np.sqrt(np.mean(error**2))) if error.size else 0.0
+    return nodes, weights >= MIN_VALID_FRACTION * support, fit_rms
 
 
 def _node_surface(nodes: FloatArray, shape: tuple[int, ...], cell_px: int) -> FloatArray:
@@ -201,13 +317,15 @@ def _embed(
     blocks, coefficients = _band_coefficients(image)
     change = np.zeros_like(coefficients)
     coarse = len(BANDS)
-    change[..., :coarse] = _qim_change(
-        coefficients[..., :coarse], disparity_code(disparity_px), key, step
-    )
-    if fine and fine_payload_bits(image.shape):
+    d = _known_or_nan(disparity_px)
+    filled = _filled(d)  # once for both layers
+    coarse_word = _seal(_compact_body(d, filled, _body_bits_of(payload_bits(d.shape))))
+    change[..., :coarse] = _qim_change(coefficients[..., :coarse], coarse_word, key, step)
+    n_fine = fine_payload_bits(image.shape)
+    if fine and n_fine:
         change[..., coarse:] = _qim_change(
             coefficients[..., coarse:],
-            fine_code(disparity_px),
+            _seal(_compact_body(d, filled, _body_bits_of(n_fine))),
             _fine_key(key),
             FINE_STEP_RATIO * step,
         )
@@ -236,34 +354,32 @@ def decode(image: npt.ArrayLike, key: str, step: float = DEFAULT_STEP) -> Detect
     shape = image.shape
     _, coefficients = _band_coefficients(image)
     coarse = len(BANDS)
-    confidence, bits, raw_ber = _read_word(
-        coefficients[..., :coarse],
-        payload_bits(shape),
-        key,
-        step,
-        _BAND_FREQUENCIES[:coarse],
-        lambda word: _checked_body(word, payload_bits(shape), _body_bits(shape)) is not None,
+    confidence, bits, raw_ber, body = _read_word(
+        coefficients[..., :coarse], payload_bits(shape), key, step, _BAND_FREQUENCIES[:coarse]
     )
-    disparity = disparity_from_code(bits, shape)
-    fine_disparity = None
     n_fine = fine_payload_bits(shape)
+    fine_body = None
     if n_fine:
-        _, fine_bits, _ = _read_word(
+        fine_body = _read_word(
             coefficients[..., coarse:],
             n_fine,
             _fine_key(key),
             FINE_STEP_RATIO * step,
             _BAND_FREQUENCIES[coarse:],
-            lambda word: _checked_body(word, n_fine, _fine_body_bits(shape)) is not None,
-        )
-        fine_disparity = fine_disparity_from_code(fine_bits, shape)
+        )[3]
+    # The fine word's surface when it decoded, else the coarse one's (built only then).
+    disparity = None
+    for word in (fine_body, body):
+        disparity = None if word is None else _compact_surface(word, shape)
+        if disparity is not None:
+            break
     return Detection(
-        found=disparity is not None or fine_disparity is not None,
+        found=disparity is not None,
         confidence=confidence,
         raw_ber=raw_ber,
-        disparity_px=fine_disparity if fine_disparity is not None else disparity,
+        disparity_px=disparity,
         bits=bits,
-        fine=fine_disparity is not None,
+        fine=disparity is not None and fine_body is not None,
     )
 
 
@@ -273,14 +389,15 @@ def _read_word(
     key: str,
     step: float,
     frequencies: FloatArray,
-    accept: Callable[[Bits], bool],
-) -> tuple[float, Bits, float]:
+) -> tuple[float, Bits, float, Bits | None]:
     """Soft-decode a keyed word of ``n_bits`` from QIM ``coefficients`` (rows, cols,
-    bands), trying the gains of ``BLUR_SIGMAS_PX``: the first word ``accept`` takes,
-    else the one whose copies agree best. (confidence, bits, raw bit error rate)."""
+    bands), trying the gains of ``BLUR_SIGMAS_PX``: the first word whose Reed-Solomon
+    decoding and CRC succeed, else the one whose copies agree best. (confidence, bits,
+    raw bit error rate, the checked body or None)."""
     slots = _slot_layout(coefficients.shape, n_bits, key)
     copies = np.bincount(slots.bit_of_slot, minlength=n_bits)
     best: tuple[float, Bits, FloatArray] | None = None  # (confidence, bits, soft)
+    body = None
     for sigma in BLUR_SIGMAS_PX:
         gains = np.exp(-0.5 * (sigma * frequencies) ** 2)
         phase = 2.0 * np.pi * ((coefficients / gains).reshape(-1) / step - slots.dither)
@@ -288,14 +405,15 @@ def _read_word(
         sums = np.bincount(slots.bit_of_slot, weights=soft, minlength=n_bits)
         bits = (sums < 0).astype(np.uint8)
         confidence = float(np.mean(np.abs(sums) / np.maximum(copies, 1)))
-        if accept(bits):
+        body = _checked_body(bits, n_bits)
+        if body is not None:
             best = (confidence, bits, soft)
             break
         if best is None or confidence > best[0]:
             best = (confidence, bits, soft)
     assert best is not None  # BLUR_SIGMAS_PX is not empty
     confidence, bits, soft = best
-    return confidence, bits, float(np.mean((soft < 0) != bits[slots.bit_of_slot]))
+    return confidence, bits, float(np.mean((soft < 0) != bits[slots.bit_of_slot])), body
 
 
 def decode_rotated(
@@ -428,34 +546,103 @@ def _known_or_nan(disparity_px: npt.ArrayLike) -> FloatArray:
     return np.where(np.isfinite(d) & (d >= 0), d, np.nan)
 
 
-def _quantised_body(values: FloatArray) -> Bits:
-    """Values [px] (NaN unknown) -> body bits: the 1/8-px range, then ``LEVEL_BITS``
-    levels each (0 = unknown)."""
-    valid = np.isfinite(values)
-    low = np.floor(np.nanmin(values) / RANGE_UNIT_PX) if valid.any() else 0
-    high = np.ceil(np.nanmax(values) / RANGE_UNIT_PX) if valid.any() else 0
-    low, high = int(np.clip(low, 0, 65535)), int(np.clip(high, 0, 65535))
-    top = 2**LEVEL_BITS - 1
-    span = max(high - low, 1) * RANGE_UNIT_PX
-    levels = np.where(
-        valid, 1 + np.rint((np.nan_to_num(values) - low * RANGE_UNIT_PX) / span * (top - 1)), 0
+def _med_prediction(levels: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """LOCO-I's median edge detector on a (rows, cols) array, from the causal
+    neighbours (west, north, north-west): the first row predicts from the west, the
+    first column from the north, the first node 0. ``_med_reconstruction`` inverts it."""
+    west, north, north_west = levels[1:, :-1], levels[:-1, 1:], levels[:-1, :-1]
+    prediction = np.zeros_like(levels)
+    prediction[0, 1:] = levels[0, :-1]
+    prediction[1:, 0] = levels[:-1, 0]
+    low, high = np.minimum(west, north), np.maximum(west, north)
+    prediction[1:, 1:] = np.where(
+        north_west >= high, low, np.where(north_west <= low, high, west + north - north_west)
     )
-    levels = np.clip(levels, 0, top).astype(np.uint16)
-    return np.concatenate(
-        [_to_bits(np.array([low, high]), 16), _to_bits(levels.ravel(), LEVEL_BITS)]
-    )
+    return prediction
 
 
-def _dequantised(body: Bits, grid: tuple[int, int]) -> FloatArray | None:
-    """Inverse of ``_quantised_body``: (rows, cols) values [px], NaN unknown; None if
-    the header is inconsistent."""
-    low, high = _from_bits(body[:HEADER_BITS], 16)
-    if high < low:
+def _med_reconstruction(residuals: npt.NDArray[np.int64]) -> npt.NDArray[np.int64]:
+    """The levels whose ``_med_prediction`` residuals are ``residuals`` (node by node:
+    each prediction needs the levels before it)."""
+    rows, cols = residuals.shape
+    levels = [[0] * cols for _ in range(rows)]
+    r = residuals.tolist()
+    for i in range(rows):
+        for j in range(cols):
+            if i == 0:
+                prediction = levels[0][j - 1] if j else 0
+            elif j == 0:
+                prediction = levels[i - 1][0]
+            else:
+                west, north, north_west = levels[i][j - 1], levels[i - 1][j], levels[i - 1][j - 1]
+                if north_west >= max(west, north):
+                    prediction = min(west, north)
+                elif north_west <= min(west, north):
+                    prediction = max(west, north)
+                else:
+                    prediction = west + north - north_west
+            levels[i][j] = prediction + r[i][j]
+    return np.array(levels, dtype=np.int64)
+
+
+def _run_lengths(flags: np.ndarray) -> npt.NDArray[np.int64]:
+    """Lengths of the alternating runs of a boolean vector, the first one of True
+    (0 if it starts False)."""
+    change = np.flatnonzero(np.diff(flags.astype(np.int8))) + 1
+    runs = np.diff(np.concatenate([[0], change, [flags.size]]))
+    return np.concatenate([[0], runs]) if flags.size and not flags[0] else runs
+
+
+def _exp_golomb(numbers: npt.ArrayLike) -> Bits:
+    """Order-0 Exp-Golomb code of non-negative integers: n + 1 in binary, after as many
+    zeros as it has bits less one (1 bit for 0, 3 for 1-2, 5 for 3-6, ...)."""
+    values = np.asarray(numbers, dtype=np.int64).ravel() + 1
+    if values.size == 0:
+        return np.zeros(0, np.uint8)
+    widths = np.frexp(values.astype(float))[1]  # bit lengths (exact below 2^53)
+    ends = np.cumsum(2 * widths - 1)
+    out = np.zeros(int(ends[-1]), np.uint8)
+    last_bit = ends - 1  # each value ends its code, least significant bit last
+    for bit in range(int(widths.max())):
+        has = widths > bit
+        out[last_bit[has] - bit] = (values[has] >> bit) & 1
+    return out
+
+
+MAX_EXP_GOLOMB_ZEROS = 40  # levels and runs are far below 2^40
+
+
+def _exp_golomb_decoded(
+    bits: Bits, n_nodes: int
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None:
+    """Read the run lengths of an ``n_nodes`` mask, then ``n_nodes`` numbers, from an
+    Exp-Golomb stream; None if the stream ends early, holds a number of more than
+    ``MAX_EXP_GOLOMB_ZEROS`` + 1 bits, or the runs overshoot."""
+    text = (np.asarray(bits, np.uint8) + ord('0')).tobytes().decode()
+    position = 0
+
+    def read() -> int | None:
+        nonlocal position
+        one = text.find('1', position)
+        end = 2 * one - position + 1
+        if one < 0 or end > len(text) or one - position > MAX_EXP_GOLOMB_ZEROS:
+            return None  # a number beyond int64 cannot come from _exp_golomb
+        value = int(text[one:end], 2) - 1
+        position = end
+        return value
+
+    runs: list[int] = []
+    while sum(runs) < n_nodes:
+        run = read()
+        if run is None:
+            return None
+        runs.append(run)
+    if sum(runs) != n_nodes:
         return None
-    levels = _from_bits(body[HEADER_BITS:], LEVEL_BITS).reshape(grid).astype(float)
-    top = 2**LEVEL_BITS - 1
-    span = max(high - low, 1) * RANGE_UNIT_PX
-    return np.where(levels > 0, low * RANGE_UNIT_PX + (levels - 1) / (top - 1) * span, np.nan)
+    numbers = [read() for _ in range(n_nodes)]
+    if any(n is None for n in numbers):
+        return None
+    return np.array(runs, dtype=np.int64), np.array(numbers, dtype=np.int64)
 
 
 def _seal(body: Bits) -> Bits:
@@ -465,17 +652,35 @@ def _seal(body: Bits) -> Bits:
     return np.unpackbits(np.frombuffer(bytes(_RS.encode(message)), np.uint8))
 
 
-def _hat_basis(n: int, cell_px: int = FINE_CELL_PX) -> FloatArray:
+@functools.lru_cache(maxsize=64)
+def _hat_basis(n: int, cell_px: int) -> FloatArray:
     """(n, nodes) 1-D bilinear interpolation weights of ``n`` pixels on nodes every
-    ``cell_px`` px (node j at pixel coordinate j * cell_px - 0.5)."""
+    ``cell_px`` px (node j at pixel coordinate j * cell_px - 0.5). Cached: read only."""
     nodes = int(np.ceil(n / cell_px)) + 1
     position = (np.arange(n) + 0.5) / cell_px
-    return np.maximum(0.0, 1.0 - np.abs(position[:, None] - np.arange(nodes)[None, :]))
+    basis = np.maximum(0.0, 1.0 - np.abs(position[:, None] - np.arange(nodes)[None, :]))
+    basis.setflags(write=False)
+    return basis
 
 
-def _filled(d: FloatArray, known: np.ndarray, cell_px: int = FINE_CELL_PX) -> FloatArray:
-    """``d`` with unknown pixels replaced by the mean of the known ones around them
-    (normalised box filters of growing size), or by the overall mean where none is."""
+@functools.lru_cache(maxsize=64)
+def _hat_pseudo_inverse(n: int, cell_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The pseudo-inverse and the transpose of ``_hat_basis(n, cell_px)``, both (nodes,
+    n) float32. Cached: read only."""
+    basis = _hat_basis(n, cell_px)
+    pair = np.linalg.pinv(basis).astype(np.float32), basis.T.astype(np.float32)
+    for matrix in pair:
+        matrix.setflags(write=False)
+    return pair
+
+
+def _filled(d: FloatArray, cell_px: int = FILL_WINDOW_PX) -> FloatArray:
+    """``d`` (NaN unknown) with unknown pixels replaced by the mean of the known ones
+    around them (normalised box filters of growing size from ``cell_px``), or by the
+    overall mean where none is; 0 everywhere if no pixel is known."""
+    known = np.isfinite(d)
+    if not known.any():  # nothing to spread (the box filters would take ~0.3 s at 1080p)
+        return np.zeros(d.shape)
     out = np.where(known, d, 0.0).astype(np.float32)
     weight = known.astype(np.float32)
     filled = out.copy()
@@ -488,13 +693,13 @@ def _filled(d: FloatArray, known: np.ndarray, cell_px: int = FINE_CELL_PX) -> Fl
         filled[reach] = sums[reach] / counts[reach]
         missing &= ~reach
         size *= 2
-    filled[missing] = float(np.nanmean(d)) if known.any() else 0.0
+    filled[missing] = float(np.mean(d[known]))
     return filled.astype(float)
 
 
-def _checked_body(bits: npt.ArrayLike, n_bits: int, body_bits: int) -> Bits | None:
-    """The ``body_bits`` body bits of a received ``n_bits`` code word after Reed-Solomon
-    correction, or None if it cannot be corrected or its CRC-32 does not match."""
+def _checked_body(bits: npt.ArrayLike, n_bits: int) -> Bits | None:
+    """The body bits of a received ``n_bits`` code word after Reed-Solomon correction,
+    or None if it cannot be corrected or its CRC-32 does not match."""
     bits = np.asarray(bits, dtype=np.uint8)
     if bits.size != n_bits:
         return None
@@ -505,7 +710,7 @@ def _checked_body(bits: npt.ArrayLike, n_bits: int, body_bits: int) -> Bits | No
     body, crc = message[:-4], message[-4:]
     if zlib.crc32(body).to_bytes(4, 'big') != crc:
         return None
-    return np.unpackbits(np.frombuffer(body, np.uint8))[:body_bits]
+    return np.unpackbits(np.frombuffer(body, np.uint8))
 
 
 def _check_grey(image: npt.ArrayLike) -> npt.NDArray[np.uint8]:
