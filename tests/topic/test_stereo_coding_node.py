@@ -8,7 +8,6 @@ serving."""
 
 import cv2
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import CompressedImage, Image
 from stereo_coding_node.channel import psnr
 from stereo_coding_node.scenes import generated_scene
@@ -24,14 +23,23 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.qos import DEFAULT_QOS
+from vgm_common.topics import (
+    CODED_COMPRESSED_TOPIC,
+    CODED_IMAGE_TOPIC,
+    DECODED_DISPARITY_TOPIC,
+    DECODED_LEFT_TOPIC,
+    DECODED_RIGHT_TOPIC,
+    DISPARITY_TOPIC,
+    LEFT_RECT_TOPIC,
+)
 
 FRAME = 'stereo_left_optical_frame'
 WAIT = 60.0  # [s] generous: the machine is shared
 DECODED = (
-    '/stereo/decoded/disparity',
-    '/stereo/decoded/left/image_rect',
-    '/stereo/decoded/right/image_rect',
-    '/stereo/coded/image/compressed',
+    DECODED_DISPARITY_TOPIC,
+    DECODED_LEFT_TOPIC,
+    DECODED_RIGHT_TOPIC,
+    CODED_COMPRESSED_TOPIC,
 )
 
 
@@ -60,12 +68,11 @@ class Probe:
     def __init__(self, node):
         self.node = node
         self.received = {}  # topic -> {stamp: msg}
-        self.statuses = []
         for topic, kind in (
-            ('/stereo/decoded/disparity', DisparityImage),
-            ('/stereo/decoded/left/image_rect', Image),
-            ('/stereo/decoded/right/image_rect', Image),
-            ('/stereo/coded/image/compressed', CompressedImage),
+            (DECODED_DISPARITY_TOPIC, DisparityImage),
+            (DECODED_LEFT_TOPIC, Image),
+            (DECODED_RIGHT_TOPIC, Image),
+            (CODED_COMPRESSED_TOPIC, CompressedImage),
         ):
             self.received[topic] = {}
             node.create_subscription(
@@ -74,14 +81,13 @@ class Probe:
                 lambda m, t=topic: self.received[t].__setitem__(stamp_to_ns(m.header.stamp), m),
                 DEFAULT_QOS,
             )
-        node.create_subscription(
-            DiagnosticArray, '/diagnostics', lambda m: self.statuses.extend(m.status), DEFAULT_QOS
-        )
-        self.image = node.create_publisher(Image, '/stereo/left/image_rect', DEFAULT_QOS)
-        self.disparity = node.create_publisher(DisparityImage, '/stereo/disparity', DEFAULT_QOS)
-        self.coded = node.create_publisher(Image, '/stereo/coded/image', DEFAULT_QOS)
+        node.graph.watch_diagnostics()
+        self.statuses = node.graph.statuses
+        self.image = node.create_publisher(Image, LEFT_RECT_TOPIC, DEFAULT_QOS)
+        self.disparity = node.create_publisher(DisparityImage, DISPARITY_TOPIC, DEFAULT_QOS)
+        self.coded = node.create_publisher(Image, CODED_IMAGE_TOPIC, DEFAULT_QOS)
         self.coded_jpeg = node.create_publisher(
-            CompressedImage, '/stereo/coded/image/compressed', DEFAULT_QOS
+            CompressedImage, CODED_COMPRESSED_TOPIC, DEFAULT_QOS
         )
 
     def status(self, name, containing):
@@ -171,7 +177,7 @@ def test_ours_through_jpeg_50_then_bad_input(spawn, rclpy_node):
     decoded = image_to_numpy(disparity.image).astype(float)
     decoded[decoded < disparity.min_disparity] = np.nan
     # Bit for bit what ours decodes from the JPEG that went over the topic.
-    received = compressed_to_grey(probe.received['/stereo/coded/image/compressed'][stamp])
+    received = compressed_to_grey(probe.received[CODED_COMPRESSED_TOPIC][stamp])
     local = blind.decode(received, 'topic-test')
     assert local.found
     np.testing.assert_allclose(decoded, local.disparity_px.astype(np.float32), equal_nan=True)
@@ -209,7 +215,7 @@ def test_ours_through_jpeg_50_then_bad_input(spawn, rclpy_node):
     garbage.header.stamp.sec = 7
     probe.coded_jpeg.publish(garbage)
     probe.wait_status('rejected coded image', 'does not decode', 'a corrupt JPEG rejected')
-    assert stamp + 5 not in probe.received['/stereo/decoded/disparity']
+    assert stamp + 5 not in probe.received[DECODED_DISPARITY_TOPIC]
     probe.send_pair(left, sent, stamp + 6)
     probe.wait_decoded(stamp + 6)
 
