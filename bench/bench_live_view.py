@@ -40,10 +40,11 @@ from foxglove_ws import FoxgloveClient, live_view_url  # noqa: E402
 from bag_tools.bag_writer import header_stamp_ns  # noqa: E402
 from vgm_common.diagnostics import parse_published_counts  # noqa: E402
 from vgm_common.launcher import Launch  # noqa: E402
+from vgm_common.topics import IMAGE_TOPICS, JOINT_STATES_TOPIC  # noqa: E402
 
 RESULTS = REPO / 'bench' / 'results' / 'live_view'
-IMAGE_TOPICS = ['/stereo/left/image_raw', '/stereo/right/image_raw', '/aux/image_raw']
-TOPICS = [*IMAGE_TOPICS, '/joint_states']
+IMAGE_TOPICS = [IMAGE_TOPICS['left'], IMAGE_TOPICS['right'], IMAGE_TOPICS['aux']]
+TOPICS = [*IMAGE_TOPICS, JOINT_STATES_TOPIC]
 RATE = 30.0  # [Hz] cameras
 SLOW_READ_PERIOD = 0.2  # [s] the slow client takes one frame this often
 
@@ -73,8 +74,8 @@ def ros_probe(seconds, out):
         )
     node.create_subscription(
         JointState,
-        '/joint_states',
-        lambda d: counts.__setitem__('/joint_states', counts['/joint_states'] + 1),
+        JOINT_STATES_TOPIC,
+        lambda d: counts.__setitem__(JOINT_STATES_TOPIC, counts[JOINT_STATES_TOPIC] + 1),
         DEFAULT_QOS,
         raw=True,
     )
@@ -232,7 +233,7 @@ def run(name, seconds, live_view, clients):
             lost += sum(1 for s in window if s not in result['images'][t])
         row[f'{probe}_images_received'] = sum(len(result['images'][t]) for t in IMAGE_TOPICS)
         row[f'{probe}_images_lost'] = f'{lost} of {offered}'
-        row[f'{probe}_joint_states_received'] = result['counts']['/joint_states']
+        row[f'{probe}_joint_states_received'] = result['counts'][JOINT_STATES_TOPIC]
         if added and probe == 'ws0':
             row['added_latency_p50_ms'] = round(float(np.percentile(added, 50)), 2)
             row['added_latency_p99_ms'] = round(float(np.percentile(added, 99)), 2)

@@ -31,7 +31,9 @@ RESULTS = Path(__file__).resolve().parent / 'results'
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests' / 'multihost'))
 from netns import TwoHosts  # noqa: E402
 
-IMAGE_TOPICS = ('/stereo/left/image_raw', '/stereo/right/image_raw', '/aux/image_raw')
+from vgm_common.topics import IMAGE_TOPICS, JOINT_STATES_TOPIC  # noqa: E402
+
+IMAGE_TOPICS = (IMAGE_TOPICS['left'], IMAGE_TOPICS['right'], IMAGE_TOPICS['aux'])
 
 
 def wait_for_recording(launch, timeout):
@@ -92,7 +94,7 @@ def measure(rate, seconds, hosts=None):
             launch.stop()
         published = parse_published_counts(launch.log_text('sensor_sim'))
         in_bag = {}
-        stamps = {IMAGE_TOPICS[0]: [], '/joint_states': []}
+        stamps = {IMAGE_TOPICS[0]: [], JOINT_STATES_TOPIC: []}
         latencies = []
         with open(Path(tmp) / 'bench' / 'bench_0.mcap', 'rb') as stream:
             reader = make_reader(stream)
@@ -104,10 +106,10 @@ def measure(rate, seconds, hosts=None):
             for channel_id, count in summary.statistics.channel_message_counts.items():
                 in_bag[summary.channels[channel_id].topic] = count
     image_periods = np.diff(np.array(stamps[IMAGE_TOPICS[0]]) * 1e-9)
-    joint_periods = np.diff(np.array(stamps['/joint_states']) * 1e-9)
+    joint_periods = np.diff(np.array(stamps[JOINT_STATES_TOPIC]) * 1e-9)
     frames = sum(published[t] for t in IMAGE_TOPICS)
     frames_lost = frames - sum(in_bag.get(t, 0) for t in IMAGE_TOPICS)
-    joints_lost = published['/joint_states'] - in_bag.get('/joint_states', 0)
+    joints_lost = published[JOINT_STATES_TOPIC] - in_bag.get(JOINT_STATES_TOPIC, 0)
     return {
         'hosts': 1 if hosts is None else 2,
         'requested_hz': rate,

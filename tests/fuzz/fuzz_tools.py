@@ -17,6 +17,7 @@ from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters
 from std_srvs.srv import Trigger
 
 from vgm_common.qos import DEFAULT_QOS
+from vgm_common.topics import DIAGNOSTICS_TOPIC
 
 ANSWER_TIMEOUT = 10.0  # [s] get_parameters on a loaded 2-core machine
 REJECTION_TIMEOUT = 15.0  # [s] for the node to report a refused input
@@ -61,7 +62,7 @@ class Fuzzer:
         self._rejected = {}  # diagnostic status name -> highest count seen
         self._problems = 0  # WARN/ERROR diagnostics of this node seen
         probe.create_subscription(
-            DiagnosticArray, '/diagnostics', self._on_diagnostics, DEFAULT_QOS
+            DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, DEFAULT_QOS
         )
 
     # -- observing the node ---------------------------------------------------------

@@ -48,18 +48,27 @@ from vgm_common.topics import (
     CODED_COMPRESSED_TOPIC,
     CODED_IMAGE_TOPIC,
     DECODED_DISPARITY_TOPIC,
+    DEPTH_INFO_TOPIC,
+    DIAGNOSTICS_TOPIC,
     DISPARITY_TOPIC,
+    FUSED_DEPTH_TOPIC,
     IMAGE_TOPICS,
+    JOINT_STATES_TOPIC,
+    JOINT_TRAJECTORY_TOPIC,
     LEFT_RECT_TOPIC,
     OPTICAL_FRAMES,
     POSE_TOPICS,
+    PRESSURE_TOPIC,
+    TARGET_POSE_TOPIC,
+    TOOL_POSE_TOPIC,
+    WAYPOINTS_TOPIC,
 )
 
 MIN_CASES = 20  # kinds of bad input per node, at least
 FLOOD_IMAGES = 100
 SIMULTANEOUS_CALLERS = 20  # of a service
 FLOOD_MEMORY_BOUND = 400e6  # [bytes] RSS growth allowed by a flood
-TARGET_POSE_TOPIC = '/calibration/target_pose'
+TARGET_POSE_TOPIC = TARGET_POSE_TOPIC
 
 
 @pytest.fixture(scope='module')
@@ -181,7 +190,7 @@ def test_sfs_stereo_node(spawn, rclpy_node, small_scene):
     publishers, _ = publish_rig(rclpy_node, calibration)  # the good rig again
     fuzz_parameters(fuzzer)
     flood_images(fuzzer, capture)
-    fused = collect(rclpy_node, Image, '/depth/fused')
+    fused = collect(rclpy_node, Image, FUSED_DEPTH_TOPIC)
     good = {
         c: grey(renderer.scene_image(c), scenario, i).round().clip(0, 255).astype(np.uint8)
         for i, c in enumerate(('left', 'right'))
@@ -242,10 +251,10 @@ def test_curve_recon_node(spawn, rclpy_node, small_scene):
     fuzzer.check_serving('four reconstruct calls waiting')
     fuzz_images(fuzzer, capture)
     fuzz_camera_infos(fuzzer, ('left', 'aux'))
-    depth_info = fuzzer.publisher('/depth/camera_info', CameraInfo)
+    depth_info = fuzzer.publisher(DEPTH_INFO_TOPIC, CameraInfo)
     for label, msg in bad_messages.camera_infos():
         fuzzer.reject(f'/depth/camera_info: {label}', lambda m=msg: depth_info.publish(m))
-    depth = fuzzer.publisher('/depth/fused', Image)
+    depth = fuzzer.publisher(FUSED_DEPTH_TOPIC, Image)
     depth_info.publish(_good_depth_info())  # the depth values themselves are at fault
     for label, value in (('negative depth', -1.0), ('zero depth', 0.0), ('depth 1e30', 1e30)):
         msg = numpy_to_image(
@@ -263,7 +272,7 @@ def test_curve_recon_node(spawn, rclpy_node, small_scene):
     )
     # Good captures, one a second as a camera streams (automatic reconstruction tries at
     # most once a second): waypoints.
-    waypoints = collect(rclpy_node, Path, '/curve/waypoints', LATCHED_QOS)
+    waypoints = collect(rclpy_node, Path, WAYPOINTS_TOPIC, LATCHED_QOS)
     scene = {
         c: grey(renderer.scene_image(c), scenario, i).round().clip(0, 255).astype(np.uint8)
         for i, c in enumerate(('left', 'right', 'aux'))
@@ -330,7 +339,7 @@ def test_calib_node(spawn, rclpy_node, small_scene):
     views = []
     rclpy_node.create_subscription(
         DiagnosticArray,
-        '/diagnostics',
+        DIAGNOSTICS_TOPIC,
         lambda m: views.extend(
             int(v.value)
             for s in m.status
@@ -366,10 +375,10 @@ def test_calib_node(spawn, rclpy_node, small_scene):
 
 def test_pa10_ik_node(spawn, rclpy_node):
     fuzzer = start(spawn, rclpy_node, 'pa10_ik_node')
-    joints = fuzzer.publisher('/joint_states', JointState)
-    pressure = fuzzer.publisher('/tool/pressure', WrenchStamped)
-    waypoints = fuzzer.publisher('/curve/waypoints', Path, LATCHED_QOS)
-    tool_poses = collect(rclpy_node, PoseStamped, '/tool_pose')
+    joints = fuzzer.publisher(JOINT_STATES_TOPIC, JointState)
+    pressure = fuzzer.publisher(PRESSURE_TOPIC, WrenchStamped)
+    waypoints = fuzzer.publisher(WAYPOINTS_TOPIC, Path, LATCHED_QOS)
+    tool_poses = collect(rclpy_node, PoseStamped, TOOL_POSE_TOPIC)
     q_home = [0.0, 0.5, 0.0, 1.2, 0.0, 0.8, 0.0]
     good_state = JointState(name=list(JOINT_NAMES), position=q_home)
     feed = rclpy_node.create_timer(
@@ -427,14 +436,14 @@ def test_sensor_sim(spawn, rclpy_node, small_scene):
         '-p',
         'rate:=1.0',
     )
-    commands = fuzzer.publisher('/pa10_controller/joint_trajectory', JointTrajectory)
+    commands = fuzzer.publisher(JOINT_TRAJECTORY_TOPIC, JointTrajectory)
     for label, msg in bad_messages.joint_trajectories(JOINT_NAMES):
         fuzzer.reject(f'joint_trajectory: {label}', lambda m=msg: commands.publish(m))
     for label, msg in bad_messages.unusual_joint_trajectories(JOINT_NAMES):
         fuzzer.survive(f'joint_trajectory: {label}', lambda m=msg: commands.publish(m))
     fuzz_parameters(fuzzer)
     # A good command moves the arm.
-    states = collect(rclpy_node, JointState, '/joint_states')
+    states = collect(rclpy_node, JointState, JOINT_STATES_TOPIC)
     rclpy_node.spin_until(lambda: states, 30, 'joint states')
     q0 = np.array(states[-1].position)
     good = bad_messages.joint_trajectories(JOINT_NAMES)[2][1]  # NaN positions, fixed:
@@ -596,7 +605,7 @@ def test_live_view(spawn, rclpy_node):
     sent = []
     rclpy_node.create_subscription(
         DiagnosticArray,
-        '/diagnostics',
+        DIAGNOSTICS_TOPIC,
         lambda m: sent.extend(
             int(v.value)
             for s in m.status

@@ -15,6 +15,14 @@ from sensor_msgs.msg import Image
 from harness import REPO_ROOT, SCENARIO_DIR, executable, next_ros_env
 from vgm_common.conversions import image_to_numpy, stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
+from vgm_common.topics import (
+    CAMERA_INFO_TOPICS,
+    FUSED_DEPTH_TOPIC,
+    IMAGE_TOPICS,
+    POSE_TOPICS,
+    TARGET_POSE_TOPIC,
+    WAYPOINTS_TOPIC,
+)
 
 sys.path.insert(0, str(REPO_ROOT / 'scripts'))
 from demo_evaluation import distance_to_polylines  # noqa: E402
@@ -78,16 +86,16 @@ def test_closed_loop_tracks_the_curve_under_force_control(demo_run):
 
 
 REPLAYED_INPUTS = [
-    '/stereo/left/image_raw',
-    '/stereo/right/image_raw',
-    '/aux/image_raw',
-    '/stereo/left/camera_info',
-    '/stereo/right/camera_info',
-    '/aux/camera_info',
-    '/stereo/left/pose',
-    '/stereo/right/pose',
-    '/aux/pose',
-    '/calibration/target_pose',
+    IMAGE_TOPICS['left'],
+    IMAGE_TOPICS['right'],
+    IMAGE_TOPICS['aux'],
+    CAMERA_INFO_TOPICS['left'],
+    CAMERA_INFO_TOPICS['right'],
+    CAMERA_INFO_TOPICS['aux'],
+    POSE_TOPICS['left'],
+    POSE_TOPICS['right'],
+    POSE_TOPICS['aux'],
+    TARGET_POSE_TOPIC,
 ]
 
 
@@ -108,13 +116,13 @@ def _bag_messages(bag_dir, topics):
 def test_replay_reproduces_the_live_outputs(demo_run, spawn, rclpy_node):
     _, bag_dir, _ = demo_run
     assert bag_dir is not None, 'the demo recorded no bag'
-    live = _bag_messages(bag_dir, ['/curve/waypoints', '/depth/fused'])
-    replayed = {'/curve/waypoints': [], '/depth/fused': []}
+    live = _bag_messages(bag_dir, [WAYPOINTS_TOPIC, FUSED_DEPTH_TOPIC])
+    replayed = {WAYPOINTS_TOPIC: [], FUSED_DEPTH_TOPIC: []}
     rclpy_node.create_subscription(
-        PathMsg, '/curve/waypoints', replayed['/curve/waypoints'].append, LATCHED_QOS
+        PathMsg, WAYPOINTS_TOPIC, replayed[WAYPOINTS_TOPIC].append, LATCHED_QOS
     )
     rclpy_node.create_subscription(
-        Image, '/depth/fused', replayed['/depth/fused'].append, DEFAULT_QOS
+        Image, FUSED_DEPTH_TOPIC, replayed[FUSED_DEPTH_TOPIC].append, DEFAULT_QOS
     )
     params = bag_dir / 'params.yaml'  # what the demo ran them with
     for node in ('curve_recon_node', 'sfs_stereo_node'):
@@ -132,14 +140,14 @@ def test_replay_reproduces_the_live_outputs(demo_run, spawn, rclpy_node):
         ]
     )
     rclpy_node.spin_until(
-        lambda: replayed['/curve/waypoints'] and replayed['/depth/fused'],
+        lambda: replayed[WAYPOINTS_TOPIC] and replayed[FUSED_DEPTH_TOPIC],
         120.0,
         'waypoints and fused depth from the replayed bag',
     )
 
     # The curve: reconstructed from the same capture, the same waypoints bit for bit;
     # from another capture (other image noise), within 0.5 mm.
-    live_path, path = live['/curve/waypoints'][0], replayed['/curve/waypoints'][0]
+    live_path, path = live[WAYPOINTS_TOPIC][0], replayed[WAYPOINTS_TOPIC][0]
     points = _positions(path)
     live_points = _positions(live_path)
     if stamp_to_ns(path.header.stamp) == stamp_to_ns(live_path.header.stamp):
@@ -149,15 +157,15 @@ def test_replay_reproduces_the_live_outputs(demo_run, spawn, rclpy_node):
         assert np.sqrt(np.mean(distance_to_polylines(points, [live_points]) ** 2)) < 5e-4
 
     # Fused depth of a capture processed both live and in replay: identical.
-    live_by_stamp = {stamp_to_ns(m.header.stamp): m for m in live['/depth/fused']}
+    live_by_stamp = {stamp_to_ns(m.header.stamp): m for m in live[FUSED_DEPTH_TOPIC]}
     rclpy_node.spin_until(
         lambda: any(
-            stamp_to_ns(m.header.stamp) in live_by_stamp for m in replayed['/depth/fused']
+            stamp_to_ns(m.header.stamp) in live_by_stamp for m in replayed[FUSED_DEPTH_TOPIC]
         ),
         120.0,
         'a replayed fused depth of a capture also fused live',
     )
-    for msg in replayed['/depth/fused']:
+    for msg in replayed[FUSED_DEPTH_TOPIC]:
         original = live_by_stamp.get(stamp_to_ns(msg.header.stamp))
         if original is not None:
             np.testing.assert_array_equal(image_to_numpy(msg), image_to_numpy(original))

@@ -24,9 +24,15 @@ from vgm_common.conversions import (
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.sample_data import opencv_sample_dir
-from vgm_common.topics import CAMERA_INFO_TOPICS, CAMERA_NAMES, IMAGE_TOPICS, POSE_TOPICS
+from vgm_common.topics import (
+    CAMERA_INFO_TOPICS,
+    CAMERA_NAMES,
+    IMAGE_TOPICS,
+    POSE_TOPICS,
+    TARGET_POSE_TOPIC,
+)
 
-TARGET_POSE_TOPIC = '/calibration/target_pose'
+TARGET_POSE_TOPIC = TARGET_POSE_TOPIC
 # Tolerances against the default scenario's true cameras (image noise sigma 1 grey level,
 # 10 chart poses; measured errors are about a third of these).
 FOCAL_RTOL = 0.01  # fx, fy

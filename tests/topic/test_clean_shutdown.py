@@ -9,6 +9,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 
 from harness import executable
 from vgm_common.qos import DEFAULT_QOS
+from vgm_common.topics import DIAGNOSTICS_TOPIC
 
 PROBLEM = re.compile(r'\[(WARN|ERROR)\]|never retrieved|never awaited|Traceback')
 
@@ -18,7 +19,7 @@ def test_a_clean_start_and_stop_prints_no_warning_or_error(spawn, rclpy_node, pa
     statuses = []
     rclpy_node.create_subscription(
         DiagnosticArray,
-        '/diagnostics',
+        DIAGNOSTICS_TOPIC,
         lambda msg: statuses.extend(s.name for s in msg.status),
         DEFAULT_QOS,
     )

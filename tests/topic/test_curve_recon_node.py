@@ -29,7 +29,15 @@ from vgm_common.conversions import (
     stamp_to_ns,
 )
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
-from vgm_common.topics import CURVE_POINTS_TOPIC, IMAGE_TOPICS, OPTICAL_FRAMES, WAYPOINTS_TOPIC
+from vgm_common.topics import (
+    CURVE_POINTS_TOPIC,
+    DEPTH_INFO_TOPIC,
+    FUSED_DEPTH_TOPIC,
+    IMAGE_TOPICS,
+    OPTICAL_FRAMES,
+    TARGET_POSE_TOPIC,
+    WAYPOINTS_TOPIC,
+)
 
 SPACING = 0.005  # [m] the default
 
@@ -67,7 +75,7 @@ def run_scenario(
     chart_stamps = []
     rclpy_node.create_subscription(
         PoseStamped,
-        '/calibration/target_pose',
+        TARGET_POSE_TOPIC,
         lambda m: chart_stamps.append(stamp_to_ns(m.header.stamp)),
         DEFAULT_QOS,
     )
@@ -202,8 +210,8 @@ def test_chart_captures_are_skipped_then_depth_normals_are_used(spawn, rclpy_nod
     R_left, P_left = stereo_rectification(left, right)['left']
     depth_raw = np.load(truth / 'depth_left.npy')
     depth_rect = rectified_depth(left, depth_raw, R_left, P_left)
-    info_pub = rclpy_node.create_publisher(CameraInfo, '/depth/camera_info', DEFAULT_QOS)
-    depth_pub = rclpy_node.create_publisher(Image, '/depth/fused', DEFAULT_QOS)
+    info_pub = rclpy_node.create_publisher(CameraInfo, DEPTH_INFO_TOPIC, DEFAULT_QOS)
+    depth_pub = rclpy_node.create_publisher(Image, FUSED_DEPTH_TOPIC, DEFAULT_QOS)
     rclpy_node.spin_until(lambda: depth_pub.get_subscription_count() > 0, 10, 'depth sub')
 
     def approach_from_depth(path):
@@ -493,8 +501,8 @@ def check_waiting_calls_leave_the_executor_free(session):
 
 def depth_publishers(rclpy_node):
     """Publishers of /depth/camera_info and /depth/fused, once the node subscribed."""
-    info_pub = rclpy_node.create_publisher(CameraInfo, '/depth/camera_info', DEFAULT_QOS)
-    depth_pub = rclpy_node.create_publisher(Image, '/depth/fused', DEFAULT_QOS)
+    info_pub = rclpy_node.create_publisher(CameraInfo, DEPTH_INFO_TOPIC, DEFAULT_QOS)
+    depth_pub = rclpy_node.create_publisher(Image, FUSED_DEPTH_TOPIC, DEFAULT_QOS)
     rclpy_node.spin_until(
         lambda: depth_pub.get_subscription_count() > 0 and info_pub.get_subscription_count() > 0,
         10,

@@ -19,6 +19,8 @@ from vgm_common.qos import DEFAULT_QOS
 sys.path.insert(0, str(REPO_ROOT / 'scripts'))
 import demo  # noqa: E402
 
+from vgm_common.topics import JOINT_TRAJECTORY_TOPIC
+
 START_TO_MOTION_S = 2.0  # [s] the goal: the arm moves this soon after the call
 
 
@@ -45,7 +47,7 @@ def test_the_demo_arm_moves_within_2_s_of_the_start_call_without_a_viewer(
     commands = []  # (time.monotonic() of arrival, message)
     rclpy_node.create_subscription(
         JointTrajectory,
-        '/pa10_controller/joint_trajectory',
+        JOINT_TRAJECTORY_TOPIC,
         lambda msg: commands.append((time.monotonic(), msg)),
         DEFAULT_QOS,
     )

@@ -9,6 +9,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from harness import executable
 from vgm_common.conversions import make_header, numpy_to_image
 from vgm_common.qos import DEFAULT_QOS
+from vgm_common.topics import DEPTH_INFO_TOPIC, DIAGNOSTICS_TOPIC, FUSED_DEPTH_TOPIC
 
 WIDTH, HEIGHT, FOCAL_PX = 320, 240, 300.0
 STAMP_NS = 5_000_000_000
@@ -19,10 +20,10 @@ def test_a_depth_image_before_its_camera_info_is_used_once_the_info_comes(spawn,
     depth_states = []  # the node's 'depth' status value, in order
     problems = []
     rclpy_node.create_subscription(
-        DiagnosticArray, '/diagnostics', lambda msg: _collect(msg, depth_states, problems), 10
+        DiagnosticArray, DIAGNOSTICS_TOPIC, lambda msg: _collect(msg, depth_states, problems), 10
     )
-    depth_pub = rclpy_node.create_publisher(Image, '/depth/fused', DEFAULT_QOS)
-    info_pub = rclpy_node.create_publisher(CameraInfo, '/depth/camera_info', DEFAULT_QOS)
+    depth_pub = rclpy_node.create_publisher(Image, FUSED_DEPTH_TOPIC, DEFAULT_QOS)
+    info_pub = rclpy_node.create_publisher(CameraInfo, DEPTH_INFO_TOPIC, DEFAULT_QOS)
     node = spawn([executable('curve_recon_node')])
     rclpy_node.spin_until(
         lambda: depth_pub.get_subscription_count() and info_pub.get_subscription_count(),

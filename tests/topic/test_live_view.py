@@ -21,21 +21,32 @@ from bag_tools.message_definitions import full_definition
 from harness import executable, publish_rig, wait_for
 from vgm_common.conversions import make_header, pose_to_matrix
 from vgm_common.qos import DEFAULT_QOS
-from vgm_common.topics import OPTICAL_FRAMES, POSE_TOPICS
+from vgm_common.topics import (
+    CAMERA_INFO_TOPICS,
+    DIAGNOSTICS_TOPIC,
+    IMAGE_TOPICS,
+    JOINT_STATES_TOPIC,
+    OPTICAL_FRAMES,
+    POSE_TOPICS,
+    PRESSURE_TOPIC,
+    TARGET_POSE_TOPIC,
+    TOOL_POSE_TOPIC,
+    TRANSFORMS_TOPIC,
+)
 
 EXPECTED = {  # topic -> schema name
-    '/stereo/left/image_raw': 'sensor_msgs/msg/Image',
-    '/stereo/right/image_raw': 'sensor_msgs/msg/Image',
-    '/aux/image_raw': 'sensor_msgs/msg/Image',
-    '/joint_states': 'sensor_msgs/msg/JointState',
-    '/tool/pressure': 'geometry_msgs/msg/WrenchStamped',
-    '/calibration/target_pose': 'geometry_msgs/msg/PoseStamped',
-    '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
-    '/stereo/left/pose': 'geometry_msgs/msg/PoseStamped',
-    '/stereo/left/camera_info': 'sensor_msgs/msg/CameraInfo',
-    '/tool_pose': 'geometry_msgs/msg/PoseStamped',
+    IMAGE_TOPICS['left']: 'sensor_msgs/msg/Image',
+    IMAGE_TOPICS['right']: 'sensor_msgs/msg/Image',
+    IMAGE_TOPICS['aux']: 'sensor_msgs/msg/Image',
+    JOINT_STATES_TOPIC: 'sensor_msgs/msg/JointState',
+    PRESSURE_TOPIC: 'geometry_msgs/msg/WrenchStamped',
+    TARGET_POSE_TOPIC: 'geometry_msgs/msg/PoseStamped',
+    DIAGNOSTICS_TOPIC: 'diagnostic_msgs/msg/DiagnosticArray',
+    POSE_TOPICS['left']: 'geometry_msgs/msg/PoseStamped',
+    CAMERA_INFO_TOPICS['left']: 'sensor_msgs/msg/CameraInfo',
+    TOOL_POSE_TOPIC: 'geometry_msgs/msg/PoseStamped',
 }
-LEFT = '/stereo/left/image_raw'
+LEFT = IMAGE_TOPICS['left']
 
 
 def _tool_pose(position, quaternion):
@@ -95,13 +106,13 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
         DEFAULT_QOS,
         raw=True,
     )
-    tool_pose = rclpy_node.create_publisher(PoseStamped, '/tool_pose', DEFAULT_QOS)
+    tool_pose = rclpy_node.create_publisher(PoseStamped, TOOL_POSE_TOPIC, DEFAULT_QOS)
     rclpy_node.spin_until(lambda: raw_left, 60, 'a left image')
 
     client = FoxgloveClient(url)
     try:
         assert client.subprotocol == 'foxglove.sdk.v1'
-        channels = client.wait_for_channels([*EXPECTED, '/tf'], 60)
+        channels = client.wait_for_channels([*EXPECTED, TRANSFORMS_TOPIC], 60)
         assert client.server_info['name'] == 'vgm live_view'
         for topic, schema_name in EXPECTED.items():
             channel = channels[topic]
@@ -111,22 +122,25 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
                 'ros2msg',
             ), topic
             assert channel['schema'] == full_definition(schema_name), topic  # as bags carry
-        assert (channels['/tf']['schemaName'], channels['/tf']['encoding']) == (
+        assert (
+            channels[TRANSFORMS_TOPIC]['schemaName'],
+            channels[TRANSFORMS_TOPIC]['encoding'],
+        ) == (
             'foxglove.FrameTransforms',
             'protobuf',
         )
         assert '/parameter_events' not in channels  # exclude
 
-        client.subscribe([LEFT, '/joint_states', '/tf', POSE_TOPICS['left']])
+        client.subscribe([LEFT, JOINT_STATES_TOPIC, TRANSFORMS_TOPIC, POSE_TOPICS['left']])
         received = {}
         transforms = {}
 
         # The camera transforms come on subscribing to /tf (they were latched before).
         def record(topic, log_time_ns, payload):
             received.setdefault(topic, payload)
-            if topic == '/tf':
+            if topic == TRANSFORMS_TOPIC:
                 transforms.update({t['child']: t for t in decode_frame_transforms(payload)})
-            return topic == '/tf'
+            return topic == TRANSFORMS_TOPIC
 
         client.receive_until(record, 30, 'the camera transforms')
         # Now that /tf is watched: a bad pose is rejected (the node keeps serving), a good
@@ -142,7 +156,12 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
 
         def collect(topic, log_time_ns, payload):
             record(topic, log_time_ns, payload)
-            return set(received) == {LEFT, '/joint_states', '/tf', POSE_TOPICS['left']} and {
+            return set(received) == {
+                LEFT,
+                JOINT_STATES_TOPIC,
+                TRANSFORMS_TOPIC,
+                POSE_TOPICS['left'],
+            } and {
                 OPTICAL_FRAMES['left'],
                 OPTICAL_FRAMES['aux'],
                 'tool0',
@@ -164,7 +183,7 @@ def test_live_view_serves_the_graph_to_a_foxglove_client(spawn, rclpy_node, tmp_
     )
     assert bytes(received[LEFT]) == bytes(raw_left[stamp])
 
-    joints = deserialize_message(received['/joint_states'], JointState)
+    joints = deserialize_message(received[JOINT_STATES_TOPIC], JointState)
     assert list(joints.name) == [f'pa10_joint{i}' for i in range(1, 8)]
     assert len(joints.position) == 7 and np.all(np.isfinite(joints.position))
 

@@ -14,7 +14,19 @@ from sfs_stereo_node.rectify import raw_depth_to_rectified, rectification_maps
 from vgm_common.calibration_io import write_calibration
 from vgm_common.conversions import image_to_numpy, numpy_to_image, stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS
-from vgm_common.topics import IMAGE_TOPICS, OPTICAL_FRAMES
+from vgm_common.topics import (
+    DEPTH_CONFIDENCE_TOPIC,
+    DEPTH_INFO_TOPIC,
+    DEPTH_POINTS_TOPIC,
+    DIAGNOSTICS_TOPIC,
+    DISPARITY_TOPIC,
+    FUSED_DEPTH_TOPIC,
+    IMAGE_TOPICS,
+    LEFT_RECT_TOPIC,
+    OPTICAL_FRAMES,
+    SFS_DEPTH_TOPIC,
+    STEREO_DEPTH_TOPIC,
+)
 
 FRAME = 'stereo_left_optical_frame'
 # Disparity search: up to 160 px (the scene is nearer than the default quarter width).
@@ -33,14 +45,14 @@ def collect(rclpy_node):
         'diagnostics': [],
     }
     for key, msg_type, topic in (
-        ('disparity', DisparityImage, '/stereo/disparity'),
-        ('stereo', Image, '/depth/stereo'),
-        ('sfs', Image, '/depth/sfs'),
-        ('fused', Image, '/depth/fused'),
-        ('confidence', Image, '/depth/confidence'),
-        ('info', CameraInfo, '/depth/camera_info'),
-        ('left_rect', Image, '/stereo/left/image_rect'),
-        ('diagnostics', DiagnosticArray, '/diagnostics'),
+        ('disparity', DisparityImage, DISPARITY_TOPIC),
+        ('stereo', Image, STEREO_DEPTH_TOPIC),
+        ('sfs', Image, SFS_DEPTH_TOPIC),
+        ('fused', Image, FUSED_DEPTH_TOPIC),
+        ('confidence', Image, DEPTH_CONFIDENCE_TOPIC),
+        ('info', CameraInfo, DEPTH_INFO_TOPIC),
+        ('left_rect', Image, LEFT_RECT_TOPIC),
+        ('diagnostics', DiagnosticArray, DIAGNOSTICS_TOPIC),
     ):
         rclpy_node.create_subscription(msg_type, topic, received[key].append, DEFAULT_QOS)
     return received
@@ -373,7 +385,7 @@ def test_aloe_as_a_rectified_pair_with_a_cx_offset_then_a_textureless_pair(spawn
     received = collect(rclpy_node)
     received['points'] = []
     rclpy_node.create_subscription(
-        PointCloud2, '/depth/points', received['points'].append, DEFAULT_QOS
+        PointCloud2, DEPTH_POINTS_TOPIC, received['points'].append, DEFAULT_QOS
     )
     image_pub = {
         n: rclpy_node.create_publisher(Image, IMAGE_TOPICS[n], DEFAULT_QOS)
