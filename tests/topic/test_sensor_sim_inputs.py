@@ -41,6 +41,12 @@ def pressing_configuration(scenario, penetration):
 
 @pytest.fixture
 def sim(spawn, rclpy_node):
+    return start_sim(spawn, rclpy_node)
+
+
+def start_sim(spawn, rclpy_node, *extra):
+    """sensor_sim on the default scenario (``extra``: more arguments) and the test node's
+    subscriptions and command publisher, once joint states flow."""
     process = spawn(
         [
             executable('sensor_sim'),
@@ -51,6 +57,7 @@ def sim(spawn, rclpy_node):
             'calibration_phase:=false',
             '-p',
             'rate:=2',
+            *extra,
         ]
     )
     states, wrenches, diagnostics = [], [], []
@@ -95,6 +102,37 @@ def test_arm_moves_to_a_pressing_pose_and_the_sensor_reads_the_force(sim, rclpy_
     expected = scenario.contact_stiffness * penetration  # [N]
     assert forces.mean() == pytest.approx(expected, abs=4 * sigma / np.sqrt(len(forces)) + 1e-3)
     assert forces.std() == pytest.approx(sigma, rel=0.25)
+
+
+def test_a_delayed_arm_follows_a_trajectory_only_its_delay_after_the_stamp(spawn, rclpy_node):
+    """arm_command_delay 0.3 s: a trajectory stamped T0 (1 s to a pressing pose) leaves the
+    arm still on every joint state up to T0 + 0.3 s and brings it there no sooner than
+    T0 + 1.3 s (its times count from T0 + 0.3 s); the upper bounds allow the loaded
+    machine's late arm steps."""
+    from vgm_common.conversions import make_header
+
+    delay = 0.3  # [s]
+    process, publisher, states, _, _ = start_sim(
+        spawn, rclpy_node, '-p', f'arm_command_delay:={delay}'
+    )
+    scenario = load_scenario(SCENARIO)
+    q_start = np.array(states[-1].position)
+    q_goal = pressing_configuration(scenario, 0.004)
+    command = trajectory(JOINT_NAMES, q_goal, 1.0)
+    t0_ns = stamp_to_ns(states[-1].header.stamp) + 50_000_000  # just ahead of the arm's clock
+    command.header = make_header(t0_ns, 'base_link')
+    publisher.publish(command)
+    rclpy_node.spin_until(
+        lambda: np.allclose(states[-1].position, q_goal, atol=1e-9), 30, 'the arm to arrive'
+    )
+    stamps = np.array([(stamp_to_ns(m.header.stamp) - t0_ns) * 1e-9 for m in states])
+    moved = np.array([np.max(np.abs(np.array(m.position) - q_start)) > 1e-12 for m in states])
+    first_moved = stamps[np.argmax(moved)]
+    arrived = stamps[np.argmax([np.allclose(m.position, q_goal, atol=1e-9) for m in states])]
+    print(f'first motion {first_moved:.4f} s after the stamp, arrival {arrived:.4f} s')
+    assert delay < first_moved < delay + 0.2
+    assert 1.0 + delay <= arrived < 1.0 + delay + 0.2
+    assert 'Traceback' not in process.output()
 
 
 @pytest.mark.parametrize(
