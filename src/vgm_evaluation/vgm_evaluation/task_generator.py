@@ -501,6 +501,8 @@ class CaseSpec:
     arm_mode: str
     speed_scale: float
     seed: int
+    # x, y, z [m], roll, pitch, yaw [rad] of the arm's base frame in base_link
+    base_placement: tuple[float, ...] = (0.0,) * 6
 
     @property
     def label(self) -> str:
@@ -573,7 +575,12 @@ def build_case(spec: CaseSpec, directory: str | os.PathLike[str]) -> BuiltCase:
 
     urdf = Path(directory) / f'{spec.arm.name}.urdf'
     urdf.write_text(spec.arm.urdf)
-    robot = load_robot(str(urdf), tip_frame=spec.arm.tip_frame, base_frame=spec.arm.base_frame)
+    robot = load_robot(
+        str(urdf),
+        tip_frame=spec.arm.tip_frame,
+        base_frame=spec.arm.base_frame,
+        base_placement=list(spec.base_placement),
+    )
     rng = np.random.default_rng(spec.seed)
     placement = spec.arm.start_joints
     if spec.path_shape == 'tight_loop':  # near the reach
@@ -595,7 +602,7 @@ def plane_scenario(
     scene), light, noise and contact (a scenario file's dict, e.g. the default one's)
     with the case's posed plane (+-0.5 m of it: the template's curve is
     drawn on it, not tracked) and its arm (the URDF at ``urdf_path``, its tip frame the
-    tool tip: no tool length, the start joints).
+    tool tip: no tool length, the start joints, the spec's base placement).
 
     Raises:
         InvalidInput: a case whose surface is no plane (only planes are posed here).
@@ -632,6 +639,6 @@ def plane_scenario(
         'initial_joints': arm.start_joints.tolist(),
         'tip_frame': arm.tip_frame,
         'base_frame': arm.base_frame,
-        'base_placement': [0.0] * 6,
+        'base_placement': [float(x) for x in built.spec.base_placement],
     }
     return data
