@@ -33,10 +33,17 @@ with its own phase logic and force loop (no governor: its reference runs on the 
 ``PEER_SPEED``); task time, pace ratio ours / peer and the goal figures, from a start in
 free space and from a start already in contact at the first waypoint.
 
+Part F (`--over-topics`, pa10_ik_topics.py): ours (pa10_ik_node) beside the DLS peer
+(pa10_dls_peer_node.py: ``DlsPeer`` as a node) over the topics against sensor_sim, on
+example-robot-data arms x path shapes x tilted planes x {ideal arm, commands 20 ms late,
+half-speed arm}: a seeded sample (``--cases N``, default 12) or ``--whole-grid``.
+
 Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_pa10_ik.py
      [--cases-only [--arms N]]   (Part C alone: N random arms and the Panda)
      [--robot-data [--shapes arc,figure_eight] [--tilts 20,45]]   (Part D alone)
      [--pace]   (Part E alone)
+     [--over-topics [--cases N | --whole-grid] [--all-arms] [--seed S]]   (Part F alone:
+     bench/results/pa10_ik_topics/)
 Writes bench/results/pa10_ik/ (results.md, results.json, PNG plots) and, for Part C,
 bench/results/pa10_ik_cases/ (results.md, results.json).
 """
@@ -835,18 +842,29 @@ def main_pace():
     return rows
 
 
-def main():
-    if '--pace' in sys.argv:
+def main_part_alone():
+    """Run the part the command line names alone (C-F); False if it names none."""
+    if '--over-topics' in sys.argv:
+        from pa10_ik_topics import main_over_topics
+
+        main_over_topics(sys.argv[1:])
+    elif '--pace' in sys.argv:
         main_pace()
-        return None
-    if '--robot-data' in sys.argv:
+    elif '--robot-data' in sys.argv:
         shapes = _option('--shapes', 'arc,figure_eight').split(',')
         tilts = [float(t) for t in _option('--tilts', '20,45').split(',')]
         main_robot_data(shapes, tilts)
-        return None
-    if '--cases-only' in sys.argv:
+    elif '--cases-only' in sys.argv:
         arms = int(sys.argv[sys.argv.index('--arms') + 1]) if '--arms' in sys.argv else 2
-        return main_cases(random_arms=arms)
+        main_cases(random_arms=arms)
+    else:
+        return False
+    return True
+
+
+def main():
+    if main_part_alone():
+        return
     OUT.mkdir(parents=True, exist_ok=True)
     robot = load_robot('pa10_thesis', 0.0)
     table, logs = {}, {}

@@ -12,7 +12,6 @@ from geometry_msgs.msg import PoseStamped, WrenchStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.srv import GetParameters
 from rclpy.clock import Clock
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
@@ -557,50 +556,20 @@ def test_an_exception_in_the_control_step_stops_the_arm_and_the_node_serves(ros_
 
 
 def arm_on_a_tilted_plane(tmp_path, arm, tilt_deg, shape, seed, base_placement=(0.0,) * 6):
-    """A scenario file (the default one's cameras and light) with ``arm`` (a
-    task_generator.GeneratedArm, its URDF beside the file, its base frame at
-    ``base_placement``) and a plane tilted by ``tilt_deg`` in front of its tool; waypoints
-    of ``shape`` on it and the dense path."""
-    urdf = tmp_path / f'{arm.name}.urdf'
-    urdf.write_text(arm.urdf)
-    robot = load_robot(
-        str(urdf),
-        tip_frame=arm.tip_frame,
-        base_frame=arm.base_frame,
-        base_placement=list(base_placement),
+    """A scenario file (task_generator.plane_scenario: the default one's cameras and light)
+    with ``arm`` (a task_generator.GeneratedArm, its URDF beside the file, its base frame
+    at ``base_placement``) and a plane tilted by ``tilt_deg`` in front of its tool; the
+    scenario, the waypoints of ``shape`` on it and the dense path."""
+    spec = task_generator.CaseSpec(
+        arm, 'plane', np.radians(tilt_deg), shape, 'position', 1.0, seed, tuple(base_placement)
     )
-    rng = np.random.default_rng(seed)
-    surface = task_generator.posed_surface(
-        'plane', robot, arm.start_joints, np.radians(tilt_deg), rng
+    built = task_generator.build_case(spec, tmp_path)
+    data = task_generator.plane_scenario(
+        built, yaml.safe_load(SCENARIO.read_text()), tmp_path / f'{arm.name}.urdf'
     )
-    xy, closed = task_generator.path_xy_m(shape, rng)
-    waypoints = task_generator.surface_waypoints(surface, xy, closed)
-    path_base = surface_points_base(surface, xy / surface.scale)
-    data = yaml.safe_load(SCENARIO.read_text())
-    T = surface.T_base_surface
-    # The default scenario's curve (drawn, not tracked here) needs +-0.5 m of plane.
-    data['surface'] = {
-        'type': 'plane',
-        'scale': 1.0,
-        'extent': [[-0.5, 0.5], [-0.5, 0.5]],
-        'pose': {
-            'xyz': T[:3, 3].tolist(),
-            'quaternion': Rotation.from_matrix(T[:3, :3]).as_quat().tolist(),
-        },
-        'albedo': 0.8,
-        'roughness': 0.3,
-    }
-    # No tool_length: the URDF's tip frame is the tool tip.
-    data['robot'] = {
-        'model': urdf.name,
-        'initial_joints': arm.start_joints.tolist(),
-        'tip_frame': arm.tip_frame,
-        'base_frame': arm.base_frame,
-        'base_placement': list(base_placement),
-    }
     scenario_path = tmp_path / 'scenario.yaml'
     scenario_path.write_text(yaml.safe_dump(data))
-    return scenario_path, load_scenario(scenario_path), waypoints, path_base
+    return scenario_path, load_scenario(scenario_path), built.waypoints, built.path_base
 
 
 def track_over_topics(
@@ -677,19 +646,21 @@ def track_over_topics(
 
 
 def check_goals(tips, forces, scenario, path_base, what, rms_max, passed_min, p95_max):
-    """The generated cases' goal figures over topics (the goals are RMS 0.05 mm, 99 %
-    passed, force p95 3 %; over topics on a loaded 2-core machine the tests allow what it
-    reliably gives: see README)."""
-    distances, passed = task_generator.path_errors(tips, scenario.surface, path_base)
-    rms = float(np.sqrt(np.mean(distances**2)))
-    p95 = float(np.percentile(np.abs(forces - DESIRED_FORCE), 95)) / DESIRED_FORCE
+    """The generated cases' goal figures over topics (task_generator.goal_figures; the
+    goals are RMS 0.05 mm, 99 % passed, force p95 3 %; over topics on a loaded 2-core
+    machine the tests allow what it reliably gives: see README): path RMS below
+    ``rms_max`` [m], passed fraction above ``passed_min``, force p95 error below
+    ``p95_max`` (a fraction of the desired force)."""
+    figures = task_generator.goal_figures(tips, forces, scenario.surface, path_base, DESIRED_FORCE)
     print(
-        f'{what}: {len(tips)} tool poses while tracking, RMS {rms * 1e3:.4f} mm, max '
-        f'{distances.max() * 1e3:.4f} mm, passed {passed * 100:.1f} %, force p95 error '
-        f'{p95 * 100:.2f} %'
+        f'{what}: {len(tips)} tool poses while tracking, RMS {figures["rms_mm"]:.4f} mm, '
+        f'max {figures["max_mm"]:.4f} mm, passed {figures["passed_fraction"] * 100:.1f} %, '
+        f'force p95 error {figures["force_p95_pct"]:.2f} %'
     )
     assert len(tips) > 50 and len(forces) > 100
-    assert rms < rms_max and passed > passed_min and p95 < p95_max
+    assert figures['rms_mm'] < rms_max * 1e3
+    assert figures['passed_fraction'] > passed_min
+    assert figures['force_p95_pct'] < p95_max * 100
 
 
 def test_a_urdf_whose_tip_frame_is_the_tool_tip_tracks_with_no_tool_parameter(

@@ -41,6 +41,12 @@ def pressing_configuration(scenario, penetration):
 
 @pytest.fixture
 def sim(spawn, rclpy_node):
+    return start_sim(spawn, rclpy_node)
+
+
+def start_sim(spawn, rclpy_node, *extra):
+    """sensor_sim on the default scenario (``extra``: more arguments) and the test node's
+    subscriptions and command publisher, once joint states flow."""
     process = spawn(
         [
             executable('sensor_sim'),
@@ -51,6 +57,7 @@ def sim(spawn, rclpy_node):
             'calibration_phase:=false',
             '-p',
             'rate:=2',
+            *extra,
         ]
     )
     states, wrenches, diagnostics = [], [], []
@@ -95,6 +102,72 @@ def test_arm_moves_to_a_pressing_pose_and_the_sensor_reads_the_force(sim, rclpy_
     expected = scenario.contact_stiffness * penetration  # [N]
     assert forces.mean() == pytest.approx(expected, abs=4 * sigma / np.sqrt(len(forces)) + 1e-3)
     assert forces.std() == pytest.approx(sigma, rel=0.25)
+
+
+def test_a_delayed_arm_follows_a_trajectory_only_its_delay_after_the_stamp(spawn, rclpy_node):
+    """arm_command_delay 0.3 s: a trajectory stamped T0 (a straight joint move to a
+    pressing pose in 1 s) is followed as if stamped T0 + 0.3 s. The position arm (speed
+    scale 1, well within its velocity limits) is on that line at its own clock on every
+    joint state, however late the loaded machine runs its steps: still up to T0 + 0.3 s,
+    at fraction (t - T0 - 0.3 s) / 1 s of the move after that, at the goal from T0 + 1.3 s.
+    So the test reads the delay from positions and stamps, not from when the steps fell
+    (under load a step can land microseconds before T0 + 1.3 s or 100 ms after it)."""
+    from vgm_common.conversions import make_header
+
+    delay, duration = 0.3, 1.0  # [s]
+    process, publisher, states, _, _ = start_sim(
+        spawn, rclpy_node, '-p', f'arm_command_delay:={delay}'
+    )
+    scenario = load_scenario(SCENARIO)
+    robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
+    q_start = np.array(states[-1].position)
+    q_goal = pressing_configuration(scenario, 0.004)
+    step = q_goal - q_start
+    # The line's speed stays below the limits: every step can reach its set point.
+    assert np.all(np.abs(step) / duration < 0.5 * robot.velocity_limits)
+    command = trajectory(JOINT_NAMES, q_goal, duration)
+    # 0.5 s ahead of the last state seen: the command is there before it takes effect
+    # (T0 + 0.8 s) even with the test process and the simulator's executor starved.
+    t0_ns = stamp_to_ns(states[-1].header.stamp) + 500_000_000
+    command.header = make_header(t0_ns, 'base_link')
+    publisher.publish(command)
+    settled = delay + duration + 0.1  # [s] after T0
+    rclpy_node.spin_until(
+        lambda: stamp_to_ns(states[-1].header.stamp) > t0_ns + settled * 1e9,
+        30,
+        'joint states past the end of the delayed move',
+    )
+    t = np.array([(stamp_to_ns(m.header.stamp) - t0_ns) * 1e-9 for m in states])
+    q = np.array([m.position for m in states])
+    # A step follows the command in force at its start (the previous state's stamp); a
+    # state dropped on the way only makes the previous stamp seen earlier (conservative).
+    in_force = np.concatenate([[False], t[:-1] >= delay])
+    still = t <= delay
+    fraction = np.clip((t - delay) / duration, 0.0, 1.0)
+    expected = q_start + fraction[:, np.newaxis] * step
+    # Stamps are doubles of ~1.8e9 s (0.24 us apart) on both sides: positions agree to
+    # the line's speed times a few microseconds; 5 us of time, 1e-6 rad here.
+    atol = 5e-6 * np.max(np.abs(step)) / duration
+    checked = still | in_force
+    errors = np.max(np.abs(q[checked] - expected[checked]), axis=1)
+    moving = in_force & (fraction > 0) & (fraction < 1)
+    counts = {
+        'held after T0': int(np.sum(still & (t > 0))),
+        'moving': int(np.sum(moving)),
+        'arrived': int(np.sum(in_force & (fraction == 1))),
+    }
+    # The delay each moving state implies: its stamp less the time its position is at.
+    implied = t[moving] - duration * ((q[moving] - q_start) @ step) / np.dot(step, step)
+    print(
+        f'states {counts}; delay read from positions {implied.min():.7f}..'
+        f'{implied.max():.7f} s; max error {np.max(errors):.2e} rad (tolerance {atol:.1e})'
+    )
+    assert np.max(errors) < atol
+    # 200 Hz states: 60 in the hold after T0, 200 moving, 20 arrived when unloaded; a
+    # tenth of that still shows each phase.
+    assert counts['held after T0'] >= 10 and counts['moving'] >= 20 and counts['arrived'] >= 2
+    assert np.all(np.abs(implied - delay) < 5e-6)
+    assert 'Traceback' not in process.output()
 
 
 @pytest.mark.parametrize(

@@ -225,3 +225,46 @@ def test_a_hold_now_stops_either_arm_within_one_step(mode):
 def test_bad_arm_mode_or_scale_is_rejected(kwargs):
     with pytest.raises(InvalidInput):
         SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), **kwargs)
+
+
+@pytest.mark.parametrize('mode', ['position', 'velocity'])
+def test_a_delayed_arm_moves_as_the_prompt_one_did_the_delay_before(mode):
+    """command_delay 20 ms: 100 Hz commands (set points and velocities that change every
+    period) take effect 2 periods late, so the delayed arm's path is the prompt arm's
+    shifted by exactly 20 ms, and it holds still for the first 20 ms."""
+    delay = 0.02
+    prompt = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode=mode)
+    late = SimulatedArm(
+        NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), mode=mode, command_delay=delay
+    )
+    # Set points independent of the arm's state, as a trajectory generator sends them.
+    targets = [0.3 * np.sin(0.5 * k + np.arange(7)) for k in range(60)]
+    rates = [0.1 + 0.15 * np.cos(0.5 * k + np.arange(7)) for k in range(60)]
+    t, prompt_q, late_q = 0.0, [], []
+    for target, rate in zip(targets, rates):
+        for arm in (prompt, late):
+            arm.set_trajectory(NAMES, [0.05], [target], [rate], start_time=t)
+        for _ in range(2):  # sensor_sim's 200 Hz beside 100 Hz commands
+            t += DT / 2
+            prompt.step(t, DT / 2)
+            late.step(t, DT / 2)
+        prompt_q.append(prompt.q)
+        late_q.append(late.q)
+    shift = int(round(delay / DT))
+    np.testing.assert_allclose(np.array(late_q[:shift]), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.array(late_q[shift:]), np.array(prompt_q[:-shift]), atol=1e-12)
+    assert np.max(np.abs(prompt_q[-1])) > 0.05  # it really moved
+
+
+def test_a_hold_on_a_delayed_arm_drops_the_commands_still_on_their_way():
+    arm = SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), command_delay=0.05)
+    arm.set_trajectory(NAMES, [0.1], [np.full(7, 0.2)], start_time=0.0)
+    arm.hold()
+    run(arm, 0.0, 0.3)
+    np.testing.assert_allclose(arm.q, 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize('delay', [-0.01, float('inf'), float('nan')])
+def test_a_bad_command_delay_is_rejected(delay):
+    with pytest.raises(InvalidInput, match='command_delay'):
+        SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), command_delay=delay)

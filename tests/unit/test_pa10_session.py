@@ -1,6 +1,7 @@
 """pa10_ik_node's TrackingSession without ROS: the checks on its inputs, the watchdog on
 stale pressure and joint states, and the commands it returns, on a clock the test turns."""
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,14 @@ TIMEOUT = 1.0  # [s] pressure_timeout
 HORIZON = 0.05  # [s]
 
 
+@dataclass
+class Settings:
+    """What pa10_ik_node's parameters give the session, changeable as they are."""
+
+    pressure_timeout: float = TIMEOUT  # [s]
+    command_horizon: float = HORIZON  # [s]
+
+
 class Clock:
     def __init__(self):
         self.now = 100.0
@@ -38,7 +47,7 @@ def scenario():
 def session(scenario):
     robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
     controller = TrackingController(robot, RateSolver('ours', [1.0] * 7), TrackingConfig())
-    return TrackingSession(controller, 'tool0', TIMEOUT, HORIZON, PERIOD, clock=Clock())
+    return TrackingSession(controller, 'tool0', Settings(), PERIOD, clock=Clock())
 
 
 def waypoints_on(surface, count=12):
@@ -114,18 +123,50 @@ def test_stale_pressure_stops_the_arm_with_a_hold_at_the_measured_joints(session
     assert output.command.horizon == HORIZON and np.any(output.command.velocities != 0)
     # Joint states keep coming, the pressure does not: stopped once it is older than
     # pressure_timeout, at a step that follows a regular one (not after a stall).
-    clock = session.clock
-    for _ in range(int(TIMEOUT / PERIOD) + 5):
-        clock.now += PERIOD
+    output = run_without_pressure(session, TIMEOUT + 5 * PERIOD)
+    assert session.controller.phase == 'stopped'
+    assert 'stale pressure: no /tool/pressure for more than 1.0 s' in session.controller.reason
+    assert session.clock.now - session.pressure_time == pytest.approx(TIMEOUT + PERIOD, abs=PERIOD)
+    np.testing.assert_array_equal(output.command.positions, session.q)
+    assert output.command.horizon == 0.0 and not np.any(output.command.velocities)
+
+
+def run_without_pressure(session, seconds):
+    """Control steps every PERIOD with joint states and no pressure, for ``seconds`` or
+    until the task stops; returns the last output."""
+    for _ in range(int(round(seconds / PERIOD))):
+        session.clock.now += PERIOD
         session.take_joint_state(session.robot.joint_names, session.q)
         output = session.control_step()
         if session.controller.phase == 'stopped':
             break
+    return output
+
+
+def test_a_changed_pressure_timeout_and_command_horizon_apply_at_the_next_step(session, scenario):
+    """set_parameters while the task runs: the node's parameters are the session's
+    settings, read at every step (they were copied once, and a new pressure_timeout or
+    command_horizon was ignored until a restart)."""
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    assert session.control_step().command.horizon == HORIZON
+    session.settings.command_horizon = 0.02
+    session.settings.pressure_timeout = 1.5
+    session.take_pressure('tool0', 0.0)
+    command = session.control_step().command
+    assert command.horizon == 0.02 and np.any(command.velocities != 0)
+    np.testing.assert_allclose(
+        command.positions, session.q + 0.02 * command.velocities, rtol=0, atol=1e-15
+    )
+    # Without pressure for 1.3 s, beyond the old timeout: still running; stopped past
+    # 1.5 s (the arm stands still here: before the task's own 2 s no-progress failure).
+    run_without_pressure(session, 1.3)
+    assert session.controller.phase == 'approach', session.controller.reason
+    run_without_pressure(session, 0.2 + 5 * PERIOD)
     assert session.controller.phase == 'stopped'
-    assert 'stale pressure: no /tool/pressure for more than 1.0 s' in session.controller.reason
-    assert clock.now - session.pressure_time == pytest.approx(TIMEOUT + PERIOD, abs=PERIOD)
-    np.testing.assert_array_equal(output.command.positions, session.q)
-    assert output.command.horizon == 0.0 and not np.any(output.command.velocities)
+    assert 'no /tool/pressure for more than 1.5 s' in session.controller.reason
+    assert session.clock.now - session.pressure_time == pytest.approx(1.5 + PERIOD, abs=PERIOD)
 
 
 def test_a_stall_of_the_loop_itself_is_not_taken_for_stale_inputs(session, scenario):

@@ -17,6 +17,7 @@ from vgm_common.robot_model import (
     load_robot,
     own_tool_length,
     pa10_urdf,
+    workspace_reach,
 )
 
 URDF_DIR = Path(__file__).resolve().parents[2] / 'src' / 'vgm_common' / 'urdf'
@@ -303,3 +304,50 @@ def test_random_pa10_like_arms_are_7_dof_with_their_tool(tmp_path):
         real = np.array([0.317, 0.45, 0.48, 0.07])
         assert np.all(np.abs(np.array(arm.link_offsets_m) / real - 1) <= 0.4)
         assert 0.05 <= arm.tool_length_m <= 0.2
+
+
+@pytest.mark.parametrize('name, tool_m', CASES)
+def test_the_pa10s_shoulder_is_on_its_s2_axis_and_its_reach_the_offsets_beyond(name, tool_m):
+    """The PA-10's first two axes cross d1 above the base; straight up, the tip is d3 +
+    d5 + d7 + the tool from there, its farthest."""
+    params = PARAMETER_SETS[name]
+    shoulder, reach = workspace_reach(load_robot(name, tool_m))
+    np.testing.assert_allclose(shoulder, [0.0, 0.0, params.d1], atol=1e-12)
+    assert reach == pytest.approx(params.d3 + params.d5 + params.d7 + tool_m, abs=1e-12)
+
+
+@pytest.mark.parametrize('name', ['tiago', 'talos_left'])
+def test_the_reach_bounds_an_arm_whose_second_joint_is_off_its_first_joints_axis(tmp_path, name):
+    """TIAGo's and Talos's arms (example-robot-data, from the torso, placed off the origin):
+    the second joint's origin is 0.13 / 0.14 m off the first joint's axis (taken as the
+    shoulder it gave TIAGo a reach of 0.675 m where its tip gets 0.906 m away, and a
+    path near the reach was refused). The shoulder is on the first joint's axis (turning
+    that joint alone keeps every tip's distance from it, to 1e-12 m); 5000 seeded
+    configurations within the limits all have the tip within the reach, the farthest
+    within 2 % of it (measured 0.99 of it: the bound is nearly tight)."""
+    from vgm_evaluation.task_generator import robot_data_arm
+
+    arm = robot_data_arm(name)
+    urdf = tmp_path / f'{name}.urdf'
+    urdf.write_text(arm.urdf)
+    robot = load_robot(
+        str(urdf),
+        tip_frame=arm.tip_frame,
+        base_frame=arm.base_frame,
+        base_placement=[0.15, -0.485, 0.39, 0.0, 0.0, 0.3],
+    )
+    shoulder, reach = workspace_reach(robot)
+    rng = np.random.default_rng(7)
+    q = rng.uniform(robot.lower_limits, robot.upper_limits, (5000, robot.n_joints))
+    distances = np.array(
+        [np.linalg.norm(robot.forward_kinematics(x)[:3, 3] - shoulder) for x in q]
+    )
+    turned = q.copy()
+    turned[:, 0] = rng.uniform(robot.lower_limits[0], robot.upper_limits[0], len(q))
+    turned_distances = np.array(
+        [np.linalg.norm(robot.forward_kinematics(x)[:3, 3] - shoulder) for x in turned[:200]]
+    )
+    np.testing.assert_allclose(turned_distances, distances[:200], atol=1e-12)
+    print(f'{name}: reach {reach:.4f} m, farthest sampled tip {distances.max():.4f} m')
+    assert distances.max() <= reach + 1e-12
+    assert distances.max() > 0.98 * reach

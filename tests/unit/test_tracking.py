@@ -515,6 +515,22 @@ def test_every_example_robot_data_arm_tracks_an_arc_on_a_30_degree_plane(tmp_pat
     assert metrics['force_p95_pct'] < 3.0 and metrics['limit_margin_rad'] > 0
 
 
+def test_tiagos_tight_loop_near_its_reach_passes_the_reach_checks(tmp_path):
+    """TIAGo's tight loop (placed with the elbow opened, 0.75 m from its shoulder): the
+    workspace sphere once centred on the second joint's origin, 0.13 m off the first
+    joint's axis, gave a reach of 0.675 m and refused it; the joint-limit check from the
+    start joints finds every target reachable."""
+    arm = task_generator.robot_data_arm('tiago')
+    spec = task_generator.CaseSpec(arm, 'plane', 0.0, 'tight_loop', 'position', 1.0, 7)
+    built = task_generator.build_case(spec, tmp_path)
+    controller = TrackingController(
+        built.robot, RateSolver('ours', np.ones(7)), TrackingConfig(), max_joint_velocity=1.0
+    )
+    controller.check_reachable(WaypointPath(built.waypoints))
+    controller.start(built.waypoints, arm.start_joints)
+    assert controller.phase == 'approach'
+
+
 GENERATED = task_generator.generate_cases(13)
 
 

@@ -218,8 +218,7 @@ class Pa10IkNode(GraphNode):
                 tip_description=tip,
             ),
             p.tip_frame,
-            p.pressure_timeout,
-            p.command_horizon,
+            p,  # read at every step: a set_parameters change applies at once
             1.0 / p.rate,
         )
         self.controller = self.session.controller

@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -42,15 +42,24 @@ class ControlOutput(NamedTuple):
     command: JointCommand | None
 
 
+class SessionSettings(Protocol):
+    """The session's settings that may change while it runs (pa10_ik_node passes its
+    parameters, which a set_parameters call changes): read at every use, never copied."""
+
+    # [s] pressure or joint states older than this while the task is active stop it;
+    # also the freshness required to start.
+    pressure_timeout: float
+    command_horizon: float  # [s] time_from_start of the commanded point
+
+
 class TrackingSession:
     """The measured state of the arm and its tracking task, between messages.
 
     Args:
         controller: the task (its robot, solver and settings).
         tip_frame: the frame /tool/pressure must be stamped in.
-        pressure_timeout: [s] pressure or joint states older than this while the task is
-            active stop it; also the freshness required to start.
-        command_horizon: [s] time_from_start of the commanded point.
+        settings: ``pressure_timeout`` and ``command_horizon`` (``SessionSettings``), as
+            they are at each step.
         control_period: [s] the nominal control step.
         clock: monotonic seconds (``time.monotonic``; a test's own clock).
     """
@@ -59,16 +68,14 @@ class TrackingSession:
         self,
         controller: TrackingController,
         tip_frame: str,
-        pressure_timeout: float,
-        command_horizon: float,
+        settings: SessionSettings,
         control_period: float,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.controller = controller
         self.robot = controller.robot
         self.tip_frame = tip_frame
-        self.pressure_timeout = pressure_timeout
-        self.command_horizon = command_horizon
+        self.settings = settings
         self.control_period = control_period
         self.clock = clock
         self.joint_index = {name: i for i, name in enumerate(self.robot.joint_names)}
@@ -230,7 +237,8 @@ class TrackingSession:
         # The step the timer really took (a loaded machine runs it late), bounded so one
         # long stall does not become a jump: the reference then moves at the set speed.
         now = self.clock()
-        stalled = self.last_step is not None and now - self.last_step > self.pressure_timeout / 2
+        timeout = self.settings.pressure_timeout
+        stalled = self.last_step is not None and now - self.last_step > timeout / 2
         if self.last_step is None:
             dt = self.control_period
         else:
@@ -244,9 +252,7 @@ class TrackingSession:
                 (self.joint_state_time, JOINT_STATES_TOPIC, 'joint states'),
             ):
                 if not self._fresh(stamp):
-                    controller.stop(
-                        f'stale {what}: no {topic} for more than {self.pressure_timeout} s'
-                    )
+                    controller.stop(f'stale {what}: no {topic} for more than {timeout} s')
                     return ControlOutput(self.robot.forward_kinematics(q), self.hold())
         if controller.phase not in (*ACTIVE_PHASES, 'done'):
             return ControlOutput(self.robot.forward_kinematics(q), None)
@@ -258,7 +264,8 @@ class TrackingSession:
         if controller.phase in ('stopped', 'failed'):
             command = self.hold()
         else:
-            command = JointCommand(q + qdot * self.command_horizon, qdot, self.command_horizon)
+            horizon = self.settings.command_horizon
+            command = JointCommand(q + qdot * horizon, qdot, horizon)
         return ControlOutput(info['T'], command)
 
     def _note_solver_failure(self, info: dict[str, Any]) -> None:
@@ -276,4 +283,4 @@ class TrackingSession:
             )
 
     def _fresh(self, stamp: float | None) -> bool:
-        return stamp is not None and self.clock() - stamp <= self.pressure_timeout
+        return stamp is not None and self.clock() - stamp <= self.settings.pressure_timeout

@@ -12,11 +12,13 @@ point's velocity holds until that point's time, then zero; positions are ignored
 drifts unless its commander closes the loop on the measured state), and an arm slower
 than commanded: ``speed_scale`` < 1 scales the commanded velocity (velocity mode) or
 makes the position follow its set point with a first-order lag (position mode: each step
-closes only that fraction of the gap).
+closes only that fraction of the gap). And an arm whose commands take effect late
+(``command_delay``): a controller or network with that much latency.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Self
 
@@ -49,10 +51,13 @@ class SimulatedArm:
         mode: ``'position'`` (follow the interpolated set point) or ``'velocity'``
             (follow only the commanded velocities).
         speed_scale: in (0, 1]: the fraction of the commanded motion the arm makes.
+        command_delay: [s] >= 0: each trajectory takes effect only this long after its
+            ``start_time`` (its times then count from there), the previous one in force
+            until then.
 
     Raises:
         InvalidInput: inconsistent or non-finite limits, ``q0`` outside them, an unknown
-            mode or a speed_scale outside (0, 1].
+            mode, a speed_scale outside (0, 1] or a negative or non-finite command_delay.
     """
 
     def __init__(
@@ -64,6 +69,7 @@ class SimulatedArm:
         q0: npt.ArrayLike,
         mode: str = 'position',
         speed_scale: float = 1.0,
+        command_delay: float = 0.0,
     ) -> None:
         if mode not in ARM_MODES:
             raise InvalidInput(f'mode must be one of {ARM_MODES}, got {mode!r}', 'mode', mode)
@@ -71,7 +77,18 @@ class SimulatedArm:
             raise InvalidInput(
                 f'speed_scale must be in (0, 1], got {speed_scale!r}', 'speed_scale', speed_scale
             )
+        if not (isinstance(command_delay, (int, float)) and 0.0 <= command_delay < np.inf):
+            raise InvalidInput(
+                f'command_delay must be a finite number >= 0 [s], got {command_delay!r}',
+                'command_delay',
+                command_delay,
+            )
         self.mode, self.speed_scale = mode, float(speed_scale)
+        self.command_delay = float(command_delay)
+        # Trajectories received but not yet in force: (time they take effect [s], command).
+        self._pending: deque[tuple[float, tuple[FloatArray, FloatArray, FloatArray | None]]] = (
+            deque()
+        )
         self.joint_names = tuple(joint_names)
         n = len(self.joint_names)
         if len(set(self.joint_names)) != n:
@@ -92,7 +109,12 @@ class SimulatedArm:
 
     @classmethod
     def from_robot_model(
-        cls, robot: RobotModel, q0: npt.ArrayLike, mode: str = 'position', speed_scale: float = 1.0
+        cls,
+        robot: RobotModel,
+        q0: npt.ArrayLike,
+        mode: str = 'position',
+        speed_scale: float = 1.0,
+        command_delay: float = 0.0,
     ) -> Self:
         """An arm with the joints and limits of a ``vgm_common.robot_model.RobotModel``."""
         return cls(
@@ -103,6 +125,7 @@ class SimulatedArm:
             q0,
             mode,
             speed_scale,
+            command_delay,
         )
 
     @property
@@ -116,7 +139,9 @@ class SimulatedArm:
         return self._qdot.copy()
 
     def hold(self) -> None:
-        """Replace the command by holding the current position."""
+        """Replace the command by holding the current position, at once (the simulator's
+        own reaction to a bad command: no delay), dropping trajectories not yet in force."""
+        self._pending.clear()
         self._set_command(np.zeros(1), self._q[np.newaxis], None, start_time=-np.inf)
 
     def set_trajectory(
@@ -137,9 +162,10 @@ class SimulatedArm:
                 None / empty for linear interpolation.
             start_time: [s] simulation time at which ``times_from_start`` counts from 0.
 
-        The arm holds its current position until ``start_time``; if the first point is
-        later than 0 s, the trajectory starts from the current state; after the last point
-        the arm holds that point.
+        The arm holds its current position until ``start_time`` (+ ``command_delay``: the
+        previous trajectory stays in force until then); if the first point is later than
+        0 s, the trajectory starts from the state it then has; after the last point the
+        arm holds that point.
         A single point at 0 s means "go there now", as fast as the limits allow.
 
         Raises:
@@ -181,7 +207,12 @@ class SimulatedArm:
         start = _array(start_time, 'start_time')
         if start.shape != ():
             raise InvalidInput(f'start_time must be a number, got {start}', 'start_time', start)
-        self._set_command(times, positions[:, order], velocities, start)
+        if self.command_delay > 0:
+            self._pending.append(
+                (float(start) + self.command_delay, (times, positions[:, order], velocities))
+            )
+        else:
+            self._set_command(times, positions[:, order], velocities, start)
 
     def step(self, t: float, dt: float) -> tuple[FloatArray, FloatArray]:
         """Advance the arm by ``dt`` [s] toward the set point at time ``t`` [s].
@@ -193,6 +224,11 @@ class SimulatedArm:
         """
         if not (np.isfinite(t) and np.isfinite(dt) and dt > 0):
             raise InvalidInput(f'need finite t and dt > 0, got t={t}, dt={dt}', 'dt', dt)
+        # A command in force at the step's start (within a nanosecond of stamp rounding)
+        # drives it, as a prompt one received then does.
+        while self._pending and self._pending[0][0] <= t - dt + 1e-9:
+            effective, command = self._pending.popleft()
+            self._set_command(*command, effective)
         max_step = self._qdot_max * dt
         if self.mode == 'velocity':
             motion = self.speed_scale * self.commanded_velocity(t) * dt

@@ -106,6 +106,14 @@ PARAMETERS = [
         range=(0.01, 1.0),
         read_only=True,
     ),
+    Param(
+        'arm_command_delay',
+        0.0,
+        '[s] The arm follows each joint trajectory only this long after it arrives '
+        '(a controller or network with that much command latency); 0: at once.',
+        range=(0.0, 1.0),
+        read_only=True,
+    ),
 ]
 
 
@@ -168,7 +176,11 @@ class SensorSim(GraphNode):
             base_placement=robot.base_placement,
         )
         self.arm = SimulatedArm.from_robot_model(
-            self.robot, robot.initial_joints, self.params.arm_mode, self.params.arm_speed_scale
+            self.robot,
+            robot.initial_joints,
+            self.params.arm_mode,
+            self.params.arm_speed_scale,
+            self.params.arm_command_delay,
         )
         if self.params.ground_truth_dir:
             self._write_ground_truth(Path(self.params.ground_truth_dir))
@@ -226,7 +238,8 @@ class SensorSim(GraphNode):
             f'publishing 3 cameras at {frame_rate:g} Hz ({self.chart_frames} calibration '
             f'captures first), joint states at {self.params.joint_state_rate:g} Hz, arm '
             f'{self.scenario.robot.model} following {self.params.arm_mode}s '
-            f'x{self.params.arm_speed_scale:g}'
+            f'x{self.params.arm_speed_scale:g}, commands '
+            f'{self.params.arm_command_delay * 1e3:g} ms late'
         )
 
     # --- cameras ---------------------------------------------------------------------

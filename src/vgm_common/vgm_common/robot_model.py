@@ -524,16 +524,47 @@ def _check_urdf_joints(text: str, robot: str | os.PathLike[str]) -> set[str]:
 
 def workspace_reach(robot: RobotModel) -> tuple[FloatArray, float]:
     """(shoulder (3,), reach [m]) of a ``RobotModel``: the tip stays within ``reach`` of
-    the second joint's origin (the sum of the link offsets beyond it, tool included)."""
-    data = robot.model.createData()
-    pin.forwardKinematics(robot.model, data, np.zeros(robot.n_joints))
-    pin.updateFramePlacements(robot.model, data)
-    origins = [data.oMi[j].translation.copy() for j in range(1, robot.model.njoints)]
-    tip = data.oMf[robot.tool_frame_id].translation
-    shoulder = origins[1] if len(origins) > 1 else origins[0]
-    chain = origins[1:] + [tip]
+    the shoulder in every configuration.
+
+    The shoulder is the point of the first joint's axis closest to the second joint's
+    axis (where they cross, on most arms; TIAGo's and Talos's second joint sits off the
+    first one's axis): the first joint turns everything about that axis, so the second
+    joint's origin stays at its distance from the shoulder, and every later joint's
+    origin stays at its distance from the one before (each joint turns about an axis
+    through its own origin). Their sum, tool included, bounds the tip's distance.
+    """
+    model = robot.model
+    data = model.createData()
+    q = np.zeros(robot.n_joints)
+    pin.computeJointJacobians(model, data, q)
+    pin.updateFramePlacements(model, data)
+    origins = [data.oMi[j].translation.copy() for j in range(1, model.njoints)]
+    tip = data.oMf[robot.tool_frame_id].translation.copy()
+    shoulder = origins[0]
+    if len(origins) > 1:
+        first, second = (
+            pin.getJointJacobian(model, data, j, pin.LOCAL_WORLD_ALIGNED)[3:, model.idx_vs[j]]
+            for j in (1, 2)
+        )
+        shoulder = _closest_point_on_axis(origins[0], first, origins[1], second)
+    chain = [shoulder, *origins[1:], tip]
     reach = sum(np.linalg.norm(b - a) for a, b in zip(chain[:-1], chain[1:]))
     return shoulder, float(reach)
+
+
+def _closest_point_on_axis(
+    point: FloatArray, direction: FloatArray, other_point: FloatArray, other_direction: FloatArray
+) -> FloatArray:
+    """The point of the line through ``point`` along the unit ``direction`` closest to the
+    line through ``other_point`` along the unit ``other_direction`` (parallel lines: the
+    foot of ``other_point``)."""
+    offset = point - other_point
+    cosine = float(direction @ other_direction)
+    sine2 = 1.0 - cosine**2
+    if sine2 < 1e-12:
+        return point + float(direction @ (other_point - point)) * direction
+    s = (cosine * float(other_direction @ offset) - float(direction @ offset)) / sine2
+    return point + s * direction
 
 
 def as_joint_vector(q: npt.ArrayLike, n: int, key: str = 'q') -> FloatArray:

@@ -18,6 +18,7 @@ orientation). No ROS. Every random choice takes a ``numpy.random.Generator``.
 
 from __future__ import annotations
 
+import copy
 import importlib.metadata
 import os
 from collections.abc import Mapping
@@ -414,6 +415,41 @@ def path_errors(
     return distances, float(np.mean(near < within_m))
 
 
+def goal_figures(
+    tips: npt.ArrayLike,
+    forces: npt.ArrayLike,
+    surface: Surface,
+    path_base: FloatArray,
+    desired_force: float,
+    within_m: float = 0.002,
+) -> dict[str, float]:
+    """The path and force goal figures of the tool tips (K, 3) [m] and forces (F,) [N]
+    measured while tracking (in process or over topics): rms_mm and max_mm (distance of
+    the tips' foot points on the surface to the path), passed_fraction (path points with
+    a foot point within ``within_m``), force_p95_pct (95th percentile of |force error| /
+    desired); NaN (passed 0) with no tips or forces."""
+    tips = np.asarray(tips, dtype=float).reshape(-1, 3)
+    forces = np.asarray(forces, dtype=float)
+    figures = {
+        'rms_mm': float('nan'),
+        'max_mm': float('nan'),
+        'passed_fraction': 0.0,
+        'force_p95_pct': float('nan'),
+    }
+    if len(tips):
+        distances, passed = path_errors(tips, surface, path_base, within_m)
+        figures.update(
+            rms_mm=float(np.sqrt(np.mean(distances**2)) * 1e3),
+            max_mm=float(distances.max() * 1e3),
+            passed_fraction=passed,
+        )
+    if len(forces):
+        figures['force_p95_pct'] = float(
+            np.percentile(np.abs(forces - desired_force), 95) / desired_force * 100
+        )
+    return figures
+
+
 def tracking_metrics(
     log: LoopLog,
     surface: Surface,
@@ -439,23 +475,7 @@ def tracking_metrics(
     tips = np.array(log.tips)[tracking] if tracking.any() else np.zeros((0, 3))
     forces = np.array(log.forces)[tracking]
     result: dict[str, float] = {'tracking_steps': int(tracking.sum())}
-    if len(tips):
-        distances, passed = path_errors(tips, surface, path_base, within_m)
-        result.update(
-            rms_mm=float(np.sqrt(np.mean(distances**2)) * 1e3),
-            max_mm=float(distances.max() * 1e3),
-            passed_fraction=passed,
-            force_p95_pct=float(
-                np.percentile(np.abs(forces - desired_force), 95) / desired_force * 100
-            ),
-        )
-    else:
-        result.update(
-            rms_mm=float('nan'),
-            max_mm=float('nan'),
-            passed_fraction=0.0,
-            force_p95_pct=float('nan'),
-        )
+    result.update(goal_figures(tips, forces, surface, path_base, desired_force, within_m))
     qdot = np.array(log.qdot_commanded)
     q = np.array(log.q)
     result.update(
@@ -481,6 +501,8 @@ class CaseSpec:
     arm_mode: str
     speed_scale: float
     seed: int
+    # x, y, z [m], roll, pitch, yaw [rad] of the arm's base frame in base_link
+    base_placement: tuple[float, ...] = (0.0,) * 6
 
     @property
     def label(self) -> str:
@@ -553,7 +575,12 @@ def build_case(spec: CaseSpec, directory: str | os.PathLike[str]) -> BuiltCase:
 
     urdf = Path(directory) / f'{spec.arm.name}.urdf'
     urdf.write_text(spec.arm.urdf)
-    robot = load_robot(str(urdf), tip_frame=spec.arm.tip_frame, base_frame=spec.arm.base_frame)
+    robot = load_robot(
+        str(urdf),
+        tip_frame=spec.arm.tip_frame,
+        base_frame=spec.arm.base_frame,
+        base_placement=list(spec.base_placement),
+    )
     rng = np.random.default_rng(spec.seed)
     placement = spec.arm.start_joints
     if spec.path_shape == 'tight_loop':  # near the reach
@@ -565,3 +592,53 @@ def build_case(spec: CaseSpec, directory: str | os.PathLike[str]) -> BuiltCase:
     if closed:
         path_base = np.vstack([path_base, path_base[:1]])
     return BuiltCase(spec, robot, surface, waypoints, path_base, closed)
+
+
+def plane_scenario(
+    built: BuiltCase, template: Mapping[str, Any], urdf_path: str | os.PathLike[str]
+) -> dict[str, Any]:
+    """A scenario (the dict of a sensor_sim scenario file) for running ``built`` over
+    topics: ``template``'s cameras (posed by position and look_at; moved along with the
+    scene), light, noise and contact (a scenario file's dict, e.g. the default one's)
+    with the case's posed plane (+-0.5 m of it: the template's curve is
+    drawn on it, not tracked) and its arm (the URDF at ``urdf_path``, its tip frame the
+    tool tip: no tool length, the start joints, the spec's base placement).
+
+    Raises:
+        InvalidInput: a case whose surface is no plane (only planes are posed here).
+    """
+    if built.surface.kind != 'plane':
+        raise InvalidInput(
+            f'only a plane case has a scenario here, got {built.surface.kind!r}',
+            'surface',
+            built.surface.kind,
+        )
+    T = built.surface.T_base_surface
+    data = copy.deepcopy(dict(template))
+    # The cameras moved with the scene (sensor_sim refuses a camera that does not see
+    # the surface's centre): every position and aim shifted by the same vector.
+    aims = [camera['pose']['look_at'] for camera in data['cameras'].values()]
+    shift = T[:3, 3] - np.mean(np.array(aims, dtype=float), axis=0)
+    for camera in data['cameras'].values():
+        for key in ('position', 'look_at'):
+            camera['pose'][key] = (np.array(camera['pose'][key], dtype=float) + shift).tolist()
+    data['surface'] = {
+        'type': 'plane',
+        'scale': 1.0,
+        'extent': [[-0.5, 0.5], [-0.5, 0.5]],
+        'pose': {
+            'xyz': T[:3, 3].tolist(),
+            'quaternion': Rotation.from_matrix(T[:3, :3]).as_quat().tolist(),
+        },
+        'albedo': 0.8,
+        'roughness': 0.3,
+    }
+    arm = built.spec.arm
+    data['robot'] = {
+        'model': str(urdf_path),
+        'initial_joints': arm.start_joints.tolist(),
+        'tip_frame': arm.tip_frame,
+        'base_frame': arm.base_frame,
+        'base_placement': [float(x) for x in built.spec.base_placement],
+    }
+    return data
