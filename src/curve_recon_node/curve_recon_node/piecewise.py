@@ -39,8 +39,9 @@ from scipy.spatial import cKDTree
 from curve_recon_node.algebraic_curves import (
     FITS,
     IntArray,
-    fit_implicit_curves,
+    fit_implicit_curves_batch,
     monomial_exponents,
+    monomials_and_gradients,
     powers,
 )
 from vgm_common.errors import InvalidInput
@@ -108,13 +109,7 @@ class PiecewiseCurve:
         )
         self.pieces: list[CurvePiece] = []
         n = len(xy)
-        # each piece's residual is measured on these (a chain point is in several fits):
-        # monomials (N, M) and their X and Y derivatives (N, M) each
-        mono, mono_gradients = _monomials_and_gradients(self.xy, self.degree)
-        self._monomials = mono
-        self._monomials_dx = np.ascontiguousarray(mono_gradients[:, :, 0])
-        self._monomials_dy = np.ascontiguousarray(mono_gradients[:, :, 1])
-        self._split(0, n, depth=0)
+        self._split()
         self._tree = cKDTree(self.xy)
         # owner of each chain point: the piece in which it lies most centrally, so the
         # distance to the curve is measured away from the ends of a piece's fit
@@ -136,59 +131,95 @@ class PiecewiseCurve:
         idx = np.arange(start, start + length)
         return idx % len(self.xy) if self.closed else idx
 
-    def _fit(self, indices: IntArray) -> tuple[FloatArray, float, float]:
-        """The piece's coefficients and RMS Sampson residual [px]: of Taubin's and the
-        algebraic fit, the one nearer its points. Taubin's avoids the algebraic fit's
-        near-singular solutions on long gentle pieces (pixels of residual where the
-        points are within 0.05 px of a cubic); the algebraic one is sometimes nearer on
-        a piece that no degree-n curve fits (a sharp turn too short to split). Both are
-        always tried: stopping at a Taubin fit within the tolerance took a helix's
-        coverage at noise 4 from 0.97 to 0.78 (a single cubic piece, systematic error).
+    def _fits(self, pieces: Sequence[IntArray]) -> list[tuple[FloatArray, float, float]]:
+        """Each piece's coefficients and RMS Sampson residual [px] (all pieces of one
+        level of splitting at once): of Taubin's and the algebraic fit, the one nearer
+        its points. Taubin's avoids the algebraic fit's near-singular solutions on long
+        gentle pieces (pixels of residual where the points are within 0.05 px of a
+        cubic); the algebraic one is sometimes nearer on a piece that no degree-n curve
+        fits (a sharp turn too short to split). Both are always tried: stopping at a
+        Taubin fit within the tolerance took a helix's coverage at noise 4 from 0.97 to
+        0.78 (a single cubic piece, systematic error).
 
-        Returns (coefficients, RMS residual [px], bias [px]): the largest mean signed
-        residual over ``BIAS_WINDOW`` consecutive chain points, the fit's systematic
-        error, which the chain's noise averages out of."""
-        measured = indices[self.measured[indices]]
-        if len(measured) >= len(self._monomials[0]) + 2:
-            indices = measured
-        best: tuple[FloatArray, float, FloatArray] | None = None
-        for a in fit_implicit_curves(self.xy[indices], self.degree, FITS):
-            # signed Sampson distances g / ||grad g|| of the piece's chain points
-            with np.errstate(divide='ignore', invalid='ignore'):
-                residual = (self._monomials[indices] @ a) / np.hypot(
-                    self._monomials_dx[indices] @ a, self._monomials_dy[indices] @ a
-                )
-            rms = float(np.sqrt(np.mean(residual**2)) * self.focal_px)
-            if best is None or rms < best[1]:
-                best = (a, rms, residual)
-        assert best is not None  # FITS is not empty
-        a, rms, residual = best
-        window = min(BIAS_WINDOW, len(residual))
-        running = np.convolve(residual, np.full(window, 1.0 / window), mode='valid')
-        bias = float(np.max(np.abs(running)) * self.focal_px) if len(running) else np.inf
-        return a, rms, bias if np.isfinite(bias) else np.inf
+        Returns per piece (coefficients, RMS residual [px], bias [px]): the bias is the
+        largest mean signed residual over ``BIAS_WINDOW`` consecutive chain points, the
+        fit's systematic error, which the chain's noise averages out of."""
+        size = len(monomial_exponents(self.degree))
+        fitted = []
+        for indices in pieces:
+            measured = indices[self.measured[indices]]
+            fitted.append(measured if len(measured) >= size + 2 else indices)
+        counts = np.array([len(indices) for indices in fitted])
+        gather = np.zeros((len(fitted), counts.max()), dtype=int)
+        for row, indices in zip(gather, fitted):
+            row[: len(indices)] = indices
+        # (F, B, M) and the signed Sampson distances of each piece's points (F, B, K)
+        coefficients, residual = fit_implicit_curves_batch(
+            self.xy[gather], counts, self.degree, FITS
+        )
+        rms = np.sqrt(np.sum(residual**2, axis=2) / counts) * self.focal_px  # (F, B)
+        # the first fit (Taubin's) unless another is strictly nearer (NaN never is)
+        best = np.zeros(len(fitted), dtype=int)
+        for f in range(1, len(FITS)):
+            best = np.where(rms[f] < rms[best, np.arange(len(fitted))], f, best)
+        pieces_range = np.arange(len(fitted))
+        residual = residual[best, pieces_range]
+        # running mean over min(BIAS_WINDOW, count) points, from cumulative sums
+        window = np.minimum(BIAS_WINDOW, counts)[:, None]
+        cumulative = np.concatenate(
+            [np.zeros((len(fitted), 1)), np.cumsum(residual, axis=1)], axis=1
+        )
+        starts = np.arange(gather.shape[1])[None, :]
+        ends = starts + window
+        inside = ends <= counts[:, None]
+        running = (
+            np.take_along_axis(cumulative, np.minimum(ends, gather.shape[1]), axis=1)
+            - cumulative[:, :-1]
+        ) / window
+        bias = np.max(np.where(inside, np.abs(running), -np.inf), axis=1) * self.focal_px
+        bias[~np.isfinite(bias)] = np.inf
+        return [
+            (coefficients[best[b], b], float(rms[best[b], b]), float(bias[b]))
+            for b in pieces_range
+        ]
 
-    def _split(self, start: int, length: int, depth: int) -> None:
-        indices = self._indices(start, length)
-        a, rms, bias = self._fit(indices)
-        too_short = length < 2 * self.min_piece_points
-        # a fit within the RMS tolerance can still miss a stretch of the chain by a
-        # steady 0.1-0.2 px (near_straight seed 3: RMS 0.07 px); where the curve runs
-        # near the epipolar planes that bias became 0.8 mm in 3D
-        fits = rms <= self.fit_tolerance_px and bias <= BIAS_SHARE * self.fit_tolerance_px
-        if fits or too_short or depth > 12:
-            self.pieces.append(CurvePiece(a, indices, rms))
-            return
-        half = length // 2
-        extra = int(np.ceil(self.overlap * half))
-        if self.closed and length >= len(self.xy):  # the whole loop: halves wrap around
-            self._split(start - extra, half + 2 * extra, depth + 1)
-            self._split(start + half - extra, length - half + 2 * extra, depth + 1)
-            return
-        first_stop = min(start + half + extra, start + length)
-        second_start = max(start + half - extra, start)
-        self._split(start, first_stop - start, depth + 1)
-        self._split(second_start, start + length - second_start, depth + 1)
+    def _split(self) -> None:
+        """Split the chain recursively into halves (overlapping by ``overlap``) until
+        each piece fits, one level at a time so that each level's fits are batched; the
+        pieces are kept in depth-first order (the order of the chain)."""
+        # pending pieces: (path of halves from the whole chain, start, length)
+        level: list[tuple[tuple[int, ...], int, int]] = [((), 0, len(self.xy))]
+        leaves: list[tuple[tuple[int, ...], CurvePiece]] = []
+        depth = 0
+        while level:
+            indices = [self._indices(start, length) for _, start, length in level]
+            following: list[tuple[tuple[int, ...], int, int]] = []
+            for (path, start, length), piece_indices, (a, rms, bias) in zip(
+                level, indices, self._fits(indices)
+            ):
+                too_short = length < 2 * self.min_piece_points
+                # a fit within the RMS tolerance can still miss a stretch of the chain by
+                # a steady 0.1-0.2 px (near_straight seed 3: RMS 0.07 px); where the
+                # curve runs near the epipolar planes that bias became 0.8 mm in 3D
+                fits = rms <= self.fit_tolerance_px and bias <= BIAS_SHARE * self.fit_tolerance_px
+                if fits or too_short or depth > 12:
+                    leaves.append((path, CurvePiece(a, piece_indices, rms)))
+                    continue
+                half = length // 2
+                extra = int(np.ceil(self.overlap * half))
+                if self.closed and length >= len(self.xy):  # the whole loop: halves wrap
+                    following.append((path + (0,), start - extra, half + 2 * extra))
+                    following.append(
+                        (path + (1,), start + half - extra, length - half + 2 * extra)
+                    )
+                    continue
+                first_stop = min(start + half + extra, start + length)
+                second_start = max(start + half - extra, start)
+                following.append((path + (0,), start, first_stop - start))
+                following.append((path + (1,), second_start, start + length - second_start))
+            level = following
+            depth += 1
+        self.pieces = [piece for _, piece in sorted(leaves, key=lambda leaf: leaf[0])]
 
     # --- queries ---------------------------------------------------------------------
 
@@ -211,7 +242,7 @@ class PiecewiseCurve:
             return distance, direction
         index, _ = self.nearest(xy)
         a = self.coefficient_matrix[self.owner[index]]
-        mono, mono_gradients = _monomials_and_gradients(xy, self.degree)
+        mono, mono_gradients = monomials_and_gradients(xy, self.degree)
         gradient = np.einsum('qmk,qm->qk', mono_gradients, a)
         norm = np.sqrt(gradient[:, 0] ** 2 + gradient[:, 1] ** 2)
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -222,16 +253,6 @@ class PiecewiseCurve:
         """The pieces' RMS Sampson residuals combined [px]: the root of their mean square,
         each piece counting once whatever its number of points."""
         return float(np.sqrt(np.mean([p.rms_px**2 for p in self.pieces])))
-
-
-def _monomials_and_gradients(xy: FloatArray, degree: int) -> tuple[FloatArray, FloatArray]:
-    """(Q, M) monomials of (Q, 2) points and (Q, M, 2) their derivatives with respect to X
-    and Y, from one set of powers."""
-    jx, jy = monomial_exponents(degree).T
-    px, py = powers(xy[:, 0], degree), powers(xy[:, 1], degree)
-    d_dx = jx * px[:, np.maximum(jx - 1, 0)] * py[:, jy]
-    d_dy = jy * px[:, jx] * py[:, np.maximum(jy - 1, 0)]
-    return px[:, jx] * py[:, jy], np.stack([d_dx, d_dy], axis=2)
 
 
 @dataclass(frozen=True)
