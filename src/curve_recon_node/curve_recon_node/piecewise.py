@@ -337,7 +337,7 @@ def cone_values(coefficients: FloatArray, degree: int, x_camera: FloatArray) -> 
 def _real_positive_roots(poly: FloatArray) -> tuple[IntArray, FloatArray]:
     """Real roots > 0 of polynomials with coefficients (Q, n + 1) in increasing order:
     returns (row index (K,), root (K,)). Leading coefficients near zero lower the degree
-    (handled per degree: in closed form up to quadratics, else by the eigenvalues of the
+    (handled per degree: in closed form up to cubics, else by the eigenvalues of the
     trimmed polynomial's companion matrix)."""
     rows: list[IntArray] = []
     roots: list[FloatArray] = []
@@ -355,6 +355,8 @@ def _real_positive_roots(poly: FloatArray) -> tuple[IntArray, FloatArray]:
         c = p[sel, : d + 1]
         if d <= 2:
             r, real_roots = _real_roots_up_to_quadratic(c)
+        elif d == 3:
+            r, real_roots = _real_roots_of_cubics(c)
         else:
             companion = np.zeros((len(sel), d, d))
             companion[:, 0, :] = -c[:, d - 1 :: -1] / c[:, d : d + 1]
@@ -389,6 +391,57 @@ def _real_roots_up_to_quadratic(c: FloatArray) -> tuple[IntArray, FloatArray]:
     first = np.where(real_pair, larger, -0.5 * b)[real]
     second = np.where(real_pair, smaller, -0.5 * b)[real]
     return np.concatenate([real, real]), np.concatenate([first, second])
+
+
+def _real_roots_of_cubics(c: FloatArray) -> tuple[IntArray, FloatArray]:
+    """Real roots of the rows of c (S, 4) (increasing order, leading coefficient nonzero):
+    (row (K,), root (K,)), in closed form (Viete's cosines for three real roots, Cardano's
+    formula for one), each polished by Newton steps on the cubic (kept where they lower
+    |f|). As for the companion matrices' eigenvalues (which took a third of a knot
+    capture's root finding), a complex pair whose imaginary part is within 1e-7 (1 +
+    |real part|) counts as a double root."""
+    a2, a1, a0 = (c[:, k] / c[:, 3] for k in (2, 1, 0))  # s^3 + a2 s^2 + a1 s + a0
+    shift = a2 / 3.0  # s = t - shift: t^3 + p t + q
+    p = a1 - a2 * shift
+    q = (2.0 / 27.0) * a2**3 - a1 * shift + a0
+    discriminant = (0.5 * q) ** 2 + (p / 3.0) ** 3
+    three = discriminant <= 0
+    # three real roots (p <= 0): t_k = m cos(phi - 2 pi k / 3)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        m = 2.0 * np.sqrt(np.maximum(-p, 0.0) / 3.0)
+        cosine = np.where(m > 0, 3.0 * q / np.where(m > 0, p * m, 1.0), 0.0)
+    phi = np.arccos(np.clip(cosine, -1.0, 1.0)) / 3.0
+    trigonometric = m[:, None] * np.cos(phi[:, None] - (2.0 * np.pi / 3.0) * np.arange(3))
+    # one real root u + v, u^3 = -q/2 - sign(q) sqrt(D) (no cancellation), u v = -p / 3,
+    # and the pair -(u + v) / 2 +- i sqrt(3) / 2 (u - v)
+    u = np.cbrt(-0.5 * q - np.copysign(np.sqrt(np.maximum(discriminant, 0.0)), q))
+    v = np.divide(-p, 3.0 * u, out=np.zeros_like(u), where=u != 0)
+    pair_real = -0.5 * (u + v) - shift
+    near_double = ~three & (0.5 * np.sqrt(3.0) * np.abs(u - v) <= 1e-7 * (1 + np.abs(pair_real)))
+    rows = np.arange(len(c))
+    one = np.nonzero(~three)[0]
+    double = np.nonzero(near_double)[0]
+    row = np.concatenate([np.repeat(rows[three], 3), one, double, double])
+    root = np.concatenate(
+        [
+            (trigonometric[three] - shift[three, None]).ravel(),
+            (u + v - shift)[one],
+            pair_real[double],
+            pair_real[double],
+        ]
+    )
+    coefficients = np.column_stack([a0, a1, a2])[row]
+    for _ in range(2):
+        value = ((root + coefficients[:, 2]) * root + coefficients[:, 1]) * root + coefficients[
+            :, 0
+        ]
+        slope = (3.0 * root + 2.0 * coefficients[:, 2]) * root + coefficients[:, 1]
+        stepped = root - np.divide(value, slope, out=np.zeros_like(value), where=slope != 0)
+        stepped_value = (
+            (stepped + coefficients[:, 2]) * stepped + coefficients[:, 1]
+        ) * stepped + coefficients[:, 0]
+        root = np.where(np.abs(stepped_value) < np.abs(value), stepped, root)
+    return row, root
 
 
 class CandidateInfo(TypedDict):
