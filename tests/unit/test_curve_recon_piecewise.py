@@ -372,6 +372,21 @@ def test_third_view_rejects_a_root_on_a_pieces_continuation_off_its_chain():
     on_chain = np.array([0.2 * np.cos(0.7), 0.2 * np.sin(0.7), 1.0])
     spurious = np.array([-0.2, 0.0, 1.0])  # on the circle, 0.2 * F_PX px from the arc
     assert view3.distance_px(spurious[None])[0] < 0.05
+    # limited to projections within 3 px of the chain: inf for it (120 px off), and the
+    # same distance as without the limit for points 0-2.9 px off the chain (arc radius
+    # 120 px), in front of and behind the camera
+    assert view3.distance_px(spurious[None], within_px=3.0)[0] == np.inf
+    offsets = np.linspace(0.0, 2.9, 7) / F_PX
+    near = np.column_stack([(0.2 + offsets) * np.cos(0.7), (0.2 + offsets) * np.sin(0.7)])
+    near = np.vstack([np.column_stack([near, np.ones(7)]), [[0.1, 0.1, -1.0]]])
+    limited = view3.distance_px(near, within_px=3.0)
+    np.testing.assert_array_equal(limited, view3.distance_px(near))
+    # a circle's Sampson distance: (r'^2 - r^2) / (2 r') for a point at radius r'
+    radius = 0.2 + offsets
+    np.testing.assert_allclose(
+        limited[:7], (radius**2 - 0.2**2) / (2 * radius) * F_PX, rtol=1e-6, atol=1e-9
+    )
+    assert limited[7] == np.inf
     points, info = select_candidates(
         np.array([0, 1]), np.stack([spurious, on_chain]), 2, np.array([10, 11]), view3, 2.0, 2e-3
     )

@@ -223,9 +223,13 @@ class PiecewiseCurve:
 
     # --- queries ---------------------------------------------------------------------
 
-    def nearest(self, xy: npt.ArrayLike) -> tuple[IntArray, FloatArray]:
-        """Nearest chain point index (Q,) and distance to it (Q,) [normalised]."""
-        distance, index = self._tree.query(np.asarray(xy, dtype=float).reshape(-1, 2))
+    def nearest(self, xy: npt.ArrayLike, within: float = np.inf) -> tuple[IntArray, FloatArray]:
+        """Nearest chain point index (Q,) and distance to it (Q,) [normalised]; points
+        with none within ``within`` get index N and distance inf (their search stops
+        early: most candidates of a knot's capture project far from view 3's chain)."""
+        distance, index = self._tree.query(
+            np.asarray(xy, dtype=float).reshape(-1, 2), distance_upper_bound=within
+        )
         return index, distance
 
     def distance(self, xy: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -241,6 +245,11 @@ class PiecewiseCurve:
                 distance[finite], direction[finite] = self.distance(xy[finite])
             return distance, direction
         index, _ = self.nearest(xy)
+        return self.owner_distance(xy, index)
+
+    def owner_distance(self, xy: FloatArray, index: IntArray) -> tuple[FloatArray, FloatArray]:
+        """``distance`` of finite points (Q, 2) whose nearest chain points are ``index``
+        (Q,) (already known)."""
         a = self.coefficient_matrix[self.owner[index]]
         mono, mono_gradients = monomials_and_gradients(xy, self.degree)
         gradient = np.einsum('qmk,qm->qk', mono_gradients, a)
@@ -272,20 +281,21 @@ class View:
         xy[x[:, 2] <= 0] = np.nan
         return xy, x[:, 2]
 
-    def distance_px(self, points_base: npt.ArrayLike) -> FloatArray:
-        """Unsigned distance [px] of the points' projections to the curve; inf behind."""
+    def distance_px(self, points_base: npt.ArrayLike, within_px: float = np.inf) -> FloatArray:
+        """Unsigned distance [px] of the points' projections to the curve; inf behind the
+        camera and where the projection is over ``within_px`` from every chain point."""
         xy, _ = self.project(points_base)
-        distance, _ = self.curve.distance(xy)
-        return np.nan_to_num(np.abs(distance) * self.curve.focal_px, nan=np.inf)
-
-    def chain_distance_px(self, points_base: npt.ArrayLike) -> FloatArray:
-        """Distance [px] of the points' projections to the nearest chain point; inf behind."""
-        xy, _ = self.project(points_base)
-        finite = np.all(np.isfinite(xy), axis=1)
         result = np.full(len(xy), np.inf)
-        if finite.any():
-            _, distance = self.curve.nearest(xy[finite])
-            result[finite] = distance * self.curve.focal_px
+        finite = np.nonzero(np.all(np.isfinite(xy), axis=1))[0]
+        # (a small relative margin on the search bound: the exact test follows)
+        bound = within_px / self.curve.focal_px * (1 + 1e-9)
+        index, chain_distance = self.curve.nearest(xy[finite], bound)
+        near = chain_distance * self.curve.focal_px <= within_px
+        if near.any():
+            distance, _ = self.curve.owner_distance(xy[finite[near]], index[near])
+            result[finite[near]] = np.nan_to_num(
+                np.abs(distance) * self.curve.focal_px, nan=np.inf
+            )
         return result
 
     def chain_index(self, points_base: npt.ArrayLike) -> IntArray:
@@ -311,11 +321,11 @@ class View:
         box = self.curve.piece_boxes[pieces]
         ok = np.all((xy >= box[:, 0] - reach) & (xy <= box[:, 1] + reach), axis=1)
         result = np.zeros(len(xy), dtype=bool)
-        if ok.any():
-            index, distance = self.curve.nearest(xy[ok])
-            result[ok] = self.curve.member[pieces[ok], index] & (
-                distance * self.curve.focal_px <= support_px
-            )
+        inside = np.nonzero(ok)[0]
+        index, distance = self.curve.nearest(xy[inside], reach)
+        near = distance * self.curve.focal_px <= support_px
+        inside, index = inside[near], index[near]
+        result[inside] = self.curve.member[pieces[inside], index]
         return result
 
 
@@ -597,9 +607,7 @@ def select_candidates(
         # a piece's implicit curve runs on beyond its stretch of the chain: a spurious
         # root near that continuation is near "the curve" by its Sampson distance while
         # far from anything view 3 saw, so a candidate must also project near the chain
-        distance3 = view3.distance_px(candidates)
-        off_chain = view3.chain_distance_px(candidates) > support3_px
-        distance3[off_chain] = np.inf
+        distance3 = view3.distance_px(candidates, within_px=support3_px)
         if order_views is not None:
             view1, view2 = order_views
             first = _first_of_each_sample(ray_of_candidate, distance3)
