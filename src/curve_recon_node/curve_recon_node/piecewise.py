@@ -153,10 +153,14 @@ class PiecewiseCurve:
         gather = np.zeros((len(fitted), counts.max()), dtype=int)
         for row, indices in zip(gather, fitted):
             row[: len(indices)] = indices
-        # (F, B, M) and the signed Sampson distances of each piece's points (F, B, K)
-        coefficients, residual = fit_implicit_curves_batch(
-            self.xy[gather], counts, self.degree, FITS
-        )
+        coefficients = fit_implicit_curves_batch(self.xy[gather], counts, self.degree, FITS)
+        # signed Sampson distances g / ||grad g|| of each piece's chain points, per fit,
+        # with the coefficients as they are used (in the chain's coordinates: computed
+        # in the fit's normalised ones instead, they came out up to 30 % lower on short
+        # near-straight cubic pieces, and the split stopped where the curve as used was
+        # still off; near_straight seed 2 at noise 4: 0.21 -> 1.10 mm max)
+        valid = np.arange(gather.shape[1])[None, :] < counts[:, None]
+        residual = self._residuals(gather, coefficients, valid)
         rms = np.sqrt(np.sum(residual**2, axis=2) / counts) * self.focal_px  # (F, B)
         # the first fit (Taubin's) unless another is strictly nearer (NaN never is)
         best = np.zeros(len(fitted), dtype=int)
@@ -182,6 +186,21 @@ class PiecewiseCurve:
             (coefficients[best[b], b], float(rms[best[b], b]), float(bias[b]))
             for b in pieces_range
         ]
+
+    def _residuals(
+        self, gather: IntArray, coefficients: FloatArray, valid: npt.NDArray[np.bool_]
+    ) -> FloatArray:
+        """(F, B, K) signed Sampson distances of chain points ``gather`` (B, K) to fits
+        (F, B, M), 0 where not ``valid``."""
+        mono, mono_gradients = monomials_and_gradients(self.xy[gather].reshape(-1, 2), self.degree)
+        shape = (*gather.shape, -1)
+        columns = coefficients.transpose(1, 2, 0)  # (B, M, F)
+        value = mono.reshape(shape) @ columns
+        dx = mono_gradients[:, :, 0].reshape(shape) @ columns
+        dy = mono_gradients[:, :, 1].reshape(shape) @ columns
+        with np.errstate(divide='ignore', invalid='ignore'):
+            distance = (value / np.hypot(dx, dy)).transpose(2, 0, 1)
+        return np.where(valid, distance, 0.0)
 
     def _split(self) -> None:
         """Split the chain recursively into halves (overlapping by ``overlap``) until
