@@ -887,9 +887,108 @@ def main_thesis():
     return 0
 
 
+TIMING_CASES = ('default', 'torus_knot:0:0', 'torus_knot:1:0', 'torus_knot:2:0', 'torus_knot:3:0')
+
+
+def timing_capture(name):
+    """(images, cameras, settings) of a timing case: 'default' (the default scenario's
+    capture) or 'family:seed:noise' (a part C draw)."""
+    if name == 'default':
+        scenario, images, _ = render('default', None)
+        return images, scenario.cameras, ReconstructionSettings(degree=2)
+    from vgm_evaluation.curve_families import generate_case
+
+    from sensor_sim.render import SceneRenderer, add_noise
+
+    family, seed, noise = name.split(':')
+    case = generate_case(family, int(seed))
+    renderer = SceneRenderer(case.scenario)
+    images = {
+        camera: add_noise(
+            renderer.scene_image(camera),
+            float(noise),
+            np.random.default_rng([int(seed), int(10 * float(noise)), i]),
+        ).astype(float)
+        for i, camera in enumerate(('left', 'right', 'aux'))
+    }
+    settings = ReconstructionSettings(degree=case.degree, line_width_px=case.line_width_px)
+    return images, case.scenario.cameras, settings
+
+
+def run_timing(cases=TIMING_CASES, repeats=25):
+    """Time per capture, ours (``reconstruct_capture``) and the triangulation peer (the
+    same extraction and fits, ``view_curve`` x 3, then ``triangulate_views``), run
+    alternately ``repeats`` times on each case's capture: medians, minima and our
+    stages' medians [ms]."""
+    from curve_recon_node.reference import triangulate_views
+
+    rows = []
+    for name in cases:
+        images, cameras, settings = timing_capture(name)
+        ours, peer, stages = [], [], []
+        for _ in range(repeats):
+            started = time.perf_counter()
+            result = reconstruct_capture(images, cameras, settings)
+            ours.append(time.perf_counter() - started)
+            stages.append(result.stats['stage_ms'])
+            started = time.perf_counter()
+            views = [
+                view_curve(images[c], cameras[c], settings)[0] for c in ('left', 'right', 'aux')
+            ]
+            triangulate_views(views)
+            peer.append(time.perf_counter() - started)
+        rows.append(
+            dict(
+                case=name,
+                ours_ms=1e3 * float(np.median(ours)),
+                ours_min_ms=1e3 * float(np.min(ours)),
+                peer_ms=1e3 * float(np.median(peer)),
+                peer_min_ms=1e3 * float(np.min(peer)),
+                stage_ms={k: float(np.median([s[k] for s in stages])) for k in stages[0]},
+                pieces=result.stats['pieces'],
+                waypoints=len(result.waypoints_base),
+            )
+        )
+        print(f'  {name} done', flush=True)
+    return rows
+
+
+def main_timing():
+    """Time per capture, ours and the peer -> timing.md."""
+    OUT.mkdir(parents=True, exist_ok=True)
+    with open('/proc/loadavg') as f:
+        load = f.read().split()[:3]
+    rows = run_timing()
+    stages = list(rows[0]['stage_ms'])
+    md = [
+        '# curve_recon_node bench: time per three-view capture',
+        '',
+        'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        f'bench/bench_curve_recon.py --part T` (load average at the start: {" ".join(load)}).',
+        '',
+        '| case | pieces | ours median / min [ms] | peer median / min [ms] | '
+        + ' | '.join(stages)
+        + ' |',
+        '|---|---|---|---|' + '---|' * len(stages),
+    ]
+    for r in rows:
+        md.append(
+            f'| {r["case"]} | {r["pieces"]} | {r["ours_ms"]:.1f} / {r["ours_min_ms"]:.1f} | '
+            f'{r["peer_ms"]:.1f} / {r["peer_min_ms"]:.1f} | '
+            + ' | '.join(f'{r["stage_ms"][k]:.1f}' for k in stages)
+            + ' |'
+        )
+    (OUT / 'timing.md').write_text('\n'.join(md) + '\n')
+    (OUT / 'timing.json').write_text(json.dumps(rows, indent=1))
+    print('\n'.join(md))
+    return 0
+
+
 if __name__ == '__main__':
     if '--part' in sys.argv and sys.argv[sys.argv.index('--part') + 1] == 'C':
         sys.exit(main_families(sys.argv[sys.argv.index('--part') + 2 :] or None))
     if '--part' in sys.argv and sys.argv[sys.argv.index('--part') + 1] == 'A':
         sys.exit(main_thesis())
+    if '--part' in sys.argv and sys.argv[sys.argv.index('--part') + 1] == 'T':
+        sys.exit(main_timing())
     sys.exit(main_families() or main())

@@ -10,6 +10,7 @@ from curve_recon_node.algebraic_curves import (
     curve_gradient,
     evaluate_curve,
     fit_implicit_curve,
+    fit_implicit_curves_batch,
     monomial_exponents,
     monomials,
     project_to_curve,
@@ -138,6 +139,48 @@ def test_fit_recovers_conic_from_exact_points(coefficients, degree):
     a = fit_implicit_curve(xy, degree)
     assert np.linalg.norm(a) == pytest.approx(1.0)
     assert_same_up_to_scale(a, a_true, 1e-9)
+
+
+def test_batched_fits_recover_each_set():
+    """One call fits point sets of different sizes (padded): each set's own curve; a
+    conic through exactly 5 points (M - 1) is found."""
+    t = np.linspace(0.0, 1.5, 40)
+    # an ellipse far off the origin (centre (3, -2), semi-axes 0.4 and 0.25, 30 deg)
+    c, s_ = np.cos(np.pi / 6), np.sin(np.pi / 6)
+    ellipse = np.column_stack(
+        [
+            3 + 0.4 * np.cos(t) * c - 0.25 * np.sin(t) * s_,
+            -2 + 0.4 * np.cos(t) * s_ + 0.25 * np.sin(t) * c,
+        ]
+    )
+    # the unit circle, and 40 points around it alternately 1e-3 outside and inside: by
+    # symmetry their fit is a circle of radius 1 + O(1e-6), their distances +-1e-3
+    angles = np.linspace(0.0, 2 * np.pi, 40, endpoint=False)
+    circle = np.column_stack([np.cos(angles), np.sin(angles)])
+    a_circle = np.array([-1.0, 0, 0, 1, 0, 1])
+    offsets = 1e-3 * (-1.0) ** np.arange(40)
+    noisy = circle * (1 + offsets)[:, None]
+    sets = [ellipse, circle[:5], noisy]
+    counts = [len(points) for points in sets]
+    xy = np.zeros((3, max(counts), 2))
+    for b, points in enumerate(sets):
+        xy[b, : len(points)] = points
+    coefficients = fit_implicit_curves_batch(xy, counts, 2, ('taubin', 'algebraic'))
+    assert coefficients.shape == (2, 3, 6)
+    for fit in range(2):
+        a_ellipse = coefficients[fit, 0]
+        assert np.abs(evaluate_curve(a_ellipse, ellipse, 2)).max() < 1e-10
+        assert sampson_distance(a_ellipse, ellipse, 2).max() < 1e-9
+        assert_same_up_to_scale(coefficients[fit, 1], a_circle, 1e-9)  # from 5 points
+        assert_same_up_to_scale(coefficients[fit, 2], a_circle, 1e-5)
+        np.testing.assert_allclose(
+            sampson_distance(coefficients[fit, 2], noisy, 2), np.abs(offsets), atol=1e-5
+        )
+    # the single-set entry point gives the same fits
+    for b, points in enumerate(sets):
+        assert_same_up_to_scale(fit_implicit_curve(points, 2), coefficients[0, b], 1e-9)
+    with pytest.raises(InvalidInput):
+        fit_implicit_curves_batch(xy[:, :4], [4, 4, 4], 2)  # fewer than M - 1 points
 
 
 def test_sampson_distance_of_circle_and_gradient():

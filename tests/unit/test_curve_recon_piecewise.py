@@ -156,6 +156,36 @@ def test_real_positive_roots_of_quadratics_and_lines_match_numpy():
         np.testing.assert_allclose(np.sort(roots[rows == i]), expected, rtol=1e-8)
 
 
+def test_real_positive_roots_of_cubics_against_their_true_roots():
+    """The closed form for cubics: built from known roots (three real over four decades,
+    one real and a complex pair, a double root), then scaled and tested."""
+    rng = np.random.default_rng(8)
+    n = 2000
+    real = np.sort(np.exp(rng.uniform(np.log(1e-2), np.log(1e2), size=(n, 3))), axis=1)
+    real *= rng.choice([-1.0, 1.0], size=(n, 3))
+    pair = rng.uniform(0.5, 3.0, size=n) * real[:, 0] + 1j * rng.uniform(0.05, 2.0, size=n)
+    kinds = np.arange(n) % 3  # 0: three real, 1: one real and a pair, 2: a double root
+    roots = np.where(
+        kinds[:, None] == 0,
+        real,
+        np.where(
+            kinds[:, None] == 1,
+            np.column_stack([real[:, 0], pair, np.conj(pair)]),
+            np.column_stack([real[:, 0], real[:, 1], real[:, 1]]),
+        ),
+    )
+    poly = np.array([np.poly(r)[::-1].real for r in roots]) * rng.uniform(0.1, 10, size=(n, 1))
+    rows, found = _real_positive_roots(poly)
+    for i in range(n):
+        true = np.sort(roots[i].real[(roots[i].imag == 0) & (roots[i].real > 0)])
+        got = np.sort(found[rows == i])
+        if kinds[i] == 2 and real[i, 1] > 0:  # a double root: maybe a close complex pair
+            assert len(got) == len(true)
+            np.testing.assert_allclose(got, true, rtol=1e-6)
+        else:
+            np.testing.assert_allclose(got, true, rtol=1e-9)
+
+
 @pytest.mark.parametrize('views', [3, 2])
 def test_pinv_solve_matches_numpy_pinv(views):
     """Batched closed-form minimum-norm solutions against np.linalg.pinv, for Jacobians of
@@ -342,6 +372,21 @@ def test_third_view_rejects_a_root_on_a_pieces_continuation_off_its_chain():
     on_chain = np.array([0.2 * np.cos(0.7), 0.2 * np.sin(0.7), 1.0])
     spurious = np.array([-0.2, 0.0, 1.0])  # on the circle, 0.2 * F_PX px from the arc
     assert view3.distance_px(spurious[None])[0] < 0.05
+    # limited to projections within 3 px of the chain: inf for it (120 px off), and the
+    # same distance as without the limit for points 0-2.9 px off the chain (arc radius
+    # 120 px), in front of and behind the camera
+    assert view3.distance_px(spurious[None], within_px=3.0)[0] == np.inf
+    offsets = np.linspace(0.0, 2.9, 7) / F_PX
+    near = np.column_stack([(0.2 + offsets) * np.cos(0.7), (0.2 + offsets) * np.sin(0.7)])
+    near = np.vstack([np.column_stack([near, np.ones(7)]), [[0.1, 0.1, -1.0]]])
+    limited = view3.distance_px(near, within_px=3.0)
+    np.testing.assert_array_equal(limited, view3.distance_px(near))
+    # a circle's Sampson distance: (r'^2 - r^2) / (2 r') for a point at radius r'
+    radius = 0.2 + offsets
+    np.testing.assert_allclose(
+        limited[:7], (radius**2 - 0.2**2) / (2 * radius) * F_PX, rtol=1e-6, atol=1e-9
+    )
+    assert limited[7] == np.inf
     points, info = select_candidates(
         np.array([0, 1]), np.stack([spurious, on_chain]), 2, np.array([10, 11]), view3, 2.0, 2e-3
     )

@@ -79,12 +79,25 @@ def check_coefficients(a: npt.ArrayLike, degree: int) -> FloatArray:
     return a
 
 
-def _shift_scale_matrix(mean: FloatArray, scale: float, degree: int) -> FloatArray:
-    """(M, M) matrix T with mu(scale * (p - mean)) = T mu(p) for every point p."""
+def monomials_and_gradients(xy: FloatArray, degree: int) -> tuple[FloatArray, FloatArray]:
+    """(Q, M) monomials of (Q, 2) points and (Q, M, 2) their derivatives with respect to X
+    and Y, from one set of powers."""
+    jx, jy = monomial_exponents(degree).T
+    px, py = powers(xy[:, 0], degree), powers(xy[:, 1], degree)
+    d_dx = jx * px[:, np.maximum(jx - 1, 0)] * py[:, jy]
+    d_dy = jy * px[:, jx] * py[:, np.maximum(jy - 1, 0)]
+    return px[:, jx] * py[:, jy], np.stack([d_dx, d_dy], axis=2)
+
+
+def _shift_scale_matrices(mean: FloatArray, scale: FloatArray, degree: int) -> FloatArray:
+    """(B, M, M) matrices T_b with mu(scale_b * (p - mean_b)) = T_b mu(p) for every point
+    p, for means (B, 2) and scales (B,)."""
     rows, columns, total, binomial, power_x, power_y = _shift_scale_terms(int(degree))
     size = len(monomial_exponents(degree))
-    T = np.zeros((size, size))
-    T[rows, columns] = scale**total * binomial * (-mean[0]) ** power_x * (-mean[1]) ** power_y
+    T = np.zeros((len(mean), size, size))
+    T[:, rows, columns] = (
+        scale[:, None] ** total * binomial * (-mean[:, :1]) ** power_x * (-mean[:, 1:]) ** power_y
+    )
     return T
 
 
@@ -128,54 +141,110 @@ def fit_implicit_curves(
     xy: npt.ArrayLike, degree: int, fits: Sequence[str] = FITS
 ) -> list[FloatArray]:
     """``fit_implicit_curve`` by each of ``fits`` on the same points, sharing their
-    normalisation and monomials (a piece's fit tries both)."""
+    normalisation and monomials."""
     xy = _as_xy(xy)
+    return list(fit_implicit_curves_batch(xy[None], np.array([len(xy)]), degree, fits)[:, 0])
+
+
+def fit_implicit_curves_batch(
+    xy: npt.ArrayLike, counts: npt.ArrayLike, degree: int, fits: Sequence[str] = FITS
+) -> FloatArray:
+    """``fit_implicit_curve`` by each of ``fits`` on each of B point sets at once (a
+    piecewise curve's pieces of one level of splitting: one batched SVD and eigenproblem
+    instead of two small ones per piece, whose overhead was the cost).
+
+    Args:
+        xy: (B, K, 2) point sets; set b is ``xy[b, :counts[b]]``, the rest is padding.
+        counts: (B,) number of points of each set.
+        degree: n of the curves.
+        fits: any of ``FITS``.
+
+    Returns:
+        (len(fits), B, M) unit-norm coefficients.
+    """
+    xy = np.asarray(xy, dtype=float)
+    counts = np.asarray(counts, dtype=int)
     size = len(monomial_exponents(degree))
-    if len(xy) < size - 1:
+    if xy.ndim != 3 or xy.shape[2] != 2 or counts.shape != (len(xy),):
         raise InvalidInput(
-            f'xy: a degree-{degree} curve needs at least {size - 1} points, got {len(xy)}',
+            f'xy: expected shape (B, K, 2) and counts (B,), got {xy.shape} and {counts.shape}',
             key='xy',
-            value=len(xy),
+            value=xy.shape,
+        )
+    if len(xy) and (counts.min() < size - 1 or counts.max() > xy.shape[1]):
+        raise InvalidInput(
+            f'xy: a degree-{degree} curve needs at least {size - 1} points, got '
+            f'{counts.min()} (of at most {xy.shape[1]})',
+            key='xy',
+            value=int(counts.min()),
         )
     for fit in fits:
         if fit not in FITS:
             raise InvalidInput(f'fit: expected one of {FITS}, got {fit!r}', key='fit', value=fit)
-    mean = xy.mean(axis=0)
-    centred = xy - mean
-    scale = np.sqrt(2.0) / np.mean(np.linalg.norm(centred, axis=1))
-    normalised = scale * centred
-    M = monomials(normalised, degree)
-    back = _shift_scale_matrix(mean, scale, degree).T
-    result = []
+    # padding rows of the monomials and their derivatives are zero: they add nothing to
+    # any scatter matrix; at least M rows, so the SVD's last right vector is the null
+    # vector even for M - 1 points
+    rows = max(xy.shape[1], size)
+    valid = np.arange(rows)[None, :] < counts[:, None]  # (B, K)
+    padded = np.zeros((len(xy), rows, 2))
+    padded[:, : xy.shape[1]] = xy
+    weight = valid[..., None].astype(float)
+    mean = (padded * weight).sum(axis=1) / counts[:, None]
+    centred = (padded - mean[:, None]) * weight
+    scale = np.sqrt(2.0) / (np.linalg.norm(centred, axis=2).sum(axis=1) / counts)
+    normalised = scale[:, None, None] * centred
+    mono, gradients = monomials_and_gradients(normalised.reshape(-1, 2), degree)
+    M = mono.reshape(len(xy), rows, size) * weight
+    gradients = gradients.reshape(len(xy), rows, size, 2) * weight[..., None]
+    back = _shift_scale_matrices(mean, scale, degree).transpose(0, 2, 1)
+    # the algebraic fit: the right singular vector of M's smallest singular value, as
+    # the eigenvector of M^T M's smallest eigenvalue (a batched SVD of the tall M was
+    # most of the fitting time of a knot's chains; the splits of the bench's
+    # near-straight draws, whose fits are the most ill-conditioned, stay the same)
+    algebraic = np.linalg.eigh(M.transpose(0, 2, 1) @ M)[1][:, :, 0]
+    coefficients = []
     for fit in fits:
         if fit == 'algebraic':
-            solution = np.linalg.svd(M, full_matrices=False)[2][-1]
+            solution = algebraic
         else:
-            solution = _taubin(M, normalised, degree)
-        a = back @ solution
-        result.append(a / np.linalg.norm(a))
-    return result
+            solution = _taubin(M, gradients[:, :, 1:], weight, algebraic)
+        a = np.einsum('bij,bj->bi', back, solution)
+        coefficients.append(a / np.linalg.norm(a, axis=1, keepdims=True))
+    return np.array(coefficients).reshape(len(fits), len(xy), size)
 
 
-def _taubin(M: FloatArray, xy: FloatArray, degree: int) -> FloatArray:
-    """Taubin's fit: min a^T M^T M a subject to a^T (Dx^T Dx + Dy^T Dy) a = 1. The
-    constant term (column 0 of M, no gradient) is eliminated first, a_0 = -mean(M_rest)
-    a_rest, which leaves the symmetric-definite problem (M_c^T M_c) a = lambda N a with
-    the centred monomials M_c and N positive definite; its smallest lambda is the fit."""
+def _taubin(
+    M: FloatArray, gradients: FloatArray, weight: FloatArray, fallback: FloatArray
+) -> FloatArray:
+    """Taubin's fits (B, M): min a^T M^T M a subject to a^T (Dx^T Dx + Dy^T Dy) a = 1,
+    for monomials M (B, K, M) and the derivatives of all but the constant one (B, K,
+    M - 1, 2), padding rows (``weight`` (B, K, 1) zero) zero. The constant term (no
+    gradient) is eliminated first, a_0 = -mean(M_rest) a_rest, which leaves the
+    symmetric-definite problem (M_c^T M_c) a = lambda N a with the centred monomials M_c
+    and N positive definite; its smallest lambda is the fit. A set whose N is not
+    definite (too few distinct points) takes ``fallback`` (B, M), the algebraic fit.
+
+    The small generalised eigenproblems are solved one by one with LAPACK's driver
+    (``scipy.linalg.eigh``): on a near-straight piece of a cubic the smallest
+    eigenvalues nearly coincide, and a batched Cholesky reduction, equal to rounding,
+    gave coefficients 1e-3 apart, other splits and one more bench miss."""
     from scipy.linalg import eigh
 
-    jx, jy = monomial_exponents(degree).T
-    px, py = powers(xy[:, 0], degree), powers(xy[:, 1], degree)
-    Dx = (jx * px[:, np.maximum(jx - 1, 0)] * py[:, jy])[:, 1:]
-    Dy = (jy * px[:, jx] * py[:, np.maximum(jy - 1, 0)])[:, 1:]
-    rest_mean = M[:, 1:].mean(axis=0)
-    centred = M[:, 1:] - rest_mean
-    try:
-        _, vectors = eigh(centred.T @ centred, Dx.T @ Dx + Dy.T @ Dy, subset_by_index=[0, 0])
-    except np.linalg.LinAlgError:  # too few distinct points for N to be definite
-        return np.linalg.svd(M, full_matrices=False)[2][-1]
-    rest = vectors[:, 0]
-    return np.concatenate([[-rest_mean @ rest], rest])
+    rest = M[:, :, 1:]
+    rest_mean = rest.sum(axis=1) / weight.sum(axis=1)
+    centred = (rest - rest_mean[:, None]) * weight
+    A = centred.transpose(0, 2, 1) @ centred
+    Dx, Dy = gradients[..., 0], gradients[..., 1]
+    N = Dx.transpose(0, 2, 1) @ Dx + Dy.transpose(0, 2, 1) @ Dy
+    solution = fallback.copy()
+    for b in range(len(M)):
+        try:
+            _, vectors = eigh(A[b], N[b], subset_by_index=[0, 0])
+        except np.linalg.LinAlgError:  # N not definite
+            continue
+        solution[b, 1:] = vectors[:, 0]
+        solution[b, 0] = -rest_mean[b] @ vectors[:, 0]
+    return solution
 
 
 def evaluate_curve(a: npt.ArrayLike, xy: npt.ArrayLike, degree: int) -> FloatArray:

@@ -39,8 +39,9 @@ from scipy.spatial import cKDTree
 from curve_recon_node.algebraic_curves import (
     FITS,
     IntArray,
-    fit_implicit_curves,
+    fit_implicit_curves_batch,
     monomial_exponents,
+    monomials_and_gradients,
     powers,
 )
 from vgm_common.errors import InvalidInput
@@ -108,13 +109,7 @@ class PiecewiseCurve:
         )
         self.pieces: list[CurvePiece] = []
         n = len(xy)
-        # each piece's residual is measured on these (a chain point is in several fits):
-        # monomials (N, M) and their X and Y derivatives (N, M) each
-        mono, mono_gradients = _monomials_and_gradients(self.xy, self.degree)
-        self._monomials = mono
-        self._monomials_dx = np.ascontiguousarray(mono_gradients[:, :, 0])
-        self._monomials_dy = np.ascontiguousarray(mono_gradients[:, :, 1])
-        self._split(0, n, depth=0)
+        self._split()
         self._tree = cKDTree(self.xy)
         # owner of each chain point: the piece in which it lies most centrally, so the
         # distance to the curve is measured away from the ends of a piece's fit
@@ -136,65 +131,124 @@ class PiecewiseCurve:
         idx = np.arange(start, start + length)
         return idx % len(self.xy) if self.closed else idx
 
-    def _fit(self, indices: IntArray) -> tuple[FloatArray, float, float]:
-        """The piece's coefficients and RMS Sampson residual [px]: of Taubin's and the
-        algebraic fit, the one nearer its points. Taubin's avoids the algebraic fit's
-        near-singular solutions on long gentle pieces (pixels of residual where the
-        points are within 0.05 px of a cubic); the algebraic one is sometimes nearer on
-        a piece that no degree-n curve fits (a sharp turn too short to split). Both are
-        always tried: stopping at a Taubin fit within the tolerance took a helix's
-        coverage at noise 4 from 0.97 to 0.78 (a single cubic piece, systematic error).
+    def _fits(self, pieces: Sequence[IntArray]) -> list[tuple[FloatArray, float, float]]:
+        """Each piece's coefficients and RMS Sampson residual [px] (all pieces of one
+        level of splitting at once): of Taubin's and the algebraic fit, the one nearer
+        its points. Taubin's avoids the algebraic fit's near-singular solutions on long
+        gentle pieces (pixels of residual where the points are within 0.05 px of a
+        cubic); the algebraic one is sometimes nearer on a piece that no degree-n curve
+        fits (a sharp turn too short to split). Both are always tried: stopping at a
+        Taubin fit within the tolerance took a helix's coverage at noise 4 from 0.97 to
+        0.78 (a single cubic piece, systematic error).
 
-        Returns (coefficients, RMS residual [px], bias [px]): the largest mean signed
-        residual over ``BIAS_WINDOW`` consecutive chain points, the fit's systematic
-        error, which the chain's noise averages out of."""
-        measured = indices[self.measured[indices]]
-        if len(measured) >= len(self._monomials[0]) + 2:
-            indices = measured
-        best: tuple[FloatArray, float, FloatArray] | None = None
-        for a in fit_implicit_curves(self.xy[indices], self.degree, FITS):
-            # signed Sampson distances g / ||grad g|| of the piece's chain points
-            with np.errstate(divide='ignore', invalid='ignore'):
-                residual = (self._monomials[indices] @ a) / np.hypot(
-                    self._monomials_dx[indices] @ a, self._monomials_dy[indices] @ a
-                )
-            rms = float(np.sqrt(np.mean(residual**2)) * self.focal_px)
-            if best is None or rms < best[1]:
-                best = (a, rms, residual)
-        assert best is not None  # FITS is not empty
-        a, rms, residual = best
-        window = min(BIAS_WINDOW, len(residual))
-        running = np.convolve(residual, np.full(window, 1.0 / window), mode='valid')
-        bias = float(np.max(np.abs(running)) * self.focal_px) if len(running) else np.inf
-        return a, rms, bias if np.isfinite(bias) else np.inf
+        Returns per piece (coefficients, RMS residual [px], bias [px]): the bias is the
+        largest mean signed residual over ``BIAS_WINDOW`` consecutive chain points, the
+        fit's systematic error, which the chain's noise averages out of."""
+        size = len(monomial_exponents(self.degree))
+        fitted = []
+        for indices in pieces:
+            measured = indices[self.measured[indices]]
+            fitted.append(measured if len(measured) >= size + 2 else indices)
+        counts = np.array([len(indices) for indices in fitted])
+        gather = np.zeros((len(fitted), counts.max()), dtype=int)
+        for row, indices in zip(gather, fitted):
+            row[: len(indices)] = indices
+        coefficients = fit_implicit_curves_batch(self.xy[gather], counts, self.degree, FITS)
+        # signed Sampson distances g / ||grad g|| of each piece's chain points, per fit,
+        # with the coefficients as they are used (in the chain's coordinates: computed
+        # in the fit's normalised ones instead, they came out up to 30 % lower on short
+        # near-straight cubic pieces, and the split stopped where the curve as used was
+        # still off; near_straight seed 2 at noise 4: 0.21 -> 1.10 mm max)
+        valid = np.arange(gather.shape[1])[None, :] < counts[:, None]
+        residual = self._residuals(gather, coefficients, valid)
+        rms = np.sqrt(np.sum(residual**2, axis=2) / counts) * self.focal_px  # (F, B)
+        # the first fit (Taubin's) unless another is strictly nearer (NaN never is)
+        best = np.zeros(len(fitted), dtype=int)
+        for f in range(1, len(FITS)):
+            best = np.where(rms[f] < rms[best, np.arange(len(fitted))], f, best)
+        pieces_range = np.arange(len(fitted))
+        residual = residual[best, pieces_range]
+        # running mean over min(BIAS_WINDOW, count) points, from cumulative sums
+        window = np.minimum(BIAS_WINDOW, counts)[:, None]
+        cumulative = np.concatenate(
+            [np.zeros((len(fitted), 1)), np.cumsum(residual, axis=1)], axis=1
+        )
+        starts = np.arange(gather.shape[1])[None, :]
+        ends = starts + window
+        inside = ends <= counts[:, None]
+        running = (
+            np.take_along_axis(cumulative, np.minimum(ends, gather.shape[1]), axis=1)
+            - cumulative[:, :-1]
+        ) / window
+        bias = np.max(np.where(inside, np.abs(running), -np.inf), axis=1) * self.focal_px
+        bias[~np.isfinite(bias)] = np.inf
+        return [
+            (coefficients[best[b], b], float(rms[best[b], b]), float(bias[b]))
+            for b in pieces_range
+        ]
 
-    def _split(self, start: int, length: int, depth: int) -> None:
-        indices = self._indices(start, length)
-        a, rms, bias = self._fit(indices)
-        too_short = length < 2 * self.min_piece_points
-        # a fit within the RMS tolerance can still miss a stretch of the chain by a
-        # steady 0.1-0.2 px (near_straight seed 3: RMS 0.07 px); where the curve runs
-        # near the epipolar planes that bias became 0.8 mm in 3D
-        fits = rms <= self.fit_tolerance_px and bias <= BIAS_SHARE * self.fit_tolerance_px
-        if fits or too_short or depth > 12:
-            self.pieces.append(CurvePiece(a, indices, rms))
-            return
-        half = length // 2
-        extra = int(np.ceil(self.overlap * half))
-        if self.closed and length >= len(self.xy):  # the whole loop: halves wrap around
-            self._split(start - extra, half + 2 * extra, depth + 1)
-            self._split(start + half - extra, length - half + 2 * extra, depth + 1)
-            return
-        first_stop = min(start + half + extra, start + length)
-        second_start = max(start + half - extra, start)
-        self._split(start, first_stop - start, depth + 1)
-        self._split(second_start, start + length - second_start, depth + 1)
+    def _residuals(
+        self, gather: IntArray, coefficients: FloatArray, valid: npt.NDArray[np.bool_]
+    ) -> FloatArray:
+        """(F, B, K) signed Sampson distances of chain points ``gather`` (B, K) to fits
+        (F, B, M), 0 where not ``valid``."""
+        mono, mono_gradients = monomials_and_gradients(self.xy[gather].reshape(-1, 2), self.degree)
+        shape = (*gather.shape, -1)
+        columns = coefficients.transpose(1, 2, 0)  # (B, M, F)
+        value = mono.reshape(shape) @ columns
+        dx = mono_gradients[:, :, 0].reshape(shape) @ columns
+        dy = mono_gradients[:, :, 1].reshape(shape) @ columns
+        with np.errstate(divide='ignore', invalid='ignore'):
+            distance = (value / np.hypot(dx, dy)).transpose(2, 0, 1)
+        return np.where(valid, distance, 0.0)
+
+    def _split(self) -> None:
+        """Split the chain recursively into halves (overlapping by ``overlap``) until
+        each piece fits, one level at a time so that each level's fits are batched; the
+        pieces are kept in depth-first order (the order of the chain)."""
+        # pending pieces: (path of halves from the whole chain, start, length)
+        level: list[tuple[tuple[int, ...], int, int]] = [((), 0, len(self.xy))]
+        leaves: list[tuple[tuple[int, ...], CurvePiece]] = []
+        depth = 0
+        while level:
+            indices = [self._indices(start, length) for _, start, length in level]
+            following: list[tuple[tuple[int, ...], int, int]] = []
+            for (path, start, length), piece_indices, (a, rms, bias) in zip(
+                level, indices, self._fits(indices)
+            ):
+                too_short = length < 2 * self.min_piece_points
+                # a fit within the RMS tolerance can still miss a stretch of the chain by
+                # a steady 0.1-0.2 px (near_straight seed 3: RMS 0.07 px); where the
+                # curve runs near the epipolar planes that bias became 0.8 mm in 3D
+                fits = rms <= self.fit_tolerance_px and bias <= BIAS_SHARE * self.fit_tolerance_px
+                if fits or too_short or depth > 12:
+                    leaves.append((path, CurvePiece(a, piece_indices, rms)))
+                    continue
+                half = length // 2
+                extra = int(np.ceil(self.overlap * half))
+                if self.closed and length >= len(self.xy):  # the whole loop: halves wrap
+                    following.append((path + (0,), start - extra, half + 2 * extra))
+                    following.append(
+                        (path + (1,), start + half - extra, length - half + 2 * extra)
+                    )
+                    continue
+                first_stop = min(start + half + extra, start + length)
+                second_start = max(start + half - extra, start)
+                following.append((path + (0,), start, first_stop - start))
+                following.append((path + (1,), second_start, start + length - second_start))
+            level = following
+            depth += 1
+        self.pieces = [piece for _, piece in sorted(leaves, key=lambda leaf: leaf[0])]
 
     # --- queries ---------------------------------------------------------------------
 
-    def nearest(self, xy: npt.ArrayLike) -> tuple[IntArray, FloatArray]:
-        """Nearest chain point index (Q,) and distance to it (Q,) [normalised]."""
-        distance, index = self._tree.query(np.asarray(xy, dtype=float).reshape(-1, 2))
+    def nearest(self, xy: npt.ArrayLike, within: float = np.inf) -> tuple[IntArray, FloatArray]:
+        """Nearest chain point index (Q,) and distance to it (Q,) [normalised]; points
+        with none within ``within`` get index N and distance inf (their search stops
+        early: most candidates of a knot's capture project far from view 3's chain)."""
+        distance, index = self._tree.query(
+            np.asarray(xy, dtype=float).reshape(-1, 2), distance_upper_bound=within
+        )
         return index, distance
 
     def distance(self, xy: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -210,8 +264,13 @@ class PiecewiseCurve:
                 distance[finite], direction[finite] = self.distance(xy[finite])
             return distance, direction
         index, _ = self.nearest(xy)
+        return self.owner_distance(xy, index)
+
+    def owner_distance(self, xy: FloatArray, index: IntArray) -> tuple[FloatArray, FloatArray]:
+        """``distance`` of finite points (Q, 2) whose nearest chain points are ``index``
+        (Q,) (already known)."""
         a = self.coefficient_matrix[self.owner[index]]
-        mono, mono_gradients = _monomials_and_gradients(xy, self.degree)
+        mono, mono_gradients = monomials_and_gradients(xy, self.degree)
         gradient = np.einsum('qmk,qm->qk', mono_gradients, a)
         norm = np.sqrt(gradient[:, 0] ** 2 + gradient[:, 1] ** 2)
         with np.errstate(divide='ignore', invalid='ignore'):
@@ -222,16 +281,6 @@ class PiecewiseCurve:
         """The pieces' RMS Sampson residuals combined [px]: the root of their mean square,
         each piece counting once whatever its number of points."""
         return float(np.sqrt(np.mean([p.rms_px**2 for p in self.pieces])))
-
-
-def _monomials_and_gradients(xy: FloatArray, degree: int) -> tuple[FloatArray, FloatArray]:
-    """(Q, M) monomials of (Q, 2) points and (Q, M, 2) their derivatives with respect to X
-    and Y, from one set of powers."""
-    jx, jy = monomial_exponents(degree).T
-    px, py = powers(xy[:, 0], degree), powers(xy[:, 1], degree)
-    d_dx = jx * px[:, np.maximum(jx - 1, 0)] * py[:, jy]
-    d_dy = jy * px[:, jx] * py[:, np.maximum(jy - 1, 0)]
-    return px[:, jx] * py[:, jy], np.stack([d_dx, d_dy], axis=2)
 
 
 @dataclass(frozen=True)
@@ -251,20 +300,21 @@ class View:
         xy[x[:, 2] <= 0] = np.nan
         return xy, x[:, 2]
 
-    def distance_px(self, points_base: npt.ArrayLike) -> FloatArray:
-        """Unsigned distance [px] of the points' projections to the curve; inf behind."""
+    def distance_px(self, points_base: npt.ArrayLike, within_px: float = np.inf) -> FloatArray:
+        """Unsigned distance [px] of the points' projections to the curve; inf behind the
+        camera and where the projection is over ``within_px`` from every chain point."""
         xy, _ = self.project(points_base)
-        distance, _ = self.curve.distance(xy)
-        return np.nan_to_num(np.abs(distance) * self.curve.focal_px, nan=np.inf)
-
-    def chain_distance_px(self, points_base: npt.ArrayLike) -> FloatArray:
-        """Distance [px] of the points' projections to the nearest chain point; inf behind."""
-        xy, _ = self.project(points_base)
-        finite = np.all(np.isfinite(xy), axis=1)
         result = np.full(len(xy), np.inf)
-        if finite.any():
-            _, distance = self.curve.nearest(xy[finite])
-            result[finite] = distance * self.curve.focal_px
+        finite = np.nonzero(np.all(np.isfinite(xy), axis=1))[0]
+        # (a small relative margin on the search bound: the exact test follows)
+        bound = within_px / self.curve.focal_px * (1 + 1e-9)
+        index, chain_distance = self.curve.nearest(xy[finite], bound)
+        near = chain_distance * self.curve.focal_px <= within_px
+        if near.any():
+            distance, _ = self.curve.owner_distance(xy[finite[near]], index[near])
+            result[finite[near]] = np.nan_to_num(
+                np.abs(distance) * self.curve.focal_px, nan=np.inf
+            )
         return result
 
     def chain_index(self, points_base: npt.ArrayLike) -> IntArray:
@@ -290,11 +340,11 @@ class View:
         box = self.curve.piece_boxes[pieces]
         ok = np.all((xy >= box[:, 0] - reach) & (xy <= box[:, 1] + reach), axis=1)
         result = np.zeros(len(xy), dtype=bool)
-        if ok.any():
-            index, distance = self.curve.nearest(xy[ok])
-            result[ok] = self.curve.member[pieces[ok], index] & (
-                distance * self.curve.focal_px <= support_px
-            )
+        inside = np.nonzero(ok)[0]
+        index, distance = self.curve.nearest(xy[inside], reach)
+        near = distance * self.curve.focal_px <= support_px
+        inside, index = inside[near], index[near]
+        result[inside] = self.curve.member[pieces[inside], index]
         return result
 
 
@@ -316,7 +366,7 @@ def cone_values(coefficients: FloatArray, degree: int, x_camera: FloatArray) -> 
 def _real_positive_roots(poly: FloatArray) -> tuple[IntArray, FloatArray]:
     """Real roots > 0 of polynomials with coefficients (Q, n + 1) in increasing order:
     returns (row index (K,), root (K,)). Leading coefficients near zero lower the degree
-    (handled per degree: in closed form up to quadratics, else by the eigenvalues of the
+    (handled per degree: in closed form up to cubics, else by the eigenvalues of the
     trimmed polynomial's companion matrix)."""
     rows: list[IntArray] = []
     roots: list[FloatArray] = []
@@ -334,6 +384,8 @@ def _real_positive_roots(poly: FloatArray) -> tuple[IntArray, FloatArray]:
         c = p[sel, : d + 1]
         if d <= 2:
             r, real_roots = _real_roots_up_to_quadratic(c)
+        elif d == 3:
+            r, real_roots = _real_roots_of_cubics(c)
         else:
             companion = np.zeros((len(sel), d, d))
             companion[:, 0, :] = -c[:, d - 1 :: -1] / c[:, d : d + 1]
@@ -368,6 +420,57 @@ def _real_roots_up_to_quadratic(c: FloatArray) -> tuple[IntArray, FloatArray]:
     first = np.where(real_pair, larger, -0.5 * b)[real]
     second = np.where(real_pair, smaller, -0.5 * b)[real]
     return np.concatenate([real, real]), np.concatenate([first, second])
+
+
+def _real_roots_of_cubics(c: FloatArray) -> tuple[IntArray, FloatArray]:
+    """Real roots of the rows of c (S, 4) (increasing order, leading coefficient nonzero):
+    (row (K,), root (K,)), in closed form (Viete's cosines for three real roots, Cardano's
+    formula for one), each polished by Newton steps on the cubic (kept where they lower
+    |f|). As for the companion matrices' eigenvalues (which took a third of a knot
+    capture's root finding), a complex pair whose imaginary part is within 1e-7 (1 +
+    |real part|) counts as a double root."""
+    a2, a1, a0 = (c[:, k] / c[:, 3] for k in (2, 1, 0))  # s^3 + a2 s^2 + a1 s + a0
+    shift = a2 / 3.0  # s = t - shift: t^3 + p t + q
+    p = a1 - a2 * shift
+    q = (2.0 / 27.0) * a2**3 - a1 * shift + a0
+    discriminant = (0.5 * q) ** 2 + (p / 3.0) ** 3
+    three = discriminant <= 0
+    # three real roots (p <= 0): t_k = m cos(phi - 2 pi k / 3)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        m = 2.0 * np.sqrt(np.maximum(-p, 0.0) / 3.0)
+        cosine = np.where(m > 0, 3.0 * q / np.where(m > 0, p * m, 1.0), 0.0)
+    phi = np.arccos(np.clip(cosine, -1.0, 1.0)) / 3.0
+    trigonometric = m[:, None] * np.cos(phi[:, None] - (2.0 * np.pi / 3.0) * np.arange(3))
+    # one real root u + v, u^3 = -q/2 - sign(q) sqrt(D) (no cancellation), u v = -p / 3,
+    # and the pair -(u + v) / 2 +- i sqrt(3) / 2 (u - v)
+    u = np.cbrt(-0.5 * q - np.copysign(np.sqrt(np.maximum(discriminant, 0.0)), q))
+    v = np.divide(-p, 3.0 * u, out=np.zeros_like(u), where=u != 0)
+    pair_real = -0.5 * (u + v) - shift
+    near_double = ~three & (0.5 * np.sqrt(3.0) * np.abs(u - v) <= 1e-7 * (1 + np.abs(pair_real)))
+    rows = np.arange(len(c))
+    one = np.nonzero(~three)[0]
+    double = np.nonzero(near_double)[0]
+    row = np.concatenate([np.repeat(rows[three], 3), one, double, double])
+    root = np.concatenate(
+        [
+            (trigonometric[three] - shift[three, None]).ravel(),
+            (u + v - shift)[one],
+            pair_real[double],
+            pair_real[double],
+        ]
+    )
+    coefficients = np.column_stack([a0, a1, a2])[row]
+    for _ in range(2):
+        value = ((root + coefficients[:, 2]) * root + coefficients[:, 1]) * root + coefficients[
+            :, 0
+        ]
+        slope = (3.0 * root + 2.0 * coefficients[:, 2]) * root + coefficients[:, 1]
+        stepped = root - np.divide(value, slope, out=np.zeros_like(value), where=slope != 0)
+        stepped_value = (
+            (stepped + coefficients[:, 2]) * stepped + coefficients[:, 1]
+        ) * stepped + coefficients[:, 0]
+        root = np.where(np.abs(stepped_value) < np.abs(value), stepped, root)
+    return row, root
 
 
 class CandidateInfo(TypedDict):
@@ -523,9 +626,7 @@ def select_candidates(
         # a piece's implicit curve runs on beyond its stretch of the chain: a spurious
         # root near that continuation is near "the curve" by its Sampson distance while
         # far from anything view 3 saw, so a candidate must also project near the chain
-        distance3 = view3.distance_px(candidates)
-        off_chain = view3.chain_distance_px(candidates) > support3_px
-        distance3[off_chain] = np.inf
+        distance3 = view3.distance_px(candidates, within_px=support3_px)
         if order_views is not None:
             view1, view2 = order_views
             first = _first_of_each_sample(ray_of_candidate, distance3)
