@@ -16,8 +16,8 @@
 5. ``--uncertainty N [--draws D]`` (alone): the predicted projection uncertainty against
    the true projection error on N generated rigs, each rendered D times.
 6. ``--mrcal [--mrcal-rigs N]`` (alone): OpenCV's 13 stereo sample pairs and N generated
-   stereo rigs calibrated on the same corners by calib_node, mrcal (a separate process: ``--mrcal-python``, ``--mrcal-path``; set-up in
-   ``calib_mrcal.py``) and OpenCV; mrcal.md.
+   stereo rigs calibrated on the same corners by calib_node, mrcal (a separate process:
+   ``--mrcal-python``, ``--mrcal-path``; set-up in ``calib_mrcal.py``) and OpenCV; mrcal.md.
 
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_calib.py
     (options: --trials 20 --ga-trials 3 --sigmas 0 0.5 1 1.5 2 2.5 3 --rigs 10)
