@@ -15,6 +15,9 @@
    stage and handheld calibration against OpenCV on the same images (``--rigs N``).
 5. ``--uncertainty N [--draws D]`` (alone): the predicted projection uncertainty against
    the true projection error on N generated rigs, each rendered D times.
+6. ``--mrcal [--mrcal-rigs N]`` (alone): OpenCV's 13 stereo sample pairs and N generated
+   stereo rigs calibrated on the same corners by calib_node, mrcal (a separate process:
+   ``--mrcal-python``, ``--mrcal-path``; set-up in ``calib_mrcal.py``) and OpenCV; mrcal.md.
 
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_calib.py
     (options: --trials 20 --ga-trials 3 --sigmas 0 0.5 1 1.5 2 2.5 3 --rigs 10)
@@ -537,6 +540,39 @@ def uncertainty_check(rigs, draws):
     print('\n'.join(lines))
 
 
+def mrcal_check(python, path, rigs):
+    """Ours beside mrcal and OpenCV on the sample pairs and ``rigs`` generated stereo rigs
+    (``calib_mrcal.py``)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from calib_mrcal import Mrcal, rig_table, sample_table
+
+    started = time.perf_counter()
+    mrcal = Mrcal(python, path)
+    sample_lines, summary = sample_table(mrcal)
+    rig_lines, rig_rows = rig_table(rigs, mrcal) if rigs else ([], [])
+    lines = [
+        '# calib_node beside mrcal on the same corners',
+        '',
+        f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        f'bench/bench_calib.py --mrcal --mrcal-rigs {rigs} --mrcal-python {python} '
+        f'--mrcal-path {path}` ({time.perf_counter() - started:.0f} s).',
+        '',
+        "## OpenCV's sample photographs",
+        '',
+        *sample_lines,
+        '',
+        '## Generated rigs',
+        '',
+        *rig_lines,
+    ]
+    (RESULTS / 'mrcal.md').write_text('\n'.join(lines) + '\n')
+    summary['rigs'] = rig_rows
+    (RESULTS / 'mrcal.json').write_text(json.dumps(summary, indent=1, default=float))
+    print('\n'.join(lines))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--trials', type=int, default=20, help='trials per sigma (LM, OpenCV)')
@@ -557,8 +593,25 @@ def main():
         help='only the uncertainty check on this many generated rigs (uncertainty.md)',
     )
     parser.add_argument('--draws', type=int, default=6, help='renderings per rig (--uncertainty)')
+    parser.add_argument(
+        '--mrcal',
+        action='store_true',
+        help='only ours beside mrcal on the sample pairs (mrcal.md)',
+    )
+    parser.add_argument(
+        '--mrcal-python', default='python3.12', help="mrcal's interpreter (--mrcal)"
+    )
+    parser.add_argument(
+        '--mrcal-rigs', type=int, default=3, help='generated stereo rigs (--mrcal)'
+    )
+    parser.add_argument(
+        '--mrcal-path', default='/tmp/mrcal', help='where mrcal is installed (pip --target)'
+    )
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if args.mrcal:
+        mrcal_check(args.mrcal_python, args.mrcal_path, args.mrcal_rigs)
+        return
     if args.uncertainty:
         uncertainty_check(args.uncertainty, args.draws)
         return
