@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness import ManualClock
 from pa10_ik_node.ik import RateSolver
 from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, TrackingSession
 from pa10_ik_node.tracking import TrackingConfig, TrackingController
@@ -30,14 +31,6 @@ class Settings:
     command_horizon: float = HORIZON  # [s]
 
 
-class Clock:
-    def __init__(self):
-        self.now = 100.0
-
-    def __call__(self):
-        return self.now
-
-
 @pytest.fixture(scope='module')
 def scenario():
     return load_scenario(SCENARIOS / 'default.yaml')
@@ -47,7 +40,7 @@ def scenario():
 def session(scenario):
     robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
     controller = TrackingController(robot, RateSolver('ours', [1.0] * 7), TrackingConfig())
-    return TrackingSession(controller, 'tool0', Settings(), PERIOD, clock=Clock())
+    return TrackingSession(controller, 'tool0', Settings(), PERIOD, clock=ManualClock(100.0))
 
 
 def waypoints_on(surface, count=12):
