@@ -36,6 +36,7 @@ from ament_index_python.packages import get_package_share_directory
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'tests'))
 from foxglove_ws import FoxgloveClient, live_view_url  # noqa: E402
+from vgm_evaluation.bench_report import markdown_table, write_results  # noqa: E402
 
 from bag_tools.bag_writer import header_stamp_ns  # noqa: E402
 from vgm_common.diagnostics import parse_published_counts  # noqa: E402
@@ -317,8 +318,6 @@ def main():
         rows.append(run(name, args.seconds, live_view, clients))
         print(rows[-1], flush=True)
     bag = bag_sizes(args.demo_bag) if args.demo_bag else None
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / 'results.json').write_text(json.dumps({'runs': rows, 'demo_bag': bag}, indent=2))
     columns = sorted({c for row in rows for c in row}, key=lambda c: (c != 'run', c))
     lines = [
         '# live_view: 3 cameras 640x480 mono8 at 30 Hz + 200 Hz joint states',
@@ -335,10 +334,8 @@ def main():
         'images the plain subscriber received while the client was receiving that '
         'the client did not.',
         '',
-        '| ' + ' | '.join(columns) + ' |',
-        '|' + '---|' * len(columns),
     ]
-    lines += ['| ' + ' | '.join(str(row.get(c, '')) for c in columns) + ' |' for row in rows]
+    lines += markdown_table(columns, [[row.get(c, '') for c in columns] for row in rows])
     if bag:
         lines += [
             '',
@@ -346,8 +343,7 @@ def main():
             f'on disk with {bag["compression"]}; its chunks uncompressed '
             f'{bag["chunks_uncompressed_MB"]} MB (ratio {bag["ratio"]}).',
         ]
-    (RESULTS / 'results.md').write_text('\n'.join(lines) + '\n')
-    print('\n'.join(lines))
+    write_results(RESULTS, 'results', lines, {'runs': rows, 'demo_bag': bag})
 
 
 if __name__ == '__main__':

@@ -21,7 +21,6 @@ Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_sfs_stere
 Writes bench/results/sfs_stereo/{results.md, results.json, <scene>.png}.
 """
 
-import json
 import sys
 import time
 from dataclasses import replace
@@ -29,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from vgm_evaluation.bench_report import markdown_table, save_figure, write_results
 
 from sensor_sim.render import SceneRenderer, add_noise
 from sensor_sim.scenario import load_scenario
@@ -39,6 +39,44 @@ from vgm_common.calibration_io import stereo_rectification
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / 'bench' / 'results' / 'sfs_stereo'
+FAMILY_COLUMNS = (
+    'kind',
+    'size',
+    'noise',
+    'textured',
+    'light',
+    'density',
+    'SFS RMS mm',
+    'fused RMS mm',
+    'ratio',
+    'ratio mapped',
+    'stereo RMS / mean mm',
+    'fused on stereo RMS / mean mm',
+    'fused dense',
+    's',
+    'warnings',
+)
+METHOD_COLUMNS = (
+    'method',
+    'mean %',
+    'std %',
+    'RMS %',
+    'median mm',
+    'p90 mm',
+    'points',
+    'thesis (vase) mean / std / RMS',
+)
+SPEED_COLUMNS = (
+    'pair',
+    'SGBM ms',
+    'ours ms',
+    'ratio',
+    'ours stages ms',
+    'ours, stereo ssd ms',
+    'Aloe bad / density: ours',
+    'SGBM',
+    'ssd',
+)
 DEFAULT = ROOT / 'src' / 'sensor_sim' / 'scenarios' / 'default.yaml'
 THESIS = {'SFS alone': (15.6, 14.0, 0.4128), 'thesis fusion (mlp_rows)': (13.0, 13.3, 0.1730)}
 
@@ -175,8 +213,7 @@ def plot(scene, estimates, G, path):
         ax.set_xticks([])
         ax.set_yticks([])
     fig.colorbar(im, ax=axes[1, :].tolist(), shrink=0.7)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    save_figure(fig, path)
     return True
 
 
@@ -279,10 +316,8 @@ def speed_and_real_data():
         'fusion, /depth/sfs not subscribed); SGBM = cv2.StereoSGBM alone at full resolution '
         '(OpenCV sample settings). 2-core machine shared with other jobs: compare ratios.',
         '',
-        '| pair | SGBM ms | ours ms | ratio | ours stages ms | ours, stereo ssd ms '
-        '| Aloe bad / density: ours | SGBM | ssd |',
-        '|---|---|---|---|---|---|---|---|---|',
     ]
+    table = []
     for label, r in rows.items():
         stages = ', '.join(f'{k} {v:.0f}' for k, v in r['ours stages ms'].items() if k != 'total')
         quality = ['', '', '']
@@ -295,15 +330,19 @@ def speed_and_real_data():
                     'ours, stereo ssd bad, density',
                 )
             ]
-        lines.append(
-            f'| {label} | {r["SGBM ms"]:.0f} | {r["ours ms"]:.0f} | '
-            f'x{r["ours ms"] / r["SGBM ms"]:.1f} | {stages} | {r["ours, stereo ssd ms"]:.0f} | '
-            + ' | '.join(quality)
-            + ' |'
+        table.append(
+            [
+                label,
+                f'{r["SGBM ms"]:.0f}',
+                f'{r["ours ms"]:.0f}',
+                f'x{r["ours ms"] / r["SGBM ms"]:.1f}',
+                stages,
+                f'{r["ours, stereo ssd ms"]:.0f}',
+                *quality,
+            ]
         )
-    (OUT / 'speed.md').write_text('\n'.join(lines) + '\n')
-    (OUT / 'speed.json').write_text(json.dumps(rows, indent=1))
-    print('\n'.join(lines))
+    lines += markdown_table(SPEED_COLUMNS, table)
+    write_results(OUT, 'speed', lines, rows)
     return 0
 
 
@@ -413,35 +452,30 @@ def families():
         'RMS >= 3 both ways, fused below stereo (RMS, mean) on stereo pixels, >= 95 % '
         'dense. Loaded 2-core machine: times noisy.',
         '',
-        '| kind | size | noise | textured | light | density | SFS RMS mm | fused RMS mm '
-        '| ratio | ratio mapped | stereo RMS / mean mm | fused on stereo RMS / mean mm '
-        '| fused dense | s | warnings |',
-        '|' + '---|' * 15,
     ]
+    table = []
     for r in rows:
+        draw = [r['kind'], r['size'][0], f'{r["noise"]:g}', r['textured'], r['light']]
+        draw.append(f'{r["density"]:.3f}')
         if 'rms_fused_mm' not in r:
-            lines.append(
-                f'| {r["kind"]} | {r["size"][0]} | {r["noise"]:g} | {r["textured"]} | '
-                f'{r["light"]} | {r["density"]:.3f} | - | - | - | - | - | - | - | '
-                f'{r["seconds"]:.1f} | {"; ".join(r["warnings"])} |'
-            )
-            continue
-        lines.append(
-            f'| {r["kind"]} | {r["size"][0]} | {r["noise"]:g} | {r["textured"]} | {r["light"]} '
-            f'| {r["density"]:.3f} | {r["rms_sfs_mm"]:.1f} | {r["rms_fused_mm"]:.1f} | '
-            f'x{r["rms_ratio"]:.1f} | x{r["rms_ratio_mapped"]:.1f} | '
-            f'{r.get("stereo_rms_mm", float("nan")):.1f} / '
-            f'{r.get("stereo_mean_mm", float("nan")):.1f} | '
-            f'{r.get("fused_on_stereo_rms_mm", float("nan")):.1f} / '
-            f'{r.get("fused_on_stereo_mean_mm", float("nan")):.1f} | '
-            f'{100 * r["fused_dense"]:.0f} % | {r["seconds"]:.1f} | '
-            f'{"; ".join(r["warnings"])} |'
-        )
+            measured = ['-'] * 7
+        else:
+            measured = [
+                f'{r["rms_sfs_mm"]:.1f}',
+                f'{r["rms_fused_mm"]:.1f}',
+                f'x{r["rms_ratio"]:.1f}',
+                f'x{r["rms_ratio_mapped"]:.1f}',
+                f'{r.get("stereo_rms_mm", float("nan")):.1f} / '
+                f'{r.get("stereo_mean_mm", float("nan")):.1f}',
+                f'{r.get("fused_on_stereo_rms_mm", float("nan")):.1f} / '
+                f'{r.get("fused_on_stereo_mean_mm", float("nan")):.1f}',
+                f'{100 * r["fused_dense"]:.0f} %',
+            ]
+        table.append([*draw, *measured, f'{r["seconds"]:.1f}', '; '.join(r['warnings'])])
+    lines += markdown_table(FAMILY_COLUMNS, table)
     met = [r for r in rows if r.get('rms_ratio', 0) >= 3 and r.get('rms_ratio_mapped', 0) >= 3]
     lines += ['', f'RMS ratio >= 3 (published and mapped): {len(met)} of {len(rows)} draws.']
-    (OUT / 'families.md').write_text('\n'.join(lines) + '\n')
-    (OUT / 'families.json').write_text(json.dumps(rows, indent=1))
-    print('\n'.join(lines))
+    write_results(OUT, 'families', lines, rows)
     return 0
 
 
@@ -505,19 +539,18 @@ def main():
             f'## {scene} (SSD match density {100 * r["match_density"]:.1f} % of '
             'the surface pixels)',
             '',
-            '| method | mean % | std % | RMS % | median mm | p90 mm | points | '
-            'thesis (vase) mean / std / RMS |',
-            '|---|---|---|---|---|---|---|---|',
         ]
+        table = []
         for name, m in r['rows'].items():
             seed = THESIS.get(name)
             seed_text = f'{seed[0]} / {seed[1]} / {seed[2]}' if seed and scene == 'vase' else ''
-            lines.append(
-                f'| {name} | {m["mean_pct"]:.2f} | {m["std_pct"]:.2f} | '
-                f'{m["rms_pct"]:.2f} | {m["median_mm"]:.1f} | '
-                f'{m["p90_mm"]:.1f} | {m["points"]} | '
-                f'{seed_text} |'
+            table.append(
+                [name]
+                + [f'{m[k]:.2f}' for k in ('mean_pct', 'std_pct', 'rms_pct')]
+                + [f'{m[k]:.1f}' for k in ('median_mm', 'p90_mm')]
+                + [m['points'], seed_text]
             )
+        lines += markdown_table(METHOD_COLUMNS, table)
         sfs, ours = r['rows']['SFS alone'], r['rows']['ours (shading_refine)']
         mlp = r['rows']['thesis fusion (mlp_rows)']
         lines += [
@@ -536,14 +569,12 @@ def main():
         '',
         '## Time per frame [ms] (default scene, this machine: 2 shared cores)',
         '',
-        '| size, fusion | rectify | stereo | sfs | fusion | total |',
-        '|---|---|---|---|---|---|',
     ]
-    for key, t in timing.items():
-        lines.append(
-            f'| {key} | {t["rectify"]:.0f} | {t["stereo"]:.0f} | {t["sfs"]:.0f} | '
-            f'{t["fusion"]:.0f} | {t["total"]:.0f} |'
-        )
+    stages = ('rectify', 'stereo', 'sfs', 'fusion', 'total')
+    lines += markdown_table(
+        ('size, fusion', *stages),
+        [[key] + [f'{t[stage]:.0f}' for stage in stages] for key, t in timing.items()],
+    )
     lines += [
         '',
         'Goal: fusion of a 320x240 pair < 200 ms, 640x480 < 1 s (the fusion '
@@ -551,9 +582,7 @@ def main():
         '',
         'Depth and error maps: vase.png, sphere.png, default.png.',
     ]
-    (OUT / 'results.md').write_text('\n'.join(lines) + '\n')
-    (OUT / 'results.json').write_text(json.dumps(results, indent=1))
-    print('\n'.join(lines))
+    write_results(OUT, 'results', lines, results)
     print(f'bench done in {time.monotonic() - started:.0f} s')
     return 0
 

@@ -10,7 +10,6 @@ Writes bench/results/sim_recording.md and .json.
 """
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -22,6 +21,7 @@ import numpy as np
 import psutil
 from ament_index_python.packages import get_package_share_directory
 from mcap.reader import make_reader
+from vgm_evaluation.bench_report import markdown_table, write_results
 
 from sensor_sim.render import add_noise
 from vgm_common.diagnostics import parse_published_counts
@@ -168,8 +168,6 @@ def main():
                         flush=True,
                     )
                     runs.append(measure(rate, args.seconds, hosts))
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / 'sim_recording.json').write_text(json.dumps(runs, indent=2))
     columns = list(runs[0])
     lines = [
         '# sensor_sim (3 x 640x480 mono8) + recorder',
@@ -181,18 +179,15 @@ def main():
         'hosts 2: sensor_sim on host a, the recorder on host b (network namespaces '
         'on a veth); latency = receive time in the bag - capture stamp.',
         '',
-        '| ' + ' | '.join(columns) + ' |',
-        '|' + '---|' * len(columns),
     ]
-    lines += ['| ' + ' | '.join(str(run[c]) for c in columns) + ' |' for run in runs]
+    lines += markdown_table(columns, [[run[c] for c in columns] for run in runs])
     noise = time_noise()
     lines += [
         '',
         'Pixel noise per 640x480 image [ms]: '
         + ', '.join(f'{name} {ms}' for name, ms in noise.items()),
     ]
-    (RESULTS / 'sim_recording.md').write_text('\n'.join(lines) + '\n')
-    print('\n'.join(lines))
+    write_results(RESULTS, 'sim_recording', lines, runs)
 
 
 if __name__ == '__main__':

@@ -28,7 +28,6 @@ import os
 # OpenBLAS's threads made ours' 640x480 encode take 49-102 ms instead of 12 (min of 10).
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 import importlib.util  # noqa: E402
-import json
 import sys
 import time
 from pathlib import Path
@@ -38,6 +37,7 @@ import numpy as np
 from stereo_coding_node.channel import correlation, extra_attacks, jpeg, psnr, ssim, thesis_attacks
 from stereo_coding_node.scenes import generated_scene
 from stereo_coding_node.views import synthesise_right
+from vgm_evaluation.bench_report import markdown_table, save_figure, write_results
 
 from stereo_coding_node import blind, thesis
 from vgm_common.sample_data import opencv_sample_dir
@@ -367,8 +367,7 @@ def plot(name, left, coded, disparity, decoded, path):
         ax.axis('off')
     fig.suptitle(name)
     fig.tight_layout()
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def guided_filter(guide, source, radius, eps):
@@ -511,9 +510,7 @@ def main():
     results['false_positives'] = false_positives(1000, (480, 640))
     print('== timings', flush=True)
     results['timings_640x480'] = timings((480, 640), libraries)
-    (OUT / 'results.json').write_text(json.dumps(results, indent=1, default=float))
-    (OUT / 'results.md').write_text(markdown(results))
-    print((OUT / 'results.md').read_text())
+    write_results(OUT, 'results', markdown(results), results)
 
 
 def fmt(value, digits=3):
@@ -540,16 +537,14 @@ def markdown(results):
         lines += [
             f'## {scene}',
             '',
-            '| method | PSNR [dB] | SSIM | payload bits |',
-            '|---|---|---|---|',
         ]
+        quality = []
         for m in methods:
             r = entry[m]
             extra = f' (degraded {fmt(r["psnr_degraded"], 2)})' if 'psnr_degraded' in r else ''
-            lines.append(
-                f'| {m} | {fmt(r["psnr"], 2)}{extra} | {fmt(r["ssim"])} | '
-                f'{r.get("bits", "disparity map")} |'
-            )
+            psnr = fmt(r['psnr'], 2) + extra
+            quality.append([m, psnr, fmt(r['ssim']), r.get('bits', 'disparity map')])
+        lines += markdown_table(('method', 'PSNR [dB]', 'SSIM', 'payload bits'), quality)
         attacks = list(entry['ours']['attacks'])
         for measure, title in (
             ('corr', 'decoded vs embedded disparity: Pearson correlation (0: not found)'),
@@ -559,26 +554,22 @@ def markdown(results):
             ('rms_px', 'decoded disparity RMS [px] (n/a: not found)'),
             ('beyond_2px', 'decoded disparity > 2 px rate'),
         ):
-            lines += [
-                '',
-                f'{title}:',
-                '',
-                '| attack | ' + ' | '.join(methods) + ' |',
-                '|---' * (len(methods) + 1) + '|',
-            ]
-            for a in attacks:
-                lines.append(
-                    f'| {a} | '
-                    + ' | '.join(
+            lines += ['', f'{title}:', '']
+            lines += markdown_table(
+                ('attack', *methods),
+                [
+                    [a]
+                    + [
                         ('yes' if entry[m]['attacks'][a].get('fine') else 'no')
                         if measure == 'fine'
                         else fmt(entry[m]['attacks'][a][measure])
                         if entry[m]['attacks'][a]['found'] or measure in ('rho', 'ber', 'corr')
                         else 'not found'
                         for m in methods
-                    )
-                    + ' |'
-                )
+                    ]
+                    for a in attacks
+                ],
+            )
         r = entry['ours_rotation_resync']
         lines += [
             '',
@@ -614,22 +605,29 @@ def markdown(results):
         '',
         'Table 6.3 (rho after attacks, Cone / Tsukuba / Pentagon):',
         '',
-        '| attack | thesis (Cone, Tsukuba, Pentagon) |',
-        '|---|---|',
     ]
-    lines += [f'| {a} | {v[0]}, {v[1]}, {v[2]} |' for a, v in THESIS_TABLE_6_3.items()]
-    lines += [
-        '',
-        '## Table 6.2 setting: 256x256 generated scenes, small disparities',
-        '',
-        '| max disparity [px] | seed | thesis PSNR degraded / original [dB] | ours PSNR [dB] |',
-        '|---|---|---|---|',
-    ]
-    lines += [
-        f'| {r["max_disparity_px"]} | {r["seed"]} | {fmt(r["thesis_psnr_degraded"], 2)} / '
-        f'{fmt(r["thesis_psnr"], 2)} | {fmt(r["ours_psnr"], 2)} |'
-        for r in results['table_6_2_setting']
-    ]
+    lines += markdown_table(
+        ('attack', 'thesis (Cone, Tsukuba, Pentagon)'),
+        [[a, f'{v[0]}, {v[1]}, {v[2]}'] for a, v in THESIS_TABLE_6_3.items()],
+    )
+    lines += ['', '## Table 6.2 setting: 256x256 generated scenes, small disparities', '']
+    lines += markdown_table(
+        (
+            'max disparity [px]',
+            'seed',
+            'thesis PSNR degraded / original [dB]',
+            'ours PSNR [dB]',
+        ),
+        [
+            [
+                r['max_disparity_px'],
+                r['seed'],
+                f'{fmt(r["thesis_psnr_degraded"], 2)} / {fmt(r["thesis_psnr"], 2)}',
+                fmt(r['ours_psnr'], 2),
+            ]
+            for r in results['table_6_2_setting']
+        ],
+    )
     fp = results['false_positives']
     lines += [
         '',
@@ -639,12 +637,15 @@ def markdown(results):
         '',
         '## Time per 640x480 image (median, back to back)',
         '',
-        '| method | encode [ms] | decode [ms] |',
-        '|---|---|---|',
     ]
-    for m, t in results['timings_640x480'].items():
-        lines.append(f'| {m} | {fmt(t["encode_ms"], 1)} | {fmt(t["decode_ms"], 1)} |')
-    return '\n'.join(lines) + '\n'
+    lines += markdown_table(
+        ('method', 'encode [ms]', 'decode [ms]'),
+        [
+            [m, fmt(t['encode_ms'], 1), fmt(t['decode_ms'], 1)]
+            for m, t in results['timings_640x480'].items()
+        ],
+    )
+    return lines
 
 
 if __name__ == '__main__':
