@@ -26,6 +26,7 @@ def result(warnings=()):
         valid_window=(0, 0, 2, 2),
         density=0.5,
         timings={'total': 0.02},
+        left_rect=np.zeros((2, 2), np.uint8),
         warnings=tuple(warnings),
         fusion='shading_refine',
     )

@@ -9,11 +9,14 @@ one is processed replace the waiting one and are counted as dropped, so there is
 backlog, whatever the per-frame time.
 """
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
-from sfs_stereo_node.pipeline import DepthConfig, process_pair
+from sfs_stereo_node.pipeline import DepthConfig, DepthResult, process_pair
 from sfs_stereo_node.session import DepthSession
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import CalibratedCameras, ImageCaptures
@@ -48,7 +51,7 @@ DEPTH_FRAME = OPTICAL_FRAMES['left']  # the rectified left frame: R_left from th
 DEPTH = ConfigParams(DepthConfig)
 
 
-def _ordered_ranges(values):
+def _ordered_ranges(values: Mapping[str, Any]) -> str | None:
     """A reason if a searched range is empty (every pair would then fail), else None."""
     if values['max_disparity'] and values['min_disparity'] >= values['max_disparity']:
         return 'min_disparity must be below max_disparity (or max_disparity 0: automatic)'
@@ -111,7 +114,7 @@ class SfsStereoNode(GraphNode):
         'fusion_weight': 'least_squares.weight',
     }
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__(PARAMETERS)
         self.params.add_check(_ordered_ranges)
         self.cameras = CalibratedCameras(self, ('left', 'right'), self.diagnostics)
@@ -146,7 +149,7 @@ class SfsStereoNode(GraphNode):
 
     # --- input ------------------------------------------------------------------------
 
-    def _on_unpaired(self, dropped):
+    def _on_unpaired(self, dropped: int) -> None:
         self.diagnostics.reject(
             'stereo pair',
             InvalidInput(
@@ -155,7 +158,7 @@ class SfsStereoNode(GraphNode):
             ),
         )
 
-    def _on_pair(self, stamp_ns, messages):
+    def _on_pair(self, stamp_ns: int, messages: dict[str, Image]) -> None:
         if not self.cameras.ready:  # expected at start-up: a wait, not bad input
             if self.session.waiting_for_calibration():
                 self.get_logger().info(
@@ -166,14 +169,14 @@ class SfsStereoNode(GraphNode):
         if self.session.take(stamp_ns, self.params.max_rate):
             self.worker.submit((stamp_ns, messages))
 
-    def _on_pair_error(self, error):
+    def _on_pair_error(self, error: Exception) -> None:
         self.session.failed += 1
         self.diagnostics.reject(
             'stereo pair',
             error if isinstance(error, InvalidInput) else f'{type(error).__name__}: {error}',
         )
 
-    def _process(self, stamp_ns, messages):
+    def _process(self, stamp_ns: int, messages: dict[str, Image]) -> None:
         for name in ('left', 'right'):  # before any conversion: a bound on memory
             msg = messages[name]
             if msg.width * msg.height > self.params.max_pixels:
@@ -220,7 +223,7 @@ class SfsStereoNode(GraphNode):
                 f'{result.timings["total"] * 1000:.0f} ms, {self.worker.dropped} dropped'
             )
 
-    def _publish(self, stamp_ns, result):
+    def _publish(self, stamp_ns: int, result: DepthResult) -> None:
         h, w = result.depth_stereo.shape
         disparity = numpy_to_disparity_image(
             result.disparity,
@@ -258,7 +261,7 @@ class SfsStereoNode(GraphNode):
             numpy_to_image(result.left_rect, 'mono8', stamp_ns, DEPTH_FRAME)
         )
 
-    def _publish_diagnostics(self):
+    def _publish_diagnostics(self) -> None:
         level, message, values = self.session.status(
             [] if self.cameras.ready else self.cameras.missing(),
             {
@@ -269,7 +272,7 @@ class SfsStereoNode(GraphNode):
         )
         self.diagnostics.publish('depth', level, message, values)
 
-    def close(self):
+    def close(self) -> None:
         """For run_node: stop the worker (a waiting pair is not processed) and log the
         pairs processed, dropped and failed."""
         self.worker.close()
@@ -279,7 +282,7 @@ class SfsStereoNode(GraphNode):
         )
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run sfs_stereo_node until SIGINT/SIGTERM; exit status 2 on an unusable parameter
     at start-up (one line)."""
     return run_node(SfsStereoNode, args)

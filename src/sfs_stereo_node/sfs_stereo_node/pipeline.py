@@ -275,10 +275,10 @@ class DepthResult(NamedTuple):
     valid_window: tuple[int, int, int, int]  # (x, y, w, h) of fully valid rectified pixels
     density: float  # confident matches / surface pixels
     timings: dict[str, float]  # stage -> seconds
+    left_rect: npt.NDArray[np.uint8]  # (h, w), the rectified left image matched
     fusion: str = ''  # the fusion that made depth_fused ('' = none)
     warnings: tuple[str, ...] = ()  # why the result is less than asked for (fallbacks, doubts)
     confidence: dict[str, float] = {}  # per-frame match quality (README: diagnostics)
-    left_rect: npt.NDArray[np.uint8] | None = None  # (h, w), the rectified left image matched
     # (h, w) in [0, 1], NaN off the surface: how much of depth_fused stereo measured (1 on
     # a confident match, falling off with the distance to the nearest one, 1/e at 2 % of
     # the image width: there shading alone carries the depth); None with depth_fused None
