@@ -10,6 +10,8 @@ from pathlib import Path
 
 import yaml
 
+from vgm_common.launcher import stop_process_group
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 INSTALL_DIR = REPO_ROOT / 'ros2_ws' / 'install'
 SCENARIO_DIR = REPO_ROOT / 'src' / 'sensor_sim' / 'scenarios'
@@ -86,15 +88,7 @@ class NodeProcess:
 
     def stop(self, sig=signal.SIGINT, timeout=10.0):
         """Signal the whole process group; escalate to SIGKILL after ``timeout`` [s]."""
-        if self.proc.poll() is None:
-            try:
-                os.killpg(self.proc.pid, sig)
-                self.proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait()
-            except ProcessLookupError:
-                pass
+        stop_process_group(self.proc, sig, timeout)
         self._log.close()
         return self.proc.returncode
 

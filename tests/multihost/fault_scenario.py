@@ -30,6 +30,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / 'tests'))
 
 from harness import SCENARIO_DIR, executable  # noqa: E402
+from vgm_common.launcher import stop_process_group  # noqa: E402
 
 OUTAGE = 5.0  # [s]
 
@@ -74,14 +75,9 @@ class Processes:
         return self.started[-1]
 
     def stop_all(self):
-        """SIGINT to those still running, newest first; SIGKILL after 10 s."""
+        """SIGINT to each process group, newest first; SIGKILL after 10 s."""
         for process in reversed(self.started):
-            if process.poll() is None:
-                os.killpg(process.pid, signal.SIGINT)
-                try:
-                    process.wait(10)
-                except subprocess.TimeoutExpired:
-                    os.killpg(process.pid, signal.SIGKILL)
+            stop_process_group(process)
 
 
 def spin_until(spin, condition, timeout, what):

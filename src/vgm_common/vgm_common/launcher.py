@@ -24,7 +24,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import IO, TextIO
+from typing import IO, Any, TextIO
 
 import yaml
 
@@ -150,13 +150,8 @@ class Launch:
         ``timeout`` [s]."""
         self._stopping = True
         for name, process in reversed(self.processes.items()):
-            _signal_group(process, signal.SIGINT)
-            try:
-                process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self._print('launch', f'{name} did not stop in {timeout:g} s: killing it\n')
-                _signal_group(process, signal.SIGKILL)
-                process.wait()
+            if stop_process_group(process, timeout=timeout):
+                self._print('launch', f'{name} did not stop in {timeout:g} s: killed it\n')
         for thread in self._pumps:
             thread.join(timeout=1.0)  # the last lines a node printed are in self.logs
 
@@ -219,7 +214,25 @@ _PR_SET_PDEATHSIG = 1
 _LIBC = ctypes.CDLL(None, use_errno=True)
 
 
-def _signal_group(process: subprocess.Popen[str], sig: signal.Signals) -> None:
+def stop_process_group(
+    process: subprocess.Popen[Any], sig: signal.Signals = signal.SIGINT, timeout: float = 10.0
+) -> bool:
+    """Stop a process started as its own process group (``start_new_session`` or
+    ``Launch``), children included: ``sig`` to the group, SIGKILL if it has not exited
+    after ``timeout`` [s]. Returns whether it had to be killed. Every launcher of the
+    project's processes (``Launch``, the tests' and benches' helpers) stops them so.
+    The group is signalled even when its leader has exited: its children may not have."""
+    _signal_group(process, sig)
+    try:
+        process.wait(timeout)
+        return False
+    except subprocess.TimeoutExpired:
+        _signal_group(process, signal.SIGKILL)
+        process.wait()
+        return True
+
+
+def _signal_group(process: subprocess.Popen[Any], sig: signal.Signals) -> None:
     try:
         os.killpg(process.pid, sig)
     except ProcessLookupError:
