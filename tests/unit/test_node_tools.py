@@ -7,7 +7,6 @@ import array
 import os
 import signal
 import threading
-import time
 from dataclasses import dataclass
 
 import pytest
@@ -16,6 +15,7 @@ from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
+from harness import wait_for
 from vgm_common.diagnostics import Diagnostics, guarded
 from vgm_common.node_main import run_node
 from vgm_common.parameters import (
@@ -327,10 +327,7 @@ def test_subscriber_gate_opens_on_matched_subscribers_or_after_its_timeout(make_
     gate = SubscriberGate(node, [publisher], min_subscribers=1, timeout=60.0)
     assert not gate.is_open() and not gate.opened.is_set()
     node.create_subscription(String, '/gated', lambda msg: None, DEFAULT_QOS)
-    deadline = time.monotonic() + 10.0
-    while not gate.is_open():
-        assert time.monotonic() < deadline, 'the gate did not open on a matched subscriber'
-        time.sleep(0.01)
+    wait_for(gate.is_open, 10.0, 'the gate to open on a matched subscriber', interval=0.01)
     assert gate.opened.is_set() and gate.is_open()  # open for good
     lonely = node.create_publisher(String, '/nobody_listens', DEFAULT_QOS)
     assert SubscriberGate(node, [lonely], 1, timeout=0.0).is_open()  # waited long enough
@@ -351,21 +348,14 @@ def test_subscriber_gate_waits_for_the_named_node_on_every_stream(make_node):
     )
     pipeline, recorder = make_node(), make_node()  # probe_1, probe_2
     pipeline.create_subscription(String, '/gated/camera', lambda msg: None, DEFAULT_QOS)
-    deadline = time.monotonic() + 10.0
-    while camera.get_subscription_count() < 1:
-        assert time.monotonic() < deadline, 'the pipeline subscriber did not match'
-        time.sleep(0.01)
+    wait_for(camera.get_subscription_count, 10.0, 'the pipeline subscriber', interval=0.01)
     assert not gate.is_open()  # the count is met, the recorder is not there
     assert 'probe_2 on /gated/stream' in gate.missing()
     recorder.create_subscription(String, '/gated/camera', lambda msg: None, DEFAULT_QOS)
-    while camera.get_subscription_count() < 2:
-        assert time.monotonic() < deadline, 'the recorder subscriber did not match'
-        time.sleep(0.01)
+    wait_for(lambda: camera.get_subscription_count() == 2, 10.0, 'the recorder subscriber', 0.01)
     assert not gate.is_open() and gate.missing() == ['probe_2 on /gated/stream']
     recorder.create_subscription(String, '/gated/stream', lambda msg: None, DEFAULT_QOS)
-    while not gate.is_open():
-        assert time.monotonic() < deadline + 10.0, f'still closed: {gate.missing()}'
-        time.sleep(0.01)
+    wait_for(gate.is_open, 10.0, 'the gate to open on the recorder on every stream', 0.01)
     assert stream.get_subscription_count() == 1 and gate.missing() == []
     # A node that never comes: open after the timeout all the same.
     assert SubscriberGate(gated, [stream], 0, timeout=0.0, wait_for_nodes=['absent']).is_open()
@@ -466,17 +456,11 @@ def test_worker_takes_the_newest_counts_the_superseded_and_survives_errors():
     dropped = []
     worker = Worker(process, errors.append, 'probe', on_drop=dropped.append)
     worker.submit('first')  # being processed while the next three arrive
-    deadline = time.monotonic() + 10.0
-    while worker._waiting:  # 'first' taken by the thread
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
+    wait_for(lambda: not worker._waiting, 10.0, "'first' taken by the thread", interval=0.01)
     for item in ('a', 'b', 'bad'):
         worker.submit(item)
     release.set()
-    deadline = time.monotonic() + 10.0
-    while not errors:
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
+    wait_for(lambda: errors, 10.0, 'the error of the bad item', interval=0.01)
     worker.submit('last')  # still serving after the error
     assert done.wait(10.0)
     worker.close()
@@ -495,17 +479,12 @@ def test_worker_keeping_the_oldest_refuses_when_full_and_idle_work_yields():
 
     worker = Worker(process, lambda error: None, 'probe', capacity=2, keep='oldest')
     assert worker.submit('first')
-    deadline = time.monotonic() + 10.0
-    while worker._waiting:  # 'first' taken by the thread
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
+    wait_for(lambda: not worker._waiting, 10.0, "'first' taken by the thread", interval=0.01)
     assert worker.submit_if_idle('tidy up')  # nothing waits: queued
     assert not worker.submit_if_idle('tidy up again')  # something waits: not needed
     assert worker.submit('second') and not worker.submit('third')  # full: refused
     release.set()
-    while len(taken) < 3:
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
+    wait_for(lambda: len(taken) == 3, 10.0, 'three items processed', interval=0.01)
     worker.close()
     assert taken == ['first', 'tidy up', 'second'] and worker.dropped == 1
     with pytest.raises(ValueError, match='keep'):
@@ -527,10 +506,12 @@ def test_worker_survives_a_failing_error_report(capfd):
 
     worker = Worker(process, broken_report, 'probe')
     worker.submit('bad')
-    deadline = time.monotonic() + 10.0
-    while 'the report failed too' not in capfd.readouterr().err:
-        assert time.monotonic() < deadline, 'the failing report was not printed'
-        time.sleep(0.01)
+    wait_for(
+        lambda: 'the report failed too' in capfd.readouterr().err,
+        10.0,
+        'the failing report printed',
+        interval=0.01,
+    )
     worker.submit('good')  # still serving
     assert done.wait(10.0)
     worker.close()
