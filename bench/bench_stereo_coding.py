@@ -38,14 +38,14 @@ from stereo_coding_node.channel import correlation, extra_attacks, jpeg, psnr, s
 from stereo_coding_node.scenes import generated_scene
 from stereo_coding_node.views import synthesise_right
 from vgm_evaluation.bench_report import markdown_table, save_figure, write_results
+from vgm_evaluation.metrics import disparity_agreement
 
 from stereo_coding_node import blind, thesis
-from vgm_common.sample_data import opencv_sample_dir
+from vgm_common.sample_data import aloe_scaled
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / 'bench' / 'results' / 'stereo_coding'
 KEY = 'bench-key'
-ALOE_WIDTH = 1282
 SEEDS = (1,)  # generated scenes; the thesis's 640x480 SVDs make each scene take minutes
 THESIS_TABLE_6_2 = {
     'Cone': (44.7679, 46.4761),
@@ -61,22 +61,6 @@ THESIS_TABLE_6_3 = {  # attack: (Cone, Tsukuba, Pentagon)
     'rotation 10 deg': (-0.6410, -0.0562, -0.0270),
     'crop 25 %': (-0.9800, -0.6764, -0.8694),
 }
-
-
-def aloe(width=640):
-    data = opencv_sample_dir()
-    left = cv2.imread(str(data / 'aloeL.jpg'), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(data / 'aloeR.jpg'), cv2.IMREAD_GRAYSCALE)
-    truth = cv2.imread(str(data / 'aloeGT.png'), cv2.IMREAD_UNCHANGED).astype(np.float32)
-    size = (width, int(round(left.shape[0] * width / ALOE_WIDTH)))
-    disparity = cv2.resize(truth, size, interpolation=cv2.INTER_NEAREST).astype(float)
-    disparity *= width / ALOE_WIDTH
-    disparity[disparity == 0] = np.nan
-    return (
-        cv2.resize(left, size, interpolation=cv2.INTER_AREA),
-        cv2.resize(right, size, interpolation=cv2.INTER_AREA),
-        disparity,
-    )
 
 
 def load_libraries():
@@ -135,28 +119,6 @@ def load_libraries():
     return libraries, missing
 
 
-def disparity_error(decoded, embedded):
-    """(RMS [px], fraction > 2 px) over pixels known in both; (nan, nan) if none."""
-    if decoded is None:
-        return float('nan'), float('nan')
-    both = np.isfinite(decoded) & np.isfinite(embedded)
-    if not both.any():
-        return float('nan'), float('nan')
-    e = decoded[both] - embedded[both]
-    return float(np.sqrt(np.mean(e**2))), float(np.mean(np.abs(e) > 2.0))
-
-
-def pixel_correlation(decoded, embedded):
-    """Pearson correlation of the decoded and the embedded disparity over pixels known
-    in both (the goals' measure); 0 if nothing was decoded."""
-    if decoded is None:
-        return 0.0
-    both = np.isfinite(decoded) & np.isfinite(embedded)
-    if both.sum() < 2:
-        return 0.0
-    return float(np.corrcoef(decoded[both], embedded[both])[0, 1])
-
-
 def rho_of(disparity, decoded):
     """(6.6.1) between the singular values of the embedded and the decoded disparity
     (unknown -> 0; nothing decoded -> 0)."""
@@ -177,10 +139,11 @@ def run_thesis(left, disparity, scale):
     rows = {}
     for name, attacked in all_attacks(coded, 0).items():
         _, decoded, extracted = thesis.decode(attacked, key)
-        rms, beyond = disparity_error(decoded, np.nan_to_num(disparity))
+        # the error where the embedded disparity is unknown too: the thesis codes it as 0
+        rms, beyond = disparity_agreement(decoded, np.nan_to_num(disparity))[1:]
         rows[name] = {
             'rho': correlation(w, extracted),
-            'corr': pixel_correlation(decoded, disparity),
+            'corr': disparity_agreement(decoded, disparity).correlation,
             'ber': None,
             'found': True,
             'rms_px': rms,
@@ -220,10 +183,10 @@ def run_bits(left, disparity, embed, decode, payload_bits=None):
     rows = {}
     for name, attacked in all_attacks(coded, 0).items():
         received, decoded, fine = decode(attacked, bits.size)
-        rms, beyond = disparity_error(decoded, disparity)
+        corr, rms, beyond = disparity_agreement(decoded, disparity)
         rows[name] = {
             'rho': rho_of(disparity, decoded),
-            'corr': pixel_correlation(decoded, disparity),
+            'corr': corr,
             'found': decoded is not None,
             'fine': bool(fine),
             'ber': float(np.mean(received != bits)),
@@ -243,7 +206,7 @@ def ours_rotation_resynchronised(left, disparity, coded):
     """Ours after the 10 deg rotation, with the exhaustive angle search."""
     started = time.perf_counter()
     detection, angle = blind.decode_rotated(thesis_attacks(coded)['rotation 10 deg'], KEY)
-    rms, beyond = disparity_error(detection.disparity_px, disparity)
+    rms, beyond = disparity_agreement(detection.disparity_px, disparity)[1:]
     return {
         'found': detection.found,
         'angle_deg': angle,
@@ -387,7 +350,10 @@ def fit_study():
     compact code (the step ``blind`` would take) against the room of the two words, and
     the decoded coarse and fine surfaces guided by the received (JPEG 50) image's edges
     (guided filter). Pearson correlation / RMS."""
-    scenes = {'Aloe (640x555)': aloe(640), 'generated seed 1': generated_scene((480, 640), 1)}
+    scenes = {
+        'Aloe (640x555)': aloe_scaled(640),
+        'generated seed 1': generated_scene((480, 640), 1),
+    }
     for scene, (left, _, disparity) in scenes.items():
         filled = blind._filled(disparity)
         room = [
@@ -402,13 +368,13 @@ def fit_study():
             rows, cols = (blind._hat_basis(n, cell) for n in disparity.shape)
             nodes = np.linalg.pinv(rows) @ filled @ np.linalg.pinv(cols).T
             fit = rows @ nodes @ cols.T
-            rms = disparity_error(fit, disparity)[0]
+            agreement = disparity_agreement(fit, disparity)
             values, known, fit_rms = blind._node_fit(disparity, filled, cell)
             step = max(blind.QUANTISATION_PER_FIT_RMS * fit_rms, blind.RANGE_UNIT_PX)
             code = blind._node_code(blind.NODE_SPACINGS_PX.index(cell), values, known, step)
             print(
                 f'{scene}: {cell}-px nodes ({nodes.size}) least squares: correlation '
-                f'{pixel_correlation(fit, disparity):.3f}, RMS {rms:.2f} px; compact code '
+                f'{agreement.correlation:.3f}, RMS {agreement.rms_px:.2f} px; compact code '
                 f'{code.size} bits ({code.size / nodes.size:.2f} a node, step {step:.2f} px)'
             )
         received = jpeg(blind.encode(left, disparity, KEY), 50)[0]
@@ -419,18 +385,18 @@ def fit_study():
             'fine code after JPEG 50': blind.decode(received, KEY).disparity_px,
         }
         for name, surface in surfaces.items():
-            rms = disparity_error(surface, disparity)[0]
-            print(f'{scene}: {name}: {pixel_correlation(surface, disparity):.3f}, {rms:.2f} px')
+            agreement = disparity_agreement(surface, disparity)
+            print(f'{scene}: {name}: {agreement.correlation:.3f}, {agreement.rms_px:.2f} px')
             for radius in (2, 4, 8, 24):
                 for eps in (1e-3, 1e-2):
                     guided = guided_filter(
                         received, np.nan_to_num(surface, nan=np.nanmean(surface)), radius, eps
                     )
                     guided[np.isnan(surface)] = np.nan
-                    rms = disparity_error(guided, disparity)[0]
+                    agreement = disparity_agreement(guided, disparity)
                     print(
                         f'{scene}: {name}, guided by the received image, radius {radius} '
-                        f'eps {eps}: {pixel_correlation(guided, disparity):.3f}, {rms:.2f} px'
+                        f'eps {eps}: {agreement.correlation:.3f}, {agreement.rms_px:.2f} px'
                     )
 
 
@@ -440,7 +406,7 @@ def main():
         return
     OUT.mkdir(parents=True, exist_ok=True)
     libraries, missing = load_libraries()
-    scenes = {'Aloe (640x555)': aloe(640)}
+    scenes = {'Aloe (640x555)': aloe_scaled(640)}
     for seed in SEEDS:
         scenes[f'generated seed {seed} (640x480)'] = generated_scene((480, 640), seed=seed)
     results = {'scenes': {}, 'missing': missing}

@@ -20,34 +20,10 @@ from stereo_coding_node.errors import CodingError, KeyFileError
 from stereo_coding_node.inputs import compressed_image_size, known_disparity
 from stereo_coding_node.scenes import generated_scene
 from stereo_coding_node.views import synthesise_right
+from vgm_evaluation.metrics import disparity_agreement
 
 from stereo_coding_node import blind, thesis
-from vgm_common.sample_data import opencv_sample_dir
-
-ALOE_WIDTH = 1282  # full-size Middlebury Aloe: aloeGT.png holds disparities in pixels
-
-
-def aloe(width):
-    """Aloe left/right and its ground-truth disparity [px] (NaN unknown), scaled to
-    ``width`` x proportional height."""
-    data = opencv_sample_dir()
-    left = cv2.imread(str(data / 'aloeL.jpg'), cv2.IMREAD_GRAYSCALE)
-    right = cv2.imread(str(data / 'aloeR.jpg'), cv2.IMREAD_GRAYSCALE)
-    truth = cv2.imread(str(data / 'aloeGT.png'), cv2.IMREAD_UNCHANGED)
-    assert left.shape[1] == ALOE_WIDTH == truth.shape[1], 'unexpected Aloe size'
-    size = (width, int(round(left.shape[0] * width / ALOE_WIDTH)))
-    scale = width / ALOE_WIDTH
-    disparity = (
-        cv2.resize(truth.astype(np.float32), size, interpolation=cv2.INTER_NEAREST).astype(float)
-        * scale
-    )
-    disparity[disparity == 0] = np.nan
-    return (
-        cv2.resize(left, size, interpolation=cv2.INTER_AREA),
-        cv2.resize(right, size, interpolation=cv2.INTER_AREA),
-        disparity,
-    )
-
+from vgm_common.sample_data import aloe_scaled
 
 # --- DFrFT ------------------------------------------------------------------------------
 
@@ -87,7 +63,7 @@ def test_zigzag_is_jpegs_scan_and_inverts():
 
 
 def test_thesis_round_trip_returns_the_disparity_within_quantisation(tmp_path):
-    left, _, disparity = aloe(160)
+    left, _, disparity = aloe_scaled(160)
     coded, key = thesis.encode(left, disparity)
     key.save(tmp_path / 'key.npz')
     restored, decoded, singular = thesis.decode(coded, thesis.ThesisKey.load(tmp_path / 'key.npz'))
@@ -127,7 +103,7 @@ def cell_truth(disparity):
 @pytest.mark.parametrize('source', ['aloe', 'generated'])
 def test_ours_survives_jpeg_50_with_its_payload_exact(source):
     if source == 'aloe':
-        left, _, disparity = aloe(640)
+        left, _, disparity = aloe_scaled(640)
     else:
         left, _, disparity = generated_scene((480, 640), seed=11)
     coded = blind.encode(left, disparity, key='k1')
@@ -144,12 +120,6 @@ def test_ours_survives_jpeg_50_with_its_payload_exact(source):
     assert np.isfinite(fine_truth).mean() > 0.95
 
 
-def pixel_correlation_and_rms(decoded, embedded):
-    both = np.isfinite(decoded) & np.isfinite(embedded)
-    a, b = decoded[both], embedded[both]
-    return float(np.corrcoef(a, b)[0, 1]), float(np.sqrt(np.mean((a - b) ** 2)))
-
-
 # Measured (2026-12-04, compact node code): after JPEG 50, Aloe 640x555 coarse layer only
 # (32-px nodes) 0.887 / 6.45 px, with the fine layer (14-px nodes) 0.961 / 3.84 px;
 # generated seed 1 (28-px nodes) 0.960 / 3.39 px -> (12-px nodes) 0.984 / 2.12 px. (With
@@ -161,7 +131,7 @@ def test_ours_fine_layer_carries_the_disparity_through_jpeg_50(
     source, min_correlation, max_rms_px
 ):
     if source == 'aloe':
-        left, _, disparity = aloe(640)
+        left, _, disparity = aloe_scaled(640)
     else:
         left, _, disparity = generated_scene((480, 640), seed=1)
     coded = blind.encode(left, disparity, key='k29')
@@ -169,11 +139,11 @@ def test_ours_fine_layer_carries_the_disparity_through_jpeg_50(
     received, _ = jpeg(coded, 50)
     detection = blind.decode(received, key='k29')
     assert detection.found and detection.fine
-    correlation_fine, rms_fine = pixel_correlation_and_rms(detection.disparity_px, disparity)
+    correlation_fine, rms_fine, _ = disparity_agreement(detection.disparity_px, disparity)
     assert correlation_fine >= min_correlation and rms_fine <= max_rms_px
     before = blind.decode(jpeg(blind.encode(left, disparity, 'k29', fine=False), 50)[0], 'k29')
     assert before.found and not before.fine
-    correlation_coarse, rms_coarse = pixel_correlation_and_rms(before.disparity_px, disparity)
+    correlation_coarse, rms_coarse, _ = disparity_agreement(before.disparity_px, disparity)
     assert correlation_fine > correlation_coarse + 0.02 and rms_fine < 0.7 * rms_coarse
 
 
@@ -282,7 +252,7 @@ def test_synthesised_right_view_of_a_constant_shift_is_the_shifted_image():
 
 
 def test_synthesised_right_view_of_aloe_beats_the_left_view():
-    left, right, disparity = aloe(320)
+    left, right, disparity = aloe_scaled(320)
     synthetic = synthesise_right(left, disparity)
     assert psnr(right, synthetic) > psnr(right, left) + 3.0
 

@@ -85,6 +85,44 @@ def _run(argv: list[str], cwd: Path) -> None:
         raise SampleDataError(f'{" ".join(argv)} exited {result.returncode}: ' + ' | '.join(tail))
 
 
+ALOE_WIDTH_PX = 1282  # aloeGT.png holds the full-size pair's disparities in pixels
+
+
+def _aloe_images() -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8], npt.NDArray[np.uint8]]:
+    """Full-size Aloe: left, right (grey) and the true left disparity image [px, 0 unknown]."""
+    import cv2
+
+    directory = opencv_sample_dir()
+    images = []
+    for name in ALOE_FILES:
+        image = cv2.imread(str(directory / name), cv2.IMREAD_GRAYSCALE)
+        if image is None:
+            raise SampleDataError(f'{directory / name} is not a readable image')
+        images.append(np.asarray(image, np.uint8))
+    if images[0].shape[1] != ALOE_WIDTH_PX or images[2].shape[1] != ALOE_WIDTH_PX:
+        raise SampleDataError(f'Aloe is not {ALOE_WIDTH_PX} px wide: another version?')
+    return images[0], images[1], images[2]
+
+
+def aloe_scaled(
+    width: int,
+) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8], npt.NDArray[np.float64]]:
+    """Middlebury Aloe, the whole pair scaled to ``width`` x proportional height: (left,
+    right) grey uint8 and the true left disparity [px at that size, NaN unknown]."""
+    import cv2
+
+    left, right, truth = _aloe_images()
+    size = (width, int(round(left.shape[0] * width / ALOE_WIDTH_PX)))
+    disparity = cv2.resize(truth.astype(np.float32), size, interpolation=cv2.INTER_NEAREST)
+    disparity = disparity.astype(float) * (width / ALOE_WIDTH_PX)
+    disparity[disparity == 0] = np.nan
+    left_scaled, right_scaled = (
+        np.asarray(cv2.resize(image, size, interpolation=cv2.INTER_AREA), np.uint8)
+        for image in (left, right)
+    )
+    return left_scaled, right_scaled, disparity
+
+
 def aloe_pair_640(
     shift: int = 24,
 ) -> tuple[npt.NDArray[np.uint8], npt.NDArray[np.uint8], npt.NDArray[np.float32]]:
@@ -94,18 +132,12 @@ def aloe_pair_640(
     and the true left disparity [px, offset-corrected; 0 where unknown]."""
     import cv2
 
-    directory = opencv_sample_dir()
-    images = []
-    for name in ALOE_FILES:
-        image = cv2.imread(str(directory / name), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise SampleDataError(f'{directory / name} is not a readable image')
-        images.append(image)
-    left, right, truth = images[0], images[1], images[2].astype(np.float32)
+    left, right, truth_image = _aloe_images()
+    truth = truth_image.astype(np.float32)
     rows = left.shape[1] * 3 // 4
     top = (left.shape[0] - rows) // 2
     scale = 640 / left.shape[1]
-    left, right = (
+    left_scaled, right_scaled = (
         cv2.resize(image[top : top + rows], (640, 480), interpolation=cv2.INTER_AREA)
         for image in (left, right)
     )
@@ -113,7 +145,7 @@ def aloe_pair_640(
         truth[top : top + rows], (640, 480), interpolation=cv2.INTER_NEAREST
     )
     return (
-        np.asarray(left[:, :-shift], np.uint8),
-        np.asarray(right[:, shift:], np.uint8),
+        np.asarray(left_scaled[:, :-shift], np.uint8),
+        np.asarray(right_scaled[:, shift:], np.uint8),
         np.asarray(truth[:, :-shift], np.float32),
     )
