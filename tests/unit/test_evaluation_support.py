@@ -1,11 +1,13 @@
-"""The benches' report module: a table has its header and rule, each result lands as
-Markdown and JSON (numpy values included), a row that does not fit its header is refused."""
+"""What the benches share: a table has its header and rule, each result lands as Markdown
+and JSON (numpy values included), a row that does not fit its header is refused; the
+disparity measures count only the pixels known in both maps."""
 
 import json
 
 import numpy as np
 import pytest
 from vgm_evaluation.bench_report import markdown_table, write_results
+from vgm_evaluation.metrics import disparity_agreement
 
 
 def test_table_rows_under_their_columns():
@@ -28,3 +30,13 @@ def test_results_written_as_markdown_and_json(tmp_path, capsys):
         'errors': [1, 2],
     }
     assert '# title' in capsys.readouterr().out
+
+
+def test_disparity_agreement_counts_only_pixels_known_in_both():
+    truth = np.array([[1.0, 2.0, np.nan], [4.0, 5.0, 6.0]])
+    estimate = np.array([[1.0, 2.0, 9.0], [np.nan, 5.0, 10.0]])  # 4 shared, one 4 px off
+    agreement = disparity_agreement(estimate, truth)
+    assert agreement.rms_px == pytest.approx(np.sqrt(16 / 4))
+    assert agreement.beyond_2px == pytest.approx(1 / 4)
+    assert agreement.correlation == pytest.approx(np.corrcoef([1, 2, 5, 10], [1, 2, 5, 6])[0, 1])
+    assert disparity_agreement(None, truth).correlation == 0.0
