@@ -9,6 +9,7 @@ from scipy.spatial import cKDTree
 from curve_recon_node.piecewise import PiecewiseCurve, View, select_candidates
 from curve_recon_node.pipeline import ReconstructionSettings, reconstruct_capture
 from curve_recon_node.waypoints import robust_arc_parameter
+from vgm_common.camera_model import PinholeCamera
 
 F_PX = 600.0
 
@@ -128,7 +129,7 @@ def test_a_ghost_out_of_chain_order_loses_to_the_true_root():
     curve = PiecewiseCurve(xy, False, 2, F_PX)
     # one camera at the origin looking along +z sees the 3D points (x, y, 1) at xy: as
     # every view here, so a point's chain index is the same in all three
-    view = View(curve, np.eye(3), np.zeros(3))
+    view = View(curve, PinholeCamera.at_pose(np.eye(3), np.zeros(3)))
     samples = np.arange(10, 40)
     true_points = np.column_stack([xy[samples], np.ones(len(samples))])
     ghost = np.append(xy[200], 1.0)  # on every view's curve, far along the chains

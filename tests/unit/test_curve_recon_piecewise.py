@@ -219,7 +219,7 @@ def make_views(sigma_px=0.0, n=800, seed=0, fit_tolerance_px=0.05):
         assert np.all(depth > 0)
         pixels = pixels + rng.normal(scale=sigma_px, size=pixels.shape) if sigma_px else pixels
         curve = PiecewiseCurve(camera.undistort_pixels(pixels), True, 2, F_PX, fit_tolerance_px)
-        views.append(View(curve, camera.T_camera_base[:3, :3], camera.centre_base))
+        views.append(View(curve, camera))
     return views, truth
 
 
@@ -368,7 +368,7 @@ def test_third_view_rejects_a_root_on_a_pieces_continuation_off_its_chain():
     arc_xy = 0.2 * np.column_stack([np.cos(angles), np.sin(angles)])  # [normalised]
     curve = PiecewiseCurve(arc_xy, False, 2, F_PX, fit_tolerance_px=np.inf)
     assert len(curve.pieces) == 1
-    view3 = View(curve, np.eye(3), np.zeros(3))
+    view3 = View(curve, PinholeCamera.at_pose(np.eye(3), np.zeros(3)))
     on_chain = np.array([0.2 * np.cos(0.7), 0.2 * np.sin(0.7), 1.0])
     spurious = np.array([-0.2, 0.0, 1.0])  # on the circle, 0.2 * F_PX px from the arc
     assert view3.distance_px(spurious[None])[0] < 0.05

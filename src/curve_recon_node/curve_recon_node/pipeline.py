@@ -172,8 +172,7 @@ def view_curve(
         measured=chain.measured,
     )
     clock.lap('piecewise fits')
-    T_camera_base = camera.T_camera_base
-    return View(curve, T_camera_base[:3, :3], camera.centre_base), len(chains)
+    return View(curve, camera), len(chains)
 
 
 def _second_pair(
