@@ -40,11 +40,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from curve_recon_node.cones import plane_angle_error_deg
 from curve_recon_node.piecewise import PiecewiseCurve, View, reconstruct_ray_roots, refine_points
 from curve_recon_node.pipeline import ReconstructionSettings, reconstruct_capture, view_curve
-from curve_recon_node.reference import triangulate_chains
+from curve_recon_node.reference import plane_angle_error_deg, triangulate_chains
 from curve_recon_node.thesis import reconstruct_cone_lsq
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.geometry import look_at_rotation, rot_x, rot_z
 
 OUT = Path(__file__).resolve().parent / 'results' / 'curve_recon'
@@ -136,21 +136,6 @@ SETUPS = {
 }
 
 
-class Camera:
-    """Thesis camera: x_cam = R (x - c), f = 1."""
-
-    def __init__(self, R, c):
-        self.R, self.c = np.asarray(R, float), np.asarray(c, float)
-
-    def project(self, x):
-        x_cam = (x - self.c) @ self.R.T
-        return x_cam[:, :2] / x_cam[:, 2:], x_cam[:, 2]
-
-    @property
-    def P(self):
-        return np.hstack([self.R, (-self.R @ self.c)[:, None]])
-
-
 def thesis_cameras(truth, c2, R2):
     """Cameras 1 (world), 2 (the figure's) and 3 (ours, A3.6): beside the baseline, off
     the line c1-c2, looking at the curve's centroid."""
@@ -162,12 +147,12 @@ def thesis_cameras(truth, c2, R2):
     side /= np.linalg.norm(side)
     c3 = 0.5 * (c1 + c2) + 0.8 * baseline * side
     R3 = look_at_rotation(c3, centroid, up=-side).T
-    return [Camera(np.eye(3), c1), Camera(R2, c2), Camera(R3, c3)]
+    return [PinholeCamera.at_pose(R, c) for R, c in ((np.eye(3), c1), (R2, c2), (R3, c3))]
 
 
 def fitted_view(camera, xy, degree):
     curve = PiecewiseCurve(xy, False, degree, PIXELS_PER_UNIT, fit_tolerance_px=np.inf)
-    return View(curve, camera.R, camera.c)
+    return View(curve, camera)
 
 
 def point_reference(cams, samples, tol3_px, segments_break=None):
@@ -177,8 +162,7 @@ def point_reference(cams, samples, tol3_px, segments_break=None):
     jumps (line pair), no segment there."""
     points, _ = triangulate_chains(
         samples,
-        [c.R for c in cams],
-        [c.c for c in cams],
+        cams,
         [False] * 3,
         PIXELS_PER_UNIT,
         tol3_px,
@@ -255,7 +239,7 @@ def run_thesis_experiments():
                 rng = np.random.default_rng([17, int(sigma * 100), trial])
                 samples = []
                 for cam in cams:
-                    xy, depth = cam.project(truth)
+                    xy, depth = cam.project_normalised(truth)
                     assert np.all(depth > 0), name
                     samples.append(xy + rng.normal(scale=sigma / PIXELS_PER_UNIT, size=xy.shape))
                 views = [fitted_view(cam, xy, degree) for cam, xy in zip(cams, samples)]
@@ -368,7 +352,7 @@ def run_image_experiments():
                             view_curve(images[c], scenario.cameras[c], settings)[0]
                             for c in ('left', 'right', 'aux')
                         ]
-                        cams = [Camera(v.R_camera_base, v.centre_base) for v in views]
+                        cams = [v.camera for v in views]
                         started = time.perf_counter()
                         points = point_reference_views(cams, views)
                         elapsed = time.perf_counter() - started

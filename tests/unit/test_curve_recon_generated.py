@@ -7,8 +7,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from curve_recon_node.piecewise import PiecewiseCurve, View, select_candidates
-from curve_recon_node.pipeline import ReconstructionSettings, reconstruct_capture
+from curve_recon_node.pipeline import ReconstructionSettings, _end_on_holes, reconstruct_capture
 from curve_recon_node.waypoints import robust_arc_parameter
+from vgm_common.camera_model import PinholeCamera
 
 F_PX = 600.0
 
@@ -88,6 +89,15 @@ def errors_and_coverage(result, truth):
         # samples until the gaps were bridged (0.33 / 1.99 mm, coverage 0.89, then
         # 0.05 / 0.28 mm, coverage 0.915); now 0.07 / 0.28 mm, coverage 1.000
         ('torus_knot', 3, 0.0, 0.4, 0.1),
+        # the open helix's ends: a fixed trim of 3 line widths cut 1-1.8 widths of good
+        # chain beyond each end cap in every view, 13 mm of curve (coverage 0.943); the
+        # trim now ends where the ridge strength comes back (0.997, 0.12 / 0.29 mm)
+        ('helix', 0, 4.0, 0.5, 0.2),
+        # view 1 sees a 35 mm stretch end-on and its samples there land at either end of
+        # it, out of order: three long steps in a row, so no hole was filled and the run
+        # was cut (coverage 0.64 with the chains the end trim above leaves); a run of
+        # long steps whose outer points are far apart is filled (1.000, 0.24 / 0.73 mm)
+        ('twisted_cubic', 3, 4.0, 1.0, 0.3),
     ],
 )
 def test_traced_draws_within_a_millimetre(family, seed, noise_grey, max_mm, rms_mm):
@@ -128,7 +138,7 @@ def test_a_ghost_out_of_chain_order_loses_to_the_true_root():
     curve = PiecewiseCurve(xy, False, 2, F_PX)
     # one camera at the origin looking along +z sees the 3D points (x, y, 1) at xy: as
     # every view here, so a point's chain index is the same in all three
-    view = View(curve, np.eye(3), np.zeros(3))
+    view = View(curve, PinholeCamera.at_pose(np.eye(3), np.zeros(3)))
     samples = np.arange(10, 40)
     true_points = np.column_stack([xy[samples], np.ones(len(samples))])
     ghost = np.append(xy[200], 1.0)  # on every view's curve, far along the chains
@@ -155,3 +165,20 @@ def test_robust_arc_parameter_keeps_a_true_jump_and_ignores_a_lone_outlier():
     np.testing.assert_allclose(t[-1], x[-1], atol=1e-9)
     np.testing.assert_allclose(total, x[-1], atol=1e-9)
     np.testing.assert_allclose(np.diff(t), np.diff(x), atol=1e-9)
+
+
+def test_end_on_holes_include_runs_out_of_order_but_not_a_lone_wrong_root():
+    """Points 1 mm apart along x (spacing 5 mm: a step over 10 mm is long). One long
+    step is a hole; a run of long steps whose outer points are far apart (view 1's
+    samples at either end of an end-on stretch) is one hole; a run out to a wrong root
+    and back is none."""
+    line = np.column_stack([np.arange(10.0), np.zeros(10), np.zeros(10)]) * 1e-3
+    after = line + [0.040, 0.0, 0.0]
+    one = np.vstack([line, after])
+    assert _end_on_holes(one, False, 0.005) == [(9, 10)]
+    zigzag = np.vstack([line, [[0.040, 0, 0], [0.0095, 0, 0]], after[1:]])
+    assert _end_on_holes(zigzag, False, 0.005) == [(9, 12)]
+    lone = np.vstack([line[:5], [[0.0045, 0.037, 0.0]], line[5:]])
+    assert _end_on_holes(lone, False, 0.005) == []
+    # on a loop the closing step counts: a hole from the last point to the first
+    assert _end_on_holes(np.arange(21.0)[:, None] * [1e-3, 0.0, 0.0], True, 0.005) == [(20, 21)]

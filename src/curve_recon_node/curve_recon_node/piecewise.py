@@ -4,19 +4,22 @@ of the pipeline; the seed's chapter 7 fits a long curve piece by piece).
 A view's curve is one ordered chain of normalised image points (undistorted, f = 1). It
 is split into overlapping pieces until the degree-n fit of each piece has an RMS Sampson
 residual below ``fit_tolerance_px``; a curve that one conic fits stays one piece (the
-thesis's method unchanged). Each piece is a ``CurveView``-style cone, valid only near
-the chain points it was fitted to: a candidate 3D point counts for a piece only if its
-projection's nearest chain point belongs to that piece (the piece's "support"); this
-throws out the far branches of a piece's conic.
+thesis's method unchanged). Each piece's cone is valid only near the chain points it
+was fitted to: a candidate 3D point counts for a piece only if its projection's nearest
+chain point belongs to that piece (the piece's "support"); this throws out the far
+branches of a piece's conic. A ``View`` pairs the curve with the camera that saw it
+(``vgm_common.camera_model.PinholeCamera``, the one camera type).
 
-Reconstruction (both ordered by the view-1 chain point each 3D point came from):
+Reconstruction: one driver, ``intersect_cones``, with a solver plugged in for the
+candidates (both ordered by the view-1 chain point each 3D point came from):
 
-- ``reconstruct_ray_roots`` (``method: ray_roots``, ours): the view-1 ray of each chain
-  point, substituted into each view-2 piece's cone, gives a degree-n polynomial in the
-  ray depth; its real positive roots (companion-matrix eigenvalues, batched) inside the
-  piece's support are the candidates;
-- ``thesis.reconstruct_cone_lsq`` (``method: cone_lsq``, the thesis): minimise
-  G1^2 + G2^2 from seeds on the view-1 rays, on the same pieces, cones and selection.
+- ``ray_root_candidates`` (``reconstruct_ray_roots``, ``method: ray_roots``, ours): the
+  view-1 ray of each chain point, substituted into each view-2 piece's cone, gives a
+  degree-n polynomial in the ray depth; its real positive roots (companion-matrix
+  eigenvalues, batched) inside the piece's support are the candidates;
+- ``thesis.cone_lsq_candidates`` (``thesis.reconstruct_cone_lsq``, ``method: cone_lsq``,
+  the thesis): minimise G1^2 + G2^2 from seeds on the view-1 rays, on the same pieces,
+  cones and selection.
 
 View 3 then keeps per chain point the candidate whose projection is nearest view 3's
 curve, if nearer than ``tol3_px``. With two views, a chain point with several distinct
@@ -28,8 +31,9 @@ of the two-view intersection where the curve runs along the epipolar lines.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
 from typing import NotRequired, TypedDict
 
 import numpy as np
@@ -44,6 +48,7 @@ from curve_recon_node.algebraic_curves import (
     monomials_and_gradients,
     powers,
 )
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
@@ -285,12 +290,18 @@ class PiecewiseCurve:
 
 @dataclass(frozen=True)
 class View:
-    """A calibrated view of the curve: its piecewise curve and the camera's rotation
-    (base -> optical) and centre in base [m]."""
+    """A calibrated view of the curve: its piecewise curve (undistorted normalised
+    coordinates) and the camera that saw it. ``R_camera_base`` (base -> optical) and
+    ``centre_base`` [m] are the camera's, kept for the batched computations."""
 
     curve: PiecewiseCurve
-    R_camera_base: np.ndarray
-    centre_base: np.ndarray
+    camera: PinholeCamera
+    R_camera_base: np.ndarray = field(init=False, repr=False)
+    centre_base: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'R_camera_base', self.camera.R_camera_base)
+        object.__setattr__(self, 'centre_base', self.camera.centre_base)
 
     def project(self, points_base: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Normalised image points (N, 2) and depth (N,) [m]; NaN behind the camera."""
@@ -495,6 +506,54 @@ def view1_rays(view1: View, samples: IntArray) -> FloatArray:
     return np.column_stack([xy, np.ones(len(xy))]) @ view1.R_camera_base
 
 
+# A cone-intersection solver: (view1, view2, samples: view-1 chain indices) -> (the
+# position in ``samples`` of each candidate's view-1 chain point (C,), candidate points
+# in base (C, 3) [m]). Ours is ``ray_root_candidates``, the thesis's
+# ``thesis.cone_lsq_candidates``; options are bound with ``functools.partial``.
+CandidateSolver = Callable[[View, View, IntArray], tuple[IntArray, FloatArray]]
+
+
+def intersect_cones(
+    view1: View,
+    view2: View,
+    view3: View | None,
+    solver: CandidateSolver,
+    *,
+    samples: npt.ArrayLike | None = None,
+    tol3_px: float = 2.0,
+    support3_px: float = 3.0,
+    distinct_m: float = 2e-3,
+) -> tuple[FloatArray, CandidateInfo]:
+    """The cone intersection: ``solver``'s candidates where the cones of views 1 and 2
+    meet, one per view-1 chain point chosen by ``select_candidates`` (view 3 and the
+    chain order, or the two-view ambiguity test).
+
+    Args:
+        view1, view2, view3: ``View``; view3 optional.
+        solver: a ``CandidateSolver``.
+        samples: indices of view-1 chain points to reconstruct (default all measured).
+        tol3_px: third-view threshold on the distance to view 3's curve [px].
+        support3_px: a candidate must project within this of view 3's chain [px].
+        distinct_m: two-view case: candidates farther apart than this are distinct [m].
+
+    Returns:
+        (points_base (K, 3), info) as ``select_candidates``.
+    """
+    samples = np.nonzero(view1.curve.measured)[0] if samples is None else np.asarray(samples)
+    ray_of_candidate, candidates = solver(view1, view2, samples)
+    return select_candidates(
+        ray_of_candidate,
+        candidates,
+        len(samples),
+        samples,
+        view3,
+        tol3_px,
+        distinct_m,
+        support3_px,
+        order_views=(view1, view2),
+    )
+
+
 def reconstruct_ray_roots(
     view1: View,
     view2: View,
@@ -506,35 +565,22 @@ def reconstruct_ray_roots(
     distinct_m: float = 2e-3,
     max_depth: float = np.inf,
 ) -> tuple[FloatArray, CandidateInfo]:
-    """Candidates from the real roots of each view-2 piece's cone along view-1 rays.
-
-    Args:
-        view1, view2, view3: ``View``; view3 optional.
-        samples: indices of view-1 chain points to reconstruct (default all measured).
-        tol3_px: third-view threshold on the distance to view 3's curve [px].
-        support_px: a candidate must project within this of view 2's chain [px].
-        distinct_m: two-view case: candidates farther apart than this are distinct [m].
-        max_depth: candidates deeper than this in view 1 are dropped [m]: far away, all
-            cameras look along nearly the same direction, so a far point whose direction
-            meets all image curves passes every test without lying on the curve.
-
-    Returns:
-        (points_base (K, 3), info) as ``select_candidates``.
-    """
-    samples = np.nonzero(view1.curve.measured)[0] if samples is None else np.asarray(samples)
-    ray_of_candidate, candidates = ray_root_candidates(
-        view1, view2, samples, support_px=support_px, max_depth=max_depth
-    )
-    return select_candidates(
-        ray_of_candidate,
-        candidates,
-        len(samples),
-        samples,
+    """``intersect_cones`` with our solver, ``ray_root_candidates`` (``method:
+    ray_roots``); ``support_px`` [px] bounds the candidates' distance to view 2's chain
+    (the solver) and to view 3's (the selection), ``max_depth`` [m] their view-1 depth:
+    far away, all cameras look along nearly the same direction, so a far point whose
+    direction meets all image curves passes every test without lying on the curve.
+    Other arguments as ``intersect_cones``."""
+    solver = partial(ray_root_candidates, support_px=support_px, max_depth=max_depth)
+    return intersect_cones(
+        view1,
+        view2,
         view3,
-        tol3_px,
-        distinct_m,
-        support_px,
-        order_views=(view1, view2),
+        solver,
+        samples=samples,
+        tol3_px=tol3_px,
+        support3_px=support_px,
+        distinct_m=distinct_m,
     )
 
 
@@ -546,8 +592,8 @@ def ray_root_candidates(
     support_px: float = 3.0,
     max_depth: float = np.inf,
 ) -> tuple[IntArray, FloatArray]:
-    """All candidates of ``reconstruct_ray_roots`` before selection: (position in
-    ``samples`` of each candidate's ray (C,), points_base (C, 3)), the real positive
+    """Our ``CandidateSolver`` (``method: ray_roots``): (position in ``samples`` of each
+    candidate's ray (C,), points_base (C, 3)), the real positive
     roots of each view-2 piece's cone along the view-1 rays of chain points ``samples``
     that project within ``support_px`` of that piece's chain points, shallower than
     ``max_depth`` in view 1."""

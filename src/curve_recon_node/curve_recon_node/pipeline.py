@@ -172,8 +172,7 @@ def view_curve(
         measured=chain.measured,
     )
     clock.lap('piecewise fits')
-    T_camera_base = camera.T_camera_base
-    return View(curve, T_camera_base[:3, :3], camera.centre_base), len(chains)
+    return View(curve, camera), len(chains)
 
 
 def _second_pair(
@@ -230,6 +229,34 @@ def _merge(
     return np.vstack([points, more])[order], merged
 
 
+def _end_on_holes(points: FloatArray, closed: bool, spacing: float) -> list[tuple[int, int]]:
+    """The holes (i, j) between points i and j (j may be len(points): the first point of
+    a loop) that ``_fill_end_on_stretches`` fills: a step longer than
+    END_ON_GAP_SPACINGS spacings (j = i + 1), or a run of such steps whose two outer
+    points are that far apart too (view 1 sees the stretch end-on and its samples there
+    land at either end of it, out of order: twisted_cubic seed 3 at noise 4). A run whose
+    outer points are near each other goes out to a lone wrong root and back: no hole."""
+    ends = np.vstack([points, points[:1]]) if closed else points
+    steps = np.linalg.norm(np.diff(ends, axis=0), axis=1)
+    long_step = steps > END_ON_GAP_SPACINGS * spacing
+    holes = []
+    k = 0
+    while k < len(long_step):
+        if not long_step[k]:
+            k += 1
+            continue
+        m = k
+        while m + 1 < len(long_step) and long_step[m + 1]:
+            m += 1
+        wraps = closed and long_step[0] and long_step[-1] and (k == 0 or m == len(long_step) - 1)
+        if not wraps and (
+            m == k or np.linalg.norm(ends[m + 1] - ends[k]) > END_ON_GAP_SPACINGS * spacing
+        ):
+            holes.append((k, m + 1))
+        k = m + 1
+    return holes
+
+
 def _fill_end_on_stretches(
     views: Sequence[View],
     points: FloatArray,
@@ -242,30 +269,23 @@ def _fill_end_on_stretches(
     samples' points was bridged or cut. Views 2 and 3 see that stretch: the view-2 chain
     points between the projections of the hole's two ends are intersected with view 3's
     cone, checked by view 1, and the points inserted between the ends in view-2 chain
-    order. ``sample_index`` becomes fractional there (between the ends' indices);
-    ``n_end_on`` counts the points added."""
+    order (``_end_on_holes``; points of view 1's samples inside a hole, out of order at
+    its ends, are replaced). ``sample_index`` becomes fractional there (between the
+    ends' indices); ``n_end_on`` counts the points added."""
     index = info['sample_index'].astype(float)
     closed = views[0].curve.closed
-    ends = np.vstack([points, points[:1]]) if closed else points
-    steps = np.linalg.norm(np.diff(ends, axis=0), axis=1)
-    long_step = steps > END_ON_GAP_SPACINGS * settings.spacing
-    # two long steps in a row are the way to and back from a lone wrong root, no hole
-    beside = np.zeros_like(long_step)
-    beside[1:] |= long_step[:-1]
-    beside[:-1] |= long_step[1:]
-    if closed:
-        beside[0] |= long_step[-1]
-        beside[-1] |= long_step[0]
-    holes = np.nonzero(long_step & ~beside)[0]
-    if not len(holes):
+    holes = _end_on_holes(points, closed, settings.spacing)
+    if not holes:
         return points, info
+    ends = np.vstack([points, points[:1]]) if closed else points
     curve2 = views[1].curve
     n2 = len(curve2.xy)
     chain2 = views[1].chain_index(ends)
     samples2: list[np.ndarray] = []
     positions: list[np.ndarray] = []
-    for hole in holes:
-        first, last = chain2[hole], chain2[hole + 1]
+    replaced: list[int] = []
+    for hole, after in holes:
+        first, last = chain2[hole], chain2[after]
         if first < 0 or last < 0:
             continue
         step = last - first
@@ -277,14 +297,24 @@ def _fill_end_on_stretches(
         chord_px = curve2.focal_px * np.linalg.norm(curve2.xy[last] - curve2.xy[first])
         if abs(step) > END_ON_ARC_CHORD * chord_px + END_ON_ARC_CHORD:
             continue
+        inside = np.arange(hole + 1, after)
+        # the points inside must project onto that stretch of view 2's chain
+        offset = chain2[inside] - first
+        if curve2.closed:
+            offset = (offset + n2 // 2) % n2 - n2 // 2
+        if np.any(
+            (chain2[inside] < 0) | (offset * np.sign(step) < 0) | (np.abs(offset) > abs(step))
+        ):
+            continue
         between = first + np.sign(step) * np.arange(1, abs(step))
         between = between % n2 if curve2.closed else between
         measured = curve2.measured[between]
         if not measured.any():
             continue
         samples2.append(between[measured])
+        replaced.extend(inside.tolist())
         start = index[hole]
-        stop = index[hole + 1] if hole + 1 < len(index) else index[0] + len(views[0].curve.xy)
+        stop = index[after] if after < len(index) else index[0] + len(views[0].curve.xy)
         positions.append(start + (stop - start) * (np.arange(1, abs(step)) / abs(step))[measured])
     if not samples2:
         return points, info
@@ -299,6 +329,15 @@ def _fill_end_on_stretches(
     )
     if not len(more):
         return points, info
+    if replaced:
+        kept = np.ones(len(points), dtype=bool)
+        kept[replaced] = False
+        points = points[kept]
+        info = {
+            **info,
+            'sample_index': info['sample_index'][kept],
+            'third_view_px': info['third_view_px'][kept],
+        }
     position_of = dict(zip(order2.tolist(), np.concatenate(positions).tolist()))
     added = np.array([position_of[int(i)] for i in more_info['sample_index']])
     points, merged = _merge(points, info, more, more_info, added % len(views[0].curve.xy))

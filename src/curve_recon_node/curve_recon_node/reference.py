@@ -1,7 +1,8 @@
 """The conventional peer of the curve reconstruction, for benches and tests: epipolar
 matching of view-1 chain points along view 2's chain polyline, cv2.triangulatePoints,
 and view 3 to choose among several crossings (and to reject points off its chain), on
-the same extracted chains and calibration the node uses.
+the same extracted chains and calibration the node uses; and the thesis's measure of a
+planar curve's reconstruction, the angle between the planes (§2.5).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy.typing as npt
 from scipy.spatial import cKDTree
 
 from curve_recon_node.algebraic_curves import IntArray
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.geometry import FloatArray
 
 if TYPE_CHECKING:
@@ -40,8 +42,7 @@ def densify_polyline(
 
 def triangulate_chains(
     xy_views: Sequence[npt.ArrayLike],
-    R_camera_base: Sequence[np.ndarray],
-    centre_base: Sequence[npt.ArrayLike],
+    cameras: Sequence[PinholeCamera],
     closed: Sequence[bool],
     focal_px: float,
     tol3_px: float = 2.0,
@@ -52,8 +53,7 @@ def triangulate_chains(
     Args:
         xy_views: per view, the ordered chain (N_i, 2) in undistorted normalised image
             coordinates, view 1 first.
-        R_camera_base, centre_base: per view, rotation base -> optical (3, 3) and centre
-            in base (3,) [m].
+        cameras: per view, the camera (its pose; the chains are already normalised).
         closed: per view, whether its chain is a loop.
         focal_px: [px] per normalised unit, for the view-3 tolerance.
         tol3_px: [px] largest distance of a point's view-3 projection to view 3's chain.
@@ -64,14 +64,14 @@ def triangulate_chains(
     views, view-1 points whose epipolar line crosses view 2's chain more than once are
     dropped (ambiguous).
     """
-    P = [
-        np.hstack([R, (-R @ np.asarray(c, float))[:, None]])
-        for R, c in zip(R_camera_base, centre_base)
-    ]
+    R_camera_base = [camera.R_camera_base for camera in cameras]
+    centre_base = [camera.centre_base for camera in cameras]
+    # the thesis's 3 x 4 camera matrices [R | -R c] (f = 1), at cv2's boundary only
+    P = [np.hstack([R, (-R @ c)[:, None]]) for R, c in zip(R_camera_base, centre_base)]
     xy1 = np.asarray(xy_views[0], float)
     xy2 = _closed_polyline(np.asarray(xy_views[1], float), closed[1])
     R1, R2 = R_camera_base[0], R_camera_base[1]
-    c1, c2 = np.asarray(centre_base[0], float), np.asarray(centre_base[1], float)
+    c1, c2 = centre_base[0], centre_base[1]
     # epipolar line in view 2 of each view-1 point: through the epipole and the image of
     # a point one unit along the ray
     c1_in_2 = R2 @ (c1 - c2)
@@ -91,7 +91,7 @@ def triangulate_chains(
     X = cv2.triangulatePoints(P[0], P[1], xy1[point].T, matches.T)
     X = (X[:3] / X[3]).T
     if len(xy_views) > 2:
-        R3, c3 = R_camera_base[2], np.asarray(centre_base[2], float)
+        R3, c3 = R_camera_base[2], centre_base[2]
         x3 = (X - c3) @ R3.T
         with np.errstate(divide='ignore', invalid='ignore'):
             proj3 = x3[:, :2] / x3[:, 2:]
@@ -117,9 +117,24 @@ def triangulate_views(views: Sequence[View], tol3_px: float = 2.0) -> tuple[Floa
     extracted and undistorted)."""
     return triangulate_chains(
         [v.curve.xy for v in views],
-        [v.R_camera_base for v in views],
-        [v.centre_base for v in views],
+        [v.camera for v in views],
         [v.curve.closed for v in views],
         views[-1].curve.focal_px,
         tol3_px,
     )
+
+
+def fit_plane(points: npt.ArrayLike) -> tuple[FloatArray, float]:
+    """Unit normal (3,) and offset d of the SVD plane n.x + d = 0 through (N, 3) points."""
+    points = np.asarray(points, dtype=float)
+    centroid = points.mean(axis=0)
+    normal = np.linalg.svd(points - centroid, full_matrices=False)[2][-1]
+    return normal, -normal @ centroid
+
+
+def plane_angle_error_deg(true_points: npt.ArrayLike, reconstructed: npt.ArrayLike) -> float:
+    """Angle [deg] between the SVD planes of (N, 3) true and (K, 3) reconstructed points
+    (§2.5, |cos delta|, computed as atan2(|n1 x n2|, |n1 . n2|) for accuracy near 0)."""
+    n1, _ = fit_plane(true_points)
+    n2, _ = fit_plane(reconstructed)
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(n1, n2)), abs(n1 @ n2))))

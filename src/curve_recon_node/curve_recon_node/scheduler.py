@@ -15,6 +15,7 @@ from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 
 from vgm_common.settings import setting
+from vgm_common.topics import CAMERA_NAMES
 
 # ~/reconstruct calls waiting at once; more are refused at once (a caller that loops on
 # the service must not grow the node without bound).
@@ -58,6 +59,11 @@ class CaptureSettings:
         unit='s',
         range=(0.1, 600.0),
     )
+
+
+def paired_cameras(views: int) -> tuple[str, ...]:
+    """The cameras whose images make a capture for ``views`` (3: all, 2: left and right)."""
+    return CAMERA_NAMES if views == 3 else CAMERA_NAMES[:2]
 
 
 @dataclass

@@ -9,16 +9,17 @@ finds every intersection, where a minimisation may stop at a local minimum.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from functools import partial
 
 import numpy as np
 import numpy.typing as npt
 
-from curve_recon_node.algebraic_curves import monomial_exponents
+from curve_recon_node.algebraic_curves import IntArray, monomial_exponents
 from curve_recon_node.piecewise import (
     CandidateInfo,
     View,
     cone_values,
-    select_candidates,
+    intersect_cones,
     view1_rays,
 )
 from vgm_common.geometry import FloatArray
@@ -38,17 +39,48 @@ def reconstruct_cone_lsq(
     iterations: int = 25,
     max_depth: float = np.inf,
 ) -> tuple[FloatArray, CandidateInfo]:
-    """The thesis's method: minima of F = G1^2 + G2^2 from seeds on the view-1 rays.
+    """``piecewise.intersect_cones`` with the thesis's solver, ``cone_lsq_candidates``
+    (``method: cone_lsq``), from every view-1 chain point by default (ours: the measured
+    ones); view 3's chain support is the selection's default (3 px) whatever
+    ``support_px`` the solver is given. Arguments as there and in
+    ``cone_lsq_candidates``."""
+    samples = np.arange(len(view1.curve.xy)) if samples is None else np.asarray(samples)
+    solver = partial(
+        cone_lsq_candidates,
+        support_px=support_px,
+        on_curve_px=on_curve_px,
+        seed_depths=seed_depths,
+        iterations=iterations,
+        max_depth=max_depth,
+    )
+    return intersect_cones(
+        view1, view2, view3, solver, samples=samples, tol3_px=tol3_px, distinct_m=distinct_m
+    )
+
+
+def cone_lsq_candidates(
+    view1: View,
+    view2: View,
+    samples: IntArray,
+    *,
+    support_px: float = 3.0,
+    on_curve_px: float = 0.5,
+    seed_depths: Sequence[float] | FloatArray = (0.25, 0.5, 1.0, 2.0, 4.0),
+    iterations: int = 25,
+    max_depth: float = np.inf,
+) -> tuple[IntArray, FloatArray]:
+    """The thesis's ``CandidateSolver``: minima of F = G1^2 + G2^2 from seeds on the
+    view-1 rays of chain points ``samples``.
 
     For each view-1 chain point, its owning view-1 piece's cone G1 and every view-2
     piece's cone G2 are paired; each pair is refined from each seed s R1^T (X, Y, 1) + c1,
     s in ``seed_depths`` [m], by damped minimum-norm Gauss-Newton steps (Levenberg-
     Marquardt on the residual (G1, G2), batched over all seeds). A minimum is a candidate
-    if it lies in front of both cameras, its projections are within ``on_curve_px`` of
-    both curves and inside the two pieces' supports. Other arguments as
-    ``reconstruct_ray_roots``.
+    if it lies in front of both cameras (shallower than ``max_depth`` [m] in view 1), its
+    projections are within ``on_curve_px`` of both curves and inside the two pieces'
+    supports (within ``support_px`` of their chain points). Returns (position in
+    ``samples`` of each candidate's view-1 chain point (C,), points_base (C, 3)).
     """
-    samples = np.arange(len(view1.curve.xy)) if samples is None else np.asarray(samples)
     rays = view1_rays(view1, samples)
     c1, c2 = view1.curve, view2.curve
     degree = c1.degree
@@ -96,16 +128,7 @@ def reconstruct_cone_lsq(
     position[samples] = np.arange(len(samples))
     sample_of = position[chain_index]
     inside = sample_of >= 0
-    return select_candidates(
-        sample_of[inside],
-        x[keep][inside],
-        len(samples),
-        samples,
-        view3,
-        tol3_px,
-        distinct_m,
-        order_views=(view1, view2),
-    )
+    return sample_of[inside], x[keep][inside]
 
 
 def _minimise(

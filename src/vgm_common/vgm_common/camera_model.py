@@ -26,7 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from vgm_common.errors import InvalidInput
-from vgm_common.geometry import FloatArray, invert_transform, transform_points
+from vgm_common.geometry import FloatArray, invert_transform, make_transform, transform_points
 
 DISTORTION_MODELS = ('plumb_bob', 'division')
 DISTORTION_SIZES = {'plumb_bob': 5, 'division': 1}  # len(D) each model takes
@@ -107,10 +107,40 @@ class PinholeCamera:
                 f'D: the division model takes D = (kappa,), got {self.D}', key='D', value=self.D
             )
 
+    @classmethod
+    def at_pose(
+        cls,
+        R_camera_base: npt.ArrayLike,
+        centre_base: npt.ArrayLike,
+        K: npt.ArrayLike | None = None,
+        width: int = 0,
+        height: int = 0,
+    ) -> PinholeCamera:
+        """A camera without distortion given the rotation base -> optical frame (3, 3)
+        and its optical centre in base_link (3,) [m], the thesis's x_cam = R (x - c).
+
+        K defaults to the identity: the thesis's idealised cameras (f = 1, pixels are
+        normalised coordinates), whose image has no bounds (width = height = 0).
+        ``R_camera_base`` and ``centre_base`` come back exactly from the camera.
+        """
+        R = np.asarray(R_camera_base, dtype=float)
+        return cls(
+            width,
+            height,
+            np.eye(3) if K is None else np.asarray(K, dtype=float),
+            np.zeros(5),
+            make_transform(R.T, centre_base),
+        )
+
     @property
     def T_camera_base(self) -> FloatArray:
         """Inverse of ``T_base_camera`` (4x4): maps base_link points to the optical frame."""
         return invert_transform(self.T_base_camera)
+
+    @property
+    def R_camera_base(self) -> FloatArray:
+        """Rotation (3, 3) taking base_link vectors to the optical frame."""
+        return self.T_camera_base[:3, :3]
 
     @property
     def centre_base(self) -> FloatArray:
@@ -120,6 +150,17 @@ class PinholeCamera:
     def to_camera(self, points_base: npt.ArrayLike) -> FloatArray:
         """(N, 3) base_link points -> (N, 3) optical-frame points."""
         return transform_points(self.T_camera_base, points_base)
+
+    def project_normalised(self, points_base: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Undistorted normalised image coordinates (x/z, y/z) (N, 2) and depth z (N,) [m]
+        of (N, 3) base_link points, as R_camera_base (x - centre_base); NaN coordinates
+        behind the camera (depth <= 0). The thesis's projection (f = 1), before K and D.
+        """
+        camera = (np.asarray(points_base, dtype=float) - self.centre_base) @ self.R_camera_base.T
+        with np.errstate(divide='ignore', invalid='ignore'):
+            xy = camera[:, :2] / camera[:, 2:]
+        xy[camera[:, 2] <= 0] = np.nan
+        return xy, camera[:, 2]
 
     def project(self, points_base: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
         """Project (N, 3) base_link points.
