@@ -26,6 +26,7 @@ NODES = {  # params file -> {node name in the file: 'module:Class'}
         'sfs_stereo_node': 'sfs_stereo_node.node:SfsStereoNode'
     },
     'pa10_ik_node/params/pa10_ik_node.yaml': {'pa10_ik_node': 'pa10_ik_node.node:Pa10IkNode'},
+    'sensor_sim/params/sensor_sim.yaml': {'sensor_sim': 'sensor_sim.sensor_sim_node:SensorSim'},
     'stereo_coding_node/params/stereo_coding.yaml': {
         'stereo_coding_node': 'stereo_coding_node.encoder_node:StereoCodingNode',
         'stereo_decoding_node': 'stereo_coding_node.decoder_node:StereoDecodingNode',
@@ -201,6 +202,7 @@ CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters 
     'curve_recon_node.node:CurveReconNode': ['SETTINGS'],
     'sfs_stereo_node.node:SfsStereoNode': ['DEPTH'],
     'pa10_ik_node.node:Pa10IkNode': ['TRACKING'],
+    'sensor_sim.sensor_sim_node:SensorSim': ['SIM', 'ARM'],
 }
 
 
