@@ -1,10 +1,24 @@
 """bag_tools' ROS-free parts: the player's schedule (PlaybackClock, on a clock the test
-moves) and the recorder's writer (BagRecording into a real bag, read back)."""
+moves), the recorder's writer (BagRecording into a real bag, read back) and its state
+(Recorder: message times, drain, diagnostics)."""
+
+import re
 
 import pytest
+from builtin_interfaces.msg import Time
+from rclpy.serialization import serialize_message
+from std_msgs.msg import Header
 
 from bag_tools.bag_writer import BagReader, BagWriter, BagWriterError
 from bag_tools.playback import PlaybackClock
+from bag_tools.recorder import (
+    MAX_DRAIN_PERIOD,
+    QUIET_PERIOD,
+    BagSettings,
+    Recorder,
+    RecorderStartupError,
+    default_bag_name,
+)
 from bag_tools.recording import BagRecording, MessageQueue
 from harness import ManualClock
 
@@ -59,3 +73,74 @@ def test_a_write_that_fails_stops_the_recording_and_says_so(tmp_path):
     recording.close()
     assert len(failures) == 1 and isinstance(failures[0], BagWriterError)
     assert recording.write_error is failures[0]
+
+
+def stamped_message(sec, nanosec, text):
+    """A serialized std_msgs/Header (a stamped message's first field) and some text."""
+    header = Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=text)
+    return bytes(serialize_message(header))
+
+
+def test_the_recorder_stores_receive_time_and_header_or_send_time(tmp_path):
+    node_clock = iter(range(7_000, 8_000))
+    failures = []
+    recorder = Recorder(
+        BagSettings(bag_name='bag', output_dir=str(tmp_path)),
+        on_failure=failures.append,
+        log_clock_ns=lambda: next(node_clock),
+    )
+    assert recorder.bag_path == str(tmp_path / 'bag')
+    recorder.add_topic('/stamped', 'std_msgs/msg/Header', [], stamped=True)
+    recorder.add_topic('/plain', 'std_msgs/msg/Header', [], stamped=False)
+    recorder.take('/stamped', stamped_message(3, 500, 'a'), 5_000, 4_000)  # the stamp
+    recorder.take('/stamped', stamped_message(0, 0, 'b'), 5_001, 4_001)  # unset: send time
+    recorder.take('/plain', stamped_message(3, 500, 'c'), 5_002, 4_002)  # not read
+    recorder.take('/plain', stamped_message(3, 500, 'd'), 5_003, 0)  # no send time: log
+    recorder.take('/plain', stamped_message(3, 500, 'e'), 0, 0)  # no receive time: clock
+    assert recorder.recording.close() is None and failures == []
+    times = [(m.log_time, m.publish_time) for m in BagReader(tmp_path / 'bag').messages()]
+    assert times == [
+        (5_000, 3_000_000_500),
+        (5_001, 4_001),
+        (5_002, 4_002),
+        (5_003, 5_003),
+        (7_000, 7_000),
+    ]
+    assert recorder.never_published({'/plain', '/never'}) == ['/never']
+    assert recorder.counts()[1:] == ['  /stamped: 2', '  /plain: 3']
+
+
+def test_the_recorder_refuses_an_existing_bag_in_one_line(tmp_path):
+    (tmp_path / 'bag').mkdir()
+    with pytest.raises(RecorderStartupError, match='bag'):
+        Recorder(BagSettings(bag_name='bag', output_dir=str(tmp_path)), print)
+
+
+def test_the_default_bag_name_is_rosbag2_s_with_local_time(tmp_path):
+    recorder = Recorder(BagSettings(output_dir=str(tmp_path)), print, now=0.0)
+    assert recorder.bag_path == str(tmp_path / default_bag_name(0.0))
+    assert re.fullmatch(r'rosbag2_\d{4}_\d\d_\d\d-\d\d_\d\d_\d\d', default_bag_name(0.0))
+    recorder.recording.close()
+
+
+def test_the_drain_ends_after_a_quiet_period_and_a_second_type_is_said_once(tmp_path):
+    clock = ManualClock(100.0)
+    recorder = Recorder(BagSettings(bag_name='bag', output_dir=str(tmp_path)), print, clock=clock)
+    recorder.add_topic('/a', 'std_msgs/msg/String', [], stamped=False)
+    assert recorder.start_drain() == MAX_DRAIN_PERIOD
+    clock.now += QUIET_PERIOD * 0.8
+    recorder.take('/a', b'\x00\x01\x00\x00\x01\x00\x00\x00\x00\x00\x00\x00', 1, 1)
+    clock.now += QUIET_PERIOD * 0.8  # the last message came less than the period ago
+    assert not recorder.drained()
+    clock.now += QUIET_PERIOD * 0.3
+    assert recorder.drained()
+    assert recorder.new_second_type('/a', ['std_msgs/msg/String']) is None
+    reason = recorder.new_second_type('/a', ['std_msgs/msg/String', 'std_msgs/msg/Int32'])
+    assert 'only std_msgs/msg/String is recorded' in reason
+    assert recorder.new_second_type('/a', ['std_msgs/msg/String', 'std_msgs/msg/Int32']) is None
+    level, message, values = recorder.status(skipped={'/b'})
+    assert (level, message) == ('warn', 'recording')  # a topic could not be recorded
+    assert values['/a'] == '0' and values['not recorded'] == '/b'  # the writer not yet
+    recorder.recording.close()
+    level, message, values = recorder.status(skipped=set())
+    assert (level, message, values['messages'], values['/a']) == ('ok', 'closed', 1, '1')
