@@ -14,7 +14,10 @@ from pathlib import Path
 import pytest
 import rclpy
 import yaml
+from rclpy.serialization import serialize_message
+from std_msgs.msg import String
 
+from bag_tools.bag_writer import BagWriter
 from harness import REPO_ROOT
 
 NODES = {  # params file -> {node name in the file: 'module:Class'}
@@ -28,6 +31,7 @@ NODES = {  # params file -> {node name in the file: 'module:Class'}
     'pa10_ik_node/params/pa10_ik_node.yaml': {'pa10_ik_node': 'pa10_ik_node.node:Pa10IkNode'},
     'sensor_sim/params/sensor_sim.yaml': {'sensor_sim': 'sensor_sim.sensor_sim_node:SensorSim'},
     'bag_tools/params/recorder.yaml': {'recorder': 'bag_tools.recorder_node:RecorderNode'},
+    'bag_tools/params/player.yaml': {'player': 'bag_tools.player_node:PlayerNode'},
     'stereo_coding_node/params/stereo_coding.yaml': {
         'stereo_coding_node': 'stereo_coding_node.encoder_node:StereoCodingNode',
         'stereo_decoding_node': 'stereo_coding_node.decoder_node:StereoDecodingNode',
@@ -35,8 +39,13 @@ NODES = {  # params file -> {node name in the file: 'module:Class'}
 }
 NOT_LISTED = {'use_sim_time', 'start_type_description_service'}  # every rclpy node's
 # live_view binds its port as it is constructed: any free one here; the recorder creates
-# its bag: in the test's own directory. Only the names of these parameters are compared.
-OVERRIDDEN = {'live_view': {'port': '0'}, 'recorder': {'output_dir': '{tmp_path}'}}
+# its bag: in the test's own directory; the player needs one: a bag made there. Only the
+# names of these parameters are compared.
+OVERRIDDEN = {
+    'live_view': {'port': '0'},
+    'recorder': {'output_dir': '{tmp_path}'},
+    'player': {'bag': '{tmp_path}/played'},
+}
 
 
 def flatten(section, prefix=''):
@@ -64,6 +73,9 @@ def same(a, b):
 
 @pytest.fixture
 def default_context(ros_env, monkeypatch, tmp_path):
+    with BagWriter(tmp_path / 'played') as bag:
+        bag.add_topic('/a', 'std_msgs/msg/String')
+        bag.write('/a', bytes(serialize_message(String(data='a'))), 1)
     for key in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE'):
         monkeypatch.setenv(key, ros_env[key])
     rclpy.init(
@@ -171,6 +183,7 @@ READMES = {  # README -> the nodes whose parameters its tables list
     '../README.md': [
         'sensor_sim.sensor_sim_node:SensorSim',
         'bag_tools.recorder_node:RecorderNode',
+        'bag_tools.player_node:PlayerNode',
     ],
 }
 
@@ -229,6 +242,7 @@ CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters 
     'pa10_ik_node.node:Pa10IkNode': ['TRACKING'],
     'sensor_sim.sensor_sim_node:SensorSim': ['SIM', 'ARM'],
     'bag_tools.recorder_node:RecorderNode': ['BAG'],
+    'bag_tools.player_node:PlayerNode': ['PLAYER'],
 }
 
 
