@@ -32,6 +32,7 @@ NODES = {  # params file -> {node name in the file: 'module:Class'}
     'sensor_sim/params/sensor_sim.yaml': {'sensor_sim': 'sensor_sim.sensor_sim_node:SensorSim'},
     'bag_tools/params/recorder.yaml': {'recorder': 'bag_tools.recorder_node:RecorderNode'},
     'bag_tools/params/player.yaml': {'player': 'bag_tools.player_node:PlayerNode'},
+    'live_view/params/live_view.yaml': {'live_view': 'live_view.node:LiveViewNode'},
     'stereo_coding_node/params/stereo_coding.yaml': {
         'stereo_coding_node': 'stereo_coding_node.encoder_node:StereoCodingNode',
         'stereo_decoding_node': 'stereo_coding_node.decoder_node:StereoDecodingNode',
@@ -243,6 +244,7 @@ CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters 
     'sensor_sim.sensor_sim_node:SensorSim': ['SIM', 'ARM'],
     'bag_tools.recorder_node:RecorderNode': ['BAG'],
     'bag_tools.player_node:PlayerNode': ['PLAYER'],
+    'live_view.node:LiveViewNode': ['SERVER'],
 }
 
 
