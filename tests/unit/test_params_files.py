@@ -245,6 +245,8 @@ CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters 
     'bag_tools.recorder_node:RecorderNode': ['BAG'],
     'bag_tools.player_node:PlayerNode': ['PLAYER'],
     'live_view.node:LiveViewNode': ['SERVER'],
+    'stereo_coding_node.encoder_node:StereoCodingNode': ['CODING', 'ENCODER'],
+    'stereo_coding_node.decoder_node:StereoDecodingNode': ['CODING', 'DECODER'],
 }
 
 

@@ -16,9 +16,9 @@ from sensor_msgs.msg import CompressedImage, Image
 from stereo_msgs.msg import DisparityImage
 
 from stereo_coding_node import blind, thesis
-from stereo_coding_node.encoder_node import GREY_ENCODINGS, common_params, effective_strength
 from stereo_coding_node.errors import CodingError
-from stereo_coding_node.inputs import compressed_image_size
+from stereo_coding_node.inputs import GREY_ENCODINGS, compressed_image_size
+from stereo_coding_node.settings import CodingSettings, DecoderSettings
 from stereo_coding_node.views import synthesise_right
 from vgm_common.conversions import (
     compressed_to_grey,
@@ -31,7 +31,7 @@ from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import VgmError
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
-from vgm_common.parameters import Param
+from vgm_common.parameters import ConfigParams
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.topics import (
     CODED_COMPRESSED_TOPIC,
@@ -42,40 +42,9 @@ from vgm_common.topics import (
 )
 from vgm_common.worker import Worker
 
-# As sfs_stereo_node's max_pixels, which bounds the rectified image that is coded: a
-# 2048x2048 image at most. Decoding takes about 17 bytes a pixel (a 16000x16000 PNG of
-# 249 kB took 4.4 GB), so 70 MB here.
-DEFAULT_MAX_PIXELS = 4_194_304
-
-
-PARAMETERS = common_params() + [
-    Param(
-        'transport',
-        'raw',
-        'raw = /stereo/coded/image; compressed = /stereo/coded/image/compressed (JPEG).',
-        choices=('raw', 'compressed'),
-        read_only=True,
-    ),
-    Param(
-        'focal_px',
-        0.0,
-        'f of the decoded DisparityImage [px] (0 = unknown).',
-        range=(0.0, 1e6),
-    ),
-    Param(
-        'baseline_m',
-        0.0,
-        't (the baseline) of the decoded DisparityImage [m] (0 = unknown).',
-        range=(0.0, 1e3),
-    ),
-    Param(
-        'max_pixels',
-        DEFAULT_MAX_PIXELS,
-        'Coded images with more pixels are refused before any decoding (memory bound; '
-        'a compressed image by the size in its header).',
-        range=(64, 100_000_000),
-    ),
-]
+CODING = ConfigParams(CodingSettings)
+DECODER = ConfigParams(DecoderSettings)
+PARAMETERS = [*CODING.declarations(), *DECODER.declarations()]
 
 
 class StereoDecodingNode(GraphNode):
@@ -156,13 +125,13 @@ class StereoDecodingNode(GraphNode):
             coded = image_to_numpy(msg)
         stamp_ns, frame = stamp_to_ns(msg.header.stamp), msg.header.frame_id
         started = time.perf_counter()
-        p = self.params
+        p = CODING.build(self.params)
         disparity: np.ndarray | None  # None: no watermark found
         if p.method == 'thesis':
             left, disparity, _ = thesis.decode(coded, self._thesis_key())
             found, confidence, values = True, float('nan'), {}
         else:
-            detection = blind.decode(coded, p.key, effective_strength(p))
+            detection = blind.decode(coded, p.key, p.effective_strength)
             left, disparity = coded, detection.disparity_px
             found, confidence = detection.found, detection.confidence
             values = {
@@ -189,8 +158,8 @@ class StereoDecodingNode(GraphNode):
             disparity,
             stamp_ns,
             frame,
-            p.focal_px,
-            p.baseline_m,
+            self.params.focal_px,
+            self.params.baseline_m,
             (0.0, float(np.max(disparity[known])) if known.any() else 0.0),
             1.0,
         )
