@@ -34,6 +34,9 @@ played or a parameter change was refused, ERROR if reading the bag failed.
 
 import sys
 import threading
+from typing import Any
+
+from rclpy.publisher import Publisher
 
 from bag_tools.bag_writer import BagError, BagReader
 from bag_tools.message_definitions import DefinitionNotFoundError, type_hash
@@ -70,7 +73,7 @@ class PlayerNode(GraphNode):
 
     node_name = 'player'
 
-    def __init__(self, **kwargs):
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(
             PARAMETERS,
             on_change={'rate': lambda rate: self._playback.schedule.set_rate(rate)},
@@ -105,24 +108,24 @@ class PlayerNode(GraphNode):
         self._thread.start()
 
     @property
-    def published(self):
+    def published(self) -> dict[str, int]:
         """Messages published per topic."""
         return self._playback.published
 
     @property
-    def error(self):
+    def error(self) -> Exception | None:
         """Why reading the bag failed, or None."""
         return self._playback.error
 
     @property
-    def exit_status(self):
+    def exit_status(self) -> int:
         """The process exit status: 1 if reading the bag failed, else 0."""
         return 0 if self.error is None else 1
 
-    def _log(self, level, text):
+    def _log(self, level: str, text: str) -> None:
         getattr(self.get_logger(), level)(text)
 
-    def _create_publishers(self, settings):
+    def _create_publishers(self, settings: PlayerSettings) -> dict[str, Publisher]:
         recorded = {t.name: t for t in self._reader.topics}
         names, self._not_played = topics_to_play(recorded, settings.topics, settings.exclude)
         for name in self._not_played:
@@ -165,11 +168,11 @@ class PlayerNode(GraphNode):
             )
         return publishers
 
-    def _unheard(self):
+    def _unheard(self) -> list[str]:
         """The topics played that no subscriber matched yet."""
         return [n for n, p in self._topic_publishers.items() if p.get_subscription_count() == 0]
 
-    def _run(self):  # playback thread
+    def _run(self) -> None:  # playback thread
         try:
             self._playback.run(self._unheard)
         finally:
@@ -179,7 +182,7 @@ class PlayerNode(GraphNode):
             if self.context.ok():
                 self._publish_progress()
 
-    def _publish_progress(self):
+    def _publish_progress(self) -> None:
         rejected = dict(self.diagnostics.rejected)  # updated by the executor thread
         self.diagnostics.publish(
             'playback',
@@ -190,17 +193,17 @@ class PlayerNode(GraphNode):
 
     # -- shutdown ------------------------------------------------------------------------
 
-    def stop(self):
+    def stop(self) -> None:
         """Stop playback and wait for the playback thread. Idempotent."""
         self._stop.set()
         self._thread.join()
 
-    def close(self):
+    def close(self) -> None:
         """For run_node: stop playback before the node is destroyed."""
         self.stop()
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Play the bag; returns the exit status: 0 = played (or stopped by SIGINT/SIGTERM),
     1 = the bag failed while reading, 2 = unusable bag or parameter at start-up."""
     return run_node(PlayerNode, args)

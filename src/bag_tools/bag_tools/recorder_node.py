@@ -36,10 +36,20 @@ was dropped or a topic could not be recorded, ERROR once writing failed.
 
 import sys
 import threading
+from typing import Any
 
-from bag_tools.bag_writer import qos_profile
+from rclpy.duration import Duration
+from rclpy.qos import QoSProfile
+from rclpy.subscription import Subscription
+
+from bag_tools.bag_writer import QosProfileDict, qos_profile
 from bag_tools.recorder import BagSettings, Recorder
-from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
+from bag_tools.topic_discovery import (
+    DiscoveredTopic,
+    TopicDiscovery,
+    subscription_qos,
+    topic_selection_params,
+)
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
 from vgm_common.parameters import ConfigParams
@@ -48,12 +58,12 @@ DIAGNOSTICS_PERIOD = 2.0  # [s]
 HEADER_TYPE = 'std_msgs/Header'
 
 
-def _duration_dict(duration):
+def _duration_dict(duration: Duration) -> dict[str, int]:
     nanoseconds = duration.nanoseconds
     return {'sec': nanoseconds // 1_000_000_000, 'nsec': nanoseconds % 1_000_000_000}
 
 
-def qos_to_dict(qos):
+def qos_to_dict(qos: QoSProfile) -> QosProfileDict:
     """An rclpy ``QoSProfile`` as the offered-profile dict stored in the bag.
 
     Policy names are rmw's (``keep_last``, ``transient_local``, ``unknown``...: the enum names
@@ -93,7 +103,7 @@ class RecorderNode(GraphNode):
 
     node_name = 'recorder'
 
-    def __init__(self, **kwargs):
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(PARAMETERS, **kwargs)
         # None can change while recording.
         self._discovery = TopicDiscovery(self, self.params, 'recording')
@@ -106,7 +116,7 @@ class RecorderNode(GraphNode):
         )
         self.bag_path = self._recorder.bag_path
         self._recording = self._recorder.recording
-        self._recorded = {}  # topic -> subscription
+        self._recorded: dict[str, Subscription] = {}  # topic -> its subscription
         self._discovery_timer = self.create_timer(self.params.discovery_period, self._discover)
         self._diagnostics_timer = self.create_timer(DIAGNOSTICS_PERIOD, self._publish_status)
         wanted, excluded = self._discovery.wanted_topics, self._discovery.excluded
@@ -117,24 +127,24 @@ class RecorderNode(GraphNode):
         self._discover()
 
     @property
-    def exit_status(self):
+    def exit_status(self) -> int:
         """The process exit status: 1 once writing to the bag failed, else 0."""
         return 0 if self._recording.write_error is None else 1
 
     # -- discovery (executor thread) -----------------------------------------------------
 
-    def _discover(self):
+    def _discover(self) -> None:
         if self._recording.closed:
             return
         for topic in self._discovery.poll(self._recorded, self._check_types):
             self._subscribe(topic)
 
-    def _check_types(self, name, types):
+    def _check_types(self, name: str, types: list[str]) -> None:
         reason = self._recorder.new_second_type(name, types)
         if reason:  # recorded with its first type; the others' messages cannot be
             self.diagnostics.reject(name, reason)
 
-    def _subscribe(self, topic):
+    def _subscribe(self, topic: DiscoveredTopic) -> None:
         fields = topic.message_type.get_fields_and_field_types()
         self._recorder.add_topic(
             topic.name,
@@ -162,31 +172,33 @@ class RecorderNode(GraphNode):
             f'{qos.durability.name.lower()})'
         )
 
-    def _on_write_failure(self, error):  # writer thread; the recording has stopped
+    def _on_write_failure(
+        self, error: Exception
+    ) -> None:  # writer thread; the recording has stopped
         self.get_logger().error(f'writing {self.bag_path} failed: {error}')
         self.exit_requested.set()
 
-    def _publish_status(self):
+    def _publish_status(self) -> None:
         self.diagnostics.publish('bag', *self._recorder.status(self._discovery.skipped))
 
     # -- shutdown ------------------------------------------------------------------------
 
-    def stop_discovery(self):
+    def stop_discovery(self) -> None:
         """Subscribe to no further topics."""
         self._discovery_timer.cancel()
 
-    def drain(self):
+    def drain(self) -> float:
         """Called by run_node once stopping: subscribe to no further topics, but go on
         taking the messages the middleware delivered (see ``drained``), at most the
         returned time [s]."""
         self.stop_discovery()
         return self._recorder.start_drain()
 
-    def drained(self):
+    def drained(self) -> bool:
         """True once no message arrived for a quiet period: the backlog is recorded."""
         return self._recorder.drained()
 
-    def close(self):
+    def close(self) -> None:
         """Stop recording, write what is queued, close the bag and log the counts.
         Idempotent; safe after the context was shut down."""
         if self._recording.closed:
@@ -209,7 +221,7 @@ class RecorderNode(GraphNode):
             self.get_logger().warning(f'never published, not recorded: {", ".join(never_seen)}')
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run the recorder until SIGINT/SIGTERM; returns the exit status: 0 = bag closed,
     1 = writing failed (what reached the disk is kept), 2 = unusable parameter or output
     location at start-up (one log line)."""

@@ -29,15 +29,22 @@ gained a publisher of another type: its channel keeps its first type).
 
 import sys
 from functools import partial
+from typing import Any
 
 import foxglove
 from foxglove.channels import FrameTransformsChannel
 from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
-from foxglove.websocket import ServerListener
+from foxglove.websocket import ChannelView, Client, ServerListener
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import DurabilityPolicy
+from rclpy.subscription import Subscription
 
-from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
+from bag_tools.topic_discovery import (
+    DiscoveredTopic,
+    TopicDiscovery,
+    subscription_qos,
+    topic_selection_params,
+)
 from live_view.channels import ChannelTable, Forwarded, ServerSettings
 from vgm_common.conversions import pose_to_matrix
 from vgm_common.errors import InvalidInput, VgmError
@@ -63,7 +70,7 @@ class LiveViewStartupError(VgmError):
     machine)."""
 
 
-def frame_transform(pose_stamped, child_frame_id):
+def frame_transform(pose_stamped: PoseStamped, child_frame_id: str) -> FrameTransform:
     """foxglove ``FrameTransform`` of ``child_frame_id`` in the pose's frame.
 
     Raises:
@@ -87,13 +94,13 @@ class _Listener(ServerListener):
     """foxglove-sdk's ServerListener: called on the server's threads (the callbacks not
     defined here are the protocol's no-ops)."""
 
-    def __init__(self, live_view):
+    def __init__(self, live_view: 'LiveViewNode') -> None:
         self._live_view = live_view
 
-    def on_subscribe(self, client, channel):
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         self._live_view.client_subscribed(client.id, channel.topic)
 
-    def on_unsubscribe(self, client, channel):
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
         self._live_view.client_unsubscribed(client.id, channel.topic)
 
 
@@ -112,7 +119,7 @@ class LiveViewNode(GraphNode):
 
     node_name = 'live_view'
 
-    def __init__(self, **kwargs):
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(PARAMETERS, **kwargs)
         settings = SERVER.build(self.params)
         self._backlog = settings.message_backlog_size
@@ -155,16 +162,16 @@ class LiveViewNode(GraphNode):
 
     # -- topics (executor thread) ------------------------------------------------------
 
-    def _discover(self):
+    def _discover(self) -> None:
         for topic in self._discovery.poll(self._table, self._check_types):
             self._advertise(topic)
 
-    def _check_types(self, name, types):
+    def _check_types(self, name: str, types: list[str]) -> None:
         reason = self._table.new_second_type(name, types)
         if reason:  # said once per topic, as the recorder does
             self.diagnostics.reject(name, reason)
 
-    def _advertise(self, topic):
+    def _advertise(self, topic: DiscoveredTopic) -> None:
         encoding, text = topic.definition
         channel = foxglove.Channel(
             topic.name,
@@ -178,11 +185,11 @@ class LiveViewNode(GraphNode):
         )
         self.get_logger().info(f'serving {topic.name} [{topic.type_name}]')
 
-    def _update_subscriptions(self):
+    def _update_subscriptions(self) -> None:
         """Executor thread, woken by the server's threads."""
         self._table.update_subscriptions(self._subscribe, self.destroy_subscription)
 
-    def _subscribe(self, topic, forwarded):
+    def _subscribe(self, topic: str, forwarded: Forwarded) -> Subscription:
         return self.create_subscription(
             forwarded.message_type,
             topic,
@@ -191,12 +198,12 @@ class LiveViewNode(GraphNode):
             raw=True,
         )
 
-    def _on_message(self, forwarded, data, info):
+    def _on_message(self, forwarded: Forwarded, data: bytes, info: dict[str, int]) -> None:
         self._table.forward(forwarded, data, info.get('received_timestamp', 0))
 
     # -- clients (server threads) --------------------------------------------------------
 
-    def client_subscribed(self, client_id, topic):
+    def client_subscribed(self, client_id: int, topic: str) -> None:
         """Client ``client_id`` subscribed to ``topic``: wake the executor to subscribe it
         in ROS; ``/tf`` gets the camera transforms at once. Server thread."""
         self._table.client_subscribed(client_id, topic)
@@ -204,7 +211,7 @@ class LiveViewNode(GraphNode):
             self._send_camera_transforms()
         self._wake.trigger()
 
-    def client_unsubscribed(self, client_id, topic):
+    def client_unsubscribed(self, client_id: int, topic: str) -> None:
         """Client ``client_id`` unsubscribed from ``topic``: wake the executor to drop the
         ROS subscription nobody watches any more. Server thread."""
         self._table.client_unsubscribed(client_id, topic)
@@ -212,7 +219,7 @@ class LiveViewNode(GraphNode):
 
     # -- frame transforms ----------------------------------------------------------------
 
-    def _on_camera_pose(self, topic, frame, msg):
+    def _on_camera_pose(self, topic: str, frame: str, msg: PoseStamped) -> None:
         try:
             if msg.header.frame_id != BASE_FRAME:
                 raise InvalidInput(
@@ -226,13 +233,13 @@ class LiveViewNode(GraphNode):
         self._table.set_camera_transform(frame, transform)
         self._send_camera_transforms()
 
-    def _send_camera_transforms(self):
+    def _send_camera_transforms(self) -> None:
         transforms = self._table.camera_transforms()
         if transforms:
             self._transforms.log(FrameTransforms(transforms=transforms))
             self._table.transforms_sent += len(transforms)
 
-    def _on_tool_pose(self, msg):
+    def _on_tool_pose(self, msg: PoseStamped) -> None:
         if not self._transforms.has_sinks():  # nobody watches /tf
             return
         try:
@@ -245,17 +252,17 @@ class LiveViewNode(GraphNode):
 
     # -- diagnostics and shutdown ------------------------------------------------------
 
-    def _publish_status(self):
+    def _publish_status(self) -> None:
         rejected = sum(self.diagnostics.rejected.values())
         status = self._table.status(self.url, self._backlog, self._discovery.skipped, rejected)
         self.diagnostics.publish('server', *status)
 
-    def close(self):
+    def close(self) -> None:
         """Stop the server (clients see the connection close)."""
         self._server.stop()
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run live_view until SIGINT/SIGTERM; exit status 2 when it cannot serve (one line)."""
     return run_node(LiveViewNode, args)
 

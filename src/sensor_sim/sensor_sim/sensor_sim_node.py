@@ -15,7 +15,7 @@ from geometry_msgs.msg import PoseStamped, WrenchStamped
 from sensor_msgs.msg import Image, JointState
 from trajectory_msgs.msg import JointTrajectory
 
-from sensor_sim.arm_loop import ArmLoop, ArmSettings, TickSchedule
+from sensor_sim.arm_loop import ArmLoop, ArmSample, ArmSettings, TickSchedule
 from sensor_sim.capture import (
     CaptureSchedule,
     SimSettings,
@@ -70,7 +70,7 @@ class SensorSim(GraphNode):
 
     node_name = 'sensor_sim'
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__(PARAMETERS)
         settings = SIM.build(self.params)
         self.scenario = load_scenario(resolve_scenario_path(settings.scenario))
@@ -104,7 +104,7 @@ class SensorSim(GraphNode):
         self._init_state()
         self._start(settings)
 
-    def _create_publishers(self):
+    def _create_publishers(self) -> None:
         self.image_publishers = {
             name: self.create_publisher(Image, IMAGE_TOPICS[name], DEFAULT_QOS)
             for name in CAMERA_NAMES
@@ -117,7 +117,7 @@ class SensorSim(GraphNode):
         )
         self.pressure_publisher = self.create_publisher(WrenchStamped, PRESSURE_TOPIC, DEFAULT_QOS)
 
-    def _init_state(self):
+    def _init_state(self) -> None:
         self.capture_lock, self.arm_lock = threading.Lock(), threading.Lock()
         self.gate = SubscriberGate(
             self,
@@ -137,7 +137,7 @@ class SensorSim(GraphNode):
             (*IMAGE_TOPICS.values(), TARGET_POSE_TOPIC, JOINT_STATES_TOPIC, PRESSURE_TOPIC), 0
         )
 
-    def _start(self, settings):
+    def _start(self, settings: SimSettings) -> None:
         """Takes joint trajectories, starts the arm thread and the capture timer."""
         self.create_subscription(
             JointTrajectory, JOINT_TRAJECTORY_TOPIC, self._on_joint_trajectory, DEFAULT_QOS
@@ -159,7 +159,7 @@ class SensorSim(GraphNode):
 
     # --- cameras ---------------------------------------------------------------------
 
-    def _capture(self):
+    def _capture(self) -> None:
         """One capture: the three images (and the chart pose) with one stamp."""
         if not self.gate.is_open():  # the arm starts publishing too
             return
@@ -167,7 +167,7 @@ class SensorSim(GraphNode):
             if not self.closed:
                 self._publish_capture()
 
-    def _publish_capture(self):
+    def _publish_capture(self) -> None:
         stamp_ns = self.get_clock().now().nanoseconds
         capture = self.schedule.next()
         if capture.T_base_target is not None:
@@ -185,7 +185,7 @@ class SensorSim(GraphNode):
 
     # --- arm and pressure sensor ---------------------------------------------------
 
-    def _on_joint_trajectory(self, msg):
+    def _on_joint_trajectory(self, msg: JointTrajectory) -> None:
         points = msg.points
         start = stamp_to_ns(msg.header.stamp) * 1e-9 or self._now()
         try:
@@ -200,10 +200,10 @@ class SensorSim(GraphNode):
         except (InvalidInput, ValueError) as error:
             self.diagnostics.reject(JOINT_TRAJECTORY_TOPIC, error)
 
-    def _now(self):
+    def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
-    def _run_arm(self):
+    def _run_arm(self) -> None:
         self.gate.opened.wait()
         ticks = TickSchedule(1.0 / self.params.joint_state_rate)
         while True:
@@ -215,7 +215,7 @@ class SensorSim(GraphNode):
             if delay > 0:
                 time.sleep(delay)
 
-    def _publish_arm(self, sample):
+    def _publish_arm(self, sample: ArmSample) -> None:
         self.joint_state_publisher.publish(
             JointState(
                 header=make_header(sample.stamp_ns, BASE_FRAME),
@@ -230,7 +230,7 @@ class SensorSim(GraphNode):
         self.pressure_publisher.publish(wrench)
         self.published[PRESSURE_TOPIC] += 1
 
-    def _publish_diagnostics(self):
+    def _publish_diagnostics(self) -> None:
         phase = self.schedule.phase
         self.diagnostics.publish(
             'simulation',
@@ -243,7 +243,7 @@ class SensorSim(GraphNode):
             },
         )
 
-    def close(self):
+    def close(self) -> None:
         """Final counts, so a recording can be checked for lost messages
         (``parse_published_counts`` reads them back)."""
         # rclpy's executor shutdown does not wait for running callbacks: these locks do,
@@ -255,7 +255,7 @@ class SensorSim(GraphNode):
         self.get_logger().info(f'published: {counts}')
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run sensor_sim until SIGINT/SIGTERM; exit status 2 on an unusable parameter or
     scenario at start-up (one line)."""
     # One executor thread beside the arm's: rclpy's MultiThreadedExecutor spun on the

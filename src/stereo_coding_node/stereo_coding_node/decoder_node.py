@@ -10,6 +10,7 @@ thesis's scheme does; it needs the encoder's ``key_file``."""
 
 import os
 import time
+from typing import Any
 
 import numpy as np
 from sensor_msgs.msg import CompressedImage, Image
@@ -54,7 +55,7 @@ class StereoDecodingNode(GraphNode):
 
     node_name = 'stereo_decoding_node'
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__(PARAMETERS)
         self.publishers_ = {
             key: self.create_publisher(kind, topic, DEFAULT_QOS, publisher_class=CountingPublisher)
@@ -71,25 +72,25 @@ class StereoDecodingNode(GraphNode):
             )
         else:
             self.create_subscription(Image, CODED_IMAGE_TOPIC, self._on_coded, DEFAULT_QOS)
-        # ((path, mtime, size), ThesisKey)
-        self.key_cache: tuple[tuple[str, int, int] | None, thesis.ThesisKey | None] = (None, None)
+        # ((path, mtime, size), the key read from that file)
+        self.key_cache: tuple[tuple[str, int, int], thesis.ThesisKey] | None = None
         self.decoded = self.unmarked = self.failed = 0
-        self.last = {}
+        self.last: dict[str, Any] = {}  # the latest figures, for the diagnostic
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f'method {self.params.method}: waiting for the coded image ({self.params.transport})'
         )
 
-    def _on_coded(self, msg):
+    def _on_coded(self, msg: Image | CompressedImage) -> None:
         self.worker.submit(msg)
 
-    def _on_error(self, error):
+    def _on_error(self, error: Exception) -> None:
         self.failed += 1
-        if not isinstance(error, VgmError):
-            error = f'{type(error).__name__}: {error}'
-        self.diagnostics.reject('coded image', error)
+        # One of ours says what was wrong; anything else is named by its type.
+        reason = error if isinstance(error, VgmError) else f'{type(error).__name__}: {error}'
+        self.diagnostics.reject('coded image', reason)
 
-    def _thesis_key(self):
+    def _thesis_key(self) -> thesis.ThesisKey:
         path = self.params.key_file
         if not path:
             raise CodingError(
@@ -100,11 +101,13 @@ class StereoDecodingNode(GraphNode):
             signature = (path, status.st_mtime_ns, status.st_size)
         except OSError:
             signature = None
-        if signature is None or self.key_cache[0] != signature:
-            self.key_cache = (signature, thesis.ThesisKey.load(path))
-        return self.key_cache[1]
+        if signature is not None and self.key_cache and self.key_cache[0] == signature:
+            return self.key_cache[1]
+        key = thesis.ThesisKey.load(path)  # KeyFileError names a missing or corrupt file
+        self.key_cache = None if signature is None else (signature, key)
+        return key
 
-    def _process(self, msg):
+    def _process(self, msg: Image | CompressedImage) -> None:
         if isinstance(msg, CompressedImage):
             width, height = compressed_image_size(bytes(msg.data))
         else:
@@ -167,7 +170,7 @@ class StereoDecodingNode(GraphNode):
         self.publishers_['left'].publish(numpy_to_image(left, 'mono8', stamp_ns, frame))
         self.publishers_['right'].publish(numpy_to_image(right, 'mono8', stamp_ns, frame))
 
-    def _publish_diagnostics(self):
+    def _publish_diagnostics(self) -> None:
         values = {
             'method': self.params.method,
             'decoded': self.decoded,
@@ -185,7 +188,7 @@ class StereoDecodingNode(GraphNode):
         )
         self.diagnostics.publish('decoding', level, message, values)
 
-    def close(self):
+    def close(self) -> None:
         """For run_node: stop the worker (a waiting image is not decoded) and log the
         counts."""
         self.worker.close()
@@ -194,7 +197,7 @@ class StereoDecodingNode(GraphNode):
         )
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run stereo_decoding_node until SIGINT/SIGTERM; exit status 2 on an unusable
     parameter at start-up (one line)."""
     return run_node(StereoDecodingNode, args)

@@ -8,6 +8,7 @@ thesis's non-blind ZIG-ZAG + DFrFT + SVD scheme, whose side information is writt
 
 import os
 import time
+from typing import Any
 
 import numpy as np
 from sensor_msgs.msg import CompressedImage, Image
@@ -47,7 +48,7 @@ class StereoCodingNode(GraphNode):
 
     node_name = 'stereo_coding_node'
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__(PARAMETERS)
         self.coded_publisher = self.create_publisher(
             Image, CODED_IMAGE_TOPIC, DEFAULT_QOS, publisher_class=CountingPublisher
@@ -65,13 +66,13 @@ class StereoCodingNode(GraphNode):
             on_unpaired=self._on_unpaired,
         )
         self.coded = self.failed = 0
-        self.last = {}
+        self.last: dict[str, Any] = {}  # the latest figures, for the diagnostic
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f'method {self.params.method}: waiting for {LEFT_RECT_TOPIC} + {DISPARITY_TOPIC}'
         )
 
-    def _on_unpaired(self, dropped):
+    def _on_unpaired(self, dropped: int) -> None:
         self.diagnostics.reject(
             'input pair',
             InvalidInput(
@@ -81,16 +82,16 @@ class StereoCodingNode(GraphNode):
             ),
         )
 
-    def _on_pair(self, stamp_ns, messages):
+    def _on_pair(self, stamp_ns: int, messages: dict[str, Any]) -> None:
         self.worker.submit((stamp_ns, messages))
 
-    def _on_error(self, error):
+    def _on_error(self, error: Exception) -> None:
         self.failed += 1
-        if not isinstance(error, VgmError):
-            error = f'{type(error).__name__}: {error}'
-        self.diagnostics.reject('input pair', error)
+        # One of ours says what was wrong; anything else is named by its type.
+        reason = error if isinstance(error, VgmError) else f'{type(error).__name__}: {error}'
+        self.diagnostics.reject('input pair', reason)
 
-    def _process(self, item):
+    def _process(self, item: tuple[int, dict[str, Any]]) -> None:
         stamp_ns, messages = item
         image_msg, disparity_msg = messages['image'], messages['disparity']
         if image_msg.encoding not in GREY_ENCODINGS:
@@ -143,7 +144,7 @@ class StereoCodingNode(GraphNode):
             self.last['payload bits'] = blind.payload_bits(left.shape)
             self.last['fine payload bits'] = blind.fine_payload_bits(left.shape)  # 0: too small
 
-    def _write_key(self, key, path):
+    def _write_key(self, key: thesis.ThesisKey, path: str) -> None:
         # Written whole, then renamed: a decoder never reads half a key.
         temporary = f'{path}.tmp{os.getpid()}'
         try:
@@ -154,7 +155,7 @@ class StereoCodingNode(GraphNode):
                 f'cannot write key_file {path}: {error.strerror}', key='key_file'
             ) from None
 
-    def _publish_diagnostics(self):
+    def _publish_diagnostics(self) -> None:
         values = {
             'method': self.params.method,
             'coded': self.coded,
@@ -168,14 +169,14 @@ class StereoCodingNode(GraphNode):
         message = f'{self.coded} images coded' if self.coded else 'no image coded yet'
         self.diagnostics.publish('coding', level, message, values)
 
-    def close(self):
+    def close(self) -> None:
         """For run_node: stop the worker (a waiting pair is not coded) and log the
         counts."""
         self.worker.close()
         self.get_logger().info(f'coded {self.coded} images, failed {self.failed}')
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run stereo_coding_node until SIGINT/SIGTERM; exit status 2 on an unusable
     parameter at start-up (one line)."""
     return run_node(StereoCodingNode, args)
