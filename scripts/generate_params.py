@@ -34,6 +34,9 @@ PARAMS_FILES = {  # file -> {node name: module declaring its PARAMETERS}
     'src/sensor_sim/params/sensor_sim.yaml': {'sensor_sim': 'sensor_sim.sensor_sim_node'},
     'src/bag_tools/params/recorder.yaml': {'recorder': 'bag_tools.recorder_node'},
     'src/bag_tools/params/player.yaml': {'player': 'bag_tools.player_node'},
+    'src/bag_tools/params/image_publisher.yaml': {
+        'image_publisher': 'bag_tools.image_publisher_node'
+    },
     'src/live_view/params/live_view.yaml': {'live_view': 'live_view.node'},
     'src/stereo_coding_node/params/stereo_coding.yaml': {
         'stereo_coding_node': 'stereo_coding_node.encoder_node',

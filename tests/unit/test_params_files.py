@@ -11,6 +11,8 @@ import re
 import sys
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import rclpy
 import yaml
@@ -32,6 +34,9 @@ NODES = {  # params file -> {node name in the file: 'module:Class'}
     'sensor_sim/params/sensor_sim.yaml': {'sensor_sim': 'sensor_sim.sensor_sim_node:SensorSim'},
     'bag_tools/params/recorder.yaml': {'recorder': 'bag_tools.recorder_node:RecorderNode'},
     'bag_tools/params/player.yaml': {'player': 'bag_tools.player_node:PlayerNode'},
+    'bag_tools/params/image_publisher.yaml': {
+        'image_publisher': 'bag_tools.image_publisher_node:ImagePublisher'
+    },
     'live_view/params/live_view.yaml': {'live_view': 'live_view.node:LiveViewNode'},
     'stereo_coding_node/params/stereo_coding.yaml': {
         'stereo_coding_node': 'stereo_coding_node.encoder_node:StereoCodingNode',
@@ -40,12 +45,13 @@ NODES = {  # params file -> {node name in the file: 'module:Class'}
 }
 NOT_LISTED = {'use_sim_time', 'start_type_description_service'}  # every rclpy node's
 # live_view binds its port as it is constructed: any free one here; the recorder creates
-# its bag: in the test's own directory; the player needs one: a bag made there. Only the
-# names of these parameters are compared.
+# its bag: in the test's own directory; the player and image_publisher need a bag and a
+# folder of images: made there. Only the names of these parameters are compared.
 OVERRIDDEN = {
     'live_view': {'port': '0'},
     'recorder': {'output_dir': '{tmp_path}'},
     'player': {'bag': '{tmp_path}/played'},
+    'image_publisher': {'folder': '{tmp_path}/images'},
 }
 
 
@@ -77,6 +83,9 @@ def default_context(ros_env, monkeypatch, tmp_path):
     with BagWriter(tmp_path / 'played') as bag:
         bag.add_topic('/a', 'std_msgs/msg/String')
         bag.write('/a', bytes(serialize_message(String(data='a'))), 1)
+    for name in ('left', 'right'):  # one image set for image_publisher
+        (tmp_path / 'images').mkdir(exist_ok=True)
+        cv2.imwrite(str(tmp_path / 'images' / f'{name}.png'), np.zeros((4, 4), np.uint8))
     for key in ('ROS_DOMAIN_ID', 'ROS_AUTOMATIC_DISCOVERY_RANGE'):
         monkeypatch.setenv(key, ros_env[key])
     rclpy.init(
@@ -185,6 +194,7 @@ READMES = {  # README -> the nodes whose parameters its tables list
         'sensor_sim.sensor_sim_node:SensorSim',
         'bag_tools.recorder_node:RecorderNode',
         'bag_tools.player_node:PlayerNode',
+        'bag_tools.image_publisher_node:ImagePublisher',
     ],
 }
 
@@ -244,6 +254,7 @@ CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters 
     'sensor_sim.sensor_sim_node:SensorSim': ['SIM', 'ARM'],
     'bag_tools.recorder_node:RecorderNode': ['BAG'],
     'bag_tools.player_node:PlayerNode': ['PLAYER'],
+    'bag_tools.image_publisher_node:ImagePublisher': ['FOLDER'],
     'live_view.node:LiveViewNode': ['SERVER'],
     'stereo_coding_node.encoder_node:StereoCodingNode': ['CODING', 'ENCODER'],
     'stereo_coding_node.decoder_node:StereoDecodingNode': ['CODING', 'DECODER'],
