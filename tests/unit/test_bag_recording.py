@@ -178,18 +178,27 @@ def bag_messages(log_times_s, topic='/a'):
 
 
 class Played:
-    """A Playback on a manual clock, with what it published (clock time, topic, data)
-    and logged (level, text)."""
+    """A Playback of ``messages`` (an iterable, or a function giving one) on a manual
+    clock, with what it published (clock time, topic, data) and logged (level, text);
+    ``after_publish(played)`` runs after each message."""
 
-    def __init__(self, messages, stop_at=float('inf'), topics=('/a',), **settings):
+    def __init__(
+        self, messages, stop_at=float('inf'), topics=('/a',), after_publish=None, **settings
+    ):
         self.clock = ManualClock(100.0)
         self.published, self.log = [], []
+
+        def publish(topic, data):
+            self.published.append((self.clock.now, topic, data))
+            if after_publish is not None:
+                after_publish(self)
+
         self.playback = Playback(
             PlayerSettings(bag='bag', **settings),
             'bag',
             topics,
-            lambda: iter(messages),
-            lambda topic, data: self.published.append((self.clock.now, topic, data)),
+            messages if callable(messages) else lambda: iter(messages),
+            publish,
             lambda level, text: self.log.append((level, text)),
             ManualStop(self.clock, stop_at),
             self.clock,
@@ -228,15 +237,17 @@ def test_a_looping_playback_plays_again_until_stopped_and_a_rate_change_re_ancho
     assert played.times() == pytest.approx([100.0, 101.0, 101.0, 102.0, 102.0], abs=1e-9)
     assert played.playback.passes == 3 and played.playback.state == 'stopped'
     assert played.playback.progress(2, 0, 10**9, {}, {})[2]['pass'] == 3
-    faster = Played(bag_messages([0.0, 1.0, 2.0]), wait_for_subscribers=0)
-    publish = faster.playback._publish
 
-    def speed_up_after_the_first(topic, data):
-        publish(topic, data)
-        faster.clock.now += 0.5  # half a second of bag at rate 1 ...
-        faster.playback.schedule.set_rate(2.0)  # ... then twice as fast
+    def speed_up_after_the_first(played):
+        if len(played.published) == 1:
+            played.clock.now += 0.5  # half a second of bag at rate 1 ...
+            played.playback.schedule.set_rate(2.0)  # ... then twice as fast
 
-    faster.playback._publish = speed_up_after_the_first
+    faster = Played(
+        bag_messages([0.0, 1.0, 2.0]),
+        after_publish=speed_up_after_the_first,
+        wait_for_subscribers=0,
+    )
     faster.playback.run(unheard=list)
     assert faster.times() == pytest.approx([100.0, 100.75, 101.25], abs=1e-9)
 
@@ -246,8 +257,7 @@ def test_a_bag_that_fails_while_playing_stops_the_playback_with_its_error():
         yield from bag_messages([0.0, 0.1])
         raise BagReaderError('chunk CRC mismatch', 'bag_0.mcap')
 
-    played = Played([], wait_for_subscribers=0)
-    played.playback._messages = messages
+    played = Played(messages, wait_for_subscribers=0)
     played.playback.run(unheard=list)
     assert len(played.published) == 2 and played.playback.state == 'failed'
     assert played.log == [('error', 'playing bag failed: chunk CRC mismatch')]

@@ -86,7 +86,7 @@ class SensorSim(GraphNode):
         render_everything(self.renderer, self.scenario, self.schedule)
         self.get_logger().info(f'rendered the scene in {time.monotonic() - started:.2f} s')
         robot = self.scenario.robot
-        self.arm = ArmLoop(
+        self.arm_loop = ArmLoop(
             load_robot(
                 robot.model,
                 robot.tool_length,
@@ -149,7 +149,7 @@ class SensorSim(GraphNode):
         self.create_timer(1.0, self._publish_diagnostics)
         frame_rate = settings.rate or self.scenario.rate
         self.create_timer(1.0 / frame_rate, self._capture)
-        arm = self.arm.arm
+        arm = self.arm_loop.arm
         self.get_logger().info(
             f'publishing 3 cameras at {frame_rate:g} Hz ({self.schedule.chart_frames} '
             f'calibration captures first), joint states at {settings.joint_state_rate:g} Hz, '
@@ -190,7 +190,7 @@ class SensorSim(GraphNode):
         start = stamp_to_ns(msg.header.stamp) * 1e-9 or self._now()
         try:
             with self.arm_lock:
-                self.arm.command(
+                self.arm_loop.command(
                     msg.joint_names,
                     [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in points],
                     [list(p.positions) for p in points],
@@ -210,7 +210,7 @@ class SensorSim(GraphNode):
             with self.arm_lock:
                 if self.closed:
                     return
-                self._publish_arm(self.arm.step(self._now()))
+                self._publish_arm(self.arm_loop.step(self._now()))
             delay = ticks.wait_after_tick()
             if delay > 0:
                 time.sleep(delay)
@@ -219,7 +219,7 @@ class SensorSim(GraphNode):
         self.joint_state_publisher.publish(
             JointState(
                 header=make_header(sample.stamp_ns, BASE_FRAME),
-                name=list(self.arm.robot.joint_names),
+                name=list(self.arm_loop.robot.joint_names),
                 position=sample.q.tolist(),
                 velocity=sample.qdot.tolist(),
             )
