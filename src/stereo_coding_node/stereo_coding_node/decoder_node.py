@@ -8,19 +8,16 @@ wrong-key image gives "no watermark" and nothing on the decoded topics (method o
 CRC-32 decides). Method thesis is non-blind: it always extracts something, as the
 thesis's scheme does; it needs the encoder's ``key_file``."""
 
-import os
-import time
 from typing import Any
 
 import numpy as np
 from sensor_msgs.msg import CompressedImage, Image
 from stereo_msgs.msg import DisparityImage
 
-from stereo_coding_node import blind, thesis
+from stereo_coding_node.coding import KeyFile, decode_image
 from stereo_coding_node.errors import CodingError
 from stereo_coding_node.inputs import GREY_ENCODINGS, compressed_image_size
 from stereo_coding_node.settings import CodingSettings, DecoderSettings
-from stereo_coding_node.views import synthesise_right
 from vgm_common.conversions import (
     compressed_to_grey,
     image_to_numpy,
@@ -72,8 +69,7 @@ class StereoDecodingNode(GraphNode):
             )
         else:
             self.create_subscription(Image, CODED_IMAGE_TOPIC, self._on_coded, DEFAULT_QOS)
-        # ((path, mtime, size), the key read from that file)
-        self.key_cache: tuple[tuple[str, int, int], thesis.ThesisKey] | None = None
+        self.key_file = KeyFile()  # method thesis: the encoder's side information
         self.decoded = self.unmarked = self.failed = 0
         self.last: dict[str, Any] = {}  # the latest figures, for the diagnostic
         self.create_timer(1.0, self._publish_diagnostics)
@@ -89,23 +85,6 @@ class StereoDecodingNode(GraphNode):
         # One of ours says what was wrong; anything else is named by its type.
         reason = error if isinstance(error, VgmError) else f'{type(error).__name__}: {error}'
         self.diagnostics.reject('coded image', reason)
-
-    def _thesis_key(self) -> thesis.ThesisKey:
-        path = self.params.key_file
-        if not path:
-            raise CodingError(
-                'method thesis needs key_file (written by the encoder)', key='key_file'
-            )
-        try:
-            status = os.stat(path)
-            signature = (path, status.st_mtime_ns, status.st_size)
-        except OSError:
-            signature = None
-        if signature is not None and self.key_cache and self.key_cache[0] == signature:
-            return self.key_cache[1]
-        key = thesis.ThesisKey.load(path)  # KeyFileError names a missing or corrupt file
-        self.key_cache = None if signature is None else (signature, key)
-        return key
 
     def _process(self, msg: Image | CompressedImage) -> None:
         if isinstance(msg, CompressedImage):
@@ -127,35 +106,17 @@ class StereoDecodingNode(GraphNode):
                 )
             coded = image_to_numpy(msg)
         stamp_ns, frame = stamp_to_ns(msg.header.stamp), msg.header.frame_id
-        started = time.perf_counter()
-        p = CODING.build(self.params)
-        disparity: np.ndarray | None  # None: no watermark found
-        if p.method == 'thesis':
-            left, disparity, _ = thesis.decode(coded, self._thesis_key())
-            found, confidence, values = True, float('nan'), {}
-        else:
-            detection = blind.decode(coded, p.key, p.effective_strength)
-            left, disparity = coded, detection.disparity_px
-            found, confidence = detection.found, detection.confidence
-            values = {
-                'raw bit error rate': f'{detection.raw_ber:.4f}',
-                'layer': 'fine' if detection.fine else 'coarse',
-            }
-        elapsed = time.perf_counter() - started
-        self.last = {
-            'watermark': 'found' if found else 'none',
-            'confidence': f'{confidence:.3f}',
-            'decode [ms]': f'{1000 * elapsed:.1f}',
-            **values,
-        }
-        if not found:
+        decoded = decode_image(coded, CODING.build(self.params), self.key_file)
+        self.last = decoded.figures
+        if not decoded.found:
             self.unmarked += 1
             self.diagnostics.publish('watermark', 'warn', 'no watermark', self.last)
             return
-        assert disparity is not None  # found: the watermark carried a disparity
+        assert decoded.disparity_px is not None and decoded.left is not None
+        assert decoded.right is not None  # found: all three
         self.decoded += 1
         self.diagnostics.publish('watermark', 'ok', 'watermark found', self.last)
-        right = synthesise_right(left, disparity)
+        disparity = decoded.disparity_px
         known = np.isfinite(disparity)
         out = numpy_to_disparity_image(  # f and t (the baseline) as the user gave them
             disparity,
@@ -167,8 +128,8 @@ class StereoDecodingNode(GraphNode):
             1.0,
         )
         self.publishers_['disparity'].publish(out)
-        self.publishers_['left'].publish(numpy_to_image(left, 'mono8', stamp_ns, frame))
-        self.publishers_['right'].publish(numpy_to_image(right, 'mono8', stamp_ns, frame))
+        self.publishers_['left'].publish(numpy_to_image(decoded.left, 'mono8', stamp_ns, frame))
+        self.publishers_['right'].publish(numpy_to_image(decoded.right, 'mono8', stamp_ns, frame))
 
     def _publish_diagnostics(self) -> None:
         values = {

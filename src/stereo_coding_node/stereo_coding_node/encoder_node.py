@@ -6,17 +6,14 @@ publishes the left image carrying its disparity on /stereo/coded/image (mono8) a
 thesis's non-blind ZIG-ZAG + DFrFT + SVD scheme, whose side information is written to
 ``key_file`` for the decoder."""
 
-import os
-import time
 from typing import Any
 
-import numpy as np
 from sensor_msgs.msg import CompressedImage, Image
 from stereo_msgs.msg import DisparityImage
 
-from stereo_coding_node import blind, thesis
+from stereo_coding_node.coding import encode_image
 from stereo_coding_node.errors import CodingError
-from stereo_coding_node.inputs import GREY_ENCODINGS, known_disparity
+from stereo_coding_node.inputs import GREY_ENCODINGS
 from stereo_coding_node.settings import CodingSettings, EncoderSettings
 from vgm_common.camera_topics import ImageCaptures
 from vgm_common.conversions import grey_to_compressed_jpeg, image_to_numpy, numpy_to_image
@@ -103,57 +100,19 @@ class StereoCodingNode(GraphNode):
                 f'{DISPARITY_TOPIC} image must be 32FC1, got {disparity_msg.image.encoding!r}',
                 key='encoding',
             )
-        left = image_to_numpy(image_msg)
-        disparity = image_to_numpy(disparity_msg.image).astype(float)
-        if disparity.shape != left.shape:
-            raise CodingError(
-                f'disparity {disparity.shape[1]}x{disparity.shape[0]} and image '
-                f'{left.shape[1]}x{left.shape[0]} differ in size',
-                key='size',
-            )
-        disparity = known_disparity(disparity, disparity_msg.min_disparity)
-        started = time.perf_counter()
-        p = CODING.build(self.params)
-        if p.method == 'thesis':
-            if not p.key_file:
-                raise CodingError(
-                    'method thesis needs key_file (where the side information is written)',
-                    key='key_file',
-                )
-            coded, key = thesis.encode(
-                left, disparity, p.frft_angles, p.effective_strength, p.watermark_scale
-            )
-            self._write_key(key, p.key_file)
-            reference = thesis.zigzag_degrade(left)
-        else:
-            coded = blind.encode(left, disparity, p.key, p.effective_strength)
-            reference = left
-        elapsed = time.perf_counter() - started
-        frame = image_msg.header.frame_id
-        self.coded_publisher.publish(numpy_to_image(coded, 'mono8', stamp_ns, frame))
-        self.compressed_publisher.publish(
-            grey_to_compressed_jpeg(coded, self.params.jpeg_quality, stamp_ns, frame)
+        coded = encode_image(
+            image_to_numpy(image_msg),
+            image_to_numpy(disparity_msg.image),
+            disparity_msg.min_disparity,
+            CODING.build(self.params),
         )
-        mse = float(np.mean((coded.astype(float) - reference) ** 2))
+        frame = image_msg.header.frame_id
+        self.coded_publisher.publish(numpy_to_image(coded.image, 'mono8', stamp_ns, frame))
+        self.compressed_publisher.publish(
+            grey_to_compressed_jpeg(coded.image, self.params.jpeg_quality, stamp_ns, frame)
+        )
         self.coded += 1
-        self.last = {
-            'psnr [dB]': f'{10 * np.log10(255**2 / max(mse, 1e-12)):.2f}',
-            'encode [ms]': f'{1000 * elapsed:.1f}',
-        }
-        if p.method == 'ours':
-            self.last['payload bits'] = blind.payload_bits(left.shape)
-            self.last['fine payload bits'] = blind.fine_payload_bits(left.shape)  # 0: too small
-
-    def _write_key(self, key: thesis.ThesisKey, path: str) -> None:
-        # Written whole, then renamed: a decoder never reads half a key.
-        temporary = f'{path}.tmp{os.getpid()}'
-        try:
-            key.save(temporary)
-            os.replace(temporary, path)
-        except OSError as error:
-            raise CodingError(
-                f'cannot write key_file {path}: {error.strerror}', key='key_file'
-            ) from None
+        self.last = coded.figures
 
     def _publish_diagnostics(self) -> None:
         values = {
