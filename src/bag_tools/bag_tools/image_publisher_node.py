@@ -12,104 +12,36 @@ or a sub-folder ``<camera>/``; the n-th file of each camera in name order forms 
 from __future__ import annotations
 
 import threading
-from pathlib import Path
 
-import cv2
-import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
+from bag_tools.image_folder import (
+    ImageFolderSettings,
+    ImageSetError,
+    SetCycle,
+    image_sets,
+    read_grey,
+)
 from vgm_common.calibration_io import read_calibration, stereo_rectification
 from vgm_common.conversions import camera_to_camera_info, matrix_to_pose_stamped, numpy_to_image
 from vgm_common.diagnostics import CountingPublisher
-from vgm_common.errors import InvalidInput, VgmError
+from vgm_common.errors import InvalidInput
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
-from vgm_common.parameters import Param
+from vgm_common.parameters import ConfigParams
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.subscriber_gate import SubscriberGate
 from vgm_common.topics import (
     BASE_FRAME,
     CAMERA_INFO_TOPICS,
-    CAMERA_NAMES,
     IMAGE_TOPICS,
     OPTICAL_FRAMES,
     POSE_TOPICS,
 )
 
-IMAGE_SUFFIXES = ('.png', '.jpg', '.jpeg', '.bmp', '.pgm', '.ppm', '.tif', '.tiff')
-
-PARAMETERS = [
-    Param('folder', '', 'Folder of the images: <camera>* files or <camera>/ sub-folders.'),
-    Param(
-        'cameras',
-        ['left', 'right'],
-        'Cameras whose images the folder holds (left, right, aux).',
-        check=lambda names: None
-        if names and all(n in CAMERA_NAMES for n in names)
-        else f'must name cameras among {", ".join(CAMERA_NAMES)}',
-        read_only=True,
-    ),
-    Param(
-        'calibration_file',
-        '',
-        "A calibration.yaml (calib_node's output_dir): its cameras' CameraInfo (left/right "
-        "rectified) and poses are published latched; '' publishes images only.",
-        read_only=True,
-    ),
-    Param('rate', 1.0, '[Hz] Image sets per second.', range=(0.01, 100.0), read_only=True),
-    Param('loop', False, 'Start again after the last set.', read_only=True),
-    Param(
-        'exit_when_done',
-        False,
-        'Exit once every set was published once (unless loop).',
-        read_only=True,
-    ),
-    Param(
-        'wait_for_subscribers',
-        5.0,
-        '[s] Publishing starts once every image topic has a subscriber, or after this: '
-        'a reliable publisher drops what it sends before discovery.',
-        range=(0.0, 3600.0),
-        read_only=True,
-    ),
-]
-
-
-class ImageSetError(VgmError):
-    """The folder does not hold usable image sets; the message says why."""
-
-
-def image_sets(folder: str | Path, cameras: list[str]) -> list[dict[str, Path]]:
-    """[{camera: file}] in name order: the n-th ``<camera>*`` file (or file of the
-    ``<camera>/`` sub-folder) of each camera. Raises ImageSetError if the folder is
-    missing, a camera has no image, or the cameras' counts differ."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise ImageSetError(f'folder {str(folder)!r} is not a directory')
-    files = {}
-    for name in cameras:
-        sub = folder / name
-        candidates = sub.iterdir() if sub.is_dir() else folder.glob(f'{name}*')
-        files[name] = sorted(
-            p for p in candidates if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-        )
-    counts = {name: len(found) for name, found in files.items()}
-    if not all(counts.values()) or len(set(counts.values())) != 1:
-        listed = ', '.join(f'{name} {n}' for name, n in counts.items())
-        raise ImageSetError(
-            f'{folder}: every camera needs the same number of images, named <camera>* or '
-            f'in <camera>/ ({", ".join(IMAGE_SUFFIXES)}); found {listed}'
-        )
-    return [dict(zip(files, paths)) for paths in zip(*files.values())]
-
-
-def read_grey(path: Path) -> np.ndarray:
-    """The image at ``path`` as mono8 (H, W) uint8; ImageSetError if it cannot be read."""
-    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    if image is None:
-        raise ImageSetError(f'cannot read image {path}')
-    return image
+FOLDER = ConfigParams(ImageFolderSettings)
+PARAMETERS = FOLDER.declarations()
 
 
 class ImagePublisher(GraphNode):
@@ -119,11 +51,13 @@ class ImagePublisher(GraphNode):
 
     def __init__(self) -> None:
         super().__init__(PARAMETERS)
-        p = self.params
+        p = FOLDER.build(self.params)
         if not p.folder:
             raise ImageSetError('parameter folder is required (-p folder:=<images>)')
         self.cameras = list(p.cameras)
         self.sets = image_sets(p.folder, self.cameras)
+        self.cycle = SetCycle(len(self.sets), p.loop)
+        self.exit_when_done = p.exit_when_done
         self.exit_requested = threading.Event()
         self.image_publishers = {
             name: self.create_publisher(
@@ -134,7 +68,6 @@ class ImagePublisher(GraphNode):
         if p.calibration_file:
             self._publish_calibration(p.calibration_file)
         self.gate = SubscriberGate(self, self.image_publishers.values(), 1, p.wait_for_subscribers)
-        self.next_set = 0
         self.create_timer(1.0 / p.rate, self._publish_next)
         self.get_logger().info(
             f'{len(self.sets)} image sets of {", ".join(self.cameras)} from {p.folder} '
@@ -171,26 +104,22 @@ class ImagePublisher(GraphNode):
     def _publish_next(self) -> None:
         if self.exit_requested.is_set() or not self.gate.is_open():
             return
-        if self.next_set == len(self.sets):
-            if not self.params.loop:
-                return
-            self.next_set = 0
-        files = self.sets[self.next_set]
+        index = self.cycle.next()
+        if index is None:  # each set was shown
+            return
         try:
-            images = {name: read_grey(path) for name, path in files.items()}
+            images = {name: read_grey(path) for name, path in self.sets[index].items()}
         except ImageSetError as error:
             self.diagnostics.reject('image set', error)
-            images = None
-        self.next_set += 1
-        if images is not None:
-            stamp_ns = self.get_clock().now().nanoseconds  # one stamp per set
-            for name, image in images.items():
-                self.image_publishers[name].publish(
-                    numpy_to_image(image, 'mono8', stamp_ns, OPTICAL_FRAMES[name])
-                )
-        if self.next_set == len(self.sets) and not self.params.loop:
+            images = {}
+        stamp_ns = self.get_clock().now().nanoseconds  # one stamp per set
+        for name, image in images.items():
+            self.image_publishers[name].publish(
+                numpy_to_image(image, 'mono8', stamp_ns, OPTICAL_FRAMES[name])
+            )
+        if self.cycle.done:
             self.get_logger().info(f'published all {len(self.sets)} image sets')
-            if self.params.exit_when_done:
+            if self.exit_when_done:
                 self.exit_requested.set()
 
 

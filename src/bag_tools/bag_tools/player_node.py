@@ -34,86 +34,33 @@ played or a parameter change was refused, ERROR if reading the bag failed.
 
 import sys
 import threading
-import time
+from typing import Any
+
+from rclpy.publisher import Publisher
 
 from bag_tools.bag_writer import BagError, BagReader
 from bag_tools.message_definitions import DefinitionNotFoundError, type_hash
-from bag_tools.playback import PlaybackClock
+from bag_tools.playback import Playback, PlayerSettings, bag_span, is_latched, topics_to_play
 from bag_tools.topic_discovery import import_message_type
 from vgm_common.errors import VgmError
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
-from vgm_common.parameters import Param
+from vgm_common.parameters import ConfigParams
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
-from vgm_common.topics import DIAGNOSTICS_TOPIC
 
-_MAX_SLEEP = 0.05  # [s] sleep slices, so a rate change or a stop takes effect promptly
-MATCH_SETTLE = 0.2  # [s] after every publisher has matched a subscriber, before playing
 DIAGNOSTICS_PERIOD = 1.0  # [s]
-MIN_RATE, MAX_RATE = 1e-3, 1e3  # playback speed factors accepted
 
 
 class PlayerStartupError(VgmError):
     """The bag is unusable or holds nothing to play; the message says which and why."""
 
 
-def _required(value):
-    return None if value else 'is required: the bag directory to play'
-
-
-def is_latched(topic_info):
-    """True if every recorded publisher of the topic offered transient-local durability."""
-    profiles = topic_info.offered_qos_profiles
-    return bool(profiles) and all(p.get('durability') == 'transient_local' for p in profiles)
-
-
-PARAMETERS = [
-    Param(
-        'bag',
-        '',
-        'Path of the bag directory (the one holding metadata.yaml).',
-        check=_required,
-        read_only=True,
-    ),
-    Param(
-        'rate',
-        1.0,
-        'Playback speed factor (2 = twice as fast); may be changed while playing.',
-        range=(MIN_RATE, MAX_RATE),
-    ),
-    Param('loop', False, 'Play the bag again and again.', read_only=True),
-    Param(
-        'topics',
-        [],
-        'Topics to play (exact names); empty = every recorded topic.',
-        read_only=True,
-    ),
-    Param(
-        'exclude',
-        ['/rosout', '/parameter_events', DIAGNOSTICS_TOPIC],
-        'Recorded topics not to play (exact names); [] = none.',
-        read_only=True,
-    ),
-    Param(
-        'exit_when_done',
-        True,
-        'Exit once the bag was played; false keeps latched topics available.',
-        read_only=True,
-    ),
-    Param(
-        'wait_for_subscribers',
-        5.0,
-        '[s] Before playing, wait at most this long '
-        'for every topic to have a subscriber, so the first messages are not lost '
-        'to discovery; 0 = do not wait.',
-        range=(0.0, 3600.0),
-        read_only=True,
-    ),
-]
+PLAYER = ConfigParams(PlayerSettings)
+PARAMETERS = PLAYER.declarations()
 
 
 class PlayerNode(GraphNode):
-    """Publishes the messages of one bag with the recorded timing.
+    """Publishes the messages of one bag with the recorded timing (a Playback's).
 
     ``finished`` is set once playback ended (or failed); ``published`` counts per topic.
     For ``vgm_common.node_main.run_node``: ``exit_requested`` is set once playback ended if
@@ -126,51 +73,63 @@ class PlayerNode(GraphNode):
 
     node_name = 'player'
 
-    def __init__(self, **kwargs):
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(
-            PARAMETERS, on_change={'rate': lambda rate: self._schedule.set_rate(rate)}, **kwargs
+            PARAMETERS,
+            on_change={'rate': lambda rate: self._playback.schedule.set_rate(rate)},
+            **kwargs,
         )
-        self.exit_when_done = self.params.exit_when_done
-        self._loop = self.params.loop
-        self._wait_for_subscribers = self.params.wait_for_subscribers
+        settings = PLAYER.build(self.params)
+        self.exit_when_done = settings.exit_when_done
         try:
-            self._reader = BagReader(self.params.bag)
+            self._reader = BagReader(settings.bag)
         except BagError as error:
-            raise PlayerStartupError(f'cannot play {self.params.bag!r}: {error}') from None
-        self._not_played = {}  # requested topic -> why it is not played
-        self._topic_publishers = self._create_publishers(self.params.topics, self.params.exclude)
-        self.published = {name: 0 for name in self._topic_publishers}
+            raise PlayerStartupError(f'cannot play {settings.bag!r}: {error}') from None
+        self._topic_publishers = self._create_publishers(settings)
         self._total = sum(
             t.message_count for t in self._reader.topics if t.name in self._topic_publishers
         )  # one pass
         # [ns] bag time 0 (the first message played if the metadata does not say) and length
-        self._bag_start, self._bag_duration = _bag_span(self._reader)
-        self._bag_time = None  # [ns] log time of the last message played
-        self._passes = 0
-        self._state = 'waiting for subscribers'
+        self._bag_start, self._bag_duration = bag_span(self._reader.metadata)
         self.finished = threading.Event()
-        self.error = None
         self.exit_requested = threading.Event()
         self._stop = threading.Event()
-        self._schedule = PlaybackClock(self.params.rate)
+        self._playback = Playback(
+            settings,
+            str(self._reader.path),
+            self._topic_publishers,
+            lambda: self._reader.messages(self._topic_publishers),
+            lambda topic, data: self._topic_publishers[topic].publish(data),
+            self._log,
+            self._stop,
+        )
         self.create_timer(DIAGNOSTICS_PERIOD, self._publish_progress)
         self._thread = threading.Thread(target=self._run, name='playback', daemon=True)
         self._thread.start()
 
     @property
-    def exit_status(self):
+    def published(self) -> dict[str, int]:
+        """Messages published per topic."""
+        return self._playback.published
+
+    @property
+    def error(self) -> Exception | None:
+        """Why reading the bag failed, or None."""
+        return self._playback.error
+
+    @property
+    def exit_status(self) -> int:
         """The process exit status: 1 if reading the bag failed, else 0."""
         return 0 if self.error is None else 1
 
-    # -- publishers --------------------------------------------------------------------
+    def _log(self, level: str, text: str) -> None:
+        getattr(self.get_logger(), level)(text)
 
-    def _create_publishers(self, wanted, excluded):
+    def _create_publishers(self, settings: PlayerSettings) -> dict[str, Publisher]:
         recorded = {t.name: t for t in self._reader.topics}
-        for name in wanted:
-            if name not in recorded:
-                self._not_played[name] = 'not in the bag'
-                self.get_logger().warning(f'topic {name} is not in the bag')
-        names = [n for n in recorded if (not wanted or n in wanted) and n not in excluded]
+        names, self._not_played = topics_to_play(recorded, settings.topics, settings.exclude)
+        for name in self._not_played:
+            self.get_logger().warning(f'topic {name} is not in the bag')
         publishers = {}
         for name in names:
             info = recorded[name]
@@ -209,73 +168,13 @@ class PlayerNode(GraphNode):
             )
         return publishers
 
-    # -- playback (playback thread) --------------------------------------------------------
+    def _unheard(self) -> list[str]:
+        """The topics played that no subscriber matched yet."""
+        return [n for n, p in self._topic_publishers.items() if p.get_subscription_count() == 0]
 
-    def _sleep_until(self, log_time_ns):
-        """Sleep until the wall time of ``log_time_ns``; False if stopped meanwhile."""
-        while True:
-            remaining = self._schedule.due_in(log_time_ns)
-            if remaining <= 0:
-                return not self._stop.is_set()
-            if self._stop.wait(min(remaining, _MAX_SLEEP)):
-                return False
-
-    def _await_subscribers(self):
-        if self._wait_for_subscribers <= 0:
-            return
-        deadline = time.monotonic() + self._wait_for_subscribers
-        while time.monotonic() < deadline:
-            if all(p.get_subscription_count() > 0 for p in self._topic_publishers.values()):
-                # Our publishers matched; the subscribers' half of the match can lag a few
-                # ms, and a sample sent in that gap arrives late (repaired) or not at all.
-                self._stop.wait(MATCH_SETTLE)
-                return
-            if self._stop.wait(0.02):
-                return
-        lonely = sorted(
-            name
-            for name, publisher in self._topic_publishers.items()
-            if publisher.get_subscription_count() == 0
-        )
-        self.get_logger().info(
-            f'no subscriber after {self._wait_for_subscribers:g} s on {", ".join(lonely)}; '
-            'playing anyway'
-        )
-
-    def _play_once(self):
-        """Play the bag once; False if stopped or there was nothing to play."""
-        first = True
-        for message in self._reader.messages(self._topic_publishers):
-            if first:
-                self._schedule.start(message.log_time)
-                if self._bag_start is None:
-                    self._bag_start = message.log_time
-                first = False
-            if not self._sleep_until(message.log_time):
-                return False
-            self._topic_publishers[message.topic].publish(bytes(message.data))
-            self.published[message.topic] += 1
-            self._bag_time = message.log_time
-        return not first
-
-    def _run(self):
+    def _run(self) -> None:  # playback thread
         try:
-            self._await_subscribers()
-            started = time.monotonic()
-            self._state = 'playing'
-            while not self._stop.is_set():
-                self._passes += 1
-                if not self._play_once() or not self._loop:
-                    break
-            self._state = 'stopped' if self._stop.is_set() else 'done'
-            self.get_logger().info(
-                f'played {sum(self.published.values())} messages in '
-                f'{time.monotonic() - started:.2f} s'
-            )
-        except (BagError, OSError, ValueError) as error:
-            self.error = error
-            self._state = 'failed'
-            self.get_logger().error(f'playing {self._reader.path} failed: {error}')
+            self._playback.run(self._unheard)
         finally:
             self.finished.set()
             if self.exit_when_done:
@@ -283,58 +182,28 @@ class PlayerNode(GraphNode):
             if self.context.ok():
                 self._publish_progress()
 
-    # -- diagnostics -------------------------------------------------------------------------
-
-    def _publish_progress(self):
-        played = sum(self.published.values())
-        values: dict[str, object] = {
-            'messages played': played,
-            'messages in bag': self._total,
-            'rate': self._schedule.rate,
-        }
-        if self._loop:
-            values['pass'] = self._passes
-        if self._bag_time is not None:
-            values['bag time [s]'] = f'{(self._bag_time - self._bag_start) / 1e9:.3f}'
-        if self._bag_duration is not None:
-            values['bag duration [s]'] = f'{self._bag_duration / 1e9:.3f}'
-        for name, reason in sorted(self._not_played.items()):
-            values[f'not played {name}'] = reason
+    def _publish_progress(self) -> None:
         rejected = dict(self.diagnostics.rejected)  # updated by the executor thread
-        for what, count in rejected.items():
-            values[f'rejected {what}'] = count
-        if self.error is not None:
-            level, message = 'error', f'failed: {self.error}'
-        else:
-            level = 'warn' if self._not_played or rejected else 'ok'
-            message = f'{self._state}: {played} / {self._total} messages'
-        self.diagnostics.publish('playback', level, message, values)
+        self.diagnostics.publish(
+            'playback',
+            *self._playback.progress(
+                self._total, self._bag_start, self._bag_duration, self._not_played, rejected
+            ),
+        )
 
     # -- shutdown ------------------------------------------------------------------------
 
-    def stop(self):
+    def stop(self) -> None:
         """Stop playback and wait for the playback thread. Idempotent."""
         self._stop.set()
         self._thread.join()
 
-    def close(self):
+    def close(self) -> None:
         """For run_node: stop playback before the node is destroyed."""
         self.stop()
 
 
-def _bag_span(reader):
-    """(start [ns since epoch], duration [ns]) of the bag from its metadata; (None, None)
-    for a bag recovered without metadata."""
-    try:
-        return (
-            int(reader.metadata['starting_time']['nanoseconds_since_epoch']),
-            int(reader.metadata['duration']['nanoseconds']),
-        )
-    except (KeyError, TypeError, ValueError):
-        return None, None
-
-
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Play the bag; returns the exit status: 0 = played (or stopped by SIGINT/SIGTERM),
     1 = the bag failed while reading, 2 = unusable bag or parameter at start-up."""
     return run_node(PlayerNode, args)

@@ -28,23 +28,29 @@ gained a publisher of another type: its channel keeps its first type).
 """
 
 import sys
-import threading
-import time
 from functools import partial
+from typing import Any
 
 import foxglove
 from foxglove.channels import FrameTransformsChannel
 from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Timestamp, Vector3
-from foxglove.websocket import ServerListener
+from foxglove.websocket import ChannelView, Client, ServerListener
 from geometry_msgs.msg import PoseStamped
 from rclpy.qos import DurabilityPolicy
+from rclpy.subscription import Subscription
 
-from bag_tools.topic_discovery import TopicDiscovery, subscription_qos, topic_selection_params
+from bag_tools.topic_discovery import (
+    DiscoveredTopic,
+    TopicDiscovery,
+    subscription_qos,
+    topic_selection_params,
+)
+from live_view.channels import ChannelTable, Forwarded, ServerSettings
 from vgm_common.conversions import pose_to_matrix
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
-from vgm_common.parameters import Param
+from vgm_common.parameters import ConfigParams
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.topics import (
     BASE_FRAME,
@@ -64,7 +70,7 @@ class LiveViewStartupError(VgmError):
     machine)."""
 
 
-def frame_transform(pose_stamped, child_frame_id):
+def frame_transform(pose_stamped: PoseStamped, child_frame_id: str) -> FrameTransform:
     """foxglove ``FrameTransform`` of ``child_frame_id`` in the pose's frame.
 
     Raises:
@@ -84,66 +90,27 @@ def frame_transform(pose_stamped, child_frame_id):
     )
 
 
-class _Forwarded:
-    """One advertised topic: its foxglove channel, the ROS subscription while some client
-    subscribes to it, counts and, if latched, the last message (sent again to a client
-    that subscribes while the ROS subscription already exists)."""
-
-    def __init__(self, channel, type_name, message_type, qos):
-        self.channel = channel
-        self.type_name = type_name  # pkg/msg/Type
-        self.message_type = message_type
-        self.qos = qos
-        self.latched = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
-        self.subscription = None
-        self.last = None  # (data, log_time_ns)
-        self.received = 0
-        self.forwarded = 0
-
-
 class _Listener(ServerListener):
     """foxglove-sdk's ServerListener: called on the server's threads (the callbacks not
     defined here are the protocol's no-ops)."""
 
-    def __init__(self, live_view):
+    def __init__(self, live_view: 'LiveViewNode') -> None:
         self._live_view = live_view
 
-    def on_subscribe(self, client, channel):
+    def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         self._live_view.client_subscribed(client.id, channel.topic)
 
-    def on_unsubscribe(self, client, channel):
+    def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
         self._live_view.client_unsubscribed(client.id, channel.topic)
 
 
-PARAMETERS = [
-    Param(
-        'address',
-        '127.0.0.1',
-        'Address the WebSocket server listens on; '
-        '0.0.0.0 opens it to the network (on purpose: anyone there can watch).',
-        read_only=True,
-    ),
-    Param(
-        'port',
-        8765,
-        "TCP port of the WebSocket server (foxglove_bridge's); 0 = any free port (logged).",
-        range=(0, 65535),
-        read_only=True,
-    ),
-    *topic_selection_params('serve', 'served', 0.5),
-    Param(
-        'message_backlog_size',
-        300,
-        'Messages queued per client at most; a slow '
-        'client loses the oldest beyond this (10 s of three 30 Hz cameras).',
-        range=(1, 100000),
-        read_only=True,
-    ),
-]
+SERVER = ConfigParams(ServerSettings)
+PARAMETERS = [*SERVER.declarations(), *topic_selection_params('serve', 'served', 0.5)]
 
 
 class LiveViewNode(GraphNode):
-    """Discovers topics, subscribes to them raw and forwards them to the Foxglove server.
+    """Discovers topics, subscribes to them raw and forwards them to the Foxglove server
+    (a ChannelTable keeps what is served, to whom).
 
     Raises:
         ParameterError: invalid parameter value.
@@ -152,32 +119,29 @@ class LiveViewNode(GraphNode):
 
     node_name = 'live_view'
 
-    def __init__(self, **kwargs):
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(PARAMETERS, **kwargs)
+        settings = SERVER.build(self.params)
+        self._backlog = settings.message_backlog_size
         self._discovery = TopicDiscovery(self, self.params, 'serving')
-        self._lock = threading.Lock()  # the server's threads and the executor's
-        self._forwarded = {}  # topic -> _Forwarded
-        self._mixed_types = set()  # served topics that gained a publisher of another type
-        self._client_topics = {}  # client id -> set of topics
-        self._transforms_sent = 0
-        self._camera_transforms = {}  # camera frame -> FrameTransform
+        self._table = ChannelTable()
         self._wake = self.create_guard_condition(self._update_subscriptions)
         try:
             self._server = foxglove.start_server(
                 name='vgm live_view',
-                host=self.params.address,
-                port=self.params.port,
+                host=settings.address,
+                port=settings.port,
                 # No Capability.Time: the app then times messages by their log time
                 # (the receive time here), as with foxglove_bridge on wall-clock time.
                 server_listener=_Listener(self),
                 supported_encodings=['cdr'],
-                message_backlog_size=self.params.message_backlog_size,
+                message_backlog_size=settings.message_backlog_size,
             )
         except Exception as error:  # noqa: BLE001 -- the SDK raises a bare RuntimeError
             raise LiveViewStartupError(
-                f'cannot serve on {self.params.address}:{self.params.port}: {error}'
+                f'cannot serve on {settings.address}:{settings.port}: {error}'
             ) from None
-        self.url = f'ws://{self.params.address}:{self._server.port}'
+        self.url = f'ws://{settings.address}:{self._server.port}'
         self._transforms = FrameTransformsChannel(TRANSFORMS_TOPIC)
         for name, topic in POSE_TOPICS.items():
             self.create_subscription(
@@ -198,99 +162,64 @@ class LiveViewNode(GraphNode):
 
     # -- topics (executor thread) ------------------------------------------------------
 
-    def _discover(self):
-        for topic in self._discovery.poll(self._forwarded, self._check_types):
+    def _discover(self) -> None:
+        for topic in self._discovery.poll(self._table, self._check_types):
             self._advertise(topic)
 
-    def _check_types(self, name, types):
-        """A served topic that gained a publisher of another type (another process: DDS
-        refuses it within one): its channel keeps its first type, so the other type's
-        messages are not served; said once per topic, as the recorder does."""
-        if len(types) > 1 and name not in self._mixed_types:
-            self._mixed_types.add(name)
-            self.diagnostics.reject(
-                name,
-                f'now published with several types {types}: '
-                f'only {self._forwarded[name].type_name} is served',
-            )
+    def _check_types(self, name: str, types: list[str]) -> None:
+        reason = self._table.new_second_type(name, types)
+        if reason:  # said once per topic, as the recorder does
+            self.diagnostics.reject(name, reason)
 
-    def _advertise(self, topic):
+    def _advertise(self, topic: DiscoveredTopic) -> None:
         encoding, text = topic.definition
         channel = foxglove.Channel(
             topic.name,
             message_encoding='cdr',
             schema=foxglove.Schema(name=topic.type_name, encoding=encoding, data=text.encode()),
         )
-        forwarded = _Forwarded(
-            channel,
-            topic.type_name,
-            topic.message_type,
-            subscription_qos(p.qos_profile for p in topic.publishers),
+        qos = subscription_qos(p.qos_profile for p in topic.publishers)
+        latched = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+        self._table.add(
+            topic.name, Forwarded(channel, topic.type_name, topic.message_type, qos, latched)
         )
-        with self._lock:
-            self._forwarded[topic.name] = forwarded
         self.get_logger().info(f'serving {topic.name} [{topic.type_name}]')
 
-    def _update_subscriptions(self):
-        """Subscribe in ROS to what some client subscribed to, and only that (as
-        foxglove_bridge): an unwatched image costs the graph nothing. Executor thread,
-        woken by the server's threads."""
-        with self._lock:
-            watched = set().union(*self._client_topics.values())
-            forwarded = dict(self._forwarded)
-        for topic, f in forwarded.items():
-            if topic in watched and f.subscription is None:
-                # A transient-local subscription receives the latched value again.
-                f.subscription = self.create_subscription(
-                    f.message_type, topic, partial(self._on_message, f), f.qos, raw=True
-                )
-            elif topic not in watched and f.subscription is not None:
-                self.destroy_subscription(f.subscription)
-                f.subscription = None
+    def _update_subscriptions(self) -> None:
+        """Executor thread, woken by the server's threads."""
+        self._table.update_subscriptions(self._subscribe, self.destroy_subscription)
 
-    def _on_message(self, forwarded, data, info):
-        log_time_ns = info.get('received_timestamp') or time.time_ns()
-        forwarded.received += 1
-        if forwarded.latched:
-            forwarded.last = (data, log_time_ns)
-        if forwarded.channel.has_sinks():  # some client subscribed to it
-            forwarded.channel.log(data, log_time=log_time_ns)
-            forwarded.forwarded += 1
+    def _subscribe(self, topic: str, forwarded: Forwarded) -> Subscription:
+        return self.create_subscription(
+            forwarded.message_type,
+            topic,
+            partial(self._on_message, forwarded),
+            forwarded.qos,
+            raw=True,
+        )
+
+    def _on_message(self, forwarded: Forwarded, data: bytes, info: dict[str, int]) -> None:
+        self._table.forward(forwarded, data, info.get('received_timestamp', 0))
 
     # -- clients (server threads) --------------------------------------------------------
 
-    def client_subscribed(self, client_id, topic):
-        """Note that client ``client_id`` subscribed to ``topic`` and wake the executor to
-        subscribe it in ROS. ``/tf`` gets the camera transforms at once; a latched topic
-        already subscribed gets its last message again. Server thread."""
-        with self._lock:
-            self._client_topics.setdefault(client_id, set()).add(topic)
-            forwarded = self._forwarded.get(topic)
+    def client_subscribed(self, client_id: int, topic: str) -> None:
+        """Client ``client_id`` subscribed to ``topic``: wake the executor to subscribe it
+        in ROS; ``/tf`` gets the camera transforms at once. Server thread."""
+        self._table.client_subscribed(client_id, topic)
         if topic == TRANSFORMS_TOPIC:
             self._send_camera_transforms()
-        elif (
-            forwarded is not None
-            and forwarded.subscription is not None
-            and forwarded.last is not None
-        ):
-            data, log_time_ns = forwarded.last
-            # Everyone subscribed gets it again: harmless for a latched value.
-            forwarded.channel.log(data, log_time=log_time_ns)
         self._wake.trigger()
 
-    def client_unsubscribed(self, client_id, topic):
-        """Note that client ``client_id`` unsubscribed from ``topic`` and wake the executor
-        to drop the ROS subscription nobody watches any more. Server thread."""
-        with self._lock:
-            topics = self._client_topics.get(client_id, set())
-            topics.discard(topic)
-            if not topics:
-                self._client_topics.pop(client_id, None)
+    def client_unsubscribed(self, client_id: int, topic: str) -> None:
+        """Client ``client_id`` unsubscribed from ``topic``: wake the executor to drop the
+        ROS subscription nobody watches any more. Server thread."""
+        self._table.client_unsubscribed(client_id, topic)
         self._wake.trigger()
 
     # -- frame transforms ----------------------------------------------------------------
 
-    def _on_camera_pose(self, topic, frame, msg):
+    def _on_camera_pose(self, topic: str, frame: str, msg: PoseStamped) -> None:
         try:
             if msg.header.frame_id != BASE_FRAME:
                 raise InvalidInput(
@@ -301,18 +230,16 @@ class LiveViewNode(GraphNode):
         except InvalidInput as error:
             self.diagnostics.reject(topic, error)
             return
-        with self._lock:
-            self._camera_transforms[frame] = transform
+        self._table.set_camera_transform(frame, transform)
         self._send_camera_transforms()
 
-    def _send_camera_transforms(self):
-        with self._lock:
-            transforms = list(self._camera_transforms.values())
+    def _send_camera_transforms(self) -> None:
+        transforms = self._table.camera_transforms()
         if transforms:
             self._transforms.log(FrameTransforms(transforms=transforms))
-            self._transforms_sent += len(transforms)
+            self._table.transforms_sent += len(transforms)
 
-    def _on_tool_pose(self, msg):
+    def _on_tool_pose(self, msg: PoseStamped) -> None:
         if not self._transforms.has_sinks():  # nobody watches /tf
             return
         try:
@@ -321,36 +248,21 @@ class LiveViewNode(GraphNode):
             self.diagnostics.reject(TOOL_POSE_TOPIC, error)
             return
         self._transforms.log(FrameTransforms(transforms=[transform]))
-        self._transforms_sent += 1
+        self._table.transforms_sent += 1
 
     # -- diagnostics and shutdown ------------------------------------------------------
 
-    def _publish_status(self):
-        with self._lock:
-            forwarded = dict(self._forwarded)
-            clients = len(self._client_topics)
-        values = {
-            'url': self.url,
-            'clients': clients,
-            'channels': len(forwarded) + 1,
-            'transforms sent': self._transforms_sent,
-            'backlog per client': self.params.message_backlog_size,
-        }
-        for topic, f in sorted(forwarded.items()):
-            values[topic] = f'{f.forwarded} forwarded of {f.received}'
-        if self._discovery.skipped:
-            values['not served'] = ', '.join(sorted(self._discovery.skipped))
+    def _publish_status(self) -> None:
         rejected = sum(self.diagnostics.rejected.values())
-        level = 'warn' if self._discovery.skipped or rejected else 'ok'
-        message = f'{clients} client(s), {len(forwarded)} topics'
-        self.diagnostics.publish('server', level, message, values)
+        status = self._table.status(self.url, self._backlog, self._discovery.skipped, rejected)
+        self.diagnostics.publish('server', *status)
 
-    def close(self):
+    def close(self) -> None:
         """Stop the server (clients see the connection close)."""
         self._server.stop()
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run live_view until SIGINT/SIGTERM; exit status 2 when it cannot serve (one line)."""
     return run_node(LiveViewNode, args)
 

@@ -8,18 +8,16 @@ wrong-key image gives "no watermark" and nothing on the decoded topics (method o
 CRC-32 decides). Method thesis is non-blind: it always extracts something, as the
 thesis's scheme does; it needs the encoder's ``key_file``."""
 
-import os
-import time
+from typing import Any
 
 import numpy as np
 from sensor_msgs.msg import CompressedImage, Image
 from stereo_msgs.msg import DisparityImage
 
-from stereo_coding_node import blind, thesis
-from stereo_coding_node.encoder_node import GREY_ENCODINGS, common_params, effective_strength
+from stereo_coding_node.coding import KeyFile, decode_image
 from stereo_coding_node.errors import CodingError
-from stereo_coding_node.inputs import compressed_image_size
-from stereo_coding_node.views import synthesise_right
+from stereo_coding_node.inputs import GREY_ENCODINGS, compressed_image_size
+from stereo_coding_node.settings import CodingSettings, DecoderSettings
 from vgm_common.conversions import (
     compressed_to_grey,
     image_to_numpy,
@@ -31,7 +29,7 @@ from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import VgmError
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
-from vgm_common.parameters import Param
+from vgm_common.parameters import ConfigParams
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.topics import (
     CODED_COMPRESSED_TOPIC,
@@ -42,40 +40,9 @@ from vgm_common.topics import (
 )
 from vgm_common.worker import Worker
 
-# As sfs_stereo_node's max_pixels, which bounds the rectified image that is coded: a
-# 2048x2048 image at most. Decoding takes about 17 bytes a pixel (a 16000x16000 PNG of
-# 249 kB took 4.4 GB), so 70 MB here.
-DEFAULT_MAX_PIXELS = 4_194_304
-
-
-PARAMETERS = common_params() + [
-    Param(
-        'transport',
-        'raw',
-        'raw = /stereo/coded/image; compressed = /stereo/coded/image/compressed (JPEG).',
-        choices=('raw', 'compressed'),
-        read_only=True,
-    ),
-    Param(
-        'focal_px',
-        0.0,
-        'f of the decoded DisparityImage [px] (0 = unknown).',
-        range=(0.0, 1e6),
-    ),
-    Param(
-        'baseline_m',
-        0.0,
-        't (the baseline) of the decoded DisparityImage [m] (0 = unknown).',
-        range=(0.0, 1e3),
-    ),
-    Param(
-        'max_pixels',
-        DEFAULT_MAX_PIXELS,
-        'Coded images with more pixels are refused before any decoding (memory bound; '
-        'a compressed image by the size in its header).',
-        range=(64, 100_000_000),
-    ),
-]
+CODING = ConfigParams(CodingSettings)
+DECODER = ConfigParams(DecoderSettings)
+PARAMETERS = [*CODING.declarations(), *DECODER.declarations()]
 
 
 class StereoDecodingNode(GraphNode):
@@ -85,7 +52,7 @@ class StereoDecodingNode(GraphNode):
 
     node_name = 'stereo_decoding_node'
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__(PARAMETERS)
         self.publishers_ = {
             key: self.create_publisher(kind, topic, DEFAULT_QOS, publisher_class=CountingPublisher)
@@ -102,40 +69,24 @@ class StereoDecodingNode(GraphNode):
             )
         else:
             self.create_subscription(Image, CODED_IMAGE_TOPIC, self._on_coded, DEFAULT_QOS)
-        # ((path, mtime, size), ThesisKey)
-        self.key_cache: tuple[tuple[str, int, int] | None, thesis.ThesisKey | None] = (None, None)
+        self.key_file = KeyFile()  # method thesis: the encoder's side information
         self.decoded = self.unmarked = self.failed = 0
-        self.last = {}
+        self.last: dict[str, Any] = {}  # the latest figures, for the diagnostic
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f'method {self.params.method}: waiting for the coded image ({self.params.transport})'
         )
 
-    def _on_coded(self, msg):
+    def _on_coded(self, msg: Image | CompressedImage) -> None:
         self.worker.submit(msg)
 
-    def _on_error(self, error):
+    def _on_error(self, error: Exception) -> None:
         self.failed += 1
-        if not isinstance(error, VgmError):
-            error = f'{type(error).__name__}: {error}'
-        self.diagnostics.reject('coded image', error)
+        # One of ours says what was wrong; anything else is named by its type.
+        reason = error if isinstance(error, VgmError) else f'{type(error).__name__}: {error}'
+        self.diagnostics.reject('coded image', reason)
 
-    def _thesis_key(self):
-        path = self.params.key_file
-        if not path:
-            raise CodingError(
-                'method thesis needs key_file (written by the encoder)', key='key_file'
-            )
-        try:
-            status = os.stat(path)
-            signature = (path, status.st_mtime_ns, status.st_size)
-        except OSError:
-            signature = None
-        if signature is None or self.key_cache[0] != signature:
-            self.key_cache = (signature, thesis.ThesisKey.load(path))
-        return self.key_cache[1]
-
-    def _process(self, msg):
+    def _process(self, msg: Image | CompressedImage) -> None:
         if isinstance(msg, CompressedImage):
             width, height = compressed_image_size(bytes(msg.data))
         else:
@@ -155,50 +106,32 @@ class StereoDecodingNode(GraphNode):
                 )
             coded = image_to_numpy(msg)
         stamp_ns, frame = stamp_to_ns(msg.header.stamp), msg.header.frame_id
-        started = time.perf_counter()
-        p = self.params
-        disparity: np.ndarray | None  # None: no watermark found
-        if p.method == 'thesis':
-            left, disparity, _ = thesis.decode(coded, self._thesis_key())
-            found, confidence, values = True, float('nan'), {}
-        else:
-            detection = blind.decode(coded, p.key, effective_strength(p))
-            left, disparity = coded, detection.disparity_px
-            found, confidence = detection.found, detection.confidence
-            values = {
-                'raw bit error rate': f'{detection.raw_ber:.4f}',
-                'layer': 'fine' if detection.fine else 'coarse',
-            }
-        elapsed = time.perf_counter() - started
-        self.last = {
-            'watermark': 'found' if found else 'none',
-            'confidence': f'{confidence:.3f}',
-            'decode [ms]': f'{1000 * elapsed:.1f}',
-            **values,
-        }
-        if not found:
+        decoded = decode_image(coded, CODING.build(self.params), self.key_file)
+        self.last = decoded.figures
+        if not decoded.found:
             self.unmarked += 1
             self.diagnostics.publish('watermark', 'warn', 'no watermark', self.last)
             return
-        assert disparity is not None  # found: the watermark carried a disparity
+        assert decoded.disparity_px is not None and decoded.left is not None
+        assert decoded.right is not None  # found: all three
         self.decoded += 1
         self.diagnostics.publish('watermark', 'ok', 'watermark found', self.last)
-        right = synthesise_right(left, disparity)
+        disparity = decoded.disparity_px
         known = np.isfinite(disparity)
         out = numpy_to_disparity_image(  # f and t (the baseline) as the user gave them
             disparity,
             stamp_ns,
             frame,
-            p.focal_px,
-            p.baseline_m,
+            self.params.focal_px,
+            self.params.baseline_m,
             (0.0, float(np.max(disparity[known])) if known.any() else 0.0),
             1.0,
         )
         self.publishers_['disparity'].publish(out)
-        self.publishers_['left'].publish(numpy_to_image(left, 'mono8', stamp_ns, frame))
-        self.publishers_['right'].publish(numpy_to_image(right, 'mono8', stamp_ns, frame))
+        self.publishers_['left'].publish(numpy_to_image(decoded.left, 'mono8', stamp_ns, frame))
+        self.publishers_['right'].publish(numpy_to_image(decoded.right, 'mono8', stamp_ns, frame))
 
-    def _publish_diagnostics(self):
+    def _publish_diagnostics(self) -> None:
         values = {
             'method': self.params.method,
             'decoded': self.decoded,
@@ -216,7 +149,7 @@ class StereoDecodingNode(GraphNode):
         )
         self.diagnostics.publish('decoding', level, message, values)
 
-    def close(self):
+    def close(self) -> None:
         """For run_node: stop the worker (a waiting image is not decoded) and log the
         counts."""
         self.worker.close()
@@ -225,7 +158,7 @@ class StereoDecodingNode(GraphNode):
         )
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run stereo_decoding_node until SIGINT/SIGTERM; exit status 2 on an unusable
     parameter at start-up (one line)."""
     return run_node(StereoDecodingNode, args)

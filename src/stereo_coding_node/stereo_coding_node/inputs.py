@@ -11,6 +11,8 @@ from PIL import JpegImagePlugin, PngImagePlugin
 from stereo_coding_node.errors import CodingError
 from vgm_common.geometry import FloatArray
 
+GREY_ENCODINGS = ('mono8', '8UC1')  # the host image and the coded one: 8-bit grey
+
 
 def known_disparity(disparity_px: npt.ArrayLike, min_disparity: float) -> FloatArray:
     """The (H, W) disparity [px] to code, unknown pixels NaN.

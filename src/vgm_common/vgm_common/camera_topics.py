@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
@@ -49,6 +49,9 @@ class ImageCaptures:
 
     - ``subscribed``: the cameras subscribed to (default ``names``), so that ``use`` can
       change the paired ones at run time without new subscriptions.
+    - ``streams``: name -> (message type, topic) for a stream that is not a camera's
+      image (a stamped message paired with one, e.g. the DisparityImage of a rectified
+      image); a name not in it is the camera's Image on its ``IMAGE_TOPICS`` topic.
     - ``accept(name, msg)``: checks every image before it is paired (falsy: not paired).
     - ``on_unpaired(total)``: called when images were dropped without their partners.
     - The sync is behind a lock: images of several callback groups and ``use`` from a
@@ -59,12 +62,13 @@ class ImageCaptures:
         self,
         node: Node,
         names: Iterable[str],
-        on_capture: Callable[[int, dict[str, Image]], None],
+        on_capture: Callable[[int, dict[str, Any]], None],
         max_wait: float,
         *,
         subscribed: Iterable[str] | None = None,
+        streams: Mapping[str, tuple[type, str]] | None = None,
         callback_group: CallbackGroup | None = None,
-        accept: Callable[[str, Image], bool | None] | None = None,
+        accept: Callable[[str, Any], bool | None] | None = None,
         on_unpaired: Callable[[int], None] | None = None,
     ) -> None:
         self._on_capture = on_capture
@@ -73,10 +77,12 @@ class ImageCaptures:
         self._on_unpaired = on_unpaired
         self._lock = threading.Lock()
         self._sync = self._new_sync(names)
+        streams = streams or {}
         for name in names if subscribed is None else subscribed:
+            message_type, topic = streams.get(name) or (Image, IMAGE_TOPICS[name])
             node.create_subscription(
-                Image,
-                IMAGE_TOPICS[name],
+                message_type,
+                topic,
                 partial(self._on_image, name),
                 DEFAULT_QOS,
                 callback_group=callback_group,
@@ -98,7 +104,7 @@ class ImageCaptures:
         """The cameras paired now."""
         return self._sync.keys
 
-    def _on_image(self, name: str, msg: Image) -> None:
+    def _on_image(self, name: str, msg: Any) -> None:  # an Image, or a streams' type
         if self._accept is not None and not self._accept(name, msg):
             return
         with self._lock:
@@ -111,7 +117,7 @@ class ImageCaptures:
         if newly_unpaired and self._on_unpaired is not None:
             self._on_unpaired(dropped)
 
-    def _matched(self, stamp_ns: int, messages: dict[str, Image]) -> None:
+    def _matched(self, stamp_ns: int, messages: dict[str, Any]) -> None:
         self._last_match = (time.monotonic(), self._sync.dropped)
         self._on_capture(stamp_ns, messages)
 
