@@ -538,17 +538,17 @@ def test_an_exception_in_the_control_step_stops_the_arm_and_the_node_serves(ros_
         def broken_solver(*args, **kwargs):
             raise RuntimeError('non-finite Jacobian')
 
-        monkeypatch.setattr(node.controller.solver, 'solve_limited', broken_solver)
+        monkeypatch.setattr(node.session.controller.solver, 'solve_limited', broken_solver)
         node._control_step()  # must not raise
-        assert node.controller.phase == 'failed'
-        assert 'non-finite Jacobian' in node.controller.reason
+        assert node.session.controller.phase == 'failed'
+        assert 'non-finite Jacobian' in node.session.controller.reason
         assert node.command_publisher.sent > sent  # the hold command went out
-        monkeypatch.delattr(node.controller.solver, 'solve_limited')
+        monkeypatch.delattr(node.session.controller.solver, 'solve_limited')
         session.joint_state_time = session.pressure_time = time.monotonic()
         response = node._on_start(Trigger.Request(), Trigger.Response())
         assert response.success, response.message
         node._control_step()
-        assert node.controller.phase == 'approach'
+        assert node.session.controller.phase == 'approach'
     finally:
         node.destroy_node()
         if context_started:

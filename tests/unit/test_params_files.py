@@ -200,7 +200,7 @@ CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters 
     'calib_node.node:CalibNode': ['GA', 'SESSION'],
     'curve_recon_node.node:CurveReconNode': ['SETTINGS'],
     'sfs_stereo_node.node:SfsStereoNode': ['DEPTH'],
-    'pa10_ik_node.node:Pa10IkNode': ['TRACKING'],
+    'pa10_ik_node.node:Pa10IkNode': ['ARM', 'SOLVER', 'TRACKING', 'LOOP'],
 }
 
 
