@@ -290,3 +290,17 @@ def test_a_command_received_between_steps_starts_from_where_the_arm_then_is():
     for k in range(101, 111):
         arm.step(k * step, step)
         np.testing.assert_allclose(arm.q, v * k * step, rtol=0, atol=1e-12)
+
+
+def test_after_a_stall_a_command_starts_one_step_on_at_most():
+    """A simulation stalled for 50 ms (its thread starved) does not guess where the arm
+    would have gone: a command then starts one step's motion on from the last step."""
+    v = np.array([0.2, -0.1, 0.3, 0.0, 0.5, -0.4, 0.1])  # [rad/s]
+    step = 0.005  # [s]
+    arm = make_arm()
+    arm.set_trajectory(NAMES, [0.0, 1.0], [np.zeros(7), v])
+    for k in range(1, 101):
+        arm.step(k * step, step)
+    received = 0.55  # 50 ms after the last step
+    arm.set_trajectory(NAMES, [0.05], [arm.q + 0.05 * v], [v], start_time=received)
+    np.testing.assert_allclose(arm.desired(received), v * (0.5 + step), rtol=0, atol=1e-12)

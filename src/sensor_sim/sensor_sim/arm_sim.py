@@ -106,6 +106,7 @@ class SimulatedArm:
         self._q = q0
         self._qdot = np.zeros(n)
         self._stepped_to: float | None = None  # [s] the time ``step`` last advanced to
+        self._last_dt = 0.0  # [s] and by how much
         self.hold()
 
     @classmethod
@@ -242,17 +243,19 @@ class SimulatedArm:
         q_new = np.clip(q_new, self._lower, self._upper)
         self._qdot = (q_new - self._q) / dt
         self._q = q_new
-        self._stepped_to = float(t)
+        self._stepped_to, self._last_dt = float(t), float(dt)
         return self.q, self.qdot
 
     def _state_at(self, t: float) -> tuple[FloatArray, FloatArray]:
         """(q, qdot) at time ``t`` [s]: the arm moves on between the simulation's steps at
         the velocity of the last one (within its limits), as joint_trajectory_controller
         reads the state at the time it takes a trajectory; the last step's state at or
-        before that step's time."""
+        before that step's time. Moved on for one step's time at most: a simulation
+        stalled longer does not guess where the arm would have gone."""
         if self._stepped_to is None or not t > self._stepped_to:
             return self._q.copy(), self._qdot.copy()
-        q = np.clip(self._q + self._qdot * (t - self._stepped_to), self._lower, self._upper)
+        ahead = min(t - self._stepped_to, self._last_dt)
+        q = np.clip(self._q + self._qdot * ahead, self._lower, self._upper)
         return q, self._qdot.copy()
 
     def follow_velocity(
