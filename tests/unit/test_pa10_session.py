@@ -9,7 +9,7 @@ import pytest
 
 from harness import ManualClock
 from pa10_ik_node.ik import RateSolver
-from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, TrackingSession
+from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, MAX_COMMAND_LEAD_S, TrackingSession
 from pa10_ik_node.settings import ArmSettings, LoopSettings, SolverSettings
 from pa10_ik_node.thesis import fixed_step_matrix
 from pa10_ik_node.tracking import TrackingConfig, TrackingController
@@ -245,3 +245,39 @@ def test_a_new_solver_applies_and_primal_dual_reports_its_fixed_step_radius(sess
     )
     assert float(values['fixed_step_radius']) == pytest.approx(expected, rel=1e-5)
     assert values['failure_condition'] == 'none detected'
+
+
+def test_a_command_continues_the_previous_set_point_within_its_lead_of_the_joints(
+    session, scenario
+):
+    """Each moving command starts where the previous one's set point is now, not at the
+    measured joints (older than the arm; and an arm lagging its set point restarted from
+    its own position made 0.16-0.24 of its commands over topics), leading the measured
+    joints by at most MAX_COMMAND_LEAD_S of its joint speeds; a hold and a new start
+    begin again from the measured joints."""
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    q = session.q.copy()
+    first = session.control_step().command
+    np.testing.assert_allclose(first.positions, q + HORIZON * first.velocities, atol=1e-15)
+    # A period later with the same joint state (the arm's newer one not yet here).
+    session.clock.now += PERIOD
+    feed(session, scenario)
+    second = session.control_step().command
+    anchor = second.positions - HORIZON * second.velocities
+    np.testing.assert_allclose(anchor, q + PERIOD * first.velocities, rtol=0, atol=1e-12)
+    # An arm that does not move: the set point runs ahead up to the bound, no further.
+    for _ in range(30):
+        session.clock.now += PERIOD
+        feed(session, scenario)
+        previous = session.last_command[1]
+        command = session.control_step().command
+        lead = np.abs(command.positions - HORIZON * command.velocities - q)
+        assert np.all(lead <= MAX_COMMAND_LEAD_S * np.abs(previous.velocities) + 1e-12)
+    assert session.controller.phase == 'approach', session.controller.reason
+    assert np.any(lead > 0.9 * MAX_COMMAND_LEAD_S * np.abs(previous.velocities))
+    session.stop('stop requested')
+    assert session.start()[0]
+    command = session.control_step().command
+    np.testing.assert_allclose(command.positions, q + HORIZON * command.velocities, atol=1e-15)

@@ -25,6 +25,9 @@ from vgm_common.topics import BASE_FRAME, JOINT_STATES_TOPIC, PRESSURE_TOPIC, WA
 MAX_FORCE_N = 1e4  # a pressure reading beyond this is a broken sensor, not a contact
 JOINT_LIMIT_SLACK_RAD = 0.1  # a measured joint this far outside its limits is no reading
 STEP_TIMES_KEPT = 500  # control step times kept for the median in the diagnostics
+# [s] A moving command's set point continues the previous one's, leading the measured
+# joints by at most this much of the commanded joint motion (see _command_anchor).
+MAX_COMMAND_LEAD_S = 0.1
 
 
 class JointCommand(NamedTuple):
@@ -98,6 +101,8 @@ class TrackingSession:
         self.pressure_time: float | None = None
         self.waypoints: FloatArray | None = None  # (N, 4, 4) base_link
         self.last_step: float | None = None  # clock() of the previous control step
+        # (clock() [s], the command) of the last moving command sent; None after a hold
+        self.last_command: tuple[float, JointCommand] | None = None
         self.last_info: dict[str, Any] = {}
         self.step_times: deque[float] = deque(maxlen=STEP_TIMES_KEPT)  # [s]
         self.null_space_failures = 0
@@ -231,6 +236,7 @@ class TrackingSession:
         waypoints = self.waypoints
         if missing or waypoints is None or self.q is None:  # None: among the missing
             return False, f'cannot start: no recent {", ".join(missing)}', None
+        self.last_command = None  # a new task's commands start from the measured joints
         try:
             self.controller.start(waypoints, self.q)
         except Unreachable as error:
@@ -264,6 +270,7 @@ class TrackingSession:
         """Zero velocity at the measured position, now (horizon 0: a position arm does
         not coast on to a point ahead, a velocity arm gets zero at once); None before
         any joint state."""
+        self.last_command = None
         if self.q is None:
             return None
         return JointCommand(self.q.copy(), np.zeros(self.robot.n_joints), 0.0)
@@ -300,6 +307,7 @@ class TrackingSession:
                     controller.stop(f'stale {what}: no {topic} for more than {timeout} s')
                     return ControlOutput(self.robot.forward_kinematics(q), self.hold())
         if controller.phase not in (*ACTIVE_PHASES, 'done'):
+            self.last_command = None  # nothing sent: the next command starts afresh
             return ControlOutput(self.robot.forward_kinematics(q), None)
         started = time.perf_counter()
         qdot, info = controller.step(q, self.force, dt)
@@ -310,8 +318,29 @@ class TrackingSession:
             command = self.hold()
         else:
             horizon = self.settings.command_horizon
-            command = JointCommand(q + qdot * horizon, qdot, horizon)
+            command = JointCommand(self._command_anchor(q, now) + qdot * horizon, qdot, horizon)
+            self.last_command = (now, command)
         return ControlOutput(info['T'], command)
+
+    def _command_anchor(self, q: FloatArray, now: float) -> FloatArray:
+        """(n,) [rad] Where the command sent at ``now`` starts: the previous moving
+        command's set point at ``now`` (its point moved back along its velocity by the
+        time still to go), within MAX_COMMAND_LEAD_S of its joint speeds of the measured
+        joints ``q``; ``q`` itself for the first command after a hold.
+
+        Started from the measured joints instead, every command threw away what the
+        previous ones had not yet moved the arm: the measured state is older than the
+        arm's (a joint state's age, the command's way), and an arm slower than its set
+        point (a position loop with a lag) restarted from its own lagging position every
+        control step made a fraction of the motion: over topics the half-speed arm 0.16-0.24
+        of it, below what the response estimate compensates (MIN_RESPONSE)."""
+        if self.last_command is None:
+            return q
+        sent, previous = self.last_command
+        to_go = max(previous.horizon - (now - sent), 0.0)
+        set_point = previous.positions - previous.velocities * to_go
+        lead = np.abs(previous.velocities) * MAX_COMMAND_LEAD_S
+        return q + np.clip(set_point - q, -lead, lead)
 
     def _note_solver_failure(self, info: dict[str, Any]) -> None:
         if info.get('diverged'):
