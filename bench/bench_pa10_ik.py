@@ -65,10 +65,10 @@ from pa10_ik_node.thesis import fixed_step_matrix, primal_dual_velocity_fixed_st
 from pa10_ik_node.tracking import (  # noqa: E402
     TrackingConfig,
     TrackingController,
+    force_tilt_angle,
     next_target_on_tangent_plane,
 )
 from sensor_sim.arm_sim import SimulatedArm  # noqa: E402
-from sensor_sim.contact import contact_force  # noqa: E402
 from sensor_sim.curves import curve_polylines  # noqa: E402
 from sensor_sim.scenario import load_scenario  # noqa: E402
 from sensor_sim.surfaces import normal_base, surface_points_base  # noqa: E402
@@ -270,27 +270,23 @@ def run_force(
         max_joint_velocity=1.0,
     )
     controller.start(waypoints)
-    arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints)
-    rng = np.random.default_rng(scenario.seed)
-    t, force, step_times, phis = 0.0, 0.0, [], []
-    forces = []
-    while t < 200.0 and controller.phase not in ('done', 'failed', 'stopped'):
-        started = time.perf_counter()
-        qdot, info = controller.step(arm.q, force, dt)
-        step_times.append(time.perf_counter() - started)
-        t = arm.follow_velocity(robot.joint_names, qdot, t, dt)
-        T = robot.forward_kinematics(arm.q)
-        true_force = contact_force(T[:3, 3], scenario.surface, scenario.contact_stiffness).force
-        force = (
-            max(0.0, true_force + rng.normal(0, scenario.noise.pressure_sigma))
-            if true_force > 0
-            else 0.0
-        )
-        if info['phase'] == 'tracking':
-            forces.append(true_force)
-            phis.append(info['phi'])
+    log = task_generator.run_closed_loop(
+        controller,
+        robot,
+        SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints),
+        scenario.surface,
+        scenario.contact_stiffness,
+        dt=dt,
+        max_time=200.0,
+        pressure_sigma=scenario.noise.pressure_sigma,
+        rng=np.random.default_rng(scenario.seed),
+        hold_time=0.0,
+        finished=lambda c: c.phase in ('done', 'failed', 'stopped'),
+    )
+    tracking = [i for i, phase in enumerate(log.phases) if phase == 'tracking']
+    forces = np.array(log.forces)[tracking]
+    phis = [force_tilt_angle(log.readings[i], desired) for i in tracking]
     rms, _ = controller.stats.summary()
-    forces = np.array(forces)
     return {
         'scenario': scenario_name,
         'surface': scenario.surface.kind,
@@ -301,7 +297,7 @@ def run_force(
         'reason': controller.reason,
         'path_length_m': controller.path.length,
         'closed': controller.path.closed,
-        'sim_time_s': t,
+        'sim_time_s': log.times[-1],
         'rms_lateral_mm': rms * 1e3,
         'max_lateral_mm': float(np.max(controller.stats.position_errors)) * 1e3,
         'true_force_min_N': float(forces.min()),
@@ -309,7 +305,7 @@ def run_force(
         'max_force_error_pct': float(np.max(np.abs(forces - desired)) / desired * 100),
         'rms_force_error_N': float(np.sqrt(np.mean((forces - desired) ** 2))),
         'phi_range_rad': [float(np.min(phis)), float(np.max(phis))],
-        'step_ms_median': float(np.median(step_times) * 1e3),
+        'step_ms_median': float(np.median(log.step_times) * 1e3),
     }
 
 
@@ -705,26 +701,6 @@ def pace_case(tilt_deg=20.0, seed=25):
     return robot, q0, surface, waypoints, np.vstack([path_base, path_base[:1]])
 
 
-class DelayedCommands:
-    """A controller whose commands reach the arm ``delay_steps`` control periods late (a
-    controller or network with that much command latency): ``step`` returns the command
-    computed that many steps before (zero at first)."""
-
-    def __init__(self, controller, delay_steps):
-        self.controller, self.queue = controller, []
-        self.delay_steps = delay_steps
-
-    def __getattr__(self, name):  # phase, stage, progress, reason, stop
-        return getattr(self.controller, name)
-
-    def step(self, q, force, dt):
-        qdot, info = self.controller.step(q, force, dt)
-        self.queue.append(qdot)
-        if len(self.queue) <= self.delay_steps:
-            return np.zeros_like(qdot), info
-        return self.queue.pop(0), info
-
-
 def pace_row(
     controller_name,
     start,
@@ -758,13 +734,18 @@ def pace_row(
         controller.start(waypoints, q0)
     else:
         controller = DlsPeer(robot, waypoints, desired, stiffness)
-    delay_steps = int(round(delay_s / dt))
-    if delay_steps:
-        controller = DelayedCommands(controller, delay_steps)
     arm = SimulatedArm.from_robot_model(robot, q0, 'position', speed_scale)
     hold = 0.5
     log = task_generator.run_closed_loop(
-        controller, robot, arm, surface, stiffness, dt=dt, max_time=200.0, hold_time=hold
+        controller,
+        robot,
+        arm,
+        surface,
+        stiffness,
+        dt=dt,
+        max_time=200.0,
+        hold_time=hold,
+        command_delay_steps=int(round(delay_s / dt)),
     )
     row = task_generator.tracking_metrics(log, surface, path_base, desired, robot)
     phases = np.array(log.phases)

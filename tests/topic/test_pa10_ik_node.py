@@ -7,7 +7,6 @@ import zipfile
 import numpy as np
 import pytest
 import yaml
-from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, WrenchStamped
 from nav_msgs.msg import Path
 from rcl_interfaces.srv import GetParameters
@@ -15,6 +14,7 @@ from rclpy.clock import Clock
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
+from vgm_evaluation.graph_probe import status_values
 
 from harness import SCENARIO_DIR, executable, wait_for
 from pa10_ik_node.path import WaypointPath
@@ -23,10 +23,17 @@ from sensor_sim.surfaces import normal_base, surface_points_base
 from vgm_common.conversions import make_header, matrices_to_path, pose_to_matrix, stamp_to_ns
 from vgm_common.qos import DEFAULT_QOS, LATCHED_QOS
 from vgm_common.robot_model import JOINT_NAMES, load_robot
+from vgm_common.topics import (
+    JOINT_TRAJECTORY_TOPIC,
+    PRESSURE_TOPIC,
+    TOOL_POSE_TOPIC,
+    WAYPOINTS_TOPIC,
+)
 from vgm_evaluation import task_generator
 
 SCENARIO = SCENARIO_DIR / 'default.yaml'
 DESIRED_FORCE = 5.0  # [N]
+TRACKING_STATUS = 'pa10_ik_node: tracking'
 SPEED = 0.015  # [m/s]
 
 
@@ -59,40 +66,35 @@ def lateral_distance(point, curve, approach):
 
 
 class Probe:
-    """Subscriptions of the test node: tool poses, pressure, diagnostics, commands."""
+    """What the test node receives from pa10_ik_node and the simulator (tool poses,
+    pressure, commands, the tracking statuses with their stamps, rejections), on the
+    graph probe; the waypoints it publishes."""
 
     def __init__(self, node):
-        self.node = node
-        self.poses, self.pressures, self.diagnostics, self.commands = [], [], [], []
-        node.create_subscription(PoseStamped, '/tool_pose', self.poses.append, DEFAULT_QOS)
-        node.create_subscription(
-            WrenchStamped, '/tool/pressure', self.pressures.append, DEFAULT_QOS
-        )
-        node.create_subscription(
-            DiagnosticArray, '/diagnostics', self._on_diagnostics, DEFAULT_QOS
-        )
-        node.create_subscription(
-            JointTrajectory, '/pa10_controller/joint_trajectory', self.commands.append, DEFAULT_QOS
-        )
-        self.path_publisher = node.create_publisher(Path, '/curve/waypoints', LATCHED_QOS)
-        self.tracking = []  # (stamp_ns, {key: value}) of 'tracking' statuses
-        self.rejected = []  # (name, message)
+        self.graph = node.graph
+        self.graph.watch_diagnostics()
+        self.poses = self.graph.record(TOOL_POSE_TOPIC, PoseStamped)
+        self.pressures = self.graph.record(PRESSURE_TOPIC, WrenchStamped)
+        self.commands = self.graph.record(JOINT_TRAJECTORY_TOPIC, JointTrajectory)
+        self.path_publisher = node.create_publisher(Path, WAYPOINTS_TOPIC, LATCHED_QOS)
 
-    def _on_diagnostics(self, msg):
-        for status in msg.status:
-            if status.name == 'pa10_ik_node: tracking':
-                self.tracking.append(
-                    (
-                        stamp_to_ns(msg.header.stamp),
-                        {kv.key: kv.value for kv in status.values},
-                        status.message,
-                    )
-                )
-            elif 'rejected' in status.name:
-                self.rejected.append((status.name, status.message))
+    @property
+    def tracking(self):
+        """(stamp_ns, {key: value}, message) of the tracking statuses, oldest first."""
+        return [
+            (stamp, status_values(status), status.message)
+            for stamp, status in zip(self.graph.status_stamps_ns, self.graph.statuses)
+            if status.name == TRACKING_STATUS
+        ]
+
+    @property
+    def rejected(self):
+        """(name, message) of the statuses that rejected an input, oldest first."""
+        return [(s.name, s.message) for s in self.graph.statuses if 'rejected' in s.name]
 
     def phase(self):
-        return self.tracking[-1][1]['phase'] if self.tracking else None
+        status = self.graph.status(TRACKING_STATUS)
+        return status_values(status)['phase'] if status is not None else None
 
     def wait_until_done(self, timeout, also=()):
         """Spin until the phase is done (or one of ``also``); on timeout, say why: the
@@ -101,13 +103,14 @@ class Probe:
         simulator's or the machine's, none here points at the node's own subscription)."""
         phases = ('done', *also)
         try:
-            self.node.spin_until(lambda: self.phase() in phases, timeout, 'phase done')
+            self.graph.wait(lambda: self.phase() in phases, timeout, 'phase done')
         except TimeoutError:
             stamps = np.array([stamp_to_ns(m.header.stamp) for m in self.pressures]) * 1e-9
             pause = np.max(np.diff(stamps)) if len(stamps) > 1 else float('nan')
-            last = self.tracking[-1][2] if self.tracking else 'no tracking status'
+            last = self.graph.status(TRACKING_STATUS)
             raise AssertionError(
-                f'phase not {" or ".join(phases)} after {timeout} s: last status {last!r}; '
+                f'phase not {" or ".join(phases)} after {timeout} s: last status '
+                f'{last.message if last else "no tracking status"!r}; '
                 f'longest /tool/pressure pause at the probe {pause:.3f} s'
             ) from None
 
@@ -115,11 +118,7 @@ class Probe:
         return next(stamp for stamp, values, _ in self.tracking if values['phase'] == phase)
 
     def call(self, service, timeout=20):
-        client = self.node.create_client(Trigger, f'/pa10_ik_node/{service}')
-        self.node.spin_until(client.service_is_ready, timeout, f'service {service}')
-        future = client.call_async(Trigger.Request())
-        self.node.spin_until(future.done, timeout, f'{service} response')
-        return future.result()
+        return self.graph.call(f'/pa10_ik_node/{service}', timeout)
 
 
 # The tracking tests measure tracking: on the loaded 2-core CI machine the simulator's
@@ -538,17 +537,17 @@ def test_an_exception_in_the_control_step_stops_the_arm_and_the_node_serves(ros_
         def broken_solver(*args, **kwargs):
             raise RuntimeError('non-finite Jacobian')
 
-        monkeypatch.setattr(node.controller.solver, 'solve_limited', broken_solver)
+        monkeypatch.setattr(node.session.controller.solver, 'solve_limited', broken_solver)
         node._control_step()  # must not raise
-        assert node.controller.phase == 'failed'
-        assert 'non-finite Jacobian' in node.controller.reason
+        assert node.session.controller.phase == 'failed'
+        assert 'non-finite Jacobian' in node.session.controller.reason
         assert node.command_publisher.sent > sent  # the hold command went out
-        monkeypatch.delattr(node.controller.solver, 'solve_limited')
+        monkeypatch.delattr(node.session.controller.solver, 'solve_limited')
         session.joint_state_time = session.pressure_time = time.monotonic()
         response = node._on_start(Trigger.Request(), Trigger.Response())
         assert response.success, response.message
         node._control_step()
-        assert node.controller.phase == 'approach'
+        assert node.session.controller.phase == 'approach'
     finally:
         node.destroy_node()
         if context_started:

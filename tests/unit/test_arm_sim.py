@@ -268,3 +268,39 @@ def test_a_hold_on_a_delayed_arm_drops_the_commands_still_on_their_way():
 def test_a_bad_command_delay_is_rejected(delay):
     with pytest.raises(InvalidInput, match='command_delay'):
         SimulatedArm(NAMES, -UPPER, UPPER, QDOT_MAX, np.zeros(7), command_delay=delay)
+
+
+def test_a_command_received_between_steps_starts_from_where_the_arm_then_is():
+    """sensor_sim steps its arm every 5 ms and takes commands whenever they arrive: a
+    trajectory received 2.5 ms after a step starts from the arm's state at that time (the
+    last step's moved on at its velocity), as joint_trajectory_controller reads the state
+    when it takes a trajectory. It once started from the last step's position at the
+    receipt time, dropping the motion in between from every command (pa10_ik_node's
+    ideal arm over topics made 0.66 of its commanded motion, the half-speed one 0.16)."""
+    v = np.array([0.2, -0.1, 0.3, 0.0, 0.5, -0.4, 0.1])  # [rad/s]
+    step, horizon = 0.005, 0.05  # [s]
+    arm = make_arm()
+    arm.set_trajectory(NAMES, [0.0, 1.0], [np.zeros(7), v])  # a ramp at v, linear
+    for k in range(1, 101):
+        arm.step(k * step, step)
+    np.testing.assert_allclose(arm.q, v * 0.5, rtol=0, atol=1e-12)
+    # The same ramp, as a new trajectory received between the steps at 0.5 and 0.505 s.
+    received = 0.5025
+    arm.set_trajectory(NAMES, [horizon], [v * (received + horizon)], start_time=received)
+    for k in range(101, 111):
+        arm.step(k * step, step)
+        np.testing.assert_allclose(arm.q, v * k * step, rtol=0, atol=1e-12)
+
+
+def test_after_a_stall_a_command_starts_one_step_on_at_most():
+    """A simulation stalled for 50 ms (its thread starved) does not guess where the arm
+    would have gone: a command then starts one step's motion on from the last step."""
+    v = np.array([0.2, -0.1, 0.3, 0.0, 0.5, -0.4, 0.1])  # [rad/s]
+    step = 0.005  # [s]
+    arm = make_arm()
+    arm.set_trajectory(NAMES, [0.0, 1.0], [np.zeros(7), v])
+    for k in range(1, 101):
+        arm.step(k * step, step)
+    received = 0.55  # 50 ms after the last step
+    arm.set_trajectory(NAMES, [0.05], [arm.q + 0.05 * v], [v], start_time=received)
+    np.testing.assert_allclose(arm.desired(received), v * (0.5 + step), rtol=0, atol=1e-12)

@@ -1,7 +1,7 @@
 """pa10_ik_node's TrackingSession without ROS: the checks on its inputs, the watchdog on
 stale pressure and joint states, and the commands it returns, on a clock the test turns."""
 
-from dataclasses import dataclass
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +9,9 @@ import pytest
 
 from harness import ManualClock
 from pa10_ik_node.ik import RateSolver
-from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, TrackingSession
+from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, MAX_COMMAND_LEAD_S, TrackingSession
+from pa10_ik_node.settings import ArmSettings, LoopSettings, SolverSettings
+from pa10_ik_node.thesis import fixed_step_matrix
 from pa10_ik_node.tracking import TrackingConfig, TrackingController
 from sensor_sim.scenario import load_scenario
 from sensor_sim.surfaces import normal_base, surface_points_base
@@ -18,17 +20,10 @@ from vgm_common.robot_model import load_robot
 from vgm_common.topics import JOINT_STATES_TOPIC, PRESSURE_TOPIC, WAYPOINTS_TOPIC
 
 SCENARIOS = Path(__file__).resolve().parents[2] / 'src' / 'sensor_sim' / 'scenarios'
+URDF = Path(__file__).resolve().parents[2] / 'src' / 'vgm_common' / 'urdf' / 'pa10.urdf'
 PERIOD = 0.01  # [s]
 TIMEOUT = 1.0  # [s] pressure_timeout
 HORIZON = 0.05  # [s]
-
-
-@dataclass
-class Settings:
-    """What pa10_ik_node's parameters give the session, changeable as they are."""
-
-    pressure_timeout: float = TIMEOUT  # [s]
-    command_horizon: float = HORIZON  # [s]
 
 
 @pytest.fixture(scope='module')
@@ -40,7 +35,8 @@ def scenario():
 def session(scenario):
     robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
     controller = TrackingController(robot, RateSolver('ours', [1.0] * 7), TrackingConfig())
-    return TrackingSession(controller, 'tool0', Settings(), PERIOD, clock=ManualClock(100.0))
+    settings = LoopSettings(rate=1.0 / PERIOD, pressure_timeout=TIMEOUT, command_horizon=HORIZON)
+    return TrackingSession(controller, 'tool0', settings, clock=ManualClock(100.0))
 
 
 def waypoints_on(surface, count=12):
@@ -137,15 +133,14 @@ def run_without_pressure(session, seconds):
 
 
 def test_a_changed_pressure_timeout_and_command_horizon_apply_at_the_next_step(session, scenario):
-    """set_parameters while the task runs: the node's parameters are the session's
-    settings, read at every step (they were copied once, and a new pressure_timeout or
+    """set_parameters while the task runs: the node gives the session its new settings,
+    read at every step (they were copied once, and a new pressure_timeout or
     command_horizon was ignored until a restart)."""
     feed(session, scenario)
     session.take_waypoints('base_link', waypoints_on(scenario.surface))
     assert session.start()[0]
     assert session.control_step().command.horizon == HORIZON
-    session.settings.command_horizon = 0.02
-    session.settings.pressure_timeout = 1.5
+    session.settings = replace(session.settings, command_horizon=0.02, pressure_timeout=1.5)
     session.take_pressure('tool0', 0.0)
     command = session.control_step().command
     assert command.horizon == 0.02 and np.any(command.velocities != 0)
@@ -188,3 +183,101 @@ def test_stop_and_an_internal_error_return_a_hold(session, scenario):
     assert session.controller.phase == 'failed'
     np.testing.assert_array_equal(hold.positions, session.q)
     assert hold.horizon == 0.0
+
+
+def test_a_session_is_made_from_the_settings_and_a_wrong_one_names_its_parameter():
+    arm = ArmSettings()
+    session = TrackingSession.create(
+        arm, SolverSettings(method='dls'), TrackingConfig(), LoopSettings()
+    )
+    assert session.tip_frame == 'tool0' and session.control_period == 0.01
+    assert arm.tool_length_m == 0.1  # the built-in model's own tool
+    T = session.robot.forward_kinematics(np.zeros(7))
+    bare = replace(arm, tool_length=0.0).load().forward_kinematics(np.zeros(7))
+    # The tool adds 0.1 m along the tip's z axis.
+    np.testing.assert_allclose(T[:3, 3] - bare[:3, 3], 0.1 * bare[:3, 2], atol=1e-12)
+    assert session.controller.solver.method == 'dls'
+    assert session.controller.velocity_limits.max() <= arm.max_joint_velocity
+    with pytest.raises(InvalidInput, match="'weights' needs 7 values, got 6"):
+        TrackingSession.create(
+            arm, SolverSettings(weights=(1.0,) * 6), TrackingConfig(), LoopSettings()
+        )
+    with pytest.raises(InvalidInput, match='parameter tip_frame') as error:
+        replace(arm, robot=str(URDF), tip_frame='no_such_frame').load()
+    assert error.value.key == 'tip_frame'
+    with pytest.raises(InvalidInput, match='parameter robot'):
+        replace(arm, robot='pa11').load()
+
+
+def test_phase_changes_are_told_once_at_their_level_and_the_status_follows(session, scenario):
+    assert session.phase_change() is None  # idle, as it started
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    assert session.phase_change() == ('info', 'phase approach', '')
+    assert session.phase_change() is None
+    session.control_step()
+    status = session.status()
+    assert status.level == 'ok' and status.message == 'approach'
+    assert status.values['phase'] == 'approach' and status.values['method'] == 'ours'
+    assert 'fixed_step_radius' not in status.values
+    session.stop('stop requested')
+    assert session.phase_change() == ('warn', 'phase stopped: stop requested', '')
+    assert session.status().level == 'warn'
+    assert session.start()[0] and session.phase_change().message == 'phase approach'
+    session.fail('control step: RuntimeError: boom')
+    assert session.internal_errors == 1
+    change = session.phase_change()
+    assert change.level == 'error' and 'boom' in change.message
+    assert session.status().level == 'error'
+
+
+def test_a_new_solver_applies_and_primal_dual_reports_its_fixed_step_radius(session, scenario):
+    feed(session, scenario)
+    weights = (1.0, -1.0, -1.0, 1.0, -1.0, 1.0, 1.0)
+    settings = SolverSettings(method='primal_dual', weights=weights, mu=0.02, eta=0.02)
+    session.configure_solver(settings)
+    assert session.controller.solver.method == 'primal_dual'
+    values = session.status().values
+    J = session.robot.jacobian(session.q)
+    expected = np.max(
+        np.abs(np.linalg.eigvals(fixed_step_matrix(J, np.diag(weights), 100.0, 0.02, 0.02)))
+    )
+    assert float(values['fixed_step_radius']) == pytest.approx(expected, rel=1e-5)
+    assert values['failure_condition'] == 'none detected'
+
+
+def test_a_command_continues_the_previous_set_point_within_its_lead_of_the_joints(
+    session, scenario
+):
+    """Each moving command starts where the previous one's set point is now, not at the
+    measured joints (older than the arm; and an arm lagging its set point restarted from
+    its own position made 0.16-0.24 of its commands over topics), leading the measured
+    joints by at most MAX_COMMAND_LEAD_S of its joint speeds; a hold and a new start
+    begin again from the measured joints."""
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    q = session.q.copy()
+    first = session.control_step().command
+    np.testing.assert_allclose(first.positions, q + HORIZON * first.velocities, atol=1e-15)
+    # A period later with the same joint state (the arm's newer one not yet here).
+    session.clock.now += PERIOD
+    feed(session, scenario)
+    second = session.control_step().command
+    anchor = second.positions - HORIZON * second.velocities
+    np.testing.assert_allclose(anchor, q + PERIOD * first.velocities, rtol=0, atol=1e-12)
+    # An arm that does not move: the set point runs ahead up to the bound, no further.
+    for _ in range(30):
+        session.clock.now += PERIOD
+        feed(session, scenario)
+        previous = session.last_command[1]
+        command = session.control_step().command
+        lead = np.abs(command.positions - HORIZON * command.velocities - q)
+        assert np.all(lead <= MAX_COMMAND_LEAD_S * np.abs(previous.velocities) + 1e-12)
+    assert session.controller.phase == 'approach', session.controller.reason
+    assert np.any(lead > 0.9 * MAX_COMMAND_LEAD_S * np.abs(previous.velocities))
+    session.stop('stop requested')
+    assert session.start()[0]
+    command = session.control_step().command
+    np.testing.assert_allclose(command.positions, q + HORIZON * command.velocities, atol=1e-15)

@@ -250,7 +250,7 @@ CORE_SETTINGS = {  # node -> its ConfigParams: the core settings its parameters 
     'calib_node.node:CalibNode': ['GA', 'SESSION'],
     'curve_recon_node.node:CurveReconNode': ['SETTINGS'],
     'sfs_stereo_node.node:SfsStereoNode': ['DEPTH'],
-    'pa10_ik_node.node:Pa10IkNode': ['TRACKING'],
+    'pa10_ik_node.node:Pa10IkNode': ['ARM', 'SOLVER', 'TRACKING', 'LOOP'],
     'sensor_sim.sensor_sim_node:SensorSim': ['SIM', 'ARM'],
     'bag_tools.recorder_node:RecorderNode': ['BAG'],
     'bag_tools.player_node:PlayerNode': ['PLAYER'],

@@ -18,7 +18,6 @@ from pa10_ik_node.tracking import (
     tilted_motion,
 )
 from sensor_sim.arm_sim import SimulatedArm
-from sensor_sim.contact import contact_force
 from sensor_sim.scenario import load_scenario
 from sensor_sim.surfaces import normal_base, surface_points_base
 from vgm_common.errors import InvalidInput
@@ -80,12 +79,12 @@ def simulate(
     delay_steps=0,
     **config,
 ):
-    """The controller against sensor_sim's arm and spring contact, 100 Hz control, the arm
-    at 200 Hz following one-point trajectories as in the node, from the joints ``q0``
-    (None: the scenario's) with the force measured there, each command reaching the arm
-    ``delay_steps`` control periods late. Returns the controller and the log of (phase,
-    T_base_tool, force) per control step."""
-    k = scenario.contact_stiffness
+    """The controller against sensor_sim's arm and spring contact
+    (``task_generator.run_closed_loop``): 100 Hz control, the arm at 200 Hz following
+    one-point trajectories as in the node, from the joints ``q0`` (None: the scenario's)
+    with the force measured there, each command reaching the arm ``delay_steps`` control
+    periods late, ``new_waypoints`` taken over at progress ``new_waypoints_at``; until
+    3.5 s after done (or stopped, failed). Returns the controller and the ``LoopLog``."""
     controller = TrackingController(
         robot,
         RateSolver(method, np.ones(7)),
@@ -94,32 +93,42 @@ def simulate(
     )
     controller.start(waypoints)
     arm = SimulatedArm.from_robot_model(robot, scenario.robot.initial_joints if q0 is None else q0)
-    force = contact_force(robot.forward_kinematics(arm.q)[:3, 3], scenario.surface, k).force
-    log, t, on_the_way = [], 0.0, [np.zeros(robot.n_joints)] * delay_steps
-    while t < max_time and not (controller.phase == 'done' and controller.time_in_phase > 3.5):
+
+    def take_over(_t, q):
+        nonlocal new_waypoints_at
         if new_waypoints_at is not None and controller.progress >= new_waypoints_at:
-            controller.update_path(new_waypoints, robot.forward_kinematics(arm.q)[:3, 3])
+            controller.update_path(new_waypoints, robot.forward_kinematics(q)[:3, 3])
             new_waypoints_at = None
-        qdot, info = controller.step(arm.q, force, DT)
-        assert np.all(np.abs(qdot) <= controller.velocity_limits * (1 + 1e-9))
-        if controller.phase in ('stopped', 'failed'):
-            break
-        on_the_way.append(qdot)
-        t = arm.follow_velocity(robot.joint_names, on_the_way.pop(0), t, DT)
-        T = robot.forward_kinematics(arm.q)
-        force = contact_force(T[:3, 3], scenario.surface, k).force
-        log.append((info['phase'], T, force))
+
+    log = task_generator.run_closed_loop(
+        controller,
+        robot,
+        arm,
+        scenario.surface,
+        scenario.contact_stiffness,
+        dt=DT,
+        max_time=max_time,
+        hold_time=0.0,
+        command_delay_steps=delay_steps,
+        initial_force=None,
+        before_step=take_over,
+        finished=lambda c: c.phase == 'done' and c.time_in_phase > 3.5,
+    )
+    assert np.all(np.abs(log.qdot_commanded) <= controller.velocity_limits * (1 + 1e-9))
     return controller, log
+
+
+def tracked(log):
+    """(tips (K, 3) [m], true forces (K,) [N]) of the steps logged while tracking."""
+    steps = [i for i, phase in enumerate(log.phases) if phase == 'tracking']
+    return np.array(log.tips)[steps], np.array(log.forces)[steps]
 
 
 def lateral_errors(log, points, surface):
     """Distances [m] of the tips logged while tracking to the polyline ``points``, across
     the surface normal (the indentation is the force's business)."""
     errors = []
-    for phase, T, _ in log:
-        if phase != 'tracking':
-            continue
-        tip = T[:3, 3]
+    for tip in tracked(log)[0]:
         normal = normal_base(surface, tip[None])[0]
         a, b = points[:-1], points[1:]
         t = np.clip(np.einsum('ij,ij->i', tip - a, b - a) / np.sum((b - a) ** 2, axis=1), 0, 1)
@@ -145,7 +154,7 @@ def test_tracks_path_with_force(robot, scenario, method, track_spin, stiffness_r
         speed=0.02,
     )
     assert controller.phase == 'done', controller.reason
-    phases = [phase for phase, _, _ in log]
+    phases = log.phases
     assert (
         phases.index('approach')
         < phases.index('contact')
@@ -153,7 +162,7 @@ def test_tracks_path_with_force(robot, scenario, method, track_spin, stiffness_r
         < phases.index('done')
     )
     errors = lateral_errors(log, waypoints[:, :3, 3], scenario.surface)
-    forces = np.array([f for phase, _, f in log if phase == 'tracking'])
+    forces = tracked(log)[1]
     rms = np.sqrt(np.mean(errors**2))
     print(
         f'{method}, track_spin={track_spin}, k_est/k={stiffness_ratio}: {len(forces)} '
@@ -163,8 +172,8 @@ def test_tracks_path_with_force(robot, scenario, method, track_spin, stiffness_r
     assert rms < 0.3e-3 and errors.max() < 1e-3
     assert np.all(np.abs(forces - DESIRED_FORCE) < 0.1 * DESIRED_FORCE)
     # Lifted off 3 cm along the approach axis from the pressed end point (2.5 mm deep).
-    end = log[-1][1][:3, 3]
-    assert log[-1][2] == 0.0
+    end = log.tips[-1]
+    assert log.forces[-1] == 0.0
     assert np.linalg.norm(end - waypoints[-1, :3, 3]) == pytest.approx(0.0275, abs=1.5e-3)
     rms_stat, force_band = controller.stats.summary()
     assert rms_stat < 0.3e-3 and force_band < 0.1 * DESIRED_FORCE
@@ -184,13 +193,12 @@ def test_a_start_already_in_contact_presses_on_without_lifting_off(robot, scenar
         robot, scenario, waypoints, scenario.contact_stiffness, q0=q_contact
     )
     assert controller.phase == 'done', controller.reason
-    assert log[0][2] > 0.9 * DESIRED_FORCE  # the start really presses
-    tracking_at = next(i for i, (phase, _, _) in enumerate(log) if phase == 'tracking')
+    assert log.forces[0] > 0.9 * DESIRED_FORCE  # the start really presses
+    tracking_at = log.phases.index('tracking')
     assert tracking_at * DT < 1.0
-    before = log[:tracking_at]
-    assert min(force for _, _, force in before) > 0.5 * DESIRED_FORCE
+    assert min(log.forces[:tracking_at]) > 0.5 * DESIRED_FORCE
     z0 = waypoints[0][:3, 2]
-    rise = max(float(np.dot(pressing[:3, 3] - T[:3, 3], z0)) for _, T, _ in before)
+    rise = max(float(np.dot(pressing[:3, 3] - tip, z0)) for tip in log.tips[:tracking_at])
     assert rise < 0.0005
 
 
@@ -214,7 +222,7 @@ def test_command_latency_predicts_the_arm_past_its_delayed_commands(robot, scena
         )
         assert controller.phase == 'done', controller.reason
         rms[latency] = float(np.sqrt(np.mean(lateral_errors(log, points, scenario.surface) ** 2)))
-        forces = np.array([f for phase, _, f in log if phase == 'tracking'])
+        forces = tracked(log)[1]
         assert np.all(np.abs(forces - DESIRED_FORCE) < 0.05 * DESIRED_FORCE)
     assert rms[0.05] < 0.6 * rms[0.0]
 
@@ -235,7 +243,7 @@ def test_closed_loop_is_followed_once_around_and_a_new_path_taken_over(robot, sc
     assert len(controller.path.points) == 91  # the new path, closed with its first point
     errors = lateral_errors(log, better[:, :3, 3], scenario.surface)
     assert errors.max() < 1e-3  # no jump back to the start at the take-over
-    tips = np.array([T[:3, 3] for phase, T, _ in log if phase == 'tracking'])
+    tips = tracked(log)[0]
     # Once around: it ends where it started (the loop's first point).
     assert np.linalg.norm(tips[-1] - tips[0]) < 3e-3
     assert controller.progress == pytest.approx(1.0)
@@ -260,7 +268,7 @@ def test_waypoints_off_the_surface_fail_and_stop(robot, scenario):
     )
     assert controller.phase == 'failed'
     assert 'no contact' in controller.reason
-    assert all(force == 0.0 for _, _, force in log)
+    assert all(force == 0.0 for force in log.forces)
     qdot, info = controller.step(scenario.robot.initial_joints, 0.0, DT)
     assert np.all(qdot == 0.0)
 
@@ -354,7 +362,7 @@ def test_force_laws_hold_the_force_on_s3_against_waypoint_depth_errors(
         robot, scenario, loop, scenario.contact_stiffness, speed=0.02, force_law=force_law
     )
     assert controller.phase == 'done', controller.reason
-    forces = np.array([f for phase, _, f in log if phase == 'tracking'])
+    forces = tracked(log)[1]
     errors = lateral_errors(log, np.vstack([on_surface, on_surface[:1]]), scenario.surface)
     rms_force = np.sqrt(np.mean((forces - DESIRED_FORCE) ** 2))
     print(
@@ -374,7 +382,7 @@ def test_tilt_law_tracks_the_exact_s3_path_with_force_within_2_percent(robot, sc
         robot, scenario, waypoints, scenario.contact_stiffness, speed=0.02, force_law='tilt'
     )
     assert controller.phase == 'done', controller.reason
-    forces = np.array([f for phase, _, f in log if phase == 'tracking'])
+    forces = tracked(log)[1]
     errors = lateral_errors(log, waypoints[:, :3, 3], scenario.surface)
     assert np.all(np.abs(forces - DESIRED_FORCE) < 0.02 * DESIRED_FORCE)
     assert np.sqrt(np.mean(errors**2)) < 0.3e-3 and errors.max() < 1e-3
@@ -440,8 +448,8 @@ def test_contact_before_the_first_waypoint_fails_naming_the_probable_cause(
     assert 'unexpected contact: ' in controller.reason and doing in controller.reason
     for cause in ('tool_length', 'tip_frame', 'surface'):
         assert cause in controller.reason
-    assert not any(phase == 'tracking' for phase, _, _ in log)
-    assert max(force for _, _, force in log) < 3 * DESIRED_FORCE
+    assert 'tracking' not in log.phases
+    assert max(log.forces) < 3 * DESIRED_FORCE
 
 
 def test_descent_into_nothing_fails_on_the_measured_distance(robot, scenario):

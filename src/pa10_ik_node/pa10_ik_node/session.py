@@ -1,8 +1,9 @@
 """A tracking session without ROS: it takes the measured joints, the pressure and the
 waypoints, checks them, starts and stops the task, and at every control step returns the
-joint command and the measured tool pose. pa10_ik_node only converts messages, publishes
-and logs what the session returns; the session is unit-tested on plain arrays with an
-injected clock (the stale-pressure stop among others).
+joint command and the measured tool pose, the phase changes to log and the tracking
+diagnostic. pa10_ik_node only converts messages, publishes and logs what the session
+returns; the session is unit-tested on plain arrays with an injected clock (the
+stale-pressure stop among others).
 """
 
 from __future__ import annotations
@@ -10,12 +11,13 @@ from __future__ import annotations
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from pa10_ik_node.path import validate_waypoints
-from pa10_ik_node.tracking import ACTIVE_PHASES, TrackingController, Unreachable
+from pa10_ik_node.settings import ArmSettings, LoopSettings, SolverSettings, weights_per_joint
+from pa10_ik_node.tracking import ACTIVE_PHASES, TrackingConfig, TrackingController, Unreachable
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.geometry import FloatArray
 from vgm_common.topics import BASE_FRAME, JOINT_STATES_TOPIC, PRESSURE_TOPIC, WAYPOINTS_TOPIC
@@ -23,6 +25,9 @@ from vgm_common.topics import BASE_FRAME, JOINT_STATES_TOPIC, PRESSURE_TOPIC, WA
 MAX_FORCE_N = 1e4  # a pressure reading beyond this is a broken sensor, not a contact
 JOINT_LIMIT_SLACK_RAD = 0.1  # a measured joint this far outside its limits is no reading
 STEP_TIMES_KEPT = 500  # control step times kept for the median in the diagnostics
+# [s] A moving command's set point continues the previous one's, leading the measured
+# joints by at most this much of the commanded joint motion (see _command_anchor).
+MAX_COMMAND_LEAD_S = 0.1
 
 
 class JointCommand(NamedTuple):
@@ -42,14 +47,23 @@ class ControlOutput(NamedTuple):
     command: JointCommand | None
 
 
-class SessionSettings(Protocol):
-    """The session's settings that may change while it runs (pa10_ik_node passes its
-    parameters, which a set_parameters call changes): read at every use, never copied."""
+class PhaseChange(NamedTuple):
+    """A phase the task entered, as the node logs it: ``level`` 'error' (failed), 'warn'
+    (stopped) or 'info', ``message`` the line at that level, ``summary`` a line about the
+    finished tracking ('' unless done)."""
 
-    # [s] pressure or joint states older than this while the task is active stop it;
-    # also the freshness required to start.
-    pressure_timeout: float
-    command_horizon: float  # [s] time_from_start of the commanded point
+    level: str
+    message: str
+    summary: str
+
+
+class Status(NamedTuple):
+    """The tracking diagnostic: ``level`` 'ok', 'warn' or 'error', ``message`` (the phase
+    and why), ``values`` (key -> value, as /diagnostics carries them)."""
+
+    level: str
+    message: str
+    values: dict[str, Any]
 
 
 class TrackingSession:
@@ -58,9 +72,10 @@ class TrackingSession:
     Args:
         controller: the task (its robot, solver and settings).
         tip_frame: the frame /tool/pressure must be stamped in.
-        settings: ``pressure_timeout`` and ``command_horizon`` (``SessionSettings``), as
-            they are at each step.
-        control_period: [s] the nominal control step.
+        settings: the loop's settings (``LoopSettings``), read at each use: a new one
+            assigned to ``settings`` applies at the next step.
+        solver_settings: how ``controller``'s solver was made (the diagnostics report
+            them); ``configure_solver`` changes both.
         clock: monotonic seconds (``time.monotonic``; a test's own clock).
     """
 
@@ -68,15 +83,16 @@ class TrackingSession:
         self,
         controller: TrackingController,
         tip_frame: str,
-        settings: SessionSettings,
-        control_period: float,
+        settings: LoopSettings,
+        solver_settings: SolverSettings | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.controller = controller
         self.robot = controller.robot
         self.tip_frame = tip_frame
         self.settings = settings
-        self.control_period = control_period
+        self.solver_settings = solver_settings or SolverSettings()
+        self.control_period = settings.control_period  # [s] (rate is read-only)
         self.clock = clock
         self.joint_index = {name: i for i, name in enumerate(self.robot.joint_names)}
         self.q: FloatArray | None = None  # measured joints, robot order [rad]
@@ -85,10 +101,42 @@ class TrackingSession:
         self.pressure_time: float | None = None
         self.waypoints: FloatArray | None = None  # (N, 4, 4) base_link
         self.last_step: float | None = None  # clock() of the previous control step
+        # (clock() [s], the command) of the last moving command sent; None after a hold
+        self.last_command: tuple[float, JointCommand] | None = None
         self.last_info: dict[str, Any] = {}
         self.step_times: deque[float] = deque(maxlen=STEP_TIMES_KEPT)  # [s]
         self.null_space_failures = 0
         self.last_failure_condition = ''
+        self.internal_errors = 0  # failures of the caller's own code (``fail``)
+        self.logged_phase = controller.phase  # the phase ``phase_change`` last told
+
+    @classmethod
+    def create(
+        cls,
+        arm: ArmSettings,
+        solver: SolverSettings,
+        tracking: TrackingConfig,
+        loop: LoopSettings,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> TrackingSession:
+        """The session of the arm ``arm`` describes (``InvalidInput`` keyed by the
+        parameter at fault if its model cannot be loaded), its solver and task."""
+        robot = arm.load()
+        if reason := weights_per_joint(robot.n_joints, solver.weights):
+            raise InvalidInput(f'parameters: {reason}', 'weights', solver.weights)
+        controller = TrackingController(
+            robot,
+            solver.solver(),
+            tracking,
+            max_joint_velocity=arm.max_joint_velocity,
+            tip_description=arm.tip_description,
+        )
+        return cls(controller, arm.tip_frame, loop, solver, clock)
+
+    def configure_solver(self, settings: SolverSettings) -> None:
+        """Use a solver of ``settings`` from the next step on."""
+        self.solver_settings = settings
+        self.controller.solver = settings.solver()
 
     # --- inputs ----------------------------------------------------------------------
 
@@ -188,6 +236,7 @@ class TrackingSession:
         waypoints = self.waypoints
         if missing or waypoints is None or self.q is None:  # None: among the missing
             return False, f'cannot start: no recent {", ".join(missing)}', None
+        self.last_command = None  # a new task's commands start from the measured joints
         try:
             self.controller.start(waypoints, self.q)
         except Unreachable as error:
@@ -210,7 +259,9 @@ class TrackingSession:
         return self.hold()
 
     def fail(self, reason: str) -> JointCommand | None:
-        """Fail a running task (an internal error); returns the hold to send."""
+        """Fail a running task on an internal error of the caller (a solver, a singular
+        configuration, a bug), counted in ``internal_errors``; returns the hold to send."""
+        self.internal_errors += 1
         if self.controller.phase in (*ACTIVE_PHASES, 'done'):
             self.controller.fail(reason)
         return self.hold()
@@ -219,6 +270,7 @@ class TrackingSession:
         """Zero velocity at the measured position, now (horizon 0: a position arm does
         not coast on to a point ahead, a velocity arm gets zero at once); None before
         any joint state."""
+        self.last_command = None
         if self.q is None:
             return None
         return JointCommand(self.q.copy(), np.zeros(self.robot.n_joints), 0.0)
@@ -255,6 +307,7 @@ class TrackingSession:
                     controller.stop(f'stale {what}: no {topic} for more than {timeout} s')
                     return ControlOutput(self.robot.forward_kinematics(q), self.hold())
         if controller.phase not in (*ACTIVE_PHASES, 'done'):
+            self.last_command = None  # nothing sent: the next command starts afresh
             return ControlOutput(self.robot.forward_kinematics(q), None)
         started = time.perf_counter()
         qdot, info = controller.step(q, self.force, dt)
@@ -265,8 +318,29 @@ class TrackingSession:
             command = self.hold()
         else:
             horizon = self.settings.command_horizon
-            command = JointCommand(q + qdot * horizon, qdot, horizon)
+            command = JointCommand(self._command_anchor(q, now) + qdot * horizon, qdot, horizon)
+            self.last_command = (now, command)
         return ControlOutput(info['T'], command)
+
+    def _command_anchor(self, q: FloatArray, now: float) -> FloatArray:
+        """(n,) [rad] Where the command sent at ``now`` starts: the previous moving
+        command's set point at ``now`` (its point moved back along its velocity by the
+        time still to go), within MAX_COMMAND_LEAD_S of its joint speeds of the measured
+        joints ``q``; ``q`` itself for the first command after a hold.
+
+        Started from the measured joints instead, every command threw away what the
+        previous ones had not yet moved the arm: the measured state is older than the
+        arm's (a joint state's age, the command's way), and an arm slower than its set
+        point (a position loop with a lag) restarted from its own lagging position every
+        control step made a fraction of the motion: over topics the half-speed arm 0.16-0.24
+        of it, below what the response estimate compensates (MIN_RESPONSE)."""
+        if self.last_command is None:
+            return q
+        sent, previous = self.last_command
+        to_go = max(previous.horizon - (now - sent), 0.0)
+        set_point = previous.positions - previous.velocities * to_go
+        lead = np.abs(previous.velocities) * MAX_COMMAND_LEAD_S
+        return q + np.clip(set_point - q, -lead, lead)
 
     def _note_solver_failure(self, info: dict[str, Any]) -> None:
         if info.get('diverged'):
@@ -281,6 +355,65 @@ class TrackingSession:
                 f'W not positive on null(J) (min eigenvalue '
                 f'{info.get("min_null_eigenvalue", float("nan")):.3g}); fell back to |W|'
             )
+
+    # --- what the node reports ---------------------------------------------------------
+
+    def phase_change(self) -> PhaseChange | None:
+        """The phase the task entered since the last call, as the lines to log (None if
+        it is the same)."""
+        controller = self.controller
+        phase = controller.phase
+        if phase == self.logged_phase:
+            return None
+        self.logged_phase = phase
+        summary = ''
+        if phase == 'done':
+            rms, force_band = controller.stats.summary()
+            summary = (
+                f'tracking done: rms position error {rms * 1e3:.3f} mm, force within '
+                f'+-{force_band:.3f} N of desired ({controller.config.desired_force} N)'
+            )
+        if phase == 'failed':
+            return PhaseChange('error', f'phase failed: {controller.reason}', summary)
+        if phase == 'stopped':
+            return PhaseChange('warn', f'phase stopped: {controller.reason}', summary)
+        return PhaseChange('info', f'phase {phase}', summary)
+
+    def status(self) -> Status:
+        """The tracking diagnostic: phase, progress, errors, the arm's response, the
+        solver's failures and the step time."""
+        controller, info, force = self.controller, self.last_info, self.force
+        config = controller.config
+        phase = controller.phase
+        if phase == 'approach' and controller.stage == 'descend' and force > 0:
+            phase = 'contact'  # touching, force building up
+        values: dict[str, Any] = {
+            'phase': phase,
+            'stage': controller.stage,
+            'progress': f'{controller.progress:.4f}',
+            'position_error_m': f'{info.get("position_error", float("nan")):.6f}',
+            'force_N': f'{force:.4f}',
+            'force_error_N': f'{force - config.desired_force:.4f}',
+            'arm_response': f'{controller.response:.3f}',
+            'phi_rad': f'{info.get("phi", float("nan")):.5f}',
+            'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}'
+            if self.step_times
+            else 'nan',
+            'method': self.solver_settings.method,
+            'force_law': config.force_law,
+            'reason': controller.reason,
+        }
+        if self.solver_settings.method == 'primal_dual':
+            values['failure_condition'] = self.last_failure_condition or 'none detected'
+            values['null_space_failures'] = self.null_space_failures
+            if self.q is not None:
+                radius = self.solver_settings.fixed_step_radius(self.robot.jacobian(self.q))
+                values['fixed_step_radius'] = f'{radius:.6g}'
+        rms, force_band = controller.stats.summary()
+        values.update(rms_position_error_m=f'{rms:.6f}', max_force_error_N=f'{force_band:.4f}')
+        level = {'failed': 'error', 'stopped': 'warn'}.get(controller.phase, 'ok')
+        message = controller.phase + (f': {controller.reason}' if controller.reason else '')
+        return Status(level, message, values)
 
     def _fresh(self, stamp: float | None) -> bool:
         return stamp is not None and self.clock() - stamp <= self.settings.pressure_timeout

@@ -105,6 +105,8 @@ class SimulatedArm:
             raise InvalidInput(f'q0 {q0} is outside the joint limits', 'q0', q0)
         self._q = q0
         self._qdot = np.zeros(n)
+        self._stepped_to: float | None = None  # [s] the time ``step`` last advanced to
+        self._last_dt = 0.0  # [s] and by how much
         self.hold()
 
     @classmethod
@@ -212,7 +214,10 @@ class SimulatedArm:
                 (float(start) + self.command_delay, (times, positions[:, order], velocities))
             )
         else:
-            self._set_command(times, positions[:, order], velocities, start)
+            # Received between two steps: from where the arm is then, not where the last
+            # step left it (which drops the motion in between from every command).
+            state = self._state_at(float(start))
+            self._set_command(times, positions[:, order], velocities, start, state)
 
     def step(self, t: float, dt: float) -> tuple[FloatArray, FloatArray]:
         """Advance the arm by ``dt`` [s] toward the set point at time ``t`` [s].
@@ -238,7 +243,20 @@ class SimulatedArm:
         q_new = np.clip(q_new, self._lower, self._upper)
         self._qdot = (q_new - self._q) / dt
         self._q = q_new
+        self._stepped_to, self._last_dt = float(t), float(dt)
         return self.q, self.qdot
+
+    def _state_at(self, t: float) -> tuple[FloatArray, FloatArray]:
+        """(q, qdot) at time ``t`` [s]: the arm moves on between the simulation's steps at
+        the velocity of the last one (within its limits), as joint_trajectory_controller
+        reads the state at the time it takes a trajectory; the last step's state at or
+        before that step's time. Moved on for one step's time at most: a simulation
+        stalled longer does not guess where the arm would have gone."""
+        if self._stepped_to is None or not t > self._stepped_to:
+            return self._q.copy(), self._qdot.copy()
+        ahead = min(t - self._stepped_to, self._last_dt)
+        q = np.clip(self._q + self._qdot * ahead, self._lower, self._upper)
+        return q, self._qdot.copy()
 
     def follow_velocity(
         self,
@@ -306,13 +324,16 @@ class SimulatedArm:
         positions: FloatArray,
         velocities: FloatArray | None,
         start_time: float | FloatArray,
+        start_state: tuple[FloatArray, FloatArray] | None = None,
     ) -> None:
         if times[0] > 0:
-            # As joint_trajectory_controller does: start from where the arm is.
+            # As joint_trajectory_controller does: start from where the arm is (at
+            # ``start_state`` (q, qdot), else as the last step left it).
+            q, qdot = start_state or (self._q, self._qdot)
             times = np.concatenate([[0.0], times])
-            positions = np.vstack([self._q, positions])
+            positions = np.vstack([q, positions])
             if velocities is not None:
-                velocities = np.vstack([self._qdot, velocities])
+                velocities = np.vstack([qdot, velocities])
         self._times, self._positions, self._velocities = times, positions, velocities
         self._start_time = float(start_time)
         self._q_at_command = self._q.copy()  # held until start_time

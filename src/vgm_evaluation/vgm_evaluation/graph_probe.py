@@ -15,6 +15,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile
 from std_srvs.srv import Trigger
 
+from vgm_common.conversions import stamp_to_ns
 from vgm_common.node_main import use_fastdds_profile
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.topics import DIAGNOSTICS_TOPIC
@@ -41,6 +42,9 @@ class GraphProbe:
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
         self.statuses: list[DiagnosticStatus] = []  # every status, in arrival order
+        # the header stamp [ns] of the array each of ``statuses`` came in (its publisher's
+        # clock: when the node reported it, not when it arrived)
+        self.status_stamps_ns: list[int] = []
         self._diagnostics_subscription: Any = None
         if watch_diagnostics:
             self.watch_diagnostics()
@@ -57,6 +61,7 @@ class GraphProbe:
 
     def _on_diagnostics(self, msg: DiagnosticArray) -> None:
         self.statuses.extend(msg.status)
+        self.status_stamps_ns.extend([stamp_to_ns(msg.header.stamp)] * len(msg.status))
 
     def record(self, topic: str, kind: type, qos: QoSProfile = DEFAULT_QOS) -> list[Any]:
         """A list the messages of ``topic`` are appended to as they arrive."""

@@ -21,8 +21,8 @@ from __future__ import annotations
 import copy
 import importlib.metadata
 import os
-from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -301,9 +301,11 @@ class LoopLog:
     phases: list[str]
     tips: list[FloatArray]  # (3,) measured tool tip [m]
     forces: list[float]  # [N] true contact force
-    qdot_commanded: list[FloatArray]  # (n,) [rad/s]
+    qdot_commanded: list[FloatArray]  # (n,) [rad/s] as it reached the arm
     q: list[FloatArray]  # (n,) measured joints [rad]
     step_times: list[float]  # [s] controller.step wall time
+    times: list[float] = field(default_factory=list)  # [s] simulated time after the step
+    readings: list[float] = field(default_factory=list)  # [N] the pressure the step was given
     stop_latency: float = float('nan')  # [s] from a stop to zero joint velocity
 
 
@@ -326,6 +328,11 @@ class TrackingControllerLike(Protocol):
         ...
 
 
+def lifted(controller: TrackingControllerLike) -> bool:
+    """``run_closed_loop``'s default end: done and lifted off."""
+    return controller.phase == 'done' and controller.stage == 'lifted'
+
+
 def run_closed_loop(
     controller: TrackingControllerLike,
     robot: RobotModel,
@@ -339,30 +346,59 @@ def run_closed_loop(
     rng: np.random.Generator | None = None,
     hold_time: float = 0.5,
     substeps: int = 2,
+    *,
+    command_delay_steps: int = 0,
+    initial_force: float | None = 0.0,
+    before_step: Callable[[float, FloatArray], None] | None = None,
+    finished: Callable[[TrackingControllerLike], bool] = lifted,
 ) -> LoopLog:
     """``controller`` (a pa10_ik_node TrackingController, started) against ``arm`` (a
-    ``SimulatedArm``) and the spring contact on ``surface``: control every ``dt`` [s], the
-    arm stepped ``substeps`` times per period, the command as pa10_ik_node sends it (a
-    point ``q + qdot horizon`` at the horizon; a hold at time 0 once the controller
-    stopped or failed). ``stop_at_progress``: call ``controller.stop()`` once progress
-    reaches it. Runs until done and lifted (plus ``hold_time``), stopped or failed (plus
-    ``hold_time``, measuring how long the arm takes to stand still) or ``max_time``."""
+    ``SimulatedArm``) and the spring contact on ``surface``: the one offline closed loop
+    of the tests and the bench.
+
+    Control every ``dt`` [s], the arm stepped ``substeps`` times per period, the command
+    as pa10_ik_node sends it (a point ``q + qdot horizon`` at the horizon; a hold at time
+    0 once the controller stopped or failed), reaching the arm ``command_delay_steps``
+    periods late (zero before the first; a slow controller or network). The pressure is
+    the true force plus N(0, ``pressure_sigma``) noise while in contact (never below 0);
+    the first step is given ``initial_force`` [N] (None: the reading at the start).
+    ``before_step(t, q)`` runs at the start of each period (a test's new path);
+    ``stop_at_progress``: call ``controller.stop()`` once progress reaches it. Runs until
+    ``finished(controller)`` (default: done and lifted) plus ``hold_time`` [s], until
+    stopped or failed (plus ``hold_time``, measuring how long the arm takes to stand
+    still) or ``max_time`` [s]."""
     import time
 
     from sensor_sim.contact import contact_force
 
     rng = rng or np.random.default_rng(0)
+
+    def pressure(true_force: float) -> float:
+        if true_force > 0 and pressure_sigma > 0:
+            return max(0.0, true_force + rng.normal(0.0, pressure_sigma))
+        return true_force
+
     log = LoopLog([], [], [], [], [], [])
-    t, force, ended_at, stopped_at = 0.0, 0.0, None, None
+    t, ended_at, stopped_at = 0.0, None, None
+    if initial_force is None:
+        tip = robot.forward_kinematics(arm.q)[:3, 3]
+        initial_force = pressure(contact_force(tip, surface, stiffness).force)
+    force = initial_force
     names = robot.joint_names
+    on_the_way = [np.zeros(robot.n_joints)] * command_delay_steps
     while t < max_time:
         q = arm.q
+        if before_step is not None:
+            before_step(t, q)
         if stop_at_progress is not None and controller.progress >= stop_at_progress:
             controller.stop('stop requested mid-motion')
             stop_at_progress = None
         started = time.perf_counter()
         qdot, info = controller.step(q, force, dt)
         log.step_times.append(time.perf_counter() - started)
+        log.readings.append(force)
+        on_the_way.append(qdot)
+        qdot = on_the_way.pop(0)
         halted = controller.phase in ('stopped', 'failed')
         if halted:
             arm.set_trajectory(names, [0.0], [q], start_time=t)  # the node's hold
@@ -376,18 +412,14 @@ def run_closed_loop(
             t = arm.follow_velocity(names, qdot, t, dt, substeps=substeps)
         tip = robot.forward_kinematics(arm.q)[:3, 3]
         true_force = contact_force(tip, surface, stiffness).force
-        force = (
-            max(0.0, true_force + rng.normal(0.0, pressure_sigma))
-            if true_force > 0 and pressure_sigma > 0
-            else true_force
-        )
+        force = pressure(true_force)
         log.phases.append(info['phase'])
         log.tips.append(tip)
         log.forces.append(true_force)
         log.qdot_commanded.append(np.zeros_like(qdot) if halted else qdot)
         log.q.append(arm.q)
-        finished = halted or (controller.phase == 'done' and controller.stage == 'lifted')
-        if finished and ended_at is None:
+        log.times.append(t)
+        if (halted or finished(controller)) and ended_at is None:
             ended_at = t
         if ended_at is not None and t - ended_at >= hold_time:
             break
