@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
+from vgm_evaluation.metrics import curve_agreement, distance_to_polylines
 
 from curve_recon_node.piecewise import PiecewiseCurve, View, reconstruct_ray_roots, refine_points
 from curve_recon_node.pipeline import ReconstructionSettings, reconstruct_capture, view_curve
@@ -174,25 +175,11 @@ def point_reference(cams, samples, tol3_px, segments_break=None):
 METHODS = ('ray_roots', 'ray_roots+refine', 'cone_lsq', 'points')
 
 
-def distance_to_polyline(points, polyline, tree=None):
-    """Distance (N,) of points to a dense polyline (M, 3), exact to its segments (the two
-    beside the nearest vertex), and the nearest vertex index."""
-    tree = tree or cKDTree(polyline)
-    _, nearest = tree.query(points)
-    best = np.full(len(points), np.inf)
+def truth_pieces(polyline):
+    """A dense polyline (M, 3) cut where a step is over 10 times the median (between the
+    two lines of a line pair: no segment there)."""
     lengths = np.linalg.norm(np.diff(polyline, axis=0), axis=1)
-    jump = lengths > 10 * np.median(lengths)  # between two pieces (line pair): no segment
-    for a_index in (nearest - 1, nearest):
-        a_index = np.clip(a_index, 0, len(polyline) - 2)
-        a, b = polyline[a_index], polyline[a_index + 1]
-        ab = b - a
-        u = np.clip(
-            np.sum((points - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-300), 0, 1
-        )
-        d = np.linalg.norm(points - a - u[:, None] * ab, axis=1)
-        d[jump[a_index]] = np.linalg.norm(points - polyline[nearest], axis=1)[jump[a_index]]
-        best = np.minimum(best, d)
-    return best, nearest
+    return np.split(polyline, np.flatnonzero(lengths > 10 * np.median(lengths)) + 1)
 
 
 def measures(truth_dense, points, kind, truth_range, breaks=None):
@@ -204,7 +191,8 @@ def measures(truth_dense, points, kind, truth_range, breaks=None):
             'plane_deg': np.nan,
             'nmse': [np.nan] * 3,
         }
-    distance, nearest = distance_to_polyline(points, truth_dense)
+    distance = distance_to_polylines(points, truth_pieces(truth_dense))
+    nearest = cKDTree(truth_dense).query(points)[1]
     coverage = cKDTree(points).query(truth_dense)[0]
     result = {
         'n': len(points),
@@ -529,10 +517,10 @@ def _dense_truth(points, closed, step=1e-4):
     return densify3(np.vstack([points, points[:1]]) if closed else points, step)
 
 
-def family_measures(points, truth_dense, closed, planar):
-    """RMS, median and max distance [m] of ``points`` to the true curve, the share of the
-    true curve within COVERAGE_RADIUS of their polyline, and the plane-angle error [deg]
-    for a planar curve."""
+def family_measures(points, case, closed, planar):
+    """RMS, median and max distance [m] of ``points`` (their polyline ``closed`` or not)
+    to the case's true curve, the share of the true curve within COVERAGE_RADIUS of their
+    polyline, and the plane-angle error [deg] for a planar curve."""
     if len(points) < 3:
         return {
             'n': len(points),
@@ -542,15 +530,15 @@ def family_measures(points, truth_dense, closed, planar):
             'coverage': 0.0,
             'plane_deg': np.nan,
         }
-    distance, _ = distance_to_polyline(points, truth_dense)
-    near = cKDTree(_dense_truth(points, closed, 2e-4)).query(truth_dense)[0]
+    agreement = curve_agreement(points, case.truth_base, closed, case.closed, COVERAGE_RADIUS)
     result = {
         'n': len(points),
-        'rms': float(np.sqrt(np.mean(distance**2))),
-        'median': float(np.median(distance)),
-        'max': float(distance.max()),
-        'coverage': float(np.mean(near <= COVERAGE_RADIUS)),
+        'rms': agreement.rms_m,
+        'median': float(np.median(agreement.distance_m)),
+        'max': agreement.max_m,
+        'coverage': agreement.coverage,
     }
+    truth_dense = _dense_truth(case.truth_base, case.closed)
     result['plane_deg'] = float(plane_angle_error_deg(truth_dense, points)) if planar else np.nan
     return result
 
@@ -567,7 +555,6 @@ def run_generated_families(families=None, seeds=FAMILY_SEEDS, noises=FAMILY_NOIS
             case = generate_case(family, seed)
             renderer = SceneRenderer(case.scenario)
             clean = {name: renderer.scene_image(name) for name in ('left', 'right', 'aux')}
-            truth = _dense_truth(case.truth_base, case.closed)
             planar = family in PLANAR
             settings = ReconstructionSettings(degree=case.degree, line_width_px=case.line_width_px)
             for noise in noises:
@@ -600,13 +587,13 @@ def run_generated_families(families=None, seeds=FAMILY_SEEDS, noises=FAMILY_NOIS
                     result = reconstruct_capture(images, case.scenario.cameras, settings)
                     row['ours_s'] = time.perf_counter() - started
                     row['ours'] = family_measures(
-                        result.waypoints_base, truth, result.closed, planar
+                        result.waypoints_base, case, result.closed, planar
                     )
                     row['ours']['closed'] = bool(result.closed)
                     row['pieces'] = result.stats['pieces']
                 except Exception as error:  # a failed reconstruction is a result too
                     row['ours_error'] = str(error)[:100]
-                    row['ours'] = family_measures(np.zeros((0, 3)), truth, False, planar)
+                    row['ours'] = family_measures(np.zeros((0, 3)), case, False, planar)
                 try:
                     started = time.perf_counter()
                     views = [
@@ -619,10 +606,10 @@ def run_generated_families(families=None, seeds=FAMILY_SEEDS, noises=FAMILY_NOIS
                     # (view_curve) plus its matching and triangulation
                     row['reference_s'] = time.perf_counter() - started
                     row['reference_match_s'] = time.perf_counter() - extracted
-                    row['reference'] = family_measures(points, truth, case.closed, planar)
+                    row['reference'] = family_measures(points, case, case.closed, planar)
                 except Exception as error:
                     row['reference_error'] = str(error)[:100]
-                    row['reference'] = family_measures(np.zeros((0, 3)), truth, False, planar)
+                    row['reference'] = family_measures(np.zeros((0, 3)), case, False, planar)
                 rows.append(row)
             print(f'  {family} seed {seed} done', flush=True)
     return rows

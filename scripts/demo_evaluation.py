@@ -3,6 +3,7 @@ arrays (no ROS), shared by scripts/demo.py and the closed-loop tests."""
 
 import numpy as np
 import yaml
+from vgm_evaluation.metrics import curve_agreement, distance_to_polylines
 
 from sensor_sim.surfaces import normal_base, signed_height_base
 from vgm_common.calibration_io import read_calibration
@@ -26,31 +27,14 @@ def true_curve(ground_truth_dir):
         return [pieces[key] for key in pieces.files]
 
 
-def distance_to_polylines(points, polylines):
-    """Distance [m] of each point (N, 3) to the nearest segment of the polylines."""
-    points = np.atleast_2d(points)
-    starts = np.concatenate([p[:-1] for p in polylines])
-    ends = np.concatenate([p[1:] for p in polylines])
-    best = np.full(len(points), np.inf)
-    for chunk in range(0, len(points), 256):  # bounded memory: 256 x segments at a time
-        P = points[chunk : chunk + 256, None, :]
-        d = ends - starts
-        t = np.clip(np.einsum('nsk,sk->ns', P - starts, d) / np.einsum('sk,sk->s', d, d), 0.0, 1.0)
-        nearest = starts + t[..., None] * d
-        best[chunk : chunk + 256] = np.linalg.norm(P - nearest, axis=2).min(axis=1)
-    return best
-
-
 def curve_errors(waypoints, polylines):
     """Waypoints (N, 3) against the true curve: RMS and max distance to it [m], and the
     coverage: the largest distance of a true-curve point to the waypoints' polyline."""
-    d = distance_to_polylines(waypoints, polylines)
-    truth = np.concatenate(polylines)
-    coverage = distance_to_polylines(truth, [waypoints])
+    agreement = curve_agreement(waypoints, polylines)
     return {
-        'rms_m': float(np.sqrt(np.mean(d**2))),
-        'max_m': float(d.max()),
-        'coverage_m': float(coverage.max()),
+        'rms_m': agreement.rms_m,
+        'max_m': agreement.max_m,
+        'coverage_m': agreement.farthest_uncovered_m,
         'count': len(waypoints),
     }
 

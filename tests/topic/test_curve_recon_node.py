@@ -17,6 +17,7 @@ from scipy.spatial import cKDTree
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 from vgm_evaluation.graph_probe import status_values
+from vgm_evaluation.metrics import curve_agreement
 
 from harness import SCENARIO_DIR, executable, publish_rig, wait_for
 from sensor_sim.scenario import load_scenario
@@ -40,16 +41,6 @@ from vgm_common.topics import (
 )
 
 SPACING = 0.005  # [m] the default
-
-
-def densify(polyline, step=1e-4):
-    """Points every ``step`` [m] along a polyline (N, 3)."""
-    out = []
-    for a, b in zip(polyline[:-1], polyline[1:]):
-        n = max(1, int(np.ceil(np.linalg.norm(b - a) / step)))
-        out.append(a + np.linspace(0, 1, n, endpoint=False)[:, None] * (b - a))
-    out.append(polyline[-1:])
-    return np.vstack(out)
 
 
 class Probe:
@@ -114,11 +105,10 @@ def check_waypoints(path, truth_dir, rms_tol, max_tol, coverage_tol):
     poses = path_to_matrices(path)
     points = poses[:, :3, 3]
     with np.load(truth_dir / 'curve_base.npz') as data:
-        true_curve = densify(np.vstack([data[k] for k in data.files]))
-    distance, _ = cKDTree(true_curve).query(points)
-    rms, worst = np.sqrt(np.mean(distance**2)), distance.max()
+        true_curve = np.vstack([data[k] for k in data.files])
     # coverage: every true point near the waypoint polyline (Hausdorff, other direction)
-    coverage = cKDTree(densify(points)).query(true_curve)[0].max()
+    agreement = curve_agreement(points, true_curve)
+    rms, worst, coverage = agreement.rms_m, agreement.max_m, agreement.farthest_uncovered_m
     assert path.header.frame_id == 'base_link'
     assert rms < rms_tol, f'RMS {rms * 1e3:.3f} mm'
     assert worst < max_tol, f'max {worst * 1e3:.3f} mm'
@@ -687,17 +677,8 @@ def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
             lambda end=end: probe.paths or time.monotonic() > end, 2, 'waypoints'
         )
     points = path_to_matrices(probe.paths[-1])[:, :3, 3]
-    truth = densify(
-        np.vstack([case.truth_base, case.truth_base[:1]]) if case.closed else case.truth_base
-    )
-    distance = cKDTree(truth).query(points)[0]
-    rms, worst = np.sqrt(np.mean(distance**2)), distance.max()
-    coverage = np.mean(
-        cKDTree(densify(np.vstack([points, points[:1]]) if case.closed else points)).query(truth)[
-            0
-        ]
-        <= 3e-3
-    )
+    ours = curve_agreement(points, case.truth_base, case.closed, case.closed)
+    rms, worst, coverage = ours.rms_m, ours.max_m, ours.coverage
     # the reference on the same images, chains and calibration
     settings = ReconstructionSettings(degree=case.degree, line_width_px=case.line_width_px)
     views = [
@@ -705,7 +686,7 @@ def test_generated_draw_within_bench_bounds_and_not_worse_than_triangulation(
         for n in ('left', 'right', 'aux')
     ]
     reference, _ = triangulate_views(views)
-    reference_rms = np.sqrt(np.mean(cKDTree(truth).query(reference)[0] ** 2))
+    reference_rms = curve_agreement(reference, case.truth_base, case.closed, case.closed).rms_m
     rclpy_node.spin_until(lambda: probe.diagnostic('reconstruction'), 10, 'the diagnostic')
     status = status_values(probe.diagnostic('reconstruction'))
     print(

@@ -4,7 +4,7 @@ the true curve, and each cause's mechanism on its own."""
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
+from vgm_evaluation.metrics import curve_agreement
 
 from curve_recon_node.piecewise import PiecewiseCurve, View, select_candidates
 from curve_recon_node.pipeline import ReconstructionSettings, _end_on_holes, reconstruct_capture
@@ -14,20 +14,8 @@ from vgm_common.camera_model import PinholeCamera
 F_PX = 600.0
 
 
-def dense(points, closed, step=1e-4):
-    """Points every ``step`` [m] along the polyline (closed: back to the first)."""
-    polyline = np.vstack([points, points[:1]]) if closed else points
-    pieces = [
-        a
-        + np.linspace(0, 1, max(int(np.linalg.norm(b - a) / step), 1), endpoint=False)[:, None]
-        * (b - a)
-        for a, b in zip(polyline[:-1], polyline[1:])
-    ]
-    return np.vstack([*pieces, polyline[-1:]])
-
-
 def reconstruct_draw(family, seed, noise_grey):
-    """(waypoints, closed, stats, dense true curve) of the bench's draw."""
+    """The reconstruction of the bench's draw and the case (its true curve)."""
     from vgm_evaluation.curve_families import generate_case
 
     from sensor_sim.render import SceneRenderer, add_noise
@@ -44,15 +32,7 @@ def reconstruct_draw(family, seed, noise_grey):
     }
     settings = ReconstructionSettings(degree=case.degree, line_width_px=case.line_width_px)
     result = reconstruct_capture(images, case.scenario.cameras, settings)
-    return result, dense(case.truth_base, case.closed)
-
-
-def errors_and_coverage(result, truth):
-    """Distances [m] of the waypoints to the true curve and the share of the true curve
-    within 3 mm of the waypoints' polyline."""
-    distance = cKDTree(truth).query(result.waypoints_base)[0]
-    near = cKDTree(dense(result.waypoints_base, result.closed, 2e-4)).query(truth)[0]
-    return distance, float(np.mean(near <= 3e-3))
+    return result, case
 
 
 @pytest.mark.parametrize(
@@ -101,8 +81,10 @@ def errors_and_coverage(result, truth):
     ],
 )
 def test_traced_draws_within_a_millimetre(family, seed, noise_grey, max_mm, rms_mm):
-    result, truth = reconstruct_draw(family, seed, noise_grey)
-    distance, coverage = errors_and_coverage(result, truth)
+    result, case = reconstruct_draw(family, seed, noise_grey)
+    # the bench's measures: the share of the true curve within 3 mm of the waypoints
+    agreement = curve_agreement(result.waypoints_base, case.truth_base, result.closed, case.closed)
+    distance, coverage = agreement.distance_m, agreement.coverage
     print(
         f'{family} seed {seed} noise {noise_grey}: RMS {1e3 * np.sqrt(np.mean(distance**2)):.3f}'
         f' mm, max {1e3 * distance.max():.3f} mm, coverage {coverage:.3f}, {result.stats}'

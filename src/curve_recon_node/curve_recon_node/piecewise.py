@@ -803,12 +803,15 @@ def refine_points(
     tangents: FloatArray | None = None,
     iterations: int = 3,
     max_step_m: float = 0.01,
+    max_rank: int = 3,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Move each point to minimise sum_k (f_k d_k)^2, its squared distances [px] to the
     curves of all ``views`` (d_k the signed Sampson distance in view k, f_k its focal
     length): minimum-norm Gauss-Newton steps, batched. The along-curve direction is
     (nearly) in the null space; steps are also kept normal to ``tangents`` (N, 3) if
     given, so that points do not slide along the curve and keep their order.
+    ``max_rank`` 2: the direction the views determine least (the curve's tangent as
+    they see it) is always dropped from the step, however well determined it looks.
     Returns (points (N, 3), their signed residuals (N, V) [px], the residuals before
     refinement (N, V) [px]); NaN where a point is behind a camera."""
     x = np.array(points_base, dtype=float).reshape(-1, 3)
@@ -822,7 +825,7 @@ def refine_points(
             break
         # minimum-norm Gauss-Newton step: nothing along the (near-)null direction, the
         # curve's tangent, so points do not slide along the curve
-        step = -pinv_solve(J[ok], residuals[ok], rcond=1e-2)
+        step = -pinv_solve(J[ok], residuals[ok], rcond=1e-2, max_rank=max_rank)
         if tangents is not None:
             t = tangents[ok]
             step -= np.sum(step * t, axis=1, keepdims=True) * t
@@ -854,16 +857,16 @@ def _distance_jacobian(x: FloatArray, views: Sequence[View]) -> tuple[FloatArray
     return residuals, J
 
 
-def pinv_solve(J: FloatArray, r: FloatArray, rcond: float) -> FloatArray:
+def pinv_solve(J: FloatArray, r: FloatArray, rcond: float, max_rank: int = 3) -> FloatArray:
     """pinv(J, rcond) @ r for a batch of (Q, V, 3) J and (Q, V) r: the minimum-norm least-
     squares solution that drops singular values at or below ``rcond`` times the largest,
-    as ``np.linalg.pinv`` does, but in closed form from the eigenvalues of the 3 x 3 normal
-    matrices A = J^T J (the squared singular values): Q small LAPACK SVDs, one call each,
-    cost 2-3 times more. Returns (Q, 3)."""
+    as ``np.linalg.pinv`` does, and all but the ``max_rank`` largest; in closed form from
+    the eigenvalues of the 3 x 3 normal matrices A = J^T J (the squared singular values):
+    Q small LAPACK SVDs, one call each, cost 2-3 times more. Returns (Q, 3)."""
     A = np.einsum('qvi,qvj->qij', J, J)
     g = np.einsum('qvi,qv->qi', J, r)
     eigenvalues = _symmetric_eigenvalues_3x3(A)  # descending
-    kept = (eigenvalues > rcond**2 * eigenvalues[:, :1]).sum(axis=1)
+    kept = np.minimum((eigenvalues > rcond**2 * eigenvalues[:, :1]).sum(axis=1), max_rank)
     x = np.zeros_like(g)
     full = kept == 3
     x[full] = _solve_3x3(A[full], g[full])
