@@ -12,7 +12,12 @@ from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
 
 from calib_node.calibrate import CalibrationError
 from calib_node.plots import PLOT_SIZE_PX, write_plots
-from calib_node.session import CalibrationSession, NotReady, SessionSettings
+from calib_node.session import (
+    CalibrationSession,
+    NotReady,
+    SessionSettings,
+    silent_cameras_advice,
+)
 from harness import ManualClock
 from vgm_common.errors import InvalidInput
 
@@ -194,3 +199,52 @@ def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, 
         strict.calibrate()
     assert refusal.value.uncertain and 'max_projection_std_px 0.4' in str(refusal.value)
     assert 'latest projection_std_worst_px' in strict.status({})[1]
+
+
+def test_an_attempt_says_what_the_node_reports(rig_and_images):
+    """attempt(): the calibration to publish, or the refusal with its diagnostic level,
+    values and log level, as the node hands them on unchanged."""
+    rig, images = rig_and_images
+    few = _session(rig, min_views=len(images) + 1)
+    _feed(few, rig, images[:2])
+    refused = few.attempt()
+    assert refused.calibration is None and (refused.level, refused.log) == ('', '')
+    assert refused.message == f'2 views collected, min_views is {len(images) + 1}'
+    # A silent camera is why no view comes: it is said after the refusal.
+    silent = few.attempt('no image from right in 10 s')
+    assert silent.message == f'{refused.message}; no image from right in 10 s'
+    sparse = _session(rig, chart_source='handheld', min_coverage=1.0, min_views=4)
+    _feed(sparse, rig, images, posed=False)
+    coverage = sparse.attempt()
+    assert coverage.level == 'warn' and coverage.message.startswith('not enough coverage')
+    assert coverage.values['views'] == len(sparse.views) and 'x' in coverage.values['coverage']
+    strict = _session(rig, max_rms_px=1e-6)
+    _feed(strict, rig, images)
+    failed = strict.attempt()
+    assert (failed.level, failed.log) == ('error', 'error') and 'max_rms_px' in failed.message
+    assert failed.values == {'views': len(images), 'method': 'lm'}
+    uncertain = _session(rig, max_projection_std_px=1e-3)
+    _feed(uncertain, rig, images)
+    refusal = uncertain.attempt()
+    assert (refusal.level, refusal.log) == ('', 'info')
+    assert 'do not determine the cameras yet' in refusal.message
+    good = _session(rig)
+    _feed(good, rig, images)
+    accepted = good.attempt()
+    assert accepted.calibration is not None and accepted.calibration.views == len(images)
+
+
+def test_silent_cameras_are_named_with_what_to_do():
+    def topic_of(name):
+        return f'/{name}/image_raw'
+
+    names = ('left', 'right', 'aux')
+    assert silent_cameras_advice([], names, topic_of, 10.0) == ''
+    assert silent_cameras_advice(['aux'], names, topic_of, 10.0) == (
+        'no image from aux in 10 s while left, right send images: a 2-camera rig is '
+        'cameras: [left, right]'
+    )
+    assert silent_cameras_advice(['right'], names, topic_of, 2.5) == (
+        'no image from right in 2.5 s while left, aux send images: check that right '
+        'publishes on /right/image_raw'
+    )

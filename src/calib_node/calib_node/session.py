@@ -14,7 +14,7 @@ from __future__ import annotations
 import hashlib
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Literal, NamedTuple
@@ -253,6 +253,18 @@ class Calibration(NamedTuple):
         return quality
 
 
+class Attempt(NamedTuple):
+    """What a calibration attempt gives the node: ``calibration`` to publish (None: refused,
+    ``message`` says why), the diagnostic to publish for a refusal (``level`` '' for
+    none, with ``values``) and the logger level of its message ('' for none)."""
+
+    calibration: Calibration | None
+    message: str = ''
+    level: str = ''
+    values: dict[str, Any] = {}  # noqa: RUF012 (a NamedTuple default, never mutated)
+    log: str = ''
+
+
 class _Fit(NamedTuple):
     """A calibration of some views before it is judged: the fits, the frame they were
     solved in, the solver's time, the uncertainty (None: no covariance) and every view's
@@ -317,6 +329,15 @@ class CalibrationSession:
         self.calibrations = 0
         self.last_result: dict[str, Any] | None = None
         self._stopping = threading.Event()
+
+    def describe(self) -> str:
+        """The log line of a session starting to collect views."""
+        settings = self._settings()
+        return (
+            f'collecting chart views ({settings.method}, {self.rows}x{self.cols} '
+            f'chessboard, chart.source {self.source}, cameras '
+            f'{", ".join(self.names)}, min_views {settings.min_views})'
+        )
 
     # --- inputs -------------------------------------------------------------------------
 
@@ -533,6 +554,28 @@ class CalibrationSession:
             residuals,
         )
 
+    def attempt(self, silent: str = '') -> Attempt:
+        """:meth:`calibrate`, its refusals turned into what the node reports: a refusal
+        for too few views or too little coverage is the service's answer (coverage also
+        a WARN diagnostic), one for too much uncertainty also a log line (what to show
+        next), a failed calibration an error line and diagnostic. ``silent``: what the
+        node knows about cameras that send nothing, which comes first in a refusal."""
+        try:
+            return Attempt(self.calibrate())
+        except NotReady as refusal:
+            if silent:  # why there are no views comes first
+                return Attempt(None, f'{refusal}; {silent}')
+            if refusal.coverage:
+                _, values = self.status({})
+                coverage = {'views': values['views'], 'coverage': values.get('coverage', '')}
+                return Attempt(None, str(refusal), 'warn', coverage)
+            return Attempt(None, str(refusal), log='info' if refusal.uncertain else '')
+        except CalibrationError as error:
+            with self._lock:
+                views = len(self.views)
+            values = {'views': views, 'method': self._settings().method}
+            return Attempt(None, str(error), 'error', values, 'error')
+
     def _observations(
         self, views: list[View]
     ) -> dict[str, tuple[FloatArray, FloatArray, tuple[int, int]]]:
@@ -734,3 +777,34 @@ def _images_digest(greys: Mapping[str, np.ndarray]) -> bytes:
         digest.update(f'{name}:{grey.shape}:{grey.dtype}'.encode())
         digest.update(grey.data)
     return digest.digest()
+
+
+def handheld_notice(target_topic: str) -> str:
+    """The log line of ``chart_source: auto`` taking its first view as handheld (what auto
+    chose must not be a silent switch)."""
+    return (
+        f'chart.source auto: no target pose on {target_topic} '
+        f'for this view within {TARGET_WAIT_S} s: views are taken as handheld (chart '
+        'poses estimated) until a target pose arrives'
+    )
+
+
+def silent_cameras_advice(
+    silent: Sequence[str], names: Sequence[str], topic_of: Callable[[str], str], after_s: float
+) -> str:
+    """'' or what to do about the cameras ``silent`` that sent no image for ``after_s`` [s]
+    while the others of ``names`` did (no capture set can complete: 0 views however long
+    the chart is shown); ``topic_of`` names a camera's image topic as resolved."""
+    if not silent:
+        return ''
+    sending = [n for n in names if n not in silent]
+    advice = (
+        f'a {len(sending)}-camera rig is cameras: [{", ".join(sending)}]'
+        if {'left', 'right'} <= set(sending)
+        else f'check that {", ".join(silent)} publishes on '
+        + ', '.join(topic_of(n) for n in silent)
+    )
+    return (
+        f'no image from {", ".join(silent)} in {after_s:g} s while '
+        f'{", ".join(sending)} send images: {advice}'
+    )
