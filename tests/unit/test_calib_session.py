@@ -70,6 +70,9 @@ def test_stage_views_calibrate_to_the_truth(rig_and_images):
     calibration = session.calibrate()
     assert calibration.reference == 'base_link' and not calibration.handheld
     assert calibration.camera_views == {'left': len(images), 'right': len(images)}
+    # Stage halves are both solved in base_link: compared there, no transform fitted.
+    cross = calibration.cross_validation
+    assert cross is not None and cross.halves == (4, 4) and not cross.aligned
     score = score_rig(rig.cameras, calibration.cameras, absolute=True)
     # Bounds as the topic tests' (rendered images, 8 views): 0.3 % in focal length and
     # baseline, 2 mm in position.
@@ -151,8 +154,10 @@ def test_handheld_views_need_coverage_and_calibrate_in_the_rig_frame(rig_and_ima
 
 def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, tmp_path):
     """max_projection_std_px decides, not a view count: automatic calibration is asked for
-    by every view from min_views on; select_views' set-aside views are used when the kept
-    ones fall short (measured on this rig: 6 kept views 0.446 px worst, all 8 0.413 px)."""
+        by every view from min_views on; select_views' set-aside views are used when the kept
+        ones fall short (measured on this rig: 6 kept views 0.455 px worst, all 8 0.414 px).
+    The calibration carries its cross-validation (two halves of 4 views), reported beside the
+    predicted uncertainty."""
     rig, images = rig_and_images
     handheld = {'chart_source': 'handheld', 'min_coverage': 0.0, 'min_views': 3}
     session = _session(rig, max_projection_std_px=0.43, **handheld)
@@ -168,9 +173,17 @@ def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, 
     quality = calibration.quality()
     assert quality['right']['projection_std_worst_px'] == uncertainty.worst_px['right']
     assert quality['right']['baseline_std_m'] == uncertainty.baseline_std_m > 0
+    cross = calibration.cross_validation
+    assert cross is not None and cross.halves == (4, 4) and cross.aligned
+    assert quality['left']['cross_validation_worst_px'] == cross.worst_px['left'] > 0
+    assert 0 < cross.median_px['right'] < cross.worst_px['right']
     _, values = session.record(calibration)
     assert float(values['projection_std_worst_px right']) == pytest.approx(
         uncertainty.worst_px['right'], abs=1e-3
+    )
+    assert values['cross_validation_views'] == '4 / 4'
+    assert float(values['cross_validation_median_px left']) == pytest.approx(
+        cross.median_px['left'], abs=1e-3
     )
     # The pictures beside the YAML: valid PNGs of PLOT_SIZE_PX, per camera and kind.
     written = write_plots(
@@ -178,8 +191,9 @@ def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, 
         {n: (c.width, c.height) for n, c in calibration.cameras.items()},
         calibration.residuals,
         uncertainty,
+        cross,
     )
-    kinds = ('residuals', 'coverage', 'uncertainty')
+    kinds = ('residuals', 'coverage', 'uncertainty', 'cross_validation')
     assert sorted(p.name for p in written) == sorted(
         f'{n}_{k}.png' for n in CAMERAS for k in kinds
     )

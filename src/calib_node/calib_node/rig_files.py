@@ -64,7 +64,9 @@ class Written:
     def summary(self, names: tuple[str, ...]) -> str:
         """The log line of what was written for the cameras ``names``."""
         pictures = (
-            f' and {len(self.plots)} PNGs (residuals, coverage, uncertainty)' if self.plots else ''
+            f' and {len(self.plots)} PNGs (residuals, coverage, uncertainty, cross-validation)'
+            if self.plots
+            else ''
         )
         return (
             f'wrote {self.calibration_yaml} and {", ".join(f"{n}.yaml" for n in names)}'
@@ -89,6 +91,7 @@ def write_rig(output_dir: str | Path, calibration: Calibration) -> Written:
             {n: (c.width, c.height) for n, c in calibration.cameras.items()},
             calibration.residuals,
             calibration.uncertainty,
+            calibration.cross_validation,
         )
     except (OSError, ImportError, ValueError) as error:
         return Written(written, [], str(error))
