@@ -18,6 +18,9 @@
 6. ``--mrcal [--mrcal-rigs N]`` (alone): OpenCV's 13 stereo sample pairs and N generated
    stereo rigs calibrated on the same corners by calib_node, mrcal (a separate process:
    ``--mrcal-python``, ``--mrcal-path``; set-up in ``calib_mrcal.py``) and OpenCV; mrcal.md.
+7. ``--gauge N [--draws D --sigma S]`` (alone): the projection uncertainty held in the left
+   camera's frame and held to the charts, each against the true error in its gauge, on N
+   generated stereo rigs; gauge.md.
 
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_calib.py
     (options: --trials 20 --ga-trials 3 --sigmas 0 0.5 1 1.5 2 2.5 3 --rigs 10)
@@ -540,6 +543,102 @@ def uncertainty_check(rigs, draws):
     print('\n'.join(lines))
 
 
+def gauge_check(rigs, draws, sigma):
+    """The projection uncertainty held in the left camera's frame and held to the charts,
+    each against the true error in its own gauge: handheld bundle adjustment of generated
+    stereo rigs (exact corners plus Gaussian noise ``sigma`` [px], ``draws`` each);
+    gauge.md."""
+    from vgm_evaluation.rig_generator import draw_rig, true_corners
+
+    from calib_node.bundle import bundle_adjust
+    from calib_node.chart_detection import chart_points
+    from calib_node.uncertainty import true_projection_error, true_projection_error_chart_fixed
+
+    started = time.perf_counter()
+    names = ('left', 'right')
+    lines = [
+        '| rig | views | camera | left frame: predicted / true, median | worst | '
+        'held to the charts: predicted / true, median | worst |',
+        '|---|---|---|---|---|---|---|',
+    ]
+    for seed in range(rigs):
+        rig = draw_rig(seed, names)
+        chart = chart_points(rig.rows, rig.cols, rig.spacing)
+        sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
+        T_base_left = rig.cameras['left'].T_base_camera
+        truth = {n: np.linalg.inv(c.T_base_camera) @ T_base_left for n, c in rig.cameras.items()}
+        T_left_chart = [np.linalg.inv(T_base_left) @ T for T in rig.T_base_chart]
+        grids = {n: {k: [] for k in ('left', 'true left', 'charts', 'true charts')} for n in names}
+        for draw in range(draws):
+            rng = np.random.default_rng(1000 * seed + draw)
+            views = [
+                {n: uv + rng.normal(0.0, sigma, uv.shape) for n, uv in view.items()}
+                for view in true_corners(rig)
+            ]
+            # Deterministic: the same solution twice, its uncertainty in the two gauges.
+            held = bundle_adjust(chart, views, sizes, fit_tangential=False)
+            floating = bundle_adjust(
+                chart, views, sizes, fit_tangential=False, hold_to_charts=False
+            )
+            for name, fit in held.fits.items():
+                true = rig.cameras[name]
+                T = np.linalg.inv(fit.T_base_camera)
+                range_m = held.uncertainty.range_m[name]
+                grid = grids[name]
+                grid['left'].append(floating.uncertainty.grid_px[name])
+                grid['charts'].append(held.uncertainty.grid_px[name])
+                grid['true left'].append(
+                    true_projection_error(
+                        true.K, true.D, truth[name], fit.K, fit.D, T, sizes[name], range_m
+                    )
+                )
+                grid['true charts'].append(
+                    true_projection_error_chart_fixed(
+                        true.K,
+                        true.D,
+                        truth[name],
+                        T_left_chart,
+                        fit.K,
+                        fit.D,
+                        T,
+                        held.T_ref_chart,
+                        sizes[name],
+                        range_m,
+                    )
+                )
+        for name, grid in grids.items():
+            rms = {k: np.sqrt(np.mean(np.square(v), axis=0)) for k, v in grid.items()}
+
+            def pair(a, b, figure, rms=rms):
+                return f'{figure(rms[a]):.3f} / {figure(rms[b]):.3f}'
+
+            lines.append(
+                f'| {seed} | {len(rig.T_base_chart)} | {name} | '
+                f'{pair("left", "true left", np.median)} | {pair("left", "true left", np.max)} | '
+                f'{pair("charts", "true charts", np.median)} | '
+                f'{pair("charts", "true charts", np.max)} |'
+            )
+    lines = [
+        '# calib_node: the projection uncertainty in two gauges, each against its truth',
+        '',
+        f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+        f'bench/bench_calib.py --gauge {rigs} --draws {draws} --sigma {sigma:g}` '
+        f'({time.perf_counter() - started:.0f} s).',
+        '',
+        f'Generated stereo rigs (`draw_rig(seed, (left, right))`), exact corners plus '
+        f'Gaussian noise {sigma:g} px, {draws} draws each, handheld bundle adjustment (no '
+        'p1, p2: the truth has none). Per camera the RMS over the draws, per grid pixel, of '
+        'the predicted projection std and of the true projection error at the working '
+        'range, then the median and the worst over the 16 x 12 grid [px]. Left frame: the '
+        "point held fixed in the left camera's frame; held to the charts: mrcal's "
+        "'mean-pcam', what calib_node reports.",
+        '',
+        *lines,
+    ]
+    (RESULTS / 'gauge.md').write_text('\n'.join(lines) + '\n')
+    print('\n'.join(lines))
+
+
 def mrcal_check(python, path, rigs):
     """Ours beside mrcal and OpenCV on the sample pairs and ``rigs`` generated stereo rigs
     (``calib_mrcal.py``)."""
@@ -594,6 +693,13 @@ def main():
     )
     parser.add_argument('--draws', type=int, default=6, help='renderings per rig (--uncertainty)')
     parser.add_argument(
+        '--gauge',
+        type=int,
+        default=0,
+        help='only the uncertainty in two gauges on N generated rigs (gauge.md; --draws)',
+    )
+    parser.add_argument('--sigma', type=float, default=0.3, help='corner noise [px] (--gauge)')
+    parser.add_argument(
         '--mrcal',
         action='store_true',
         help='only ours beside mrcal on the sample pairs (mrcal.md)',
@@ -609,6 +715,9 @@ def main():
     )
     args = parser.parse_args()
     RESULTS.mkdir(parents=True, exist_ok=True)
+    if args.gauge:
+        gauge_check(args.gauge, args.draws, args.sigma)
+        return
     if args.mrcal:
         mrcal_check(args.mrcal_python, args.mrcal_path, args.mrcal_rigs)
         return

@@ -10,10 +10,14 @@ detector): OpenCV's 13 stereo sample pairs (Debian's opencv-doc) and generated s
 
 Per camera fx, fy, cx, cy, RMS, baseline, and the projection uncertainty at the working
 range (the median depth of the corners in our fit) over the same 16 x 12 pixel grid:
-ours (``uncertainty.rig_uncertainty``) beside mrcal's own (``mrcal.projection_uncertainty``,
-run by ``mrcal_peer.py``), both as sqrt(trace) of the 2 x 2 covariance. On generated rigs
-also the errors against the truth and the true projection error at the working range in
-the calibration's own gauge (the left camera; ``uncertainty.true_projection_error``).
+ours (``uncertainty.rig_uncertainty``, the point held to the charts) beside mrcal's own
+(``mrcal.projection_uncertainty``, 'mean-pcam', run by ``mrcal_peer.py``), both as
+sqrt(trace) of the 2 x 2 covariance. On generated rigs also the errors against the truth
+and the true projection error at the working range in the left camera's frame
+(``uncertainty.true_projection_error``) and held to the charts
+(``uncertainty.true_projection_error_chart_fixed``, each tool's own chart poses). And the
+cross-validation of ours (``cross_validation``) beside mrcal's (``mrcal.projection_diff``
+of its calibrations of the same two halves).
 
 mrcal is no dependency of the project: the bench runs it as a separate process, with the
 interpreter and path given (``--mrcal-python``, ``--mrcal-path``). Set-up used (PyPI's
@@ -41,7 +45,14 @@ from vgm_evaluation.rig_generator import draw_rig, render_rig
 
 from calib_node.bundle import bundle_adjust_selected
 from calib_node.chart_detection import chart_points, detect_chessboard
-from calib_node.uncertainty import GRID, image_grid, true_projection_error
+from calib_node.cross_validation import compare_halves, split_chart_views
+from calib_node.uncertainty import (
+    GRID,
+    image_grid,
+    true_projection_error,
+    true_projection_error_chart_fixed,
+)
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.sample_data import STEREO_CALIBRATION_IDS, opencv_sample_dir
 
 NAMES = ('left', 'right')
@@ -94,47 +105,111 @@ def write_corners(path, views):
     Path(path).write_text('\n'.join(lines) + '\n')
 
 
+def _calibrate_mrcal(views, size, board, mrcal, focal, options, work):
+    """mrcal-calibrate-cameras on ``views`` into the directory ``work`` (camera-<i>.cameramodel);
+    its wall time [s]."""
+    corners = Path(work) / 'corners.vnl'
+    write_corners(corners, views)
+    started = time.perf_counter()
+    arguments = [
+        *('--corners-cache', str(corners), '--imagersize', *map(str, size)),
+        *('--lensmodel', 'LENSMODEL_OPENCV4', '--focal', str(focal)),
+        *('--object-spacing', str(board.spacing), '--object-width-n', str(board.cols)),
+        *('--object-height-n', str(board.rows), '--skip-calobject-warp-solve'),
+        *options,
+        *('--outdir', str(work)),
+        *[f'{name}*.png' for name in NAMES],
+    ]
+    command = [mrcal.python, str(Path(mrcal.path) / 'bin' / 'mrcal-calibrate-cameras')]
+    subprocess.run(
+        command + arguments,
+        env=dict(os.environ, PYTHONPATH=mrcal.path),
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    return time.perf_counter() - started
+
+
+def _peer(mrcal, request):
+    """mrcal_peer.py's JSON answer to ``request``."""
+    answer = subprocess.run(
+        [mrcal.python, str(PEER), json.dumps(request)],
+        env=dict(os.environ, PYTHONPATH=mrcal.path),
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    return json.loads(answer.stdout)
+
+
 def run_mrcal(views, size, board, pixels, ranges, mrcal, focal, options=()):
     """mrcal-calibrate-cameras + mrcal_peer.py in a temporary directory: the peer's JSON
     per camera and the calibration's wall time [s]."""
-    environment = dict(os.environ, PYTHONPATH=mrcal.path)
     with tempfile.TemporaryDirectory(prefix='calib-mrcal-') as work:
-        corners = Path(work) / 'corners.vnl'
-        write_corners(corners, views)
-        started = time.perf_counter()
-        arguments = [
-            *('--corners-cache', str(corners), '--imagersize', *map(str, size)),
-            *('--lensmodel', 'LENSMODEL_OPENCV4', '--focal', str(focal)),
-            *('--object-spacing', str(board.spacing), '--object-width-n', str(board.cols)),
-            *('--object-height-n', str(board.rows), '--skip-calobject-warp-solve'),
-            *options,
-            *('--outdir', work),
-            *[f'{name}*.png' for name in NAMES],
-        ]
-        command = [mrcal.python, str(Path(mrcal.path) / 'bin' / 'mrcal-calibrate-cameras')]
-        subprocess.run(
-            command + arguments,
-            env=environment,
-            check=True,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
-        seconds = time.perf_counter() - started
+        seconds = _calibrate_mrcal(views, size, board, mrcal, focal, options, work)
         request = {
             'models': [str(Path(work) / f'camera-{i}.cameramodel') for i in range(len(NAMES))],
             'pixels': [p.tolist() for p in pixels],
             'ranges': ranges,
         }
-        answer = subprocess.run(
-            [mrcal.python, str(PEER), json.dumps(request)],
-            env=environment,
-            check=True,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
-    return json.loads(answer.stdout), seconds
+        return _peer(mrcal, request), seconds
+
+
+def cross_validation(views, sizes, board, mrcal, ranges, focal):
+    """Ours and mrcal's cross-validation on the same two halves of the views
+    (``cross_validation.split_chart_views``): {tool: {name: (worst, median) [px]}} and the
+    halves' sizes. Ours: the halves' bundle adjustments, one rigid transform fitted for the
+    rig (calib_node's figure); mrcal: mrcal-calibrate-cameras on each half, then
+    ``mrcal.projection_diff`` per camera (its transform fitted per camera)."""
+    chart = chart_points(*board)
+    views = [v for v in views if v]
+    halves = split_chart_views(views, NAMES, board.rows, board.cols, sizes)
+    ours = [
+        bundle_adjust_selected(chart, [views[i] for i in h], sizes, None, NAMES) for h in halves
+    ]
+    cameras = [
+        {n: PinholeCamera(*sizes[n], f.K, f.D, f.T_base_camera) for n, f in r.fits.items()}
+        for r in ours
+    ]
+    uncertainty = (ours[0].uncertainty, ours[1].uncertainty)
+    counts = (len(halves[0]), len(halves[1]))
+    ranges_m = dict(zip(NAMES, ranges))
+    cross = compare_halves(cameras[0], cameras[1], ranges_m, counts, True, uncertainty)
+    result = {'ours': {n: (cross.worst_px[n], cross.median_px[n]) for n in NAMES}}
+    for tool, options in MRCAL_RUNS.items():
+        with tempfile.TemporaryDirectory(prefix='calib-mrcal-') as work:
+            for k, half in enumerate(halves):
+                (Path(work) / f'half{k}').mkdir()
+                half_views = [views[i] for i in half]
+                _calibrate_mrcal(
+                    half_views,
+                    sizes['left'],
+                    board,
+                    mrcal,
+                    focal,
+                    options,
+                    Path(work) / f'half{k}',
+                )
+            models = [
+                [str(Path(work) / f'half{k}' / f'camera-{i}.cameramodel') for k in (0, 1)]
+                for i in range(len(NAMES))
+            ]
+            answer = _peer(mrcal, {'halves': models, 'ranges': list(ranges)})
+        result[tool] = {n: (a['worst_px'], a['median_px']) for n, a in zip(NAMES, answer)}
+    return result, counts
+
+
+def cross_validation_lines(result, counts):
+    """Markdown rows of :func:`cross_validation`."""
+    return [
+        f'| {name} | {tool} | {counts[0]} / {counts[1]} | {result[tool][name][0]:.2f} / '
+        f'{result[tool][name][1]:.2f} |'
+        for name in NAMES
+        for tool in ('ours', *MRCAL_RUNS)
+    ]
 
 
 def calibrate_three(views, sizes, board, mrcal):
@@ -156,6 +231,7 @@ def calibrate_three(views, sizes, board, mrcal):
                 'T_camera_ref': np.linalg.inv(f.T_base_camera),
                 'rms': f.rms_px,
                 'std': ours.uncertainty.grid_px[n].ravel(),
+                'T_ref_chart': ours.T_ref_chart,
             }
             for n, f in ours.fits.items()
         }
@@ -178,6 +254,7 @@ def calibrate_three(views, sizes, board, mrcal):
                 'rms': theirs['rms_px'],
                 'std': np.asarray(theirs['std_px']),
                 'outliers': theirs['outliers'],
+                'T_ref_chart': [np.asarray(T) for T in theirs['T_ref_frame']],
             }
     started = time.perf_counter()
     opencv = opencv_rig(chart, views, sizes, list(NAMES))
@@ -186,7 +263,7 @@ def calibrate_three(views, sizes, board, mrcal):
         n: {'K': c.K, 'D': c.D, 'T_camera_ref': np.linalg.inv(c.T_base_camera)}
         for n, c in opencv.items()
     }
-    return solutions, seconds, ranges, ours.uncertainty.baseline_std_m
+    return solutions, seconds, ranges, ours.uncertainty.baseline_std_m, focal
 
 
 def baseline(solution):
@@ -211,15 +288,17 @@ def _rms(solution):
 def sample_table(mrcal):
     """Markdown lines and a JSON-able summary: OpenCV's 13 sample pairs."""
     views, sizes = sample_views()
-    solutions, seconds, ranges, baseline_std = calibrate_three(views, sizes, SAMPLE_BOARD, mrcal)
+    solutions, seconds, ranges, baseline_std, focal = calibrate_three(
+        views, sizes, SAMPLE_BOARD, mrcal
+    )
     lines = [
         "OpenCV's 13 stereo sample pairs (640 x 480, 9 x 6 corners, 0.025 m), calib_node's "
         f'corners of all 13 pairs; working range {ranges[0]:.3f} / {ranges[1]:.3f} m (left / '
         'right: the median corner depth). Projection std: sqrt(trace) of the 2 x 2 covariance '
         f'of a point at the working range, over a {GRID[0]} x {GRID[1]} grid spanning the '
         'image; ours: residual variance RSS / (n - p), the chart poses part of the covariance, '
-        "the point fixed in the left camera's frame; mrcal: its 'mean-pcam' method (the point "
-        'fixed relative to the observed boards), observed-pixel noise from its residuals. '
+        "the point held fixed to the charts (as mrcal's); mrcal: its 'mean-pcam' method (the "
+        'point fixed relative to the observed boards), observed-pixel noise from its residuals. '
         'mrcal: LENSMODEL_OPENCV4, flat board, its light regularisation; outlier rejection '
         'as by default, and off ("all corners").',
         '',
@@ -261,6 +340,18 @@ def sample_table(mrcal):
             + f', baseline {baselines["ours"] / baselines[tool] - 1:+.3%}.'
         )
     lines.append(f'Our baseline std: {baseline_std * 1e3:.3f} mm.')
+    cross, counts = cross_validation(views, sizes, SAMPLE_BOARD, mrcal, ranges, focal)
+    lines += [
+        '',
+        'Cross-validation: the views split into two halves that cover the image alike, each '
+        'calibrated apart, the two solutions compared at the working range (worst / median '
+        'over the grid [px]); ours aligns the halves by one rigid transform for the rig, '
+        "mrcal's projection_diff by one per camera.",
+        '',
+        '| camera | tool | views | cross-validation worst / median [px] |',
+        '|---|---|---|---|',
+        *cross_validation_lines(cross, counts),
+    ]
     summary = {
         'intrinsics': {
             t: {n: solutions[t][n]['K'][[0, 1, 0, 1], [0, 1, 2, 2]].tolist() for n in NAMES}
@@ -280,12 +371,21 @@ def rig_table(count, mrcal):
         "('left', 'right'))`, rendered once), the same corners for every tool. Errors of fx, "
         'fy, cx, cy against the truth [px]; true projection error: where the calibrated '
         'camera projects the points the true camera sees on the grid at the working range, '
-        "both in their own left camera's frame (worst / median over the grid [px]); "
-        "predicted: the tool's own projection std (worst / median).",
+        "both in their own left camera's frame (worst / median over the grid [px]); held "
+        'to the charts: the same, each point carried by the true chart poses into the '
+        "charts and back out by the tool's own, averaged over the charts (the gauge of ours "
+        "and mrcal's uncertainty; OpenCV's rig gives no chart poses); predicted: the tool's "
+        'own projection std (worst / median). Cross-validation: as on the sample pairs, '
+        "beside the full calibration's true error held to the charts.",
         '',
         '| rig | camera | tool | fx err | fy err | cx err | cy err | true projection error | '
-        'predicted | baseline err [um] |',
-        '|---|---|---|---|---|---|---|---|---|---|',
+        'held to the charts | predicted | baseline err [um] |',
+        '|---|---|---|---|---|---|---|---|---|---|---|',
+    ]
+    cross_lines = [
+        '',
+        '| rig | camera | tool | views | cross-validation worst / median [px] |',
+        '|---|---|---|---|---|',
     ]
     rows = []
     for seed in range(count):
@@ -293,8 +393,13 @@ def rig_table(count, mrcal):
         sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
         views = detect_views(rig, render_rig(rig, seed))
         board = Board(rig.rows, rig.cols, rig.spacing)
-        solutions, _, ranges, _ = calibrate_three(views, sizes, board, mrcal)
+        solutions, _, ranges, _, focal = calibrate_three(views, sizes, board, mrcal)
+        cross, counts = cross_validation(views, sizes, board, mrcal, ranges, focal)
+        cross_lines += [f'| {seed} ' + line for line in cross_validation_lines(cross, counts)]
         T_base_left = rig.cameras['left'].T_base_camera
+        T_left_chart = [
+            np.linalg.inv(T_base_left) @ T for T, v in zip(rig.T_base_chart, views) if v
+        ]
         truth = {
             n: {'K': c.K, 'T_camera_ref': np.linalg.inv(c.T_base_camera) @ T_base_left}
             for n, c in rig.cameras.items()
@@ -315,12 +420,27 @@ def rig_table(count, mrcal):
                     sizes[name],
                     range_m,
                 )
+                held = ''
+                if 'T_ref_chart' in s:
+                    fixed = true_projection_error_chart_fixed(
+                        true.K,
+                        true.D,
+                        truth[name]['T_camera_ref'],
+                        T_left_chart,
+                        s['K'],
+                        s['D'],
+                        s['T_camera_ref'],
+                        s['T_ref_chart'],
+                        sizes[name],
+                        range_m,
+                    )
+                    held = f'{fixed.max():.2f} / {np.median(fixed):.2f}'
                 baseline_error = abs(baseline(solutions[tool]) - true_baseline) * 1e6
                 lines.append(
                     f'| {seed} | {name} | {tool} | '
                     + ' | '.join(f'{e:.3f}' for e in errors)
-                    + f' | {projection.max():.2f} / {np.median(projection):.2f} | {_std(s)} | '
-                    f'{baseline_error:.1f} |'
+                    + f' | {projection.max():.2f} / {np.median(projection):.2f} | {held} | '
+                    f'{_std(s)} | {baseline_error:.1f} |'
                 )
                 rows.append(
                     {
@@ -335,4 +455,4 @@ def rig_table(count, mrcal):
                         'baseline_error_um': baseline_error,
                     }
                 )
-    return lines, rows
+    return lines + cross_lines, rows

@@ -11,7 +11,7 @@ from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
 from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import calibrate_rig, stage_uncertainty
 from calib_node.chart_detection import chart_points, detect_chessboard
-from calib_node.uncertainty import true_projection_error
+from calib_node.uncertainty import true_projection_error, true_projection_error_chart_fixed
 from vgm_common.camera_model import PinholeCamera
 
 MODES = ('stage', 'handheld')
@@ -257,8 +257,11 @@ def rigs_table(count):
 
 
 def _uncertainty_runs(rig, views):
-    """{mode: (Uncertainty, {name: (K, D, T_camera_ref)}, {name: true T_camera_ref})} of
-    one calibration per mode, as calib_node makes them (p1, p2 by BIC)."""
+    """{mode: (Uncertainty, {name: (K, D, T_camera_ref)}, {name: true T_camera_ref},
+    charts)} of one calibration per mode, as calib_node makes them (p1, p2 by BIC);
+    charts: None on the stage (the point fixed in base_link), handheld (true, estimated)
+    chart poses in the left camera's frame (the point held to the charts, as the
+    uncertainty)."""
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
     observations = stage_observations(rig, views)
@@ -270,11 +273,16 @@ def _uncertainty_runs(rig, views):
             stage_uncertainty(stage, observations),
             {n: (f.K, f.D, np.linalg.inv(f.T_base_camera)) for n, f in stage.items()},
             {n: np.linalg.inv(c.T_base_camera) for n, c in rig.cameras.items()},
+            None,
         ),
         'handheld': (
             handheld.uncertainty,
             {n: (f.K, f.D, np.linalg.inv(f.T_base_camera)) for n, f in handheld.fits.items()},
             {n: np.linalg.inv(c.T_base_camera) @ T_base_left for n, c in rig.cameras.items()},
+            (
+                [np.linalg.inv(T_base_left) @ T for T in rig.T_base_chart],
+                handheld.T_ref_chart,
+            ),
         ),
     }
 
@@ -291,11 +299,28 @@ def uncertainty_table(count, draws):
         collected = {m: {'pred': {}, 'err': {}, 'worst': {}, 'b': []} for m in MODES}
         for draw in range(draws):
             views = detect_views(rig, render_rig(rig, seed + 1000 * draw))
-            for mode, (u, cameras, truth) in _uncertainty_runs(rig, views).items():
+            for mode, (u, cameras, truth, charts) in _uncertainty_runs(rig, views).items():
                 c = collected[mode]
                 for name, true in rig.cameras.items():
-                    error = true_projection_error(
-                        true.K, true.D, truth[name], *cameras[name], sizes[name], u.range_m[name]
+                    K, D, T = cameras[name]
+                    range_m = u.range_m[name]
+                    error = (
+                        true_projection_error(
+                            true.K, true.D, truth[name], K, D, T, sizes[name], range_m
+                        )
+                        if charts is None
+                        else true_projection_error_chart_fixed(
+                            true.K,
+                            true.D,
+                            truth[name],
+                            charts[0],
+                            K,
+                            D,
+                            T,
+                            charts[1],
+                            sizes[name],
+                            range_m,
+                        )
                     )
                     c['pred'].setdefault(name, []).append(u.grid_px[name])
                     c['err'].setdefault(name, []).append(error)

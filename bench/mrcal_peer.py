@@ -7,9 +7,16 @@ intrinsics, the pose of the camera in camera 0 (T_ref_camera, 4 x 4), the reproj
 over its corners (outliers excluded, as mrcal reports them), the number of outliers and
 the projection uncertainty of mrcal's own method (``mrcal.projection_uncertainty``,
 default 'mean-pcam') at the given pixels and range, as sqrt(trace) of the 2 x 2
-covariance (the figure calib_node reports).
+covariance (the figure calib_node reports), and the chart poses it solved (each frame
+in camera 0's, T_ref_frame, 4 x 4).
+
+With "halves": mrcal's cross-validation of two calibrations of the same cameras on two
+halves of the views: per camera ``mrcal.projection_diff`` of the two models at the given
+range on a 16 x 12 grid (its implied transform fitted per camera, weighted by the
+models' uncertainties: mrcal's defaults), worst and median [px].
 
     mrcal_peer.py '{"models": [...], "pixels": [[[u, v], ...], ...], "ranges": [...]}'
+    mrcal_peer.py '{"halves": [[model a, model b], ...], "ranges": [...]}'
 """
 
 import json
@@ -39,11 +46,31 @@ def camera_figures(path, pixels, range_m):
         'rms_px': float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))),
         'outliers': int(np.sum(observations[..., 2] <= 0)),
         'std_px': std.tolist(),
+        'T_ref_frame': [_matrix(rt).tolist() for rt in inputs['rt_ref_frame']],
     }
+
+
+def _matrix(rt):
+    Rt = mrcal.Rt_from_rt(rt)  # (4, 3): R over t
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rt[:3], Rt[3]
+    return T
+
+
+def halves_difference(paths, range_m):
+    models = [mrcal.cameramodel(path) for path in paths]
+    difference = mrcal.projection_diff(models, gridn_width=16, gridn_height=12, distance=range_m)[
+        0
+    ]
+    return {'worst_px': float(np.max(difference)), 'median_px': float(np.median(difference))}
 
 
 def main():
     request = json.loads(sys.argv[1])
+    if 'halves' in request:
+        pairs = zip(request['halves'], request['ranges'])
+        print(json.dumps([halves_difference(paths, range_m) for paths, range_m in pairs]))
+        return
     print(
         json.dumps(
             [

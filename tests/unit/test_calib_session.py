@@ -12,7 +12,12 @@ from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
 
 from calib_node.calibrate import CalibrationError
 from calib_node.plots import PLOT_SIZE_PX, write_plots
-from calib_node.session import CalibrationSession, NotReady, SessionSettings
+from calib_node.session import (
+    CalibrationSession,
+    NotReady,
+    SessionSettings,
+    silent_cameras_advice,
+)
 from harness import ManualClock
 from vgm_common.errors import InvalidInput
 
@@ -65,6 +70,9 @@ def test_stage_views_calibrate_to_the_truth(rig_and_images):
     calibration = session.calibrate()
     assert calibration.reference == 'base_link' and not calibration.handheld
     assert calibration.camera_views == {'left': len(images), 'right': len(images)}
+    # Stage halves are both solved in base_link: compared there, no transform fitted.
+    cross = calibration.cross_validation
+    assert cross is not None and cross.halves == (4, 4) and not cross.aligned
     score = score_rig(rig.cameras, calibration.cameras, absolute=True)
     # Bounds as the topic tests' (rendered images, 8 views): 0.3 % in focal length and
     # baseline, 2 mm in position.
@@ -146,8 +154,10 @@ def test_handheld_views_need_coverage_and_calibrate_in_the_rig_frame(rig_and_ima
 
 def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, tmp_path):
     """max_projection_std_px decides, not a view count: automatic calibration is asked for
-    by every view from min_views on; select_views' set-aside views are used when the kept
-    ones fall short (measured on this rig: 6 kept views 0.446 px worst, all 8 0.413 px)."""
+        by every view from min_views on; select_views' set-aside views are used when the kept
+        ones fall short (measured on this rig: 6 kept views 0.455 px worst, all 8 0.414 px).
+    The calibration carries its cross-validation (two halves of 4 views), reported beside the
+    predicted uncertainty."""
     rig, images = rig_and_images
     handheld = {'chart_source': 'handheld', 'min_coverage': 0.0, 'min_views': 3}
     session = _session(rig, max_projection_std_px=0.43, **handheld)
@@ -163,9 +173,17 @@ def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, 
     quality = calibration.quality()
     assert quality['right']['projection_std_worst_px'] == uncertainty.worst_px['right']
     assert quality['right']['baseline_std_m'] == uncertainty.baseline_std_m > 0
+    cross = calibration.cross_validation
+    assert cross is not None and cross.halves == (4, 4) and cross.aligned
+    assert quality['left']['cross_validation_worst_px'] == cross.worst_px['left'] > 0
+    assert 0 < cross.median_px['right'] < cross.worst_px['right']
     _, values = session.record(calibration)
     assert float(values['projection_std_worst_px right']) == pytest.approx(
         uncertainty.worst_px['right'], abs=1e-3
+    )
+    assert values['cross_validation_views'] == '4 / 4'
+    assert float(values['cross_validation_median_px left']) == pytest.approx(
+        cross.median_px['left'], abs=1e-3
     )
     # The pictures beside the YAML: valid PNGs of PLOT_SIZE_PX, per camera and kind.
     written = write_plots(
@@ -173,8 +191,9 @@ def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, 
         {n: (c.width, c.height) for n, c in calibration.cameras.items()},
         calibration.residuals,
         uncertainty,
+        cross,
     )
-    kinds = ('residuals', 'coverage', 'uncertainty')
+    kinds = ('residuals', 'coverage', 'uncertainty', 'cross_validation')
     assert sorted(p.name for p in written) == sorted(
         f'{n}_{k}.png' for n in CAMERAS for k in kinds
     )
@@ -194,3 +213,52 @@ def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, 
         strict.calibrate()
     assert refusal.value.uncertain and 'max_projection_std_px 0.4' in str(refusal.value)
     assert 'latest projection_std_worst_px' in strict.status({})[1]
+
+
+def test_an_attempt_says_what_the_node_reports(rig_and_images):
+    """attempt(): the calibration to publish, or the refusal with its diagnostic level,
+    values and log level, as the node hands them on unchanged."""
+    rig, images = rig_and_images
+    few = _session(rig, min_views=len(images) + 1)
+    _feed(few, rig, images[:2])
+    refused = few.attempt()
+    assert refused.calibration is None and (refused.level, refused.log) == ('', '')
+    assert refused.message == f'2 views collected, min_views is {len(images) + 1}'
+    # A silent camera is why no view comes: it is said after the refusal.
+    silent = few.attempt('no image from right in 10 s')
+    assert silent.message == f'{refused.message}; no image from right in 10 s'
+    sparse = _session(rig, chart_source='handheld', min_coverage=1.0, min_views=4)
+    _feed(sparse, rig, images, posed=False)
+    coverage = sparse.attempt()
+    assert coverage.level == 'warn' and coverage.message.startswith('not enough coverage')
+    assert coverage.values['views'] == len(sparse.views) and 'x' in coverage.values['coverage']
+    strict = _session(rig, max_rms_px=1e-6)
+    _feed(strict, rig, images)
+    failed = strict.attempt()
+    assert (failed.level, failed.log) == ('error', 'error') and 'max_rms_px' in failed.message
+    assert failed.values == {'views': len(images), 'method': 'lm'}
+    uncertain = _session(rig, max_projection_std_px=1e-3)
+    _feed(uncertain, rig, images)
+    refusal = uncertain.attempt()
+    assert (refusal.level, refusal.log) == ('', 'info')
+    assert 'do not determine the cameras yet' in refusal.message
+    good = _session(rig)
+    _feed(good, rig, images)
+    accepted = good.attempt()
+    assert accepted.calibration is not None and accepted.calibration.views == len(images)
+
+
+def test_silent_cameras_are_named_with_what_to_do():
+    def topic_of(name):
+        return f'/{name}/image_raw'
+
+    names = ('left', 'right', 'aux')
+    assert silent_cameras_advice([], names, topic_of, 10.0) == ''
+    assert silent_cameras_advice(['aux'], names, topic_of, 10.0) == (
+        'no image from aux in 10 s while left, right send images: a 2-camera rig is '
+        'cameras: [left, right]'
+    )
+    assert silent_cameras_advice(['right'], names, topic_of, 2.5) == (
+        'no image from right in 2.5 s while left, aux send images: check that right '
+        'publishes on /right/image_raw'
+    )

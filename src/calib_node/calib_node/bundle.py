@@ -26,6 +26,7 @@ import numpy.typing as npt
 from calib_node.calibrate import CalibrationError, CameraFit, solve_lm, tangential_pays
 from calib_node.uncertainty import (
     CameraModel,
+    ChartPoses,
     Uncertainty,
     canonical_rotations,
     parameter_covariance,
@@ -147,6 +148,7 @@ def bundle_adjust(
     fit_tangential: bool = True,
     fit_k3: bool = False,
     max_nfev: int = 200,
+    hold_to_charts: bool = True,
 ) -> BundleResult:
     """Calibrate the rig from chessboard views jointly.
 
@@ -158,6 +160,9 @@ def bundle_adjust(
         T_ref_chart_known: per view a (4, 4) chart pose in base_link or None (unknown);
             None: all unknown.
         names: camera order; the first is the reference camera when no pose is known.
+        hold_to_charts: the uncertainty's points held fixed to the charts when no chart
+            pose is known (``uncertainty.projection_std_chart_fixed``); False: in the
+            reference camera's frame (for comparison: it floats with its intrinsics).
 
     Returns:
         :class:`BundleResult`.
@@ -203,7 +208,16 @@ def bundle_adjust(
     rotations += [layout.chart(i).start for i in range(layout.views)]
     x = canonical_rotations(x, rotations)
     uncertainty = _uncertainty(
-        chart, x, free, evaluate(x[free]), names, image_sizes, pairs, charts, layout
+        chart,
+        x,
+        free,
+        evaluate(x[free]),
+        names,
+        image_sizes,
+        pairs,
+        charts,
+        layout,
+        hold_to_charts,
     )
     return BundleResult(fits, charts, reference, rms, int(result.nfev), uncertainty)
 
@@ -440,9 +454,12 @@ def _uncertainty(
     pairs: Sequence[tuple[int, int]],
     T_ref_chart: Sequence[FloatArray],
     layout: _Layout,
+    hold_to_charts: bool,
 ) -> Uncertainty:
     """The adjusted rig's :class:`Uncertainty` from the final residuals and Jacobian (the
-    chart poses' uncertainty is part of the covariance the cameras' block is taken from)."""
+    chart poses' uncertainty is part of the covariance the cameras' block is taken from);
+    the points held fixed in base_link when a chart pose is known, else to the charts
+    (``hold_to_charts``) or in the reference camera's frame."""
     # Each camera's view its own noise level (residuals are in pair order, 2N each).
     covariance = parameter_covariance(
         final[1], final[0], np.repeat(np.arange(len(pairs)), 2 * len(chart))
@@ -475,4 +492,10 @@ def _uncertainty(
             working_range(seen),
             row[index],
         )
-    return rig_uncertainty(models, covariance)
+    chart_rows = [
+        row[np.arange(layout.chart(i).start, layout.chart(i).stop)] for i in range(layout.views)
+    ]
+    # A known chart pose: base_link, a physical frame.
+    if not hold_to_charts or any((rows < 0).all() for rows in chart_rows):
+        return rig_uncertainty(models, covariance)
+    return rig_uncertainty(models, covariance, charts=ChartPoses(T_ref_chart, chart_rows))

@@ -11,22 +11,27 @@ instead and no chart is needed.
 
 import dataclasses
 import time
+from collections.abc import Mapping
+from typing import Any
 
+import numpy as np
+import numpy.typing as npt
 from geometry_msgs.msg import PoseStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
-from sensor_msgs.msg import CameraInfo
+from sensor_msgs.msg import CameraInfo, Image
 from std_srvs.srv import Trigger
 
-from calib_node.calibrate import CalibrationError, GAOptions
+from calib_node.calibrate import GAOptions
 from calib_node.rig_files import FileSettings, read_rig, write_rig
 from calib_node.session import (
-    TARGET_WAIT_S,
     Calibration,
     CalibrationSession,
-    NotReady,
     SessionSettings,
+    handheld_notice,
+    silent_cameras_advice,
 )
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import ImageCaptures
 from vgm_common.conversions import (
     camera_to_camera_info,
@@ -37,6 +42,7 @@ from vgm_common.conversions import (
 )
 from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput, VgmError
+from vgm_common.geometry import FloatArray
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
 from vgm_common.parameters import ConfigParams
@@ -51,6 +57,13 @@ from vgm_common.topics import (
 )
 from vgm_common.worker import Worker
 
+# The pairing's counters shown in the views status, by their names there.
+CAPTURE_COUNTS = {
+    'dropped': 'incomplete capture sets (messages)',
+    'matched': 'matched capture sets',
+}
+Rectification = Mapping[str, tuple[FloatArray, FloatArray]]  # {name: (R (3, 3), P (3, 4))}
+
 VIEW_BACKLOG = 30  # image sets waiting for chart detection
 SILENT_CAMERA_S = 10.0  # [s] a camera without images while the others send is named
 # The session's settings and the thesis method's (ga.*, network.*): their parameters.
@@ -58,21 +71,8 @@ SESSION = ConfigParams(SessionSettings)
 GA = ConfigParams(GAOptions)
 
 
-def _target_matrix(msg):
-    """The chart pose of a target pose message as a 4x4 matrix; InvalidInput if it is not
-    in base_link or not a valid pose."""
-    if msg.header.frame_id != BASE_FRAME:
-        raise InvalidInput(
-            f'target pose must be in {BASE_FRAME}, got {msg.header.frame_id!r}', key='frame_id'
-        )
-    return pose_to_matrix(msg.pose)
-
-
-PARAMETERS = [
-    *SESSION.declarations(),
-    *GA.declarations(),
-    *ConfigParams(FileSettings).declarations(),
-]
+FILES = ConfigParams(FileSettings)
+PARAMETERS = [*SESSION.declarations(), *GA.declarations(), *FILES.declarations()]
 
 
 class CalibNode(GraphNode):
@@ -82,7 +82,7 @@ class CalibNode(GraphNode):
 
     node_name = 'calib_node'
 
-    def __init__(self):
+    def __init__(self) -> None:
         super().__init__(PARAMETERS)
         # Raises InvalidInput (a one-line start-up error) for a symmetric chart.
         self.session = CalibrationSession(self._settings)
@@ -98,10 +98,10 @@ class CalibNode(GraphNode):
         else:
             self._start_collecting()
 
-    def _settings(self):
+    def _settings(self) -> SessionSettings:
         return dataclasses.replace(SESSION.build(self.params), ga=GA.build(self.params))
 
-    def _latched_publishers(self, message_type, topics):
+    def _latched_publishers(self, message_type: Any, topics: Mapping[str, str]) -> dict[str, Any]:
         return {
             n: self.create_publisher(
                 message_type, topics[n], LATCHED_QOS, publisher_class=CountingPublisher
@@ -109,12 +109,11 @@ class CalibNode(GraphNode):
             for n in self.names
         }
 
-    def _start_collecting(self):
-        p = self.params
+    def _start_collecting(self) -> None:
         # Every stage view counts: when VIEW_BACKLOG wait, a new one is refused and reported.
         self.worker = Worker(
             lambda view: self._process_view(*view),
-            self._on_worker_error,
+            lambda error: self.diagnostics.reject('view', f'{type(error).__name__}: {error}'),
             'calibration',
             capacity=VIEW_BACKLOG,
             keep='oldest',
@@ -125,7 +124,7 @@ class CalibNode(GraphNode):
             self,
             self.names,
             self._on_capture,
-            p.sync_max_wait,
+            self.params.sync_max_wait,
             callback_group=MutuallyExclusiveCallbackGroup(),
         )
         # The poses get their own group: in one group with the images, rclpy's executor
@@ -140,37 +139,36 @@ class CalibNode(GraphNode):
         )
         self._silent_said = ''  # the silent-camera warning last logged
         self.create_timer(1.0, self._publish_status)
-        self.get_logger().info(
-            f'collecting chart views ({p.method}, {self.session.rows}x{self.session.cols} '
-            f'chessboard, chart.source {self.session.source}, cameras '
-            f'{", ".join(self.names)}, min_views {p.min_views})'
-        )
+        self.get_logger().info(self.session.describe())
 
     # --- inputs -----------------------------------------------------------------------
 
-    def _on_target(self, msg):
+    def _on_target(self, msg: PoseStamped) -> None:
         if self.session.source == 'handheld':
             return
         try:  # checked as it arrives, whether or not images of its stamp follow
-            T_base_chart = _target_matrix(msg)
+            if msg.header.frame_id != BASE_FRAME:
+                got = msg.header.frame_id
+                raise InvalidInput(
+                    f'target pose must be in {BASE_FRAME}, got {got!r}', key='frame_id'
+                )
+            T_base_chart = pose_to_matrix(msg.pose)  # InvalidInput: NaN or not a unit quaternion
         except InvalidInput as error:
             self.diagnostics.reject(TARGET_POSE_TOPIC, error)
             return
         self.session.add_target(stamp_to_ns(msg.header.stamp), T_base_chart)
 
-    def _on_capture(self, stamp_ns, messages):
+    def _on_capture(self, stamp_ns: int, messages: dict[str, Image]) -> None:
         if not self.worker.submit((stamp_ns, messages, time.monotonic())):
             if self.session.dropped(stamp_ns):
                 self.diagnostics.reject('view', 'the calibration worker is behind: view dropped')
 
-    def _on_worker_error(self, error):
-        self.diagnostics.reject('view', f'{type(error).__name__}: {error}')
-
-    def _process_view(self, stamp_ns, messages, completed):
+    def _process_view(self, stamp_ns: int, messages: dict[str, Image], completed: float) -> None:
         T_base_chart = self.session.chart_pose_of(stamp_ns, completed)
         if T_base_chart is False:
             return
-        greys, misses = {}, []
+        greys: dict[str, npt.NDArray[np.float32]] = {}
+        misses: list[str] = []
         for name in self.names:
             msg = messages[name]
             try:
@@ -183,12 +181,7 @@ class CalibNode(GraphNode):
             greys[name] = grey
         outcome = self.session.add_view(T_base_chart, greys, misses)
         if outcome.handheld_started:  # what auto chose must not be a silent switch
-            topic = self.resolve_topic_name(TARGET_POSE_TOPIC)
-            self.get_logger().info(
-                f'chart.source auto: no target pose on {topic} '
-                f'for this view within {TARGET_WAIT_S} s: views are taken as handheld (chart '
-                'poses estimated) until a target pose arrives'
-            )
+            self.get_logger().info(handheld_notice(self.resolve_topic_name(TARGET_POSE_TOPIC)))
         if outcome.status == 'no_chart':
             self.diagnostics.reject('view', outcome.message)
         elif outcome.status == 'kept':
@@ -198,35 +191,18 @@ class CalibNode(GraphNode):
 
     # --- calibration ------------------------------------------------------------------
 
-    def _calibrate(self):
+    def _calibrate(self) -> tuple[bool, str]:
         """Calibrate on all views so far and publish; returns (success, message)."""
-        try:
-            calibration = self.session.calibrate()
-        except NotReady as refusal:
-            silent = self._silent_cameras()
-            if silent:  # why there are no views comes first
-                return False, f'{refusal}; {silent}'
-            if refusal.uncertain:  # what to do next, in the log (no ros2cli needed)
-                self.get_logger().info(str(refusal))
-            if refusal.coverage:
-                _, values = self.session.status({})
+        attempt = self.session.attempt(self._silent_cameras())
+        calibration = attempt.calibration
+        if calibration is None:
+            if attempt.log:
+                getattr(self.get_logger(), attempt.log)(attempt.message)
+            if attempt.level:
                 self.diagnostics.publish(
-                    'calibration',
-                    'warn',
-                    str(refusal),
-                    {'views': values['views'], 'coverage': values.get('coverage', '')},
+                    'calibration', attempt.level, attempt.message, attempt.values
                 )
-            return False, str(refusal)
-        except CalibrationError as error:
-            message = str(error)
-            self.get_logger().error(message)
-            self.diagnostics.publish(
-                'calibration',
-                'error',
-                message,
-                {'views': len(self.session.views), 'method': self.params.method},
-            )
-            return False, message
+            return False, attempt.message
         stamp_ns = self._publish(calibration.cameras, calibration.rectification)
         if self.params.output_dir:
             self._write(calibration)
@@ -236,7 +212,7 @@ class CalibNode(GraphNode):
         self.diagnostics.publish('calibration', 'ok', message, values)
         return True, message
 
-    def _write(self, calibration: Calibration):
+    def _write(self, calibration: Calibration) -> None:
         """Write the calibration to output_dir; a failure is logged and reported."""
         output_dir = self.params.output_dir
         try:
@@ -247,18 +223,9 @@ class CalibNode(GraphNode):
             return
         if written.plots_missing:
             self.get_logger().warning(f'no plots in {output_dir}: {written.plots_missing}')
-        pictures = (
-            f' and {len(written.plots)} PNGs (residuals, coverage, uncertainty)'
-            if written.plots
-            else ''
-        )
-        yaml_path = written.calibration_yaml
-        self.get_logger().info(
-            f'wrote {yaml_path} and {", ".join(f"{n}.yaml" for n in calibration.cameras)}'
-            f'{pictures} beside it (calibration_file:={yaml_path} publishes it again)'
-        )
+        self.get_logger().info(written.summary(tuple(calibration.cameras)))
 
-    def _publish(self, cameras, rectification):
+    def _publish(self, cameras: Mapping[str, PinholeCamera], rectification: Rectification) -> int:
         stamp_ns = self.get_clock().now().nanoseconds
         for name, camera in cameras.items():
             R, P = rectification.get(name, (None, None))
@@ -270,7 +237,7 @@ class CalibNode(GraphNode):
             )
         return stamp_ns
 
-    def _publish_file(self, path):
+    def _publish_file(self, path: str) -> None:
         cameras, rectification = read_rig(path, self.names)  # InvalidInput: start-up error
         self._publish(cameras, rectification)
         message = f'published the calibration of {path}'
@@ -279,7 +246,7 @@ class CalibNode(GraphNode):
 
     # --- services and status ----------------------------------------------------------
 
-    def _on_calibrate(self, request, response):
+    def _on_calibrate(self, _: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         if self.file_mode:
             response.success = False
             response.message = 'publishing calibration_file: no chart views are collected'
@@ -287,36 +254,21 @@ class CalibNode(GraphNode):
         response.success, response.message = self._calibrate()
         return response
 
-    def _on_reset(self, request, response):
+    def _on_reset(self, _: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         response.success = True
         response.message = f'forgot {self.session.reset()} views'
         self.get_logger().info(response.message)
         return response
 
-    def _silent_cameras(self):
-        """'' or what to do about cameras that send no image while the others do (no set
-        of the rig can complete: 0 views however long the chart is shown)."""
+    def _silent_cameras(self) -> str:
         silent = self.captures.silent(SILENT_CAMERA_S)
-        if not silent:
-            return ''
-        sending = [n for n in self.names if n not in silent]
-        advice = (
-            f'a {len(sending)}-camera rig is cameras: [{", ".join(sending)}]'
-            if {'left', 'right'} <= set(sending)
-            else f'check that {", ".join(silent)} publishes on '
-            + ', '.join(self.resolve_topic_name(IMAGE_TOPICS[n]) for n in silent)
-        )
-        return (
-            f'no image from {", ".join(silent)} in {SILENT_CAMERA_S:g} s while '
-            f'{", ".join(sending)} send images: {advice}'
-        )
+        topic_of = lambda name: self.resolve_topic_name(IMAGE_TOPICS[name])  # noqa: E731
+        return silent_cameras_advice(silent, self.names, topic_of, SILENT_CAMERA_S)
 
-    def _publish_status(self):
+    def _publish_status(self) -> None:
+        pairing = self.captures.counts()
         message, values = self.session.status(
-            {
-                'incomplete capture sets (messages)': self.captures.counts()['dropped'],
-                'matched capture sets': self.captures.counts()['matched'],
-            }
+            {CAPTURE_COUNTS[k]: pairing[k] for k in CAPTURE_COUNTS}
         )
         silent = self._silent_cameras()
         if silent != self._silent_said:  # a user without ros2cli reads the log
@@ -327,7 +279,7 @@ class CalibNode(GraphNode):
             values['silent cameras'] = silent
         self.diagnostics.publish('views', 'warn' if silent else 'ok', silent or message, values)
 
-    def close(self):
+    def close(self) -> None:
         """For run_node: stop waiting for target poses and close the worker (views still
         queued are not processed)."""
         self.session.close()
@@ -335,7 +287,7 @@ class CalibNode(GraphNode):
             self.worker.close()
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run calib_node until SIGINT/SIGTERM; exit status 2 on an unusable parameter or
     calibration file at start-up (one line)."""
     return run_node(CalibNode, args, executor_class=lambda: MultiThreadedExecutor(3))

@@ -1,7 +1,8 @@
 """Pictures of a calibration for a user to judge at a glance, written beside
-calibration.yaml: per camera the residual vectors over the image, the coverage of the views
-and the predicted projection uncertainty. matplotlib's object API (no pyplot: the worker
-thread draws them, and pyplot's global state is not thread-safe). No rclpy.
+calibration.yaml: per camera the residual vectors over the image, the coverage of the views,
+the predicted projection uncertainty and the cross-validation (the halves' difference).
+matplotlib's object API (no pyplot: the worker thread draws them, and pyplot's global state
+is not thread-safe). No rclpy.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calib_node.cross_validation import CrossValidation
 from calib_node.uncertainty import Uncertainty
 from vgm_common.geometry import FloatArray
 
@@ -45,10 +47,12 @@ def write_plots(
     image_sizes: Mapping[str, tuple[int, int]],
     residuals: Residuals,
     uncertainty: Uncertainty | None,
+    cross_validation: CrossValidation | None = None,
 ) -> list[Path]:
-    """Write ``<camera>_residuals.png``, ``<camera>_coverage.png`` and (with an
-    uncertainty) ``<camera>_uncertainty.png`` (PLOT_SIZE_PX each) into ``directory``;
-    returns their paths."""
+    """Write ``<camera>_residuals.png``, ``<camera>_coverage.png``, (with an uncertainty)
+    ``<camera>_uncertainty.png`` and (with a cross-validation)
+    ``<camera>_cross_validation.png`` (PLOT_SIZE_PX each) into ``directory``; returns
+    their paths."""
     from matplotlib import colormaps
 
     directory = Path(directory)
@@ -84,23 +88,35 @@ def write_plots(
         written.append(_save(figure, canvas, directory / f'{name}_coverage.png'))
 
         if uncertainty is not None and name in uncertainty.grid_px:
-            grid = uncertainty.grid_px[name]
-            figure, canvas, axes = _figure(
-                size,
+            title = (
                 f'{name}: predicted projection std at {uncertainty.range_m[name]:.2f} m, worst '
-                f'{uncertainty.worst_px[name]:.2f} px, median {uncertainty.median_px[name]:.2f}',
+                f'{uncertainty.worst_px[name]:.2f} px, median {uncertainty.median_px[name]:.2f}'
             )
-            image = axes.imshow(
-                grid,
-                extent=(0, size[0], size[1], 0),
-                interpolation='bilinear',
-                cmap='magma',
-                vmin=0.0,
+            path = directory / f'{name}_uncertainty.png'
+            written.append(_heat_map(size, uncertainty.grid_px[name], title, corners, path))
+        if cross_validation is not None and name in cross_validation.grid_px:
+            title = (
+                f'{name}: halves ({"%d / %d" % cross_validation.halves} views) apart at '
+                f'{cross_validation.range_m[name]:.2f} m, worst '
+                f'{cross_validation.worst_px[name]:.2f} px, median '
+                f'{cross_validation.median_px[name]:.2f}'
             )
-            figure.colorbar(image, ax=axes, label='px', shrink=0.8)
-            axes.plot(corners[:, 0], corners[:, 1], ',', color='white', alpha=0.5)
-            written.append(_save(figure, canvas, directory / f'{name}_uncertainty.png'))
+            path = directory / f'{name}_cross_validation.png'
+            written.append(_heat_map(size, cross_validation.grid_px[name], title, corners, path))
     return written
+
+
+def _heat_map(
+    size: tuple[int, int], grid: FloatArray, title: str, corners: FloatArray, path: Path
+) -> Path:
+    """A grid of pixel figures [px] over the image, the chart corners seen dotted on it."""
+    figure, canvas, axes = _figure(size, title)
+    image = axes.imshow(
+        grid, extent=(0, size[0], size[1], 0), interpolation='bilinear', cmap='magma', vmin=0.0
+    )
+    figure.colorbar(image, ax=axes, label='px', shrink=0.8)
+    axes.plot(corners[:, 0], corners[:, 1], ',', color='white', alpha=0.5)
+    return _save(figure, canvas, path)
 
 
 def _save(figure, canvas, path: Path) -> Path:  # type: ignore[no-untyped-def]

@@ -61,6 +61,18 @@ class Written:
     plots: list[Path]
     plots_missing: str
 
+    def summary(self, names: tuple[str, ...]) -> str:
+        """The log line of what was written for the cameras ``names``."""
+        pictures = (
+            f' and {len(self.plots)} PNGs (residuals, coverage, uncertainty, cross-validation)'
+            if self.plots
+            else ''
+        )
+        return (
+            f'wrote {self.calibration_yaml} and {", ".join(f"{n}.yaml" for n in names)}'
+            f'{pictures} beside it (calibration_file:={self.calibration_yaml} publishes it again)'
+        )
+
 
 def write_rig(output_dir: str | Path, calibration: Calibration) -> Written:
     """Write ``calibration`` into ``output_dir``. Raises OSError or VgmError if the YAML
@@ -79,6 +91,7 @@ def write_rig(output_dir: str | Path, calibration: Calibration) -> Written:
             {n: (c.width, c.height) for n, c in calibration.cameras.items()},
             calibration.residuals,
             calibration.uncertainty,
+            calibration.cross_validation,
         )
     except (OSError, ImportError, ValueError) as error:
         return Written(written, [], str(error))

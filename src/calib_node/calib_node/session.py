@@ -14,7 +14,7 @@ from __future__ import annotations
 import hashlib
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Literal, NamedTuple
@@ -33,7 +33,13 @@ from calib_node.calibrate import (
 )
 from calib_node.chart_detection import chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
-from calib_node.uncertainty import Uncertainty
+from calib_node.cross_validation import (
+    MIN_HALF_VIEWS,
+    CrossValidation,
+    compare_halves,
+    split_chart_views,
+)
+from calib_node.uncertainty import Uncertainty, working_range
 from vgm_common.calibration_io import stereo_rectification
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.errors import InvalidInput
@@ -139,9 +145,9 @@ class SessionSettings:
         'lands) is at most this over the whole image in every camera; lm only (the other '
         'methods give no covariance). 3 px: a figure in pixels means the same on any rig, '
         "and a collection spread over camera_calibration's ranges reaches it even with the "
-        "corner noise of real photographs (OpenCV's 13 pairs at 0.36 px RMS: 2.5 px), while "
-        'one that leaves the image corners to extrapolation (their first 3-5 views) does '
-        'not.',
+        "corner noise of real photographs (OpenCV's 13 pairs at 0.36 px RMS: 2.1-2.3 px), "
+        'while one that leaves the image corners to extrapolation (their first 3-4 views: '
+        '3.0-3.1 px) does not.',
         unit='px',
         range=(0.0, 1e6),
     )
@@ -234,6 +240,9 @@ class Calibration(NamedTuple):
     uncertainty: Uncertainty | None  # None: the method gives no covariance (lxpm_ga, opencv)
     # {name: [(observed corners (N, 2), observed - projected (N, 2)) per view it saw]} [px]
     residuals: dict[str, list[tuple[FloatArray, FloatArray]]]
+    # The two halves of the views against each other; None: fewer than 2 * MIN_HALF_VIEWS
+    # views, or a half that does not calibrate (a camera missing from it).
+    cross_validation: CrossValidation | None = None
 
     def quality(self) -> dict[str, dict[str, float | int]]:
         """Per camera: reprojection RMS [px], corner count, views and the predicted
@@ -250,7 +259,23 @@ class Calibration(NamedTuple):
                 entry['projection_std_median_px'] = u.median_px[name]
                 entry['working_range_m'] = u.range_m[name]
             quality['right']['baseline_std_m'] = u.baseline_std_m
+        if self.cross_validation is not None:
+            for name, entry in quality.items():
+                entry['cross_validation_worst_px'] = self.cross_validation.worst_px[name]
+                entry['cross_validation_median_px'] = self.cross_validation.median_px[name]
         return quality
+
+
+class Attempt(NamedTuple):
+    """What a calibration attempt gives the node: ``calibration`` to publish (None: refused,
+    ``message`` says why), the diagnostic to publish for a refusal (``level`` '' for
+    none, with ``values``) and the logger level of its message ('' for none)."""
+
+    calibration: Calibration | None
+    message: str = ''
+    level: str = ''
+    values: dict[str, Any] = {}  # noqa: RUF012 (a NamedTuple default, never mutated)
+    log: str = ''
 
 
 class _Fit(NamedTuple):
@@ -317,6 +342,15 @@ class CalibrationSession:
         self.calibrations = 0
         self.last_result: dict[str, Any] | None = None
         self._stopping = threading.Event()
+
+    def describe(self) -> str:
+        """The log line of a session starting to collect views."""
+        settings = self._settings()
+        return (
+            f'collecting chart views ({settings.method}, {self.rows}x{self.cols} '
+            f'chessboard, chart.source {self.source}, cameras '
+            f'{", ".join(self.names)}, min_views {settings.min_views})'
+        )
 
     # --- inputs -------------------------------------------------------------------------
 
@@ -516,10 +550,15 @@ class CalibrationSession:
         handheld = any(T is None for T, _ in views)
         camera_views = {n: sum(n in corners for _, corners in views) for n in fits}
         residuals: dict[str, list[tuple[FloatArray, FloatArray]]] = {n: [] for n in fits}
+        seen: dict[str, list[FloatArray]] = {n: [] for n in fits}  # corners in the camera [m]
         for T, (_, corners) in zip(fit.T_base_chart, views):
             points = self.chart @ T[:3, :3].T + T[:3, 3]
             for name, observed in corners.items():
                 residuals[name].append((observed, observed - cameras[name].project(points)[0]))
+                seen[name].append(cameras[name].to_camera(points))
+        ranges = {n: working_range(np.concatenate(seen[n])) for n in fits}
+        with self._calibration_lock:
+            cross_validation = self._cross_validate(views, settings, ranges)
         return Calibration(
             cameras,
             rectification,
@@ -531,7 +570,63 @@ class CalibrationSession:
             camera_views,
             uncertainty,
             residuals,
+            cross_validation,
         )
+
+    def _cross_validate(
+        self, views: list[View], settings: SessionSettings, ranges_m: dict[str, float]
+    ) -> CrossValidation | None:
+        """The views' two halves calibrated apart and compared at ``ranges_m`` (the full
+        calibration's working ranges); None when there are too few views or a half does
+        not calibrate."""
+        if len(views) < 2 * MIN_HALF_VIEWS:
+            return None
+        corners = [c for _, c in views]
+        halves = split_chart_views(corners, self.names, self.rows, self.cols, self.image_sizes)
+        handheld = any(T is None for T, _ in views)  # each half in its own left camera frame
+        try:
+            solutions = [self._fit([views[i] for i in half], settings) for half in halves]
+            if any(set(s.fits) != set(ranges_m) for s in solutions):
+                return None
+            cameras = [
+                {
+                    n: PinholeCamera(*self.image_sizes[n], f.K, f.D, f.T_base_camera)
+                    for n, f in s.fits.items()
+                }
+                for s in solutions
+            ]
+            return compare_halves(
+                cameras[0],
+                cameras[1],
+                ranges_m,
+                (len(halves[0]), len(halves[1])),
+                handheld,
+                (solutions[0].uncertainty, solutions[1].uncertainty),
+            )
+        except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError):
+            return None  # a half that does not calibrate: the full calibration stands
+
+    def attempt(self, silent: str = '') -> Attempt:
+        """:meth:`calibrate`, its refusals turned into what the node reports: a refusal
+        for too few views or too little coverage is the service's answer (coverage also
+        a WARN diagnostic), one for too much uncertainty also a log line (what to show
+        next), a failed calibration an error line and diagnostic. ``silent``: what the
+        node knows about cameras that send nothing, which comes first in a refusal."""
+        try:
+            return Attempt(self.calibrate())
+        except NotReady as refusal:
+            if silent:  # why there are no views comes first
+                return Attempt(None, f'{refusal}; {silent}')
+            if refusal.coverage:
+                _, values = self.status({})
+                coverage = {'views': values['views'], 'coverage': values.get('coverage', '')}
+                return Attempt(None, str(refusal), 'warn', coverage)
+            return Attempt(None, str(refusal), log='info' if refusal.uncertain else '')
+        except CalibrationError as error:
+            with self._lock:
+                views = len(self.views)
+            values = {'views': views, 'method': self._settings().method}
+            return Attempt(None, str(error), 'error', values, 'error')
 
     def _observations(
         self, views: list[View]
@@ -644,6 +739,7 @@ class CalibrationSession:
                 values[f'points {name}'] = fit.points
                 values[f'views {name}'] = calibration.camera_views[name]
             values.update(_uncertainty_values(calibration.uncertainty))
+            values.update(_cross_validation_values(calibration.cross_validation))
             self.calibrations += 1
             self.last_result = values
         return message, values
@@ -681,7 +777,9 @@ class CalibrationSession:
                     {
                         k: v
                         for k, v in self.last_result.items()
-                        if k.startswith(('rms_px', 'projection_std', 'baseline_std'))
+                        if k.startswith(
+                            ('rms_px', 'projection_std', 'baseline_std', 'cross_validation')
+                        )
                     }
                 )
             if self.last_projection_std:  # the latest attempt's, accepted or not
@@ -726,6 +824,17 @@ def _uncertainty_values(uncertainty: Uncertainty | None) -> dict[str, str]:
     return values
 
 
+def _cross_validation_values(cross_validation: CrossValidation | None) -> dict[str, str]:
+    """The diagnostic values of a :class:`CrossValidation` ({} for None)."""
+    if cross_validation is None:
+        return {}
+    values = {'cross_validation_views': '%d / %d' % cross_validation.halves}
+    for name in cross_validation.worst_px:
+        values[f'cross_validation_worst_px {name}'] = f'{cross_validation.worst_px[name]:.3f}'
+        values[f'cross_validation_median_px {name}'] = f'{cross_validation.median_px[name]:.3f}'
+    return values
+
+
 def _images_digest(greys: Mapping[str, np.ndarray]) -> bytes:
     """A digest of a capture set's images (names, sizes and pixels)."""
     digest = hashlib.blake2b(digest_size=16)
@@ -734,3 +843,34 @@ def _images_digest(greys: Mapping[str, np.ndarray]) -> bytes:
         digest.update(f'{name}:{grey.shape}:{grey.dtype}'.encode())
         digest.update(grey.data)
     return digest.digest()
+
+
+def handheld_notice(target_topic: str) -> str:
+    """The log line of ``chart_source: auto`` taking its first view as handheld (what auto
+    chose must not be a silent switch)."""
+    return (
+        f'chart.source auto: no target pose on {target_topic} '
+        f'for this view within {TARGET_WAIT_S} s: views are taken as handheld (chart '
+        'poses estimated) until a target pose arrives'
+    )
+
+
+def silent_cameras_advice(
+    silent: Sequence[str], names: Sequence[str], topic_of: Callable[[str], str], after_s: float
+) -> str:
+    """'' or what to do about the cameras ``silent`` that sent no image for ``after_s`` [s]
+    while the others of ``names`` did (no capture set can complete: 0 views however long
+    the chart is shown); ``topic_of`` names a camera's image topic as resolved."""
+    if not silent:
+        return ''
+    sending = [n for n in names if n not in silent]
+    advice = (
+        f'a {len(sending)}-camera rig is cameras: [{", ".join(sending)}]'
+        if {'left', 'right'} <= set(sending)
+        else f'check that {", ".join(silent)} publishes on '
+        + ', '.join(topic_of(n) for n in silent)
+    )
+    return (
+        f'no image from {", ".join(silent)} in {after_s:g} s while '
+        f'{", ".join(sending)} send images: {advice}'
+    )

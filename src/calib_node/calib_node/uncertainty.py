@@ -146,6 +146,80 @@ def projection_std(camera: CameraModel, covariance: FloatArray, pixels: FloatArr
     return np.sqrt(np.maximum(per_row.reshape(-1, 2).sum(axis=1), 0.0))
 
 
+def _pose(rt: FloatArray) -> FloatArray:
+    """(4, 4) transform of a (6,) Rodrigues vector and translation."""
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rt[:3])[0]
+    T[:3, 3] = rt[3:]
+    return T
+
+
+def projection_std_chart_fixed(
+    camera: CameraModel,
+    covariance: FloatArray,
+    pixels: FloatArray,
+    T_ref_chart: Sequence[FloatArray],
+    chart_rows: Sequence[IndexArray],
+    step: float = 1e-6,
+) -> FloatArray:
+    """(M,) sqrt(trace) of the projection covariance [px] of the points at the working
+    range on the rays of ``pixels``, each point held fixed to the charts rather than to
+    the reference frame: mrcal's 'mean-pcam'. Each chart pose i maps the point into its
+    chart frame once (p_i = T_ref_chart_i^-1 p); a perturbed solution places it at the
+    mean over the charts of T_ref_chart_i' p_i and projects that with the perturbed
+    camera. Without an estimated chart pose (``chart_rows`` all -1: the stage's known
+    poses) this is :func:`projection_std`.
+
+    Why: handheld, the reference frame is the left camera's own optical frame, which
+    floats with its intrinsics (a principal point error comes with a rotation of every
+    chart pose the other way); no projection of a point of the observed scene sees that
+    float, but a point fixed in the floating frame does (measured: OpenCV's 13 sample
+    pairs, 0.82 px flat over the image from cx, cy alone; generated rigs: the prediction
+    held against the true error in both gauges, README "Uncertainty").
+
+    Args:
+        camera: the camera in the reference frame, its 15 parameters' ``rows``.
+        covariance: the adjustment's covariance.
+        pixels: (M, 2) [px].
+        T_ref_chart: (4, 4) chart pose of every view in the reference frame.
+        chart_rows: (6,) rows of each chart pose (Rodrigues vector, translation) in
+            ``covariance`` (-1: held fixed).
+    """
+    points = points_at_range(camera.K, camera.D, camera.T_camera_ref, pixels, camera.range_m)
+    charts = [invert_transform(T) for T in T_ref_chart]
+    points_chart = np.stack([points @ T[:3, :3].T + T[:3, 3] for T in charts])  # (V, M, 3)
+    rvec, tvec = _rt(camera.T_camera_ref)
+    K, D = camera.K, camera.D
+    x0 = np.concatenate(
+        [
+            rvec,
+            tvec,
+            [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+            D,
+            *[np.concatenate(_rt(T)) for T in T_ref_chart],
+        ]
+    )
+    index = np.concatenate([camera.rows, *chart_rows])
+
+    def project(x: FloatArray) -> FloatArray:
+        poses = x[PROJECTION_ORDER:].reshape(-1, 6)
+        mean = np.mean(
+            [p @ _pose(rt)[:3, :3].T + rt[3:] for p, rt in zip(points_chart, poses)], axis=0
+        )
+        Kx = np.array([[x[6], 0, x[8]], [0, x[7], x[9]], [0, 0, 1.0]])
+        return np.asarray(cv2.projectPoints(mean, x[:3], x[3:6], Kx, x[10:15])[0], float).ravel()
+
+    held = np.flatnonzero(index >= 0)
+    J = np.zeros((2 * len(pixels), len(held)))
+    for k, column in enumerate(held):
+        dx = np.zeros(len(x0))
+        dx[column] = step * max(1.0, abs(x0[column]))
+        J[:, k] = (project(x0 + dx) - project(x0 - dx)) / (2 * dx[column])
+    C = covariance[np.ix_(index[held], index[held])]
+    per_row = np.einsum('ij,jk,ik->i', J, C, J)
+    return np.sqrt(np.maximum(per_row.reshape(-1, 2).sum(axis=1), 0.0))
+
+
 def _centre_jacobian(T_camera_ref: FloatArray, step: float = 1e-7) -> FloatArray:
     """(3, 6) derivative of the camera centre -R^T t in the reference frame by its
     (rvec, tvec) (central differences)."""
@@ -179,15 +253,32 @@ def baseline_std(left: CameraModel, right: CameraModel, covariance: FloatArray) 
     return float(np.sqrt(max(g @ C @ g, 0.0)))
 
 
+class ChartPoses(NamedTuple):
+    """The estimated chart poses of a handheld adjustment: (4, 4) T_ref_chart per view and
+    the rows of its (Rodrigues vector, translation) in the covariance."""
+
+    T_ref_chart: Sequence[FloatArray]
+    rows: Sequence[IndexArray]
+
+
 def rig_uncertainty(
     cameras: Mapping[str, CameraModel],
     covariance: FloatArray,
     grid: tuple[int, int] = GRID,
+    charts: ChartPoses | None = None,
 ) -> Uncertainty:
-    """:class:`Uncertainty` of a rig from its parameters' ``covariance``."""
+    """:class:`Uncertainty` of a rig from its parameters' ``covariance``; with ``charts``
+    the points are held fixed to the charts (:func:`projection_std_chart_fixed`), else
+    to the reference frame."""
     worst, median, ranges, grids = {}, {}, {}, {}
     for name, camera in cameras.items():
-        std = projection_std(camera, covariance, image_grid(camera.size, grid))
+        pixels = image_grid(camera.size, grid)
+        if charts is None:
+            std = projection_std(camera, covariance, pixels)
+        else:
+            std = projection_std_chart_fixed(
+                camera, covariance, pixels, charts.T_ref_chart, charts.rows
+            )
         worst[name] = float(std.max())
         median[name] = float(np.median(std))
         ranges[name] = camera.range_m
@@ -223,4 +314,37 @@ def true_projection_error(
     points = points_at_range(K_true, D_true, T_camera_ref_true, pixels, depth)
     rvec, tvec = _rt(T_camera_ref)
     projected = cv2.projectPoints(points, rvec, tvec, K, D)[0].reshape(-1, 2)
+    return np.linalg.norm(projected - pixels, axis=1).reshape(grid[1], grid[0])
+
+
+def true_projection_error_chart_fixed(
+    K_true: FloatArray,
+    D_true: FloatArray,
+    T_camera_ref_true: FloatArray,
+    T_ref_chart_true: Sequence[FloatArray],
+    K: FloatArray,
+    D: FloatArray,
+    T_camera_ref: FloatArray,
+    T_ref_chart: Sequence[FloatArray],
+    size: tuple[int, int],
+    depth: float,
+    grid: tuple[int, int] = GRID,
+) -> FloatArray:
+    """(rows, cols) [px]: :func:`true_projection_error` with the points held fixed to the
+    charts (the gauge of :func:`projection_std_chart_fixed`): each true point is carried
+    into every true chart frame, back out by the calibrated chart pose, averaged over the
+    charts and projected by the calibrated camera."""
+    pixels = image_grid(size, grid)
+    points = points_at_range(K_true, D_true, T_camera_ref_true, pixels, depth)
+    moved = np.mean(
+        [
+            points @ M[:3, :3].T + M[:3, 3]
+            for M in (
+                T @ invert_transform(T_true) for T, T_true in zip(T_ref_chart, T_ref_chart_true)
+            )
+        ],
+        axis=0,
+    )
+    rvec, tvec = _rt(T_camera_ref)
+    projected = cv2.projectPoints(moved, rvec, tvec, K, D)[0].reshape(-1, 2)
     return np.linalg.norm(projected - pixels, axis=1).reshape(grid[1], grid[0])
