@@ -84,7 +84,8 @@ class CalibNode(GraphNode):
 
     def __init__(self):
         super().__init__(PARAMETERS)
-        # Raises InvalidInput (a one-line start-up error) for a symmetric chart.
+        # Raises InvalidInput (a one-line start-up error) for a symmetric chessboard or an
+        # unknown ArUco dictionary.
         self.session = CalibrationSession(self._settings)
         self.names = self.session.names
         self.info_publishers = self._latched_publishers(CameraInfo, CAMERA_INFO_TOPICS)
@@ -142,7 +143,7 @@ class CalibNode(GraphNode):
         self.create_timer(1.0, self._publish_status)
         self.get_logger().info(
             f'collecting chart views ({p.method}, {self.session.rows}x{self.session.cols} '
-            f'chessboard, chart.source {self.session.source}, cameras '
+            f'{self.session.pattern}, chart.source {self.session.source}, cameras '
             f'{", ".join(self.names)}, min_views {p.min_views})'
         )
 
