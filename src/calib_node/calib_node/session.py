@@ -95,7 +95,7 @@ class SessionSettings:
     )
     chart_spacing: float = setting(
         0.025,
-        'Chessboard square size.',
+        'Square size (chessboard and ChArUco).',
         unit='m',
         range=(1e-4, 10.0),
         read_only=True,
