@@ -707,21 +707,9 @@ def test_generated_charuco_rig_with_boards_cut_by_the_image_edges(spawn, rclpy_n
     defaults (chart.source auto, min_views 3, recalibrating with every view) but the
     chart: the calibration from every view it kept has every camera's focal lengths
     within 0.2 % of the truth."""
-    from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
+    from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig, with_edge_views
 
-    rig = draw_rig(24, views=8)._replace(pattern='charuco')
-    left = rig.cameras['left']
-    centre_chart = np.array([(rig.cols - 1) / 2, (rig.rows - 1) / 2, 0.0]) * rig.spacing
-    slid = []
-    for i, T in enumerate(rig.T_base_chart[:4]):
-        centre = T[:3, :3] @ centre_chart + T[:3, 3]
-        u = left.project(centre[None])[0][0, 0]
-        depth = (left.T_camera_base[:3, :3] @ centre + left.T_camera_base[:3, 3])[2]
-        moved = T.copy()
-        target = left.width * (0.95 if i % 2 else 0.05)
-        moved[:3, 3] += left.T_camera_base[0, :3] * (target - u) * depth / left.K[0, 0]
-        slid.append(moved)
-    rig = rig._replace(T_base_chart=list(rig.T_base_chart) + slid)
+    rig = with_edge_views(draw_rig(24, views=8)._replace(pattern='charuco'))
     images = render_rig(rig, 24)
     node = spawn(
         [

@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
+from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig, with_edge_views
 
 from calib_node.session import CalibrationSession, SessionSettings
 from harness import ManualClock
@@ -23,19 +23,7 @@ def partial_rig_and_images():
     """rig_generator seed 5 (8 views, whole boards) plus four of them slid along the left
     camera's x until the board's centre is 5 % of the width from an image edge
     (alternately left and right): boards cut by the edge, where distortion is largest."""
-    rig = draw_rig(5, CAMERAS, views=8)._replace(pattern='charuco')
-    left = rig.cameras['left']
-    centre_chart = np.array([(rig.cols - 1) / 2, (rig.rows - 1) / 2, 0.0]) * rig.spacing
-    slid = []
-    for i, T in enumerate(rig.T_base_chart[:4]):
-        centre = T[:3, :3] @ centre_chart + T[:3, 3]
-        u = left.project(centre[None])[0][0, 0]
-        depth = (left.T_camera_base[:3, :3] @ centre + left.T_camera_base[:3, 3])[2]
-        target = left.width * (0.95 if i % 2 else 0.05)
-        moved = T.copy()
-        moved[:3, 3] += left.T_camera_base[0, :3] * (target - u) * depth / left.K[0, 0]
-        slid.append(moved)
-    rig = rig._replace(T_base_chart=list(rig.T_base_chart) + slid)
+    rig = with_edge_views(draw_rig(5, CAMERAS, views=8)._replace(pattern='charuco'))
     return rig, render_rig(rig, 5)
 
 

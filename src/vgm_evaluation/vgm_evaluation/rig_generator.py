@@ -341,6 +341,25 @@ class ChartRenderer:
         return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
+def with_edge_views(rig: Rig, count: int = 4, edge: float = 0.05) -> Rig:
+    """``rig`` with ``count`` more views: its first views' boards slid along the left
+    camera's x until the board's centre is ``edge`` of the width from the left image's
+    edge, alternately left and right, so an image edge cuts them (where the distortion
+    is largest). A chessboard is not found there; a ChArUco board's corners are."""
+    left = rig.cameras['left']
+    centre_chart = np.array([(rig.cols - 1) / 2, (rig.rows - 1) / 2, 0.0]) * rig.spacing
+    slid = []
+    for i, T in enumerate(rig.T_base_chart[:count]):
+        centre = T[:3, :3] @ centre_chart + T[:3, 3]
+        u = left.project(centre[None])[0][0, 0]
+        depth = (left.T_camera_base[:3, :3] @ centre + left.T_camera_base[:3, 3])[2]
+        moved = T.copy()
+        target = left.width * (1 - edge if i % 2 else edge)
+        moved[:3, 3] += left.T_camera_base[0, :3] * (target - u) * depth / left.K[0, 0]
+        slid.append(moved)
+    return rig._replace(T_base_chart=list(rig.T_base_chart) + slid)
+
+
 def render_rig(rig: Rig, seed: int = 0, supersample: int = 4) -> list[dict[str, GreyImage]]:
     """Every view of every camera: [{name: (H, W) uint8}], noise from ``seed``."""
     rng = np.random.default_rng(seed)
