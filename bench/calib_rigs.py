@@ -386,9 +386,10 @@ def charuco_run(seed, edge_views=4):
                 }
                 for view in images
             ]
+        views = [v for v in views if v]  # a view is one in which some camera found it
         corners = sum(int(np.isfinite(c[:, 0]).sum()) for v in views for c in v.values())
         out[pattern] = {
-            'views': sum(bool(v) for v in views),
+            'views': len(views),
             'corners': corners,
             'ours': score_rig(rig.cameras, handheld_rig(shown, views)),
             'opencv': score_rig(rig.cameras, opencv_rig(chart, views, sizes, names)),
