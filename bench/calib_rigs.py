@@ -6,11 +6,11 @@ import time
 
 import cv2
 import numpy as np
-from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
+from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig, with_edge_views
 
 from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import calibrate_rig, stage_uncertainty
-from calib_node.chart_detection import chart_points, detect_chessboard
+from calib_node.chart_detection import CharucoChart, chart_points, detect_chessboard
 from calib_node.uncertainty import true_projection_error, true_projection_error_chart_fixed
 from vgm_common.camera_model import PinholeCamera
 
@@ -68,17 +68,19 @@ def orient_like(views, reference_views, rows, cols):
 
 def opencv_rig(chart, views, image_sizes, names):
     """calibrateCamera per camera, then stereoCalibrate (intrinsic guess, joint) of left
-    with each other camera on their common views. Parameter set as ours: k1, k2, p1, p2.
-    Poses relative to left (left at the identity)."""
+    with each other camera on their common views (a ChArUco view: the corners both saw;
+    NaN rows are corners not seen). Parameter set as ours: k1, k2, p1, p2. Poses
+    relative to left (left at the identity)."""
     objects = np.asarray(chart, dtype=np.float32).reshape(-1, 1, 3)
     flags = cv2.CALIB_FIX_K3
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
     intr = {}
     for name in names:
         seen = [v[name] for v in views if name in v]
+        found = [np.isfinite(s[:, 0]) for s in seen]
         _, K, D, _, _ = cv2.calibrateCamera(
-            [objects] * len(seen),
-            [s.astype(np.float32).reshape(-1, 1, 2) for s in seen],
+            [objects[f] for f in found],
+            [s[f].astype(np.float32).reshape(-1, 1, 2) for s, f in zip(seen, found)],
             image_sizes[name],
             None,
             None,
@@ -90,10 +92,12 @@ def opencv_rig(chart, views, image_sizes, names):
     K_left, D_left = intr['left']
     for name in names[1:]:
         common = [v for v in views if 'left' in v and name in v]
+        both = [np.isfinite(v['left'][:, 0]) & np.isfinite(v[name][:, 0]) for v in common]
+        common = [(v, b) for v, b in zip(common, both) if b.sum() >= 6]
         rms, K1, D1, K2, D2, R, T, _, _ = cv2.stereoCalibrate(
-            [objects] * len(common),
-            [v['left'].astype(np.float32).reshape(-1, 1, 2) for v in common],
-            [v[name].astype(np.float32).reshape(-1, 1, 2) for v in common],
+            [objects[b] for _, b in common],
+            [v['left'][b].astype(np.float32).reshape(-1, 1, 2) for v, b in common],
+            [v[name][b].astype(np.float32).reshape(-1, 1, 2) for v, b in common],
             intr['left'][0].copy(),
             intr['left'][1].copy(),
             intr[name][0].copy(),
@@ -382,12 +386,90 @@ def uncertainty_table(count, draws):
     return lines, rows
 
 
+def charuco_run(seed, edge_views=4):
+    """One generated rig shown as a chessboard and as a ChArUco board at the same poses
+    (its views plus ``edge_views`` cut by an image edge: with_edge_views), handheld:
+    scores of ours (bundle_adjust_selected) and OpenCV (calibrateCamera +
+    stereoCalibrate) on the same corners, and the corners each pattern gave."""
+    rig = with_edge_views(draw_rig(seed), edge_views)
+    sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
+    names = list(rig.cameras)
+    chart = chart_points(rig.rows, rig.cols, rig.spacing)
+    out = {'params': rig.params}
+    for pattern in ('chessboard', 'charuco'):
+        shown = rig._replace(pattern=pattern)
+        images = render_rig(shown, seed)
+        if pattern == 'chessboard':
+            views = detect_views(shown, images, 'ours')
+        else:
+            detector = CharucoChart(rig.rows, rig.cols, rig.spacing)
+            views = [
+                {
+                    n: d.corners
+                    for n, image in view.items()
+                    if (d := detector.detect(image)).corners is not None
+                }
+                for view in images
+            ]
+        views = [v for v in views if v]  # a view is one in which some camera found it
+        corners = sum(int(np.isfinite(c[:, 0]).sum()) for v in views for c in v.values())
+        out[pattern] = {
+            'views': len(views),
+            'corners': corners,
+            'ours': score_rig(rig.cameras, handheld_rig(shown, views)),
+            'opencv': score_rig(rig.cameras, opencv_rig(chart, views, sizes, names)),
+        }
+    return out
+
+
+def charuco_table(count, edge_views=4):
+    """Markdown lines and per-rig results of :func:`charuco_run` on seeds 0..count-1."""
+    results = [charuco_run(seed, edge_views) for seed in range(count)]
+    lines = [
+        f"Handheld, generated rigs (seeds 0-{count - 1}), each rig's views plus "
+        f"{edge_views} boards cut by the left image's edge; the same poses shown as a "
+        'chessboard and as a ChArUco board (DICT_5X5_100, markers 0.75). Worst camera '
+        'per figure (relative errors for fx, baseline; px for cx).',
+        '',
+        '| seed | pattern | views | corners | fx ours | fx OpenCV | cx ours [px] | '
+        'cx OpenCV [px] | baseline ours | baseline OpenCV |',
+        '|---|---|---|---|---|---|---|---|---|---|',
+    ]
+    for seed, result in enumerate(results):
+        for pattern in ('chessboard', 'charuco'):
+            r = result[pattern]
+            lines.append(
+                f'| {seed} | {pattern} | {r["views"]} | {r["corners"]} | '
+                f'{r["ours"]["fx"]:.2e} | {r["opencv"]["fx"]:.2e} | '
+                f'{r["ours"]["cx"]:.3f} | {r["opencv"]["cx"]:.3f} | '
+                f'{r["ours"]["baseline"]:.2e} | {r["opencv"]["baseline"]:.2e} |'
+            )
+    return lines, results
+
+
 def main():
-    """``python bench/calib_rigs.py [rigs]``: bench/results/calib/rigs.md and rigs.json."""
+    """``python bench/calib_rigs.py [rigs]``: bench/results/calib/rigs.md and rigs.json;
+    ``python bench/calib_rigs.py charuco [rigs]``: charuco.md and charuco.json."""
     import json
     import sys
     from pathlib import Path
 
+    if len(sys.argv) > 1 and sys.argv[1] == 'charuco':
+        count = int(sys.argv[2]) if len(sys.argv) > 2 else 3
+        lines, charuco = charuco_table(count)
+        lines = [
+            '# ChArUco and chessboard on generated rigs',
+            '',
+            f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
+            f'bench/calib_rigs.py charuco {count}`.',
+            '',
+        ] + lines
+        out = Path(__file__).resolve().parent / 'results' / 'calib'
+        out.mkdir(parents=True, exist_ok=True)
+        (out / 'charuco.md').write_text('\n'.join(lines) + '\n')
+        (out / 'charuco.json').write_text(json.dumps(charuco, indent=1, default=float))
+        print('\n'.join(lines))
+        return
     count = int(sys.argv[1]) if len(sys.argv) > 1 else 10
     lines, results = rigs_table(count)
     lines = [

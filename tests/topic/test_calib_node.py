@@ -707,6 +707,64 @@ def test_generated_rig_stage_and_handheld(spawn, rclpy_node):
     assert 'Traceback' not in stage.output() + hand.output()
 
 
+def test_generated_charuco_rig_with_boards_cut_by_the_image_edges(spawn, rclpy_node):
+    """A ChArUco chart (chart.pattern charuco, DICT_5X5_100, markers 0.75 of a square:
+    the defaults) on rig_generator seed 24's rig: its 8 views plus 4 slid until the
+    board's centre is 5 % of the width from the left camera's image edge, rendered with
+    OpenCV's board print and published with their target poses; calib_node with its
+    defaults (chart.source auto, min_views 3, recalibrating with every view) but the
+    chart: the calibration from every view it kept has every camera's focal lengths
+    within 0.2 % of the truth."""
+    from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig, with_edge_views
+
+    rig = with_edge_views(draw_rig(24, views=8)._replace(pattern='charuco'))
+    images = render_rig(rig, 24)
+    node = spawn(
+        [
+            executable('calib_node'),
+            '--ros-args',
+            '-p',
+            'chart.pattern:=charuco',
+            '-p',
+            f'chart.rows:={rig.rows}',
+            '-p',
+            f'chart.cols:={rig.cols}',
+            '-p',
+            f'chart.spacing:={rig.spacing}',
+        ]
+    )
+    probe = Probe(rclpy_node)
+    capture = CapturePublisher(rclpy_node)
+    rclpy_node.spin_until(
+        lambda: all(p.get_subscription_count() >= 1 for p in capture.images.values()),
+        30,
+        'subscribers',
+    )
+
+    def counts():
+        """(views kept, image sets rejected) of the latest status."""
+        statuses = probe.statuses('views')
+        if not statuses:
+            return 0, 0
+        values = {kv.key: kv.value for kv in statuses[-1].values}
+        return int(values.get('views', 0)), int(values.get('rejected views', 0))
+
+    for count, (view, T) in enumerate(zip(images, rig.T_base_chart), 1):
+        capture.publish(view, T)  # one at a time: a loaded reader drops images otherwise
+        probe.wait(lambda c=count: sum(counts()) >= c, 60, f'view {count} handled')
+    kept, rejected = counts()
+    assert kept >= len(images) - 1, (kept, rejected)  # a slid view may show no marker
+    probe.calibration_of(kept, CAMERA_NAMES, 120)
+    cameras = {
+        n: camera_info_to_camera(probe.infos[n], pose_to_matrix(probe.poses[n].pose))
+        for n in CAMERA_NAMES
+    }
+    score = score_rig(rig.cameras, cameras)
+    assert score['fx'] < 2e-3 and score['fy'] < 2e-3, (score, rig.params)
+    assert score['baseline'] < 2e-3, score
+    assert node.alive() and 'Traceback' not in node.output()
+
+
 def test_a_camera_that_never_publishes_is_named(spawn, rclpy_node):
     """Defaults (cameras left, right, aux) on a two-camera rig: no capture set can complete,
     and within SILENT_CAMERA_S + the status period the log, /diagnostics and the calibrate

@@ -121,10 +121,12 @@ def zhang_start(
                 f'{name}: the chart was found in {len(seen)} views, '
                 'need at least 3 without target poses'
             )
+        pixels = [np.asarray(views[i][name], dtype=np.float32).reshape(-1, 1, 2) for i in seen]
+        found = [np.isfinite(uv[:, 0, 0]) for uv in pixels]  # NaN: a ChArUco corner not seen
         try:
             _, K, D, rvecs, tvecs = cv2.calibrateCamera(
-                [objects] * len(seen),
-                [np.asarray(views[i][name], dtype=np.float32).reshape(-1, 1, 2) for i in seen],
+                [objects[f] for f in found],
+                [uv[f] for uv, f in zip(pixels, found)],
                 tuple(int(s) for s in size),
                 None,
                 None,
@@ -194,6 +196,7 @@ def bundle_adjust(
     observed = np.concatenate(
         [np.asarray(views[i][names[c]], dtype=float).ravel() for c, i in pairs]
     )
+    seen = np.isfinite(observed)  # NaN: a ChArUco corner not seen (residual 0, no Jacobian)
     evaluate = _reprojection(chart, x0, free, pairs, observed, layout)
     result = solve_lm(evaluate, x0[free], max_nfev)
     x = x0.copy()
@@ -201,9 +204,10 @@ def bundle_adjust(
     if not np.all(np.isfinite(x)):
         raise CalibrationError('bundle adjustment diverged')
     residual_pairs = result.fun.reshape(len(pairs), -1, 2)
-    fits = _camera_fits(x, names, pairs, residual_pairs, layout)
+    seen_pairs = seen.reshape(len(pairs), -1, 2)[..., 0]
+    fits = _camera_fits(x, names, pairs, residual_pairs, layout, seen_pairs)
     charts = [_T(x[layout.chart(i)][:3], x[layout.chart(i)][3:]) for i in range(layout.views)]
-    rms = float(np.sqrt(np.mean(np.sum(residual_pairs**2, axis=2))))
+    rms = float(np.sqrt(np.mean(np.sum(residual_pairs[seen_pairs] ** 2, axis=1))))
     rotations = [layout.camera(c).start for c in range(len(names))]
     rotations += [layout.chart(i).start for i in range(layout.views)]
     x = canonical_rotations(x, rotations)
@@ -218,6 +222,7 @@ def bundle_adjust(
         charts,
         layout,
         hold_to_charts,
+        seen,
     )
     return BundleResult(fits, charts, reference, rms, int(result.nfev), uncertainty)
 
@@ -375,6 +380,9 @@ def _reprojection(
         for row, (c, i) in enumerate(pairs):
             rows = slice(row * n2, (row + 1) * n2)
             residuals[rows] = _pair_reprojection(chart, x, c, i, layout, observed[rows], J[rows])
+        missing = ~np.isfinite(residuals)
+        residuals[missing] = 0.0
+        J[missing] = 0.0
         cache.clear()
         cache[key] = (residuals, J[:, free])
         return cache[key]
@@ -418,8 +426,10 @@ def _camera_fits(
     pairs: Sequence[tuple[int, int]],
     residual_pairs: FloatArray,
     layout: _Layout,
+    seen_pairs: npt.NDArray[np.bool_],
 ) -> dict[str, CameraFit]:
-    """{name: CameraFit} from the adjusted x; ``residual_pairs`` (pairs, N, 2) [px].
+    """{name: CameraFit} from the adjusted x; ``residual_pairs`` (pairs, N, 2) [px] of
+    which ``seen_pairs`` (pairs, N) were observed.
 
     Raises:
         CalibrationError: a camera's focal length came out negative.
@@ -432,7 +442,9 @@ def _camera_fits(
             raise CalibrationError(f'{name}: bundle adjustment gave a negative focal length')
         pose = x[layout.camera(c)]
         T_camera = _T(pose[:3], pose[3:])
-        mine = np.concatenate([residual_pairs[k] for k, (cc, _) in enumerate(pairs) if cc == c])
+        mine = np.concatenate(
+            [residual_pairs[k][seen_pairs[k]] for k, (cc, _) in enumerate(pairs) if cc == c]
+        )
         fits[name] = CameraFit(
             K,
             x[a + 4 : a + 9].copy(),
@@ -455,15 +467,18 @@ def _uncertainty(
     T_ref_chart: Sequence[FloatArray],
     layout: _Layout,
     hold_to_charts: bool,
+    observed_rows: npt.NDArray[np.bool_],
 ) -> Uncertainty:
     """The adjusted rig's :class:`Uncertainty` from the final residuals and Jacobian (the
     chart poses' uncertainty is part of the covariance the cameras' block is taken from);
     the points held fixed in base_link when a chart pose is known, else to the charts
     (``hold_to_charts``) or in the reference camera's frame."""
     # Each camera's view its own noise level (residuals are in pair order, 2N each).
-    covariance = parameter_covariance(
-        final[1], final[0], np.repeat(np.arange(len(pairs)), 2 * len(chart))
-    )
+    groups = np.repeat(np.arange(len(pairs)), 2 * len(chart))
+    if not np.all(observed_rows):  # leave out a ChArUco view's corners not seen
+        final = (final[0][observed_rows], final[1][observed_rows])
+        groups = groups[observed_rows]
+    covariance = parameter_covariance(final[1], final[0], groups)
     row = np.full(len(x), -1)
     row[free] = np.arange(int(free.sum()))
     models = {}

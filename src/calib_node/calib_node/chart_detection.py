@@ -15,12 +15,14 @@ No rclpy.
 
 from __future__ import annotations
 
+import threading
 from typing import NamedTuple, Optional
 
 import cv2
 import numpy as np
 import numpy.typing as npt
 
+from vgm_common.charuco import charuco_board
 from vgm_common.geometry import FloatArray
 
 SHARPNESS_FAILED = 9999.0  # what estimateChessboardSharpness returns when it cannot measure
@@ -268,3 +270,62 @@ def second_board(grey: np.ndarray, corners: npt.ArrayLike, rows: int, cols: int)
         | cv2.CALIB_CB_FAST_CHECK,
     )
     return bool(found)
+
+
+CHARUCO_SADDLE_SCALE = 0.35  # saddle_points' patch on a ChArUco corner / a chessboard's
+
+
+class CharucoChart:
+    """A ChArUco chart's detector (``cv2.aruco.CharucoDetector``), built once: the
+    board's parameters are checked at construction (ValueError, see :func:`charuco_board`)."""
+
+    def __init__(
+        self,
+        rows: int,
+        cols: int,
+        spacing: float,
+        marker_size: float = 0.0,
+        dictionary: str = 'DICT_5X5_100',
+        min_corners: int = 6,
+    ) -> None:
+        self.rows, self.cols = int(rows), int(cols)
+        self.min_corners = int(min_corners)
+        self.board = charuco_board(self.rows, self.cols, spacing, marker_size, dictionary)
+        self._detector = cv2.aruco.CharucoDetector(self.board)
+        self._lock = threading.Lock()  # one detector object: not known to be reentrant
+
+    def detect(self, grey: np.ndarray) -> Detection:
+        """The inner corners the markers identify in a grey image (0..255): ``corners``
+        (rows * cols, 2) [px] in chart order with NaN rows for the corners not seen
+        (partial and occluded views are views), refined as the chessboard's
+        (:func:`saddle_points`); None when fewer than ``min_corners`` are found. The
+        corners must not all lie on one line (no pose from them)."""
+        if grey.dtype != np.uint8:
+            grey = np.clip(np.rint(grey), 0, 255).astype(np.uint8)
+        grey = np.ascontiguousarray(grey)
+        with self._lock:
+            found, ids, _, _ = self._detector.detectBoard(grey)
+        count = 0 if ids is None else len(ids)
+        if count < self.min_corners:
+            return Detection(
+                None,
+                f'{count} ChArUco corners identified, chart.min_corners is {self.min_corners}',
+                np.nan,
+            )
+        ids = np.asarray(ids).ravel()
+        points = np.asarray(found, dtype=float).reshape(-1, 2)
+        rows_cols = np.column_stack(np.divmod(ids, self.cols)).astype(float)
+        if np.linalg.matrix_rank(rows_cols - rows_cols.mean(axis=0), tol=1e-9) < 2:
+            return Detection(None, 'the ChArUco corners found lie on one line', np.nan)
+        # The smallest square side seen: the nearest pair of corners one id step apart.
+        gaps = np.linalg.norm(points[:, None] - points[None], axis=2)
+        steps = np.abs(rows_cols[:, None] - rows_cols[None]).sum(axis=2)
+        side = float(gaps[steps == 1].min() if np.any(steps == 1) else gaps[steps > 0].min())
+        corners = np.full((self.rows * self.cols, 2), np.nan)
+        # The saddle fit on a smaller patch than a chessboard's: the markers' black
+        # borders sit point-symmetrically about a corner out to ~0.23 side (markers 0.75),
+        # their bits beyond do not. Measured on rig_generator charts (seeds 24, 3; noise 1
+        # grey level): CharucoDetector's corners 0.05-0.12 px RMS, refined 0.011-0.035 px
+        # (at the chessboard's patch, 0.5 of this scale and up, 0.02-0.16 px).
+        corners[ids] = saddle_points(grey, points, CHARUCO_SADDLE_SCALE * side)
+        return Detection(corners, '', np.nan)

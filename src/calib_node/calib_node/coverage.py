@@ -12,6 +12,7 @@ of absolute differences); progress per parameter is the spread of the kept views
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -30,9 +31,19 @@ HINTS = {
 def view_parameters(
     corners: npt.ArrayLike, rows: int, cols: int, image_size: tuple[int, int]
 ) -> FloatArray:
-    """(4,) x, y, size, skew in [0, 1] of a board's corners (rows * cols, 2) [px]."""
+    """(4,) x, y, size, skew in [0, 1] of a board's corners (rows * cols, 2) [px]; NaN
+    rows (corners not seen) are filled by the homography of the others."""
     width, height = image_size
-    grid = np.asarray(corners, dtype=float).reshape(rows, cols, 2)
+    points = np.asarray(corners, dtype=float).reshape(-1, 2)
+    seen = np.isfinite(points[:, 0])
+    if not np.all(seen):  # a partial ChArUco view: its board's outline by homography
+        r, c = np.divmod(np.arange(rows * cols), cols)
+        H, _ = cv2.findHomography(np.column_stack([c, r])[seen].astype(np.float32), points[seen])
+        if H is None:
+            raise ValueError('the corners seen give no homography')
+        grid_cr = np.column_stack([c, r, np.ones(rows * cols)]) @ H.T
+        points = grid_cr[:, :2] / grid_cr[:, 2:]
+    grid = points.reshape(rows, cols, 2)
     outline = np.array([grid[0, 0], grid[0, -1], grid[-1, -1], grid[-1, 0]])
     x, y = outline[:, 0], outline[:, 1]
     area = 0.5 * abs(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1)))

@@ -84,7 +84,8 @@ class CalibNode(GraphNode):
 
     def __init__(self) -> None:
         super().__init__(PARAMETERS)
-        # Raises InvalidInput (a one-line start-up error) for a symmetric chart.
+        # Raises InvalidInput (a one-line start-up error) for a symmetric chessboard or an
+        # unknown ArUco dictionary.
         self.session = CalibrationSession(self._settings)
         self.names = self.session.names
         self.info_publishers = self._latched_publishers(CameraInfo, CAMERA_INFO_TOPICS)

@@ -22,13 +22,6 @@ from vgm_common.topics import OPTICAL_FRAMES
 class FileSettings:
     """Where calib_node's calibration comes from and goes to, and how it pairs images."""
 
-    chart_pattern: str = setting(
-        'chessboard',
-        'Chart pattern (the only one so far).',
-        choices=('chessboard',),
-        read_only=True,
-        name='chart.pattern',
-    )
     calibration_file: str = setting(
         '',
         'A calibration.yaml (or its directory) to publish at start instead of calibrating; '

@@ -31,7 +31,7 @@ from calib_node.calibrate import (
     calibrate_rig,
     stage_uncertainty,
 )
-from calib_node.chart_detection import chart_points, detect_chessboard
+from calib_node.chart_detection import CharucoChart, Detection, chart_points, detect_chessboard
 from calib_node.coverage import Coverage, view_parameters
 from calib_node.cross_validation import (
     MIN_HALF_VIEWS,
@@ -48,6 +48,7 @@ from vgm_common.settings import setting
 from vgm_common.topics import BASE_FRAME, CAMERA_NAMES
 
 CHART_SOURCES = ('auto', 'stage', 'handheld')
+CHART_PATTERNS = ('chessboard', 'charuco')
 TARGET_WAIT_S = 1.0  # [s] how long an image set waits for a target pose of its stamp
 RECENT_TARGETS = 200  # target poses kept by stamp until their images arrive
 RESERVE_VIEWS = 100  # handheld views like a kept one, held for when the kept ones fall short
@@ -75,10 +76,18 @@ class SessionSettings:
     parameter applies to the next view or calibration. The chart and the cameras are
     fixed for a session."""
 
+    chart_pattern: str = setting(
+        'chessboard',
+        'chessboard (found whole), or charuco (cv2.aruco ChArUco board of the same squares: '
+        'its markers identify the corners, so partial and occluded views count).',
+        choices=CHART_PATTERNS,
+        read_only=True,
+        name='chart.pattern',
+    )
     chart_rows: int = setting(
         6,
-        'Inner corners along the chart y axis; rows + cols must be odd (the board must not '
-        'be symmetric under a half turn).',
+        'Inner corners along the chart y axis; for a chessboard rows + cols must be odd (the '
+        'board must not be symmetric under a half turn).',
         range=(2, 100),
         read_only=True,
         name='chart.rows',
@@ -92,11 +101,34 @@ class SessionSettings:
     )
     chart_spacing: float = setting(
         0.025,
-        'Chessboard square size.',
+        'Square size (chessboard and ChArUco).',
         unit='m',
         range=(1e-4, 10.0),
         read_only=True,
         name='chart.spacing',
+    )
+    chart_dictionary: str = setting(
+        'DICT_5X5_100',
+        "charuco: the board's predefined ArUco dictionary (a cv2.aruco DICT_* name; an "
+        'unknown one is a start-up error listing the valid ones).',
+        read_only=True,
+        name='chart.dictionary',
+    )
+    chart_marker_size: float = setting(
+        0.0,
+        'charuco: the side of its ArUco markers; 0: 0.75 chart.spacing.',
+        unit='m',
+        range=(0.0, 10.0),
+        read_only=True,
+        name='chart.marker_size',
+    )
+    chart_min_corners: int = setting(
+        6,
+        'charuco: fewest identified corners a camera needs for its view to count (not all '
+        'on one line).',
+        range=(4, 10000),
+        read_only=True,
+        name='chart.min_corners',
     )
     chart_source: str = setting(
         'auto',
@@ -309,7 +341,21 @@ class CalibrationSession:
         self._settings = settings
         self._clock = clock
         first = settings()
-        if (first.chart_rows + first.chart_cols) % 2 == 0:
+        self.pattern = first.chart_pattern
+        self.charuco: CharucoChart | None = None
+        if self.pattern == 'charuco':  # the markers' ids fix the orientation
+            try:
+                self.charuco = CharucoChart(
+                    first.chart_rows,
+                    first.chart_cols,
+                    first.chart_spacing,
+                    first.chart_marker_size,
+                    first.chart_dictionary,
+                    first.chart_min_corners,
+                )
+            except ValueError as error:
+                raise InvalidInput(f'chart.dictionary: {error}', key='chart.dictionary') from None
+        elif (first.chart_rows + first.chart_cols) % 2 == 0:
             raise InvalidInput(
                 'parameters chart.rows + chart.cols must be odd (the '
                 'board must not be symmetric under a half turn)',
@@ -348,7 +394,7 @@ class CalibrationSession:
         settings = self._settings()
         return (
             f'collecting chart views ({settings.method}, {self.rows}x{self.cols} '
-            f'chessboard, chart.source {self.source}, cameras '
+            f'{self.pattern}, chart.source {self.source}, cameras '
             f'{", ".join(self.names)}, min_views {settings.min_views})'
         )
 
@@ -409,10 +455,7 @@ class CalibrationSession:
             zip(
                 greys,
                 self._detection_pool.map(
-                    lambda grey: detect_chessboard(
-                        grey, self.rows, self.cols, settings.max_blur_px
-                    ),
-                    greys.values(),
+                    lambda grey: self._detect(grey, settings), greys.values()
                 ),
             )
         )
@@ -468,6 +511,13 @@ class CalibrationSession:
             + (f' (still: {still})' if still else '')
         )
         return ViewOutcome('kept', message, handheld_started, calibrate_now)
+
+    def _detect(self, grey: np.ndarray, settings: SessionSettings) -> Detection:
+        """The chart's corners in one image (N, 2) in chart order, NaN rows for a
+        ChArUco board's corners not seen."""
+        if self.charuco is not None:
+            return self.charuco.detect(grey)
+        return detect_chessboard(grey, self.rows, self.cols, settings.max_blur_px)
 
     def chart_pose_of(self, stamp_ns: int, completed: float) -> FloatArray | None | Literal[False]:
         """The chart pose T_base_chart of the capture set of ``stamp_ns``, waiting for it
@@ -554,8 +604,10 @@ class CalibrationSession:
         for T, (_, corners) in zip(fit.T_base_chart, views):
             points = self.chart @ T[:3, :3].T + T[:3, 3]
             for name, observed in corners.items():
-                residuals[name].append((observed, observed - cameras[name].project(points)[0]))
-                seen[name].append(cameras[name].to_camera(points))
+                visible = np.isfinite(observed[:, 0])  # a ChArUco view's corners seen
+                projected = cameras[name].project(points[visible])[0]
+                residuals[name].append((observed[visible], observed[visible] - projected))
+                seen[name].append(cameras[name].to_camera(points[visible]))
         ranges = {n: working_range(np.concatenate(seen[n])) for n in fits}
         with self._calibration_lock:
             cross_validation = self._cross_validate(views, settings, ranges)
@@ -639,9 +691,12 @@ class CalibrationSession:
             if not pairs:
                 missing.append(name)
                 continue
+            seen = [np.isfinite(uv[:, 0]) for _, uv in pairs]  # a ChArUco view's corners seen
             observations[name] = (
-                np.concatenate([self.chart @ T[:3, :3].T + T[:3, 3] for T, _ in pairs]),
-                np.concatenate([uv for _, uv in pairs]),
+                np.concatenate(
+                    [(self.chart @ T[:3, :3].T + T[:3, 3])[s] for (T, _), s in zip(pairs, seen)]
+                ),
+                np.concatenate([uv[s] for (_, uv), s in zip(pairs, seen)]),
                 self.image_sizes[name],
             )
         if missing:
@@ -699,7 +754,8 @@ class CalibrationSession:
                 settings.fit_tangential,
                 settings.fit_k3,
                 settings.select_model,
-                len(self.chart),
+                # views of equal size share out the noise levels; ChArUco views differ
+                len(self.chart) if self.charuco is None else None,
             )
             fits, seconds = result.fits, result.seconds
             uncertainty = stage_uncertainty(fits, observations)

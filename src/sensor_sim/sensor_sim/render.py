@@ -37,6 +37,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
+import cv2
 import numpy as np
 import numpy.typing as npt
 from scipy.special import ndtri
@@ -429,6 +430,10 @@ def _render_chart(
     same_grey = (greys[0] == greys[1]) & (greys[0] == greys[2]) & (greys[0] == greys[3])
     mixed = ~((all_covered & same_grey) | none_covered)
     mixed |= _pixels_on_print_edges(camera, T_base_chart, rows, cols, spacing, box)
+    if calibration.pattern == 'charuco':
+        # A marker's bit edge may pass between a pixel's corners without changing their
+        # colour (the squares' edges are drawn above; the bits are not).
+        mixed |= cv2.dilate(mixed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
 
     block = np.where(all_covered, greys[0], scene_grey)
     r, c = np.nonzero(mixed)
@@ -451,7 +456,14 @@ def _chart_sampler(
     frame: the chart's grey level where the ray meets the plate, and the hit's depth [m]
     (+inf off the plate or behind the camera)."""
     calibration, lighting = _calibration(scenario), scenario.lighting
-    rows, cols, spacing = calibration.rows, calibration.cols, calibration.spacing
+    print_albedo = chart.print_albedo(
+        calibration.pattern,
+        calibration.rows,
+        calibration.cols,
+        calibration.spacing,
+        calibration.marker_size,
+        calibration.dictionary,
+    )
     T_camera_chart = camera.T_camera_base @ T_base_chart
     R, origin = T_camera_chart[:3, :3], T_camera_chart[:3, 3]
     normal = R[:, 2]
@@ -469,9 +481,7 @@ def _chart_sampler(
         # Chart-frame coordinates of the hit: R^T (depth * ray - origin).
         chart_x = depth * (R[0, 0] * x + R[1, 0] * y + R[2, 0]) - R[:, 0] @ origin
         chart_y = depth * (R[0, 1] * x + R[1, 1] * y + R[2, 1]) - R[:, 1] @ origin
-        albedo = chart.chart_albedo(
-            np.column_stack([chart_x.ravel(), chart_y.ravel()]), rows, cols, spacing
-        ).reshape(x.shape)
+        albedo = print_albedo(np.column_stack([chart_x.ravel(), chart_y.ravel()])).reshape(x.shape)
         on_plate = np.isfinite(albedo) & (depth > 0)
         if not printed:
             albedo = np.full(x.shape, CHART_BACK_ALBEDO)

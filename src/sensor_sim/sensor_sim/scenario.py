@@ -33,7 +33,7 @@ from vgm_common.topics import TOOL_FRAME
 SURFACE_TYPES = ('plane', 'S1', 'S2', 'S3', 'vase', 'sphere', 'heightmap')
 CURVE_TYPES = ('parabola', 'ellipse', 'circle', 'line_pair', 'cubic', 'surface_loop', 'points')
 CAMERA_NAMES = ('left', 'right', 'aux')
-CHART_PATTERNS = ('chessboard',)
+CHART_PATTERNS = ('chessboard', 'charuco')
 CHART_MOTIONS = ('stage', 'handheld')  # how the chart is shown for calibration
 CurveParameter = FloatArray | float | bool  # a value of Curve.params
 
@@ -89,8 +89,9 @@ class Noise:
 
 @dataclass(frozen=True)
 class Calibration:
-    """The calibration stage: the chessboard (inner corners, square size), the captures
-    taken at each pose and the chart's stage poses in base_link."""
+    """The calibration stage: the chart (pattern, inner corners, square size; a ChArUco
+    board's marker size and ArUco dictionary), the captures taken at each pose and the
+    chart's stage poses in base_link."""
 
     pattern: str
     rows: int  # inner corners
@@ -101,6 +102,8 @@ class Calibration:
     motion: str = 'stage'  # 'handheld': T_base_chart are a hand's poses around the stage's
     handheld_views: int = 24  # how many a hand shows
     T_base_stage: tuple[FloatArray, ...] = ()  # the stage poses as the file gives them
+    dictionary: str = 'DICT_5X5_100'  # charuco: the predefined ArUco dictionary
+    marker_size: float = 0.0  # charuco: marker side [m]; 0: 0.75 spacing
 
 
 @dataclass(frozen=True)
@@ -491,9 +494,22 @@ def _parse_camera(section: _Section) -> PinholeCamera:
 
 
 def _parse_calibration(section: _Section) -> Calibration:
+    from vgm_common.charuco import charuco_board
+
+    pattern = section.string('pattern', default='chessboard', choices=CHART_PATTERNS)
     rows = section.integer('rows', minimum=2)
     cols = section.integer('cols', minimum=2)
-    if (rows + cols) % 2 == 0:
+    spacing = section.number('spacing', positive=True)
+    dictionary = section.string('dictionary', default='DICT_5X5_100')
+    marker_size = section.number('marker_size', default=0.0, minimum=0.0)
+    if pattern == 'charuco':  # its markers' ids fix the orientation: any rows, cols
+        try:
+            charuco_board(rows, cols, spacing, marker_size, dictionary)
+        except ValueError as error:
+            raise ScenarioError(
+                f'{section.path("dictionary")}: {error}', key=section.path('dictionary')
+            ) from None
+    elif (rows + cols) % 2 == 0:
         raise ScenarioError(
             f'{section.path("rows")}: rows + cols must be odd so the '
             'chessboard has no 180-degree symmetry',
@@ -507,14 +523,16 @@ def _parse_calibration(section: _Section) -> Calibration:
         )
     pose_list = _Section({str(i): p for i, p in enumerate(poses)}, section.path('poses'))
     return Calibration(
-        pattern=section.string('pattern', default='chessboard', choices=CHART_PATTERNS),
+        pattern=pattern,
         rows=rows,
         cols=cols,
-        spacing=section.number('spacing', positive=True),
+        spacing=spacing,
         captures_per_pose=section.integer('captures_per_pose', default=1, minimum=1),
         T_base_chart=tuple(pose_list.pose(str(i)) for i in range(len(poses))),
         motion=section.string('motion', default='stage', choices=CHART_MOTIONS),
         handheld_views=section.integer('handheld_views', default=24, minimum=4),
+        dictionary=dictionary,
+        marker_size=marker_size,
     )
 
 

@@ -42,6 +42,7 @@ class Rig(NamedTuple):
     spacing: float  # [m]
     noise: float  # image noise sigma [grey levels]
     params: dict[str, int | float | str]  # what was drawn (for the bench's tables)
+    pattern: str = 'chessboard'  # or 'charuco' (DICT_5X5_100, markers 0.75 spacing)
 
 
 def _lens(
@@ -239,8 +240,18 @@ class ChartRenderer:
     rays (box filter: the sensor's pixel area), the distortion applied exactly through the
     camera's undistortion map (interpolated between pixel centres, ~1e-4 px)."""
 
-    def __init__(self, rows: int, cols: int, spacing: float, supersample: int = 4) -> None:
+    def __init__(
+        self,
+        rows: int,
+        cols: int,
+        spacing: float,
+        supersample: int = 4,
+        pattern: str = 'chessboard',
+    ) -> None:
+        from sensor_sim.chart import print_albedo
+
         self.rows, self.cols, self.spacing = rows, cols, spacing
+        self.albedo = print_albedo(pattern, rows, cols, spacing)
         self.supersample = int(supersample)
         # id(camera) -> (camera, its undistortion map); holding the camera keeps its id unique
         self._maps: dict[int, tuple[PinholeCamera, FloatArray]] = {}
@@ -305,8 +316,6 @@ class ChartRenderer:
 
     def _sampler(self, T_camera_chart: FloatArray) -> Callable[[FloatArray], FloatArray]:
         """(..., 2) normalised undistorted rays -> (...) grey level of what they hit."""
-        from sensor_sim.chart import chart_albedo
-
         R, origin = T_camera_chart[:3, :3], T_camera_chart[:3, 3]
         normal = R[:, 2]
 
@@ -316,12 +325,9 @@ class ChartRenderer:
                 depth = (normal @ origin) / (normal[0] * x + normal[1] * y + normal[2])
             chart_x = depth * (R[0, 0] * x + R[1, 0] * y + R[2, 0]) - R[:, 0] @ origin
             chart_y = depth * (R[0, 1] * x + R[1, 1] * y + R[2, 1]) - R[:, 1] @ origin
-            albedo = chart_albedo(
-                np.column_stack([chart_x.ravel(), chart_y.ravel()]),
-                self.rows,
-                self.cols,
-                self.spacing,
-            ).reshape(x.shape)
+            albedo = self.albedo(np.column_stack([chart_x.ravel(), chart_y.ravel()])).reshape(
+                x.shape
+            )
             grey = np.where(albedo > 0.5, WHITE_GREY, BLACK_GREY)
             return np.where(np.isfinite(albedo) & (depth > 0), grey, BACKGROUND_GREY)
 
@@ -335,10 +341,29 @@ class ChartRenderer:
         return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
+def with_edge_views(rig: Rig, count: int = 4, edge: float = 0.05) -> Rig:
+    """``rig`` with ``count`` more views: its first views' boards slid along the left
+    camera's x until the board's centre is ``edge`` of the width from the left image's
+    edge, alternately left and right, so an image edge cuts them (where the distortion
+    is largest). A chessboard is not found there; a ChArUco board's corners are."""
+    left = rig.cameras['left']
+    centre_chart = np.array([(rig.cols - 1) / 2, (rig.rows - 1) / 2, 0.0]) * rig.spacing
+    slid = []
+    for i, T in enumerate(rig.T_base_chart[:count]):
+        centre = T[:3, :3] @ centre_chart + T[:3, 3]
+        u = left.project(centre[None])[0][0, 0]
+        depth = (left.T_camera_base[:3, :3] @ centre + left.T_camera_base[:3, 3])[2]
+        moved = T.copy()
+        target = left.width * (1 - edge if i % 2 else edge)
+        moved[:3, 3] += left.T_camera_base[0, :3] * (target - u) * depth / left.K[0, 0]
+        slid.append(moved)
+    return rig._replace(T_base_chart=list(rig.T_base_chart) + slid)
+
+
 def render_rig(rig: Rig, seed: int = 0, supersample: int = 4) -> list[dict[str, GreyImage]]:
     """Every view of every camera: [{name: (H, W) uint8}], noise from ``seed``."""
     rng = np.random.default_rng(seed)
-    renderer = ChartRenderer(rig.rows, rig.cols, rig.spacing, supersample)
+    renderer = ChartRenderer(rig.rows, rig.cols, rig.spacing, supersample, rig.pattern)
     return [
         {name: renderer.render(camera, T, rng, rig.noise) for name, camera in rig.cameras.items()}
         for T in rig.T_base_chart
