@@ -450,40 +450,27 @@ def charuco_table(count, edge_views=4):
 def main():
     """``python bench/calib_rigs.py [rigs]``: bench/results/calib/rigs.md and rigs.json;
     ``python bench/calib_rigs.py charuco [rigs]``: charuco.md and charuco.json."""
-    import json
     import sys
     from pathlib import Path
 
-    if len(sys.argv) > 1 and sys.argv[1] == 'charuco':
-        count = int(sys.argv[2]) if len(sys.argv) > 2 else 3
-        lines, charuco = charuco_table(count)
-        lines = [
-            '# ChArUco and chessboard on generated rigs',
-            '',
-            f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-            f'bench/calib_rigs.py charuco {count}`.',
-            '',
-        ] + lines
-        out = Path(__file__).resolve().parent / 'results' / 'calib'
-        out.mkdir(parents=True, exist_ok=True)
-        (out / 'charuco.md').write_text('\n'.join(lines) + '\n')
-        (out / 'charuco.json').write_text(json.dumps(charuco, indent=1, default=float))
-        print('\n'.join(lines))
-        return
-    count = int(sys.argv[1]) if len(sys.argv) > 1 else 10
-    lines, results = rigs_table(count)
-    lines = [
-        '# calib_node on generated rigs',
+    from vgm_evaluation.bench_report import write_results
+
+    charuco = len(sys.argv) > 1 and sys.argv[1] == 'charuco'
+    arguments = sys.argv[2:] if charuco else sys.argv[1:]
+    count = int(arguments[0]) if arguments else (3 if charuco else 10)
+    lines, results = charuco_table(count) if charuco else rigs_table(count)
+    title = (
+        'ChArUco and chessboard on generated rigs' if charuco else 'calib_node on generated rigs'
+    )
+    command = f'bench/calib_rigs.py {"charuco " if charuco else ""}{count}'
+    header = [
+        f'# {title} on generated rigs',
         '',
-        f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-        f'bench/calib_rigs.py {count}`.',
+        f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python {command}`.',
         '',
-    ] + lines
+    ]
     out = Path(__file__).resolve().parent / 'results' / 'calib'
-    out.mkdir(parents=True, exist_ok=True)
-    (out / 'rigs.md').write_text('\n'.join(lines) + '\n')
-    (out / 'rigs.json').write_text(json.dumps(results, indent=1, default=float))
-    print('\n'.join(lines))
+    write_results(out, 'charuco' if charuco else 'rigs', header + lines, results)
 
 
 if __name__ == '__main__':
