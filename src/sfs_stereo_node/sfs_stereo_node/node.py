@@ -17,7 +17,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from stereo_msgs.msg import DisparityImage
 
 from sfs_stereo_node.pipeline import DepthConfig, DepthResult, process_pair
-from sfs_stereo_node.session import DepthSession
+from sfs_stereo_node.session import DepthSession, PairSettings
 from vgm_common.camera_model import PinholeCamera
 from vgm_common.camera_topics import CalibratedCameras, ImageCaptures
 from vgm_common.conversions import (
@@ -31,7 +31,7 @@ from vgm_common.diagnostics import CountingPublisher
 from vgm_common.errors import InvalidInput
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
-from vgm_common.parameters import ConfigParams, Param
+from vgm_common.parameters import ConfigParams
 from vgm_common.qos import DEFAULT_QOS
 from vgm_common.topics import (
     DEPTH_CONFIDENCE_TOPIC,
@@ -60,31 +60,7 @@ def _ordered_ranges(values: Mapping[str, Any]) -> str | None:
     return None
 
 
-PARAMETERS = [
-    *DEPTH.declarations(),
-    Param(
-        'sync_max_wait',
-        1.0,
-        'Longest wait for the other image of a pair [s].',
-        range=(0.01, 60.0),
-        read_only=True,
-    ),
-    Param(
-        'log_every',
-        10.0,
-        'Seconds between INFO lines on processed frames (the first frame is always logged).',
-        range=(0.0, 3600.0),
-    ),
-    Param(
-        'max_rate',
-        0.0,
-        'Process at most this many pairs per second of image time: the first pair of each '
-        '1/max_rate slot of stamps [Hz]; 0 = as fast as they come. Frees the CPU for other '
-        'nodes (make demo uses 0.25); chosen by stamps, so a replayed bag gives the same '
-        'frames.',
-        range=(0.0, 100.0),
-    ),
-]
+PARAMETERS = [*DEPTH.declarations(), *ConfigParams(PairSettings).declarations()]
 
 
 class SfsStereoNode(GraphNode):

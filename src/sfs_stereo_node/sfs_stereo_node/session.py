@@ -8,16 +8,45 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from sfs_stereo_node.pipeline import DepthResult
 from sfs_stereo_node.rectify import RectifiedPair, rectification_maps
 from vgm_common.errors import InvalidInput
+from vgm_common.settings import setting
 
 if TYPE_CHECKING:
     from vgm_common.camera_topics import CalibratedCamera
 
 WARN_EVERY_S = 10.0  # one log line per kind of warning at most this often
+
+
+@dataclass(frozen=True)
+class PairSettings:
+    """How sfs_stereo_node pairs, takes and logs its images: the one source of its
+    parameters of these names (the depth itself is ``pipeline.DepthConfig``)."""
+
+    sync_max_wait: float = setting(
+        1.0,
+        'Longest wait for the other image of a pair.',
+        unit='s',
+        range=(0.01, 60.0),
+        read_only=True,
+    )
+    log_every: float = setting(
+        10.0,
+        'Seconds between INFO lines on processed frames (the first frame is always logged).',
+        range=(0.0, 3600.0),
+    )
+    max_rate: float = setting(
+        0.0,
+        'Process at most this many pairs per second of image time: the first pair of each '
+        '1/max_rate slot of stamps [Hz]; 0 = as fast as they come. Frees the CPU for other '
+        'nodes (make demo uses 0.25); chosen by stamps, so a replayed bag gives the same '
+        'frames.',
+        range=(0.0, 100.0),
+    )
 
 
 class DepthSession:
