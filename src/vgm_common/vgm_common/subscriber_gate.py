@@ -27,7 +27,7 @@ def subscriber_gate_params(what: str) -> list[Param]:
         Param(
             'min_subscribers',
             0,
-            f'{what} this many matched subscribers, at most '
+            f'{what} this many matched subscribers (e.g. a recorder), at most '
             'subscriber_timeout: a reliable publisher drops what it sends before '
             'discovery. 0 = start at once.',
             range=(0, 100),
@@ -49,7 +49,8 @@ def subscriber_gate_params(what: str) -> list[Param]:
         Param(
             'subscriber_timeout',
             30.0,
-            '[s] Longest wait for min_subscribers and wait_for_nodes.',
+            '[s] Longest wait for min_subscribers and wait_for_nodes; then publishing '
+            'starts with a warning naming what is missing.',
             range=(0.0, 3600.0),
             read_only=True,
         ),
