@@ -1,6 +1,7 @@
 """The layering docs/architecture.md states, checked on the sources: the algorithm cores
-import no rclpy (only node files and vgm_common's node edges do), and no node package
-imports vgm_evaluation (the generators are for benches, tests and the demo)."""
+import no rclpy (only node files and vgm_common's node edges do), no node package
+imports vgm_evaluation (the generators are for benches, tests and the demo), and the node
+packages stand side by side on vgm_common, none importing another."""
 
 import ast
 
@@ -24,6 +25,8 @@ ROS_EDGES = {
     'graph_probe.py',
     'deferred_service.py',
 }
+# The one import across node packages: live_view finds topics as the recorder does.
+ALLOWED_NEIGHBOURS = {'live_view': {'bag_tools'}}
 
 
 def imported_packages(path):
@@ -47,3 +50,13 @@ def test_cores_import_no_rclpy_and_nodes_no_evaluation_code(package):
             path.name == 'node.py' or path.name.endswith('_node.py') or path.name in ROS_EDGES
         ):
             assert not imported & {'rclpy'}, f'{path} is a core and imports rclpy'
+
+
+@pytest.mark.parametrize('package', [p for p in NODE_PACKAGES if p != 'vgm_evaluation'])
+def test_node_packages_import_only_vgm_common_of_ours(package):
+    others = set(NODE_PACKAGES) - {package, 'vgm_common'} - ALLOWED_NEIGHBOURS.get(package, set())
+    for path in sorted((SRC / package / package).glob('*.py')):
+        crossing = imported_packages(path) & others
+        assert not crossing, (
+            f'{path} imports {sorted(crossing)}: a node package stands on vgm_common only'
+        )
