@@ -58,7 +58,6 @@ class Fuzzer:
         self.cases = []
         self.outcomes = {}  # case -> 'refused' | 'survived' | 'parameter refused'
         self._publishers = {}
-        self._clients = {}
         self._rejected = {}  # diagnostic status name -> highest count seen
         self._problems = 0  # WARN/ERROR diagnostics of this node seen
         probe.create_subscription(
@@ -94,13 +93,7 @@ class Fuzzer:
         out before the client's response reader is discovered, and be lost ("failed to
         send response (timeout)" in the node's log, seen once in a full run): at start-up
         such a lost answer is asked for again; later, check_serving allows none."""
-        client = self._client(GetParameters, f'/{self.node_name}/get_parameters')
         deadline = time.monotonic() + timeout
-        self.probe.spin_until(
-            lambda: client.service_is_ready() or not self.process.alive(),
-            timeout,
-            f'{self.node_name} to serve its parameters',
-        )
         request = GetParameters.Request(names=['use_sim_time'])
         while True:
             try:
@@ -146,27 +139,19 @@ class Fuzzer:
             self._publishers[key] = publisher
         return self._publishers[key]
 
-    def _client(self, srv_type, name):
-        if name not in self._clients:
-            self._clients[name] = self.probe.create_client(srv_type, name)
-        return self._clients[name]
-
     def call(self, srv_type, name, request, timeout):
         """The answer of service ``name``; AssertionError if the node died meanwhile."""
-        client = self._client(srv_type, name)
-        self.probe.spin_until(
-            lambda: client.service_is_ready() or not self.process.alive(),
+        answer = self.probe.graph.call(
+            name,
             timeout,
-            f'service {name}',
-        )
-        future = client.call_async(request)
-        self.probe.spin_until(
-            lambda: future.done() or not self.process.alive(), timeout, f'an answer from {name}'
+            srv_type=srv_type,
+            request=request,
+            give_up=lambda: not self.process.alive(),
         )
         assert self.process.alive(), (
             f'{self.node_name} died serving {name}:\n{self.process.output()[-3000:]}'
         )
-        return future.result()
+        return answer
 
     def reject(self, case, send):
         """``send()`` something the node must refuse: it says so and keeps serving."""

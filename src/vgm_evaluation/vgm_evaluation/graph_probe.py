@@ -1,7 +1,7 @@
 """The running graph as a test, a bench or the demo sees it, through one rclpy node in
-its own context: topics recorded, /diagnostics kept by status name, Trigger services
-called, and bounded waits on conditions that, on timeout, say what the nodes reported
-last (a node that stopped for a reason has said it on /diagnostics)."""
+its own context: topics recorded, /diagnostics kept by status name, services called, and
+bounded waits on conditions that, on timeout, say what the nodes reported last (a node
+that stopped for a reason has said it on /diagnostics)."""
 
 from __future__ import annotations
 
@@ -46,6 +46,7 @@ class GraphProbe:
         # clock: when the node reported it, not when it arrived)
         self.status_stamps_ns: list[int] = []
         self._diagnostics_subscription: Any = None
+        self._clients: dict[str, Any] = {}  # service name -> its client, kept
         if watch_diagnostics:
             self.watch_diagnostics()
 
@@ -101,16 +102,30 @@ class GraphProbe:
             for s in self.statuses[-count:]
         ]
 
-    def call(self, service: str, timeout: float = 20.0) -> Trigger.Response:
-        """Call the Trigger ``service`` once it is there; its response."""
-        client = self.node.create_client(Trigger, service)
-        try:
-            self.wait(client.service_is_ready, timeout, f'service {service}')
-            future = client.call_async(Trigger.Request())
-            self.wait(future.done, timeout, f'the response of {service}')
-            return future.result()
-        finally:
-            self.node.destroy_client(client)
+    def call(
+        self,
+        service: str,
+        timeout: float = 20.0,
+        *,
+        srv_type: Any = Trigger,
+        request: Any = None,
+        give_up: Callable[[], bool] | None = None,
+    ) -> Any:
+        """The response of ``service`` (a Trigger service unless ``srv_type``; an empty
+        request unless ``request``) once it is there, or None if ``give_up()`` turned true
+        first (e.g. the process serving it died). The client is kept for the next call: a
+        new one would wait for discovery again, and the first answer to a client whose
+        response reader is not yet discovered can be lost."""
+        client = self._clients.get(service)
+        if client is None:
+            client = self._clients[service] = self.node.create_client(srv_type, service)
+        stopped = give_up or (lambda: False)
+        self.wait(lambda: client.service_is_ready() or stopped(), timeout, f'service {service}')
+        if stopped():
+            return None
+        future = client.call_async(srv_type.Request() if request is None else request)
+        self.wait(lambda: future.done() or stopped(), timeout, f'the response of {service}')
+        return future.result() if future.done() else None
 
     def close(self) -> None:
         """Destroy the node and shut its context down."""
