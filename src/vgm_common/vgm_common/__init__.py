@@ -1,3 +1,3 @@
 """Shared pieces of the vision-guided manipulation graph: message/numpy conversion, exact-time
-sync, QoS profiles, scenario loading, camera and PA-10 models, diagnostics, the process
-launcher."""
+sync, QoS profiles, camera and robot models, settings and parameters, diagnostics, the
+process launcher."""
