@@ -17,7 +17,6 @@ speed / limit); task time = the start call to the first 'done' status (the path'
 """
 
 import itertools
-import json
 import os
 import sys
 import time
@@ -28,6 +27,8 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'tests'))
+from vgm_evaluation.bench_report import markdown_table, save_figure, write_results  # noqa: E402
+
 from harness import NodeProcess, executable, next_ros_env, small_scenario  # noqa: E402
 from vgm_evaluation import task_generator  # noqa: E402
 
@@ -316,7 +317,6 @@ def main_over_topics(argv):
         cases = grid(arms)
     else:
         cases = sample(arms, int(_option(argv, '--cases', '12')), seed)
-    OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     began = time.monotonic()
     for index, (arm_name, shape, tilt, condition) in enumerate(cases):
@@ -343,7 +343,7 @@ def main_over_topics(argv):
             f'{_brief(pair["peer"])}; time ratio {ratio:.2f}',
             flush=True,
         )
-        write_results(rows, argv, seed)
+        write_tables(rows, argv, seed)
     return rows
 
 
@@ -362,17 +362,44 @@ def _brief(r):
 
 
 def _cells(r):
+    """The cells of one controller's run, from 'end' to 'goals missed'."""
     if 'rms_mm' not in r:
-        return f'{r["phase"]} | | | | | | | | | {r.get("reason", "")}'
+        return (r['phase'], *[''] * 8, r.get('reason', ''))
     return (
-        f'{r["phase"]} | {r["rms_mm"]:.4f} | {r["max_mm"]:.3f} | '
-        f'{r["passed_fraction"] * 100:.1f} | {r["force_p95_pct"]:.2f} | '
-        f'{r["limit_margin_rad"]:.3f} | {r["velocity_ratio"]:.2f} | {r["task_s"]:.1f} | '
-        f'{r.get("step_ms", float("nan")):.3f} | {"; ".join(r["missed"]) or "none"}'
+        r['phase'],
+        f'{r["rms_mm"]:.4f}',
+        f'{r["max_mm"]:.3f}',
+        f'{r["passed_fraction"] * 100:.1f}',
+        f'{r["force_p95_pct"]:.2f}',
+        f'{r["limit_margin_rad"]:.3f}',
+        f'{r["velocity_ratio"]:.2f}',
+        f'{r["task_s"]:.1f}',
+        f'{r.get("step_ms", float("nan")):.3f}',
+        '; '.join(r['missed']) or 'none',
     )
 
 
-def write_results(rows, argv, seed):
+COLUMNS = (
+    'arm',
+    'shape',
+    'tilt [deg]',
+    'condition',
+    'controller',
+    'end',
+    'RMS [mm]',
+    'max [mm]',
+    'passed [%]',
+    'force p95 [%]',
+    'limit margin [rad]',
+    'qdot / limit',
+    'task [s]',
+    'step [ms]',
+    'goals missed',
+    'time ours / peer',
+)
+
+
+def write_tables(rows, argv, seed):
     from bench_pa10_ik import GOALS, PEER_SPEED
 
     command = 'nice -n 10 .venv/bin/python bench/bench_pa10_ik.py ' + ' '.join(argv)
@@ -410,17 +437,14 @@ def write_results(rows, argv, seed):
         f'step < 0.3 ms) {np.nanmedian(steps):.3f} ms (cases {np.nanmin(steps):.3f}-'
         f'{np.nanmax(steps):.3f}).',
         '',
-        '| arm | shape | tilt [deg] | condition | controller | end | RMS [mm] | max [mm] | '
-        'passed [%] | force p95 [%] | limit margin [rad] | qdot / limit | task [s] | '
-        'step [ms] | goals missed | time ours / peer |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
     ]
+    cells = []
     for r in rows:
-        case = f'| {r["arm"]} | {r["shape"]} | {r["tilt_deg"]:g} | {r["condition"]}'
-        lines.append(f'{case} | ours | {_cells(r["ours"])} | {r["time_ratio"]:.2f} |')
-        lines.append(f'{case} | peer | {_cells(r["peer"])} | |')
-    (OUT / 'results.md').write_text('\n'.join(lines) + '\n')
-    (OUT / 'results.json').write_text(json.dumps(rows, indent=2, default=str))
+        case = (r['arm'], r['shape'], f'{r["tilt_deg"]:g}', r['condition'])
+        cells.append((*case, 'ours', *_cells(r['ours']), f'{r["time_ratio"]:.2f}'))
+        cells.append((*case, 'peer', *_cells(r['peer']), ''))
+    lines += markdown_table(COLUMNS, cells)
+    write_results(OUT, 'results', lines, rows, echo=False)
     _plot(rows)
 
 
@@ -446,5 +470,4 @@ def _plot(rows):
     bottom.set_xticks(x, labels, fontsize=7)
     bottom.legend()
     fig.tight_layout()
-    fig.savefig(OUT / 'rms_and_time_ratio.png', dpi=80)
-    plt.close(fig)
+    save_figure(fig, OUT / 'rms_and_time_ratio.png')
