@@ -42,8 +42,8 @@ Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_pa10_ik.p
      [--cases-only [--arms N]]   (Part C alone: N random arms and the Panda)
      [--robot-data [--shapes arc,figure_eight] [--tilts 20,45]]   (Part D alone)
      [--pace]   (Part E alone)
-     [--over-topics [--cases N | --whole-grid] [--all-arms] [--seed S]]   (Part F alone:
-     bench/results/pa10_ik_topics/)
+     [--over-topics [--cases N | --whole-grid] [--all-arms] [--seed S] [--only i,j]]
+     (Part F alone: bench/results/pa10_ik_topics/)
 Writes bench/results/pa10_ik/ (results.md, results.json, PNG plots) and, for Part C,
 bench/results/pa10_ik_cases/ (results.md, results.json).
 """
@@ -791,6 +791,7 @@ def pace_row(
         max_time=200.0,
         hold_time=hold,
         command_delay_steps=int(round(delay_s / dt)),
+        node_commands=controller_name.startswith('ours'),  # the peer node's: from q
     )
     row = task_generator.tracking_metrics(log, surface, path_base, desired, robot)
     phases = np.array(log.phases)

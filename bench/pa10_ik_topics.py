@@ -5,7 +5,9 @@ process on the same scenario, one after the other.
 The grid: example-robot-data 7-DOF arms (``ARMS``; ``--all-arms``: every one of
 task_generator.ROBOT_DATA_ARMS) x path shapes (task_generator.PATH_SHAPES) x planes tilted
 ``TILTS_DEG`` x the arm ``CONDITIONS`` (ideal, its commands 20 ms late, half speed); a
-seeded sample of it by default (``--cases N``), ``--whole-grid`` for all of it. Every
+seeded sample of it by default (``--cases N``), ``--whole-grid`` for all of it;
+``--only 2,5``: those cases of it alone (0-based, each with the seed it has in the whole
+run: before/after comparisons on a few cases). Every
 run: its own ROS_DOMAIN_ID, localhost discovery, its processes started and stopped as
 process groups (tests/harness.py), bounded waits on conditions.
 
@@ -317,9 +319,13 @@ def main_over_topics(argv):
         cases = grid(arms)
     else:
         cases = sample(arms, int(_option(argv, '--cases', '12')), seed)
+    # --only i,j: those cases of the sample or grid alone, each as in the whole run
+    only = {int(i) for i in _option(argv, '--only', '').split(',') if i}
     rows = []
     began = time.monotonic()
     for index, (arm_name, shape, tilt, condition) in enumerate(cases):
+        if only and index not in only:
+            continue
         spec = task_generator.CaseSpec(
             task_generator.robot_data_arm(arm_name),
             'plane',

@@ -132,7 +132,9 @@ class Pa10IkNode(GraphNode):
     @guarded(JOINT_STATES_TOPIC)
     def _on_joint_state(self, msg: JointState) -> None:
         try:
-            self.session.take_joint_state(msg.name, msg.position)
+            stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            age = self.get_clock().now().nanoseconds * 1e-9 - stamp if stamp > 0 else 0.0
+            self.session.take_joint_state(msg.name, msg.position, age)
         except InvalidInput as error:
             self.diagnostics.reject(JOINT_STATES_TOPIC, error)
 

@@ -15,6 +15,7 @@ reference pose and its feed-forward twist into joint velocities through ``RateSo
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -978,6 +979,7 @@ class TrackingController:
                 twist[:3] *= c.max_tip_speed / linear
             if angular > c.max_angular_speed:
                 twist[3:] *= c.max_angular_speed / angular
+        started = time.perf_counter()  # the IK: the Jacobian, the task, the solve
         J = self.robot.jacobian(q)
         if not c.track_spin:
             J, task = spin_free_task(J, twist, T_d)
@@ -986,5 +988,6 @@ class TrackingController:
         qdot, solve_info = self.solver.solve_limited(
             J, task, q, self.robot.lower_limits, self.robot.upper_limits, self.velocity_limits
         )
+        solve_info['ik_time'] = time.perf_counter() - started  # [s]
         solve_info['twist'] = twist
         return qdot, solve_info
