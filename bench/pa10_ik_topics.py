@@ -240,6 +240,11 @@ def run_one(built, controller, condition, directory):
         # pa10_ik_node's median control step (IK included) over its last 500 steps; the
         # peer reports none.
         row['step_ms'] = float(probe.last('step_time_ms') or 'nan')
+        # and of its IK alone (Jacobian, task, solve), the arm's lag it measured, the
+        # response it estimated (nan from a node before it reported them)
+        row['ik_ms'] = float(probe.last('ik_time_ms') or 'nan')
+        row['lag_ms'] = float(probe.last('arm_lag_ms') or 'nan')
+        row['response'] = float(probe.last('arm_response') or 'nan')
         row['reason'] = probe.last('reason') or ''
         crashed = [p.argv[0] for p in processes if 'Traceback' in p.output()]
         if crashed:
@@ -363,14 +368,16 @@ def _brief(r):
     return (
         f'{r["phase"]} RMS {r["rms_mm"]:.4f} mm max {r["max_mm"]:.3f} mm passed '
         f'{r["passed_fraction"] * 100:.1f} % force p95 {r["force_p95_pct"]:.2f} % task '
-        f'{r["task_s"]:.1f} s'
+        f'{r["task_s"]:.1f} s step {r.get("step_ms", float("nan")):.3f} ms IK '
+        f'{r.get("ik_ms", float("nan")):.3f} ms lag {r.get("lag_ms", float("nan")):.1f} ms '
+        f'response {r.get("response", float("nan")):.2f}'
     )
 
 
 def _cells(r):
     """The cells of one controller's run, from 'end' to 'goals missed'."""
     if 'rms_mm' not in r:
-        return (r['phase'], *[''] * 8, r.get('reason', ''))
+        return (r['phase'], *[''] * 10, r.get('reason', ''))
     return (
         r['phase'],
         f'{r["rms_mm"]:.4f}',
@@ -381,6 +388,8 @@ def _cells(r):
         f'{r["velocity_ratio"]:.2f}',
         f'{r["task_s"]:.1f}',
         f'{r.get("step_ms", float("nan")):.3f}',
+        f'{r.get("ik_ms", float("nan")):.3f}',
+        f'{r.get("lag_ms", float("nan")):.1f}',
         '; '.join(r['missed']) or 'none',
     )
 
@@ -400,6 +409,8 @@ COLUMNS = (
     'qdot / limit',
     'task [s]',
     'step [ms]',
+    'IK [ms]',
+    'lag [ms]',
     'goals missed',
     'time ours / peer',
 )
@@ -428,7 +439,8 @@ def write_tables(rows, argv, seed):
         'p95 alone is 2 %). Figures from touchdown (first tracking status) to the '
         "path's end (first done status); task = start call to the path's end; limit "
         'margin = closest approach of a joint state to a position limit, qdot / limit = '
-        'largest commanded joint speed over its limit (from the start call on).',
+        'largest commanded joint speed over its limit (from the start call on); step, IK, '
+        "lag: pa10_ik_node's diagnostics step_time_ms, ik_time_ms and arm_lag_ms at the end.",
         '',
         f'Goals: RMS < {GOALS["rms_mm"]} mm, passed > {GOALS["passed_fraction"] * 100:g} %, '
         f'force p95 < {GOALS["force_p95_pct"]:g} %, no joint limit exceeded, task time '
