@@ -44,13 +44,13 @@ def test_the_measured_lag_is_the_arms_trailing_time_and_the_lead_removes_it(
     arm whose commands act 20 ms late trail a ramp by a constant time: the estimate
     equals it within 1 ms; commanding one lag ahead leaves under 1 ms of it once
     settled (the estimate forgets over LAG_WINDOW_S)."""
-    measuring = SetPointCommands(compensate_lag=False)
+    measuring = SetPointCommands()  # measures, does not lead
     trailing = follow_ramp(measuring, speed_scale, command_delay)
     assert np.ptp(trailing) < 1e-6  # a steady lag, the ground truth
     assert measuring.lag == pytest.approx(np.mean(trailing), abs=1e-3)
     if speed_scale < 1.0 or command_delay > 0:
         assert np.mean(trailing) > 0.015  # a lag worth compensating
-    led = follow_ramp(SetPointCommands(), speed_scale, command_delay)
+    led = follow_ramp(SetPointCommands(compensate_lag=True), speed_scale, command_delay)
     assert np.max(np.abs(led[-100:])) < 1e-3  # the last second: the estimate settled
 
 
@@ -58,7 +58,7 @@ def test_the_lag_is_bounded_and_a_restart_begins_at_the_measured_joints():
     """An arm that does not move at all is no lag to lead by: the estimate stops at
     MAX_LAG_S; after a restart the next command starts from the measured joints again
     (plus the lead), and readings older than the command in force are not counted."""
-    commands = SetPointCommands()
+    commands = SetPointCommands(compensate_lag=True)
     q = np.zeros(3)
     for k in range(100):
         commands.measure(q, k * PERIOD)

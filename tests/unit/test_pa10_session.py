@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from harness import ManualClock
-from pa10_ik_node.commands import MAX_COMMAND_LEAD_S
+from pa10_ik_node.commands import MAX_COMMAND_LEAD_S, MAX_LAG_S
 from pa10_ik_node.ik import RateSolver
 from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, TrackingSession
 from pa10_ik_node.settings import ArmSettings, LoopSettings, SolverSettings
@@ -284,3 +284,28 @@ def test_a_command_continues_the_previous_set_point_within_its_lead_of_the_joint
     session.control_step()
     command = session.commands.nominal[1]
     np.testing.assert_allclose(command.positions, q + HORIZON * command.velocities, atol=1e-15)
+
+
+def test_lead_arm_lag_sends_the_set_point_one_measured_lag_ahead(session, scenario):
+    """An arm that does not follow at all measures about the largest lag (MAX_LAG_S): with
+    lead_arm_lag the command goes that far ahead of the continued set point along the
+    joint speeds, without it the command is the set point itself."""
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    for lead_on in (False, True):
+        session.settings = replace(session.settings, lead_arm_lag=lead_on)
+        for _ in range(40):
+            session.clock.now += PERIOD
+            feed(session, scenario)
+            sent = session.control_step().command
+        nominal = session.commands.nominal[1]
+        assert session.controller.phase == 'approach', session.controller.reason
+        lag = session.commands.lag
+        assert 0.9 * MAX_LAG_S < lag <= MAX_LAG_S
+        ahead = sent.positions - nominal.positions
+        if lead_on:  # along the (smoothed) joint speeds, which hardly change here
+            np.testing.assert_allclose(ahead, lag * sent.velocities, rtol=0.05, atol=1e-6)
+            assert np.max(np.abs(ahead)) > 1e-3
+        else:
+            assert np.array_equal(ahead, np.zeros_like(ahead))

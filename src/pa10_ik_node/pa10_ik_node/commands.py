@@ -45,13 +45,14 @@ class SetPointCommands:
     against the set point in force when they were measured (a least-squares fit of the
     gap on the commanded velocity, forgetting over LAG_WINDOW_S, within [0, MAX_LAG_S]);
     ``command`` sends the point one lag ahead (q_cmd = q_set + lag * qdot), so the arm
-    is where the path is. ``compensate_lag`` false measures it without leading;
+    is where the path is. ``compensate_lag`` false (pa10_ik_node's default,
+    ``lead_arm_lag``) measures it without leading;
     ``covered_lag`` [s] of it the controller compensates already (its command_latency:
     the Smith predictor acts on the joints the commands on their way will give; leading
     by that too overshot, in process 0.0073 -> 0.0111 mm RMS with 50 ms of delay).
     """
 
-    def __init__(self, compensate_lag: bool = True, covered_lag: float = 0.0) -> None:
+    def __init__(self, compensate_lag: bool = False, covered_lag: float = 0.0) -> None:
         self.compensate_lag = compensate_lag
         self.covered_lag = covered_lag
         # (time sent [s], the command without the lead): the set point continued
@@ -62,11 +63,13 @@ class SetPointCommands:
         self._sums = np.zeros(2)  # forgetting sums of (gap . qdot, qdot . qdot)
         self._evidence = 0.0  # [s] of motion measured, forgetting alike
         self._measured_at: float | None = None
+        self._smoothed: FloatArray | None = None  # [rad/s] qdot over the last lag
 
     def restart(self) -> None:
         """The next command starts from the measured joints (after a hold, a new task);
         the lag estimate, the arm's, stays."""
         self.nominal = self.sent = None
+        self._smoothed = None
 
     def measure(self, q: FloatArray, measured_at: float) -> None:
         """Update the lag estimate with the joints ``q`` (n,) [rad] the arm had at
@@ -117,8 +120,15 @@ class SetPointCommands:
     def command(self, q: FloatArray, qdot: FloatArray, now: float, horizon: float) -> JointCommand:
         """The moving command at ``now`` [s]: joint velocities ``qdot`` (n,) [rad/s]
         from the continued set point, its point ``horizon`` [s] ahead plus the lag."""
+        previous = self.nominal
         nominal = JointCommand(self.anchor(q, now) + qdot * horizon, qdot, horizon)
+        if self._smoothed is None or previous is None or self.lag <= 0:
+            self._smoothed = qdot.copy()
+        else:
+            self._smoothed += (qdot - self._smoothed) * (
+                1.0 - float(np.exp(-max(now - previous[0], 0.0) / self.lag))
+            )
         lead = max(self.lag - self.covered_lag, 0.0) if self.compensate_lag else 0.0
-        sent = nominal._replace(positions=nominal.positions + qdot * lead)
+        sent = nominal._replace(positions=nominal.positions + self._smoothed * lead)
         self.nominal, self.sent = (now, nominal), (now, sent)
         return sent

@@ -319,6 +319,7 @@ class TrackingSession:
             assert self.joint_state_time is not None  # set with q
             self.commands.measure(q, self.joint_state_time)
             self.commands.covered_lag = controller.config.command_latency
+            self.commands.compensate_lag = self.settings.lead_arm_lag
             command = self.commands.command(q, qdot, now, self.settings.command_horizon)
         return ControlOutput(info['T'], command)
 

@@ -351,6 +351,7 @@ def run_closed_loop(
     command_delay_steps: int = 0,
     horizon: float = 0.05,
     node_commands: bool = True,
+    lead_arm_lag: bool = False,
     initial_force: float | None = 0.0,
     before_step: Callable[[float, FloatArray], None] | None = None,
     finished: Callable[[TrackingControllerLike], bool] = lifted,
@@ -362,11 +363,12 @@ def run_closed_loop(
     Control every ``dt`` [s], the arm stepped ``substeps`` times per period, the command
     as pa10_ik_node sends it (``node_commands``: pa10_ik_node.commands.SetPointCommands,
     the point ``horizon`` [s] ahead of the previous command's set point, led by the
-    arm's measured lag; false: ``q + qdot horizon`` from the measured joints, as the DLS
-    peer node sends it; a hold at time 0 once the controller stopped or failed), reaching
-    the arm ``command_delay_steps`` periods late (none before the first: the arm holds;
-    a slow controller or network). The pressure is
-    the true force plus N(0, ``pressure_sigma``) noise while in contact (never below 0);
+    arm's measured lag if ``lead_arm_lag``, the node's parameter; false: ``q + qdot
+    horizon`` from the measured joints, as the DLS peer node sends it; a hold at time 0
+    once the controller stopped or failed), reaching the arm ``command_delay_steps``
+    periods late (none before the first: the arm holds; a slow controller or network).
+    The pressure is the true force plus N(0, ``pressure_sigma``) noise while in contact
+    (never below 0);
     the first step is given ``initial_force`` [N] (None: the reading at the start).
     ``before_step(t, q)`` runs at the start of each period (a test's new path);
     ``stop_at_progress``: call ``controller.stop()`` once progress reaches it. Runs until
@@ -392,7 +394,7 @@ def run_closed_loop(
         initial_force = pressure(contact_force(tip, surface, stiffness).force)
     force = initial_force
     names = robot.joint_names
-    commands = SetPointCommands() if node_commands else None
+    commands = SetPointCommands(lead_arm_lag) if node_commands else None
     # Before the first command arrives the arm holds where it is.
     on_the_way = [JointCommand(arm.q, np.zeros(robot.n_joints), horizon)] * command_delay_steps
     in_force = np.zeros(robot.n_joints)  # [rad/s] the velocity of the command in force
