@@ -309,3 +309,31 @@ def test_lead_arm_lag_sends_the_set_point_one_measured_lag_ahead(session, scenar
             assert np.max(np.abs(ahead)) > 1e-3
         else:
             assert np.array_equal(ahead, np.zeros_like(ahead))
+
+
+def test_a_simulator_starved_for_two_seconds_is_no_arm_that_cannot_progress(scenario):
+    """The simulator's joint states and pressure stop for 2.5 s (a starved process)
+    while the loop runs on, within a pressure_timeout of 3 s: the task's no-progress
+    check (2 error_timeouts: 2 s) judged the last, unchanged reading and failed the
+    approach ('cannot reach the pre-contact pose ... no progress for 2.0 s', over topics
+    on Talos's arm at half speed); it waits for a new reading instead, and the watchdog
+    still stops the task once the inputs are older than the timeout."""
+    robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
+    controller = TrackingController(robot, RateSolver('ours', [1.0] * 7), TrackingConfig())
+    settings = LoopSettings(rate=1.0 / PERIOD, pressure_timeout=3.0, command_horizon=HORIZON)
+    session = TrackingSession(controller, 'tool0', settings, clock=ManualClock(100.0))
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    for _ in range(250):  # 2.5 s without a message
+        session.clock.now += PERIOD
+        output = session.control_step()
+    assert controller.phase == 'approach', controller.reason
+    assert output.command is None  # nothing new to command on a reading this old
+    feed(session, scenario)  # the simulator is back
+    session.clock.now += PERIOD
+    assert session.control_step().command is not None
+    for _ in range(310):
+        session.clock.now += PERIOD
+        session.control_step()
+    assert controller.phase == 'stopped' and 'stale' in controller.reason

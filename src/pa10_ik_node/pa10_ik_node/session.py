@@ -29,6 +29,12 @@ STEP_TIMES_KEPT = 500  # control step (and IK) times kept for the medians in the
 # The joint measured this long before the control step at most is taken as measured then
 # (older: the joint state's stamp is on another clock, its receipt counts).
 MAX_JOINT_STATE_AGE_S = 0.1
+# [s] A joint state this old is no measurement to act on: the task waits for a new one
+# (no command, its timers still). Far beyond the 5 ms between the simulator's joint states
+# and their jitter on a loaded machine, far below the 2 s the task allows an arm to make
+# no progress: judged on an old reading (a simulator starved for 2 s within a
+# pressure_timeout of 3 s), a moving arm looked stuck and the approach failed.
+OLD_JOINT_STATE_S = 0.25
 
 
 class ControlOutput(NamedTuple):
@@ -306,6 +312,9 @@ class TrackingSession:
         if controller.phase not in (*ACTIVE_PHASES, 'done'):
             self.commands.restart()  # nothing sent: the next command starts afresh
             return ControlOutput(self.robot.forward_kinematics(q), None)
+        assert self.joint_state_time is not None  # set with q
+        if now - self.joint_state_time > OLD_JOINT_STATE_S:
+            return ControlOutput(self.robot.forward_kinematics(q), None)
         started = time.perf_counter()
         qdot, info = controller.step(q, self.force, dt)
         self.step_times.append(time.perf_counter() - started)
@@ -316,7 +325,6 @@ class TrackingSession:
         if controller.phase in ('stopped', 'failed'):
             command = self.hold()
         else:
-            assert self.joint_state_time is not None  # set with q
             self.commands.measure(q, self.joint_state_time)
             self.commands.covered_lag = controller.config.command_latency
             self.commands.compensate_lag = self.settings.lead_arm_lag
