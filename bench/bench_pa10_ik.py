@@ -42,7 +42,8 @@ Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_pa10_ik.p
      [--cases-only [--arms N]]   (Part C alone: N random arms and the Panda)
      [--robot-data [--shapes arc,figure_eight] [--tilts 20,45]]   (Part D alone)
      [--pace]   (Part E alone)
-     [--over-topics [--cases N | --whole-grid] [--all-arms] [--seed S] [--only i,j]]
+     [--over-topics [--cases N | --whole-grid] [--all-arms] [--seed S] [--only i,j]
+      [--ours name:=value,...]]
      (Part F alone: bench/results/pa10_ik_topics/)
 Writes bench/results/pa10_ik/ (results.md, results.json, PNG plots) and, for Part C,
 bench/results/pa10_ik_cases/ (results.md, results.json).

@@ -7,7 +7,8 @@ task_generator.ROBOT_DATA_ARMS) x path shapes (task_generator.PATH_SHAPES) x pla
 ``TILTS_DEG`` x the arm ``CONDITIONS`` (ideal, its commands 20 ms late, half speed); a
 seeded sample of it by default (``--cases N``), ``--whole-grid`` for all of it;
 ``--only 2,5``: those cases of it alone (0-based, each with the seed it has in the whole
-run: before/after comparisons on a few cases). Every
+run: before/after comparisons on a few cases); ``--ours a:=1,b:=2``: pa10_ik_node with
+those parameters. Every
 run: its own ROS_DOMAIN_ID, localhost discovery, its processes started and stopped as
 process groups (tests/harness.py), bounded waits on conditions.
 
@@ -159,9 +160,9 @@ def _positions(msg):
     return np.array(msg.position)
 
 
-def controller_argv(controller, built, scenario):
-    """The command line of ``controller`` ('ours': pa10_ik_node at its defaults; 'peer':
-    the DLS peer node) on the case's arm."""
+def controller_argv(controller, built, scenario, ours_params=()):
+    """The command line of ``controller`` ('ours': pa10_ik_node at its defaults but for
+    ``ours_params``, 'name:=value' each; 'peer': the DLS peer node) on the case's arm."""
     arm = built.spec.arm
     common = [
         '-p',
@@ -179,7 +180,8 @@ def controller_argv(controller, built, scenario):
     # starved for 1.0-1.1 s, and a stop on stale pressure is no tracking figure.
     watchdog = ['-p', 'pressure_timeout:=3.0']
     if controller == 'ours':
-        return [executable('pa10_ik_node'), '--ros-args', *common, *watchdog]
+        extra = [arg for param in ours_params for arg in ('-p', param)]
+        return [executable('pa10_ik_node'), '--ros-args', *common, *watchdog, *extra]
     return [sys.executable, PEER_NODE, '--ros-args', *common]
 
 
@@ -187,7 +189,7 @@ class Refused(Exception):
     """The controller's start service refused the task (its message)."""
 
 
-def run_one(built, controller, condition, directory):
+def run_one(built, controller, condition, directory, ours_params=()):
     """One run of ``controller`` on the built case under the arm ``condition``; the row."""
     from bench_pa10_ik import meets_goals
 
@@ -209,7 +211,9 @@ def run_one(built, controller, condition, directory):
         sim_argv += ['-p', f'arm_speed_scale:={scale}', '-p', f'arm_command_delay:={delay}']
         processes.append(NodeProcess(sim_argv, env, Path(directory) / f'sim-{tag}.log'))
         node = NodeProcess(
-            controller_argv(controller, built, scenario), env, Path(directory) / f'{tag}.log'
+            controller_argv(controller, built, scenario, ours_params),
+            env,
+            Path(directory) / f'{tag}.log',
         )
         processes.append(node)
         probe.path_publisher.publish(_path_message(built.waypoints))
@@ -326,6 +330,8 @@ def main_over_topics(argv):
         cases = sample(arms, int(_option(argv, '--cases', '12')), seed)
     # --only i,j: those cases of the sample or grid alone, each as in the whole run
     only = {int(i) for i in _option(argv, '--only', '').split(',') if i}
+    # --ours name:=value,name:=value: pa10_ik_node's parameters other than its defaults
+    ours_params = [p for p in _option(argv, '--ours', '').split(',') if p]
     rows = []
     began = time.monotonic()
     for index, (arm_name, shape, tilt, condition) in enumerate(cases):
@@ -344,7 +350,7 @@ def main_over_topics(argv):
         with tempfile.TemporaryDirectory() as directory:
             built = task_generator.build_case(spec, directory)
             for controller in ('ours', 'peer'):
-                pair[controller] = run_one(built, controller, condition, directory)
+                pair[controller] = run_one(built, controller, condition, directory, ours_params)
         case = {'arm': arm_name, 'shape': shape, 'tilt_deg': tilt, 'condition': condition}
         ratio = pair['ours'].get('task_s', np.nan) / pair['peer'].get('task_s', np.nan)
         rows.append({**case, 'ours': pair['ours'], 'peer': pair['peer'], 'time_ratio': ratio})
