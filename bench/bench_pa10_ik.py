@@ -42,13 +42,13 @@ Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_pa10_ik.p
      [--cases-only [--arms N]]   (Part C alone: N random arms and the Panda)
      [--robot-data [--shapes arc,figure_eight] [--tilts 20,45]]   (Part D alone)
      [--pace]   (Part E alone)
-     [--over-topics [--cases N | --whole-grid] [--all-arms] [--seed S]]   (Part F alone:
-     bench/results/pa10_ik_topics/)
+     [--over-topics [--cases N | --whole-grid] [--all-arms] [--seed S] [--only i,j]
+      [--ours name:=value,...]]
+     (Part F alone: bench/results/pa10_ik_topics/)
 Writes bench/results/pa10_ik/ (results.md, results.json, PNG plots) and, for Part C,
 bench/results/pa10_ik_cases/ (results.md, results.json).
 """
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -59,6 +59,8 @@ from scipy.spatial.transform import Rotation
 REPO = Path(__file__).resolve().parents[1]
 for package in ('pa10_ik_node', 'sensor_sim', 'vgm_common'):
     sys.path.insert(0, str(REPO / 'src' / package))
+
+from vgm_evaluation.bench_report import markdown_table, save_figure, write_results  # noqa: E402
 
 from pa10_ik_node.ik import RateSolver, pose_error  # noqa: E402
 from pa10_ik_node.thesis import fixed_step_matrix, primal_dual_velocity_fixed_step  # noqa: E402
@@ -221,8 +223,7 @@ def plot_table(logs, path):
             ax.set_xlabel('t [s]')
             ax.legend()
         fig.tight_layout()
-        fig.savefig(path / f'table71_{name}.png', dpi=80)
-        plt.close(fig)
+        save_figure(fig, path / f'table71_{name}.png')
     return True
 
 
@@ -377,7 +378,6 @@ def main_cases(seed=13, random_arms=2):
     """Part C; the tables are rewritten after every case (a long run can be cut short)."""
     import tempfile
 
-    CASES_OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     with tempfile.TemporaryDirectory() as directory:
         for index, spec in enumerate(task_generator.generate_cases(seed, random_arms)):
@@ -430,40 +430,68 @@ def write_case_tables(rows, seed):
         f'%, force p95 < {GOALS["force_p95_pct"]:g} %, no limit exceeded, stop within '
         f'{GOALS["stop_latency_ms"]:g} ms, step < {GOALS["step_ms_median"]:g} ms median.',
     ]
-    table = [
-        '',
-        '## Every case',
-        '',
-        '| case | method | end | RMS [mm] | max [mm] | passed [%] | force p95 [%] | '
-        'qdot/limit | margin [rad] | step [ms] | stop [ms] | goals missed |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|',
-    ]
-    for row in rows:
-        table.append(
-            f'| {row["case"]} | {row["method"]} | {row["phase"]} | {row["rms_mm"]:.4f} | '
-            f'{row["max_mm"]:.4f} | {row["passed_fraction"] * 100:.1f} | '
-            f'{row["force_p95_pct"]:.2f} | {row["velocity_ratio"]:.2f} | '
-            f'{row["limit_margin_rad"]:.3f} | {row["step_ms_median"]:.3f} | '
-            f'{row["stop_mid_latency_ms"]:.0f} | {"; ".join(row["missed"]) or "none"} |'
-        )
-    summary = [
-        '',
-        '## Summary',
-        '',
-        '| method | cases | all goals met | done | median RMS '
-        '[mm] | median step [ms] | step ratio to ours |',
-        '|---|---|---|---|---|---|---|',
-    ]
+    table = ['', '## Every case', ''] + markdown_table(
+        (
+            'case',
+            'method',
+            'end',
+            'RMS [mm]',
+            'max [mm]',
+            'passed [%]',
+            'force p95 [%]',
+            'qdot/limit',
+            'margin [rad]',
+            'step [ms]',
+            'stop [ms]',
+            'goals missed',
+        ),
+        (
+            (
+                row['case'],
+                row['method'],
+                row['phase'],
+                f'{row["rms_mm"]:.4f}',
+                f'{row["max_mm"]:.4f}',
+                f'{row["passed_fraction"] * 100:.1f}',
+                f'{row["force_p95_pct"]:.2f}',
+                f'{row["velocity_ratio"]:.2f}',
+                f'{row["limit_margin_rad"]:.3f}',
+                f'{row["step_ms_median"]:.3f}',
+                f'{row["stop_mid_latency_ms"]:.0f}',
+                '; '.join(row['missed']) or 'none',
+            )
+            for row in rows
+        ),
+    )
     ours_step = np.median([r['step_ms_median'] for r in rows if r['method'] == 'ours'])
-    for method in CASE_METHODS:
-        mine = [r for r in rows if r['method'] == method]
-        step = np.median([r['step_ms_median'] for r in mine])
-        summary.append(
-            f'| {method} | {len(mine)} | {sum(not r["missed"] for r in mine)} | '
-            f'{sum(r["phase"] == "done" for r in mine)} | '
-            f'{np.nanmedian([r["rms_mm"] for r in mine]):.4f} | {step:.3f} | '
-            f'{step / ours_step:.2f} |'
-        )
+    by_method = {method: [r for r in rows if r['method'] == method] for method in CASE_METHODS}
+    steps = {
+        method: np.median([r['step_ms_median'] for r in mine])
+        for method, mine in by_method.items()
+    }
+    summary = ['', '## Summary', ''] + markdown_table(
+        (
+            'method',
+            'cases',
+            'all goals met',
+            'done',
+            'median RMS [mm]',
+            'median step [ms]',
+            'step ratio to ours',
+        ),
+        (
+            (
+                method,
+                len(mine),
+                sum(not r['missed'] for r in mine),
+                sum(r['phase'] == 'done' for r in mine),
+                f'{np.nanmedian([r["rms_mm"] for r in mine]):.4f}',
+                f'{steps[method]:.3f}',
+                f'{steps[method] / ours_step:.2f}',
+            )
+            for method, mine in by_method.items()
+        ),
+    )
     failures = [
         f'- {r["case"]}: {"; ".join(r["missed"])}'
         for r in rows
@@ -474,9 +502,7 @@ def write_case_tables(rows, seed):
         "Where the thesis's primal-dual method (W = diag(1,-1,-1,1,-1,1,1)) misses the goals:",
         '',
     ] + (failures or ['- nowhere'])
-    text = '\n'.join(lines + summary + table) + '\n'
-    (CASES_OUT / 'results.md').write_text(text)
-    (CASES_OUT / 'results.json').write_text(json.dumps(rows, indent=2))
+    write_results(CASES_OUT, 'results', lines + summary + table, rows, echo=False)
 
 
 ROBOT_DATA_OUT = REPO / 'bench' / 'results' / 'pa10_ik_robot_data'
@@ -491,7 +517,6 @@ def main_robot_data(shapes, tilts_deg, seed=7):
     ours and dls on the same inputs; returns the rows and writes the table."""
     import tempfile
 
-    ROBOT_DATA_OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     with tempfile.TemporaryDirectory() as directory:
         for name in task_generator.ROBOT_DATA_ARMS:
@@ -505,10 +530,9 @@ def main_robot_data(shapes, tilts_deg, seed=7):
                     for method in ('ours', 'dls'):
                         rows.append(_robot_data_row(built, spec, method))
                         print(_robot_data_line(rows[-1]), flush=True)
-    text = _robot_data_table(rows, shapes, tilts_deg, seed)
-    (ROBOT_DATA_OUT / 'results.md').write_text(text)
-    (ROBOT_DATA_OUT / 'results.json').write_text(json.dumps(rows, indent=2))
-    print(text)
+    write_results(
+        ROBOT_DATA_OUT, 'results', _robot_data_table(rows, shapes, tilts_deg, seed), rows
+    )
     return rows
 
 
@@ -571,30 +595,52 @@ def _robot_data_table(rows, shapes, tilts_deg, seed):
         'nice -n 10 .venv/bin/python bench/bench_pa10_ik.py --robot-data --shapes '
         f'{",".join(shapes)} --tilts {",".join(f"{t:g}" for t in tilts_deg)}'
     )
-    lines = [
-        '| arm | path | tilt [deg] | method | end | RMS [mm] | passed [%] | force p95 [%] | '
-        'margin [rad] | task [s] | tracking [s] | step [ms] | check [s] | goals missed |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
-    ]
+    cells = []
     for r in rows:
+        case = (r['arm'], r['shape'], f'{r["tilt_deg"]:.0f}', r['method'])
         if r['phase'] == 'refused':
-            lines.append(
-                f'| {r["arm"]} | {r["shape"]} | {r["tilt_deg"]:.0f} | {r["method"]} | refused | '
-                f'| | | | | | | | {r["reason"]} |'
-            )
+            cells.append((*case, 'refused', *[''] * 8, r['reason']))
             continue
-        lines.append(
-            f'| {r["arm"]} | {r["shape"]} | {r["tilt_deg"]:.0f} | {r["method"]} | {r["phase"]} | '
-            f'{r["rms_mm"]:.4f} | {r["passed_fraction"] * 100:.1f} | '
-            f'{r["force_p95_pct"]:.2f} | {r["limit_margin_rad"]:.3f} | {r["task_s"]:.1f} | '
-            f'{r["tracking_s"]:.1f} | {r["step_ms_median"]:.3f} | {r["check_s"]:.2f} | '
-            f'{"; ".join(r["missed"]) or "none"} |'
+        cells.append(
+            (
+                *case,
+                r['phase'],
+                f'{r["rms_mm"]:.4f}',
+                f'{r["passed_fraction"] * 100:.1f}',
+                f'{r["force_p95_pct"]:.2f}',
+                f'{r["limit_margin_rad"]:.3f}',
+                f'{r["task_s"]:.1f}',
+                f'{r["tracking_s"]:.1f}',
+                f'{r["step_ms_median"]:.3f}',
+                f'{r["check_s"]:.2f}',
+                '; '.join(r['missed']) or 'none',
+            )
         )
-    return (
+    return [
         f'Command (from the repository root, after `source ros2_ws/install/setup.bash`): '
         f'`{command}`; seed {seed}; in process (no topics): 5 N, 2000 N/m, 0.015 m/s, '
-        'control 100 Hz, the arm following positions at 200 Hz.\n\n' + '\n'.join(lines) + '\n'
-    )
+        'control 100 Hz, the arm following positions at 200 Hz.',
+        '',
+        *markdown_table(ROBOT_DATA_COLUMNS, cells),
+    ]
+
+
+ROBOT_DATA_COLUMNS = (
+    'arm',
+    'path',
+    'tilt [deg]',
+    'method',
+    'end',
+    'RMS [mm]',
+    'passed [%]',
+    'force p95 [%]',
+    'margin [rad]',
+    'task [s]',
+    'tracking [s]',
+    'step [ms]',
+    'check [s]',
+    'goals missed',
+)
 
 
 PACE_OUT = REPO / 'bench' / 'results' / 'pa10_ik_pace'
@@ -746,6 +792,7 @@ def pace_row(
         max_time=200.0,
         hold_time=hold,
         command_delay_steps=int(round(delay_s / dt)),
+        node_commands=controller_name.startswith('ours'),  # the peer node's: from q
     )
     row = task_generator.tracking_metrics(log, surface, path_base, desired, robot)
     phases = np.array(log.phases)
@@ -774,7 +821,6 @@ def pace_row(
 
 def main_pace():
     """Part E: ours beside the DLS peer on the 0.8 m lemniscate; writes the table."""
-    PACE_OUT.mkdir(parents=True, exist_ok=True)
     rows = []
     runs = [('free', 1.0, 0.0), ('contact', 1.0, 0.0), ('free', 0.5, 0.0)]
     runs += [('free', scale, delay) for scale in (1.0, 0.5) for delay in (0.02, 0.05)]
@@ -802,24 +848,47 @@ def main_pace():
         f'half speed), its commands delay [ms] late; peer = DlsPeer at {PEER_SPEED} m/s; '
         'ours = node defaults, ours_latency = + command_latency = the delay.',
         '',
-        '| start | arm | delay [ms] | controller | end | task [s] | / peer | tracking [s] | '
-        'RMS [mm] | max [mm] | passed [%] | force p95 [%] | lost contact | step [ms] | '
-        'goals missed |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
     ]
-    for r in rows:
-        lines.append(
-            f'| {r["start"]} | x{r["speed_scale"]:g} | {r["delay_ms"]:g} | {r["controller"]} | '
-            f'{r["phase"]} | {r["task_s"]:.1f} | {r["pace_ratio"]:.2f} | '
-            f'{r["tracking_s"]:.1f} | {r["rms_mm"]:.4f} | {r["max_mm"]:.3f} | '
-            f'{r["passed_fraction"] * 100:.1f} | {r["force_p95_pct"]:.2f} | '
-            f'{"yes" if r["lost_contact"] else "no"} | {r["step_ms_median"]:.3f} | '
-            f'{"; ".join(r["missed"]) or "none"} |'
-        )
-    text = '\n'.join(lines) + '\n'
-    (PACE_OUT / 'results.md').write_text(text)
-    (PACE_OUT / 'results.json').write_text(json.dumps(rows, indent=2))
-    print(text)
+    lines += markdown_table(
+        (
+            'start',
+            'arm',
+            'delay [ms]',
+            'controller',
+            'end',
+            'task [s]',
+            '/ peer',
+            'tracking [s]',
+            'RMS [mm]',
+            'max [mm]',
+            'passed [%]',
+            'force p95 [%]',
+            'lost contact',
+            'step [ms]',
+            'goals missed',
+        ),
+        (
+            (
+                r['start'],
+                f'x{r["speed_scale"]:g}',
+                f'{r["delay_ms"]:g}',
+                r['controller'],
+                r['phase'],
+                f'{r["task_s"]:.1f}',
+                f'{r["pace_ratio"]:.2f}',
+                f'{r["tracking_s"]:.1f}',
+                f'{r["rms_mm"]:.4f}',
+                f'{r["max_mm"]:.3f}',
+                f'{r["passed_fraction"] * 100:.1f}',
+                f'{r["force_p95_pct"]:.2f}',
+                'yes' if r['lost_contact'] else 'no',
+                f'{r["step_ms_median"]:.3f}',
+                '; '.join(r['missed']) or 'none',
+            )
+            for r in rows
+        ),
+    )
+    write_results(PACE_OUT, 'results', lines, rows)
     return rows
 
 
@@ -846,7 +915,6 @@ def main_part_alone():
 def main():
     if main_part_alone():
         return
-    OUT.mkdir(parents=True, exist_ok=True)
     robot = load_robot('pa10_thesis', 0.0)
     table, logs = {}, {}
     for name in ('Gamma1', 'Gamma1_bent', 'Gamma2'):
@@ -877,20 +945,36 @@ def main():
         '',
         '## Table 7.1 (thesis PA-10 model `pa10_thesis`, T = 6 s, dt = 1 ms)',
         '',
-        '| trajectory | method | RMS position | RMS orientation [rad] | max position | '
-        'thesis position | thesis orientation | median step [ms] | W fails on null(J) '
-        '[steps] | network unstable [steps] |',
-        '|---|---|---|---|---|---|---|---|---|---|',
     ]
-    for (name, method), row in table.items():
-        thesis = THESIS_TABLE[name]
-        lines.append(
-            f'| {name} | {method} | {row["rms_position"]:.3g} | '
-            f'{row["rms_orientation"]:.3g} | {row["max_position"]:.3g} | '
-            f'{thesis[0]:.3g} | {thesis[1]:.3g} | {row["step_ms_median"]:.3f} | '
-            f'{row["null_space_failures"]} / {row["steps"]} | '
-            f'{row["network_diverged"]} |'
-        )
+    lines += markdown_table(
+        (
+            'trajectory',
+            'method',
+            'RMS position',
+            'RMS orientation [rad]',
+            'max position',
+            'thesis position',
+            'thesis orientation',
+            'median step [ms]',
+            'W fails on null(J) [steps]',
+            'network unstable [steps]',
+        ),
+        (
+            (
+                name,
+                method,
+                f'{row["rms_position"]:.3g}',
+                f'{row["rms_orientation"]:.3g}',
+                f'{row["max_position"]:.3g}',
+                f'{THESIS_TABLE[name][0]:.3g}',
+                f'{THESIS_TABLE[name][1]:.3g}',
+                f'{row["step_ms_median"]:.3f}',
+                f'{row["null_space_failures"]} / {row["steps"]}',
+                row['network_diverged'],
+            )
+            for (name, method), row in table.items()
+        ),
+    )
     lines += [
         '',
         "Units: the thesis model's length unit (its link lengths 1.8, 3.6, 0.6) "
@@ -918,42 +1002,61 @@ def main():
         "the integral law (the tilt law's equivalent gain is v pi k / (2 lambda_d) = "
         f'{0.02 * np.pi * 2000.0 / 10.0:.1f} /s).',
         '',
-        '| scenario | surface | force_law | force_gain [1/s] | waypoint depth error '
-        '[mm] | length [m] | end phase | RMS lateral [mm] | '
-        'max lateral [mm] | true force range [N] | max force error [%] | '
-        'RMS force error [N] | phi range [rad] | median step [ms] |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
     ]
-    for row in force_rows:
-        lines.append(
-            f'| {row["scenario"]} | {row["surface"]} | {row["force_law"]} | '
-            f'{row["force_gain"]:.3g} | {row["depth_error_mm"]:g} | '
-            f'{row["path_length_m"]:.3f} | '
-            f'{row["phase"]} | {row["rms_lateral_mm"]:.4f} | {row["max_lateral_mm"]:.4f} | '
-            f'{row["true_force_min_N"]:.3f}..{row["true_force_max_N"]:.3f} | '
-            f'{row["max_force_error_pct"]:.2f} | {row["rms_force_error_N"]:.4f} | '
-            f'{row["phi_range_rad"][0]:.4f}..{row["phi_range_rad"][1]:.4f} | '
-            f'{row["step_ms_median"]:.3f} |'
-        )
+    lines += markdown_table(
+        (
+            'scenario',
+            'surface',
+            'force_law',
+            'force_gain [1/s]',
+            'waypoint depth error [mm]',
+            'length [m]',
+            'end phase',
+            'RMS lateral [mm]',
+            'max lateral [mm]',
+            'true force range [N]',
+            'max force error [%]',
+            'RMS force error [N]',
+            'phi range [rad]',
+            'median step [ms]',
+        ),
+        (
+            (
+                row['scenario'],
+                row['surface'],
+                row['force_law'],
+                f'{row["force_gain"]:.3g}',
+                f'{row["depth_error_mm"]:g}',
+                f'{row["path_length_m"]:.3f}',
+                row['phase'],
+                f'{row["rms_lateral_mm"]:.4f}',
+                f'{row["max_lateral_mm"]:.4f}',
+                f'{row["true_force_min_N"]:.3f}..{row["true_force_max_N"]:.3f}',
+                f'{row["max_force_error_pct"]:.2f}',
+                f'{row["rms_force_error_N"]:.4f}',
+                f'{row["phi_range_rad"][0]:.4f}..{row["phi_range_rad"][1]:.4f}',
+                f'{row["step_ms_median"]:.3f}',
+            )
+            for row in force_rows
+        ),
+    )
     if plotted:
         lines += [
             '',
             'Plots: table71_Gamma1.png, table71_Gamma2.png (r_d, rdot_d, qdot, q '
             'of ours as figs 7.14-7.21, and the errors of every method).',
         ]
-    (OUT / 'results.md').write_text('\n'.join(lines) + '\n')
-    (OUT / 'results.json').write_text(
-        json.dumps(
-            {
-                'table71': {f'{n}/{m}': r for (n, m), r in table.items()},
-                'fixed_step_spectral_radius': radius,
-                'fixed_step_diverged_at': diverged_at,
-                'force_tracking': force_rows,
-            },
-            indent=2,
-        )
+    write_results(
+        OUT,
+        'results',
+        lines,
+        {
+            'table71': {f'{n}/{m}': r for (n, m), r in table.items()},
+            'fixed_step_spectral_radius': radius,
+            'fixed_step_diverged_at': diverged_at,
+            'force_tracking': force_rows,
+        },
     )
-    print('\n'.join(lines))
 
 
 if __name__ == '__main__':

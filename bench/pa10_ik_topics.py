@@ -5,7 +5,10 @@ process on the same scenario, one after the other.
 The grid: example-robot-data 7-DOF arms (``ARMS``; ``--all-arms``: every one of
 task_generator.ROBOT_DATA_ARMS) x path shapes (task_generator.PATH_SHAPES) x planes tilted
 ``TILTS_DEG`` x the arm ``CONDITIONS`` (ideal, its commands 20 ms late, half speed); a
-seeded sample of it by default (``--cases N``), ``--whole-grid`` for all of it. Every
+seeded sample of it by default (``--cases N``), ``--whole-grid`` for all of it;
+``--only 2,5``: those cases of it alone (0-based, each with the seed it has in the whole
+run: before/after comparisons on a few cases); ``--ours a:=1,b:=2``: pa10_ik_node with
+those parameters. Every
 run: its own ROS_DOMAIN_ID, localhost discovery, its processes started and stopped as
 process groups (tests/harness.py), bounded waits on conditions.
 
@@ -17,7 +20,6 @@ speed / limit); task time = the start call to the first 'done' status (the path'
 """
 
 import itertools
-import json
 import os
 import sys
 import time
@@ -28,6 +30,8 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'tests'))
+from vgm_evaluation.bench_report import markdown_table, save_figure, write_results  # noqa: E402
+
 from harness import NodeProcess, executable, next_ros_env, small_scenario  # noqa: E402
 from vgm_evaluation import task_generator  # noqa: E402
 
@@ -156,9 +160,9 @@ def _positions(msg):
     return np.array(msg.position)
 
 
-def controller_argv(controller, built, scenario):
-    """The command line of ``controller`` ('ours': pa10_ik_node at its defaults; 'peer':
-    the DLS peer node) on the case's arm."""
+def controller_argv(controller, built, scenario, ours_params=()):
+    """The command line of ``controller`` ('ours': pa10_ik_node at its defaults but for
+    ``ours_params``, 'name:=value' each; 'peer': the DLS peer node) on the case's arm."""
     arm = built.spec.arm
     common = [
         '-p',
@@ -176,7 +180,8 @@ def controller_argv(controller, built, scenario):
     # starved for 1.0-1.1 s, and a stop on stale pressure is no tracking figure.
     watchdog = ['-p', 'pressure_timeout:=3.0']
     if controller == 'ours':
-        return [executable('pa10_ik_node'), '--ros-args', *common, *watchdog]
+        extra = [arg for param in ours_params for arg in ('-p', param)]
+        return [executable('pa10_ik_node'), '--ros-args', *common, *watchdog, *extra]
     return [sys.executable, PEER_NODE, '--ros-args', *common]
 
 
@@ -184,7 +189,7 @@ class Refused(Exception):
     """The controller's start service refused the task (its message)."""
 
 
-def run_one(built, controller, condition, directory):
+def run_one(built, controller, condition, directory, ours_params=()):
     """One run of ``controller`` on the built case under the arm ``condition``; the row."""
     from bench_pa10_ik import meets_goals
 
@@ -206,7 +211,9 @@ def run_one(built, controller, condition, directory):
         sim_argv += ['-p', f'arm_speed_scale:={scale}', '-p', f'arm_command_delay:={delay}']
         processes.append(NodeProcess(sim_argv, env, Path(directory) / f'sim-{tag}.log'))
         node = NodeProcess(
-            controller_argv(controller, built, scenario), env, Path(directory) / f'{tag}.log'
+            controller_argv(controller, built, scenario, ours_params),
+            env,
+            Path(directory) / f'{tag}.log',
         )
         processes.append(node)
         probe.path_publisher.publish(_path_message(built.waypoints))
@@ -237,6 +244,11 @@ def run_one(built, controller, condition, directory):
         # pa10_ik_node's median control step (IK included) over its last 500 steps; the
         # peer reports none.
         row['step_ms'] = float(probe.last('step_time_ms') or 'nan')
+        # and of its IK alone (Jacobian, task, solve), the arm's lag it measured, the
+        # response it estimated (nan from a node before it reported them)
+        row['ik_ms'] = float(probe.last('ik_time_ms') or 'nan')
+        row['lag_ms'] = float(probe.last('arm_lag_ms') or 'nan')
+        row['response'] = float(probe.last('arm_response') or 'nan')
         row['reason'] = probe.last('reason') or ''
         crashed = [p.argv[0] for p in processes if 'Traceback' in p.output()]
         if crashed:
@@ -316,10 +328,15 @@ def main_over_topics(argv):
         cases = grid(arms)
     else:
         cases = sample(arms, int(_option(argv, '--cases', '12')), seed)
-    OUT.mkdir(parents=True, exist_ok=True)
+    # --only i,j: those cases of the sample or grid alone, each as in the whole run
+    only = {int(i) for i in _option(argv, '--only', '').split(',') if i}
+    # --ours name:=value,name:=value: pa10_ik_node's parameters other than its defaults
+    ours_params = [p for p in _option(argv, '--ours', '').split(',') if p]
     rows = []
     began = time.monotonic()
     for index, (arm_name, shape, tilt, condition) in enumerate(cases):
+        if only and index not in only:
+            continue
         spec = task_generator.CaseSpec(
             task_generator.robot_data_arm(arm_name),
             'plane',
@@ -333,7 +350,7 @@ def main_over_topics(argv):
         with tempfile.TemporaryDirectory() as directory:
             built = task_generator.build_case(spec, directory)
             for controller in ('ours', 'peer'):
-                pair[controller] = run_one(built, controller, condition, directory)
+                pair[controller] = run_one(built, controller, condition, directory, ours_params)
         case = {'arm': arm_name, 'shape': shape, 'tilt_deg': tilt, 'condition': condition}
         ratio = pair['ours'].get('task_s', np.nan) / pair['peer'].get('task_s', np.nan)
         rows.append({**case, 'ours': pair['ours'], 'peer': pair['peer'], 'time_ratio': ratio})
@@ -343,7 +360,7 @@ def main_over_topics(argv):
             f'{_brief(pair["peer"])}; time ratio {ratio:.2f}',
             flush=True,
         )
-        write_results(rows, argv, seed)
+        write_tables(rows, argv, seed)
     return rows
 
 
@@ -357,22 +374,55 @@ def _brief(r):
     return (
         f'{r["phase"]} RMS {r["rms_mm"]:.4f} mm max {r["max_mm"]:.3f} mm passed '
         f'{r["passed_fraction"] * 100:.1f} % force p95 {r["force_p95_pct"]:.2f} % task '
-        f'{r["task_s"]:.1f} s'
+        f'{r["task_s"]:.1f} s step {r.get("step_ms", float("nan")):.3f} ms IK '
+        f'{r.get("ik_ms", float("nan")):.3f} ms lag {r.get("lag_ms", float("nan")):.1f} ms '
+        f'response {r.get("response", float("nan")):.2f}'
     )
 
 
 def _cells(r):
+    """The cells of one controller's run, from 'end' to 'goals missed'."""
     if 'rms_mm' not in r:
-        return f'{r["phase"]} | | | | | | | | | {r.get("reason", "")}'
+        return (r['phase'], *[''] * 10, r.get('reason', ''))
     return (
-        f'{r["phase"]} | {r["rms_mm"]:.4f} | {r["max_mm"]:.3f} | '
-        f'{r["passed_fraction"] * 100:.1f} | {r["force_p95_pct"]:.2f} | '
-        f'{r["limit_margin_rad"]:.3f} | {r["velocity_ratio"]:.2f} | {r["task_s"]:.1f} | '
-        f'{r.get("step_ms", float("nan")):.3f} | {"; ".join(r["missed"]) or "none"}'
+        r['phase'],
+        f'{r["rms_mm"]:.4f}',
+        f'{r["max_mm"]:.3f}',
+        f'{r["passed_fraction"] * 100:.1f}',
+        f'{r["force_p95_pct"]:.2f}',
+        f'{r["limit_margin_rad"]:.3f}',
+        f'{r["velocity_ratio"]:.2f}',
+        f'{r["task_s"]:.1f}',
+        f'{r.get("step_ms", float("nan")):.3f}',
+        f'{r.get("ik_ms", float("nan")):.3f}',
+        f'{r.get("lag_ms", float("nan")):.1f}',
+        '; '.join(r['missed']) or 'none',
     )
 
 
-def write_results(rows, argv, seed):
+COLUMNS = (
+    'arm',
+    'shape',
+    'tilt [deg]',
+    'condition',
+    'controller',
+    'end',
+    'RMS [mm]',
+    'max [mm]',
+    'passed [%]',
+    'force p95 [%]',
+    'limit margin [rad]',
+    'qdot / limit',
+    'task [s]',
+    'step [ms]',
+    'IK [ms]',
+    'lag [ms]',
+    'goals missed',
+    'time ours / peer',
+)
+
+
+def write_tables(rows, argv, seed):
     from bench_pa10_ik import GOALS, PEER_SPEED
 
     command = 'nice -n 10 .venv/bin/python bench/bench_pa10_ik.py ' + ' '.join(argv)
@@ -395,7 +445,8 @@ def write_results(rows, argv, seed):
         'p95 alone is 2 %). Figures from touchdown (first tracking status) to the '
         "path's end (first done status); task = start call to the path's end; limit "
         'margin = closest approach of a joint state to a position limit, qdot / limit = '
-        'largest commanded joint speed over its limit (from the start call on).',
+        'largest commanded joint speed over its limit (from the start call on); step, IK, '
+        "lag: pa10_ik_node's diagnostics step_time_ms, ik_time_ms and arm_lag_ms at the end.",
         '',
         f'Goals: RMS < {GOALS["rms_mm"]} mm, passed > {GOALS["passed_fraction"] * 100:g} %, '
         f'force p95 < {GOALS["force_p95_pct"]:g} %, no joint limit exceeded, task time '
@@ -410,17 +461,14 @@ def write_results(rows, argv, seed):
         f'step < 0.3 ms) {np.nanmedian(steps):.3f} ms (cases {np.nanmin(steps):.3f}-'
         f'{np.nanmax(steps):.3f}).',
         '',
-        '| arm | shape | tilt [deg] | condition | controller | end | RMS [mm] | max [mm] | '
-        'passed [%] | force p95 [%] | limit margin [rad] | qdot / limit | task [s] | '
-        'step [ms] | goals missed | time ours / peer |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
     ]
+    cells = []
     for r in rows:
-        case = f'| {r["arm"]} | {r["shape"]} | {r["tilt_deg"]:g} | {r["condition"]}'
-        lines.append(f'{case} | ours | {_cells(r["ours"])} | {r["time_ratio"]:.2f} |')
-        lines.append(f'{case} | peer | {_cells(r["peer"])} | |')
-    (OUT / 'results.md').write_text('\n'.join(lines) + '\n')
-    (OUT / 'results.json').write_text(json.dumps(rows, indent=2, default=str))
+        case = (r['arm'], r['shape'], f'{r["tilt_deg"]:g}', r['condition'])
+        cells.append((*case, 'ours', *_cells(r['ours']), f'{r["time_ratio"]:.2f}'))
+        cells.append((*case, 'peer', *_cells(r['peer']), ''))
+    lines += markdown_table(COLUMNS, cells)
+    write_results(OUT, 'results', lines, rows, echo=False)
     _plot(rows)
 
 
@@ -446,5 +494,4 @@ def _plot(rows):
     bottom.set_xticks(x, labels, fontsize=7)
     bottom.legend()
     fig.tight_layout()
-    fig.savefig(OUT / 'rms_and_time_ratio.png', dpi=80)
-    plt.close(fig)
+    save_figure(fig, OUT / 'rms_and_time_ratio.png')

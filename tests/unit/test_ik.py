@@ -208,3 +208,27 @@ def test_bad_shapes_raise():
         dls_velocity(np.zeros((6, 7)), np.zeros(7), 0.1)
     with pytest.raises(InvalidInput, match='T_current'):
         pose_error(np.eye(3), np.eye(4))
+
+
+def test_the_fast_paths_of_the_control_step_give_the_same_bits():
+    """pa10_ik_node.tracking.cross is np.cross's arithmetic on (3,) vectors, and
+    pose_error on orthonormal rotations skips scipy's orthogonalisation without changing
+    a bit; a rotation that is not orthonormal still goes through it."""
+    from scipy.spatial.transform import Rotation
+
+    from pa10_ik_node.tracking import cross
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        a, b = rng.normal(size=3), rng.normal(size=3) * 10.0 ** rng.integers(-6, 6)
+        assert np.array_equal(cross(a, b), np.cross(a, b))
+    for _ in range(200):
+        T_current = make_transform(Rotation.random(rng=rng).as_matrix(), rng.normal(size=3))
+        T_desired = make_transform(Rotation.random(rng=rng).as_matrix(), rng.normal(size=3))
+        R_error = T_desired[:3, :3] @ T_current[:3, :3].T
+        expected = Rotation.from_matrix(R_error).as_rotvec()
+        assert np.array_equal(pose_error(T_current, T_desired)[3:], expected)
+    skewed = np.eye(4)
+    skewed[:3, :3] = rot_z(0.3) @ np.diag([1.0, 1.2, 1.0])  # not a rotation
+    expected = Rotation.from_matrix(skewed[:3, :3]).as_rotvec()
+    assert np.array_equal(pose_error(np.eye(4), skewed)[3:], expected)

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from harness import ManualClock
+from pa10_ik_node.commands import MAX_COMMAND_LEAD_S, MAX_LAG_S
 from pa10_ik_node.ik import RateSolver
-from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, MAX_COMMAND_LEAD_S, TrackingSession
+from pa10_ik_node.session import JOINT_LIMIT_SLACK_RAD, TrackingSession
 from pa10_ik_node.settings import ArmSettings, LoopSettings, SolverSettings
 from pa10_ik_node.thesis import fixed_step_matrix
 from pa10_ik_node.tracking import TrackingConfig, TrackingController
@@ -271,13 +272,68 @@ def test_a_command_continues_the_previous_set_point_within_its_lead_of_the_joint
     for _ in range(30):
         session.clock.now += PERIOD
         feed(session, scenario)
-        previous = session.last_command[1]
-        command = session.control_step().command
+        previous = session.commands.nominal[1]
+        session.control_step()
+        command = session.commands.nominal[1]  # as sent less the arm's lag (its own test)
         lead = np.abs(command.positions - HORIZON * command.velocities - q)
         assert np.all(lead <= MAX_COMMAND_LEAD_S * np.abs(previous.velocities) + 1e-12)
     assert session.controller.phase == 'approach', session.controller.reason
     assert np.any(lead > 0.9 * MAX_COMMAND_LEAD_S * np.abs(previous.velocities))
     session.stop('stop requested')
     assert session.start()[0]
-    command = session.control_step().command
+    session.control_step()
+    command = session.commands.nominal[1]
     np.testing.assert_allclose(command.positions, q + HORIZON * command.velocities, atol=1e-15)
+
+
+def test_lead_arm_lag_sends_the_set_point_one_measured_lag_ahead(session, scenario):
+    """An arm that does not follow at all measures about the largest lag (MAX_LAG_S): with
+    lead_arm_lag the command goes that far ahead of the continued set point along the
+    joint speeds, without it the command is the set point itself."""
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    for lead_on in (False, True):
+        session.settings = replace(session.settings, lead_arm_lag=lead_on)
+        for _ in range(40):
+            session.clock.now += PERIOD
+            feed(session, scenario)
+            sent = session.control_step().command
+        nominal = session.commands.nominal[1]
+        assert session.controller.phase == 'approach', session.controller.reason
+        lag = session.commands.lag
+        assert 0.9 * MAX_LAG_S < lag <= MAX_LAG_S
+        ahead = sent.positions - nominal.positions
+        if lead_on:  # along the (smoothed) joint speeds, which hardly change here
+            np.testing.assert_allclose(ahead, lag * sent.velocities, rtol=0.05, atol=1e-6)
+            assert np.max(np.abs(ahead)) > 1e-3
+        else:
+            assert np.array_equal(ahead, np.zeros_like(ahead))
+
+
+def test_a_simulator_starved_for_two_seconds_is_no_arm_that_cannot_progress(scenario):
+    """The simulator's joint states and pressure stop for 2.5 s (a starved process)
+    while the loop runs on, within a pressure_timeout of 3 s: the task's no-progress
+    check (2 error_timeouts: 2 s) judged the last, unchanged reading and failed the
+    approach ('cannot reach the pre-contact pose ... no progress for 2.0 s', over topics
+    on Talos's arm at half speed); it waits for a new reading instead, and the watchdog
+    still stops the task once the inputs are older than the timeout."""
+    robot = load_robot(scenario.robot.model, scenario.robot.tool_length)
+    controller = TrackingController(robot, RateSolver('ours', [1.0] * 7), TrackingConfig())
+    settings = LoopSettings(rate=1.0 / PERIOD, pressure_timeout=3.0, command_horizon=HORIZON)
+    session = TrackingSession(controller, 'tool0', settings, clock=ManualClock(100.0))
+    feed(session, scenario)
+    session.take_waypoints('base_link', waypoints_on(scenario.surface))
+    assert session.start()[0]
+    for _ in range(250):  # 2.5 s without a message
+        session.clock.now += PERIOD
+        output = session.control_step()
+    assert controller.phase == 'approach', controller.reason
+    assert output.command is None  # nothing new to command on a reading this old
+    feed(session, scenario)  # the simulator is back
+    session.clock.now += PERIOD
+    assert session.control_step().command is not None
+    for _ in range(310):
+        session.clock.now += PERIOD
+        session.control_step()
+    assert controller.phase == 'stopped' and 'stale' in controller.reason

@@ -36,6 +36,9 @@ def dls_velocity(J: npt.ArrayLike, twist: npt.ArrayLike, damping: float) -> Floa
     return J.T @ np.linalg.solve(gram, twist)
 
 
+ORTHONORMAL_TOLERANCE = 1e-9  # |R R^T - I| below this: a rotation as it is
+
+
 def pose_error(T_current: npt.ArrayLike, T_desired: npt.ArrayLike) -> FloatArray:
     """Pose error in base_link (A7.7): position and rotation-vector orientation error.
 
@@ -54,7 +57,10 @@ def pose_error(T_current: npt.ArrayLike, T_desired: npt.ArrayLike) -> FloatArray
             raise InvalidInput(f'{key} must be a finite (4, 4) array, got shape {T.shape}', key, T)
     position_error = T_desired[:3, 3] - T_current[:3, 3]
     R_error = T_desired[:3, :3] @ T_current[:3, :3].T
-    orientation_error = Rotation.from_matrix(R_error).as_rotvec()
+    # Rotations as forward kinematics and checked waypoints give them skip scipy's
+    # orthogonalisation (the same result on them, a quarter of a control step saved).
+    orthonormal = bool(np.abs(R_error @ R_error.T - np.eye(3)).max() < ORTHONORMAL_TOLERANCE)
+    orientation_error = Rotation.from_matrix(R_error, assume_valid=orthonormal).as_rotvec()
     return np.concatenate([position_error, orientation_error])
 
 

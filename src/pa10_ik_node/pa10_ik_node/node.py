@@ -68,7 +68,7 @@ class Pa10IkNode(GraphNode):
 
     node_name = 'pa10_ik_node'
 
-    def __init__(self):
+    def __init__(self) -> None:
         # A change of a solver parameter builds the solver anew, of a tracking one
         # reconfigures the task, of a loop one applies at the next step.
         hooks = dict.fromkeys(_names(SOLVER), self._on_solver_change)
@@ -114,37 +114,39 @@ class Pa10IkNode(GraphNode):
 
     # --- parameters ------------------------------------------------------------------
 
-    def _on_solver_change(self, _value):
+    def _on_solver_change(self, _value: object) -> None:
         if hasattr(self, 'session'):
             self.session.configure_solver(SOLVER.build(self.params))
 
-    def _on_tracking_change(self, _value):
+    def _on_tracking_change(self, _value: object) -> None:
         """A tracking parameter changed: the controller takes them all anew."""
         if hasattr(self, 'session'):
             self.session.controller.configure(**TRACKING.fields(self.params))
 
-    def _on_loop_change(self, _value):
+    def _on_loop_change(self, _value: object) -> None:
         if hasattr(self, 'session'):
             self.session.settings = LOOP.build(self.params)
 
     # --- inputs ----------------------------------------------------------------------
 
     @guarded(JOINT_STATES_TOPIC)
-    def _on_joint_state(self, msg):
+    def _on_joint_state(self, msg: JointState) -> None:
         try:
-            self.session.take_joint_state(msg.name, msg.position)
+            stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+            age = self.get_clock().now().nanoseconds * 1e-9 - stamp if stamp > 0 else 0.0
+            self.session.take_joint_state(msg.name, msg.position, age)
         except InvalidInput as error:
             self.diagnostics.reject(JOINT_STATES_TOPIC, error)
 
     @guarded(PRESSURE_TOPIC)
-    def _on_pressure(self, msg):
+    def _on_pressure(self, msg: WrenchStamped) -> None:
         try:
             self.session.take_pressure(msg.header.frame_id, msg.wrench.force.z)
         except InvalidInput as error:
             self.diagnostics.reject(PRESSURE_TOPIC, error)
 
     @guarded(WAYPOINTS_TOPIC)
-    def _on_waypoints(self, msg):
+    def _on_waypoints(self, msg: Path) -> None:
         try:
             waypoints = path_to_matrices(msg)
             takeover = self.session.take_waypoints(msg.header.frame_id, waypoints)
@@ -158,14 +160,14 @@ class Pa10IkNode(GraphNode):
     # --- services --------------------------------------------------------------------
 
     @guarded('start_tracking')
-    def _on_start(self, request, response):
+    def _on_start(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         response.success, response.message, hold = self.session.start()
         self._send(hold)
         self._log_phase_change()
         return response
 
     @guarded('stop')
-    def _on_stop(self, request, response):
+    def _on_stop(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         self._send(self.session.stop('stop requested'))
         self._log_phase_change()
         response.success, response.message = True, 'stopped'
@@ -174,7 +176,7 @@ class Pa10IkNode(GraphNode):
     # --- the loop --------------------------------------------------------------------
 
     @guarded('control step')
-    def _control_step(self):
+    def _control_step(self) -> None:
         if not self.pose_gate.is_open():
             return
         output = self.session.control_step(self.params.auto_start)
@@ -188,7 +190,7 @@ class Pa10IkNode(GraphNode):
         )
         self._log_phase_change()
 
-    def _send(self, command: JointCommand | None):
+    def _send(self, command: JointCommand | None) -> None:
         if command is None:
             return
         point = JointTrajectoryPoint(
@@ -201,7 +203,7 @@ class Pa10IkNode(GraphNode):
             JointTrajectory(joint_names=list(self.robot.joint_names), points=[point])
         )
 
-    def on_internal_error(self, what, error):
+    def on_internal_error(self, what: str, error: Exception) -> None:
         """An exception in a callback (a solver, a singular configuration, a bug): stop
         the arm at its measured position, report, keep serving."""
         reason = f'{what}: {type(error).__name__}: {error}'
@@ -220,7 +222,7 @@ class Pa10IkNode(GraphNode):
                 f'could not stop after the internal error: {second}', throttle_duration_sec=2.0
             )
 
-    def _log_phase_change(self):
+    def _log_phase_change(self) -> None:
         change = self.session.phase_change()
         if change is None:
             return
@@ -236,12 +238,12 @@ class Pa10IkNode(GraphNode):
         self._publish_diagnostics()
 
     @guarded('diagnostics')
-    def _publish_diagnostics(self):
+    def _publish_diagnostics(self) -> None:
         status = self.session.status()
         self.diagnostics.publish('tracking', status.level, status.message, status.values)
 
 
-def main(args=None):
+def main(args: list[str] | None = None) -> int:
     """Run pa10_ik_node until SIGINT/SIGTERM; exit status 2 on an unusable parameter or
     robot model at start-up (one line)."""
     return run_node(Pa10IkNode, args)

@@ -151,8 +151,9 @@ class WaypointPath:
     def sample(self, s: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         """(point (3,), approach (3,) unit, tangent (3,) unit) at arc length ``s`` [m]
         (clamped to the path)."""
-        s = float(np.clip(s, 0.0, self.length))
-        i = int(np.clip(np.searchsorted(self.arc, s, side='right') - 1, 0, len(self.arc) - 2))
+        # min/max, not np.clip: the same numbers at a tenth of the time on scalars
+        s = min(max(float(s), 0.0), self.length)
+        i = min(max(int(np.searchsorted(self.arc, s, side='right')) - 1, 0), len(self.arc) - 2)
         h = self.arc[i + 1] - self.arc[i]
         t = (s - self.arc[i]) / h if h > 0 else 0.0
         point = self.points[i] + t * (self.points[i + 1] - self.points[i])

@@ -15,6 +15,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from pa10_ik_node.commands import JointCommand, SetPointCommands
 from pa10_ik_node.path import validate_waypoints
 from pa10_ik_node.settings import ArmSettings, LoopSettings, SolverSettings, weights_per_joint
 from pa10_ik_node.tracking import ACTIVE_PHASES, TrackingConfig, TrackingController, Unreachable
@@ -24,19 +25,16 @@ from vgm_common.topics import BASE_FRAME, JOINT_STATES_TOPIC, PRESSURE_TOPIC, WA
 
 MAX_FORCE_N = 1e4  # a pressure reading beyond this is a broken sensor, not a contact
 JOINT_LIMIT_SLACK_RAD = 0.1  # a measured joint this far outside its limits is no reading
-STEP_TIMES_KEPT = 500  # control step times kept for the median in the diagnostics
-# [s] A moving command's set point continues the previous one's, leading the measured
-# joints by at most this much of the commanded joint motion (see _command_anchor).
-MAX_COMMAND_LEAD_S = 0.1
-
-
-class JointCommand(NamedTuple):
-    """One trajectory point: ``positions`` (n,) [rad] at ``horizon`` [s] from now, moving
-    at ``velocities`` (n,) [rad/s] (horizon 0: a hold, at once)."""
-
-    positions: FloatArray
-    velocities: FloatArray
-    horizon: float
+STEP_TIMES_KEPT = 500  # control step (and IK) times kept for the medians in the diagnostics
+# The joint measured this long before the control step at most is taken as measured then
+# (older: the joint state's stamp is on another clock, its receipt counts).
+MAX_JOINT_STATE_AGE_S = 0.1
+# [s] A joint state this old is no measurement to act on: the task waits for a new one
+# (no command, its timers still). Far beyond the 5 ms between the simulator's joint states
+# and their jitter on a loaded machine, far below the 2 s the task allows an arm to make
+# no progress: judged on an old reading (a simulator starved for 2 s within a
+# pressure_timeout of 3 s), a moving arm looked stuck and the approach failed.
+OLD_JOINT_STATE_S = 0.25
 
 
 class ControlOutput(NamedTuple):
@@ -97,14 +95,14 @@ class TrackingSession:
         self.joint_index = {name: i for i, name in enumerate(self.robot.joint_names)}
         self.q: FloatArray | None = None  # measured joints, robot order [rad]
         self.force = 0.0  # [N]
-        self.joint_state_time: float | None = None  # clock() at receipt [s]
+        self.joint_state_time: float | None = None  # clock() when measured [s]
         self.pressure_time: float | None = None
         self.waypoints: FloatArray | None = None  # (N, 4, 4) base_link
         self.last_step: float | None = None  # clock() of the previous control step
-        # (clock() [s], the command) of the last moving command sent; None after a hold
-        self.last_command: tuple[float, JointCommand] | None = None
+        self.commands = SetPointCommands()  # the moving commands and the arm's lag
         self.last_info: dict[str, Any] = {}
         self.step_times: deque[float] = deque(maxlen=STEP_TIMES_KEPT)  # [s]
+        self.ik_times: deque[float] = deque(maxlen=STEP_TIMES_KEPT)  # [s] the solve alone
         self.null_space_failures = 0
         self.last_failure_condition = ''
         self.internal_errors = 0  # failures of the caller's own code (``fail``)
@@ -140,10 +138,13 @@ class TrackingSession:
 
     # --- inputs ----------------------------------------------------------------------
 
-    def take_joint_state(self, names: Sequence[str], positions: Sequence[float]) -> None:
-        """Keep the measured joints; ``InvalidInput`` for a reading that cannot be the
-        arm's (unknown, duplicate or missing names, non-finite or far outside the joint
-        limits)."""
+    def take_joint_state(
+        self, names: Sequence[str], positions: Sequence[float], age: float = 0.0
+    ) -> None:
+        """Keep the measured joints, measured ``age`` [s] ago (its stamp's age; 0 or
+        beyond MAX_JOINT_STATE_AGE_S: now); ``InvalidInput`` for a reading that cannot be
+        the arm's (unknown, duplicate or missing names, non-finite or far outside the
+        joint limits)."""
         names = list(names)
         duplicates = sorted({name for name in names if names.count(name) > 1})
         if duplicates:
@@ -176,7 +177,9 @@ class TrackingSession:
                 q[i],
             )
         self.q = q
-        self.joint_state_time = self.clock()
+        if not 0.0 <= age <= MAX_JOINT_STATE_AGE_S:
+            age = 0.0
+        self.joint_state_time = self.clock() - age
 
     def take_pressure(self, frame: str, force: float) -> None:
         """Keep the measured force [N]; ``InvalidInput`` for another frame than the tip's
@@ -236,7 +239,7 @@ class TrackingSession:
         waypoints = self.waypoints
         if missing or waypoints is None or self.q is None:  # None: among the missing
             return False, f'cannot start: no recent {", ".join(missing)}', None
-        self.last_command = None  # a new task's commands start from the measured joints
+        self.commands.restart()  # a new task's commands start from the measured joints
         try:
             self.controller.start(waypoints, self.q)
         except Unreachable as error:
@@ -270,7 +273,7 @@ class TrackingSession:
         """Zero velocity at the measured position, now (horizon 0: a position arm does
         not coast on to a point ahead, a velocity arm gets zero at once); None before
         any joint state."""
-        self.last_command = None
+        self.commands.restart()
         if self.q is None:
             return None
         return JointCommand(self.q.copy(), np.zeros(self.robot.n_joints), 0.0)
@@ -307,40 +310,26 @@ class TrackingSession:
                     controller.stop(f'stale {what}: no {topic} for more than {timeout} s')
                     return ControlOutput(self.robot.forward_kinematics(q), self.hold())
         if controller.phase not in (*ACTIVE_PHASES, 'done'):
-            self.last_command = None  # nothing sent: the next command starts afresh
+            self.commands.restart()  # nothing sent: the next command starts afresh
+            return ControlOutput(self.robot.forward_kinematics(q), None)
+        assert self.joint_state_time is not None  # set with q
+        if now - self.joint_state_time > OLD_JOINT_STATE_S:
             return ControlOutput(self.robot.forward_kinematics(q), None)
         started = time.perf_counter()
         qdot, info = controller.step(q, self.force, dt)
         self.step_times.append(time.perf_counter() - started)
+        if 'ik_time' in info:
+            self.ik_times.append(info['ik_time'])
         self.last_info = info
         self._note_solver_failure(info)
         if controller.phase in ('stopped', 'failed'):
             command = self.hold()
         else:
-            horizon = self.settings.command_horizon
-            command = JointCommand(self._command_anchor(q, now) + qdot * horizon, qdot, horizon)
-            self.last_command = (now, command)
+            self.commands.measure(q, self.joint_state_time)
+            self.commands.covered_lag = controller.config.command_latency
+            self.commands.compensate_lag = self.settings.lead_arm_lag
+            command = self.commands.command(q, qdot, now, self.settings.command_horizon)
         return ControlOutput(info['T'], command)
-
-    def _command_anchor(self, q: FloatArray, now: float) -> FloatArray:
-        """(n,) [rad] Where the command sent at ``now`` starts: the previous moving
-        command's set point at ``now`` (its point moved back along its velocity by the
-        time still to go), within MAX_COMMAND_LEAD_S of its joint speeds of the measured
-        joints ``q``; ``q`` itself for the first command after a hold.
-
-        Started from the measured joints instead, every command threw away what the
-        previous ones had not yet moved the arm: the measured state is older than the
-        arm's (a joint state's age, the command's way), and an arm slower than its set
-        point (a position loop with a lag) restarted from its own lagging position every
-        control step made a fraction of the motion: over topics the half-speed arm 0.16-0.24
-        of it, below what the response estimate compensates (MIN_RESPONSE)."""
-        if self.last_command is None:
-            return q
-        sent, previous = self.last_command
-        to_go = max(previous.horizon - (now - sent), 0.0)
-        set_point = previous.positions - previous.velocities * to_go
-        lead = np.abs(previous.velocities) * MAX_COMMAND_LEAD_S
-        return q + np.clip(set_point - q, -lead, lead)
 
     def _note_solver_failure(self, info: dict[str, Any]) -> None:
         if info.get('diverged'):
@@ -396,9 +385,9 @@ class TrackingSession:
             'force_error_N': f'{force - config.desired_force:.4f}',
             'arm_response': f'{controller.response:.3f}',
             'phi_rad': f'{info.get("phi", float("nan")):.5f}',
-            'step_time_ms': f'{np.median(self.step_times) * 1e3:.4f}'
-            if self.step_times
-            else 'nan',
+            'step_time_ms': _median_ms(self.step_times),
+            'ik_time_ms': _median_ms(self.ik_times),
+            'arm_lag_ms': f'{self.commands.lag * 1e3:.1f}',
             'method': self.solver_settings.method,
             'force_law': config.force_law,
             'reason': controller.reason,
@@ -417,3 +406,8 @@ class TrackingSession:
 
     def _fresh(self, stamp: float | None) -> bool:
         return stamp is not None and self.clock() - stamp <= self.settings.pressure_timeout
+
+
+def _median_ms(times: deque[float]) -> str:
+    """The median of ``times`` [s] in ms, as the diagnostics carry it ('nan': none)."""
+    return f'{np.median(times) * 1e3:.4f}' if times else 'nan'

@@ -175,6 +175,14 @@ class LoopSettings:
     command_horizon: float = setting(
         0.05, 'time_from_start of the commanded point.', unit='s', range=(0.001, 1.0)
     )
+    # Off by default: over topics on the loaded 2-core machine it helped some half-speed
+    # runs and made others worse, with adapt_response compounding it (README, "What
+    # misses its goal").
+    lead_arm_lag: bool = setting(
+        False,
+        "Command one measured arm lag ahead (q + lag * qdot; the lag of the arm's "
+        'joint states behind the set points sent, diagnostics arm_lag_ms, at most 0.1 s).',
+    )
     auto_start: bool = setting(
         False, 'Start as soon as valid waypoints, joint states and pressure are there.'
     )

@@ -15,6 +15,7 @@ reference pose and its feed-forward twist into joint velocities through ``RateSo
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -30,6 +31,14 @@ from vgm_common.robot_model import RobotModel, workspace_reach
 from vgm_common.settings import setting
 
 
+def cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """a x b of two (3,) vectors: np.cross's products and differences (the same bits)
+    without its axis handling, which took a sixth of a control step."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
 def _unit(v: npt.ArrayLike, key: str) -> FloatArray:
     v = np.asarray(v, dtype=float)
     norm = np.linalg.norm(v)
@@ -42,7 +51,7 @@ def perpendicular(v: npt.ArrayLike) -> FloatArray:
     """A unit vector (3,) orthogonal to the non-zero (3,) ``v``."""
     v = _unit(v, 'v')
     other = np.eye(3)[int(np.argmin(np.abs(v)))]
-    return _unit(np.cross(v, other), 'v x e')
+    return _unit(cross(v, other), 'v x e')
 
 
 def next_target_on_tangent_plane(
@@ -71,7 +80,7 @@ def next_target_on_tangent_plane(
     z = -n
     x = _unit(Q_plane - P, 'Q - P')
     T = np.eye(4)
-    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, :3] = np.column_stack([x, cross(z, x), z])
     T[:3, 3] = P
     return Q_plane, T
 
@@ -302,7 +311,7 @@ def spin_free_task(
 def tilt_error(R_current: FloatArray, approach_desired: FloatArray) -> FloatArray:
     """Rotation vector (3,) [rad] turning the tool's z axis onto ``approach_desired``."""
     z = R_current[:, 2]
-    axis = np.cross(z, approach_desired)
+    axis = cross(z, approach_desired)
     norm = np.linalg.norm(axis)
     angle = np.arctan2(norm, np.dot(z, approach_desired))
     if norm < 1e-12:
@@ -542,12 +551,12 @@ class TrackingController:
         q_ahead = self._predicted(q)
         T_ahead = T if q_ahead is q else self.robot.forward_kinematics(q_ahead)
         qdot, solve_info = self._solve(q_ahead, T_ahead, T_d, feed_forward, free_move)
+        J_ahead = solve_info.pop('J')
         info.update(solve_info)
         qdot = self._compensated(qdot)
-        self.last_tip, self.last_tip_velocity = (
-            T[:3, 3].copy(),
-            (self.robot.jacobian(q) @ qdot)[:3],
-        )
+        # The solve's Jacobian where it was at q (no latency assumed): computed once.
+        J = J_ahead if q_ahead is q else self.robot.jacobian(q)
+        self.last_tip, self.last_tip_velocity = T[:3, 3].copy(), (J @ qdot)[:3]
         self._remember_command(qdot, self.last_tip_velocity, dt)
         info['response'] = self.response
         return qdot, info
@@ -978,13 +987,16 @@ class TrackingController:
                 twist[:3] *= c.max_tip_speed / linear
             if angular > c.max_angular_speed:
                 twist[3:] *= c.max_angular_speed / angular
-        J = self.robot.jacobian(q)
+        started = time.perf_counter()  # the IK: the Jacobian, the task, the solve
+        J_full = self.robot.jacobian(q)
         if not c.track_spin:
-            J, task = spin_free_task(J, twist, T_d)
+            J, task = spin_free_task(J_full, twist, T_d)
         else:
-            task = twist
+            J, task = J_full, twist
         qdot, solve_info = self.solver.solve_limited(
             J, task, q, self.robot.lower_limits, self.robot.upper_limits, self.velocity_limits
         )
+        solve_info['ik_time'] = time.perf_counter() - started  # [s]
+        solve_info['J'] = J_full  # (6, n) at q
         solve_info['twist'] = twist
         return qdot, solve_info

@@ -45,7 +45,8 @@ from vgm_common.robot_model import (
 )
 from vgm_common.topics import TOOL_FRAME
 
-if TYPE_CHECKING:  # imported lazily by BuiltCase.simulated_arm
+if TYPE_CHECKING:  # imported lazily where used
+    from pa10_ik_node.commands import JointCommand, SetPointCommands
     from sensor_sim.arm_sim import SimulatedArm
 
 LINK_SPREAD = 0.4  # link offsets within +-40 % of the real PA-10's
@@ -348,6 +349,9 @@ def run_closed_loop(
     substeps: int = 2,
     *,
     command_delay_steps: int = 0,
+    horizon: float = 0.05,
+    node_commands: bool = True,
+    lead_arm_lag: bool = False,
     initial_force: float | None = 0.0,
     before_step: Callable[[float, FloatArray], None] | None = None,
     finished: Callable[[TrackingControllerLike], bool] = lifted,
@@ -357,10 +361,14 @@ def run_closed_loop(
     of the tests and the bench.
 
     Control every ``dt`` [s], the arm stepped ``substeps`` times per period, the command
-    as pa10_ik_node sends it (a point ``q + qdot horizon`` at the horizon; a hold at time
-    0 once the controller stopped or failed), reaching the arm ``command_delay_steps``
-    periods late (zero before the first; a slow controller or network). The pressure is
-    the true force plus N(0, ``pressure_sigma``) noise while in contact (never below 0);
+    as pa10_ik_node sends it (``node_commands``: pa10_ik_node.commands.SetPointCommands,
+    the point ``horizon`` [s] ahead of the previous command's set point, led by the
+    arm's measured lag if ``lead_arm_lag``, the node's parameter; false: ``q + qdot
+    horizon`` from the measured joints, as the DLS peer node sends it; a hold at time 0
+    once the controller stopped or failed), reaching the arm ``command_delay_steps``
+    periods late (none before the first: the arm holds; a slow controller or network).
+    The pressure is the true force plus N(0, ``pressure_sigma``) noise while in contact
+    (never below 0);
     the first step is given ``initial_force`` [N] (None: the reading at the start).
     ``before_step(t, q)`` runs at the start of each period (a test's new path);
     ``stop_at_progress``: call ``controller.stop()`` once progress reaches it. Runs until
@@ -369,6 +377,7 @@ def run_closed_loop(
     still) or ``max_time`` [s]."""
     import time
 
+    from pa10_ik_node.commands import JointCommand, SetPointCommands
     from sensor_sim.contact import contact_force
 
     rng = rng or np.random.default_rng(0)
@@ -385,7 +394,10 @@ def run_closed_loop(
         initial_force = pressure(contact_force(tip, surface, stiffness).force)
     force = initial_force
     names = robot.joint_names
-    on_the_way = [np.zeros(robot.n_joints)] * command_delay_steps
+    commands = SetPointCommands(lead_arm_lag) if node_commands else None
+    # Before the first command arrives the arm holds where it is.
+    on_the_way = [JointCommand(arm.q, np.zeros(robot.n_joints), horizon)] * command_delay_steps
+    in_force = np.zeros(robot.n_joints)  # [rad/s] the velocity of the command in force
     while t < max_time:
         q = arm.q
         if before_step is not None:
@@ -397,26 +409,31 @@ def run_closed_loop(
         qdot, info = controller.step(q, force, dt)
         log.step_times.append(time.perf_counter() - started)
         log.readings.append(force)
-        on_the_way.append(qdot)
-        qdot = on_the_way.pop(0)
         halted = controller.phase in ('stopped', 'failed')
-        if halted:
+        if halted:  # for good: nothing moves the arm again
             arm.set_trajectory(names, [0.0], [q], start_time=t)  # the node's hold
+            in_force = np.zeros(robot.n_joints)
             stopped_at = t if stopped_at is None else stopped_at
-            for _ in range(substeps):
-                t += dt / substeps
-                arm.step(t, dt / substeps)
-                if np.isnan(log.stop_latency) and np.max(np.abs(arm.qdot)) < 1e-9:
-                    log.stop_latency = t - stopped_at
         else:
-            t = arm.follow_velocity(names, qdot, t, dt, substeps=substeps)
+            on_the_way.append(_command(commands, controller, q, qdot, t, horizon))
+            arriving = on_the_way.pop(0)
+            arm.set_trajectory(
+                names, [horizon], [arriving.positions], [arriving.velocities], start_time=t
+            )
+            in_force = arriving.velocities
+        for _ in range(substeps):
+            t += dt / substeps
+            arm.step(t, dt / substeps)
+            standing = np.max(np.abs(arm.qdot)) < 1e-9
+            if stopped_at is not None and np.isnan(log.stop_latency) and standing:
+                log.stop_latency = t - stopped_at
         tip = robot.forward_kinematics(arm.q)[:3, 3]
         true_force = contact_force(tip, surface, stiffness).force
         force = pressure(true_force)
         log.phases.append(info['phase'])
         log.tips.append(tip)
         log.forces.append(true_force)
-        log.qdot_commanded.append(np.zeros_like(qdot) if halted else qdot)
+        log.qdot_commanded.append(in_force.copy())
         log.q.append(arm.q)
         log.times.append(t)
         if (halted or finished(controller)) and ended_at is None:
@@ -424,6 +441,27 @@ def run_closed_loop(
         if ended_at is not None and t - ended_at >= hold_time:
             break
     return log
+
+
+def _command(
+    commands: SetPointCommands | None,
+    controller: TrackingControllerLike,
+    q: FloatArray,
+    qdot: FloatArray,
+    t: float,
+    horizon: float,
+) -> JointCommand:
+    """The moving command ``run_closed_loop`` sends at ``t`` [s]: pa10_ik_node's
+    (``commands``) or, without them, the point ``horizon`` ahead of the measured joints."""
+    from pa10_ik_node.commands import JointCommand
+
+    if commands is None:
+        return JointCommand(q + qdot * horizon, qdot, horizon)
+    commands.measure(q, t)
+    # pa10_ik_node's predictor compensates this much of the lag (as in the node)
+    config = getattr(controller, 'config', None)
+    commands.covered_lag = getattr(config, 'command_latency', 0.0)
+    return commands.command(q, qdot, t, horizon)
 
 
 def path_errors(
