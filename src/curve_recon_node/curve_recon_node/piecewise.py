@@ -609,15 +609,21 @@ def ray_root_candidates(
         rays @ view2.R_camera_base.T,
     )  # (R, 3): a X + b Y + c = 0 in view 2's normalised coordinates
     reach = support_px / curve2.focal_px * (1 + 1e-9)
-    low, high = curve2.piece_boxes[:, 0] - reach, curve2.piece_boxes[:, 1] + reach  # (P, 2)
-    corner_x = np.stack([low[:, 0], high[:, 0], low[:, 0], high[:, 0]], axis=1)  # (P, 4)
-    corner_y = np.stack([low[:, 1], low[:, 1], high[:, 1], high[:, 1]], axis=1)
-    side = (
-        line[:, 0, None, None] * corner_x[None]
-        + line[:, 1, None, None] * corner_y[None]
-        + line[:, 2, None, None]
-    )  # (R, P, 4)
-    ray_index, piece_index = np.nonzero((side.min(axis=2) <= 0) & (side.max(axis=2) >= 0))
+    if np.isfinite(reach):
+        low, high = curve2.piece_boxes[:, 0] - reach, curve2.piece_boxes[:, 1] + reach  # (P, 2)
+        corner_x = np.stack([low[:, 0], high[:, 0], low[:, 0], high[:, 0]], axis=1)  # (P, 4)
+        corner_y = np.stack([low[:, 1], low[:, 1], high[:, 1], high[:, 1]], axis=1)
+        side = (
+            line[:, 0, None, None] * corner_x[None]
+            + line[:, 1, None, None] * corner_y[None]
+            + line[:, 2, None, None]
+        )  # (R, P, 4)
+        crosses = (side.min(axis=2) <= 0) & (side.max(axis=2) >= 0)
+    else:
+        # an unbounded support (one-piece curves: the thesis experiments) grows every box
+        # to the plane; its corners at infinity gave NaN sides and not one pair
+        crosses = np.ones((len(rays), len(curve2.pieces)), dtype=bool)
+    ray_index, piece_index = np.nonzero(crosses)
     # evaluate each pair's cone at n + 1 depths and solve exactly; the camera-2 points of
     # a ray do not depend on the piece, so their monomials are shared
     x_cam = (
