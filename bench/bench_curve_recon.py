@@ -32,13 +32,13 @@ Run: source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_curve_rec
      [--part A | --part C]  (only the thesis experiments / the generated families)
 """
 
-import json
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
+from vgm_evaluation.bench_report import markdown_table, save_figure, write_results
 from vgm_evaluation.metrics import curve_agreement, distance_to_polylines
 
 from curve_recon_node.piecewise import PiecewiseCurve, View, reconstruct_ray_roots, refine_points
@@ -399,12 +399,21 @@ def point_reference_views(cams, views):
         PIXELS_PER_UNIT = saved
 
 
+THESIS_COLUMNS = (
+    'setup (fig.)',
+    'sigma [px]',
+    'method',
+    'plane angle [deg]',
+    'NMSE x / y / z',
+    'RMS / size',
+    'Hausdorff / size',
+    'points',
+    'time [ms]',
+)
+
+
 def summarise_thesis(rows):
-    lines = [
-        '| setup (fig.) | sigma [px] | method | plane angle [deg] | NMSE x / y / z | '
-        'RMS / size | Hausdorff / size | points | time [ms] |',
-        '|---|---|---|---|---|---|---|---|---|',
-    ]
+    cells = []
     keys = sorted(
         {(r['setup'], r['sigma_px'], r['method']) for r in rows},
         key=lambda k: (list(SETUPS).index(k[0]), k[1], METHODS.index(k[2])),
@@ -429,13 +438,33 @@ def summarise_thesis(rows):
         )
         table[setup, sigma, method] = entry
         plane = f'{entry["plane"]:.2e}' if group[0]['kind'] == 'conic' else '-'
-        lines.append(
-            f'| {setup} ({group[0]["figure"]}) | {sigma:g} | {method} | {plane} | '
-            + ' / '.join(f'{v:.1e}' for v in nmse)
-            + f' | {entry["rms"]:.1e} | {entry["haus"]:.1e} | {entry["n"]:.0f} | '
-            f'{entry["t"]:.0f} |'
+        cells.append(
+            (
+                f'{setup} ({group[0]["figure"]})',
+                f'{sigma:g}',
+                method,
+                plane,
+                ' / '.join(f'{v:.1e}' for v in nmse),
+                f'{entry["rms"]:.1e}',
+                f'{entry["haus"]:.1e}',
+                f'{entry["n"]:.0f}',
+                f'{entry["t"]:.0f}',
+            )
         )
-    return lines, table
+    return markdown_table(THESIS_COLUMNS, cells), table
+
+
+IMAGE_COLUMNS = (
+    'scenario',
+    'image noise [grey]',
+    'method',
+    'raw points RMS [mm]',
+    'raw Hausdorff [mm]',
+    'waypoints RMS [mm]',
+    'waypoints max/Hausdorff [mm]',
+    'plane [deg]',
+    'time [ms]',
+)
 
 
 def plot_thesis(table, rows):
@@ -461,8 +490,7 @@ def plot_thesis(table, rows):
         ax.set_yscale('symlog', linthresh=1e-6)
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(OUT / 'thesis_noise_sweep.png', dpi=90)
-    plt.close(fig)
+    save_figure(fig, OUT / 'thesis_noise_sweep.png', dpi=90)
     fig, axes = plt.subplots(2, 3, figsize=(14, 8))
     for ax, setup in zip(axes.ravel(), SETUPS):
         for method, style in zip(METHODS, ('o-', 'x-', 's--', '^:')):
@@ -474,8 +502,7 @@ def plot_thesis(table, rows):
         ax.set_yscale('log')
         ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(OUT / 'thesis_rms_sweep.png', dpi=90)
-    plt.close(fig)
+    save_figure(fig, OUT / 'thesis_rms_sweep.png', dpi=90)
 
 
 def plot_default(plots):
@@ -502,8 +529,7 @@ def plot_default(plots):
     ax.set_title('third view (aux)')
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(OUT / 'default_3d_and_third_view.png', dpi=90)
-    plt.close(fig)
+    save_figure(fig, OUT / 'default_3d_and_third_view.png', dpi=90)
 
 
 # Four draws a family: with two (0, 1), 44 of 52 cases met every goal; seeds 2 and 3
@@ -633,14 +659,29 @@ def family_goal_misses(row):
     return misses
 
 
+FAMILY_COLUMNS = (
+    'family',
+    'seed',
+    'width [px]',
+    'contrast [grey]',
+    'noise [grey]',
+    'f [px] L/R/A',
+    'k1 L/R/A',
+    'baseline [m]',
+    'ours RMS / max [mm]',
+    'ours coverage',
+    'reference RMS / max [mm]',
+    'reference coverage',
+    'RMS ratio ours/ref',
+    'plane [deg] ours / ref',
+    'ours [ms]',
+    'ref [ms]',
+    'goals',
+)
+
+
 def summarise_families(rows):
-    lines = [
-        '| family | seed | width [px] | contrast [grey] | noise [grey] | f [px] L/R/A | '
-        'k1 L/R/A | baseline [m] | ours RMS / max [mm] | ours coverage | reference '
-        'RMS / max [mm] | reference coverage | RMS ratio ours/ref | plane [deg] '
-        'ours / ref | ours [ms] | ref [ms] | goals |',
-        '|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|',
-    ]
+    cells = []
     for r in rows:
         o, f = r['ours'], r['reference']
         ratio = o['rms'] / f['rms'] if f['rms'] > 0 else np.nan
@@ -650,23 +691,30 @@ def summarise_families(rows):
             if np.isfinite(o['plane_deg']) or np.isfinite(f['plane_deg'])
             else '-'
         )
-        lines.append(
-            f'| {r["family"]} | {r["seed"]} | {r["line_width_px"]:.1f} | '
-            f'{r["contrast_grey"]:.0f} | {r["noise_grey"]:g} | '
-            + '/'.join(f'{v:.0f}' for v in r['focal_px'])
-            + ' | '
-            + '/'.join(f'{v:.2f}' for v in r['k1'])
-            + f' | {r["baseline_m"]:.3f} | '
-            + (
+        cells.append(
+            (
+                r['family'],
+                r['seed'],
+                f'{r["line_width_px"]:.1f}',
+                f'{r["contrast_grey"]:.0f}',
+                f'{r["noise_grey"]:g}',
+                '/'.join(f'{v:.0f}' for v in r['focal_px']),
+                '/'.join(f'{v:.2f}' for v in r['k1']),
+                f'{r["baseline_m"]:.3f}',
                 f'failed: {r["ours_error"][:40]}'
                 if 'ours_error' in r
-                else f'{1e3 * o["rms"]:.3f} / {1e3 * o["max"]:.2f}'
+                else f'{1e3 * o["rms"]:.3f} / {1e3 * o["max"]:.2f}',
+                f'{o["coverage"]:.3f}',
+                f'{1e3 * f["rms"]:.3f} / {1e3 * f["max"]:.2f}',
+                f'{f["coverage"]:.3f}',
+                f'{ratio:.2f}',
+                plane,
+                f'{1e3 * r.get("ours_s", np.nan):.0f}',
+                f'{1e3 * r.get("reference_s", np.nan):.0f}',
+                ', '.join(misses) or 'met',
             )
-            + f' | {o["coverage"]:.3f} | {1e3 * f["rms"]:.3f} / {1e3 * f["max"]:.2f} | '
-            f'{f["coverage"]:.3f} | {ratio:.2f} | {plane} | '
-            f'{1e3 * r.get("ours_s", np.nan):.0f} | {1e3 * r.get("reference_s", np.nan):.0f} '
-            f'| {", ".join(misses) or "met"} |'
         )
+    lines = markdown_table(FAMILY_COLUMNS, cells)
     ok = [r for r in rows if 'ours_error' not in r]
     ratios = np.array(
         [r['ours']['rms'] / r['reference']['rms'] for r in ok if r['reference']['rms'] > 0]
@@ -687,7 +735,6 @@ def summarise_families(rows):
 
 
 def main_families(families=None):
-    OUT.mkdir(parents=True, exist_ok=True)
     started = time.time()
     print('part C: generated curve families', flush=True)
     rows = run_generated_families(families)
@@ -715,14 +762,11 @@ def main_families(families=None):
             'Misses and their cause: see the README (curve_recon_node, generated families).',
             '',
         ]
-    (OUT / 'families.md').write_text('\n'.join(md) + '\n')
-    (OUT / 'families.json').write_text(json.dumps(rows, indent=1, default=float))
-    print('\n'.join(md))
+    write_results(OUT, 'families', md, rows)
     return 0
 
 
 def main():
-    OUT.mkdir(parents=True, exist_ok=True)
     started = time.time()
     print('part A: thesis experiments on image coordinates', flush=True)
     thesis_rows = run_thesis_experiments()
@@ -753,24 +797,26 @@ def main():
         '',
         '## B. Rendered images through the node pipeline',
         '',
-        '| scenario | image noise [grey] | method | raw points RMS [mm] | raw Hausdorff [mm] '
-        '| waypoints RMS [mm] | waypoints max/Hausdorff [mm] | plane [deg] | time [ms] |',
-        '|---|---|---|---|---|---|---|---|---|',
     ]
+    image_cells = []
     for r in image_rows:
+        case = (r['scenario'], f'{r["sigma_grey"]:g}', r['method'])
         if 'error' in r:
-            md.append(
-                f'| {r["scenario"]} | {r["sigma_grey"]:g} | {r["method"]} | failed: '
-                f'{r["error"]} | | | | | |'
-            )
+            image_cells.append((*case, f'failed: {r["error"]}', '', '', '', '', ''))
             continue
         p, w = r['points'], r['waypoints']
-        md.append(
-            f'| {r["scenario"]} | {r["sigma_grey"]:g} | {r["method"]} | '
-            f'{1e3 * p["rms"]:.3f} | {1e3 * p["hausdorff"]:.2f} | {1e3 * w["rms"]:.3f} '
-            f'| {1e3 * w["hausdorff"]:.2f} | '
-            f'{w.get("plane_deg", float("nan")):.3f} | {1e3 * r["time_s"]:.0f} |'
+        image_cells.append(
+            (
+                *case,
+                f'{1e3 * p["rms"]:.3f}',
+                f'{1e3 * p["hausdorff"]:.2f}',
+                f'{1e3 * w["rms"]:.3f}',
+                f'{1e3 * w["hausdorff"]:.2f}',
+                f'{w.get("plane_deg", float("nan")):.3f}',
+                f'{1e3 * r["time_s"]:.0f}',
+            )
         )
+    md += markdown_table(IMAGE_COLUMNS, image_cells)
     md += [
         '',
         '"points" = the point-based reference (epipolar matching + '
@@ -793,20 +839,25 @@ def main():
         'Per stage (`stats["stage_ms"]` of `reconstruct_capture`; median over the '
         'runs above, so the stages need not add up to the median total):',
         '',
-        '| stage | ' + ' | '.join(f'{m} [ms]' for m in timing) + ' |',
-        '|---|' + '---|' * len(timing),
     ]
     stage_names = list(
         dict.fromkeys(k for runs in timing.values() for stage in runs['stage_ms'] for k in stage)
     )
-    for stage in stage_names:
-        cells = [
-            f'{np.median([s[stage] for s in runs["stage_ms"]]):.1f}'
-            if stage in runs['stage_ms'][0]
-            else '-'
-            for runs in timing.values()
-        ]
-        md.append(f'| {stage} | ' + ' | '.join(cells) + ' |')
+    md += markdown_table(
+        ('stage', *(f'{m} [ms]' for m in timing)),
+        [
+            (
+                stage,
+                *(
+                    f'{np.median([s[stage] for s in runs["stage_ms"]]):.1f}'
+                    if stage in runs['stage_ms'][0]
+                    else '-'
+                    for runs in timing.values()
+                ),
+            )
+            for stage in stage_names
+        ],
+    )
     md += [
         '',
         'Measured on the shared 2-core machine with other jobs running (high CPU '
@@ -822,21 +873,14 @@ def main():
             '',
             '![default](default_3d_and_third_view.png)',
         ]
-    (OUT / 'results.md').write_text('\n'.join(md) + '\n')
-    (OUT / 'results.json').write_text(
-        json.dumps(
-            {'thesis': thesis_rows, 'images': image_rows, 'timing_s': timing},
-            indent=1,
-            default=float,
-        )
+    write_results(
+        OUT, 'results', md, {'thesis': thesis_rows, 'images': image_rows, 'timing_s': timing}
     )
-    print('\n'.join(md))
     return 0
 
 
 def main_thesis():
     """Part A alone (fig. 3.10 and the other chapter-3 sweeps) -> thesis.md."""
-    OUT.mkdir(parents=True, exist_ok=True)
     started = time.time()
     rows = run_thesis_experiments()
     lines, table = summarise_thesis(rows)
@@ -848,13 +892,11 @@ def main_thesis():
         '',
         *lines,
     ]
-    (OUT / 'thesis.md').write_text('\n'.join(md) + '\n')
-    (OUT / 'thesis.json').write_text(json.dumps(rows, indent=1, default=float))
     try:
         plot_thesis(table, rows)
     except ImportError:
         pass
-    print('\n'.join(md))
+    write_results(OUT, 'thesis', md, rows)
     return 0
 
 
@@ -926,7 +968,6 @@ def run_timing(cases=TIMING_CASES, repeats=25):
 
 def main_timing():
     """Time per capture, ours and the peer -> timing.md."""
-    OUT.mkdir(parents=True, exist_ok=True)
     with open('/proc/loadavg') as f:
         load = f.read().split()[:3]
     rows = run_timing()
@@ -937,21 +978,21 @@ def main_timing():
         'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
         f'bench/bench_curve_recon.py --part T` (load average at the start: {" ".join(load)}).',
         '',
-        '| case | pieces | ours median / min [ms] | peer median / min [ms] | '
-        + ' | '.join(stages)
-        + ' |',
-        '|---|---|---|---|' + '---|' * len(stages),
     ]
-    for r in rows:
-        md.append(
-            f'| {r["case"]} | {r["pieces"]} | {r["ours_ms"]:.1f} / {r["ours_min_ms"]:.1f} | '
-            f'{r["peer_ms"]:.1f} / {r["peer_min_ms"]:.1f} | '
-            + ' | '.join(f'{r["stage_ms"][k]:.1f}' for k in stages)
-            + ' |'
-        )
-    (OUT / 'timing.md').write_text('\n'.join(md) + '\n')
-    (OUT / 'timing.json').write_text(json.dumps(rows, indent=1))
-    print('\n'.join(md))
+    md += markdown_table(
+        ('case', 'pieces', 'ours median / min [ms]', 'peer median / min [ms]', *stages),
+        [
+            (
+                r['case'],
+                r['pieces'],
+                f'{r["ours_ms"]:.1f} / {r["ours_min_ms"]:.1f}',
+                f'{r["peer_ms"]:.1f} / {r["peer_min_ms"]:.1f}',
+                *(f'{r["stage_ms"][k]:.1f}' for k in stages),
+            )
+            for r in rows
+        ],
+    )
+    write_results(OUT, 'timing', md, rows)
     return 0
 
 

@@ -54,6 +54,10 @@ from vgm_common.geometry import FloatArray
 
 BIAS_WINDOW = 25  # [chain points] a fit's residual is averaged over this many for its bias
 BIAS_SHARE = 0.6  # a piece whose bias exceeds this share of the RMS tolerance is split
+# [px] a point farther than this from a view's chain polyline than from its fitted curve is
+# judged by the chain (PiecewiseCurve.owner_distance): chain points lie within 0.15 px of
+# the true projection at noise 4, the fits within 0.1 px of the chain
+CHAIN_MARGIN_PX = 0.5
 
 
 @dataclass(frozen=True)
@@ -281,6 +285,64 @@ class PiecewiseCurve:
         with np.errstate(divide='ignore', invalid='ignore'):
             return np.einsum('qm,qm->q', mono, a) / norm, gradient / norm[:, None]
 
+    def seen_distance(
+        self, xy: FloatArray, index: IntArray, to_index: FloatArray | None = None
+    ) -> FloatArray:
+        """Unsigned distance (Q,) [normalised] of finite points (Q, 2), nearest chain
+        points ``index`` (Q,) at distances ``to_index`` (Q,) if known, to the curve as
+        the view saw it: the Sampson distance to the owner piece's fit, but at least the
+        distance to the chain's polyline less ``CHAIN_MARGIN_PX`` (the chain's own noise
+        and the fit's).
+
+        A piece's implicit curve runs on past the stretch of chain it was fitted to (at
+        a sharp turn of the image it goes straight on where the chain turns away), so a
+        point can lie on it, Sampson distance ~0, yet pixels from anything the view saw
+        (sphere_loop seed 3: roots 1-4.6 mm off the curve, 0.6-3.2 px from view 3's
+        chain, under 0.02 px from its fitted curve, passed the third view). Past an open
+        chain's end and next to points bridged across a crossing the chain says nothing
+        and the Sampson distance stands."""
+        sampson, _ = self.owner_distance(xy, index)
+        distance = np.abs(sampson)
+        margin = CHAIN_MARGIN_PX / self.focal_px
+        # the polyline is no farther than its nearest point: only points that far
+        # beyond their Sampson distance can be raised, and those are few
+        check = (
+            ~(np.linalg.norm(xy - self.xy[index], axis=1) - margin <= distance)
+            if to_index is None
+            else ~(to_index - margin <= distance)
+        )
+        if check.any():
+            chain_distance, unknown = self._chain_distance(xy[check], index[check])
+            floor = np.where(unknown, 0.0, chain_distance - margin)
+            distance[check] = np.maximum(distance[check], floor)
+        return distance
+
+    def _chain_distance(
+        self, xy: FloatArray, index: IntArray
+    ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+        """Distance [normalised] (Q,) of points (Q, 2) to the chain's polyline on the two
+        segments at their nearest chain points ``index`` (Q,), and (Q,) bool: the chain
+        says nothing there (the nearest chain point bridged across a crossing, up to
+        4 px off, or an open chain's end: the others' ends are trimmed differently)."""
+        n = len(self.xy)
+        best = np.full(len(xy), np.inf)
+        for step in (-1, 1):
+            other = index + step
+            if self.closed:
+                other %= n
+            valid = (other >= 0) & (other < n)
+            other = np.clip(other, 0, n - 1)
+            start, segment = self.xy[index], self.xy[other] - self.xy[index]
+            length2 = np.sum(segment**2, axis=1)
+            with np.errstate(divide='ignore', invalid='ignore'):
+                t = np.clip(np.sum((xy - start) * segment, axis=1) / length2, 0.0, 1.0)
+            t = np.where(valid & (length2 > 0), t, 0.0)
+            best = np.minimum(best, np.linalg.norm(xy - start - t[:, None] * segment, axis=1))
+        unknown = ~self.measured[index]
+        if not self.closed:
+            unknown |= (index == 0) | (index == n - 1)
+        return best, unknown
+
     @property
     def rms_px(self) -> float:
         """The pieces' RMS Sampson residuals combined [px]: the root of their mean square,
@@ -322,10 +384,10 @@ class View:
         index, chain_distance = self.curve.nearest(xy[finite], bound)
         near = chain_distance * self.curve.focal_px <= within_px
         if near.any():
-            distance, _ = self.curve.owner_distance(xy[finite[near]], index[near])
-            result[finite[near]] = np.nan_to_num(
-                np.abs(distance) * self.curve.focal_px, nan=np.inf
+            distance = self.curve.seen_distance(
+                xy[finite[near]], index[near], chain_distance[near]
             )
+            result[finite[near]] = np.nan_to_num(distance * self.curve.focal_px, nan=np.inf)
         return result
 
     def chain_index(self, points_base: npt.ArrayLike) -> IntArray:
@@ -609,15 +671,21 @@ def ray_root_candidates(
         rays @ view2.R_camera_base.T,
     )  # (R, 3): a X + b Y + c = 0 in view 2's normalised coordinates
     reach = support_px / curve2.focal_px * (1 + 1e-9)
-    low, high = curve2.piece_boxes[:, 0] - reach, curve2.piece_boxes[:, 1] + reach  # (P, 2)
-    corner_x = np.stack([low[:, 0], high[:, 0], low[:, 0], high[:, 0]], axis=1)  # (P, 4)
-    corner_y = np.stack([low[:, 1], low[:, 1], high[:, 1], high[:, 1]], axis=1)
-    side = (
-        line[:, 0, None, None] * corner_x[None]
-        + line[:, 1, None, None] * corner_y[None]
-        + line[:, 2, None, None]
-    )  # (R, P, 4)
-    ray_index, piece_index = np.nonzero((side.min(axis=2) <= 0) & (side.max(axis=2) >= 0))
+    if np.isfinite(reach):
+        low, high = curve2.piece_boxes[:, 0] - reach, curve2.piece_boxes[:, 1] + reach  # (P, 2)
+        corner_x = np.stack([low[:, 0], high[:, 0], low[:, 0], high[:, 0]], axis=1)  # (P, 4)
+        corner_y = np.stack([low[:, 1], low[:, 1], high[:, 1], high[:, 1]], axis=1)
+        side = (
+            line[:, 0, None, None] * corner_x[None]
+            + line[:, 1, None, None] * corner_y[None]
+            + line[:, 2, None, None]
+        )  # (R, P, 4)
+        crosses = (side.min(axis=2) <= 0) & (side.max(axis=2) >= 0)
+    else:
+        # an unbounded support (one-piece curves: the thesis experiments) grows every box
+        # to the plane; its corners at infinity gave NaN sides and not one pair
+        crosses = np.ones((len(rays), len(curve2.pieces)), dtype=bool)
+    ray_index, piece_index = np.nonzero(crosses)
     # evaluate each pair's cone at n + 1 depths and solve exactly; the camera-2 points of
     # a ray do not depend on the piece, so their monomials are shared
     x_cam = (
