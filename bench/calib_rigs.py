@@ -139,17 +139,14 @@ def stage_rig(rig, views):
     """calib_node's stage mode: every corner in base_link through the target pose."""
     observations = stage_observations(rig, views)
     result = calibrate_rig(observations, 'lm')
-    return {
-        n: PinholeCamera(*observations[n][2], f.K, f.D, f.T_base_camera)
-        for n, f in result.fits.items()
-    }
+    return {n: f.camera(observations[n][2]) for n, f in result.fits.items()}
 
 
 def handheld_rig(rig, views):
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
     result = bundle_adjust_selected(chart, views, sizes, names=list(rig.cameras))
-    return {n: PinholeCamera(*sizes[n], f.K, f.D, f.T_base_camera) for n, f in result.fits.items()}
+    return {n: f.camera(sizes[n]) for n, f in result.fits.items()}
 
 
 def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exact=False):
