@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from vgm_evaluation.rig_generator import draw_rig, true_corners
 
-from calib_node.calibrate import bic, calibrate_rig
+from calib_node.calibrate import CameraFit, bic, calibrate_rig, select_rig_models
 from vgm_common.camera_model import PinholeCamera
 
 
@@ -82,3 +82,22 @@ def test_a_forced_model_is_fitted_and_beats_plumb_bob_on_its_lens(model):
             for f in (forced.fits[name], plumb_bob.fits[name])
         ]
         assert scores[0] < scores[1] - 10, scores
+
+
+def test_the_stereo_pair_shares_the_model_of_the_lowest_summed_bic():
+    """left prefers equidistant a little, right rational_polynomial a lot: the pair takes
+    rational_polynomial (one model: their rectification needs it); aux chooses alone."""
+
+    def fit(model, rms_px, parameters=14):
+        return CameraFit(
+            np.eye(3), np.zeros(4), np.eye(4), rms_px, 500, {}, None, model, parameters
+        )
+
+    candidates = {
+        'left': {'equidistant': fit('equidistant', 0.300), 'rational_polynomial': fit('r', 0.301)},
+        'right': {'equidistant': fit('equidistant', 0.40), 'rational_polynomial': fit('r', 0.30)},
+        'aux': {'equidistant': fit('equidistant', 0.30), 'rational_polynomial': fit('r', 0.31)},
+    }
+    chosen = select_rig_models(candidates)
+    assert [chosen[n].model for n in ('left', 'right', 'aux')] == ['r', 'r', 'equidistant']
+    assert list(chosen) == ['left', 'right', 'aux']

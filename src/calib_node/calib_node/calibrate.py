@@ -561,14 +561,14 @@ def calibrate_camera_models(
     select_model: bool = True,
     view_size: int | None = None,
     distortion_model: str = 'auto',
-) -> CameraFit:
-    """:func:`calibrate_camera_lm` of ``distortion_model`` (``MODEL_CHOICES``), or of
-    every model of ``FIT_MODELS`` with ``auto`` and ``select_model`` (plumb_bob with
-    ``auto`` alone), with and without p1, p2 when
-    ``fit_tangential`` and ``select_model``; the fit of the lowest BIC
-    (:func:`select_by_bic`, simplest first so that a tie keeps the simpler). plumb_bob
-    starts from ``start``; the other models from the plumb_bob fit (its K and pose, and
-    its D for rational_polynomial, of which plumb_bob is the case k4 = k5 = k6 = 0).
+) -> dict[str, CameraFit]:
+    """{model: :func:`calibrate_camera_lm` fit} of ``distortion_model``
+    (``MODEL_CHOICES``), or of every model of ``FIT_MODELS`` with ``auto`` and
+    ``select_model`` (plumb_bob with ``auto`` alone), simplest first: plumb_bob,
+    equidistant, rational_polynomial. Each model's fit is with or without p1, p2 by
+    :func:`select_by_bic` when ``fit_tangential`` and ``select_model``. plumb_bob starts
+    from ``start``; the others from the plumb_bob fit (its K and pose, and its D for
+    rational_polynomial, of which plumb_bob is the case k4 = k5 = k6 = 0).
     """
     if distortion_model != 'auto':
         models: tuple[str, ...] = (distortion_model,)
@@ -582,14 +582,35 @@ def calibrate_camera_models(
         )
 
     plumb_bob = select_by_bic([fit('plumb_bob', t, start) for t in tangential])
-    candidates = [plumb_bob] if 'plumb_bob' in models else []
+    fits = {'plumb_bob': plumb_bob} if 'plumb_bob' in models else {}
     T_camera_base = invert_transform(plumb_bob.T_base_camera)
     from_plumb_bob = (plumb_bob.K, plumb_bob.D, T_camera_base[:3, :3], T_camera_base[:3, 3])
     if 'equidistant' in models:
-        candidates.append(fit('equidistant', False, from_plumb_bob))
+        fits['equidistant'] = fit('equidistant', False, from_plumb_bob)
     if 'rational_polynomial' in models:
-        candidates += [fit('rational_polynomial', t, from_plumb_bob) for t in tangential]
-    return select_by_bic(candidates)
+        fits['rational_polynomial'] = select_by_bic(
+            [fit('rational_polynomial', t, from_plumb_bob) for t in tangential]
+        )
+    return fits
+
+
+def select_rig_models(candidates: Mapping[str, Mapping[str, CameraFit]]) -> dict[str, CameraFit]:
+    """Each camera's fit among its ``candidates`` {name: {model: fit}} of the lowest BIC;
+    left and right share one model, that of the lowest sum of their BICs (their
+    rectification needs compatible models: cv2.fisheye rectifies only a fisheye pair).
+    Ties keep the earlier model (the simpler, in :func:`calibrate_camera_models`' order)."""
+
+    def score(fit: CameraFit) -> float:
+        return bic(fit.rms_px**2 * fit.points, 2 * fit.points, fit.parameters)
+
+    groups = [[n] for n in candidates if n not in ('left', 'right')]
+    pair = [n for n in ('left', 'right') if n in candidates]
+    fits = {}
+    for group in [pair, *groups] if pair else groups:
+        models = [m for m in candidates[group[0]] if all(m in candidates[n] for n in group)]
+        best = min(models, key=lambda m: sum(score(candidates[n][m]) for n in group))
+        fits.update({n: candidates[n][best] for n in group})
+    return {n: fits[n] for n in candidates}
 
 
 class RigResult(NamedTuple):
@@ -619,8 +640,8 @@ def calibrate_rig(
     ``view_size``: points per view (views of one chart; see :func:`calibrate_camera_lm`).
     ``distortion_model`` (``MODEL_CHOICES``; ``lm``, the other methods fit plumb_bob):
     the model fitted, or ``auto``: with ``select_model`` every one of ``FIT_MODELS`` per
-    camera, the lowest BIC kept (:func:`select_by_bic`, the rule of p1, p2 extended to
-    the models), without it plumb_bob.
+    camera, the lowest BIC kept (:func:`select_rig_models`, the rule of p1, p2 extended
+    to the models; the stereo pair shares its model), without it plumb_bob.
 
     Raises:
         CalibrationError: a camera's points are too few or degenerate, or a fit failed.
@@ -652,18 +673,20 @@ def calibrate_rig(
             for name, fit in calibrate_rig_ga(observations, rng, ga, fit_k3)[0].items():
                 T_camera_base = np.linalg.inv(fit.T_base_camera)
                 starts[name] = (fit.K, fit.D, T_camera_base[:3, :3], T_camera_base[:3, 3])
-        fits = {
-            name: calibrate_camera_models(
-                p,
-                uv,
-                size,
-                starts[name],
-                fit_tangential,
-                fit_k3,
-                select_model,
-                view_size,
-                distortion_model,
-            )
-            for name, (p, uv, size) in observations.items()
-        }
+        fits = select_rig_models(
+            {
+                name: calibrate_camera_models(
+                    p,
+                    uv,
+                    size,
+                    starts[name],
+                    fit_tangential,
+                    fit_k3,
+                    select_model,
+                    view_size,
+                    distortion_model,
+                )
+                for name, (p, uv, size) in observations.items()
+            }
+        )
     return RigResult(fits, method, time.perf_counter() - started)

@@ -440,7 +440,8 @@ def score_rig(
 
     Returns:
         dict: ``fx``, ``fy`` (relative), ``cx``, ``cy`` [px], ``distortion`` (largest
-        displacement difference over the image with the true K [px]), ``baseline``
+        displacement difference over the image with the true K [px]; where the true
+        rays are in front of the camera), ``baseline``
         (relative), ``position`` [m] and ``rotation`` [deg] of each camera relative to
         ``reference`` (or in base_link), ``rect_rows`` (RMS row difference [px] of true
         left / right correspondences rectified with the estimate; needs left and right).
@@ -458,8 +459,10 @@ def score_rig(
         xy = true.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
         d_true = distort(xy, true.D, true.distortion_model) * [true.K[0, 0], true.K[1, 1]]
         d_est = distort(xy, est.D, est.distortion_model) * [true.K[0, 0], true.K[1, 1]]
+        # nanmax: a fisheye's image corners may look past 90 deg, where the normalised
+        # coordinates (x/z, y/z) do not exist
         out['distortion'] = max(
-            out['distortion'], float(np.max(np.linalg.norm(d_true - d_est, axis=1)))
+            out['distortion'], float(np.nanmax(np.linalg.norm(d_true - d_est, axis=1)))
         )
         if absolute:
             T_true, T_est = true.T_base_camera, est.T_base_camera
@@ -484,7 +487,8 @@ def rectified_row_error(
     stereo_rectification: Rectification,
 ) -> float:
     """RMS |v_left - v_right| [px] of true correspondences (points 1..3 m in front of the
-    true left camera, seen by both) rectified with the estimated pair."""
+    true left camera, seen by both) rectified with the estimated pair (for a fisheye
+    pair, those inside both rectified images)."""
     rng = np.random.default_rng(0)
     left, right = truth['left'], truth['right']
     u = rng.uniform(0, left.width - 1, 400)
@@ -501,10 +505,18 @@ def rectified_row_error(
     keep = (d_r > 0) & np.all((uv_r >= 0) & (uv_r < [right.width, right.height]), axis=1)
     rect = stereo_rectification(estimate['left'], estimate['right'])
     rows: list[FloatArray] = []
+    inside = np.ones(int(keep.sum()), dtype=bool)
     for name, uv in (('left', uv_l[keep]), ('right', uv_r[keep])):
         camera = estimate[name]
         R, P = rect[name]
         xy = camera.undistort_pixels(uv)
         ray = np.column_stack([xy, np.ones(len(xy))]) @ np.asarray(R).T
         rows.append(P[1, 1] * ray[:, 1] / ray[:, 2] + P[1, 2])
+        columns = P[0, 0] * ray[:, 0] / ray[:, 2] + P[0, 2]
+        inside &= (ray[:, 2] > 0) & (columns >= 0) & (columns < camera.width)
+        inside &= (rows[-1] >= 0) & (rows[-1] < camera.height)
+    if 'equidistant' in (left.distortion_model, right.distortion_model):
+        # A fisheye pair's rectified images (balance 0) hold only the middle of its
+        # field: the rows are compared where both points land in them.
+        rows = [r[inside] for r in rows]
     return float(np.sqrt(np.mean((rows[0] - rows[1]) ** 2)))
