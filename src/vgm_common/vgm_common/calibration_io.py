@@ -243,10 +243,11 @@ def stereo_rectification(
     the camera's optical frame into the rectified frame and the right P carries
     Tx = -fx * baseline [m] in P[0, 3]. ``alpha`` 0 crops to valid pixels only.
 
-    plumb_bob and rational_polynomial cameras (in any mix) go to cv2.stereoRectify, a
-    pair of equidistant cameras to cv2.fisheye.stereoRectify (``alpha`` as its
-    balance). Raises InvalidInput for an equidistant camera paired with another model
-    and for a model CameraInfo has not, naming them."""
+    plumb_bob and rational_polynomial cameras (in any mix) go to cv2.stereoRectify; a
+    pair of equidistant cameras is rectified to the pinhole window of its central focal
+    length (cv2.stereoRectify of the pair without distortion; its images remapped by
+    cv2.fisheye.initUndistortRectifyMap). Raises InvalidInput for an equidistant camera
+    paired with another model and for a model CameraInfo has not, naming them."""
     models = (left.distortion_model, right.distortion_model)
     T_right_left = right.T_camera_base @ left.T_base_camera
     size = (int(left.width), int(left.height))
@@ -259,16 +260,21 @@ def stereo_rectification(
             key='distortion_model',
         )
     if models == ('equidistant', 'equidistant'):
-        R1, R2, P1, P2, _ = cv2.fisheye.stereoRectify(
+        # The rotations do not depend on the lenses; the rectified cameras are the pinhole
+        # window of the pair's central focal length (cv2.stereoRectify without distortion).
+        # cv2.fisheye.stereoRectify's own window comes from the image border, which a
+        # fisheye may see past 90 deg: focal lengths of 50 px for 300 px lenses, the
+        # principal point outside the image.
+        R1, R2, P1, P2, *_ = cv2.stereoRectify(
             left.K,
-            left.D,
+            np.zeros(5),
             right.K,
-            right.D,
+            np.zeros(5),
             size,
-            np.ascontiguousarray(T_right_left[:3, :3]),
-            np.ascontiguousarray(T_right_left[:3, 3].reshape(3, 1)),
+            T_right_left[:3, :3],
+            T_right_left[:3, 3].reshape(3, 1),
             flags=cv2.CALIB_ZERO_DISPARITY,
-            balance=alpha,
+            alpha=alpha,
         )
         return {'left': (R1, P1), 'right': (R2, P2)}
     R1, R2, P1, P2, *_ = cv2.stereoRectify(
