@@ -75,7 +75,8 @@ def _wide_lens(rng: np.random.Generator, width: int, model: str) -> Lens:
     horizontal field), barrel k1 in [0.2, 1], k4 = k1 + 0.3..0.8 (the denominator wins
     at the edge, as OpenCV fits of such lenses have), k2, k5 in [0, 0.1], k3 = k6 = 0,
     decentred (p1, p2 in [-0.002, 0.002]; radially symmetric, such a lens is as well
-    described by the four coefficients of an equidistant one over the image).
+    described by the four coefficients of an equidistant one over the image), drawn
+    again until it maps the whole image one to one.
     equidistant: f 0.28..0.38 width (135-160 deg horizontally), k1 in [-0.05, 0.05],
     k2 in [-0.01, 0.01], k3 = k4 = 0 (cv2.fisheye's fits of real fisheyes)."""
     height = int(width * 3 / 4)
@@ -89,9 +90,21 @@ def _wide_lens(rng: np.random.Generator, width: int, model: str) -> Lens:
         ]
     )
     if model == 'rational_polynomial':
-        k1, k2 = rng.uniform(0.2, 1.0), rng.uniform(0.0, 0.1)
-        p1, p2 = rng.uniform(-2e-3, 2e-3, 2)
-        D = np.array([k1, k2, p1, p2, 0, k1 + rng.uniform(0.3, 0.8), rng.uniform(0.0, 0.1), 0])
+        # Drawn again until the lens maps the whole image one to one: its radius grows
+        # until it reaches the image corner, within 76 deg of the axis (r_u <= 4); some
+        # draws fold first and would leave the image corners without a ray.
+        corner = np.hypot(*(np.maximum(K[:2, 2], [width, height] - K[:2, 2]) / np.diag(K)[:2]))
+        r_u = np.linspace(0.0, 4.0, 4001)
+        while True:
+            k1, k2 = rng.uniform(0.2, 1.0), rng.uniform(0.0, 0.1)
+            p1, p2 = rng.uniform(-2e-3, 2e-3, 2)
+            k4, k5 = k1 + rng.uniform(0.3, 0.8), rng.uniform(0.0, 0.1)
+            D = np.array([k1, k2, p1, p2, 0, k4, k5, 0])
+            r2 = r_u**2
+            r_d = r_u * (1 + r2 * (k1 + r2 * k2)) / (1 + r2 * (k4 + r2 * k5))
+            reached = np.flatnonzero(r_d >= corner)
+            if len(reached) and np.all(np.diff(r_d[: reached[0] + 1]) > 0):
+                break
     else:
         D = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.01, 0.01), 0.0, 0.0])
     return K, D, (width, height)
