@@ -52,7 +52,6 @@ from calib_node.uncertainty import (
     true_projection_error,
     true_projection_error_chart_fixed,
 )
-from vgm_common.camera_model import PinholeCamera
 from vgm_common.sample_data import STEREO_CALIBRATION_IDS, opencv_sample_dir
 
 NAMES = ('left', 'right')
@@ -170,10 +169,7 @@ def cross_validation(views, sizes, board, mrcal, ranges, focal):
     ours = [
         bundle_adjust_selected(chart, [views[i] for i in h], sizes, None, NAMES) for h in halves
     ]
-    cameras = [
-        {n: PinholeCamera(*sizes[n], f.K, f.D, f.T_base_camera) for n, f in r.fits.items()}
-        for r in ours
-    ]
+    cameras = [{n: f.camera(sizes[n]) for n, f in r.fits.items()} for r in ours]
     uncertainty = (ours[0].uncertainty, ours[1].uncertainty)
     counts = (len(halves[0]), len(halves[1]))
     ranges_m = dict(zip(NAMES, ranges))

@@ -12,7 +12,8 @@ from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import calibrate_rig, stage_uncertainty
 from calib_node.chart_detection import CharucoChart, chart_points, detect_chessboard
 from calib_node.uncertainty import true_projection_error, true_projection_error_chart_fixed
-from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_model import DISTORTION_SIZES, PinholeCamera
+from vgm_common.geometry import make_transform
 
 MODES = ('stage', 'handheld')
 FIGURES = ('fx', 'fy', 'cx', 'cy', 'distortion', 'baseline', 'position', 'rotation', 'rect_rows')
@@ -66,13 +67,13 @@ def orient_like(views, reference_views, rows, cols):
     return out
 
 
-def opencv_rig(chart, views, image_sizes, names):
+def opencv_rig(chart, views, image_sizes, names, flags=cv2.CALIB_FIX_K3, model='plumb_bob'):
     """calibrateCamera per camera, then stereoCalibrate (intrinsic guess, joint) of left
     with each other camera on their common views (a ChArUco view: the corners both saw;
-    NaN rows are corners not seen). Parameter set as ours: k1, k2, p1, p2. Poses
-    relative to left (left at the identity)."""
+    NaN rows are corners not seen). Parameter set as ours: k1, k2, p1, p2 (``flags``
+    and the ``model`` of the result: another set). Poses relative to left (left at the
+    identity)."""
     objects = np.asarray(chart, dtype=np.float32).reshape(-1, 1, 3)
-    flags = cv2.CALIB_FIX_K3
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
     intr = {}
     for name in names:
@@ -87,8 +88,8 @@ def opencv_rig(chart, views, image_sizes, names):
             flags=flags,
             criteria=criteria,
         )
-        intr[name] = (K, D.ravel())
-    cameras = {'left': PinholeCamera(*image_sizes['left'], *intr['left'], np.eye(4))}
+        intr[name] = (K, D.ravel()[: DISTORTION_SIZES[model]])
+    cameras = {'left': PinholeCamera(*image_sizes['left'], *intr['left'], np.eye(4), model)}
     K_left, D_left = intr['left']
     for name in names[1:]:
         common = [v for v in views if 'left' in v and name in v]
@@ -108,12 +109,98 @@ def opencv_rig(chart, views, image_sizes, names):
         )
         T_name_left = np.eye(4)
         T_name_left[:3, :3], T_name_left[:3, 3] = R, T.ravel()
+        size = DISTORTION_SIZES[model]
         cameras[name] = PinholeCamera(
-            *image_sizes[name], K2, D2.ravel(), np.linalg.inv(T_name_left)
+            *image_sizes[name], K2, D2.ravel()[:size], np.linalg.inv(T_name_left), model
         )
         if name == 'right':
-            K_left, D_left = K1, D1.ravel()
-    cameras['left'] = PinholeCamera(*image_sizes['left'], K_left, D_left, np.eye(4))
+            K_left, D_left = K1, D1.ravel()[:size]
+    cameras['left'] = PinholeCamera(*image_sizes['left'], K_left, D_left, np.eye(4), model)
+    return cameras
+
+
+def opencv_lens_rig(chart, views, image_sizes, names, model):
+    """:func:`opencv_rig` for wide lenses on the same corners: rational_polynomial by
+    cv2.calibrateCamera + cv2.stereoCalibrate with CALIB_RATIONAL_MODEL (k1..k6, p1, p2);
+    equidistant by cv2.fisheye.calibrate + cv2.fisheye.stereoCalibrate (k1..k4, skew
+    fixed, intrinsics recomputed jointly from the single-camera ones; views whose
+    extrinsic initialisation fails in cv2.fisheye left out). Poses relative to left (left
+    at the identity)."""
+    if model == 'rational_polynomial':
+        return opencv_rig(chart, views, image_sizes, names, cv2.CALIB_RATIONAL_MODEL, model)
+    objects = np.asarray(chart, dtype=np.float64).reshape(1, -1, 3)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-10)
+    flags = cv2.CALIB_RECOMPUTE_EXTRINSIC | cv2.CALIB_FIX_SKEW
+
+    def calibrate(seen, size):
+        # np.eye(3), zeros: not read without CALIB_USE_INTRINSIC_GUESS (None fails in 5.0)
+        return cv2.fisheye.calibrate(
+            [objects] * len(seen),
+            seen,
+            size,
+            np.eye(3),
+            np.zeros((4, 1)),
+            flags=flags,
+            criteria=criteria,
+        )
+
+    # cv2.fisheye's extrinsic initialisation fails on some views (assertion norm_u1 > 0 in
+    # InitExtrinsics); such views are left out, as OpenCV users do.
+    kept = []
+    for view in views:
+        usable = {}
+        for name, corners in view.items():
+            seen = corners.reshape(1, -1, 2).astype(np.float64)
+            try:
+                calibrate([seen], image_sizes[name])
+            except cv2.error:
+                continue
+            usable[name] = seen
+        kept.append(usable)
+    intr, T_camera_chart = {}, {}
+    for name in names:
+        indices = [i for i, v in enumerate(kept) if name in v]
+        _, K, D, rvecs, tvecs = calibrate([kept[i][name] for i in indices], image_sizes[name])
+        intr[name] = (K, D.ravel())
+        T_camera_chart[name] = {
+            i: make_transform(cv2.Rodrigues(r)[0], np.ravel(t))
+            for i, r, t in zip(indices, rvecs, tvecs)
+        }
+    cameras = {'left': PinholeCamera(*image_sizes['left'], *intr['left'], np.eye(4), model)}
+    K_left, D_left = intr['left']
+    for name in names[1:]:
+        common = [i for i, v in enumerate(kept) if 'left' in v and name in v]
+        try:
+            _, K1, D1, K2, D2, R, T, *_ = cv2.fisheye.stereoCalibrate(
+                [objects] * len(common),
+                [kept[i]['left'] for i in common],
+                [kept[i][name] for i in common],
+                intr['left'][0].copy(),
+                intr['left'][1].copy().reshape(4, 1),
+                intr[name][0].copy(),
+                intr[name][1].copy().reshape(4, 1),
+                image_sizes['left'],
+                flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS,
+                criteria=criteria,
+            )
+            T_name_left = make_transform(R, np.ravel(T))
+            if name == 'right':
+                K_left, D_left = K1, D1.ravel()
+        except cv2.error:
+            # Its pose check between views fails (assertion abs_max < threshold) on
+            # most of these rigs: the views' relative poses from cv2.fisheye.calibrate
+            # averaged instead (rotation: the mean matrix projected onto SO(3)).
+            K2, D2 = intr[name][0], intr[name][1]
+            relative = [
+                T_camera_chart[name][i] @ np.linalg.inv(T_camera_chart['left'][i]) for i in common
+            ]
+            U, _, Vt = np.linalg.svd(np.mean([T[:3, :3] for T in relative], axis=0))
+            R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+            T_name_left = make_transform(R, np.mean([T[:3, 3] for T in relative], axis=0))
+        cameras[name] = PinholeCamera(
+            *image_sizes[name], K2, np.ravel(D2), np.linalg.inv(T_name_left), model
+        )
+    cameras['left'] = PinholeCamera(*image_sizes['left'], K_left, D_left, np.eye(4), model)
     return cameras
 
 
@@ -139,17 +226,14 @@ def stage_rig(rig, views):
     """calib_node's stage mode: every corner in base_link through the target pose."""
     observations = stage_observations(rig, views)
     result = calibrate_rig(observations, 'lm')
-    return {
-        n: PinholeCamera(*observations[n][2], f.K, f.D, f.T_base_camera)
-        for n, f in result.fits.items()
-    }
+    return {n: f.camera(observations[n][2]) for n, f in result.fits.items()}
 
 
 def handheld_rig(rig, views):
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
     result = bundle_adjust_selected(chart, views, sizes, names=list(rig.cameras))
-    return {n: PinholeCamera(*sizes[n], f.K, f.D, f.T_base_camera) for n, f in result.fits.items()}
+    return {n: f.camera(sizes[n]) for n, f in result.fits.items()}
 
 
 def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exact=False):
@@ -188,6 +272,72 @@ def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exac
             pass
     out['time'] = timings
     return out
+
+
+def lens_run(seed, model):
+    """One generated rig of wide ``model`` lenses (``draw_rig(seed, lens_model=model)``),
+    rendered: ours (stage mode, lens model by BIC) and OpenCV's calibration of that model
+    (:func:`opencv_lens_rig`) on our corners, scored against the truth, and the models
+    ours chose."""
+    rig = draw_rig(seed, lens_model=model)
+    chart = chart_points(rig.rows, rig.cols, rig.spacing)
+    sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
+    views = detect_views(rig, render_rig(rig, seed), 'ours')
+    ours = stage_rig(rig, views)
+    return {
+        'params': rig.params,
+        'model': model,
+        'found': [sum(n in v for v in views) for n in rig.cameras],
+        'chosen': {n: c.distortion_model for n, c in ours.items()},
+        'stage': score_rig(rig.cameras, ours),
+        'opencv': score_rig(
+            rig.cameras, opencv_lens_rig(chart, views, sizes, list(rig.cameras), model)
+        ),
+    }
+
+
+def lens_table(count, models=('rational_polynomial', 'equidistant')):
+    """Markdown lines and per-rig results of ``count`` rigs (seeds 0..count-1) per lens
+    model of ``models``."""
+    lines = [
+        'Wide lenses (`draw_rig(seed, lens_model=...)`: rational_polynomial f 0.4-0.55 width, '
+        'barrel, decentred; equidistant f 0.28-0.38 width), rendered and detected by us; '
+        'worst camera per figure; ratio = ours (stage, distortion_model auto) / OpenCV '
+        '(cv2.calibrateCamera + cv2.stereoCalibrate with CALIB_RATIONAL_MODEL, or '
+        'cv2.fisheye.calibrate + cv2.fisheye.stereoCalibrate) on the same corners. '
+        '`distortion` compares each lens over the image with the true K, so a fit whose '
+        'focal length and distortion trade (the rational model) shows it there.',
+        '',
+    ]
+    results = []
+    for model in models:
+        rows = []
+        for seed in range(count):
+            rows.append(lens_run(seed, model))
+            print(f'{model} rig {seed}: {rows[-1]["chosen"]}', flush=True)
+        results += rows
+        lines += [
+            f'### {model}',
+            '',
+            '| figure | ours / OpenCV median | max | ours median | OpenCV median |',
+            '|---|---|---|---|---|',
+        ]
+        for figure in FIGURES:
+            ratios = [r['stage'][figure] / max(r['opencv'][figure], 1e-300) for r in rows]
+            lines.append(
+                f'| {figure} | {np.median(ratios):.2f} | {np.max(ratios):.2f} | '
+                f'{np.median([r["stage"][figure] for r in rows]):.2e} | '
+                f'{np.median([r["opencv"][figure] for r in rows]):.2e} |'
+            )
+        chosen = [m for r in rows for m in r['chosen'].values()]
+        lines += [
+            '',
+            f'Models ours chose ({len(chosen)} cameras): '
+            + ', '.join(f'{m} {chosen.count(m)}' for m in sorted(set(chosen)))
+            + '.',
+            '',
+        ]
+    return lines, results
 
 
 def rigs_table(count):
@@ -449,20 +599,25 @@ def charuco_table(count, edge_views=4):
 
 def main():
     """``python bench/calib_rigs.py [rigs]``: bench/results/calib/rigs.md and rigs.json;
-    ``python bench/calib_rigs.py charuco [rigs]``: charuco.md and charuco.json."""
+    ``python bench/calib_rigs.py charuco [rigs]``: charuco.md and charuco.json;
+    ``python bench/calib_rigs.py lenses [rigs]``: lenses.md and lenses.json (rigs per
+    lens model)."""
     import sys
     from pathlib import Path
 
     from vgm_evaluation.bench_report import write_results
 
-    charuco = len(sys.argv) > 1 and sys.argv[1] == 'charuco'
-    arguments = sys.argv[2:] if charuco else sys.argv[1:]
-    count = int(arguments[0]) if arguments else (3 if charuco else 10)
-    lines, results = charuco_table(count) if charuco else rigs_table(count)
-    title = (
-        'ChArUco and chessboard on generated rigs' if charuco else 'calib_node on generated rigs'
-    )
-    command = f'bench/calib_rigs.py {"charuco " if charuco else ""}{count}'
+    kind = sys.argv[1] if len(sys.argv) > 1 and sys.argv[1] in ('charuco', 'lenses') else ''
+    arguments = sys.argv[2:] if kind else sys.argv[1:]
+    count = int(arguments[0]) if arguments else {'charuco': 3, 'lenses': 5, '': 10}[kind]
+    table = {'charuco': charuco_table, 'lenses': lens_table, '': rigs_table}[kind]
+    lines, results = table(count)
+    title = {
+        'charuco': 'ChArUco and chessboard on generated rigs',
+        'lenses': 'Rational and fisheye lenses',
+        '': 'calib_node on generated rigs',
+    }[kind]
+    command = f'bench/calib_rigs.py {kind + " " if kind else ""}{count}'
     header = [
         f'# {title} on generated rigs',
         '',
@@ -470,7 +625,7 @@ def main():
         '',
     ]
     out = Path(__file__).resolve().parent / 'results' / 'calib'
-    write_results(out, 'charuco' if charuco else 'rigs', header + lines, results)
+    write_results(out, kind or 'rigs', header + lines, results)
 
 
 if __name__ == '__main__':

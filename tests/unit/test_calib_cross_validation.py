@@ -20,7 +20,6 @@ from calib_node.uncertainty import (
     true_projection_error_chart_fixed,
     working_range,
 )
-from vgm_common.camera_model import PinholeCamera
 from vgm_common.geometry import invert_transform, make_transform, rpy_to_matrix
 
 SEED, SIGMA_PX, DRAWS = 2, 0.2, 6
@@ -92,11 +91,14 @@ def test_stage_halves_differ_as_their_errors_add_up(rig):
                 np.concatenate([uv for _, uv in seen]),
                 (camera.width, camera.height),
             )
-        fits = calibrate_rig(observations, fit_tangential=False, view_size=len(chart)).fits
-        return {
-            n: PinholeCamera(c.width, c.height, fits[n].K, fits[n].D, fits[n].T_base_camera)
-            for n, c in rig.cameras.items()
-        }
+        # plumb_bob as the rig's lenses: true_projection_error below projects by it
+        fits = calibrate_rig(
+            observations,
+            fit_tangential=False,
+            view_size=len(chart),
+            distortion_model='plumb_bob',
+        ).fits
+        return {n: fits[n].camera((c.width, c.height)) for n, c in rig.cameras.items()}
 
     def error(true, camera, range_m):  # in base_link, where both halves are solved
         return true_projection_error(
@@ -140,9 +142,7 @@ def test_handheld_halves_differ_as_their_errors_add_up(rig):
 
     def calibrate(views, indices):
         result = bundle_adjust(chart, [views[i] for i in indices], sizes, fit_tangential=False)
-        cameras = {
-            n: PinholeCamera(*sizes[n], f.K, f.D, f.T_base_camera) for n, f in result.fits.items()
-        }
+        cameras = {n: f.camera(sizes[n]) for n, f in result.fits.items()}
         return cameras, result, [T_left_chart[i] for i in indices]
 
     def error(name, solution, range_m):  # held to the charts, as the uncertainty

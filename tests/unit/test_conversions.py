@@ -103,7 +103,8 @@ def _camera_info():
         ('k', [500.0, 0, 320, 3.0, 510, 240, 0, 0, 1], 'upper-triangular'),
         ('d', [], 'D has 0 coefficients'),
         ('d', [0.01] * 14, 'D has 14 coefficients'),
-        ('distortion_model', 'rational_polynomial', 'unsupported distortion model'),
+        ('distortion_model', 'kannala_brandt', "unsupported distortion model 'kannala_brandt'"),
+        ('distortion_model', 'rational_polynomial', 'rational_polynomial takes 8'),
     ],
 )
 def test_camera_info_with_a_bad_k_or_d_is_rejected(field, value, words):

@@ -476,7 +476,14 @@ def test_chessboard_with_even_rows_plus_cols_is_refused():
 
 
 @pytest.mark.parametrize(
-    'model, distortion', [('division', [0.1, 0.0]), ('plumb_bob', [0.1]), ('division', ['kappa'])]
+    'model, distortion',
+    [
+        ('division', [0.1, 0.0]),
+        ('plumb_bob', [0.1]),
+        ('division', ['kappa']),
+        ('equidistant', [0.1] * 5),
+        ('rational_polynomial', [0.1] * 5),
+    ],
 )
 def test_distortion_must_fit_its_model(model, distortion):
     data = edited(
@@ -498,6 +505,38 @@ def test_division_camera_is_read():
     camera = parse_scenario(data).cameras['left']
     assert camera.distortion_model == 'division'
     assert camera.D.tolist() == [15.152]
+
+
+@pytest.mark.parametrize(
+    'model, distortion',
+    [
+        ('rational_polynomial', [0.4, 0.05, 1e-3, -1e-3, 0.0, 0.8, 0.06, 0.0]),
+        ('equidistant', [0.03, -0.008, 0.002, -0.0005]),
+    ],
+)
+def test_wide_lens_camera_is_read_and_renders_through_its_model(model, distortion):
+    """The scenario's camera of a CameraInfo model projects as OpenCV does (what the
+    renderer draws through): a point at 60 deg off the axis."""
+    import cv2
+
+    data = edited(
+        edited(minimal(), 'cameras.left.distortion_model', model),
+        'cameras.left.distortion',
+        distortion,
+    )
+    camera = parse_scenario(data).cameras['left']
+    assert camera.distortion_model == model
+    point_camera = np.array([[np.sin(np.radians(60)), 0.0, np.cos(np.radians(60))]])
+    T = camera.T_base_camera
+    pixel, _ = camera.project(point_camera @ T[:3, :3].T + T[:3, 3])
+    zero = np.zeros(3)
+    if model == 'equidistant':
+        expected = cv2.fisheye.projectPoints(
+            point_camera.reshape(-1, 1, 3), zero, zero, camera.K, np.array(distortion)
+        )[0]
+    else:
+        expected = cv2.projectPoints(point_camera, zero, zero, camera.K, np.array(distortion))[0]
+    np.testing.assert_allclose(pixel, expected.reshape(1, 2), atol=1e-9)
 
 
 POINTS_CSV = {

@@ -20,7 +20,7 @@ Methods (``METHODS``):
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -42,12 +42,16 @@ from calib_node.uncertainty import (
     rig_uncertainty,
     working_range,
 )
+from vgm_common.camera_model import DISTORTION_SIZES, PinholeCamera, project_points
 from vgm_common.errors import InvalidInput, VgmError
 from vgm_common.geometry import FloatArray, invert_transform, make_transform
 from vgm_common.settings import setting
 
 METHODS = ('lm', 'lxpm_ga', 'opencv')
 LM_STARTS = ('dlt', 'ga')
+FIT_MODELS = ('plumb_bob', 'rational_polynomial', 'equidistant')  # what lm fits
+# calib_node's distortion_model: one of FIT_MODELS, or auto (the best by BIC)
+MODEL_CHOICES = ('auto', *FIT_MODELS)
 
 # {name: (points_base (N, 3) [m], pixels (N, 2) [px], (width, height) [px])}
 Observations = Mapping[str, tuple[FloatArray, FloatArray, tuple[int, int]]]
@@ -60,18 +64,25 @@ class CalibrationError(VgmError, ValueError):
 
 
 class CameraFit(NamedTuple):
-    """One camera's calibration: plumb_bob intrinsics, its pose in base_link and the fit's
-    reprojection RMS [px]."""
+    """One camera's calibration: intrinsics and distortion of ``model``, its pose in
+    base_link and the fit's reprojection RMS [px]."""
 
     K: np.ndarray  # (3, 3) [px]
-    D: np.ndarray  # (5,) plumb_bob (k1, k2, p1, p2, k3)
+    D: np.ndarray  # (5,) plumb_bob (k1, k2, p1, p2, k3), or as ``model`` takes it
     T_base_camera: np.ndarray  # (4, 4) optical frame in base_link
     rms_px: float  # reprojection RMS per point (sqrt of the mean squared distance) [px]
     points: int
     std: dict[str, float]  # standard errors of fx, fy, cx, cy [px] (LM, OpenCV; empty for the GA)
-    # lm: (15, 15) covariance of rvec, tvec (world->camera), fx, fy, cx, cy, k1, k2, p1,
-    # p2, k3 (cv2.projectPoints' order; zero rows for parameters held), else None
+    # lm: (10 + len(D))^2 covariance of rvec, tvec (world->camera), fx, fy, cx, cy, D
+    # (cv2.projectPoints' order; zero rows for parameters held), else None
     covariance: np.ndarray | None = None
+    model: str = 'plumb_bob'  # the distortion model (``FIT_MODELS``)
+    parameters: int = 0  # how many parameters the fit estimated (lm; 0: not counted)
+
+    def camera(self, image_size: tuple[int, int]) -> PinholeCamera:
+        """The fitted camera for images of ``image_size`` (width, height) [px]: K, D of
+        its ``model`` and its pose in base_link."""
+        return PinholeCamera(*image_size, self.K, self.D, self.T_base_camera, self.model)
 
 
 @dataclass(frozen=True)
@@ -225,33 +236,46 @@ def calibrate_camera_lm(
     fit_tangential: bool = True,
     fit_k3: bool = False,
     view_size: int | None = None,
+    model: str = 'plumb_bob',
 ) -> CameraFit:
     """LM calibration of one camera from (N, 3) base_link points and (N, 2) pixels.
 
     Args:
         image_size: (width, height) [px].
-        start: (K, D, R, t) world->camera start; None: the DLT.
-        fit_tangential: estimate p1, p2 (else 0); fit_k3: estimate k3 (else 0).
+        start: (K, D, R, t) world->camera start; None: the DLT. Its D (plumb_bob) starts
+            a rational_polynomial fit (k4..k6 = 0 is the same lens), not an equidistant
+            one (from 0).
+        fit_tangential: estimate p1, p2 (else 0); fit_k3: estimate k3 (else 0; a
+            rational_polynomial fit always estimates k3..k6).
         view_size: the points come in views of this many (each its own noise level in the
             covariance); None: one noise level.
+        model: the distortion model (``FIT_MODELS``): plumb_bob, rational_polynomial
+            (k1..k6, p1, p2) or equidistant (cv2.fisheye's k1..k4, no tangential terms).
 
     Returns:
         :class:`CameraFit`.
     """
     points_base = np.ascontiguousarray(points_base, dtype=float)
     pixels = np.asarray(pixels, dtype=float)
+    if model not in FIT_MODELS:
+        raise InvalidInput(
+            f'model: expected one of {", ".join(FIT_MODELS)}, got {model!r}', key='model'
+        )
     K, D, R, t = start if start is not None else _dlt_start(points_base, pixels, image_size)
+    size = DISTORTION_SIZES[model]
+    D_start = [0.0] * size if model == 'equidistant' else (list(np.ravel(D)) + [0.0] * size)
     x0 = np.concatenate(
         [
             cv2.Rodrigues(np.asarray(R, dtype=float))[0].ravel(),
             np.ravel(t),
             [K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
-            (list(np.ravel(D)) + [0.0] * 5)[:5],
+            D_start[:size],
         ]
     )
-    free = np.ones(15, dtype=bool)
-    free[12:14] = fit_tangential
-    free[14] = fit_k3
+    free = np.ones(10 + size, dtype=bool)
+    if model != 'equidistant':
+        free[12:14] = fit_tangential
+        free[14] = fit_k3 or model == 'rational_polynomial'
     x0[~free] = 0.0
     cache: dict[bytes, tuple[FloatArray, np.ndarray]] = {}  # residuals, Jacobian
 
@@ -265,9 +289,9 @@ def calibrate_camera_lm(
         if key not in cache:
             x = full(xf)
             K = np.array([[x[6], 0, x[8]], [0, x[7], x[9]], [0, 0, 1.0]])
-            uv, J = cv2.projectPoints(points_base, x[0:3], x[3:6], K, x[10:15])
+            uv, J = project_points(points_base, x[0:3], x[3:6], K, x[10:], model)
             cache.clear()
-            cache[key] = ((uv.reshape(-1, 2) - pixels).ravel(), J[:, free])
+            cache[key] = ((uv - pixels).ravel(), J[:, free])
         return cache[key]
 
     result = solve_lm(evaluate, x0[free], max_nfev=500)
@@ -277,12 +301,20 @@ def calibrate_camera_lm(
     K = np.array([[x[6], 0, x[8]], [0, x[7], x[9]], [0, 0, 1.0]])
     R = cv2.Rodrigues(x[0:3])[0]
     residuals, jacobian = evaluate(canonical_rotations(x, [0])[free])
-    covariance = np.zeros((15, 15))
+    covariance = np.zeros((len(x), len(x)))
     groups = None if view_size is None else np.arange(len(residuals)) // (2 * view_size)
     covariance[np.ix_(free, free)] = parameter_covariance(jacobian, residuals, groups)
     std = dict(zip(('fx', 'fy', 'cx', 'cy'), np.sqrt(np.diag(covariance)[6:10]).tolist()))
     return CameraFit(
-        K, x[10:15].copy(), _pose(R, x[3:6]), _rms(result.fun), len(pixels), std, covariance
+        K,
+        x[10:].copy(),
+        _pose(R, x[3:6]),
+        _rms(result.fun),
+        len(pixels),
+        std,
+        covariance,
+        model,
+        int(np.count_nonzero(free)),
     )
 
 
@@ -295,8 +327,10 @@ def stage_uncertainty(
     if any(fit.covariance is None for fit in fits.values()):
         return None
     models = {}
-    blocks = []
-    for c, (name, fit) in enumerate(fits.items()):
+    blocks: list[np.ndarray] = []
+    row = 0
+    for name, fit in fits.items():
+        assert fit.covariance is not None  # checked above
         T_camera_base = invert_transform(fit.T_base_camera)
         points = observations[name][0] @ T_camera_base[:3, :3].T + T_camera_base[:3, 3]
         models[name] = CameraModel(
@@ -305,8 +339,10 @@ def stage_uncertainty(
             T_camera_base,
             observations[name][2],
             working_range(points),
-            np.arange(15 * c, 15 * c + 15),
+            np.arange(row, row + len(fit.covariance)),
+            fit.model,
         )
+        row += len(fit.covariance)
         blocks.append(fit.covariance)
     return rig_uncertainty(models, scipy.linalg.block_diag(*blocks))
 
@@ -470,6 +506,32 @@ def calibrate_rig_ga(
     return fits, after_ga, after_network
 
 
+# No corner is located better than this: a fit's residual below it is rounding, not lens
+# (noise-free synthetic corners), and must not make a model with more coefficients win.
+BIC_NOISE_FLOOR_PX = 1e-4  # [px]
+
+
+def bic(rss: float, residuals: int, parameters: int) -> float:
+    """Schwarz's criterion of a least-squares fit, n ln(RSS / n) + p ln(n) (Gaussian
+    residuals of one unknown variance; lower is better), RSS / n at least
+    ``BIC_NOISE_FLOOR_PX``^2.
+
+    Args:
+        rss: sum of squared residuals [px^2]; residuals: n, residual components;
+        parameters: p, the parameters estimated.
+    """
+    variance = max(rss / residuals, BIC_NOISE_FLOOR_PX**2)
+    return float(residuals * np.log(variance) + parameters * np.log(residuals))
+
+
+def select_by_bic(fits: Sequence[CameraFit]) -> CameraFit:
+    """The fit of the lowest :func:`bic` among fits of one camera's same points (e.g.
+    one per distortion model), in order (ties: the earlier, i.e. the simpler, when
+    given simplest first)."""
+    scores = [bic(fit.rms_px**2 * fit.points, 2 * fit.points, fit.parameters) for fit in fits]
+    return fits[int(np.argmin(scores))]
+
+
 def tangential_pays(
     rss_with: float, rss_without: float, residuals: int, cameras: int = 1
 ) -> bool | np.bool_:
@@ -487,6 +549,68 @@ def tangential_pays(
     if rss_with <= 0:
         return rss_without > 0
     return residuals * np.log(rss_without / rss_with) > 2 * cameras * np.log(residuals)
+
+
+def calibrate_camera_models(
+    points_base: npt.ArrayLike,
+    pixels: npt.ArrayLike,
+    image_size: tuple[int, int],
+    start: CameraStart | None = None,
+    fit_tangential: bool = True,
+    fit_k3: bool = False,
+    select_model: bool = True,
+    view_size: int | None = None,
+    distortion_model: str = 'auto',
+) -> dict[str, CameraFit]:
+    """{model: :func:`calibrate_camera_lm` fit} of ``distortion_model``
+    (``MODEL_CHOICES``), or of every model of ``FIT_MODELS`` with ``auto`` and
+    ``select_model`` (plumb_bob with ``auto`` alone), simplest first: plumb_bob,
+    equidistant, rational_polynomial. Each model's fit is with or without p1, p2 by
+    :func:`select_by_bic` when ``fit_tangential`` and ``select_model``. plumb_bob starts
+    from ``start``; the others from the plumb_bob fit (its K and pose, and its D for
+    rational_polynomial, of which plumb_bob is the case k4 = k5 = k6 = 0).
+    """
+    if distortion_model != 'auto':
+        models: tuple[str, ...] = (distortion_model,)
+    else:  # without select_model nothing is chosen: plumb_bob, as fit_tangential says
+        models = FIT_MODELS if select_model else ('plumb_bob',)
+    tangential = (False, True) if fit_tangential and select_model else (fit_tangential,)
+
+    def fit(model: str, with_tangential: bool, start: CameraStart | None) -> CameraFit:
+        return calibrate_camera_lm(
+            points_base, pixels, image_size, start, with_tangential, fit_k3, view_size, model
+        )
+
+    plumb_bob = select_by_bic([fit('plumb_bob', t, start) for t in tangential])
+    fits = {'plumb_bob': plumb_bob} if 'plumb_bob' in models else {}
+    T_camera_base = invert_transform(plumb_bob.T_base_camera)
+    from_plumb_bob = (plumb_bob.K, plumb_bob.D, T_camera_base[:3, :3], T_camera_base[:3, 3])
+    if 'equidistant' in models:
+        fits['equidistant'] = fit('equidistant', False, from_plumb_bob)
+    if 'rational_polynomial' in models:
+        fits['rational_polynomial'] = select_by_bic(
+            [fit('rational_polynomial', t, from_plumb_bob) for t in tangential]
+        )
+    return fits
+
+
+def select_rig_models(candidates: Mapping[str, Mapping[str, CameraFit]]) -> dict[str, CameraFit]:
+    """Each camera's fit among its ``candidates`` {name: {model: fit}} of the lowest BIC;
+    left and right share one model, that of the lowest sum of their BICs (their
+    rectification needs compatible models: cv2.fisheye rectifies only a fisheye pair).
+    Ties keep the earlier model (the simpler, in :func:`calibrate_camera_models`' order)."""
+
+    def score(fit: CameraFit) -> float:
+        return bic(fit.rms_px**2 * fit.points, 2 * fit.points, fit.parameters)
+
+    groups = [[n] for n in candidates if n not in ('left', 'right')]
+    pair = [n for n in ('left', 'right') if n in candidates]
+    fits = {}
+    for group in [pair, *groups] if pair else groups:
+        models = [m for m in candidates[group[0]] if all(m in candidates[n] for n in group)]
+        best = min(models, key=lambda m: sum(score(candidates[n][m]) for n in group))
+        fits.update({n: candidates[n][best] for n in group})
+    return {n: fits[n] for n in candidates}
 
 
 class RigResult(NamedTuple):
@@ -508,17 +632,28 @@ def calibrate_rig(
     fit_k3: bool = False,
     select_model: bool = True,
     view_size: int | None = None,
+    distortion_model: str = 'auto',
 ) -> RigResult:
     """Calibrate every camera of ``observations`` = {name: (points_base (N, 3),
     pixels (N, 2), (width, height))} with ``method`` (``METHODS``). ``select_model``
     (``lm``): p1, p2 are kept per camera only where they pay (:func:`tangential_pays`).
     ``view_size``: points per view (views of one chart; see :func:`calibrate_camera_lm`).
+    ``distortion_model`` (``MODEL_CHOICES``; ``lm``, the other methods fit plumb_bob):
+    the model fitted, or ``auto``: with ``select_model`` every one of ``FIT_MODELS`` per
+    camera, the lowest BIC kept (:func:`select_rig_models`, the rule of p1, p2 extended
+    to the models; the stereo pair shares its model), without it plumb_bob.
 
     Raises:
         CalibrationError: a camera's points are too few or degenerate, or a fit failed.
     """
     if method not in METHODS:
         raise InvalidInput(f'method: expected one of {METHODS}, got {method!r}', key='method')
+    if distortion_model not in MODEL_CHOICES:
+        raise InvalidInput(
+            f'distortion_model: expected one of {", ".join(MODEL_CHOICES)}, got '
+            f'{distortion_model!r}',
+            key='distortion_model',
+        )
     for name, (points, _, _) in observations.items():
         reason = degeneracy(points)
         if reason:
@@ -538,15 +673,20 @@ def calibrate_rig(
             for name, fit in calibrate_rig_ga(observations, rng, ga, fit_k3)[0].items():
                 T_camera_base = np.linalg.inv(fit.T_base_camera)
                 starts[name] = (fit.K, fit.D, T_camera_base[:3, :3], T_camera_base[:3, 3])
-        fits = {}
-        for name, (p, uv, size) in observations.items():
-            fits[name] = calibrate_camera_lm(
-                p, uv, size, starts[name], fit_tangential, fit_k3, view_size
-            )
-            if fit_tangential and select_model:  # p1, p2 only where they pay (BIC)
-                plain = calibrate_camera_lm(p, uv, size, starts[name], False, fit_k3, view_size)
-                if not tangential_pays(
-                    fits[name].rms_px ** 2 * len(uv), plain.rms_px**2 * len(uv), 2 * len(uv)
-                ):
-                    fits[name] = plain
+        fits = select_rig_models(
+            {
+                name: calibrate_camera_models(
+                    p,
+                    uv,
+                    size,
+                    starts[name],
+                    fit_tangential,
+                    fit_k3,
+                    select_model,
+                    view_size,
+                    distortion_model,
+                )
+                for name, (p, uv, size) in observations.items()
+            }
+        )
     return RigResult(fits, method, time.perf_counter() - started)

@@ -102,7 +102,9 @@ def rigid_fit(source: FloatArray, target: FloatArray, weights: FloatArray) -> Fl
 def _rays(camera: PinholeCamera, pixels: FloatArray, depth: float) -> FloatArray:
     """(M, 3) base-frame points at ``depth`` [m] on ``camera``'s rays of ``pixels``."""
     T_camera_base = invert_transform(camera.T_base_camera)
-    return points_at_range(camera.K, camera.D, T_camera_base, pixels, depth)
+    return points_at_range(
+        camera.K, camera.D, T_camera_base, pixels, depth, camera.distortion_model
+    )
 
 
 def _refine_in_pixels(

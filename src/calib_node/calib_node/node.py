@@ -1,6 +1,6 @@
 """calib_node: calibrates the stereo pair and the aux camera from the chart on the precision
-stage (or held by hand) and publishes latched CameraInfo (plumb_bob, stereo rectification)
-and camera poses.
+stage (or held by hand) and publishes latched CameraInfo (the fitted distortion model,
+stereo rectification) and camera poses.
 
 Captures are paired by identical stamp (left, right, aux images and the chart's target
 pose) and handed to a worker thread, where a ``CalibrationSession`` (calib_node.session,

@@ -25,6 +25,7 @@ from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import (
     LM_STARTS,
     METHODS,
+    MODEL_CHOICES,
     CalibrationError,
     CameraFit,
     GAOptions,
@@ -191,7 +192,7 @@ class SessionSettings:
     )
     method: str = setting(
         'lm',
-        'lm (ours: DLT or GA start + Levenberg-Marquardt, plumb_bob), lxpm_ga (the thesis: '
+        'lm (ours: DLT or GA start + Levenberg-Marquardt, distortion_model), lxpm_ga (the thesis: '
         'GA + network refinement) or opencv (cv2.calibrateCamera, the reference).',
         choices=METHODS,
     )
@@ -210,6 +211,15 @@ class SessionSettings:
         'handheld); they otherwise trade against the principal point.',
     )
     fit_k3: bool = setting(False, 'Estimate k3 (else 0).')
+    distortion_model: str = setting(
+        'auto',
+        'lm, stage: the lens model fitted and published, plumb_bob, rational_polynomial '
+        '(k1..k6, p1, p2: wide lenses) or equidistant (cv2.fisheye k1..k4: fisheye '
+        'lenses); auto: with select_model each camera fitted with all three and the '
+        'lowest BIC kept, as for p1, p2 (without select_model: plumb_bob). Handheld views '
+        'and the other methods fit plumb_bob.',
+        choices=MODEL_CHOICES,
+    )
     max_rms_px: float = setting(
         2.0,
         'A calibration whose reprojection RMS exceeds this in any camera is refused (not '
@@ -575,10 +585,7 @@ class CalibrationSession:
                     views = views + reserve
                     fit = self._fit(views, settings)
                 fits, uncertainty = fit.fits, fit.uncertainty
-                cameras = {
-                    name: PinholeCamera(*self.image_sizes[name], fit.K, fit.D, fit.T_base_camera)
-                    for name, fit in fits.items()
-                }
+                cameras = {name: fit.camera(self.image_sizes[name]) for name, fit in fits.items()}
                 rectification = stereo_rectification(cameras['left'], cameras['right'])
             except (CalibrationError, InvalidInput, ValueError, np.linalg.LinAlgError) as error:
                 raise CalibrationError(
@@ -641,11 +648,7 @@ class CalibrationSession:
             if any(set(s.fits) != set(ranges_m) for s in solutions):
                 return None
             cameras = [
-                {
-                    n: PinholeCamera(*self.image_sizes[n], f.K, f.D, f.T_base_camera)
-                    for n, f in s.fits.items()
-                }
-                for s in solutions
+                {n: f.camera(self.image_sizes[n]) for n, f in s.fits.items()} for s in solutions
             ]
             return compare_halves(
                 cameras[0],
@@ -713,6 +716,11 @@ class CalibrationSession:
                 f'method {settings.method} needs target poses (the '
                 'stage); handheld views calibrate with lm'
             )
+        if settings.distortion_model not in ('auto', 'plumb_bob'):
+            raise CalibrationError(
+                f'distortion_model {settings.distortion_model} needs target poses (the '
+                'stage); handheld views calibrate plumb_bob'
+            )
         result = bundle_adjust_selected(
             self.chart,
             [corners for _, corners in views],
@@ -756,6 +764,7 @@ class CalibrationSession:
                 settings.select_model,
                 # views of equal size share out the noise levels; ChArUco views differ
                 len(self.chart) if self.charuco is None else None,
+                settings.distortion_model,
             )
             fits, seconds = result.fits, result.seconds
             uncertainty = stage_uncertainty(fits, observations)

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_model import PinholeCamera, project_points
 from vgm_common.geometry import FloatArray, invert_transform
 
 GRID = (16, 12)  # grid pixels across and down the image
@@ -33,9 +33,10 @@ IndexArray = npt.NDArray[np.int_]
 
 
 class CameraModel(NamedTuple):
-    """A calibrated camera in the reference frame, for the propagation: K (3, 3), D (5,),
-    T_camera_ref (4, 4), (width, height) [px], working range [m] and the rows of its 15
-    parameters (``PROJECTION_ORDER``) in the rig's covariance (-1: held fixed): ``rows``."""
+    """A calibrated camera in the reference frame, for the propagation: K (3, 3), D (of
+    ``model``: plumb_bob (5,) unless said), T_camera_ref (4, 4), (width, height) [px],
+    working range [m] and the rows of its 10 + len(D) parameters (``PROJECTION_ORDER``
+    for plumb_bob) in the rig's covariance (-1: held fixed): ``rows``."""
 
     K: FloatArray
     D: FloatArray
@@ -43,6 +44,7 @@ class CameraModel(NamedTuple):
     size: tuple[int, int]
     range_m: float
     rows: IndexArray
+    model: str = 'plumb_bob'
 
 
 class Uncertainty(NamedTuple):
@@ -112,10 +114,15 @@ def image_grid(size: tuple[int, int], grid: tuple[int, int] = GRID) -> FloatArra
 
 
 def points_at_range(
-    K: FloatArray, D: FloatArray, T_camera_ref: FloatArray, pixels: FloatArray, depth: float
+    K: FloatArray,
+    D: FloatArray,
+    T_camera_ref: FloatArray,
+    pixels: FloatArray,
+    depth: float,
+    model: str = 'plumb_bob',
 ) -> FloatArray:
     """(M, 3) reference-frame points at ``depth`` [m] along the camera's rays of ``pixels``."""
-    xy = PinholeCamera(1, 1, K, D, np.eye(4)).undistort_pixels(pixels)
+    xy = PinholeCamera(1, 1, K, D, np.eye(4), model).undistort_pixels(pixels)
     camera = np.column_stack([xy * depth, np.full(len(xy), depth)])
     T_ref_camera = invert_transform(T_camera_ref)
     return camera @ T_ref_camera[:3, :3].T + T_ref_camera[:3, 3]
@@ -137,11 +144,13 @@ def _block(covariance: FloatArray, index: IndexArray) -> FloatArray:
 def projection_std(camera: CameraModel, covariance: FloatArray, pixels: FloatArray) -> FloatArray:
     """(M,) sqrt(trace) of the projection covariance [px] of the points at the working
     range on the rays of ``pixels``."""
-    points = points_at_range(camera.K, camera.D, camera.T_camera_ref, pixels, camera.range_m)
+    points = points_at_range(
+        camera.K, camera.D, camera.T_camera_ref, pixels, camera.range_m, camera.model
+    )
     rvec, tvec = _rt(camera.T_camera_ref)
-    _, J = cv2.projectPoints(points, rvec, tvec, camera.K, camera.D)
+    _, J = project_points(points, rvec, tvec, camera.K, camera.D, camera.model)
     C = _block(covariance, camera.rows)
-    J = J[:, :PROJECTION_ORDER]
+    J = J[:, : len(camera.rows)]
     per_row = np.einsum('ij,jk,ik->i', J, C, J)  # diagonal of J C J^T
     return np.sqrt(np.maximum(per_row.reshape(-1, 2).sum(axis=1), 0.0))
 

@@ -17,6 +17,7 @@ from sensor_sim.curves import curve_polylines
 from sensor_sim.render import SceneRenderer, add_noise
 from sensor_sim.scenario import CAMERA_NAMES, CHART_MOTIONS, Calibration, Scenario
 from vgm_common.calibration_io import write_calibration
+from vgm_common.camera_model import OPENCV_MODELS
 from vgm_common.geometry import FloatArray
 from vgm_common.settings import setting
 from vgm_common.topics import OPTICAL_FRAMES
@@ -60,10 +61,10 @@ class SimSettings:
     ground_truth_dir: str = setting(
         '',
         'If set, the true cameras (cameras.yaml, and as a calibration file '
-        'true_calibration/calibration.yaml for plumb_bob rigs), curve (curve_base.npz, one '
-        'array per polyline), depth maps (depth_<camera>.npy, metres, NaN off the surface) '
-        'and chart poses (T_base_chart.npy) are written there for tests and benchmarks; no '
-        'pipeline node reads them. Empty: not written.',
+        'true_calibration/calibration.yaml unless a camera is division), curve '
+        '(curve_base.npz, one array per polyline), depth maps (depth_<camera>.npy, metres, '
+        'NaN off the surface) and chart poses (T_base_chart.npy) are written there for '
+        'tests and benchmarks; no pipeline node reads them. Empty: not written.',
         read_only=True,
     )
 
@@ -159,7 +160,7 @@ def write_ground_truth(directory: Path, scenario: Scenario, renderer: SceneRende
         for name, cam in scenario.cameras.items()
     }
     (directory / 'cameras.yaml').write_text(yaml.safe_dump(cameras))
-    if all(c.distortion_model == 'plumb_bob' for c in scenario.cameras.values()):
+    if all(c.distortion_model in OPENCV_MODELS for c in scenario.cameras.values()):
         # The true rig as a calibration file: calib_node's `calibration_file` loads it.
         write_calibration(directory / 'true_calibration', scenario.cameras, OPTICAL_FRAMES)
     pieces = curve_polylines(scenario.curve, scenario.surface)

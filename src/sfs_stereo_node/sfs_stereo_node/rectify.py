@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from vgm_common.camera_model import DISTORTION_SIZES, OPENCV_MODELS
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 
@@ -146,8 +147,13 @@ def rectification_maps(
     R_right: npt.ArrayLike,
     P_right: npt.ArrayLike,
     size: tuple[int, int],
+    models: tuple[str, str] = ('plumb_bob', 'plumb_bob'),
 ) -> RectifiedPair:
     """Remap tables of a calibrated pair for images of ``size`` (width, height).
+
+    ``models``: the left and right CameraInfo distortion models; plumb_bob and
+    rational_polynomial go to cv2.initUndistortRectifyMap, equidistant to
+    cv2.fisheye.initUndistortRectifyMap, another is refused naming it.
 
     Validates every matrix (finite, R proper rotations, P a rectified pair) and raises
     InvalidInput otherwise, so an unrectifiable calibration never produces images. A
@@ -171,13 +177,27 @@ def rectification_maps(
             )
         if not np.all(np.isfinite(D)):
             raise InvalidInput(f'D_{name} has non-finite values', key=f'D_{name}')
+        model = models[len(cameras)]
+        if model not in OPENCV_MODELS or len(D) > DISTORTION_SIZES[model]:
+            raise InvalidInput(
+                f'{name} camera: cannot rectify distortion model {model!r} with '
+                f'{len(D)} coefficients (one of {", ".join(OPENCV_MODELS)} and its D)',
+                key='distortion_model',
+            )
         cameras.append((K, D, R, np.asarray(P, dtype=float)))
-    if all(is_rectified_already(*camera) for camera in cameras):
+    # An equidistant camera with D = 0 still bends its rays (r = theta, not tan theta).
+    if 'equidistant' not in models and all(is_rectified_already(*camera) for camera in cameras):
         maps: list[Maps | None] = [None, None]
     else:
         maps = [
-            cv2.initUndistortRectifyMap(K, D, R, P, (width, height), cv2.CV_32FC1)
-            for K, D, R, P in cameras
+            (
+                cv2.fisheye.initUndistortRectifyMap(
+                    K, D, R, P[:3, :3], (width, height), cv2.CV_32FC1
+                )
+                if model == 'equidistant'
+                else cv2.initUndistortRectifyMap(K, D, R, P, (width, height), cv2.CV_32FC1)
+            )
+            for (K, D, R, P), model in zip(cameras, models)
         ]
     P_left = np.asarray(P_left, dtype=float)
     return RectifiedPair(

@@ -113,6 +113,7 @@ class DepthSession:
             right.R,
             right.P,
             (image_shape[1], image_shape[0]),
+            (left.camera.distortion_model, right.camera.distortion_model),
         )
         self._rectification = (key, tables)
         return tables

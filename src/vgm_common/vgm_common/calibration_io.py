@@ -23,7 +23,12 @@ import numpy as np
 import numpy.typing as npt
 import yaml
 
-from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_model import (
+    COEFFICIENT_NAMES,
+    DISTORTION_SIZES,
+    OPENCV_MODELS,
+    PinholeCamera,
+)
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import (
     FloatArray,
@@ -48,10 +53,11 @@ def camera_yaml_dict(
     R: npt.ArrayLike | None = None,
     P: npt.ArrayLike | None = None,
 ) -> dict[str, object]:
-    """The camera_calibration_parsers mapping of a plumb_bob PinholeCamera."""
-    if camera.distortion_model != 'plumb_bob':
+    """The camera_calibration_parsers mapping of a PinholeCamera of a CameraInfo model
+    (``OPENCV_MODELS``: plumb_bob, rational_polynomial, equidistant)."""
+    if camera.distortion_model not in OPENCV_MODELS:
         raise InvalidInput(
-            f'{camera_name}: only plumb_bob cameras can be written, got '
+            f'{camera_name}: only {", ".join(OPENCV_MODELS)} cameras can be written, got '
             f'{camera.distortion_model!r}',
             key='distortion_model',
         )
@@ -62,7 +68,7 @@ def camera_yaml_dict(
         'image_height': int(camera.height),
         'camera_name': camera_name,
         'camera_matrix': _matrix(3, 3, camera.K),
-        'distortion_model': 'plumb_bob',
+        'distortion_model': camera.distortion_model,
         'distortion_coefficients': _matrix(1, len(camera.D), camera.D),
         'rectification_matrix': _matrix(3, 3, R),
         'projection_matrix': _matrix(3, 4, P),
@@ -88,9 +94,11 @@ def camera_from_yaml_dict(entry: object, T_base_camera: FloatArray | None = None
     """camera_calibration_parsers mapping -> (PinholeCamera, R (3x3), P (3x4))."""
     if not isinstance(entry, dict):
         raise InvalidInput('camera entry must be a mapping', key='camera')
-    if entry.get('distortion_model', 'plumb_bob') != 'plumb_bob':
+    model = entry.get('distortion_model', 'plumb_bob')
+    if model not in OPENCV_MODELS:
         raise InvalidInput(
-            f'unsupported distortion model {entry["distortion_model"]!r}', key='distortion_model'
+            f'unsupported distortion model {model!r} (expected one of {", ".join(OPENCV_MODELS)})',
+            key='distortion_model',
         )
     K = _read_matrix(entry, 'camera_matrix', (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1:
@@ -106,10 +114,17 @@ def camera_from_yaml_dict(entry: object, T_base_camera: FloatArray | None = None
     if width <= 0 or height <= 0:
         raise InvalidInput('image size must be positive', key='image_width')
     D = _read_matrix(entry, 'distortion_coefficients', None)
+    size = DISTORTION_SIZES[model]
+    if len(D) != size if model != 'plumb_bob' else len(D) > size:
+        raise InvalidInput(
+            f'distortion_coefficients: {model} takes {size} ({COEFFICIENT_NAMES[model]}), '
+            f'got {len(D)}',
+            key='distortion_coefficients',
+        )
     R = _read_matrix(entry, 'rectification_matrix', (3, 3))
     P = _read_matrix(entry, 'projection_matrix', (3, 4))
     T = np.eye(4) if T_base_camera is None else T_base_camera
-    return PinholeCamera(width, height, K, D, T), R, P
+    return PinholeCamera(width, height, K, D, T, model), R, P
 
 
 def write_camera_yaml(
@@ -119,8 +134,9 @@ def write_camera_yaml(
     R: npt.ArrayLike | None = None,
     P: npt.ArrayLike | None = None,
 ) -> None:
-    """Write the camera_calibration_parsers file of a plumb_bob ``camera`` (no pose) to
-    ``path``; default R = I, P = [K | 0]. Raises InvalidInput for another distortion model."""
+    """Write the camera_calibration_parsers file of a ``camera`` (no pose) to ``path``;
+    default R = I, P = [K | 0]. Raises InvalidInput for a model CameraInfo has not
+    (division)."""
     Path(path).write_text(
         yaml.safe_dump(camera_yaml_dict(camera, camera_name, R, P), sort_keys=False)
     )
@@ -142,7 +158,7 @@ def write_calibration(
 
     Args:
         directory: created if missing.
-        cameras: {name: PinholeCamera (plumb_bob) with its pose in base_link}.
+        cameras: {name: PinholeCamera (a CameraInfo model) with its pose in base_link}.
         frame_ids: {name: optical frame id}.
         rectification: {name: (R, P)}; default R = I, P = [K | 0].
         quality: {name: {key: number}} stored beside each camera (e.g. rms_px).
@@ -222,12 +238,45 @@ def read_calibration(path: str | Path) -> dict[str, CameraEntry]:
 def stereo_rectification(
     left: PinholeCamera, right: PinholeCamera, alpha: float = 0.0
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The rectified stereo pair of two plumb_bob PinholeCameras with poses (ROS
-    convention, as cv2.stereoRectify computes it): {'left': (R1, P1), 'right': (R2, P2)}
-    where R rotates the camera's optical frame into the rectified frame and the right P
-    carries Tx = -fx * baseline [m] in P[0, 3]. ``alpha`` 0 crops to valid pixels only."""
+    """The rectified stereo pair of two PinholeCameras with poses (ROS convention, as
+    cv2.stereoRectify computes it): {'left': (R1, P1), 'right': (R2, P2)} where R rotates
+    the camera's optical frame into the rectified frame and the right P carries
+    Tx = -fx * baseline [m] in P[0, 3]. ``alpha`` 0 crops to valid pixels only.
+
+    plumb_bob and rational_polynomial cameras (in any mix) go to cv2.stereoRectify; a
+    pair of equidistant cameras is rectified to the pinhole window of its central focal
+    length (cv2.stereoRectify of the pair without distortion; its images remapped by
+    cv2.fisheye.initUndistortRectifyMap). Raises InvalidInput for an equidistant camera
+    paired with another model and for a model CameraInfo has not, naming them."""
+    models = (left.distortion_model, right.distortion_model)
     T_right_left = right.T_camera_base @ left.T_base_camera
     size = (int(left.width), int(left.height))
+    if any(m not in OPENCV_MODELS for m in models) or (
+        'equidistant' in models and models != ('equidistant', 'equidistant')
+    ):
+        raise InvalidInput(
+            f'stereo rectification of a {models[0]} left and a {models[1]} right camera: '
+            'supported are plumb_bob and rational_polynomial in any mix, or two equidistant',
+            key='distortion_model',
+        )
+    if models == ('equidistant', 'equidistant'):
+        # The rotations do not depend on the lenses; the rectified cameras are the pinhole
+        # window of the pair's central focal length (cv2.stereoRectify without distortion).
+        # cv2.fisheye.stereoRectify's own window comes from the image border, which a
+        # fisheye may see past 90 deg: focal lengths of 50 px for 300 px lenses, the
+        # principal point outside the image.
+        R1, R2, P1, P2, *_ = cv2.stereoRectify(
+            left.K,
+            np.zeros(5),
+            right.K,
+            np.zeros(5),
+            size,
+            T_right_left[:3, :3],
+            T_right_left[:3, 3].reshape(3, 1),
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=alpha,
+        )
+        return {'left': (R1, P1), 'right': (R2, P2)}
     R1, R2, P1, P2, *_ = cv2.stereoRectify(
         left.K,
         left.D,

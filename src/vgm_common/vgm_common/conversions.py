@@ -19,7 +19,12 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, PointCloud2, Poi
 from std_msgs.msg import Header
 from stereo_msgs.msg import DisparityImage
 
-from vgm_common.camera_model import PinholeCamera
+from vgm_common.camera_model import (
+    COEFFICIENT_NAMES,
+    DISTORTION_SIZES,
+    OPENCV_MODELS,
+    PinholeCamera,
+)
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import (
     FloatArray,
@@ -205,11 +210,13 @@ def numpy_to_disparity_image(
 def camera_info_to_camera(
     msg: CameraInfo, T_base_camera: FloatArray | None = None
 ) -> PinholeCamera:
-    """CameraInfo -> PinholeCamera (raw, unrectified intrinsics K and plumb_bob D).
+    """CameraInfo -> PinholeCamera (raw, unrectified intrinsics K, D of its model).
 
     K must be upper-triangular with positive focal lengths and K[2, 2] = 1. The model
-    names the coefficients: plumb_bob takes exactly five (k1, k2, t1, t2, k3); no model
-    ('') means no distortion, with D empty or all zero."""
+    names the coefficients (``camera_model.COEFFICIENT_NAMES``): plumb_bob takes exactly five
+    (k1, k2, t1, t2, k3), rational_polynomial eight, equidistant four; no model ('')
+    means no distortion (plumb_bob zeros), with D empty or all zero. Another model is an
+    InvalidInput naming it."""
     K = np.array(msg.k, dtype=float).reshape(3, 3)
     if (
         not np.all(np.isfinite(K))
@@ -223,16 +230,19 @@ def camera_info_to_camera(
             f'fx, fy > 0, K[2][2] = 1): {K.tolist()}',
             key='k',
         )
-    if msg.distortion_model not in ('plumb_bob', ''):
+    model = msg.distortion_model or 'plumb_bob'
+    if msg.distortion_model not in ('', *OPENCV_MODELS):
         raise InvalidInput(
-            f'unsupported distortion model {msg.distortion_model!r}', key='distortion_model'
+            f'unsupported distortion model {msg.distortion_model!r} (expected one of '
+            f'{", ".join(OPENCV_MODELS)} or none)',
+            key='distortion_model',
         )
-    D = np.zeros(5)
-    if msg.distortion_model == 'plumb_bob':
-        if len(msg.d) != 5:
+    D = np.zeros(DISTORTION_SIZES[model])
+    if msg.distortion_model:
+        if len(msg.d) != len(D):
             raise InvalidInput(
-                f'camera_info D has {len(msg.d)} coefficients: plumb_bob '
-                'takes 5 (k1, k2, t1, t2, k3)',
+                f'camera_info D has {len(msg.d)} coefficients: {model} '
+                f'takes {len(D)} ({COEFFICIENT_NAMES[model]})',
                 key='d',
             )
         D[:] = msg.d
@@ -245,7 +255,7 @@ def camera_info_to_camera(
     if msg.width == 0 or msg.height == 0:
         raise InvalidInput('camera_info has zero image size', key='size')
     T = np.eye(4) if T_base_camera is None else T_base_camera
-    return PinholeCamera(int(msg.width), int(msg.height), K, D, T)
+    return PinholeCamera(int(msg.width), int(msg.height), K, D, T, model)
 
 
 def camera_info_rectification(msg: CameraInfo) -> tuple[FloatArray, FloatArray]:
@@ -280,13 +290,19 @@ def camera_to_camera_info(
     identity and [K | 0]."""
     R = np.eye(3) if R is None else np.asarray(R, dtype=float)
     P = np.hstack([camera.K, np.zeros((3, 1))]) if P is None else np.asarray(P, dtype=float)
-    D = np.zeros(5)
-    D[: len(camera.D)] = camera.D  # plumb_bob's five, a shorter D padded with zeros
+    if camera.distortion_model not in OPENCV_MODELS:
+        raise InvalidInput(
+            f'CameraInfo has no distortion model {camera.distortion_model!r} (expected one '
+            f'of {", ".join(OPENCV_MODELS)})',
+            key='distortion_model',
+        )
+    D = np.zeros(DISTORTION_SIZES[camera.distortion_model])
+    D[: len(camera.D)] = camera.D  # a shorter plumb_bob D padded with zeros
     return CameraInfo(
         header=make_header(stamp_ns, frame_id),
         height=camera.height,
         width=camera.width,
-        distortion_model='plumb_bob',
+        distortion_model=camera.distortion_model,
         d=D.tolist(),
         k=camera.K.flatten().tolist(),
         r=R.flatten().tolist(),

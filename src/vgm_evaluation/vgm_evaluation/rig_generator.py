@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from calib_node.chart_detection import chart_points
-from vgm_common.camera_model import PinholeCamera, distort_normalized
+from vgm_common.camera_model import PinholeCamera, distort
 from vgm_common.geometry import FloatArray, look_at_rotation, make_transform, rot_x, rot_y, rot_z
 
 BACKGROUND_GREY = 70.0  # a dark wall behind the chart [grey level]
@@ -24,7 +24,8 @@ BLACK_GREY, WHITE_GREY = 15.0, 230.0  # the print under the light [grey level]
 CHARTS = ((6, 9, 0.025), (5, 8, 0.03), (7, 10, 0.02), (6, 7, 0.035), (8, 11, 0.018))
 
 GreyImage = npt.NDArray[np.uint8]
-Lens = tuple[FloatArray, FloatArray, tuple[int, int]]  # K (3, 3), D (5,), (width, height)
+Lens = tuple[FloatArray, FloatArray, tuple[int, int]]  # K (3, 3), D, (width, height)
+LENS_MODELS = ('plumb_bob', 'rational_polynomial', 'equidistant')
 # vgm_common.calibration_io.stereo_rectification: (left, right) -> {name: (R, P)}
 Rectification = Callable[
     [PinholeCamera, PinholeCamera], Mapping[str, tuple[np.ndarray, np.ndarray]]
@@ -65,6 +66,47 @@ def _lens(
     )
     k1 = rng.uniform(*k1_range)
     D = np.array([k1, -0.4 * k1 * rng.uniform(0.0, 1.0), 0.0, 0.0, 0.0])
+    return K, D, (width, height)
+
+
+def _wide_lens(rng: np.random.Generator, width: int, model: str) -> Lens:
+    """K and D of a wide lens of ``model``, square pixels up to 0.5 %, principal point
+    within 3 % of the centre. rational_polynomial: f 0.4..0.55 width (a 85-100 deg
+    horizontal field), barrel k1 in [0.2, 1], k4 = k1 + 0.3..0.8 (the denominator wins
+    at the edge, as OpenCV fits of such lenses have), k2, k5 in [0, 0.1], k3 = k6 = 0,
+    decentred (p1, p2 in [-0.002, 0.002]; radially symmetric, such a lens is as well
+    described by the four coefficients of an equidistant one over the image), drawn
+    again until it maps the whole image one to one.
+    equidistant: f 0.28..0.38 width (135-160 deg horizontally), k1 in [-0.05, 0.05],
+    k2 in [-0.01, 0.01], k3 = k4 = 0 (cv2.fisheye's fits of real fisheyes)."""
+    height = int(width * 3 / 4)
+    share = (0.4, 0.55) if model == 'rational_polynomial' else (0.28, 0.38)
+    f = rng.uniform(*share) * width
+    K = np.array(
+        [
+            [f, 0, width / 2 + rng.uniform(-0.03, 0.03) * width],
+            [0, f * rng.uniform(0.995, 1.005), height / 2 + rng.uniform(-0.03, 0.03) * height],
+            [0, 0, 1.0],
+        ]
+    )
+    if model == 'rational_polynomial':
+        # Drawn again until the lens maps the whole image one to one: its radius grows
+        # until it reaches the image corner, within 76 deg of the axis (r_u <= 4); some
+        # draws fold first and would leave the image corners without a ray.
+        corner = np.hypot(*(np.maximum(K[:2, 2], [width, height] - K[:2, 2]) / np.diag(K)[:2]))
+        r_u = np.linspace(0.0, 4.0, 4001)
+        while True:
+            k1, k2 = rng.uniform(0.2, 1.0), rng.uniform(0.0, 0.1)
+            p1, p2 = rng.uniform(-2e-3, 2e-3, 2)
+            k4, k5 = k1 + rng.uniform(0.3, 0.8), rng.uniform(0.0, 0.1)
+            D = np.array([k1, k2, p1, p2, 0, k4, k5, 0])
+            r2 = r_u**2
+            r_d = r_u * (1 + r2 * (k1 + r2 * k2)) / (1 + r2 * (k4 + r2 * k5))
+            reached = np.flatnonzero(r_d >= corner)
+            if len(reached) and np.all(np.diff(r_d[: reached[0] + 1]) > 0):
+                break
+    else:
+        D = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.01, 0.01), 0.0, 0.0])
     return K, D, (width, height)
 
 
@@ -112,6 +154,7 @@ def draw_rig(
     cameras: Sequence[str] = ('left', 'right', 'aux'),
     views: int | None = None,
     noise: float | None = None,
+    lens_model: str = 'plumb_bob',
 ) -> Rig:
     """A random rig and chart poses (the ranges above), from an integer ``seed``.
 
@@ -121,7 +164,8 @@ def draw_rig(
     fixation point from 0..45 deg off the pair's axis. The chart (one of ``CHARTS``)
     fills about half the narrowest view at the working distance; ``views`` (8..20) poses
     with the whole board inside every image, tilted up to 40 deg. The rig sits at a random
-    pose in base_link.
+    pose in base_link. ``lens_model`` other than plumb_bob (``LENS_MODELS``): every lens
+    a wide one of that model (:func:`_wide_lens`), the rest drawn alike.
 
     Returns:
         :class:`Rig`.
@@ -133,9 +177,17 @@ def draw_rig(
     width = int(rng.choice([640, 800, 960, 1024, 1280]))
     baseline = float(rng.uniform(0.04, 0.3))
     vergence = float(np.radians(rng.uniform(0.0, 10.0)))
-    lenses = {'left': _lens(rng, width), 'right': _lens(rng, width)}
+    if lens_model not in LENS_MODELS:
+        raise ValueError(f'lens_model: expected one of {LENS_MODELS}, got {lens_model!r}')
+
+    def lens(width: int) -> Lens:
+        return (
+            _lens(rng, width) if lens_model == 'plumb_bob' else _wide_lens(rng, width, lens_model)
+        )
+
+    lenses = {'left': lens(width), 'right': lens(width)}
     if 'aux' in cameras:
-        lenses['aux'] = _lens(rng, int(rng.choice([640, 800, 960, 1024, 1280])))
+        lenses['aux'] = lens(int(rng.choice([640, 800, 960, 1024, 1280])))
     board = np.array([(cols + 1) * spacing, (rows + 1) * spacing])
     # Working distance: the board about half as wide as the narrowest field of view, far
     # enough that the pair's fields overlap there (vergence or not).
@@ -169,7 +221,7 @@ def draw_rig(
     truth = {}
     for name in cameras:
         K, D, size = lenses[name]
-        truth[name] = PinholeCamera(size[0], size[1], K, D, T_base_rig @ poses[name])
+        truth[name] = PinholeCamera(size[0], size[1], K, D, T_base_rig @ poses[name], lens_model)
     outline = _outline_points(rows, cols, spacing)
     centre_chart = np.array([(cols - 1) * spacing / 2, (rows - 1) * spacing / 2, 0.0])
     charts: list[FloatArray] = []
@@ -401,7 +453,8 @@ def score_rig(
 
     Returns:
         dict: ``fx``, ``fy`` (relative), ``cx``, ``cy`` [px], ``distortion`` (largest
-        displacement difference over the image with the true K [px]), ``baseline``
+        displacement difference over the image with the true K [px]; where the true
+        rays are in front of the camera), ``baseline``
         (relative), ``position`` [m] and ``rotation`` [deg] of each camera relative to
         ``reference`` (or in base_link), ``rect_rows`` (RMS row difference [px] of true
         left / right correspondences rectified with the estimate; needs left and right).
@@ -417,10 +470,12 @@ def score_rig(
         out['cy'] = max(out['cy'], abs(est.K[1, 2] - true.K[1, 2]))
         u, v = np.meshgrid(np.linspace(0, true.width - 1, 9), np.linspace(0, true.height - 1, 9))
         xy = true.undistort_pixels(np.column_stack([u.ravel(), v.ravel()]))
-        d_true = distort_normalized(xy, true.D) * [true.K[0, 0], true.K[1, 1]]
-        d_est = distort_normalized(xy, est.D) * [true.K[0, 0], true.K[1, 1]]
+        d_true = distort(xy, true.D, true.distortion_model) * [true.K[0, 0], true.K[1, 1]]
+        d_est = distort(xy, est.D, est.distortion_model) * [true.K[0, 0], true.K[1, 1]]
+        # nanmax: a fisheye's image corners may look past 90 deg, where the normalised
+        # coordinates (x/z, y/z) do not exist
         out['distortion'] = max(
-            out['distortion'], float(np.max(np.linalg.norm(d_true - d_est, axis=1)))
+            out['distortion'], float(np.nanmax(np.linalg.norm(d_true - d_est, axis=1)))
         )
         if absolute:
             T_true, T_est = true.T_base_camera, est.T_base_camera
@@ -445,7 +500,8 @@ def rectified_row_error(
     stereo_rectification: Rectification,
 ) -> float:
     """RMS |v_left - v_right| [px] of true correspondences (points 1..3 m in front of the
-    true left camera, seen by both) rectified with the estimated pair."""
+    true left camera, seen by both) rectified with the estimated pair (for a fisheye
+    pair, those inside both rectified images)."""
     rng = np.random.default_rng(0)
     left, right = truth['left'], truth['right']
     u = rng.uniform(0, left.width - 1, 400)
@@ -462,10 +518,18 @@ def rectified_row_error(
     keep = (d_r > 0) & np.all((uv_r >= 0) & (uv_r < [right.width, right.height]), axis=1)
     rect = stereo_rectification(estimate['left'], estimate['right'])
     rows: list[FloatArray] = []
+    inside = np.ones(int(keep.sum()), dtype=bool)
     for name, uv in (('left', uv_l[keep]), ('right', uv_r[keep])):
         camera = estimate[name]
         R, P = rect[name]
         xy = camera.undistort_pixels(uv)
         ray = np.column_stack([xy, np.ones(len(xy))]) @ np.asarray(R).T
         rows.append(P[1, 1] * ray[:, 1] / ray[:, 2] + P[1, 2])
+        columns = P[0, 0] * ray[:, 0] / ray[:, 2] + P[0, 2]
+        inside &= (ray[:, 2] > 0) & (columns >= 0) & (columns < camera.width)
+        inside &= (rows[-1] >= 0) & (rows[-1] < camera.height)
+    if 'equidistant' in (left.distortion_model, right.distortion_model):
+        # A fisheye pair's rectified images (balance 0) hold only the middle of its
+        # field: the rows are compared where both points land in them.
+        rows = [r[inside] for r in rows]
     return float(np.sqrt(np.mean((rows[0] - rows[1]) ** 2)))
