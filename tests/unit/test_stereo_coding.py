@@ -334,6 +334,30 @@ def test_ours_code_corrects_byte_errors_and_refuses_beyond_its_capacity():
     assert blind.disparity_from_code(too_many, disparity.shape) is None
 
 
+def test_ours_code_decodes_beyond_its_capacity_when_the_wrong_bytes_are_the_least_reliable():
+    _, _, disparity = generated_scene((240, 320), seed=8)
+    bits = blind.disparity_code(disparity)
+    clean = blind.disparity_from_code(bits, disparity.shape)
+    rng = np.random.default_rng(10)
+    n_bytes = bits.size // 8
+    # 16 byte errors: beyond the 10 that plain decoding corrects, within the 20 erasures.
+    bytes_hit = rng.choice(n_bytes, 16, replace=False)
+    wrong_bits = bytes_hit * 8 + rng.integers(0, 8, bytes_hit.size)
+    received = bits.copy()
+    received[wrong_bits] ^= 1
+    assert blind._checked_body(received, bits.size) is None
+    reliability = np.full(bits.size, 0.9)
+    reliability[wrong_bits] = 0.1  # the copies disagreed on those bits
+    body = blind._erasure_decoded(received, reliability)
+    assert body is not None
+    np.testing.assert_array_equal(blind._compact_surface(body, disparity.shape), clean)
+    # Reliabilities that point at other bytes do not help.
+    elsewhere = np.setdiff1d(np.arange(n_bytes), bytes_hit)[:20]
+    misleading = np.full(bits.size, 0.9)
+    misleading[elsewhere * 8] = 0.1
+    assert blind._erasure_decoded(received, misleading) is None
+
+
 def test_ours_resynchronises_a_rotation_and_finds_nothing_in_a_rotated_unmarked_image():
     from stereo_coding_node.channel import rotate
 

@@ -78,6 +78,8 @@ CELL_PX = 52
 LEVEL_BITS = 6
 CRC_BITS = 32
 RS_PARITY_BYTES = 20  # corrects 10 byte errors per block: channel BER up to about 1 %
+# Least reliable bytes per block tried as erasures when plain decoding fails.
+ERASURE_COUNTS = (8, 14, 20)
 BLOCK = 8
 BANDS = ((0, 1), (1, 0), (1, 1))  # (row, col) of the 8x8 DCT: JPEG's finest steps
 DEFAULT_STEP = 28.0  # QIM step [grey levels]: MSE 3 * step^2 / 12 / 64, about 43 dB
@@ -644,6 +646,7 @@ def decode(image: npt.ArrayLike, key: str, step: float = DEFAULT_STEP) -> Detect
             _fine_key(key),
             FINE_STEP_RATIO * step,
             _BAND_FREQUENCIES[coarse:],
+            erasures=False,  # one copy a bit: its reliabilities say little, and RS is slow
         )[3]
     # The fine word's surface when it decoded, else the coarse one's (built only then).
     disparity = None
@@ -667,14 +670,17 @@ def _read_word(
     key: str,
     step: float,
     frequencies: FloatArray,
+    erasures: bool = True,
 ) -> tuple[float, Bits, float, Bits | None]:
     """Soft-decode a keyed word of ``n_bits`` from QIM ``coefficients`` (rows, cols,
     bands), trying the gains of ``BLUR_SIGMAS_PX``: the first word whose Reed-Solomon
-    decoding and CRC succeed, else the one whose copies agree best. (confidence, bits,
-    raw bit error rate, the checked body or None)."""
+    decoding and CRC succeed, else the one whose copies agree best, whose least
+    reliable bytes are then tried as erasures (``_erasure_decoded``) if ``erasures``.
+    (confidence, bits, raw bit error rate, the checked body or None)."""
     slots = _slot_layout(coefficients.shape, n_bits, key)
     copies = np.bincount(slots.bit_of_slot, minlength=n_bits)
-    best: tuple[float, Bits, FloatArray] | None = None  # (confidence, bits, soft)
+    # (confidence, bits, soft, each bit's reliability: |sum| / copies)
+    best: tuple[float, Bits, FloatArray, FloatArray] | None = None
     body = None
     for sigma in BLUR_SIGMAS_PX:
         gains = np.exp(-0.5 * (sigma * frequencies) ** 2)
@@ -682,15 +688,18 @@ def _read_word(
         soft = np.cos(phase)  # +1: on the bit-0 lattice, -1: on the bit-1 lattice
         sums = np.bincount(slots.bit_of_slot, weights=soft, minlength=n_bits)
         bits = (sums < 0).astype(np.uint8)
-        confidence = float(np.mean(np.abs(sums) / np.maximum(copies, 1)))
+        reliability = np.abs(sums) / np.maximum(copies, 1)
+        confidence = float(np.mean(reliability))
         body = _checked_body(bits, n_bits)
         if body is not None:
-            best = (confidence, bits, soft)
+            best = (confidence, bits, soft, reliability)
             break
         if best is None or confidence > best[0]:
-            best = (confidence, bits, soft)
+            best = (confidence, bits, soft, reliability)
     assert best is not None  # BLUR_SIGMAS_PX is not empty
-    confidence, bits, soft = best
+    confidence, bits, soft, reliability = best
+    if body is None and erasures:
+        body = _erasure_decoded(bits, reliability)
     return confidence, bits, float(np.mean((soft < 0) != bits[slots.bit_of_slot])), body
 
 
@@ -975,14 +984,40 @@ def _filled(d: FloatArray, cell_px: int = FILL_WINDOW_PX) -> FloatArray:
     return filled.astype(float)
 
 
-def _checked_body(bits: npt.ArrayLike, n_bits: int) -> Bits | None:
-    """The body bits of a received ``n_bits`` code word after Reed-Solomon correction,
-    or None if it cannot be corrected or its CRC-32 does not match."""
+def _erasure_decoded(bits: Bits, reliability: FloatArray) -> Bits | None:
+    """The checked body of a received code word whose plain Reed-Solomon decoding
+    failed, with the ``ERASURE_COUNTS`` least reliable bytes of each 255-byte block
+    (a byte as reliable as its least reliable bit; ``reliability`` per bit) declared
+    erased: a block corrects e errors and f erasures while 2 e + f <= its parity bytes,
+    so located errors cost half. None if no count gives a word whose CRC holds (each
+    attempt is another 2^-32 chance of a false alarm: a few in all)."""
+    byte_reliability = np.asarray(reliability).reshape(-1, 8).min(axis=1)
+    for count in ERASURE_COUNTS:
+        erased = [
+            start + int(position)
+            for start in range(0, byte_reliability.size, 255)
+            for position in np.argsort(byte_reliability[start : start + 255], kind='stable')[
+                :count
+            ]
+        ]
+        body = _checked_body(bits, bits.size, erased)
+        if body is not None:
+            return body
+    return None
+
+
+def _checked_body(
+    bits: npt.ArrayLike, n_bits: int, erased_bytes: list[int] | None = None
+) -> Bits | None:
+    """The body bits of a received ``n_bits`` code word after Reed-Solomon correction
+    (``erased_bytes``: byte positions known to be unreliable), or None if it cannot be
+    corrected or its CRC-32 does not match."""
     bits = np.asarray(bits, dtype=np.uint8)
     if bits.size != n_bits:
         return None
+    received = bytearray(np.packbits(bits).tobytes())
     try:
-        message = bytes(_RS.decode(bytearray(np.packbits(bits).tobytes()))[0])
+        message = bytes(_RS.decode(received, erase_pos=erased_bytes)[0])
     except reedsolo.ReedSolomonError:
         return None
     body, crc = message[:-4], message[-4:]
