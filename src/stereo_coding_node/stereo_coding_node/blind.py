@@ -1,9 +1,10 @@
 """Ours: a blind, keyed stereo image coding that survives JPEG and filtering.
 
 The disparity is coded compactly (``disparity_code``): the least-squares nodes of a
-bilinear surface at the finest spacing whose code fits the word, quantised with a step
-near the fit's error, as Exp-Golomb residuals of LOCO-I's median edge prediction (the
-known-node mask as run lengths), then a CRC-32, then Reed-Solomon parity
+bilinear surface, or of an interpolation guided by the image's grey levels where that
+fits better (``_corner_weights``), at the finest spacing whose code fits the word,
+quantised with a step near the fit's error, as Exp-Golomb residuals of LOCO-I's median
+edge prediction (the known-node mask as run lengths), then a CRC-32, then Reed-Solomon parity
 (``RS_PARITY_BYTES`` per 255-byte block, correcting half as many byte errors). The bits
 are repeated over every 8x8 block's low-mid DCT coefficients
 (``BANDS``, the ones JPEG quantises least), each coefficient carrying one copy by dithered
@@ -168,7 +169,10 @@ def disparity_from_code(
 ) -> FloatArray | None:
     """Inverse of ``disparity_code``: (H, W) float64 disparity [px], NaN where the
     nearest node is unknown; None if the CRC fails or the code is inconsistent.
-    ``guide``: the received image, needed by a guided code (CodingError without it)."""
+    ``guide``: the received image, needed by a guided code (CodingError without it).
+    (Weighting the decoded nodes by the image's grey levels after the fact, a joint
+    bilateral upsampling or a guided filter, lowered the correlation on textured
+    scenes; the guided code works because the encoder fits its nodes for the weights.)"""
     body = _checked_body(bits, payload_bits(shape))
     return None if body is None else _compact_surface(body, shape, _checked_guide(guide, shape))
 
