@@ -18,8 +18,9 @@ is reported as such. invisible-watermark's package imports torch at import time,
     source ros2_ws/install/setup.bash && .venv/bin/python bench/bench_stereo_coding.py
 writes bench/results/stereo_coding/ (results.md, results.json, PNGs).
     ... bench/bench_stereo_coding.py --fit-study
-prints what the node fit could reach per node spacing, and the coarse code under a
-guided filter (seconds).
+prints what the node fit could reach per node spacing (bilinear and guided nodes, their
+code sizes), the decoded surfaces under a guided filter, and each coefficient's raw
+error rate after the 3x3 median (seconds).
 """
 
 import os
@@ -165,7 +166,7 @@ def library_decoder(extract):
 
     def decode(grey, n_bits):
         received = extract(grey, n_bits)
-        return received, blind.disparity_from_code(received, grey.shape), False
+        return received, blind.disparity_from_code(received, grey.shape, grey), False
 
     return decode
 
@@ -175,10 +176,11 @@ def ours_decoder(grey, n_bits):
     return detection.bits, detection.disparity_px, detection.fine
 
 
-def run_bits(left, disparity, embed, decode, payload_bits=None):
-    """A method that carries our coarse payload bits: ours, or a library. ``decode``:
-    (grey, n_bits) -> (received coarse bits, decoded disparity or None, fine used)."""
-    bits = blind.disparity_code(disparity)
+def run_bits(left, disparity, embed, decode, payload_bits=None, guided=True):
+    """A method that carries our coarse payload bits (nodes for the interpolation guided
+    by ``left`` unless ``guided`` is False): ours, or a library. ``decode``: (grey,
+    n_bits) -> (received coarse bits, decoded disparity or None, fine used)."""
+    bits = blind.disparity_code(disparity, left if guided else None)
     coded = embed(left, bits)
     rows = {}
     for name, attacked in all_attacks(coded, 0).items():
@@ -210,7 +212,7 @@ def ours_rotation_resynchronised(left, disparity, coded):
     return {
         'found': detection.found,
         'angle_deg': angle,
-        'ber': float(np.mean(detection.bits != blind.disparity_code(disparity))),
+        'ber': float(np.mean(detection.bits != blind.disparity_code(disparity, left))),
         'rho': rho_of(disparity, detection.disparity_px),
         'rms_px': rms,
         'beyond_2px': beyond,
@@ -369,18 +371,28 @@ def fit_study():
             nodes = np.linalg.pinv(rows) @ filled @ np.linalg.pinv(cols).T
             fit = rows @ nodes @ cols.T
             agreement = disparity_agreement(fit, disparity)
-            values, known, fit_rms = blind._node_fit(disparity, filled, cell)
-            step = max(blind.QUANTISATION_PER_FIT_RMS * fit_rms, blind.RANGE_UNIT_PX)
-            code = blind._node_code(blind.NODE_SPACINGS_PX.index(cell), values, known, step)
+            index = blind.NODE_SPACINGS_PX.index(cell)
+            codes = []
+            for guide in (None, left):
+                values, known, fit_rms = blind._node_fit(disparity, filled, cell, guide)
+                code, _ = blind._quantised_code(
+                    index, values, known, fit_rms, 1.0, guide is not None
+                )
+                per_node = code.size / values.size
+                codes.append(f'{code.size} bits ({per_node:.2f} a node, fit RMS {fit_rms:.2f} px)')
+            grey = blind._guide_grey(left)
+            guided = blind._guided_surface(blind._guided_nodes(filled, cell, grey), cell, grey)
+            guided_agreement = disparity_agreement(guided, disparity)
             print(
-                f'{scene}: {cell}-px nodes ({nodes.size}) least squares: correlation '
-                f'{agreement.correlation:.3f}, RMS {agreement.rms_px:.2f} px; compact code '
-                f'{code.size} bits ({code.size / nodes.size:.2f} a node, step {step:.2f} px)'
+                f'{scene}: {cell}-px nodes ({nodes.size}) least squares: bilinear correlation '
+                f'{agreement.correlation:.3f}, RMS {agreement.rms_px:.2f} px, code {codes[0]}; '
+                f'guided {guided_agreement.correlation:.3f}, {guided_agreement.rms_px:.2f} px, '
+                f'code {codes[1]}'
             )
         received = jpeg(blind.encode(left, disparity, KEY), 50)[0]
         surfaces = {
             'coarse code': blind.disparity_from_code(
-                blind.disparity_code(disparity), disparity.shape
+                blind.disparity_code(disparity, left), disparity.shape, left
             ),
             'fine code after JPEG 50': blind.decode(received, KEY).disparity_px,
         }
@@ -400,9 +412,50 @@ def fit_study():
                     )
 
 
+def median_study():
+    """Which coefficient the 3x3 median destroys: the raw error rate of the copies on
+    each band of the coded image after ``cv2.medianBlur`` (at the blur gain that reads
+    it best), the coarse word's bits on its three bands, the fine word's on (0, 2)."""
+    scenes = {
+        'Aloe (640x555)': aloe_scaled(640),
+        'generated seed 1': generated_scene((480, 640), 1),
+    }
+    for scene, (left, _, disparity) in scenes.items():
+        coded = blind.encode(left, disparity, KEY)
+        _, coefficients = blind._band_coefficients(cv2.medianBlur(coded, 3))
+        coarse = len(blind.BANDS)
+        words = (
+            (blind.disparity_code(disparity, left), KEY, blind.DEFAULT_STEP, slice(0, coarse)),
+            (
+                blind.fine_code(disparity, left),
+                blind._fine_key(KEY),
+                blind.FINE_STEP_RATIO * blind.DEFAULT_STEP,
+                slice(coarse, None),
+            ),
+        )
+        for bits, key, step, bands in words:
+            values = coefficients[..., bands]
+            slots = blind._slot_layout(values.shape, bits.size, key)
+            sent = bits[slots.bit_of_slot].reshape(values.shape)
+            frequencies = blind._BAND_FREQUENCIES[bands]
+            rates = []
+            for sigma in blind.BLUR_SIGMAS_PX:
+                gains = np.exp(-0.5 * (sigma * frequencies) ** 2)
+                phase = 2.0 * np.pi * ((values / gains).reshape(-1) / step - slots.dither)
+                wrong = ((np.cos(phase) < 0).reshape(values.shape) != sent).mean(axis=(0, 1))
+                rates.append((float(wrong.mean()), sigma, wrong))
+            _, sigma, wrong = min(rates, key=lambda r: r[0])
+            names = blind._ALL_BANDS[bands]
+            print(
+                f'{scene}: median 3x3, raw error rate of the copies (blur gain {sigma} px): '
+                + ', '.join(f'{band} {rate:.3f}' for band, rate in zip(names, wrong, strict=True))
+            )
+
+
 def main():
     if '--fit-study' in sys.argv:
         fit_study()
+        median_study()
         return
     OUT.mkdir(parents=True, exist_ok=True)
     libraries, missing = load_libraries()
@@ -427,11 +480,19 @@ def main():
             lambda g, b, d=disparity: blind.encode(g, d, KEY, fine=False),
             ours_decoder,
         )
+        entry['ours, bilinear nodes (before the guided ones)'] = run_bits(
+            left,
+            disparity,
+            lambda g, b, d=disparity: blind.encode(g, d, KEY, guided=False),
+            ours_decoder,
+            blind.payload_bits(left.shape) + blind.fine_payload_bits(left.shape),
+            guided=False,
+        )
         entry['ours_rotation_resync'] = ours_rotation_resynchronised(
             left, disparity, ours['coded']
         )
         for name, (embed, extract) in libraries.items():
-            bits = blind.disparity_code(disparity)
+            bits = blind.disparity_code(disparity, left)
             strength = matched_strength(left, bits, embed, ours['psnr'])
             entry[f'{name} (PSNR-matched)'] = run_bits(
                 left,

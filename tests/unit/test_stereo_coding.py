@@ -95,9 +95,12 @@ def test_thesis_key_file_errors_name_the_file(tmp_path):
 # --- ours ---------------------------------------------------------------------------------
 
 
-def cell_truth(disparity):
-    """The embedded disparity as the coarse word represents it."""
-    return blind.disparity_from_code(blind.disparity_code(disparity), disparity.shape)
+def cell_truth(disparity, host, received):
+    """The embedded disparity as the coarse word represents it (fitted on the ``host``,
+    interpolated with the ``received`` image)."""
+    return blind.disparity_from_code(
+        blind.disparity_code(disparity, host), disparity.shape, received
+    )
 
 
 @pytest.mark.parametrize('source', ['aloe', 'generated'])
@@ -112,20 +115,23 @@ def test_ours_survives_jpeg_50_with_its_payload_exact(source):
     received, _ = jpeg(coded, 50)
     detection = blind.decode(received, key='k1')
     assert detection.found and detection.confidence > 0.5
-    assert np.array_equal(detection.bits, blind.disparity_code(disparity))
-    # Both layers arrive bit-exact: the decoded map is the fine layer's surface.
+    assert np.array_equal(detection.bits, blind.disparity_code(disparity, left))
+    # Both layers arrive bit-exact: the decoded map is the fine layer's surface,
+    # interpolated with the received image.
     assert detection.fine
-    fine_truth = blind.fine_disparity_from_code(blind.fine_code(disparity), disparity.shape)
+    fine_truth = blind.fine_disparity_from_code(
+        blind.fine_code(disparity, left), disparity.shape, received
+    )
     np.testing.assert_array_equal(detection.disparity_px, fine_truth)
     assert np.isfinite(fine_truth).mean() > 0.95
 
 
-# Measured (2026-12-04, compact node code): after JPEG 50, Aloe 640x555 coarse layer only
-# (32-px nodes) 0.887 / 6.45 px, with the fine layer (14-px nodes) 0.961 / 3.84 px;
-# generated seed 1 (28-px nodes) 0.960 / 3.39 px -> (12-px nodes) 0.984 / 2.12 px. (With
-# 6-bit levels of 24-px nodes the fine layer gave 0.925 / 5.30 px and 0.970 / 2.92 px.)
+# Measured (2026-12-05, guided interpolation): after JPEG 50, Aloe 640x555 coarse layer
+# only (32-px nodes) 0.908 / 5.85 px, with the fine layer (14-px nodes) 0.969 / 3.43 px
+# (bilinear nodes: 0.961 / 3.84 px); generated seed 1 (28-px nodes) 0.963 / 3.22 px ->
+# (12-px nodes) 0.984 / 2.12 px (bilinear kept: its texture does not follow its depth).
 @pytest.mark.parametrize(
-    'source, min_correlation, max_rms_px', [('aloe', 0.955, 4.1), ('generated', 0.98, 2.3)]
+    'source, min_correlation, max_rms_px', [('aloe', 0.965, 3.55), ('generated', 0.98, 2.3)]
 )
 def test_ours_fine_layer_carries_the_disparity_through_jpeg_50(
     source, min_correlation, max_rms_px
@@ -145,14 +151,55 @@ def test_ours_fine_layer_carries_the_disparity_through_jpeg_50(
     assert before.found and not before.fine
     correlation_coarse, rms_coarse, _ = disparity_agreement(before.disparity_px, disparity)
     assert correlation_fine > correlation_coarse + 0.02 and rms_fine < 0.7 * rms_coarse
+    bilinear = blind.decode(jpeg(blind.encode(left, disparity, 'k29', guided=False), 50)[0], 'k29')
+    _, rms_bilinear, _ = disparity_agreement(bilinear.disparity_px, disparity)
+    # Aloe's leaves: 3.84 -> 3.43 px; the generated scene keeps its bilinear nodes.
+    assert rms_fine < (0.92 if source == 'aloe' else 1.0) * rms_bilinear + 1e-9
+
+
+def test_ours_coarse_layer_carries_aloe_through_jpeg_30_with_correlation_0_9():
+    left, _, disparity = aloe_scaled(640)
+    received = jpeg(blind.encode(left, disparity, key='k29'), 30)[0]
+    detection = blind.decode(received, key='k29')
+    assert detection.found and not detection.fine
+    correlation, rms, _ = disparity_agreement(detection.disparity_px, disparity)
+    # Measured 0.908 / 5.85 px (bilinear nodes: 0.887 / 6.45 px).
+    assert correlation >= 0.9 and rms < 6.0
+
+
+def step_scene(shape=(240, 320)):
+    """A host of two grey regions (60 and 170, seeded texture of 8 grey levels RMS)
+    split by a slanted line, and a disparity of 12 px on one side and 36 px on the
+    other, stepping on the same line (a fronto-parallel object before a wall)."""
+    rows, cols = np.indices(shape)
+    near = cols > 0.35 * rows + 0.4 * shape[1]
+    texture = np.random.default_rng(5).normal(0.0, 8.0, shape)
+    host = np.clip(np.where(near, 170.0, 60.0) + texture, 0, 255).astype(np.uint8)
+    return host, np.where(near, 36.0, 12.0)
+
+
+def test_ours_guided_nodes_keep_a_depth_step_that_follows_a_grey_edge():
+    host, disparity = step_scene()
+    results = {}
+    for guided in (False, True):
+        received = jpeg(blind.encode(host, disparity, 'k3', guided=guided), 50)[0]
+        detection = blind.decode(received, 'k3')
+        assert detection.found and detection.fine
+        results[guided] = disparity_agreement(detection.disparity_px, disparity)
+    # Bilinear nodes smear the 24-px step over a cell on each side of it; the guided
+    # interpolation keeps it to the blur of the guide. (Measured: RMS 1.58 -> 0.65 px,
+    # off by > 2 px 5.7 % -> 0.5 %.)
+    assert results[True].rms_px < 0.8 and results[True].rms_px < 0.5 * results[False].rms_px
+    assert results[True].beyond_2px < 0.01 and results[False].beyond_2px > 0.04
 
 
 def test_ours_falls_back_to_the_coarse_layer_when_the_fine_one_is_lost():
     left, _, disparity = generated_scene((480, 640), seed=1)
     coded = blind.encode(left, disparity, key='k29')
-    detection = blind.decode(jpeg(coded, 30)[0], key='k29')  # the fine step does not survive
+    received = jpeg(coded, 30)[0]
+    detection = blind.decode(received, key='k29')  # the fine step does not survive
     assert detection.found and not detection.fine
-    np.testing.assert_array_equal(detection.disparity_px, cell_truth(disparity))
+    np.testing.assert_array_equal(detection.disparity_px, cell_truth(disparity, left, received))
 
 
 @pytest.mark.parametrize(
@@ -178,6 +225,22 @@ def test_ours_compact_code_reproduces_a_slanted_plane_to_an_eighth_of_a_pixel(co
     error = np.abs(decoded - plane)
     assert np.max(error[away]) < 0.5 * blind.RANGE_UNIT_PX + 0.01
     assert np.max(error[known]) < 0.6
+
+
+def test_ours_guided_code_of_a_slanted_plane_keeps_it_and_needs_the_image():
+    host, _ = step_scene((480, 640))
+    rows, cols = np.indices(host.shape)
+    plane = 20.0 + 0.05 * cols - 0.03 * rows
+    bits = blind.fine_code(plane, host)
+    decoded = blind.fine_disparity_from_code(bits, plane.shape, host)
+    # The guided nodes do not carry a plane better than bilinear ones, whose error is
+    # the step's rounding: the encoder keeps those (measured max 0.06 px).
+    assert np.max(np.abs(decoded - plane)) < 0.5 * blind.RANGE_UNIT_PX + 0.01
+    guided_bits = blind.fine_code(step_scene((480, 640))[1], host)
+    with pytest.raises(CodingError, match='needs the image'):
+        blind.fine_disparity_from_code(guided_bits, plane.shape)
+    with pytest.raises(CodingError, match='differ in size'):
+        blind.fine_disparity_from_code(guided_bits, plane.shape, host[:, :320])
 
 
 def test_ours_fine_layer_needs_room_for_more_than_the_coarse_word():
@@ -271,6 +334,30 @@ def test_ours_code_corrects_byte_errors_and_refuses_beyond_its_capacity():
     assert blind.disparity_from_code(too_many, disparity.shape) is None
 
 
+def test_ours_code_decodes_beyond_its_capacity_when_the_wrong_bytes_are_the_least_reliable():
+    _, _, disparity = generated_scene((240, 320), seed=8)
+    bits = blind.disparity_code(disparity)
+    clean = blind.disparity_from_code(bits, disparity.shape)
+    rng = np.random.default_rng(10)
+    n_bytes = bits.size // 8
+    # 16 byte errors: beyond the 10 that plain decoding corrects, within the 20 erasures.
+    bytes_hit = rng.choice(n_bytes, 16, replace=False)
+    wrong_bits = bytes_hit * 8 + rng.integers(0, 8, bytes_hit.size)
+    received = bits.copy()
+    received[wrong_bits] ^= 1
+    assert blind._checked_body(received, bits.size) is None
+    reliability = np.full(bits.size, 0.9)
+    reliability[wrong_bits] = 0.1  # the copies disagreed on those bits
+    body = blind._erasure_decoded(received, reliability)
+    assert body is not None
+    np.testing.assert_array_equal(blind._compact_surface(body, disparity.shape), clean)
+    # Reliabilities that point at other bytes do not help.
+    elsewhere = np.setdiff1d(np.arange(n_bytes), bytes_hit)[:20]
+    misleading = np.full(bits.size, 0.9)
+    misleading[elsewhere * 8] = 0.1
+    assert blind._erasure_decoded(received, misleading) is None
+
+
 def test_ours_resynchronises_a_rotation_and_finds_nothing_in_a_rotated_unmarked_image():
     from stereo_coding_node.channel import rotate
 
@@ -279,7 +366,7 @@ def test_ours_resynchronises_a_rotation_and_finds_nothing_in_a_rotated_unmarked_
     assert not blind.decode(rotate(coded, 7.3), key='k').found  # without resynchronisation
     detection, angle = blind.decode_rotated(rotate(coded, 7.3), key='k', max_degrees=10.0)
     assert detection.found and abs(angle + 7.3) < 0.051
-    np.testing.assert_array_equal(detection.bits, blind.disparity_code(disparity))
+    np.testing.assert_array_equal(detection.bits, blind.disparity_code(disparity, left))
     unmarked, _ = blind.decode_rotated(rotate(left, 7.3), key='k', max_degrees=10.0)
     assert not unmarked.found
 
