@@ -611,6 +611,18 @@ def _remapped(prefix):
     return args
 
 
+def rig_chart_args(rig):
+    """calib_node's chart parameters for a generated rig's chart."""
+    return [
+        '-p',
+        f'chart.rows:={rig.rows}',
+        '-p',
+        f'chart.cols:={rig.cols}',
+        '-p',
+        f'chart.spacing:={rig.spacing}',
+    ]
+
+
 def test_generated_rig_stage_and_handheld(spawn, rclpy_node):
     """A generated rig unlike the shipped scenarios (rig_generator seed 24: 800 x 600
     pair, baseline 0.19 m, toed in 5 deg, right k1 -0.38, aux 640 x 480 f 400 px 33 deg
@@ -622,16 +634,7 @@ def test_generated_rig_stage_and_handheld(spawn, rclpy_node):
 
     rig = draw_rig(24, views=8)
     images = render_rig(rig, 24)
-    chart = [
-        '-p',
-        f'chart.rows:={rig.rows}',
-        '-p',
-        f'chart.cols:={rig.cols}',
-        '-p',
-        f'chart.spacing:={rig.spacing}',
-        '-p',
-        f'min_views:={len(images)}',
-    ]
+    chart = [*rig_chart_args(rig), '-p', f'min_views:={len(images)}']
     probe = Probe(rclpy_node)
     handheld = {'infos': {}, 'poses': {}}
     for name in CAMERA_NAMES:
@@ -726,12 +729,7 @@ def test_generated_fisheye_rig_is_fitted_and_published_equidistant(spawn, rclpy_
         [
             executable('calib_node'),
             '--ros-args',
-            '-p',
-            f'chart.rows:={rig.rows}',
-            '-p',
-            f'chart.cols:={rig.cols}',
-            '-p',
-            f'chart.spacing:={rig.spacing}',
+            *rig_chart_args(rig),
             '-p',
             f'min_views:={len(images)}',
             '-p',
@@ -786,12 +784,7 @@ def test_generated_charuco_rig_with_boards_cut_by_the_image_edges(spawn, rclpy_n
             '--ros-args',
             '-p',
             'chart.pattern:=charuco',
-            '-p',
-            f'chart.rows:={rig.rows}',
-            '-p',
-            f'chart.cols:={rig.cols}',
-            '-p',
-            f'chart.spacing:={rig.spacing}',
+            *rig_chart_args(rig),
         ]
     )
     probe = Probe(rclpy_node)

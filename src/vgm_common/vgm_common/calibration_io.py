@@ -259,29 +259,17 @@ def stereo_rectification(
             'supported are plumb_bob and rational_polynomial in any mix, or two equidistant',
             key='distortion_model',
         )
-    if models == ('equidistant', 'equidistant'):
-        # The rotations do not depend on the lenses; the rectified cameras are the pinhole
-        # window of the pair's central focal length (cv2.stereoRectify without distortion).
-        # cv2.fisheye.stereoRectify's own window comes from the image border, which a
-        # fisheye may see past 90 deg: focal lengths of 50 px for 300 px lenses, the
-        # principal point outside the image.
-        R1, R2, P1, P2, *_ = cv2.stereoRectify(
-            left.K,
-            np.zeros(5),
-            right.K,
-            np.zeros(5),
-            size,
-            T_right_left[:3, :3],
-            T_right_left[:3, 3].reshape(3, 1),
-            flags=cv2.CALIB_ZERO_DISPARITY,
-            alpha=alpha,
-        )
-        return {'left': (R1, P1), 'right': (R2, P2)}
+    # A fisheye pair: the rotations do not depend on the lenses; the rectified cameras are
+    # the pinhole window of the pair's central focal length (cv2.stereoRectify without
+    # distortion). cv2.fisheye.stereoRectify's own window comes from the image border, which
+    # a fisheye may see past 90 deg: focal lengths of 50 px for 300 px lenses, the principal
+    # point outside the image.
+    fisheye = models == ('equidistant', 'equidistant')
     R1, R2, P1, P2, *_ = cv2.stereoRectify(
         left.K,
-        left.D,
+        np.zeros(5) if fisheye else left.D,
         right.K,
-        right.D,
+        np.zeros(5) if fisheye else right.D,
         size,
         T_right_left[:3, :3],
         T_right_left[:3, 3].reshape(3, 1),
