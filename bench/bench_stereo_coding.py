@@ -413,9 +413,9 @@ def fit_study():
 
 
 def median_study():
-    """Which coefficient the 3x3 median destroys: the raw error rate of the copies on
-    each band of the coded image after ``cv2.medianBlur`` (at the blur gain that reads
-    it best), the coarse word's bits on its three bands, the fine word's on (0, 2)."""
+    """Which coefficient the 3x3 median destroys: the raw error rate of the copies in the
+    coded image after ``cv2.medianBlur`` (at the blur gain that reads them best): the
+    coarse word's block pairs, the fine word's bits on each of its bands."""
     scenes = {
         'Aloe (640x555)': aloe_scaled(640),
         'generated seed 1': generated_scene((480, 640), 1),
@@ -425,30 +425,40 @@ def median_study():
         _, coefficients = blind._band_coefficients(cv2.medianBlur(coded, 3))
         coarse = len(blind.BANDS)
         words = (
-            (blind.disparity_code(disparity, left), KEY, blind.DEFAULT_STEP, slice(0, coarse)),
             (
+                'coarse pairs',
+                blind.disparity_code(disparity, left),
+                KEY,
+                np.array([blind.PAIR_GAIN * blind.DEFAULT_STEP]),
+                slice(0, coarse),
+                True,
+            ),
+            (
+                'fine',
                 blind.fine_code(disparity, left),
                 blind._fine_key(KEY),
-                blind.FINE_STEP_RATIO * blind.DEFAULT_STEP,
+                np.array(blind.FINE_STEP_RATIOS) * blind.DEFAULT_STEP,
                 slice(coarse, None),
+                False,
             ),
         )
-        for bits, key, step, bands in words:
+        for name, bits, key, steps, bands, pairs in words:
             values = coefficients[..., bands]
-            slots = blind._slot_layout(values.shape, bits.size, key)
-            sent = bits[slots.bit_of_slot].reshape(values.shape)
-            frequencies = blind._BAND_FREQUENCIES[bands]
             rates = []
             for sigma in blind.BLUR_SIGMAS_PX:
-                gains = np.exp(-0.5 * (sigma * frequencies) ** 2)
-                phase = 2.0 * np.pi * ((values / gains).reshape(-1) / step - slots.dither)
-                wrong = ((np.cos(phase) < 0).reshape(values.shape) != sent).mean(axis=(0, 1))
-                rates.append((float(wrong.mean()), sigma, wrong))
-            _, sigma, wrong = min(rates, key=lambda r: r[0])
-            names = blind._ALL_BANDS[bands]
+                gains = np.exp(-0.5 * (sigma * blind._BAND_FREQUENCIES[bands]) ** 2)
+                slots, soft = blind._soft_copies(values, gains, bits.size, key, steps, pairs)
+                wrong = (soft < 0) != bits[slots.bit_of_slot]
+                per_band = wrong.reshape(values.shape[0], values.shape[1], -1).mean(axis=(0, 1))
+                rates.append((float(wrong.mean()), sigma, per_band))
+            _, sigma, per_band = min(rates, key=lambda r: r[0])
+            labels = ['(0, 1) + (1, 0)'] if pairs else [str(b) for b in blind._ALL_BANDS[bands]]
             print(
-                f'{scene}: median 3x3, raw error rate of the copies (blur gain {sigma} px): '
-                + ', '.join(f'{band} {rate:.3f}' for band, rate in zip(names, wrong, strict=True))
+                f'{scene}: median 3x3, {name}: raw error rate of the copies (blur gain '
+                f'{sigma} px): '
+                + ', '.join(
+                    f'{label} {rate:.3f}' for label, rate in zip(labels, per_band, strict=True)
+                )
             )
 
 
