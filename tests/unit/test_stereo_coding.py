@@ -335,6 +335,20 @@ def test_ours_code_corrects_byte_errors_and_refuses_beyond_its_capacity():
     assert blind.disparity_from_code(too_many, disparity.shape) is None
 
 
+@pytest.mark.parametrize('message_bytes', [10, 235, 236, 1380])
+def test_syndromes_vanish_on_code_words_only(message_bytes):
+    # The numpy syndromes that let a clean word skip reedsolo's decoder: zero on its
+    # code words (one to six 255-byte blocks, the last one short), not after any one
+    # byte error.
+    rng = np.random.default_rng(message_bytes)
+    word = bytes(blind._RS.encode(rng.integers(0, 256, message_bytes, np.uint8).tobytes()))
+    assert blind._syndromes_vanish(word)
+    for position in rng.choice(len(word), 30, replace=False):
+        damaged = bytearray(word)
+        damaged[position] ^= int(rng.integers(1, 256))
+        assert not blind._syndromes_vanish(bytes(damaged))
+
+
 def test_ours_code_decodes_beyond_its_capacity_when_the_wrong_bytes_are_the_least_reliable():
     _, _, disparity = generated_scene((240, 320), seed=8)
     bits = blind.disparity_code(disparity)
