@@ -543,7 +543,15 @@ def _guided_nodes(filled: FloatArray, cell_px: int, grey: npt.NDArray[np.float32
         weights=np.concatenate([per_cell(w * filled) for w in weights]),
         minlength=n_nodes,
     )
-    return _solved_symmetric_banded(normal, right_side.astype(float)).reshape(rows, cols)
+    # The matrix couples nodes up to two rows apart in the order rows are numbered:
+    # numbered column by column when the columns are the shorter side, its band is
+    # narrower (8-px nodes at 640x480: 124 against 164; 18 against 24 ms).
+    order = index.T.ravel() if cols > rows else index.ravel()
+    nodes = np.empty(n_nodes)
+    nodes[order] = _solved_symmetric_banded(
+        normal[order][:, order], right_side[order].astype(float)
+    )
+    return nodes.reshape(rows, cols)
 
 
 def _solved_symmetric_banded(matrix: scipy.sparse.spmatrix, right_side: FloatArray) -> FloatArray:
