@@ -117,9 +117,9 @@ FINE_STEP_RATIOS = (24.0 / 28.0, 1.0)  # each fine band's QIM step / ``step``
 @dataclass(frozen=True)
 class Detection:
     """What the decoder found. ``found``: the CRC matched. ``confidence``: mean agreement
-    of the coarse word's copies with the decided bits, 1 = clean, about 1/sqrt(copies)
-    for no mark. ``raw_ber``: fraction of its copies that disagree with the decided bit
-    (channel errors).
+    of the coarse word's copies with the decided bits, 1 = clean, about 1/sqrt(pi copies)
+    for no mark (0.28 at ~4.5 copies). ``raw_ber``: fraction of its copies that disagree
+    with the decided bit (channel errors).
     ``disparity_px``: (H, W) float64 [px], NaN where unknown; None when not found:
     the fine layer's surface when it decoded (``fine``), else the coarse cells.
     ``bits``: the coarse layer's code word as received."""
