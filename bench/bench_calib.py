@@ -36,6 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from vgm_evaluation.bench_report import save_figure, write_results
 
 from calib_node.calibrate import calibrate_rig
 from calib_node.chart_detection import chart_points
@@ -428,10 +429,7 @@ def plot_sweep(results, directory):
                 ax.grid(True, alpha=0.3)
         axes[0, 0].legend(fontsize=7)
         fig.tight_layout()
-        path = directory / f'{name}.png'
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
-        written.append(path.name)
+        written.append(save_figure(fig, directory / f'{name}.png', dpi=90).name)
     return written
 
 
@@ -538,9 +536,7 @@ def uncertainty_check(rigs, draws):
         '',
         *lines,
     ]
-    (RESULTS / 'uncertainty.md').write_text('\n'.join(lines) + '\n')
-    (RESULTS / 'uncertainty.json').write_text(json.dumps(rows, indent=1))
-    print('\n'.join(lines))
+    write_results(RESULTS, 'uncertainty', lines, rows)
 
 
 def gauge_check(rigs, draws, sigma):
@@ -561,6 +557,7 @@ def gauge_check(rigs, draws, sigma):
         'held to the charts: predicted / true, median | worst |',
         '|---|---|---|---|---|---|---|',
     ]
+    rows = []
     for seed in range(rigs):
         rig = draw_rig(seed, names)
         chart = chart_points(rig.rows, rig.cols, rig.spacing)
@@ -608,6 +605,18 @@ def gauge_check(rigs, draws, sigma):
                 )
         for name, grid in grids.items():
             rms = {k: np.sqrt(np.mean(np.square(v), axis=0)) for k, v in grid.items()}
+            rows.append(
+                {
+                    'rig': seed,
+                    'views': len(rig.T_base_chart),
+                    'camera': name,
+                    **{
+                        f'{gauge} {figure.__name__} [px]': float(figure(value))
+                        for gauge, value in rms.items()
+                        for figure in (np.median, np.max)
+                    },
+                }
+            )
 
             def pair(a, b, figure, rms=rms):
                 return f'{figure(rms[a]):.3f} / {figure(rms[b]):.3f}'
@@ -635,8 +644,7 @@ def gauge_check(rigs, draws, sigma):
         '',
         *lines,
     ]
-    (RESULTS / 'gauge.md').write_text('\n'.join(lines) + '\n')
-    print('\n'.join(lines))
+    write_results(RESULTS, 'gauge', lines, rows)
 
 
 def mrcal_check(python, path, rigs):
@@ -666,10 +674,7 @@ def mrcal_check(python, path, rigs):
         '',
         *rig_lines,
     ]
-    (RESULTS / 'mrcal.md').write_text('\n'.join(lines) + '\n')
-    summary['rigs'] = rig_rows
-    (RESULTS / 'mrcal.json').write_text(json.dumps(summary, indent=1, default=float))
-    print('\n'.join(lines))
+    write_results(RESULTS, 'mrcal', lines, {**summary, 'rigs': rig_rows})
 
 
 def main():
@@ -714,7 +719,6 @@ def main():
         '--mrcal-path', default='/tmp/mrcal', help='where mrcal is installed (pip --target)'
     )
     args = parser.parse_args()
-    RESULTS.mkdir(parents=True, exist_ok=True)
     if args.gauge:
         gauge_check(args.gauge, args.draws, args.sigma)
         return
@@ -823,19 +827,16 @@ def main():
         lines += ['', f'## Generated rigs: {args.rigs} rigs, rendered charts', '']
         lines += rig_lines
     lines += ['', f'Bench run time: {time.perf_counter() - started:.0f} s.']
-    (RESULTS / 'calib.md').write_text('\n'.join(lines) + '\n')
-    (RESULTS / 'calib.json').write_text(
-        json.dumps(
-            {
-                'table_4_3': noise_free,
-                'sweep': {str(k): v for k, v in results.items()},
-                'scenario': scenario_rows,
-            },
-            indent=1,
-            default=float,
-        )
+    write_results(
+        RESULTS,
+        'calib',
+        lines,
+        {
+            'table_4_3': noise_free,
+            'sweep': {str(k): v for k, v in results.items()},
+            'scenario': scenario_rows,
+        },
     )
-    print('\n'.join(lines))
 
 
 if __name__ == '__main__':

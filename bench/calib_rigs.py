@@ -6,7 +6,13 @@ import time
 
 import cv2
 import numpy as np
-from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig, with_edge_views
+from vgm_evaluation.rig_generator import (
+    draw_rig,
+    render_rig,
+    score_rig,
+    true_corners,
+    with_edge_views,
+)
 
 from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import calibrate_rig, stage_uncertainty
@@ -536,6 +542,98 @@ def uncertainty_table(count, draws):
     return lines, rows
 
 
+def corner_bias_table(seeds, draws):
+    """Where the stage uncertainty misses come from: per camera of the generated rigs
+    ``seeds``, rendered ``draws`` times, the detected corners' error against the true
+    projection split into the part every rendering repeats (the mean over the draws: the
+    detector's bias on this rendering) and the rest (the image noise); then the stage
+    calibration (plumb_bob k1 k2, as the truth) predicted against true projection error at
+    the working range on the detected corners, and on the true corners plus only the
+    repeated part. Markdown lines and rows."""
+    rows = []
+    for seed in seeds:
+        rig = draw_rig(seed)
+        chart = chart_points(rig.rows, rig.cols, rig.spacing)
+        truth = true_corners(rig)
+        renders = [detect_views(rig, render_rig(rig, seed + 1000 * d)) for d in range(draws)]
+        repeated = [
+            {
+                n: t[n] + np.mean([r[k][n] - t[n] for r in renders], axis=0)
+                for n in rig.cameras
+                if all(n in r[k] for r in renders)
+            }
+            for k, t in enumerate(truth)
+        ]
+
+        def stage(views, rig=rig, chart=chart):
+            observations = stage_observations(rig, views)
+            fits = calibrate_rig(
+                observations,
+                'lm',
+                view_size=len(chart),
+                fit_tangential=False,
+                distortion_model='plumb_bob',
+            ).fits
+            u = stage_uncertainty(fits, observations)
+            out = {}
+            for n, f in fits.items():
+                c = rig.cameras[n]
+                error = true_projection_error(
+                    c.K,
+                    c.D,
+                    np.linalg.inv(c.T_base_camera),
+                    f.K,
+                    f.D,
+                    np.linalg.inv(f.T_base_camera),
+                    (c.width, c.height),
+                    u.range_m[n],
+                )
+                out[n] = (np.mean(u.grid_px[n] ** 2), np.mean(error**2))
+            return out
+
+        detected = [stage(views) for views in renders]
+        bias_only = stage(repeated)
+        for n in rig.cameras:
+            seen = [k for k, view in enumerate(repeated) if n in view]
+            errors = np.array([[r[k][n] - truth[k][n] for k in seen] for r in renders])
+            common = errors.mean(axis=0)
+            pred = np.sqrt(np.mean([d[n][0] for d in detected]))
+            true = np.sqrt(np.mean([d[n][1] for d in detected]))
+            rows.append(
+                {
+                    'rig': seed,
+                    'camera': n,
+                    'corner_error_px': float(np.sqrt(np.mean(np.sum(errors**2, axis=-1)))),
+                    'repeated_px': float(np.sqrt(np.mean(np.sum(common**2, axis=-1)))),
+                    'random_px': float(np.sqrt(np.mean(np.sum((errors - common) ** 2, -1)))),
+                    'predicted_px': float(pred),
+                    'true_px': float(true),
+                    'bias_only_predicted_px': float(np.sqrt(bias_only[n][0])),
+                    'bias_only_true_px': float(np.sqrt(bias_only[n][1])),
+                }
+            )
+        print(f'rig {seed} done', flush=True)
+    lines = [
+        f'Stage calibration (plumb_bob k1 k2), {draws} renderings per rig. Corner errors '
+        'RMS [px] against the true projection: all, the part every rendering repeats, the '
+        'rest. Projection at the working range, RMS over the grid [px]: predicted / true on '
+        'the detected corners (RMS over the draws), and on the true corners plus the '
+        'repeated part alone.',
+        '',
+        '| rig | camera | corner error | repeated | random | predicted / true | ratio | '
+        'repeated part alone: predicted / true |',
+        '|---|---|---|---|---|---|---|---|',
+    ]
+    for r in rows:
+        lines.append(
+            f'| {r["rig"]} | {r["camera"]} | {r["corner_error_px"]:.4f} | '
+            f'{r["repeated_px"]:.4f} | {r["random_px"]:.4f} | {r["predicted_px"]:.4f} / '
+            f'{r["true_px"]:.4f} | {r["predicted_px"] / r["true_px"]:.2f} | '
+            f'{r["bias_only_predicted_px"]:.4f} / {r["bias_only_true_px"]:.4f} |'
+        )
+    return lines, rows
+
+
 def charuco_run(seed, edge_views=4):
     """One generated rig shown as a chessboard and as a ChArUco board at the same poses
     (its views plus ``edge_views`` cut by an image edge: with_edge_views), handheld:
@@ -601,20 +699,30 @@ def main():
     """``python bench/calib_rigs.py [rigs]``: bench/results/calib/rigs.md and rigs.json;
     ``python bench/calib_rigs.py charuco [rigs]``: charuco.md and charuco.json;
     ``python bench/calib_rigs.py lenses [rigs]``: lenses.md and lenses.json (rigs per
-    lens model)."""
+    lens model); ``python bench/calib_rigs.py bias [rigs [draws]]``: bias.md and bias.json
+    (:func:`corner_bias_table`)."""
     import sys
     from pathlib import Path
 
     from vgm_evaluation.bench_report import write_results
 
-    kind = sys.argv[1] if len(sys.argv) > 1 and sys.argv[1] in ('charuco', 'lenses') else ''
+    kinds = ('charuco', 'lenses', 'bias')
+    kind = sys.argv[1] if len(sys.argv) > 1 and sys.argv[1] in kinds else ''
     arguments = sys.argv[2:] if kind else sys.argv[1:]
-    count = int(arguments[0]) if arguments else {'charuco': 3, 'lenses': 5, '': 10}[kind]
-    table = {'charuco': charuco_table, 'lenses': lens_table, '': rigs_table}[kind]
-    lines, results = table(count)
+    count = (
+        int(arguments[0]) if arguments else {'charuco': 3, 'lenses': 5, 'bias': 5, '': 10}[kind]
+    )
+    if kind == 'bias':  # rigs 0..count-1, draws
+        draws = int(arguments[1]) if len(arguments) > 1 else 3
+        lines, results = corner_bias_table(range(count), draws)
+        count = f'{count} {draws}'
+    else:
+        table = {'charuco': charuco_table, 'lenses': lens_table, '': rigs_table}[kind]
+        lines, results = table(count)
     title = {
         'charuco': 'ChArUco and chessboard on generated rigs',
         'lenses': 'Rational and fisheye lenses',
+        'bias': "The corner detector's repeated error and the stage uncertainty",
         '': 'calib_node on generated rigs',
     }[kind]
     command = f'bench/calib_rigs.py {kind + " " if kind else ""}{count}'

@@ -231,6 +231,8 @@ def test_calibrates_the_default_scenario_and_round_trips(spawn, rclpy_node, tmp_
         for kind in ('residuals', 'coverage', 'uncertainty', 'cross_validation'):
             image = cv2.imread(str(out_dir / f'{name}_{kind}.png'))
             assert image is not None and image.shape == (480, 640, 3), (name, kind)
+    pair = cv2.imread(str(out_dir / 'rectified_pair.png'))  # left and right side by side
+    assert pair is not None and pair.shape == (480, 1280, 3) and pair.std() > 10
     saved = yaml.safe_load((out_dir / 'calibration.yaml').read_text())['cameras']
     for name in CAMERA_NAMES:
         quality = saved[name]['quality']

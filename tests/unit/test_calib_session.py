@@ -11,7 +11,7 @@ import pytest
 from vgm_evaluation.rig_generator import draw_rig, render_rig, score_rig
 
 from calib_node.calibrate import CalibrationError
-from calib_node.plots import PLOT_SIZE_PX, write_plots
+from calib_node.plots import PAIR_SIZE_PX, PLOT_SIZE_PX, rectified_pixels, write_plots
 from calib_node.session import (
     CalibrationSession,
     NotReady,
@@ -217,16 +217,34 @@ def test_calibration_waits_for_views_that_determine_the_cameras(rig_and_images, 
         calibration.residuals,
         uncertainty,
         cross,
+        (calibration.cameras, calibration.rectification),
+        calibration.stereo_corners,
     )
     kinds = ('residuals', 'coverage', 'uncertainty', 'cross_validation')
     assert sorted(p.name for p in written) == sorted(
-        f'{n}_{k}.png' for n in CAMERAS for k in kinds
+        ['rectified_pair.png', *(f'{n}_{k}.png' for n in CAMERAS for k in kinds)]
     )
     for path in written:
         assert path.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
         image = cv2.imread(str(path))
-        assert image is not None and image.shape[1::-1] == PLOT_SIZE_PX, path
+        size = PAIR_SIZE_PX if path.name == 'rectified_pair.png' else PLOT_SIZE_PX
+        assert image is not None and image.shape[1::-1] == size, path
         assert image.std() > 10  # drawn, not blank
+    # The rectified pair: every view saw both cameras, and on the rectified rows the left
+    # and right corners agree (rendered corners, a rig calibrated to ~0.02 px).
+    assert len(calibration.stereo_corners) == len(images)
+    rows = np.concatenate(
+        [
+            rectified_pixels(calibration.cameras['left'], *calibration.rectification['left'], lv)[
+                :, 1
+            ]
+            - rectified_pixels(
+                calibration.cameras['right'], *calibration.rectification['right'], rv
+            )[:, 1]
+            for lv, rv in calibration.stereo_corners
+        ]
+    )
+    assert np.sqrt(np.mean(rows**2)) < 0.1
     # The residuals drawn are the fit's: their RMS is the camera's reprojection RMS.
     for name in CAMERAS:
         errors = np.concatenate([r for _, r in calibration.residuals[name]])

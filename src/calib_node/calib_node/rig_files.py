@@ -57,7 +57,8 @@ class Written:
     def summary(self, names: tuple[str, ...]) -> str:
         """The log line of what was written for the cameras ``names``."""
         pictures = (
-            f' and {len(self.plots)} PNGs (residuals, coverage, uncertainty, cross-validation)'
+            f' and {len(self.plots)} PNGs (residuals, coverage, uncertainty, '
+            'cross-validation, rectified pair)'
             if self.plots
             else ''
         )
@@ -85,6 +86,8 @@ def write_rig(output_dir: str | Path, calibration: Calibration) -> Written:
             calibration.residuals,
             calibration.uncertainty,
             calibration.cross_validation,
+            (calibration.cameras, calibration.rectification),
+            calibration.stereo_corners,
         )
     except (OSError, ImportError, ValueError) as error:
         return Written(written, [], str(error))

@@ -285,6 +285,8 @@ class Calibration(NamedTuple):
     # The two halves of the views against each other; None: fewer than 2 * MIN_HALF_VIEWS
     # views, or a half that does not calibrate (a camera missing from it).
     cross_validation: CrossValidation | None = None
+    # [(left (N, 2), right (N, 2)) corners of each view both saw, NaN rows for unseen] [px]
+    stereo_corners: tuple[tuple[FloatArray, FloatArray], ...] = ()
 
     def quality(self) -> dict[str, dict[str, float | int]]:
         """Per camera: reprojection RMS [px], corner count, views and the predicted
@@ -630,6 +632,11 @@ class CalibrationSession:
             uncertainty,
             residuals,
             cross_validation,
+            tuple(
+                (corners['left'], corners['right'])
+                for _, corners in views
+                if 'left' in corners and 'right' in corners
+            ),
         )
 
     def _cross_validate(
