@@ -60,6 +60,9 @@ REPO = Path(__file__).resolve().parents[1]
 for package in ('pa10_ik_node', 'sensor_sim', 'vgm_common'):
     sys.path.insert(0, str(REPO / 'src' / package))
 
+from pa10_dls_peer import PEER_SPEED, DlsPeer  # noqa: E402
+from pa10_goals import GOALS, meets_goals  # noqa: E402
+from pa10_ik_topics import main_over_topics  # noqa: E402
 from vgm_evaluation.bench_report import markdown_table, save_figure, write_results  # noqa: E402
 
 from pa10_ik_node.ik import RateSolver, pose_error  # noqa: E402
@@ -323,13 +326,6 @@ CASE_METHODS = {
     'dls_plain': ('dls', np.ones(7), {'pose_integral_gain': 0.0, 'adapt_response': False}),
     'primal_dual': ('primal_dual', W_THESIS, {}),
 }
-GOALS = {
-    'rms_mm': 0.05,
-    'passed_fraction': 0.99,
-    'force_p95_pct': 3.0,
-    'step_ms_median': 1.0,
-    'stop_latency_ms': 10.0,
-}
 
 
 def run_case(built, method, stop_at_progress=None):
@@ -356,22 +352,6 @@ def run_case(built, method, stop_at_progress=None):
     )
     row.update(phase=controller.phase, stage=controller.stage, reason=controller.reason)
     return row
-
-
-def meets_goals(row):
-    """Which issue-13 goals a finished case misses ([] = all met)."""
-    missed = []
-    if row['phase'] != 'done' or row['stage'] != 'lifted':
-        return [f'ended {row["phase"]}: {row["reason"]}']
-    if not row['rms_mm'] < GOALS['rms_mm']:
-        missed.append(f'rms {row["rms_mm"]:.3f} mm')
-    if not row['passed_fraction'] > GOALS['passed_fraction']:
-        missed.append(f'passed {row["passed_fraction"] * 100:.1f} %')
-    if not row['force_p95_pct'] < GOALS['force_p95_pct']:
-        missed.append(f'force p95 {row["force_p95_pct"]:.2f} %')
-    if row['velocity_ratio'] > 1 + 1e-9 or row['limit_margin_rad'] < 0:
-        missed.append('a joint limit')
-    return missed
 
 
 def main_cases(seed=13, random_arms=2):
@@ -644,90 +624,7 @@ ROBOT_DATA_COLUMNS = (
 
 
 PACE_OUT = REPO / 'bench' / 'results' / 'pa10_ik_pace'
-PEER_SPEED = 0.03  # [m/s] the issue's peer: a 0.8 m lemniscate in 27.6 s
 PACE_PATH_LENGTH = 0.8  # [m]
-
-
-class DlsPeer:
-    """A conventional damped-least-squares contact-tracking controller (the issue's
-    peer), with its own phases and no governor: free move (pose feedback, 0.05 m/s) to
-    ``standoff`` above the first waypoint, descent at ``descent_speed`` until the force
-    reaches the desired one (from a start already touching: straight to the descent),
-    the reference on the clock at ``speed`` along the path at the depth
-    desired / stiffness + an integral of the force error, lift-off. Same spin-free task,
-    joint-limit clamping and velocity limits as ours (``RateSolver('dls')``)."""
-
-    def __init__(self, robot, waypoints, desired, stiffness, speed=PEER_SPEED):
-        from pa10_ik_node.path import WaypointPath
-
-        self.robot, self.path = robot, WaypointPath(waypoints)
-        self.desired, self.stiffness, self.speed = desired, stiffness, speed
-        self.solver = RateSolver('dls', np.ones(robot.n_joints))
-        self.velocity_limits = np.minimum(robot.velocity_limits, 1.0)
-        self.phase, self.stage, self.progress, self.reason = 'approach', 'free', 0.0, ''
-        self.s = self.reference_depth = self.integral = self.lifted = 0.0
-
-    def stop(self, reason='stop requested'):
-        self.phase, self.reason = 'stopped', reason
-
-    def _target(self, s, depth):
-        P, z, tangent = self.path.sample(s % self.path.length if self.path.closed else s)
-        x = tangent - z * np.dot(z, tangent)
-        x /= np.linalg.norm(x)
-        T = np.eye(4)
-        T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
-        T[:3, 3] = P + depth * z
-        return T, z, x
-
-    def step(self, q, force, dt):
-        from pa10_ik_node.tracking import spin_free_task, tilt_error
-
-        T = self.robot.forward_kinematics(q)
-        standoff, descent_speed, lift_height = 0.03, 0.01, 0.03
-        feed_forward, free = np.zeros(6), False
-        P0, z0, _ = self.path.sample(0.0)
-        if self.stage == 'free' and force >= 0.05 * self.desired:
-            offset = T[:3, 3] - P0
-            if np.linalg.norm(offset - z0 * np.dot(offset, z0)) < 0.002:  # touching at P0
-                self.stage, self.reference_depth = 'descend', float(np.dot(offset, z0))
-        if self.phase == 'approach' and self.stage == 'free':
-            T_d, _, _ = self._target(0.0, -standoff)
-            free = True
-            if np.linalg.norm(T_d[:3, 3] - T[:3, 3]) < 0.001:
-                self.stage, self.reference_depth = 'descend', -standoff
-        elif self.phase == 'approach':
-            if force >= self.desired:
-                self.phase, self.s = 'tracking', 0.0
-                self.integral = self.reference_depth - self.desired / self.stiffness
-            else:
-                self.reference_depth += descent_speed * dt
-                feed_forward[:3] = descent_speed * self.path.sample(0.0)[1]
-            T_d, _, _ = self._target(0.0, self.reference_depth)
-        if self.phase == 'tracking':
-            self.integral += 5.0 * (self.desired - force) / self.stiffness * dt
-            self.s = min(self.s + self.speed * dt, self.path.length)
-            self.progress = self.s / self.path.length
-            T_d, _, x = self._target(self.s, self.desired / self.stiffness + self.integral)
-            feed_forward[:3] = self.speed * x if self.s < self.path.length else 0.0
-            if self.s >= self.path.length:
-                self.phase, self.stage, self.T_end = 'done', 'lifting', T_d
-        if self.phase == 'done':
-            self.lifted = min(self.lifted + descent_speed * dt, lift_height)
-            T_d = self.T_end.copy()
-            T_d[:3, 3] -= self.lifted * T_d[:3, 2]
-            lifted = float(np.dot(self.T_end[:3, 3] - T[:3, 3], T_d[:3, 2]))
-            if lifted >= lift_height - 0.0005:
-                self.stage = 'lifted'
-        error = pose_error(T, T_d)
-        error[3:] = tilt_error(T[:3, :3], T_d[:3, 2])
-        twist = feed_forward + 10.0 * error
-        if free and np.linalg.norm(twist[:3]) > 0.05:
-            twist[:3] *= 0.05 / np.linalg.norm(twist[:3])
-        J, task = spin_free_task(self.robot.jacobian(q), twist, T_d)
-        qdot, _ = self.solver.solve_limited(
-            J, task, q, self.robot.lower_limits, self.robot.upper_limits, self.velocity_limits
-        )
-        return qdot, {'phase': self.phase}
 
 
 def pace_case(tilt_deg=20.0, seed=25):
@@ -895,8 +792,6 @@ def main_pace():
 def main_part_alone():
     """Run the part the command line names alone (C-F); False if it names none."""
     if '--over-topics' in sys.argv:
-        from pa10_ik_topics import main_over_topics
-
         main_over_topics(sys.argv[1:])
     elif '--pace' in sys.argv:
         main_pace()

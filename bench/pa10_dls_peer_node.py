@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """The damped-least-squares peer over topics, for bench_pa10_ik.py --over-topics only
-(never installed, no product node): ``DlsPeer`` of bench_pa10_ik.py closing the loop on
+(never installed, no product node): ``DlsPeer`` of pa10_dls_peer.py closing the loop on
 the topics pa10_ik_node uses, so both run against the same sensor_sim processes.
 
 In: /curve/waypoints (latched), /joint_states, /tool/pressure (the tip frame's force.z).
@@ -30,7 +30,7 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_pa10_ik import PEER_SPEED, DlsPeer  # noqa: E402
+from pa10_dls_peer import PEER_SPEED, DlsPeer  # noqa: E402
 
 from pa10_ik_node.path import validate_waypoints  # noqa: E402
 from vgm_common.conversions import matrix_to_pose_stamped, path_to_matrices  # noqa: E402

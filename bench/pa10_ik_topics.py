@@ -30,6 +30,8 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / 'tests'))
+from pa10_dls_peer import PEER_SPEED  # noqa: E402
+from pa10_goals import GOALS, meets_goals  # noqa: E402
 from vgm_evaluation.bench_report import markdown_table, save_figure, write_results  # noqa: E402
 
 from harness import NodeProcess, executable, next_ros_env, small_scenario  # noqa: E402
@@ -191,8 +193,6 @@ class Refused(Exception):
 
 def run_one(built, controller, condition, directory, ours_params=()):
     """One run of ``controller`` on the built case under the arm ``condition``; the row."""
-    from bench_pa10_ik import meets_goals
-
     scale, delay = CONDITIONS[condition]
     urdf = Path(directory) / f'{built.spec.arm.name}.urdf'
     template = yaml.safe_load(small_scenario(Path(directory)).read_text())
@@ -423,8 +423,6 @@ COLUMNS = (
 
 
 def write_tables(rows, argv, seed):
-    from bench_pa10_ik import GOALS, PEER_SPEED
-
     command = 'nice -n 10 .venv/bin/python bench/bench_pa10_ik.py ' + ' '.join(argv)
     met = {c: sum(not r[c]['missed'] for r in rows) for c in ('ours', 'peer')}
     ratios = np.array([r['time_ratio'] for r in rows], dtype=float)

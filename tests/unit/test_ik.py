@@ -211,12 +211,12 @@ def test_bad_shapes_raise():
 
 
 def test_the_fast_paths_of_the_control_step_give_the_same_bits():
-    """pa10_ik_node.tracking.cross is np.cross's arithmetic on (3,) vectors, and
+    """pa10_ik_node.ik.cross is np.cross's arithmetic on (3,) vectors, and
     pose_error on orthonormal rotations skips scipy's orthogonalisation without changing
     a bit; a rotation that is not orthonormal still goes through it."""
     from scipy.spatial.transform import Rotation
 
-    from pa10_ik_node.tracking import cross
+    from pa10_ik_node.ik import cross
 
     rng = np.random.default_rng(3)
     for _ in range(200):

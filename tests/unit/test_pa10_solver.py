@@ -6,9 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pa10_ik_node.ik import RateSolver, closed_form_velocity, pose_error
+from pa10_ik_node.ik import RateSolver, closed_form_velocity, pose_error, spin_free_task
 from pa10_ik_node.problem import kkt_velocity, null_space_positive
-from pa10_ik_node.tracking import spin_free_task
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import make_transform, rot_x
 from vgm_common.robot_model import load_robot

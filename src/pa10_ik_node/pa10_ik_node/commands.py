@@ -1,8 +1,10 @@
-"""The joint commands of a control loop, as pa10_ik_node sends them: one trajectory point
+"""The joint commands of a control loop, as pa10_ik_node sends them: a trajectory point
 ``positions`` at ``horizon`` moving at ``velocities`` (joint_trajectory_controller's
-convention), each continuing the previous command's set point and led by the arm's
-measured lag. ``TrackingSession`` sends them; the offline closed loop of the tests and
-benches (vgm_evaluation.task_generator.run_closed_loop) sends the same.
+convention), each continuing the previous command's set point (if asked, sent as a first
+point at time 0, so the arm's set point does not restart from where a lagging arm is)
+and, if asked, led by the arm's measured lag. ``TrackingSession`` sends them; the offline closed
+loop of the tests and benches (vgm_evaluation.task_generator.run_closed_loop) sends the
+same.
 """
 
 from __future__ import annotations
@@ -28,12 +30,22 @@ MIN_MEASURED_SPEED = 1e-3
 
 
 class JointCommand(NamedTuple):
-    """One trajectory point: ``positions`` (n,) [rad] at ``horizon`` [s] from now, moving
-    at ``velocities`` (n,) [rad/s] (horizon 0: a hold, at once)."""
+    """A trajectory to ``positions`` (n,) [rad] at ``horizon`` [s] from now, moving at
+    ``velocities`` (n,) [rad/s] (horizon 0: a hold, at once), from ``set_point`` (n,)
+    [rad] at once (a first point at time 0, moving at ``velocities`` too) or, None, from
+    wherever the arm is (joint_trajectory_controller interpolates from its state)."""
 
     positions: FloatArray
     velocities: FloatArray
     horizon: float
+    set_point: FloatArray | None = None
+
+    def points(self) -> list[tuple[float, FloatArray, FloatArray]]:
+        """The trajectory's points: (time_from_start [s], positions (n,), velocities (n,))."""
+        end = (self.horizon, self.positions, self.velocities)
+        if self.set_point is None:
+            return [end]
+        return [(0.0, self.set_point, self.velocities), end]
 
 
 class SetPointCommands:
@@ -54,8 +66,16 @@ class SetPointCommands:
     by that too overshot, in process 0.0073 -> 0.0111 mm RMS with 50 ms of delay).
     """
 
-    def __init__(self, compensate_lag: bool = False, covered_lag: float = 0.0) -> None:
+    def __init__(
+        self, compensate_lag: bool = False, covered_lag: float = 0.0, send_set_point: bool = False
+    ) -> None:
         self.compensate_lag = compensate_lag
+        # The set point continued as a first point at time 0 (pa10_ik_node's parameter
+        # send_set_point): joint_trajectory_controller then does not restart each command
+        # from where a lagging arm is (a half-speed arm trailed a ramp 44 ms, with it one
+        # arm step, 5 ms). Off by default: over topics on the loaded machine one of four
+        # half-speed runs failed with it (README, "What misses its goal").
+        self.send_set_point = send_set_point
         self.covered_lag = covered_lag
         # (time sent [s], the command without the lead): the set point continued
         self.nominal: tuple[float, JointCommand] | None = None
@@ -123,7 +143,13 @@ class SetPointCommands:
         """The moving command at ``now`` [s]: joint velocities ``qdot`` (n,) [rad/s]
         from the continued set point, its point ``horizon`` [s] ahead plus the lag."""
         previous = self.nominal
-        nominal = JointCommand(self.anchor(q, now) + qdot * horizon, qdot, horizon)
+        start = self.anchor(q, now)
+        nominal = JointCommand(
+            start + qdot * horizon,
+            qdot,
+            horizon,
+            start if self.send_set_point and previous is not None else None,
+        )
         if self._smoothed is None or previous is None or self.lag <= 0:
             self._smoothed = qdot.copy()
         else:
@@ -131,6 +157,10 @@ class SetPointCommands:
                 1.0 - float(np.exp(-max(now - previous[0], 0.0) / self.lag))
             )
         lead = max(self.lag - self.covered_lag, 0.0) if self.compensate_lag else 0.0
-        sent = nominal._replace(positions=nominal.positions + self._smoothed * lead)
+        shift = self._smoothed * lead
+        sent = nominal._replace(
+            positions=nominal.positions + shift,
+            set_point=None if nominal.set_point is None else nominal.set_point + shift,
+        )
         self.nominal, self.sent = (now, nominal), (now, sent)
         return sent

@@ -1,8 +1,9 @@
 """Redundant inverse kinematics of the PA-10 at the velocity level (ALGORITHMS.md §6.5):
 ours (``closed_form_velocity`` with ``adaptive_damping``), damped least squares as the
 reference (``dls_velocity``), and ``RateSolver``, which runs the ``method`` a node asks for
-(the thesis's network is in ``thesis``; the problem and its KKT solution in ``problem``).
-No ROS here.
+(the thesis's network is in ``thesis``; the problem and its KKT solution in ``problem``);
+the task-space errors the solvers are given (``pose_error``, ``tilt_error``) and the
+spin-free task (``spin_free_task``). No ROS here.
 """
 
 from __future__ import annotations
@@ -62,6 +63,38 @@ def pose_error(T_current: npt.ArrayLike, T_desired: npt.ArrayLike) -> FloatArray
     orthonormal = bool(np.abs(R_error @ R_error.T - np.eye(3)).max() < ORTHONORMAL_TOLERANCE)
     orientation_error = Rotation.from_matrix(R_error, assume_valid=orthonormal).as_rotvec()
     return np.concatenate([position_error, orientation_error])
+
+
+def cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """a x b of two (3,) vectors: np.cross's products and differences (the same bits)
+    without its axis handling, which took a sixth of a control step."""
+    return np.array(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def spin_free_task(
+    J: FloatArray, twist: FloatArray, T_desired: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """The 5 constraints that leave the spin about the desired approach axis free.
+
+    The angular rows are expressed in the desired frame's (x, y, z) and the z row is
+    dropped. Returns (J (5, n), twist (5,)).
+    """
+    R = T_desired[:3, :3]
+    J5 = np.vstack([J[:3], R[:, :2].T @ J[3:]])
+    return J5, np.concatenate([twist[:3], R[:, :2].T @ twist[3:]])
+
+
+def tilt_error(R_current: FloatArray, approach_desired: FloatArray) -> FloatArray:
+    """Rotation vector (3,) [rad] turning the tool's z axis onto ``approach_desired``."""
+    z = R_current[:, 2]
+    axis = cross(z, approach_desired)
+    norm = np.linalg.norm(axis)
+    angle = np.arctan2(norm, np.dot(z, approach_desired))
+    if norm < 1e-12:
+        return np.zeros(3) if angle < 1.0 else R_current[:, 0] * np.pi
+    return axis / norm * angle
 
 
 # --- The solver the node uses: "ours" (closed-form KKT), the seed's network, DLS -------

@@ -1,13 +1,13 @@
 """pa10_ik_node: follow /curve/waypoints with the arm's tool tip, pressing with a set force.
 
 Closed loop at ``rate`` on /joint_states and /tool/pressure; joint commands out on
-/pa10_controller/joint_trajectory (one point, positions and velocities, a short
-time_from_start: the joint_trajectory_controller convention), the measured tool pose on
-/tool_pose. The task (approach, contact, tracking, done; stopped, failed) is
-``tracking.TrackingController``, run by ``session.TrackingSession`` between messages;
-the parameters are the fields of ``settings.ArmSettings``, ``SolverSettings``,
-``LoopSettings`` and ``tracking.TrackingConfig``. This file only declares parameters,
-converts messages and wires them.
+/pa10_controller/joint_trajectory (positions and velocities at a short time_from_start,
+after the set point continued at time 0 if ``send_set_point``: the
+joint_trajectory_controller convention), the measured tool pose on /tool_pose. The task
+(approach, contact, tracking, done; stopped, failed) is ``tracking.TrackingController``,
+run by ``session.TrackingSession`` between messages; the parameters are the fields of
+``settings.ArmSettings``, ``SolverSettings``, ``LoopSettings`` and
+``tracking.TrackingConfig``. This file only declares parameters, converts messages and wires them.
 """
 
 from builtin_interfaces.msg import Duration
@@ -193,14 +193,17 @@ class Pa10IkNode(GraphNode):
     def _send(self, command: JointCommand | None) -> None:
         if command is None:
             return
-        point = JointTrajectoryPoint(
-            positions=command.positions.tolist(),
-            velocities=command.velocities.tolist(),
-            time_from_start=_seconds_to_duration(command.horizon),
-        )
+        points = [
+            JointTrajectoryPoint(
+                positions=positions.tolist(),
+                velocities=velocities.tolist(),
+                time_from_start=_seconds_to_duration(time_from_start),
+            )
+            for time_from_start, positions, velocities in command.points()
+        ]
         # A zero stamp: start now (joint_trajectory_controller convention).
         self.command_publisher.publish(
-            JointTrajectory(joint_names=list(self.robot.joint_names), points=[point])
+            JointTrajectory(joint_names=list(self.robot.joint_names), points=points)
         )
 
     def on_internal_error(self, what: str, error: Exception) -> None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from pa10_ik_node.ik import RateSolver, pose_error
+from pa10_ik_node.ik import RateSolver, pose_error, spin_free_task, tilt_error
 from vgm_common.geometry import FloatArray
 from vgm_common.robot_model import RobotModel
 
@@ -54,8 +54,6 @@ def first_unreachable(
     next one (a step along the path). Only the approach axis (z) of a target counts
     unless ``track_spin``.
     """
-    from pa10_ik_node.tracking import spin_free_task, tilt_error
-
     solver = RateSolver('ours', np.ones(robot.n_joints))
     lower, upper = robot.lower_limits, robot.upper_limits
     steps = np.full(robot.n_joints, MAX_JOINT_STEP_RAD)
@@ -110,8 +108,6 @@ def joints_at(
     axis; the spin free), walked from ``q_start`` (n,) [rad] within the joint limits as
     ``first_unreachable`` walks; None if not within ``tolerance_m`` [m] and 1e-6 rad in
     ``iterations``. (Where a run left the arm, e.g. pressing at a path's first waypoint.)"""
-    from pa10_ik_node.tracking import spin_free_task, tilt_error
-
     solver = RateSolver('ours', np.ones(robot.n_joints))
     steps = np.full(robot.n_joints, MAX_JOINT_STEP_RAD)
     T_d = np.asarray(T_desired, dtype=float)

@@ -328,6 +328,7 @@ class TrackingSession:
             self.commands.measure(q, self.joint_state_time)
             self.commands.covered_lag = controller.config.command_latency
             self.commands.compensate_lag = self.settings.lead_arm_lag
+            self.commands.send_set_point = self.settings.send_set_point
             command = self.commands.command(q, qdot, now, self.settings.command_horizon)
         return ControlOutput(info['T'], command)
 

@@ -183,6 +183,12 @@ class LoopSettings:
         "Command one measured arm lag ahead (q + lag * qdot; the lag of the arm's "
         'joint states behind the set points sent, diagnostics arm_lag_ms, at most 0.1 s).',
     )
+    send_set_point: bool = setting(
+        False,
+        'Send each moving command with the set point continued from the previous one as '
+        'a first point at time 0 (else one point: the controller interpolates from the '
+        "arm's state, which a lagging arm trails by several control steps).",
+    )
     auto_start: bool = setting(
         False, 'Start as soon as valid waypoints, joint states and pressure are there.'
     )

@@ -22,21 +22,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from pa10_ik_node.ik import RateSolver, pose_error
+from pa10_ik_node.ik import RateSolver, cross, pose_error, spin_free_task, tilt_error
 from pa10_ik_node.path import WaypointPath
 from pa10_ik_node.reach import first_unreachable, spaced_indices
 from vgm_common.errors import InvalidInput
 from vgm_common.geometry import FloatArray
 from vgm_common.robot_model import RobotModel, workspace_reach
 from vgm_common.settings import setting
-
-
-def cross(a: FloatArray, b: FloatArray) -> FloatArray:
-    """a x b of two (3,) vectors: np.cross's products and differences (the same bits)
-    without its axis handling, which took a sixth of a control step."""
-    return np.array(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
 
 
 def _unit(v: npt.ArrayLike, key: str) -> FloatArray:
@@ -293,30 +285,6 @@ class TrackingStats:
             float(np.sqrt(np.mean(np.square(self.position_errors)))),
             float(np.max(np.abs(self.force_errors))),
         )
-
-
-def spin_free_task(
-    J: FloatArray, twist: FloatArray, T_desired: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """The 5 constraints that leave the spin about the desired approach axis free.
-
-    The angular rows are expressed in the desired frame's (x, y, z) and the z row is
-    dropped. Returns (J (5, n), twist (5,)).
-    """
-    R = T_desired[:3, :3]
-    J5 = np.vstack([J[:3], R[:, :2].T @ J[3:]])
-    return J5, np.concatenate([twist[:3], R[:, :2].T @ twist[3:]])
-
-
-def tilt_error(R_current: FloatArray, approach_desired: FloatArray) -> FloatArray:
-    """Rotation vector (3,) [rad] turning the tool's z axis onto ``approach_desired``."""
-    z = R_current[:, 2]
-    axis = cross(z, approach_desired)
-    norm = np.linalg.norm(axis)
-    angle = np.arctan2(norm, np.dot(z, approach_desired))
-    if norm < 1e-12:
-        return np.zeros(3) if angle < 1.0 else R_current[:, 0] * np.pi
-    return axis / norm * angle
 
 
 class TrackingController:

@@ -352,6 +352,7 @@ def run_closed_loop(
     horizon: float = 0.05,
     node_commands: bool = True,
     lead_arm_lag: bool = False,
+    send_set_point: bool = False,
     initial_force: float | None = 0.0,
     before_step: Callable[[float, FloatArray], None] | None = None,
     finished: Callable[[TrackingControllerLike], bool] = lifted,
@@ -363,7 +364,8 @@ def run_closed_loop(
     Control every ``dt`` [s], the arm stepped ``substeps`` times per period, the command
     as pa10_ik_node sends it (``node_commands``: pa10_ik_node.commands.SetPointCommands,
     the point ``horizon`` [s] ahead of the previous command's set point, led by the
-    arm's measured lag if ``lead_arm_lag``, the node's parameter; false: ``q + qdot
+    arm's measured lag if ``lead_arm_lag``, the set point sent at time 0 if
+    ``send_set_point``, the node's parameters; false: ``q + qdot
     horizon`` from the measured joints, as the DLS peer node sends it; a hold at time 0
     once the controller stopped or failed), reaching the arm ``command_delay_steps``
     periods late (none before the first: the arm holds; a slow controller or network).
@@ -394,7 +396,9 @@ def run_closed_loop(
         initial_force = pressure(contact_force(tip, surface, stiffness).force)
     force = initial_force
     names = robot.joint_names
-    commands = SetPointCommands(lead_arm_lag) if node_commands else None
+    commands = (
+        SetPointCommands(lead_arm_lag, send_set_point=send_set_point) if node_commands else None
+    )
     # Before the first command arrives the arm holds where it is.
     on_the_way = [JointCommand(arm.q, np.zeros(robot.n_joints), horizon)] * command_delay_steps
     in_force = np.zeros(robot.n_joints)  # [rad/s] the velocity of the command in force
@@ -417,9 +421,8 @@ def run_closed_loop(
         else:
             on_the_way.append(_command(commands, controller, q, qdot, t, horizon))
             arriving = on_the_way.pop(0)
-            arm.set_trajectory(
-                names, [horizon], [arriving.positions], [arriving.velocities], start_time=t
-            )
+            times, positions, velocities = zip(*arriving.points())
+            arm.set_trajectory(names, times, positions, velocities, start_time=t)
             in_force = arriving.velocities
         for _ in range(substeps):
             t += dt / substeps
