@@ -73,8 +73,9 @@ class SetPointCommands:
         # The set point continued as a first point at time 0 (pa10_ik_node's parameter
         # send_set_point): joint_trajectory_controller then does not restart each command
         # from where a lagging arm is (a half-speed arm trailed a ramp 44 ms, with it one
-        # arm step, 5 ms). Off by default: over topics on the loaded machine one of four
-        # half-speed runs failed with it (README, "What misses its goal").
+        # arm step, 5 ms). Off by default: over topics on a loaded machine (load 3-7) it
+        # did not lower the half-speed RMS, and one of four half-speed runs failed with it
+        # (bench_pa10_ik.py --over-topics --only 2,5,8,11 --ours send_set_point:=true).
         self.send_set_point = send_set_point
         self.covered_lag = covered_lag
         # (time sent [s], the command without the lead): the set point continued
