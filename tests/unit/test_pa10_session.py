@@ -302,7 +302,8 @@ def test_lead_arm_lag_sends_the_set_point_one_measured_lag_ahead(session, scenar
         nominal = session.commands.nominal[1]
         assert session.controller.phase == 'approach', session.controller.reason
         lag = session.commands.lag
-        assert 0.9 * MAX_LAG_S < lag <= MAX_LAG_S
+        # (0.089 s since the gains fall with the lag: the commands' speeds change more)
+        assert 0.8 * MAX_LAG_S < lag <= MAX_LAG_S
         ahead = sent.positions - nominal.positions
         if lead_on:  # along the (smoothed) joint speeds, which hardly change here
             np.testing.assert_allclose(ahead, lag * sent.velocities, rtol=0.05, atol=1e-6)

@@ -315,6 +315,7 @@ class TrackingSession:
         assert self.joint_state_time is not None  # set with q
         if now - self.joint_state_time > OLD_JOINT_STATE_S:
             return ControlOutput(self.robot.forward_kinematics(q), None)
+        controller.arm_lag = self.commands.lag
         started = time.perf_counter()
         qdot, info = controller.step(q, self.force, dt)
         self.step_times.append(time.perf_counter() - started)

@@ -16,6 +16,7 @@ reference pose and its feed-forward twist into joint velocities through ``RateSo
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -139,7 +140,21 @@ def tilted_motion(
 
 FORCE_LAWS = ('integral', 'tilt')
 MIN_RESPONSE = 0.4  # commands are scaled up at most 2.5 times (_compensated)
+# The pose feedback's loop gain times the arm's uncovered lag the response scaling may
+# reach: a loop whose only lag is a delay tau stays stable for gain x tau < pi / 2; at 1 it
+# keeps 33 degrees of phase margin. A delayed arm also looks slow (it makes less of a
+# changing command in time), and scaling up for that made a loop that had run at 10 / s
+# x 0.1 s oscillate and stall (the full graph on a loaded machine, in process with
+# commands 0.15 s late: failed, done without scaling).
+MAX_GAIN_LAG = 0.5
+# [s] The lag the gains are set for falls with this time constant after the measured one
+# (it rises at once): the estimate dips while the arm's motion turns, and each dip let the
+# full gains back in (over topics, force swings of 1.5-10 N within 2 s of each).
+LAG_HOLD_S = 60.0
 RESPONSE_WINDOW = 1.0  # [s] forgetting time of the response estimate
+# [s] the commands kept to compare the arm's motion with: command_latency's range and
+# the measured arm lag's (commands.MAX_LAG_S)
+SENT_HISTORY_S = 0.6
 MAX_INTEGRAL_SPEEDS = 1.0  # see TrackingConfig.pose_integral_gain
 REACH_CHECK_SPACING_M = 0.002  # waypoints walked through before the arm moves
 # [m] the descent reference runs at max_tip_speed until it is this far short of the first
@@ -301,6 +316,9 @@ class TrackingController:
     Attributes:
         phase: one of ``PHASES``; reason: why the controller stopped or failed ('' else).
         progress: 0..1 along the path (tracking); stats: ``TrackingStats``.
+        arm_lag: [s] the arm's measured lag behind the commands, kept up to date by the
+            caller (pa10_ik_node.commands.SetPointCommands.lag): the gains are set for
+            it (``_lag_gain_scale``).
     """
 
     def __init__(
@@ -322,6 +340,8 @@ class TrackingController:
         self.shoulder, self.reach = workspace_reach(robot)
         self.phase, self.reason = 'idle', ''
         self.path: WaypointPath | None = None
+        self.arm_lag = 0.0
+        self.held_lag = 0.0  # [s] the lag the gains are set for (LAG_HOLD_S)
         self._reset_state()
 
     def _reset_state(self) -> None:
@@ -345,6 +365,8 @@ class TrackingController:
         self.last_tip_velocity: FloatArray | None = None
         # (dt [s], qdot (n,), tip velocity (3,)) of the commands within command_latency
         self.pending: list[tuple[float, FloatArray, FloatArray]] = []
+        # (dt [s], tip velocity (3,)) of the commands of the last SENT_HISTORY_S, newest last
+        self.sent_tip_velocities: deque[tuple[float, FloatArray]] = deque()
         self.solver.reset()
 
     def configure(self, **changes: Any) -> None:
@@ -515,6 +537,7 @@ class TrackingController:
             return np.zeros(self.robot.n_joints), info
         T_d, feed_forward, free_move = target
         info.update(phase=self.phase, T_desired=T_d)
+        self.held_lag = max(self.arm_lag, self.held_lag * float(np.exp(-dt / LAG_HOLD_S)))
         self._update_response(T[:3, 3], dt)
         q_ahead = self._predicted(q)
         T_ahead = T if q_ahead is q else self.robot.forward_kinematics(q_ahead)
@@ -526,6 +549,9 @@ class TrackingController:
         J = J_ahead if q_ahead is q else self.robot.jacobian(q)
         self.last_tip, self.last_tip_velocity = T[:3, 3].copy(), (J @ qdot)[:3]
         self._remember_command(qdot, self.last_tip_velocity, dt)
+        self.sent_tip_velocities.append((dt, self.last_tip_velocity))
+        while sum(step for step, _ in self.sent_tip_velocities) > SENT_HISTORY_S:
+            self.sent_tip_velocities.popleft()
         info['response'] = self.response
         return qdot, info
 
@@ -557,13 +583,16 @@ class TrackingController:
     def _update_response(self, tip: FloatArray, dt: float) -> None:
         """Estimate how much of the commanded tip motion the arm makes (1: all of it; an
         arm slower than commanded less): the measured tip's displacement along the
-        velocity commanded a step before, over the commanded distance, both summed with
+        velocity commanded the arm's lag before, over the commanded distance, both summed with
         a forgetting time of ``RESPONSE_WINDOW`` (a delayed or jittery measurement
         averages out), counted only while the command moves the tip fast enough to
         measure."""
         c = self.config
-        # The motion measured now answers the command sent command_latency ago.
-        v = self.pending[0][2] if self.pending else self.last_tip_velocity
+        # The motion measured now answers the command sent the arm's lag ago (measured, or
+        # command_latency): compared with the newest command instead, a delayed arm looked
+        # slow wherever the command turned (over topics, 0.8 -> 0.4 within a second on a
+        # bend, and scaled up it oscillated).
+        v = self._tip_velocity_sent_before(max(self.arm_lag, c.command_latency))
         if self.last_tip is None or v is None or dt <= 0 or not c.adapt_response:
             return
         speed = float(np.linalg.norm(v))
@@ -575,11 +604,34 @@ class TrackingController:
         if commanded > 0.3 * self.path_speed * RESPONSE_WINDOW / 2:  # enough motion to judge
             self.response = float(np.clip(made / commanded, MIN_RESPONSE, 1.0))
 
+    def _lag_gain_scale(self) -> float:
+        """How far the pose feedback's gain may be scaled and stay stable over the arm's
+        lag the predictor does not cover: MAX_GAIN_LAG / (pose_gain x that lag); inf
+        without one. Below 1 the pose and force gains are scaled down by it together (the
+        force law's loop stays slower than the pose loop it acts through); above 1 it
+        bounds the response scaling."""
+        c = self.config
+        uncovered_lag = self.held_lag - max(c.command_latency, 0.0)
+        return MAX_GAIN_LAG / (c.pose_gain * uncovered_lag) if uncovered_lag > 0 else np.inf
+
+    def _tip_velocity_sent_before(self, lag: float) -> FloatArray | None:
+        """(3,) [m/s] The tip velocity of the command sent ``lag`` [s] before the newest
+        (the oldest kept, if longer ago); None before any."""
+        age = 0.0
+        for step, velocity in reversed(self.sent_tip_velocities):
+            if age >= lag - 1e-9:
+                return velocity
+            age += step
+        return self.sent_tip_velocities[0][1] if self.sent_tip_velocities else None
+
     def _compensated(self, qdot: FloatArray) -> FloatArray:
-        """qdot scaled up by 1 / response, within the velocity limits."""
-        if self.response >= 1.0:
+        """qdot scaled up by 1 / response, no more than keeps the pose loop stable over
+        the arm's lag the predictor does not cover (MAX_GAIN_LAG), within the velocity
+        limits."""
+        scale = min(1.0 / self.response, max(1.0, self._lag_gain_scale()))
+        if scale <= 1.0:
             return qdot
-        scaled = qdot / self.response
+        scaled = qdot * scale
         over = np.max(np.abs(scaled) / self.velocity_limits)
         return scaled / over if over > 1.0 else scaled
 
@@ -648,13 +700,22 @@ class TrackingController:
             and float(np.linalg.norm(tilt_error(T[:3, :3], z0))) < IN_CONTACT_MAX_TILT_RAD
         )
 
+    def _force_law_depth(self, force: float, dt: float) -> float:
+        """[m] The integral force law's depth (``approach_correction``) after ``dt`` [s]
+        at the measured ``force`` [N], its gain scaled down with the pose gain's over a
+        lagging arm (``_lag_gain_scale``)."""
+        c = self.config
+        gain = c.force_gain * min(1.0, self._lag_gain_scale())
+        depth, self.integral = approach_correction(
+            self.integral, force, c.desired_force, c.stiffness, dt, gain, c.max_depth
+        )
+        return depth
+
     def _contact_reference(self, T: FloatArray, force: float, dt: float) -> _Reference | None:
         """Contact: hold the first waypoint at the force law's depth until the force has
         settled in its band (or ``contact_timeout``), then start tracking."""
         c = self.config
-        depth, self.integral = approach_correction(
-            self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain, c.max_depth
-        )
+        depth = self._force_law_depth(force, dt)
         P0, z0, _ = self._sample(0.0)
         in_band = abs(force - c.desired_force) <= c.force_tolerance * c.desired_force
         self.settled_time = self.settled_time + dt if in_band else 0.0
@@ -675,9 +736,7 @@ class TrackingController:
         assert path is not None  # tracking runs on the started path
         tip = T[:3, 3]
         if c.force_law != 'tilt':
-            self.depth, self.integral = approach_correction(
-                self.integral, force, c.desired_force, c.stiffness, dt, c.force_gain, c.max_depth
-            )
+            self.depth = self._force_law_depth(force, dt)
         remaining = path.length - self.travelled
         speed = min(self.path_speed, self._bend_speed()) * min(
             1.0, max(self.time_in_phase / c.ramp_time, 0.05)
@@ -932,7 +991,7 @@ class TrackingController:
         error = pose_error(T, T_d)
         if not c.track_spin:
             error[3:] = tilt_error(T[:3, :3], T_d[:3, 2])
-        twist = feed_forward + c.pose_gain * error
+        twist = feed_forward + c.pose_gain * min(1.0, self._lag_gain_scale()) * error
         if not (self.phase == 'tracking' and self.reference_moving):
             # Only while the reference moves: at the path's end or while it waits for the
             # tip, a held integral would push the tip on past its reference.

@@ -316,6 +316,7 @@ class TrackingControllerLike(Protocol):
     progress: float  # fraction of the path tracked
     phase: str  # 'approach', 'contact', 'tracking', 'done', 'stopped', 'failed', ...
     stage: str  # within the phase, e.g. 'lifted' once done
+    arm_lag: float  # [s] the arm's measured lag, set before each step with node_commands
 
     def stop(self, reason: str = ...) -> None:
         """Hold still from now on (``phase`` becomes 'stopped'); ``reason`` says why."""
@@ -461,6 +462,7 @@ def _command(
     if commands is None:
         return JointCommand(q + qdot * horizon, qdot, horizon)
     commands.measure(q, t)
+    controller.arm_lag = commands.lag  # for its next step, as pa10_ik_node's session
     # pa10_ik_node's predictor compensates this much of the lag (as in the node)
     config = getattr(controller, 'config', None)
     commands.covered_lag = getattr(config, 'command_latency', 0.0)
