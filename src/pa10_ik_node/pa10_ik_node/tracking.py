@@ -141,11 +141,11 @@ def tilted_motion(
 FORCE_LAWS = ('integral', 'tilt')
 MIN_RESPONSE = 0.4  # commands are scaled up at most 2.5 times (_compensated)
 # The pose feedback's loop gain times the arm's uncovered lag the response scaling may
-# reach: a loop whose only lag is a delay tau stays stable for gain x tau < pi / 2; at 1 it
-# keeps 33 degrees of phase margin. A delayed arm also looks slow (it makes less of a
-# changing command in time), and scaling up for that made a loop that had run at 10 / s
-# x 0.1 s oscillate and stall (the full graph on a loaded machine, in process with
-# commands 0.15 s late: failed, done without scaling).
+# reach: a loop whose only lag is a delay tau stays stable for gain x tau < pi / 2; at 0.5
+# it keeps 61 degrees of phase margin (1 rang at 2-2.5 Hz over topics). A delayed arm
+# also looks slow (it makes less of a changing command in time), and scaling up for that
+# made a loop that had run at 10 / s x 0.1 s oscillate and stall (the full graph on a
+# loaded machine, in process with commands 0.15 s late: failed, done without scaling).
 MAX_GAIN_LAG = 0.5
 # [s] The lag the gains are set for falls with this time constant after the measured one
 # (it rises at once): the estimate dips while the arm's motion turns, and each dip let the
@@ -363,8 +363,8 @@ class TrackingController:
         self.response_sums = np.zeros(2)  # [m] (made, commanded), see _update_response
         self.last_tip: FloatArray | None = None
         self.last_tip_velocity: FloatArray | None = None
-        # (dt [s], qdot (n,), tip velocity (3,)) of the commands within command_latency
-        self.pending: list[tuple[float, FloatArray, FloatArray]] = []
+        # (dt [s], qdot (n,)) of the commands within command_latency
+        self.pending: list[tuple[float, FloatArray]] = []
         # (dt [s], tip velocity (3,)) of the commands of the last SENT_HISTORY_S, newest last
         self.sent_tip_velocities: deque[tuple[float, FloatArray]] = deque()
         self.solver.reset()
@@ -548,7 +548,7 @@ class TrackingController:
         # The solve's Jacobian where it was at q (no latency assumed): computed once.
         J = J_ahead if q_ahead is q else self.robot.jacobian(q)
         self.last_tip, self.last_tip_velocity = T[:3, 3].copy(), (J @ qdot)[:3]
-        self._remember_command(qdot, self.last_tip_velocity, dt)
+        self._remember_command(qdot, dt)
         self.sent_tip_velocities.append((dt, self.last_tip_velocity))
         while sum(step for step, _ in self.sent_tip_velocities) > SENT_HISTORY_S:
             self.sent_tip_velocities.popleft()
@@ -567,17 +567,17 @@ class TrackingController:
         the last ``command_latency``); ``q`` itself when no latency is assumed."""
         if self.config.command_latency <= 0 or not self.pending:
             return q
-        ahead = q + sum(step * qdot for step, qdot, _ in self.pending)
+        ahead = q + sum(step * qdot for step, qdot in self.pending)
         return np.clip(ahead, self.robot.lower_limits, self.robot.upper_limits)
 
-    def _remember_command(self, qdot: FloatArray, tip_velocity: FloatArray, dt: float) -> None:
+    def _remember_command(self, qdot: FloatArray, dt: float) -> None:
         """Keep the commands of the last ``command_latency`` for ``_predicted``."""
         latency = self.config.command_latency
         if latency <= 0 or dt <= 0:
             self.pending = []
             return
-        self.pending.append((dt, qdot.copy(), tip_velocity))
-        while sum(step for step, _, _ in self.pending) > latency + 1e-9:
+        self.pending.append((dt, qdot.copy()))
+        while sum(step for step, _ in self.pending) > latency + 1e-9:
             self.pending.pop(0)
 
     def _update_response(self, tip: FloatArray, dt: float) -> None:
