@@ -558,9 +558,12 @@ class TrackingController:
     def _governor_distance(self) -> float:
         """[m] How far the measured tip may trail its reference before the reference
         waits: ``governor_distance`` plus what the tip moves at max_tip_speed within the
-        ``command_latency`` (the commands on their way)."""
+        arm's lag (the commands on their way: ``command_latency``, or the lag measured
+        if longer). Without the measured lag a reference 3 mm ahead of an arm 0.1 s late
+        at 0.03 m/s stopped and went every 0.1-0.2 s (over topics: its feed-forward on
+        and off, commanded joint speeds 16 <-> 35 mrad/s, force swings of +-1.3 N)."""
         c = self.config
-        return c.governor_distance + c.max_tip_speed * max(c.command_latency, 0.0)
+        return c.governor_distance + c.max_tip_speed * max(c.command_latency, self.held_lag)
 
     def _predicted(self, q: FloatArray) -> FloatArray:
         """The measured joints ``q`` advanced by the commands still on their way (those of
