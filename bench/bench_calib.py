@@ -544,11 +544,16 @@ def gauge_check(rigs, draws, sigma):
     each against the true error in its own gauge: handheld bundle adjustment of generated
     stereo rigs (exact corners plus Gaussian noise ``sigma`` [px], ``draws`` each);
     gauge.md."""
-    from vgm_evaluation.rig_generator import draw_rig, true_corners
+    from vgm_evaluation.rig_generator import (
+        camera_in_frame,
+        draw_rig,
+        true_corners,
+        true_projection_error,
+        true_projection_error_chart_fixed,
+    )
 
     from calib_node.bundle import bundle_adjust
     from calib_node.chart_detection import chart_points
-    from calib_node.uncertainty import true_projection_error, true_projection_error_chart_fixed
 
     started = time.perf_counter()
     names = ('left', 'right')
@@ -578,29 +583,18 @@ def gauge_check(rigs, draws, sigma):
                 chart, views, sizes, fit_tangential=False, hold_to_charts=False
             )
             for name, fit in held.fits.items():
-                true = rig.cameras[name]
-                T = np.linalg.inv(fit.T_base_camera)
+                true = camera_in_frame(
+                    rig.cameras[name].K, rig.cameras[name].D, truth[name], sizes[name]
+                )
+                calibrated = fit.camera(sizes[name])
                 range_m = held.uncertainty.range_m[name]
                 grid = grids[name]
                 grid['left'].append(floating.uncertainty.grid_px[name])
                 grid['charts'].append(held.uncertainty.grid_px[name])
-                grid['true left'].append(
-                    true_projection_error(
-                        true.K, true.D, truth[name], fit.K, fit.D, T, sizes[name], range_m
-                    )
-                )
+                grid['true left'].append(true_projection_error(true, calibrated, range_m))
                 grid['true charts'].append(
                     true_projection_error_chart_fixed(
-                        true.K,
-                        true.D,
-                        truth[name],
-                        T_left_chart,
-                        fit.K,
-                        fit.D,
-                        T,
-                        held.T_ref_chart,
-                        sizes[name],
-                        range_m,
+                        true, T_left_chart, calibrated, held.T_ref_chart, range_m
                     )
                 )
         for name, grid in grids.items():

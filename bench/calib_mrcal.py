@@ -14,8 +14,8 @@ ours (``uncertainty.rig_uncertainty``, the point held to the charts) beside mrca
 (``mrcal.projection_uncertainty``, 'mean-pcam', run by ``mrcal_peer.py``), both as
 sqrt(trace) of the 2 x 2 covariance. On generated rigs also the errors against the truth
 and the true projection error at the working range in the left camera's frame
-(``uncertainty.true_projection_error``) and held to the charts
-(``uncertainty.true_projection_error_chart_fixed``, each tool's own chart poses). And the
+(``rig_generator.true_projection_error``) and held to the charts
+(``rig_generator.true_projection_error_chart_fixed``, each tool's own chart poses). And the
 cross-validation of ours (``cross_validation``) beside mrcal's (``mrcal.projection_diff``
 of its calibrations of the same two halves).
 
@@ -41,7 +41,13 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 from calib_rigs import detect_views, opencv_rig
-from vgm_evaluation.rig_generator import draw_rig, render_rig
+from vgm_evaluation.rig_generator import (
+    camera_in_frame,
+    draw_rig,
+    render_rig,
+    true_projection_error,
+    true_projection_error_chart_fixed,
+)
 
 from calib_node.bundle import bundle_adjust_selected
 from calib_node.chart_detection import chart_points, detect_chessboard
@@ -49,8 +55,6 @@ from calib_node.cross_validation import compare_halves, split_chart_views
 from calib_node.uncertainty import (
     GRID,
     image_grid,
-    true_projection_error,
-    true_projection_error_chart_fixed,
 )
 from vgm_common.sample_data import STEREO_CALIBRATION_IDS, opencv_sample_dir
 
@@ -406,29 +410,15 @@ def rig_table(count, mrcal):
             for tool in TOOLS:
                 s = solutions[tool][name]
                 errors = np.abs(s['K'] - true.K)[[0, 1, 0, 1], [0, 1, 2, 2]]
-                projection = true_projection_error(
-                    true.K,
-                    true.D,
-                    truth[name]['T_camera_ref'],
-                    s['K'],
-                    s['D'],
-                    s['T_camera_ref'],
-                    sizes[name],
-                    range_m,
+                true_in_frame = camera_in_frame(
+                    true.K, true.D, truth[name]['T_camera_ref'], sizes[name]
                 )
+                calibrated = camera_in_frame(s['K'], s['D'], s['T_camera_ref'], sizes[name])
+                projection = true_projection_error(true_in_frame, calibrated, range_m)
                 held = ''
                 if 'T_ref_chart' in s:
                     fixed = true_projection_error_chart_fixed(
-                        true.K,
-                        true.D,
-                        truth[name]['T_camera_ref'],
-                        T_left_chart,
-                        s['K'],
-                        s['D'],
-                        s['T_camera_ref'],
-                        s['T_ref_chart'],
-                        sizes[name],
-                        range_m,
+                        true_in_frame, T_left_chart, calibrated, s['T_ref_chart'], range_m
                     )
                     held = f'{fixed.max():.2f} / {np.median(fixed):.2f}'
                 baseline_error = abs(baseline(solutions[tool]) - true_baseline) * 1e6

@@ -7,17 +7,19 @@ import time
 import cv2
 import numpy as np
 from vgm_evaluation.rig_generator import (
+    camera_in_frame,
     draw_rig,
     render_rig,
     score_rig,
     true_corners,
+    true_projection_error,
+    true_projection_error_chart_fixed,
     with_edge_views,
 )
 
 from calib_node.bundle import bundle_adjust_selected
 from calib_node.calibrate import calibrate_rig, stage_uncertainty
 from calib_node.chart_detection import CharucoChart, chart_points, detect_chessboard
-from calib_node.uncertainty import true_projection_error, true_projection_error_chart_fixed
 from vgm_common.camera_model import DISTORTION_SIZES, PinholeCamera
 from vgm_common.geometry import make_transform
 
@@ -462,24 +464,14 @@ def uncertainty_table(count, draws):
             for mode, (u, cameras, truth, charts) in _uncertainty_runs(rig, views).items():
                 c = collected[mode]
                 for name, true in rig.cameras.items():
-                    K, D, T = cameras[name]
+                    calibrated = camera_in_frame(*cameras[name], sizes[name])
+                    true_in_frame = camera_in_frame(true.K, true.D, truth[name], sizes[name])
                     range_m = u.range_m[name]
                     error = (
-                        true_projection_error(
-                            true.K, true.D, truth[name], K, D, T, sizes[name], range_m
-                        )
+                        true_projection_error(true_in_frame, calibrated, range_m)
                         if charts is None
                         else true_projection_error_chart_fixed(
-                            true.K,
-                            true.D,
-                            truth[name],
-                            charts[0],
-                            K,
-                            D,
-                            T,
-                            charts[1],
-                            sizes[name],
-                            range_m,
+                            true_in_frame, charts[0], calibrated, charts[1], range_m
                         )
                     )
                     c['pred'].setdefault(name, []).append(u.grid_px[name])
@@ -578,16 +570,7 @@ def corner_bias_table(seeds, draws):
             out = {}
             for n, f in fits.items():
                 c = rig.cameras[n]
-                error = true_projection_error(
-                    c.K,
-                    c.D,
-                    np.linalg.inv(c.T_base_camera),
-                    f.K,
-                    f.D,
-                    np.linalg.inv(f.T_base_camera),
-                    (c.width, c.height),
-                    u.range_m[n],
-                )
+                error = true_projection_error(c, f.camera((c.width, c.height)), u.range_m[n])
                 out[n] = (np.mean(u.grid_px[n] ** 2), np.mean(error**2))
             return out
 

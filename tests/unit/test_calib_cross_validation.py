@@ -6,20 +6,23 @@ aligned by the fitted transform). The halves' projection difference is what thei
 true errors add up to, and at least twice the full calibration's true error (each half
 has half the data)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
-from vgm_evaluation.rig_generator import draw_rig, true_corners
+from vgm_evaluation.rig_generator import (
+    draw_rig,
+    true_corners,
+    true_projection_error,
+    true_projection_error_chart_fixed,
+)
 
 from calib_node.bundle import bundle_adjust
 from calib_node.calibrate import calibrate_rig
 from calib_node.chart_detection import chart_points
 from calib_node.coverage import view_parameters
 from calib_node.cross_validation import compare_halves, rigid_fit, split_views
-from calib_node.uncertainty import (
-    true_projection_error,
-    true_projection_error_chart_fixed,
-    working_range,
-)
+from calib_node.uncertainty import working_range
 from vgm_common.geometry import invert_transform, make_transform, rpy_to_matrix
 
 SEED, SIGMA_PX, DRAWS = 2, 0.2, 6
@@ -100,17 +103,7 @@ def test_stage_halves_differ_as_their_errors_add_up(rig):
         ).fits
         return {n: fits[n].camera((c.width, c.height)) for n, c in rig.cameras.items()}
 
-    def error(true, camera, range_m):  # in base_link, where both halves are solved
-        return true_projection_error(
-            true.K,
-            true.D,
-            invert_transform(true.T_base_camera),
-            camera.K,
-            camera.D,
-            invert_transform(camera.T_base_camera),
-            (true.width, true.height),
-            range_m,
-        )
+    error = true_projection_error  # in base_link, where both halves are solved
 
     ranges = {n: 0.0 for n in rig.cameras}
     results = {n: ([], ([], []), []) for n in rig.cameras}
@@ -136,9 +129,11 @@ def test_stage_halves_differ_as_their_errors_add_up(rig):
 def test_handheld_halves_differ_as_their_errors_add_up(rig):
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
-    T_base_left = rig.cameras['left'].T_base_camera
-    truth = {n: invert_transform(c.T_base_camera) @ T_base_left for n, c in rig.cameras.items()}
-    T_left_chart = [invert_transform(T_base_left) @ T for T in rig.T_base_chart]
+    T_left_base = invert_transform(rig.cameras['left'].T_base_camera)
+    truth = {  # in the left camera's frame, the handheld reference
+        n: replace(c, T_base_camera=T_left_base @ c.T_base_camera) for n, c in rig.cameras.items()
+    }
+    T_left_chart = [T_left_base @ T for T in rig.T_base_chart]
 
     def calibrate(views, indices):
         result = bundle_adjust(chart, [views[i] for i in indices], sizes, fit_tangential=False)
@@ -147,18 +142,8 @@ def test_handheld_halves_differ_as_their_errors_add_up(rig):
 
     def error(name, solution, range_m):  # held to the charts, as the uncertainty
         camera, result, charts_true = solution[0][name], solution[1], solution[2]
-        true = rig.cameras[name]
         return true_projection_error_chart_fixed(
-            true.K,
-            true.D,
-            truth[name],
-            charts_true,
-            camera.K,
-            camera.D,
-            invert_transform(camera.T_base_camera),
-            result.T_ref_chart,
-            sizes[name],
-            range_m,
+            truth[name], charts_true, camera, result.T_ref_chart, range_m
         )
 
     results = {n: ([], ([], []), []) for n in rig.cameras}

@@ -6,14 +6,20 @@ repeated calibrations, of the projection error (true camera vs calibrated); the 
 likewise. Handheld (bundle adjustment, the point held fixed to the charts) and stage (one
 camera at a time, the point fixed in base_link) alike."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
-from vgm_evaluation.rig_generator import draw_rig, true_corners
+from vgm_evaluation.rig_generator import (
+    draw_rig,
+    true_corners,
+    true_projection_error,
+    true_projection_error_chart_fixed,
+)
 
 from calib_node.bundle import bundle_adjust
 from calib_node.calibrate import calibrate_rig, stage_uncertainty
 from calib_node.chart_detection import chart_points
-from calib_node.uncertainty import true_projection_error, true_projection_error_chart_fixed
 from vgm_common.geometry import invert_transform
 
 SEED, SIGMA_PX, DRAWS = 2, 0.05, 30
@@ -40,24 +46,20 @@ def _noisy(rig, draw):
 
 
 def _check(rig, runs, true_error=None):
-    """runs: [(uncertainty, {name: (K, D, T_camera_ref)}, {name: true T_camera_ref})];
-    ``true_error(run index, name, range_m)``: the true projection error grid, by default
-    with the point fixed in the reference frame."""
-    sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
+    """runs: [(uncertainty, {name: calibrated camera}, {name: true camera})], the cameras'
+    poses in the calibration's reference frame; ``true_error(run index, name, range_m)``:
+    the true projection error grid, by default with the point fixed in that frame."""
     true_baseline = np.linalg.norm(
         rig.cameras['left'].centre_base - rig.cameras['right'].centre_base
     )
-    for name, true in rig.cameras.items():
+    for name in rig.cameras:
         errors, predicted = [], []
         for k, (uncertainty, cameras, truth) in enumerate(runs):
-            K, D, T = cameras[name]
             range_m = uncertainty.range_m[name]
             errors.append(
                 true_error(k, name, range_m)
                 if true_error
-                else true_projection_error(
-                    true.K, true.D, truth[name], K, D, T, sizes[name], range_m
-                )
+                else true_projection_error(truth[name], cameras[name], range_m)
             )
             predicted.append(uncertainty.grid_px[name])
         ratio = np.sqrt(np.mean(np.square(predicted)) / np.mean(np.square(errors)))
@@ -65,10 +67,7 @@ def _check(rig, runs, true_error=None):
         worst = [u.worst_px[name] for u, _, _ in runs]
         assert np.ptp(worst) < 0.5 * np.mean(worst)  # a property of the rig, not the draw
     baseline_errors = [
-        np.linalg.norm(
-            invert_transform(c['left'][2])[:3, 3] - invert_transform(c['right'][2])[:3, 3]
-        )
-        - true_baseline
+        np.linalg.norm(c['left'].centre_base - c['right'].centre_base) - true_baseline
         for _, c, _ in runs
     ]
     ratio = np.mean([u.baseline_std_m for u, _, _ in runs]) / np.sqrt(
@@ -85,35 +84,29 @@ def test_handheld_uncertainty_predicts_the_projection_error(rig):
     the middle of the image, where the charts pin the projection down."""
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
-    T_base_left = rig.cameras['left'].T_base_camera
-    truth = {n: invert_transform(c.T_base_camera) @ T_base_left for n, c in rig.cameras.items()}
-    T_left_chart = [invert_transform(T_base_left) @ T for T in rig.T_base_chart]
+    T_left_base = invert_transform(rig.cameras['left'].T_base_camera)
+    truth = {  # in the left camera's frame, the handheld reference
+        n: replace(c, T_base_camera=T_left_base @ c.T_base_camera) for n, c in rig.cameras.items()
+    }
+    T_left_chart = [T_left_base @ T for T in rig.T_base_chart]
     runs, charts = [], []
     for draw in range(DRAWS):
         # The lens has no tangential distortion: the model the truth was drawn from.
         result = bundle_adjust(chart, _noisy(rig, draw), sizes, fit_tangential=False)
-        cameras = {
-            n: (f.K, f.D, invert_transform(f.T_base_camera)) for n, f in result.fits.items()
-        }
+        cameras = {n: f.camera(sizes[n]) for n, f in result.fits.items()}
         runs.append((result.uncertainty, cameras, truth))
         charts.append(result.T_ref_chart)
 
     def held_to_the_charts(k, name, range_m):
-        K, D, T = runs[k][1][name]
-        true = rig.cameras[name]
         return true_projection_error_chart_fixed(
-            true.K, true.D, truth[name], T_left_chart, K, D, T, charts[k], sizes[name], range_m
+            truth[name], T_left_chart, runs[k][1][name], charts[k], range_m
         )
 
     _check(rig, runs, held_to_the_charts)
-    left = rig.cameras['left']
     floating, fixed = [], []
     for k, (uncertainty, cameras, _) in enumerate(runs):
-        K, D, T = cameras['left']
         range_m = uncertainty.range_m['left']
-        floating.append(
-            true_projection_error(left.K, left.D, truth['left'], K, D, T, sizes['left'], range_m)
-        )
+        floating.append(true_projection_error(truth['left'], cameras['left'], range_m))
         fixed.append(held_to_the_charts(k, 'left', range_m))
     rms_floating = np.sqrt(np.mean(np.square(floating), axis=0))
     rms_fixed = np.sqrt(np.mean(np.square(fixed), axis=0))
@@ -122,7 +115,6 @@ def test_handheld_uncertainty_predicts_the_projection_error(rig):
 
 def test_stage_uncertainty_predicts_the_projection_error(rig):
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
-    truth = {n: invert_transform(c.T_base_camera) for n, c in rig.cameras.items()}
     runs = []
     for draw in range(DRAWS):
         views = _noisy(rig, draw)
@@ -137,6 +129,6 @@ def test_stage_uncertainty_predicts_the_projection_error(rig):
         fits = calibrate_rig(observations, fit_tangential=False, view_size=len(chart)).fits
         uncertainty = stage_uncertainty(fits, observations)
         assert uncertainty is not None
-        cameras = {n: (f.K, f.D, invert_transform(f.T_base_camera)) for n, f in fits.items()}
-        runs.append((uncertainty, cameras, truth))
+        cameras = {n: f.camera(observations[n][2]) for n, f in fits.items()}
+        runs.append((uncertainty, cameras, rig.cameras))
     _check(rig, runs)

@@ -25,14 +25,15 @@ import numpy.typing as npt
 
 from calib_node.calibrate import CalibrationError, CameraFit, solve_lm, tangential_pays
 from calib_node.uncertainty import (
-    CameraModel,
     ChartPoses,
+    RigCamera,
     Uncertainty,
     canonical_rotations,
     parameter_covariance,
     rig_uncertainty,
     working_range,
 )
+from vgm_common.camera_model import PinholeCamera
 from vgm_common.geometry import FloatArray, invert_transform, make_transform
 
 INTRINSICS = 9  # fx, fy, cx, cy, k1, k2, p1, p2, k3
@@ -499,11 +500,10 @@ def _uncertainty(
                 np.arange(a, a + INTRINSICS),
             ]
         )
-        models[name] = CameraModel(
-            K,
-            x[a + 4 : a + 9].copy(),
-            T_camera_ref,
-            image_sizes[name],
+        models[name] = RigCamera(
+            PinholeCamera(
+                *image_sizes[name], K, x[a + 4 : a + 9].copy(), invert_transform(T_camera_ref)
+            ),
             working_range(seen),
             row[index],
         )

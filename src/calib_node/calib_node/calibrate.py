@@ -35,7 +35,7 @@ from calib_node.seed_calibration import dlt_camera
 from calib_node.seed_camera import identifiable
 from calib_node.thesis import NETWORK_ACCEPT, NETWORK_WEIGHTS, network_refine
 from calib_node.uncertainty import (
-    CameraModel,
+    RigCamera,
     Uncertainty,
     canonical_rotations,
     parameter_covariance,
@@ -333,14 +333,10 @@ def stage_uncertainty(
         assert fit.covariance is not None  # checked above
         T_camera_base = invert_transform(fit.T_base_camera)
         points = observations[name][0] @ T_camera_base[:3, :3].T + T_camera_base[:3, 3]
-        models[name] = CameraModel(
-            fit.K,
-            fit.D,
-            T_camera_base,
-            observations[name][2],
+        models[name] = RigCamera(
+            fit.camera(observations[name][2]),
             working_range(points),
             np.arange(row, row + len(fit.covariance)),
-            fit.model,
         )
         row += len(fit.covariance)
         blocks.append(fit.covariance)

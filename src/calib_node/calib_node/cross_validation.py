@@ -34,7 +34,7 @@ import scipy.optimize
 from calib_node.coverage import view_parameters
 from calib_node.uncertainty import GRID, Uncertainty, image_grid, points_at_range
 from vgm_common.camera_model import PinholeCamera
-from vgm_common.geometry import FloatArray, invert_transform, make_transform
+from vgm_common.geometry import FloatArray, make_transform
 
 MIN_HALF_VIEWS = 3  # Zhang's minimum per camera, in each half
 
@@ -99,14 +99,6 @@ def rigid_fit(source: FloatArray, target: FloatArray, weights: FloatArray) -> Fl
     return make_transform(R, target_mean - R @ source_mean)
 
 
-def _rays(camera: PinholeCamera, pixels: FloatArray, depth: float) -> FloatArray:
-    """(M, 3) base-frame points at ``depth`` [m] on ``camera``'s rays of ``pixels``."""
-    T_camera_base = invert_transform(camera.T_base_camera)
-    return points_at_range(
-        camera.K, camera.D, T_camera_base, pixels, depth, camera.distortion_model
-    )
-
-
 def _refine_in_pixels(
     start: FloatArray,
     cameras: Mapping[str, PinholeCamera],
@@ -155,10 +147,10 @@ def compare_halves(
         halves: the views in each half (reported).
     """
     pixels = {n: image_grid((c.width, c.height), grid) for n, c in half_a.items()}
-    points_a = {n: _rays(c, pixels[n], ranges_m[n]) for n, c in half_a.items()}
+    points_a = {n: points_at_range(c, pixels[n], ranges_m[n]) for n, c in half_a.items()}
     T_b_a = np.eye(4)
     if align:
-        points_b = {n: _rays(half_b[n], pixels[n], ranges_m[n]) for n in half_a}
+        points_b = {n: points_at_range(half_b[n], pixels[n], ranges_m[n]) for n in half_a}
         known = [u for u in uncertainty if u is not None]
         weights = []
         for name in half_a:

@@ -32,19 +32,16 @@ PROJECTION_ORDER = 15  # rvec, tvec, fx, fy, cx, cy, k1, k2, p1, p2, k3
 IndexArray = npt.NDArray[np.int_]
 
 
-class CameraModel(NamedTuple):
-    """A calibrated camera in the reference frame, for the propagation: K (3, 3), D (of
-    ``model``: plumb_bob (5,) unless said), T_camera_ref (4, 4), (width, height) [px],
-    working range [m] and the rows of its 10 + len(D) parameters (``PROJECTION_ORDER``
-    for plumb_bob) in the rig's covariance (-1: held fixed): ``rows``."""
+class RigCamera(NamedTuple):
+    """A calibrated camera of a rig, for the propagation: the camera (its
+    ``T_base_camera`` the pose in the rig's reference frame: base_link on the stage, the
+    left camera handheld), its working range [m] and the rows of its 10 + len(D)
+    parameters (``PROJECTION_ORDER`` for plumb_bob) in the rig's covariance (-1: held
+    fixed)."""
 
-    K: FloatArray
-    D: FloatArray
-    T_camera_ref: FloatArray
-    size: tuple[int, int]
+    camera: PinholeCamera
     range_m: float
     rows: IndexArray
-    model: str = 'plumb_bob'
 
 
 class Uncertainty(NamedTuple):
@@ -113,19 +110,13 @@ def image_grid(size: tuple[int, int], grid: tuple[int, int] = GRID) -> FloatArra
     return np.column_stack([u.ravel(), v.ravel()])
 
 
-def points_at_range(
-    K: FloatArray,
-    D: FloatArray,
-    T_camera_ref: FloatArray,
-    pixels: FloatArray,
-    depth: float,
-    model: str = 'plumb_bob',
-) -> FloatArray:
-    """(M, 3) reference-frame points at ``depth`` [m] along the camera's rays of ``pixels``."""
-    xy = PinholeCamera(1, 1, K, D, np.eye(4), model).undistort_pixels(pixels)
-    camera = np.column_stack([xy * depth, np.full(len(xy), depth)])
-    T_ref_camera = invert_transform(T_camera_ref)
-    return camera @ T_ref_camera[:3, :3].T + T_ref_camera[:3, 3]
+def points_at_range(camera: PinholeCamera, pixels: FloatArray, depth: float) -> FloatArray:
+    """(M, 3) points at ``depth`` [m] along ``camera``'s rays of ``pixels``, in the frame
+    its ``T_base_camera`` is given in."""
+    xy = camera.undistort_pixels(pixels)
+    points_camera = np.column_stack([xy * depth, np.full(len(xy), depth)])
+    T = camera.T_base_camera
+    return points_camera @ T[:3, :3].T + T[:3, 3]
 
 
 def _rt(T: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -141,16 +132,17 @@ def _block(covariance: FloatArray, index: IndexArray) -> FloatArray:
     return out
 
 
-def projection_std(camera: CameraModel, covariance: FloatArray, pixels: FloatArray) -> FloatArray:
+def projection_std(
+    rig_camera: RigCamera, covariance: FloatArray, pixels: FloatArray
+) -> FloatArray:
     """(M,) sqrt(trace) of the projection covariance [px] of the points at the working
     range on the rays of ``pixels``."""
-    points = points_at_range(
-        camera.K, camera.D, camera.T_camera_ref, pixels, camera.range_m, camera.model
-    )
-    rvec, tvec = _rt(camera.T_camera_ref)
-    _, J = project_points(points, rvec, tvec, camera.K, camera.D, camera.model)
-    C = _block(covariance, camera.rows)
-    J = J[:, : len(camera.rows)]
+    camera = rig_camera.camera
+    points = points_at_range(camera, pixels, rig_camera.range_m)
+    rvec, tvec = _rt(camera.T_camera_base)
+    _, J = project_points(points, rvec, tvec, camera.K, camera.D, camera.distortion_model)
+    C = _block(covariance, rig_camera.rows)
+    J = J[:, : len(rig_camera.rows)]
     per_row = np.einsum('ij,jk,ik->i', J, C, J)  # diagonal of J C J^T
     return np.sqrt(np.maximum(per_row.reshape(-1, 2).sum(axis=1), 0.0))
 
@@ -164,7 +156,7 @@ def _pose(rt: FloatArray) -> FloatArray:
 
 
 def projection_std_chart_fixed(
-    camera: CameraModel,
+    rig_camera: RigCamera,
     covariance: FloatArray,
     pixels: FloatArray,
     T_ref_chart: Sequence[FloatArray],
@@ -187,17 +179,19 @@ def projection_std_chart_fixed(
     held against the true error in both gauges, README "Uncertainty").
 
     Args:
-        camera: the camera in the reference frame, its 15 parameters' ``rows``.
+        rig_camera: the camera in the reference frame (plumb_bob), its 15 parameters'
+            ``rows``.
         covariance: the adjustment's covariance.
         pixels: (M, 2) [px].
         T_ref_chart: (4, 4) chart pose of every view in the reference frame.
         chart_rows: (6,) rows of each chart pose (Rodrigues vector, translation) in
             ``covariance`` (-1: held fixed).
     """
-    points = points_at_range(camera.K, camera.D, camera.T_camera_ref, pixels, camera.range_m)
+    camera = rig_camera.camera
+    points = points_at_range(camera, pixels, rig_camera.range_m)
     charts = [invert_transform(T) for T in T_ref_chart]
     points_chart = np.stack([points @ T[:3, :3].T + T[:3, 3] for T in charts])  # (V, M, 3)
-    rvec, tvec = _rt(camera.T_camera_ref)
+    rvec, tvec = _rt(camera.T_camera_base)
     K, D = camera.K, camera.D
     x0 = np.concatenate(
         [
@@ -208,7 +202,7 @@ def projection_std_chart_fixed(
             *[np.concatenate(_rt(T)) for T in T_ref_chart],
         ]
     )
-    index = np.concatenate([camera.rows, *chart_rows])
+    index = np.concatenate([rig_camera.rows, *chart_rows])
 
     def project(x: FloatArray) -> FloatArray:
         poses = x[PROJECTION_ORDER:].reshape(-1, 6)
@@ -246,17 +240,16 @@ def _centre_jacobian(T_camera_ref: FloatArray, step: float = 1e-7) -> FloatArray
     return J
 
 
-def baseline_std(left: CameraModel, right: CameraModel, covariance: FloatArray) -> float:
+def baseline_std(left: RigCamera, right: RigCamera, covariance: FloatArray) -> float:
     """Standard deviation [m] of |centre_left - centre_right| (the poses' joint covariance)."""
     index = np.concatenate([left.rows[:6], right.rows[:6]])
     C = _block(covariance, index)
-    c_left = invert_transform(left.T_camera_ref)[:3, 3]
-    c_right = invert_transform(right.T_camera_ref)[:3, 3]
+    c_left, c_right = left.camera.centre_base, right.camera.centre_base
     direction = (c_right - c_left) / np.linalg.norm(c_right - c_left)
     g = np.concatenate(
         [
-            -direction @ _centre_jacobian(left.T_camera_ref),
-            direction @ _centre_jacobian(right.T_camera_ref),
+            -direction @ _centre_jacobian(left.camera.T_camera_base),
+            direction @ _centre_jacobian(right.camera.T_camera_base),
         ]
     )
     return float(np.sqrt(max(g @ C @ g, 0.0)))
@@ -271,7 +264,7 @@ class ChartPoses(NamedTuple):
 
 
 def rig_uncertainty(
-    cameras: Mapping[str, CameraModel],
+    cameras: Mapping[str, RigCamera],
     covariance: FloatArray,
     grid: tuple[int, int] = GRID,
     charts: ChartPoses | None = None,
@@ -281,7 +274,7 @@ def rig_uncertainty(
     to the reference frame."""
     worst, median, ranges, grids = {}, {}, {}, {}
     for name, camera in cameras.items():
-        pixels = image_grid(camera.size, grid)
+        pixels = image_grid((camera.camera.width, camera.camera.height), grid)
         if charts is None:
             std = projection_std(camera, covariance, pixels)
         else:
@@ -303,57 +296,3 @@ def rig_uncertainty(
 def working_range(points_camera: FloatArray) -> float:
     """The median depth [m] of chart corners (M, 3) in a camera's frame."""
     return float(np.median(np.asarray(points_camera)[:, 2]))
-
-
-def true_projection_error(
-    K_true: FloatArray,
-    D_true: FloatArray,
-    T_camera_ref_true: FloatArray,
-    K: FloatArray,
-    D: FloatArray,
-    T_camera_ref: FloatArray,
-    size: tuple[int, int],
-    depth: float,
-    grid: tuple[int, int] = GRID,
-) -> FloatArray:
-    """(rows, cols) [px]: where the calibrated camera projects the points the true camera
-    sees on the grid pixels at ``depth``, both in their own reference frames (the
-    calibration's gauge), minus those pixels: the error the uncertainty predicts."""
-    pixels = image_grid(size, grid)
-    points = points_at_range(K_true, D_true, T_camera_ref_true, pixels, depth)
-    rvec, tvec = _rt(T_camera_ref)
-    projected = cv2.projectPoints(points, rvec, tvec, K, D)[0].reshape(-1, 2)
-    return np.linalg.norm(projected - pixels, axis=1).reshape(grid[1], grid[0])
-
-
-def true_projection_error_chart_fixed(
-    K_true: FloatArray,
-    D_true: FloatArray,
-    T_camera_ref_true: FloatArray,
-    T_ref_chart_true: Sequence[FloatArray],
-    K: FloatArray,
-    D: FloatArray,
-    T_camera_ref: FloatArray,
-    T_ref_chart: Sequence[FloatArray],
-    size: tuple[int, int],
-    depth: float,
-    grid: tuple[int, int] = GRID,
-) -> FloatArray:
-    """(rows, cols) [px]: :func:`true_projection_error` with the points held fixed to the
-    charts (the gauge of :func:`projection_std_chart_fixed`): each true point is carried
-    into every true chart frame, back out by the calibrated chart pose, averaged over the
-    charts and projected by the calibrated camera."""
-    pixels = image_grid(size, grid)
-    points = points_at_range(K_true, D_true, T_camera_ref_true, pixels, depth)
-    moved = np.mean(
-        [
-            points @ M[:3, :3].T + M[:3, 3]
-            for M in (
-                T @ invert_transform(T_true) for T, T_true in zip(T_ref_chart, T_ref_chart_true)
-            )
-        ],
-        axis=0,
-    )
-    rvec, tvec = _rt(T_camera_ref)
-    projected = cv2.projectPoints(moved, rvec, tvec, K, D)[0].reshape(-1, 2)
-    return np.linalg.norm(projected - pixels, axis=1).reshape(grid[1], grid[0])

@@ -16,8 +16,17 @@ import numpy as np
 import numpy.typing as npt
 
 from calib_node.chart_detection import chart_points
+from calib_node.uncertainty import GRID, image_grid, points_at_range
 from vgm_common.camera_model import PinholeCamera, distort
-from vgm_common.geometry import FloatArray, look_at_rotation, make_transform, rot_x, rot_y, rot_z
+from vgm_common.geometry import (
+    FloatArray,
+    invert_transform,
+    look_at_rotation,
+    make_transform,
+    rot_x,
+    rot_y,
+    rot_z,
+)
 
 BACKGROUND_GREY = 70.0  # a dark wall behind the chart [grey level]
 BLACK_GREY, WHITE_GREY = 15.0, 230.0  # the print under the light [grey level]
@@ -533,3 +542,57 @@ def rectified_row_error(
         # field: the rows are compared where both points land in them.
         rows = [r[inside] for r in rows]
     return float(np.sqrt(np.mean((rows[0] - rows[1]) ** 2)))
+
+
+def camera_in_frame(
+    K: FloatArray, D: FloatArray, T_camera_ref: FloatArray, size: tuple[int, int]
+) -> PinholeCamera:
+    """The plumb_bob camera of intrinsics ``K``, ``D`` whose pose in a calibration's
+    reference frame is ``T_camera_ref`` (its ``T_base_camera`` the inverse), image
+    ``size`` (width, height) [px]."""
+    return PinholeCamera(*size, K, D, invert_transform(T_camera_ref))
+
+
+def true_projection_error(
+    true: PinholeCamera, calibrated: PinholeCamera, depth: float, grid: tuple[int, int] = GRID
+) -> FloatArray:
+    """(rows, cols) [px]: where the ``calibrated`` camera projects the points the ``true``
+    one sees on the grid pixels at ``depth`` [m], minus those pixels: the error
+    calib_node's uncertainty predicts. Both poses in their own reference frame (the
+    calibration's gauge)."""
+    pixels = image_grid((true.width, true.height), grid)
+    points = points_at_range(true, pixels, depth)
+    return _pixel_errors(calibrated, points, pixels, grid)
+
+
+def true_projection_error_chart_fixed(
+    true: PinholeCamera,
+    T_ref_chart_true: Sequence[FloatArray],
+    calibrated: PinholeCamera,
+    T_ref_chart: Sequence[FloatArray],
+    depth: float,
+    grid: tuple[int, int] = GRID,
+) -> FloatArray:
+    """(rows, cols) [px]: :func:`true_projection_error` with the points held fixed to the
+    charts (the gauge of calib_node.uncertainty.projection_std_chart_fixed): each true
+    point is carried into every true chart frame, back out by the calibrated chart pose,
+    averaged over the charts and projected by the calibrated camera."""
+    pixels = image_grid((true.width, true.height), grid)
+    points = points_at_range(true, pixels, depth)
+    moved = np.mean(
+        [
+            points @ M[:3, :3].T + M[:3, 3]
+            for M in (
+                T @ invert_transform(T_true) for T, T_true in zip(T_ref_chart, T_ref_chart_true)
+            )
+        ],
+        axis=0,
+    )
+    return _pixel_errors(calibrated, moved, pixels, grid)
+
+
+def _pixel_errors(
+    camera: PinholeCamera, points: FloatArray, pixels: FloatArray, grid: tuple[int, int]
+) -> FloatArray:
+    projected, _ = camera.project(points)
+    return np.linalg.norm(projected - pixels, axis=1).reshape(grid[1], grid[0])
