@@ -67,15 +67,13 @@ class SetPointCommands:
     """
 
     def __init__(
-        self, compensate_lag: bool = False, covered_lag: float = 0.0, send_set_point: bool = False
+        self, compensate_lag: bool = False, covered_lag: float = 0.0, send_set_point: bool = True
     ) -> None:
         self.compensate_lag = compensate_lag
         # The set point continued as a first point at time 0 (pa10_ik_node's parameter
-        # send_set_point): joint_trajectory_controller then does not restart each command
-        # from where a lagging arm is (a half-speed arm trailed a ramp 44 ms, with it one
-        # arm step, 5 ms). Off by default: over topics on a loaded machine (load 3-7) it
-        # did not lower the half-speed RMS, and one of four half-speed runs failed with it
-        # (bench_pa10_ik.py --over-topics --only 2,5,8,11 --ours send_set_point:=true).
+        # send_set_point, on by default): joint_trajectory_controller then does not restart
+        # each command from where a lagging arm is (a half-speed arm trailed a ramp 44 ms,
+        # with it one arm step, 5 ms; over topics 54-84 -> 7-9 ms).
         self.send_set_point = send_set_point
         self.covered_lag = covered_lag
         # (time sent [s], the command without the lead): the set point continued

@@ -353,7 +353,7 @@ def run_closed_loop(
     horizon: float = 0.05,
     node_commands: bool = True,
     lead_arm_lag: bool = False,
-    send_set_point: bool = False,
+    send_set_point: bool = True,
     initial_force: float | None = 0.0,
     before_step: Callable[[float, FloatArray], None] | None = None,
     finished: Callable[[TrackingControllerLike], bool] = lifted,
