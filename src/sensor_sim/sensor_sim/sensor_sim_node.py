@@ -138,7 +138,7 @@ class SensorSim(GraphNode):
         )
 
     def _start(self, settings: SimSettings) -> None:
-        """Takes joint trajectories, starts the arm thread and the capture timer."""
+        """Takes joint trajectories, starts the arm and the capture threads."""
         # Only the newest command: each replaces the previous, and behind a 100 Hz
         # commander on a loaded machine a backlog of ten made the arm follow 0.1 s late.
         self.create_subscription(
@@ -150,7 +150,11 @@ class SensorSim(GraphNode):
         self.arm_thread.start()
         self.create_timer(1.0, self._publish_diagnostics)
         frame_rate = settings.rate or self.scenario.rate
-        self.create_timer(1.0 / frame_rate, self._capture)
+        # The captures too: in the executor each one held up the joint commands for as
+        # long as it took (the full graph on a loaded machine: the arm 0.1 s behind them).
+        threading.Thread(
+            target=self._run_captures, args=(1.0 / frame_rate,), name='capture', daemon=True
+        ).start()
         arm = self.arm_loop.arm
         self.get_logger().info(
             f'publishing 3 cameras at {frame_rate:g} Hz ({self.schedule.chart_frames} '
@@ -161,13 +165,16 @@ class SensorSim(GraphNode):
 
     # --- cameras ---------------------------------------------------------------------
 
-    def _capture(self) -> None:
-        """One capture: the three images (and the chart pose) with one stamp."""
-        if not self.gate.is_open():  # the arm starts publishing too
-            return
-        with self.capture_lock:
-            if not self.closed:
-                self._publish_capture()
+    def _run_captures(self, period: float) -> None:
+        ticks = TickSchedule(period)
+        while not self.closed:
+            if self.gate.is_open():  # the arm starts publishing too
+                with self.capture_lock:
+                    if not self.closed:
+                        self._publish_capture()
+            delay = ticks.wait_after_tick()
+            if delay > 0:
+                time.sleep(delay)
 
     def _publish_capture(self) -> None:
         stamp_ns = self.get_clock().now().nanoseconds
