@@ -31,6 +31,7 @@ from sensor_sim.scenario import (
     with_chart_motion,
 )
 from vgm_common.conversions import make_header, matrix_to_pose_stamped, numpy_to_image, stamp_to_ns
+from vgm_common.diagnostics import guarded
 from vgm_common.errors import InvalidInput
 from vgm_common.graph_node import GraphNode
 from vgm_common.node_main import run_node
@@ -168,13 +169,17 @@ class SensorSim(GraphNode):
     def _run_captures(self, period: float) -> None:
         ticks = TickSchedule(period)
         while not self.closed:
-            if self.gate.is_open():  # the arm starts publishing too
-                with self.capture_lock:
-                    if not self.closed:
-                        self._publish_capture()
+            self._capture()
             delay = ticks.wait_after_tick()
             if delay > 0:
                 time.sleep(delay)
+
+    @guarded('capture')  # a failed capture is reported; the thread goes on with the next
+    def _capture(self) -> None:
+        if self.gate.is_open():  # the arm starts publishing too
+            with self.capture_lock:
+                if not self.closed:
+                    self._publish_capture()
 
     def _publish_capture(self) -> None:
         stamp_ns = self.get_clock().now().nanoseconds
@@ -215,14 +220,17 @@ class SensorSim(GraphNode):
     def _run_arm(self) -> None:
         self.gate.opened.wait()
         ticks = TickSchedule(1.0 / self.params.joint_state_rate)
-        while True:
-            with self.arm_lock:
-                if self.closed:
-                    return
-                self._publish_arm(self.arm_loop.step(self._now()))
+        while not self.closed:
+            self._arm_tick()
             delay = ticks.wait_after_tick()
             if delay > 0:
                 time.sleep(delay)
+
+    @guarded('arm')  # a failed step is reported; the thread goes on with the next
+    def _arm_tick(self) -> None:
+        with self.arm_lock:
+            if not self.closed:
+                self._publish_arm(self.arm_loop.step(self._now()))
 
     def _publish_arm(self, sample: ArmSample) -> None:
         self.joint_state_publisher.publish(
