@@ -58,6 +58,9 @@ BIAS_SHARE = 0.6  # a piece whose bias exceeds this share of the RMS tolerance i
 # judged by the chain (PiecewiseCurve.owner_distance): chain points lie within 0.15 px of
 # the true projection at noise 4, the fits within 0.1 px of the chain
 CHAIN_MARGIN_PX = 0.5
+# [px] a candidate this far off the intersecting view's chain (beyond CHAIN_MARGIN_PX)
+# ranks after those on it (``select_candidates``'s ``off_chain_last``)
+OFF_CHAIN_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -585,6 +588,7 @@ def intersect_cones(
     tol3_px: float = 2.0,
     support3_px: float = 3.0,
     distinct_m: float = 2e-3,
+    off_chain_last: bool = False,
 ) -> tuple[FloatArray, CandidateInfo]:
     """The cone intersection: ``solver``'s candidates where the cones of views 1 and 2
     meet, one per view-1 chain point chosen by ``select_candidates`` (view 3 and the
@@ -597,6 +601,7 @@ def intersect_cones(
         tol3_px: third-view threshold on the distance to view 3's curve [px].
         support3_px: a candidate must project within this of view 3's chain [px].
         distinct_m: two-view case: candidates farther apart than this are distinct [m].
+        off_chain_last: as ``select_candidates``.
 
     Returns:
         (points_base (K, 3), info) as ``select_candidates``.
@@ -613,6 +618,7 @@ def intersect_cones(
         distinct_m,
         support3_px,
         order_views=(view1, view2),
+        off_chain_last=off_chain_last,
     )
 
 
@@ -626,6 +632,7 @@ def reconstruct_ray_roots(
     support_px: float = 3.0,
     distinct_m: float = 2e-3,
     max_depth: float = np.inf,
+    off_chain_last: bool = False,
 ) -> tuple[FloatArray, CandidateInfo]:
     """``intersect_cones`` with our solver, ``ray_root_candidates`` (``method:
     ray_roots``); ``support_px`` [px] bounds the candidates' distance to view 2's chain
@@ -643,6 +650,7 @@ def reconstruct_ray_roots(
         tol3_px=tol3_px,
         support3_px=support_px,
         distinct_m=distinct_m,
+        off_chain_last=off_chain_last,
     )
 
 
@@ -720,14 +728,16 @@ def select_candidates(
     distinct_m: float,
     support3_px: float = 3.0,
     order_views: tuple[View, View] | None = None,
+    off_chain_last: bool = False,
 ) -> tuple[FloatArray, CandidateInfo]:
     """One point per view-1 sample from its candidates.
 
     With ``view3``: the candidate nearest view 3's curve, if within ``tol3_px`` of it and
     within ``support3_px`` of view 3's chain, and, given ``order_views`` (views 1 and 2),
-    in order along the curve (``_in_chain_order``). Without: the candidate if all of the
-    sample's candidates lie within ``distinct_m`` of each other (else the sample is
-    ambiguous).
+    in order along the curve (``_in_chain_order``); with ``off_chain_last`` too, those
+    over ``OFF_CHAIN_PX`` from view 2's curve as it saw it rank after the others.
+    Without: the candidate if all of the sample's candidates lie within ``distinct_m`` of
+    each other (else the sample is ambiguous).
 
     Returns points_base (K, 3) in sample order and info: ``sample_index`` (K,) view-1
     chain indices, ``third_view_px`` (K,), ``n_samples``, ``n_candidates``,
@@ -743,6 +753,8 @@ def select_candidates(
         distance3 = view3.distance_px(candidates, within_px=support3_px)
         if order_views is not None:
             view1, view2 = order_views
+            if off_chain_last:
+                distance3 = _off_chain_last(distance3, candidates, view2, tol3_px)
             first = _first_of_each_sample(ray_of_candidate, distance3)
             picked = first[distance3[first] <= tol3_px]
             passing = np.nonzero(distance3 <= tol3_px)[0]
@@ -791,6 +803,21 @@ def select_candidates(
         'n_out_of_order': n_out_of_order,
     }
     return np.asarray(points, dtype=float).reshape(-1, 3), info
+
+
+def _off_chain_last(
+    distance3: FloatArray, candidates: FloatArray, view2: View, tol3_px: float
+) -> FloatArray:
+    """``distance3`` (C,) [px], raised where a candidate within ``tol3_px`` is over
+    ``OFF_CHAIN_PX`` from view 2's curve as that view saw it (``View.distance_px``) to
+    that distance (at most ``tol3_px``): it still passes, but ranks after the roots on
+    view 2's chain."""
+    passing = np.nonzero(distance3 <= tol3_px)[0]
+    seen2 = np.minimum(view2.distance_px(candidates[passing], within_px=tol3_px), tol3_px)
+    off = seen2 > OFF_CHAIN_PX
+    ranked = distance3.copy()
+    ranked[passing[off]] = np.maximum(distance3[passing[off]], seen2[off])
+    return ranked
 
 
 def _first_of_each_sample(ray_of_candidate: IntArray, distance3: FloatArray) -> IntArray:
