@@ -9,6 +9,7 @@ throughout at ``joint_state_rate``.
 
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from geometry_msgs.msg import PoseStamped, WrenchStamped
@@ -147,14 +148,22 @@ class SensorSim(GraphNode):
         )
         # The arm runs in its own thread on an absolute schedule: an executor timer at
         # 200 Hz is starved by the captures (measured: 77-160 Hz instead of 200).
-        self.arm_thread = threading.Thread(target=self._run_arm, name='arm', daemon=True)
+        self.arm_thread = threading.Thread(
+            target=self._run_ticks,
+            args=(1.0 / self.params.joint_state_rate, self._arm_tick, self.gate.opened),
+            name='arm',
+            daemon=True,
+        )
         self.arm_thread.start()
         self.create_timer(1.0, self._publish_diagnostics)
         frame_rate = settings.rate or self.scenario.rate
         # The captures too: in the executor each one held up the joint commands for as
         # long as it took (the full graph on a loaded machine: the arm 0.1 s behind them).
         threading.Thread(
-            target=self._run_captures, args=(1.0 / frame_rate,), name='capture', daemon=True
+            target=self._run_ticks,
+            args=(1.0 / frame_rate, self._capture),
+            name='capture',
+            daemon=True,
         ).start()
         arm = self.arm_loop.arm
         self.get_logger().info(
@@ -164,15 +173,21 @@ class SensorSim(GraphNode):
             f'commands {arm.command_delay * 1e3:g} ms late'
         )
 
-    # --- cameras ---------------------------------------------------------------------
-
-    def _run_captures(self, period: float) -> None:
+    def _run_ticks(
+        self, period: float, tick: Callable[[], None], start: threading.Event | None = None
+    ) -> None:
+        """A thread's loop: ``tick`` every ``period`` [s] on an absolute schedule (after
+        ``start`` is set, if given) until the node closes."""
+        if start is not None:
+            start.wait()
         ticks = TickSchedule(period)
         while not self.closed:
-            self._capture()
+            tick()
             delay = ticks.wait_after_tick()
             if delay > 0:
                 time.sleep(delay)
+
+    # --- cameras ---------------------------------------------------------------------
 
     @guarded('capture')  # a failed capture is reported; the thread goes on with the next
     def _capture(self) -> None:
@@ -216,15 +231,6 @@ class SensorSim(GraphNode):
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
-
-    def _run_arm(self) -> None:
-        self.gate.opened.wait()
-        ticks = TickSchedule(1.0 / self.params.joint_state_rate)
-        while not self.closed:
-            self._arm_tick()
-            delay = ticks.wait_after_tick()
-            if delay > 0:
-                time.sleep(delay)
 
     @guarded('arm')  # a failed step is reported; the thread goes on with the next
     def _arm_tick(self) -> None:
