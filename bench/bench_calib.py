@@ -13,8 +13,9 @@
    errors of fx, fy, baseline; time.
 4. Generated rigs (``calib_rigs.py``): rendered charts through random rigs,
    stage and handheld calibration against OpenCV on the same images (``--rigs N``).
-5. ``--uncertainty N [--draws D]`` (alone): the predicted projection uncertainty against
-   the true projection error on N generated rigs, each rendered D times.
+5. ``--uncertainty N [--draws D --supersample S]`` (alone): the predicted projection
+   uncertainty against the true projection error on N generated rigs, each rendered D
+   times with S x S rays a pixel (4 by default).
 6. ``--mrcal [--mrcal-rigs N]`` (alone): OpenCV's 13 stereo sample pairs and N generated
    stereo rigs calibrated on the same corners by calib_node, mrcal (a separate process:
    ``--mrcal-python``, ``--mrcal-path``; set-up in ``calib_mrcal.py``) and OpenCV; mrcal.md.
@@ -517,7 +518,7 @@ def scenario_table(trials):
     return lines, rows
 
 
-def uncertainty_check(rigs, draws):
+def uncertainty_check(rigs, draws, supersample):
     """Predicted projection uncertainty vs the true projection error on generated rigs:
     uncertainty.md and uncertainty.json."""
     import sys
@@ -526,12 +527,13 @@ def uncertainty_check(rigs, draws):
     from calib_rigs import uncertainty_table
 
     started = time.perf_counter()
-    lines, rows = uncertainty_table(rigs, draws)
+    lines, rows = uncertainty_table(rigs, draws, supersample)
     lines = [
         '# calib_node: predicted uncertainty against the truth',
         '',
         f'Command: `source ros2_ws/install/setup.bash && .venv/bin/python '
-        f'bench/bench_calib.py --uncertainty {rigs} --draws {draws}` '
+        f'bench/bench_calib.py --uncertainty {rigs} --draws {draws} '
+        f'--supersample {supersample}` '
         f'({time.perf_counter() - started:.0f} s).',
         '',
         *lines,
@@ -699,6 +701,9 @@ def main():
     )
     parser.add_argument('--sigma', type=float, default=0.3, help='corner noise [px] (--gauge)')
     parser.add_argument(
+        '--supersample', type=int, default=4, help='rays a pixel, squared (--uncertainty)'
+    )
+    parser.add_argument(
         '--mrcal',
         action='store_true',
         help='only ours beside mrcal on the sample pairs (mrcal.md)',
@@ -720,7 +725,7 @@ def main():
         mrcal_check(args.mrcal_python, args.mrcal_path, args.mrcal_rigs)
         return
     if args.uncertainty:
-        uncertainty_check(args.uncertainty, args.draws)
+        uncertainty_check(args.uncertainty, args.draws, args.supersample)
         return
     if args.plot_only:
         sweep_results = json.loads((RESULTS / 'calib.json').read_text())['sweep']

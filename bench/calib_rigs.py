@@ -449,10 +449,11 @@ def _uncertainty_runs(rig, views):
     }
 
 
-def uncertainty_table(count, draws):
+def uncertainty_table(count, draws, supersample=4):
     """Markdown lines and rows: the predicted projection uncertainty against the true
     projection error on ``count`` generated rigs (seeds 0..count-1), each rendered
-    ``draws`` times with fresh image noise (the prediction is the RMS over such repeats)."""
+    ``draws`` times with fresh image noise (the prediction is the RMS over such repeats),
+    ``supersample``^2 rays a pixel."""
     rows = []
     for seed in range(count):
         rig = draw_rig(seed)
@@ -460,7 +461,7 @@ def uncertainty_table(count, draws):
         b_true = np.linalg.norm(rig.cameras['left'].centre_base - rig.cameras['right'].centre_base)
         collected = {m: {'pred': {}, 'err': {}, 'worst': {}, 'b': []} for m in MODES}
         for draw in range(draws):
-            views = detect_views(rig, render_rig(rig, seed + 1000 * draw))
+            views = detect_views(rig, render_rig(rig, seed + 1000 * draw, supersample))
             for mode, (u, cameras, truth, charts) in _uncertainty_runs(rig, views).items():
                 c = collected[mode]
                 for name, true in rig.cameras.items():
@@ -534,20 +535,23 @@ def uncertainty_table(count, draws):
     return lines, rows
 
 
-def corner_bias_table(seeds, draws):
+def corner_bias_table(seeds, draws, supersample=4):
     """Where the stage uncertainty misses come from: per camera of the generated rigs
     ``seeds``, rendered ``draws`` times, the detected corners' error against the true
     projection split into the part every rendering repeats (the mean over the draws: the
     detector's bias on this rendering) and the rest (the image noise); then the stage
     calibration (plumb_bob k1 k2, as the truth) predicted against true projection error at
     the working range on the detected corners, and on the true corners plus only the
-    repeated part. Markdown lines and rows."""
+    repeated part; ``supersample``^2 rays a pixel (the renderer's own staircase on the
+    edges repeats too). Markdown lines and rows."""
     rows = []
     for seed in seeds:
         rig = draw_rig(seed)
         chart = chart_points(rig.rows, rig.cols, rig.spacing)
         truth = true_corners(rig)
-        renders = [detect_views(rig, render_rig(rig, seed + 1000 * d)) for d in range(draws)]
+        renders = [
+            detect_views(rig, render_rig(rig, seed + 1000 * d, supersample)) for d in range(draws)
+        ]
         repeated = [
             {
                 n: t[n] + np.mean([r[k][n] - t[n] for r in renders], axis=0)
@@ -682,8 +686,8 @@ def main():
     """``python bench/calib_rigs.py [rigs]``: bench/results/calib/rigs.md and rigs.json;
     ``python bench/calib_rigs.py charuco [rigs]``: charuco.md and charuco.json;
     ``python bench/calib_rigs.py lenses [rigs]``: lenses.md and lenses.json (rigs per
-    lens model); ``python bench/calib_rigs.py bias [rigs [draws]]``: bias.md and bias.json
-    (:func:`corner_bias_table`)."""
+    lens model); ``python bench/calib_rigs.py bias [rigs [draws [supersample]]]``: bias.md
+    and bias.json (:func:`corner_bias_table`; supersample 4 by default)."""
     import sys
     from pathlib import Path
 
@@ -697,8 +701,9 @@ def main():
     )
     if kind == 'bias':  # rigs 0..count-1, draws
         draws = int(arguments[1]) if len(arguments) > 1 else 3
-        lines, results = corner_bias_table(range(count), draws)
-        count = f'{count} {draws}'
+        supersample = int(arguments[2]) if len(arguments) > 2 else 4
+        lines, results = corner_bias_table(range(count), draws, supersample)
+        count = f'{count} {draws} {supersample}'
     else:
         table = {'charuco': charuco_table, 'lenses': lens_table, '': rigs_table}[kind]
         lines, results = table(count)
