@@ -419,7 +419,7 @@ def rigs_table(count):
 
 
 def _uncertainty_runs(rig, views):
-    """{mode: (Uncertainty, {name: (K, D, T_camera_ref)}, {name: true T_camera_ref},
+    """{mode: (Uncertainty, {name: (K, D, T_camera_ref, model)}, {name: true T_camera_ref},
     charts)} of one calibration per mode, as calib_node makes them (p1, p2 by BIC);
     charts: None on the stage (the point fixed in base_link), handheld (true, estimated)
     chart poses in the left camera's frame (the point held to the charts, as the
@@ -433,13 +433,16 @@ def _uncertainty_runs(rig, views):
     return {
         'stage': (
             stage_uncertainty(stage, observations),
-            {n: (f.K, f.D, np.linalg.inv(f.T_base_camera)) for n, f in stage.items()},
+            {n: (f.K, f.D, np.linalg.inv(f.T_base_camera), f.model) for n, f in stage.items()},
             {n: np.linalg.inv(c.T_base_camera) for n, c in rig.cameras.items()},
             None,
         ),
         'handheld': (
             handheld.uncertainty,
-            {n: (f.K, f.D, np.linalg.inv(f.T_base_camera)) for n, f in handheld.fits.items()},
+            {
+                n: (f.K, f.D, np.linalg.inv(f.T_base_camera), f.model)
+                for n, f in handheld.fits.items()
+            },
             {n: np.linalg.inv(c.T_base_camera) @ T_base_left for n, c in rig.cameras.items()},
             (
                 [np.linalg.inv(T_base_left) @ T for T in rig.T_base_chart],
@@ -465,7 +468,8 @@ def uncertainty_table(count, draws, supersample=4):
             for mode, (u, cameras, truth, charts) in _uncertainty_runs(rig, views).items():
                 c = collected[mode]
                 for name, true in rig.cameras.items():
-                    calibrated = camera_in_frame(*cameras[name], sizes[name])
+                    K, D, T_camera_ref, model = cameras[name]
+                    calibrated = camera_in_frame(K, D, T_camera_ref, sizes[name], model)
                     true_in_frame = camera_in_frame(true.K, true.D, truth[name], sizes[name])
                     range_m = u.range_m[name]
                     error = (

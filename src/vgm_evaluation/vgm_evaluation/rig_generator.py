@@ -545,12 +545,16 @@ def rectified_row_error(
 
 
 def camera_in_frame(
-    K: FloatArray, D: FloatArray, T_camera_ref: FloatArray, size: tuple[int, int]
+    K: FloatArray,
+    D: FloatArray,
+    T_camera_ref: FloatArray,
+    size: tuple[int, int],
+    distortion_model: str = 'plumb_bob',
 ) -> PinholeCamera:
-    """The plumb_bob camera of intrinsics ``K``, ``D`` whose pose in a calibration's
-    reference frame is ``T_camera_ref`` (its ``T_base_camera`` the inverse), image
-    ``size`` (width, height) [px]."""
-    return PinholeCamera(*size, K, D, invert_transform(T_camera_ref))
+    """The camera of intrinsics ``K``, ``D`` (of ``distortion_model``) whose pose in a
+    calibration's reference frame is ``T_camera_ref`` (its ``T_base_camera`` the
+    inverse), image ``size`` (width, height) [px]."""
+    return PinholeCamera(*size, K, D, invert_transform(T_camera_ref), distortion_model)
 
 
 def true_projection_error(
