@@ -213,11 +213,11 @@ class SessionSettings:
     fit_k3: bool = setting(False, 'Estimate k3 (else 0).')
     distortion_model: str = setting(
         'auto',
-        'lm, stage: the lens model fitted and published, plumb_bob, rational_polynomial '
-        '(k1..k6, p1, p2: wide lenses) or equidistant (cv2.fisheye k1..k4: fisheye '
-        'lenses); auto: with select_model each camera fitted with all three and the '
-        'lowest BIC kept, as for p1, p2 (without select_model: plumb_bob). Handheld views '
-        'and the other methods fit plumb_bob.',
+        'lm (stage and handheld): the lens model fitted and published, plumb_bob, '
+        'rational_polynomial (k1..k6, p1, p2: wide lenses) or equidistant (cv2.fisheye '
+        'k1..k4: fisheye lenses); auto: with select_model each camera fitted with all three '
+        'and the lowest BIC kept, as for p1, p2, left and right one model (without '
+        'select_model: plumb_bob). The other methods fit plumb_bob.',
         choices=MODEL_CHOICES,
     )
     max_rms_px: float = setting(
@@ -723,11 +723,6 @@ class CalibrationSession:
                 f'method {settings.method} needs target poses (the '
                 'stage); handheld views calibrate with lm'
             )
-        if settings.distortion_model not in ('auto', 'plumb_bob'):
-            raise CalibrationError(
-                f'distortion_model {settings.distortion_model} needs target poses (the '
-                'stage); handheld views calibrate plumb_bob'
-            )
         result = bundle_adjust_selected(
             self.chart,
             [corners for _, corners in views],
@@ -737,6 +732,7 @@ class CalibrationSession:
             settings.fit_tangential,
             settings.fit_k3,
             settings.select_model,
+            settings.distortion_model,
         )
         T_base_ref = (
             rig_pose_matrix(settings.rig_pose) if result.reference != BASE_FRAME else np.eye(4)

@@ -12,7 +12,7 @@ pixel is sqrt(trace) of that 2 x 2 covariance: the expected length of the projec
 error [px] (the RMS over many calibrations of the same rig).
 
 Parameters are addressed in ``cv2.projectPoints``' Jacobian order: rvec (3), tvec (3) of
-T_camera_ref, fx, fy, cx, cy, k1, k2, p1, p2, k3 (``PROJECTION_ORDER``).
+T_camera_ref, fx, fy, cx, cy, then D of the camera's model (plumb_bob k1, k2, p1, p2, k3).
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from vgm_common.camera_model import PinholeCamera, project_points
 from vgm_common.geometry import FloatArray, invert_transform
 
 GRID = (16, 12)  # grid pixels across and down the image
-PROJECTION_ORDER = 15  # rvec, tvec, fx, fy, cx, cy, k1, k2, p1, p2, k3
 IndexArray = npt.NDArray[np.int_]
 
 
@@ -36,7 +35,7 @@ class RigCamera(NamedTuple):
     """A calibrated camera of a rig, for the propagation: the camera (its
     ``T_base_camera`` the pose in the rig's reference frame: base_link on the stage, the
     left camera handheld), its working range [m] and the rows of its 10 + len(D)
-    parameters (``PROJECTION_ORDER`` for plumb_bob) in the rig's covariance (-1: held
+    parameters (rvec, tvec, fx, fy, cx, cy, D) in the rig's covariance (-1: held
     fixed)."""
 
     camera: PinholeCamera
@@ -179,7 +178,7 @@ def projection_std_chart_fixed(
     held against the true error in both gauges, README "Uncertainty").
 
     Args:
-        rig_camera: the camera in the reference frame (plumb_bob), its 15 parameters'
+        rig_camera: the camera in the reference frame, its 10 + len(D) parameters'
             ``rows``.
         covariance: the adjustment's covariance.
         pixels: (M, 2) [px].
@@ -203,14 +202,16 @@ def projection_std_chart_fixed(
         ]
     )
     index = np.concatenate([rig_camera.rows, *chart_rows])
+    own = 10 + len(D)  # the camera's parameters, then the charts'
 
     def project(x: FloatArray) -> FloatArray:
-        poses = x[PROJECTION_ORDER:].reshape(-1, 6)
+        poses = x[own:].reshape(-1, 6)
         mean = np.mean(
             [p @ _pose(rt)[:3, :3].T + rt[3:] for p, rt in zip(points_chart, poses)], axis=0
         )
         Kx = np.array([[x[6], 0, x[8]], [0, x[7], x[9]], [0, 0, 1.0]])
-        return np.asarray(cv2.projectPoints(mean, x[:3], x[3:6], Kx, x[10:15])[0], float).ravel()
+        uv = project_points(mean, x[:3], x[3:6], Kx, x[10:own], camera.distortion_model)[0]
+        return uv.ravel()
 
     held = np.flatnonzero(index >= 0)
     J = np.zeros((2 * len(pixels), len(held)))
@@ -281,8 +282,12 @@ def rig_uncertainty(
             std = projection_std_chart_fixed(
                 camera, covariance, pixels, charts.T_ref_chart, charts.rows
             )
-        worst[name] = float(std.max())
-        median[name] = float(np.median(std))
+        # A pixel without a ray in front of the camera (a fisheye's image corners past 90
+        # deg, or past the fold of a lens extrapolated beyond the charts) has no point to
+        # project: left out (NaN in the grid); none with a ray: nothing is determined.
+        rays = np.isfinite(std)
+        worst[name] = float(std[rays].max()) if rays.any() else float('inf')
+        median[name] = float(np.median(std[rays])) if rays.any() else float('inf')
         ranges[name] = camera.range_m
         grids[name] = std.reshape(grid[1], grid[0])
     baseline = (
