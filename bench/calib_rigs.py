@@ -284,24 +284,31 @@ def run_rig(seed, cameras=('left', 'right', 'aux'), views=None, noise=None, exac
 
 def lens_run(seed, model):
     """One generated rig of wide ``model`` lenses (``draw_rig(seed, lens_model=model)``),
-    rendered: ours (stage mode, lens model by BIC) and OpenCV's calibration of that model
-    (:func:`opencv_lens_rig`) on our corners, scored against the truth, and the models
-    ours chose."""
+    rendered: ours (stage and handheld, lens model by BIC) and OpenCV's calibration of
+    that model (:func:`opencv_lens_rig`) on our corners, scored against the truth, the
+    models ours chose and the seconds each took."""
     rig = draw_rig(seed, lens_model=model)
     chart = chart_points(rig.rows, rig.cols, rig.spacing)
     sizes = {n: (c.width, c.height) for n, c in rig.cameras.items()}
     views = detect_views(rig, render_rig(rig, seed), 'ours')
-    ours = stage_rig(rig, views)
-    return {
-        'params': rig.params,
-        'model': model,
-        'found': [sum(n in v for v in views) for n in rig.cameras],
-        'chosen': {n: c.distortion_model for n, c in ours.items()},
-        'stage': score_rig(rig.cameras, ours),
-        'opencv': score_rig(
-            rig.cameras, opencv_lens_rig(chart, views, sizes, list(rig.cameras), model)
-        ),
-    }
+    out = {'params': rig.params, 'model': model, 'time': {}, 'chosen': {}}
+    out['found'] = [sum(n in v for v in views) for n in rig.cameras]
+    for mode, calibrate in (
+        ('stage', stage_rig),
+        ('handheld', handheld_rig),
+        ('opencv', lambda r, v: opencv_lens_rig(chart, v, sizes, list(r.cameras), model)),
+    ):
+        started = time.perf_counter()
+        try:
+            cameras = calibrate(rig, views)
+        except cv2.error as error:  # cv2.fisheye's InitExtrinsics assertion on some rigs
+            print(f'{model} rig {seed}: {mode} failed: {error}', flush=True)
+            out[mode] = None
+            continue
+        out['time'][mode] = time.perf_counter() - started
+        out[mode] = score_rig(rig.cameras, cameras)
+        out['chosen'][mode] = {n: c.distortion_model for n, c in cameras.items()}
+    return out
 
 
 def lens_table(count, models=('rational_polynomial', 'equidistant')):
@@ -310,8 +317,8 @@ def lens_table(count, models=('rational_polynomial', 'equidistant')):
     lines = [
         'Wide lenses (`draw_rig(seed, lens_model=...)`: rational_polynomial f 0.4-0.55 width, '
         'barrel, decentred; equidistant f 0.28-0.38 width), rendered and detected by us; '
-        'worst camera per figure; ratio = ours (stage, distortion_model auto) / OpenCV '
-        '(cv2.calibrateCamera + cv2.stereoCalibrate with CALIB_RATIONAL_MODEL, or '
+        'worst camera per figure; ratio = ours (stage or handheld, distortion_model auto) / '
+        'OpenCV (cv2.calibrateCamera + cv2.stereoCalibrate with CALIB_RATIONAL_MODEL, or '
         'cv2.fisheye.calibrate + cv2.fisheye.stereoCalibrate) on the same corners. '
         '`distortion` compares each lens over the image with the true K, so a fit whose '
         'focal length and distortion trade (the rational model) shows it there.',
@@ -322,29 +329,42 @@ def lens_table(count, models=('rational_polynomial', 'equidistant')):
         rows = []
         for seed in range(count):
             rows.append(lens_run(seed, model))
-            print(f'{model} rig {seed}: {rows[-1]["chosen"]}', flush=True)
+            print(f'{model} rig {seed}: {rows[-1]["chosen"]} {rows[-1]["time"]}', flush=True)
         results += rows
+        failed = [seed for seed, r in enumerate(rows) if r['opencv'] is None]
+        rows = [r for r in rows if r['opencv'] is not None]
         lines += [
             f'### {model}',
             '',
-            '| figure | ours / OpenCV median | max | ours median | OpenCV median |',
-            '|---|---|---|---|---|',
+            '| figure | stage / OpenCV median | max | handheld / OpenCV median | max | '
+            'stage median | handheld median | OpenCV median |',
+            '|---|---|---|---|---|---|---|---|',
         ]
+        if failed:
+            lines[-3:-3] = [f'OpenCV failed on rigs {failed} (left out below).', '']
         for figure in FIGURES:
-            ratios = [r['stage'][figure] / max(r['opencv'][figure], 1e-300) for r in rows]
+            ratios = {
+                mode: [r[mode][figure] / max(r['opencv'][figure], 1e-300) for r in rows]
+                for mode in ('stage', 'handheld')
+            }
+            medians = [np.median([r[m][figure] for r in rows]) for m in ('stage', 'handheld')]
             lines.append(
-                f'| {figure} | {np.median(ratios):.2f} | {np.max(ratios):.2f} | '
-                f'{np.median([r["stage"][figure] for r in rows]):.2e} | '
+                f'| {figure} | {np.median(ratios["stage"]):.2f} | {np.max(ratios["stage"]):.2f} '
+                f'| {np.median(ratios["handheld"]):.2f} | {np.max(ratios["handheld"]):.2f} | '
+                f'{medians[0]:.2e} | {medians[1]:.2e} | '
                 f'{np.median([r["opencv"][figure] for r in rows]):.2e} |'
             )
-        chosen = [m for r in rows for m in r['chosen'].values()]
-        lines += [
-            '',
-            f'Models ours chose ({len(chosen)} cameras): '
-            + ', '.join(f'{m} {chosen.count(m)}' for m in sorted(set(chosen)))
-            + '.',
-            '',
-        ]
+        lines.append('')
+        for mode in ('stage', 'handheld'):
+            chosen = [m for r in rows for m in r['chosen'][mode].values()]
+            seconds = np.median([r['time'][mode] for r in rows])
+            lines.append(
+                f'Models ours chose, {mode} ({len(chosen)} cameras): '
+                + ', '.join(f'{m} {chosen.count(m)}' for m in sorted(set(chosen)))
+                + f'; median {seconds:.1f} s a rig (OpenCV '
+                + f'{np.median([r["time"]["opencv"] for r in rows]):.1f} s).'
+            )
+        lines.append('')
     return lines, results
 
 
